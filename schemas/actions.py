@@ -1,0 +1,82 @@
+"""The action envelope: the messages on an action's five keys, as ROS 2 lays them out."""
+
+from __future__ import annotations
+
+import enum
+from typing import Annotated, Generic, TypeVar
+
+from msgspec import Meta
+
+from schemas.common import Frozen, Text
+
+G = TypeVar("G")
+F = TypeVar("F")
+R = TypeVar("R")
+
+GoalId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
+
+
+class GoalState(enum.StrEnum):
+    ACCEPTED = "accepted"
+    EXECUTING = "executing"
+    CANCELING = "canceling"
+    SUCCEEDED = "succeeded"
+    CANCELED = "canceled"
+    ABORTED = "aborted"
+    REJECTED = "rejected"
+
+    @property
+    def terminal(self) -> bool:
+        return self in (GoalState.SUCCEEDED, GoalState.CANCELED, GoalState.ABORTED, GoalState.REJECTED)
+
+
+class SendGoal(Frozen, Generic[G]):
+    """Request on `X/_action/send_goal`."""
+
+    goal_id: GoalId
+    goal: G
+
+
+class GoalResponse(Frozen):
+    """Reply on `X/_action/send_goal`: accepted, or rejected with the reason."""
+
+    goal_id: GoalId
+    accepted: bool
+    reason: Text = ""
+
+
+class CancelGoal(Frozen):
+    goal_id: GoalId
+
+
+class CancelResponse(Frozen):
+    goal_id: GoalId
+    accepted: bool
+    reason: Text = ""
+
+
+class GetResult(Frozen):
+    goal_id: GoalId
+
+
+class ResultResponse(Frozen, Generic[R]):
+    """Reply on `X/_action/get_result`, sent once the goal is terminal."""
+
+    goal_id: GoalId
+    state: GoalState
+    result: R | None = None
+    message: Text = ""
+
+
+class Feedback(Frozen, Generic[F]):
+    goal_id: GoalId
+    feedback: F
+
+
+class GoalStatus(Frozen):
+    """Published on `X/_action/status` at every transition."""
+
+    goal_id: GoalId
+    state: GoalState
+    message: Text = ""
+    stamp: float = 0.0

@@ -1,0 +1,75 @@
+"""Geometry, bounded scalar types and the error value every service replies with on failure."""
+
+from __future__ import annotations
+
+import enum
+from typing import Annotated
+
+import msgspec
+from msgspec import Meta
+
+# Bounded scalars. SI units throughout: metres, radians, seconds, kilograms.
+Metres = Annotated[float, Meta(ge=-1000.0, le=1000.0)]
+Radians = Annotated[float, Meta(ge=-100.0, le=100.0)]
+Seconds = Annotated[float, Meta(ge=0.0, le=3600.0)]
+Kilograms = Annotated[float, Meta(ge=0.0, le=1000.0)]
+Name = Annotated[str, Meta(min_length=1, max_length=200)]
+Text = Annotated[str, Meta(max_length=4000)]
+Id = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+
+
+class Frozen(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base for every message: immutable, keyword-only, unknown fields are an error."""
+
+
+class Pose2D(Frozen):
+    """A base pose on the floor, in the map frame."""
+
+    x: Metres
+    y: Metres
+    yaw: Radians = 0.0
+
+
+class Vec3(Frozen):
+    x: Metres
+    y: Metres
+    z: Metres
+
+
+class Stage(enum.StrEnum):
+    """Where in the pipeline a plan was decided."""
+
+    PARSE = "parse"
+    RESOLVE = "resolve"
+    SAFETY = "safety"
+    EXECUTE = "execute"
+
+
+class ErrorKind(enum.StrEnum):
+    """Failure kinds, after pyrobosim's ExecutionResult: named for what went wrong."""
+
+    INVALID_REQUEST = "invalid_request"
+    UNKNOWN_ACTION = "unknown_action"
+    UNKNOWN_NAME = "unknown_name"
+    AMBIGUOUS_NAME = "ambiguous_name"
+    VETOED = "vetoed"
+    ESTOP = "estop"
+    PRECONDITION = "precondition"
+    PLANNING = "planning"
+    EXECUTION = "execution"
+    POSTCONDITION = "postcondition"
+    CANCELED = "canceled"
+    TIMEOUT = "timeout"
+    UNAVAILABLE = "unavailable"
+    UNAUTHORIZED = "unauthorized"
+    INTERNAL = "internal"
+
+
+class ServiceError(Frozen, tag="error"):
+    """A failure as a value: what kind, a message a person can act on, and where it applies."""
+
+    kind: ErrorKind
+    message: Text
+    stage: Stage | None = None
+    step: int | None = None
+    candidates: list[str] = []

@@ -1,0 +1,202 @@
+"""Every key expression, defined once, each paired with its message type.
+
+All keys live under `tether/<robot>/`. Topics are publications; services are queryables; an
+action `X` uses the five keys zenoh-bridge-ros2dds uses for ROS 2 actions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+from schemas.actions import (
+    CancelGoal,
+    CancelResponse,
+    Feedback,
+    GetResult,
+    GoalResponse,
+    GoalStatus,
+    ResultResponse,
+    SendGoal,
+)
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult
+from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
+from schemas.robot import (
+    FollowJointTrajectoryFeedback,
+    FollowJointTrajectoryGoal,
+    FollowJointTrajectoryResult,
+    GripperCommandFeedback,
+    GripperCommandGoal,
+    GripperCommandResult,
+    JointState,
+    NavigateToPoseFeedback,
+    NavigateToPoseGoal,
+    NavigateToPoseResult,
+    Odometry,
+    Twist,
+)
+from schemas.safety import EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
+from schemas.trace import RecorderStatus, TraceRecord
+from schemas.world import Empty, GroundTruth, PerceivedHumans, PerceivedObjects
+
+ROOT = "tether"
+T = TypeVar("T")
+Q = TypeVar("Q")
+A = TypeVar("A")
+G = TypeVar("G")
+F = TypeVar("F")
+R = TypeVar("R")
+
+
+def prefix(robot: str) -> str:
+    return f"{ROOT}/{robot}"
+
+
+@dataclass(frozen=True)
+class Topic(Generic[T]):
+    path: str
+    type: type[T]
+
+    def key(self, robot: str) -> str:
+        return f"{prefix(robot)}/{self.path}"
+
+
+@dataclass(frozen=True)
+class Service(Generic[Q, A]):
+    path: str
+    request: type[Q]
+    reply: Any  # a Struct type or a tagged union of them
+
+    def key(self, robot: str) -> str:
+        return f"{prefix(robot)}/{self.path}"
+
+
+@dataclass(frozen=True)
+class Action(Generic[G, F, R]):
+    path: str
+    goal: type[G]
+    feedback_type: type[F]
+    result: type[R]
+    send_goal: Service[Any, GoalResponse] = field(init=False)
+    cancel_goal: Service[CancelGoal, CancelResponse] = field(init=False)
+    get_result: Service[GetResult, Any] = field(init=False)
+    feedback: Topic[Any] = field(init=False)
+    status: Topic[GoalStatus] = field(init=False)
+
+    def __post_init__(self) -> None:
+        base = f"{self.path}/_action"
+        set_ = object.__setattr__
+        set_(self, "send_goal", Service(f"{base}/send_goal", SendGoal[self.goal], GoalResponse))  # type: ignore[name-defined]
+        set_(self, "cancel_goal", Service(f"{base}/cancel_goal", CancelGoal, CancelResponse))
+        set_(self, "get_result", Service(f"{base}/get_result", GetResult, ResultResponse[self.result]))  # type: ignore[name-defined]
+        set_(self, "feedback", Topic(f"{base}/feedback", Feedback[self.feedback_type]))  # type: ignore[name-defined]
+        set_(self, "status", Topic(f"{base}/status", GoalStatus))
+
+    def key(self, robot: str) -> str:
+        return f"{prefix(robot)}/{self.path}"
+
+
+# The planner side.
+PLAN_PARSE: Service[PlanText, ParseReply] = Service("plan/parse", PlanText, ParseReply)
+PLAN_RESOLVE: Service[Plan, ResolveReply] = Service("plan/resolve", Plan, ResolveReply)
+EXECUTE_PLAN = Action("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, ExecutePlanResult)
+
+# Commands to safety: the only doors towards the robot.
+PLAN_CHECK: Service[GroundedPlan, PlanCheckReply] = Service("safety/check_plan", GroundedPlan, PlanCheckReply)
+CMD_NAVIGATE = Action("cmd/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
+CMD_TRAJECTORY = Action(
+    "cmd/follow_joint_trajectory", FollowJointTrajectoryGoal, FollowJointTrajectoryFeedback, FollowJointTrajectoryResult
+)
+CMD_GRIPPER = Action("cmd/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
+CMD_VEL = Topic("cmd/cmd_vel", Twist)
+
+# Safety itself.
+HEARTBEAT = Topic("safety/heartbeat", SafetyStatus)
+ESTOP = Topic("safety/estop", EStop)
+SAFETY_EVENTS = Topic("safety/events", SafetyEvent)
+RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply)
+
+# The robot interface: only safety writes the command keys here.
+ROBOT_NAVIGATE = Action("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
+ROBOT_TRAJECTORY = Action(
+    "robot/follow_joint_trajectory",
+    FollowJointTrajectoryGoal,
+    FollowJointTrajectoryFeedback,
+    FollowJointTrajectoryResult,
+)
+ROBOT_GRIPPER = Action("robot/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
+ROBOT_CMD_VEL = Topic("robot/cmd_vel", Twist)
+JOINT_STATES = Topic("robot/joint_states", JointState)
+ODOM = Topic("robot/odom", Odometry)
+
+# What the robot perceives.
+OBJECTS = Topic("world/objects", PerceivedObjects)
+HUMANS = Topic("world/humans", PerceivedHumans)
+
+# Simulator and recorder introspection.
+GROUND_TRUTH: Service[Empty, GroundTruth] = Service("sim/ground_truth", Empty, GroundTruth)
+RECORDER_STATUS: Service[Empty, RecorderStatus] = Service("recorder/status", Empty, RecorderStatus)
+
+ACTIONS: tuple[Action[Any, Any, Any], ...] = (
+    EXECUTE_PLAN,
+    CMD_NAVIGATE,
+    CMD_TRAJECTORY,
+    CMD_GRIPPER,
+    ROBOT_NAVIGATE,
+    ROBOT_TRAJECTORY,
+    ROBOT_GRIPPER,
+)
+TOPICS: tuple[Topic[Any], ...] = (
+    CMD_VEL,
+    HEARTBEAT,
+    ESTOP,
+    SAFETY_EVENTS,
+    ROBOT_CMD_VEL,
+    JOINT_STATES,
+    ODOM,
+    OBJECTS,
+    HUMANS,
+    *(a.feedback for a in ACTIONS),
+    *(a.status for a in ACTIONS),
+)
+SERVICES: tuple[Service[Any, Any], ...] = (
+    PLAN_PARSE,
+    PLAN_RESOLVE,
+    PLAN_CHECK,
+    RESET,
+    GROUND_TRUTH,
+    RECORDER_STATUS,
+    *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result)),
+)
+
+# Command keys under robot/**: what only safety may write.
+ROBOT_COMMANDS = "robot/**"
+
+# Services write these; their paths take the service name.
+TRACE_TOPIC_TYPE = TraceRecord
+
+
+def alive_key(robot: str, service: str = "*") -> str:
+    return f"{prefix(robot)}/alive/{service}"
+
+
+def trace_key(robot: str, service: str, path: str) -> str:
+    return f"{prefix(robot)}/_trace/{service}/{path}"
+
+
+def all_keys(robot: str) -> str:
+    return f"{prefix(robot)}/**"
+
+
+def topic_for_key(robot: str, key: str) -> Topic[Any] | None:
+    """The topic a published key belongs to, for the recorder's schemas; None if not ours."""
+    root = prefix(robot) + "/"
+    if not key.startswith(root):
+        return None
+    path = key[len(root) :]
+    if path.startswith("_trace/"):
+        return Topic(path, TraceRecord)
+    for topic in TOPICS:
+        if topic.path == path:
+            return topic
+    return None

@@ -1,0 +1,111 @@
+"""The robot interface: motion commands, action goals and the robot's own state."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from msgspec import Meta
+
+from schemas.common import Frozen, Id, Metres, Name, Pose2D, Seconds, Text
+
+JointName = Annotated[str, Meta(min_length=1, max_length=64)]
+MetresPerSecond = Annotated[float, Meta(ge=-100.0, le=100.0)]
+RadiansPerSecond = Annotated[float, Meta(ge=-100.0, le=100.0)]
+MAX_JOINTS = 16
+MAX_TRAJECTORY_POINTS = 2000
+MAX_PATH_POINTS = 500
+
+
+class Twist(Frozen):
+    """cmd_vel for the base: forward speed and turn rate in the base frame."""
+
+    linear_x: MetresPerSecond = 0.0
+    angular_z: RadiansPerSecond = 0.0
+
+
+class JointState(Frozen):
+    stamp: float
+    name: Annotated[list[JointName], Meta(max_length=MAX_JOINTS)]
+    position: Annotated[list[float], Meta(max_length=MAX_JOINTS)]
+    velocity: Annotated[list[float], Meta(max_length=MAX_JOINTS)] = []
+
+
+class Odometry(Frozen):
+    """Base pose and measured velocity. `stamp` is wall time, `sim_time` the simulator's clock."""
+
+    stamp: float
+    sim_time: float
+    pose: Pose2D
+    linear_x: float
+    angular_z: float
+
+
+# navigate_to_pose
+
+
+class NavigateToPoseGoal(Frozen):
+    """Drive the base to `pose`, following `path` (map-frame waypoints) when one is given."""
+
+    pose: Pose2D
+    path: Annotated[list[Pose2D], Meta(max_length=MAX_PATH_POINTS)] = []
+    max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] = 0.5
+
+
+class NavigateToPoseFeedback(Frozen):
+    pose: Pose2D
+    distance_remaining: Metres
+
+
+class NavigateToPoseResult(Frozen):
+    pose: Pose2D
+    message: Text = ""
+
+
+# follow_joint_trajectory
+
+
+class TrajectoryPoint(Frozen):
+    positions: Annotated[list[float], Meta(max_length=MAX_JOINTS)]
+    time_from_start: Seconds
+
+
+class FollowJointTrajectoryGoal(Frozen):
+    joint_names: Annotated[list[JointName], Meta(min_length=1, max_length=MAX_JOINTS)]
+    points: Annotated[list[TrajectoryPoint], Meta(min_length=1, max_length=MAX_TRAJECTORY_POINTS)]
+    goal_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.02
+
+
+class FollowJointTrajectoryFeedback(Frozen):
+    desired: list[float]
+    actual: list[float]
+    time_from_start: float
+
+
+class FollowJointTrajectoryResult(Frozen):
+    error: Annotated[float, Meta(ge=0.0)]
+    message: Text = ""
+
+
+# gripper_command
+
+
+class GripperCommandGoal(Frozen):
+    """Open or close the gripper. `position` is the finger gap in metres.
+
+    `object_id` names what a closing gripper is meant to hold, so safety can check the payload.
+    """
+
+    position: Annotated[float, Meta(ge=0.0, le=0.08)]
+    max_effort: Annotated[float, Meta(ge=0.0, le=140.0)] = 40.0
+    object_id: Id | None = None
+
+
+class GripperCommandFeedback(Frozen):
+    position: float
+
+
+class GripperCommandResult(Frozen):
+    position: float
+    stalled: bool
+    reached_goal: bool
+    holding: Name | None = None

@@ -1,0 +1,150 @@
+"""The world file (the prior) and what perception reports about it."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import msgspec
+from msgspec import Meta
+
+from schemas.common import Frozen, Id, Kilograms, Metres, Name, Pose2D, Text, Vec3
+
+Point2 = Annotated[list[Metres], Meta(min_length=2, max_length=2)]
+Polygon = Annotated[list[Point2], Meta(min_length=3, max_length=256)]
+Rgba = Annotated[list[Annotated[float, Meta(ge=0.0, le=1.0)]], Meta(min_length=4, max_length=4)]
+Size = Annotated[float, Meta(gt=0.0, le=50.0)]
+
+
+class Extent(Frozen):
+    x: Size
+    y: Size
+    z: Size
+
+
+class Room(Frozen):
+    id: Id
+    name: Name
+    polygon: Polygon
+    synonyms: list[Name] = []
+
+
+class KeepOut(Frozen):
+    id: Id
+    name: Name
+    polygon: Polygon
+    reason: Text = ""
+
+
+class Place(Frozen):
+    """A named spot the base can go to (a charging dock, a room's centre)."""
+
+    id: Id
+    name: Name
+    pose: Pose2D
+    synonyms: list[Name] = []
+
+
+class Furniture(Frozen):
+    """An axis-aligned box whose top is a surface; `approach` is where the base stands to use it."""
+
+    id: Id
+    name: Name
+    center: Point2
+    size: Extent
+    approach: Pose2D
+    rgba: Rgba = msgspec.field(default_factory=lambda: [0.6, 0.45, 0.3, 1.0])
+    synonyms: list[Name] = []
+
+
+class WorldObject(Frozen):
+    """A movable object resting on the furniture `support`; `offset` is its place on that top."""
+
+    id: Id
+    name: Name
+    cls: Name
+    color: Name
+    shape: Annotated[str, Meta(pattern="^(cylinder|box|sphere)$")]
+    size: Extent
+    mass: Kilograms
+    support: Id
+    offset: Point2 = msgspec.field(default_factory=lambda: [0.0, 0.0])
+    rgba: Rgba = msgspec.field(default_factory=lambda: [0.5, 0.5, 0.5, 1.0])
+    synonyms: list[Name] = []
+
+
+class Human(Frozen):
+    id: Id
+    name: Name
+    pose: Pose2D
+    synonyms: list[Name] = []
+
+
+class RobotSpec(Frozen):
+    """The mobile manipulator: a box base carrying the arm at `arm_mount` (base frame)."""
+
+    base_size: Extent
+    arm_mount: Vec3
+    start: Pose2D
+    home_joints: Annotated[list[float], Meta(min_length=7, max_length=7)]
+    payload: Kilograms
+    max_linear_speed: Annotated[float, Meta(gt=0.0, le=3.0)]
+    max_angular_speed: Annotated[float, Meta(gt=0.0, le=6.0)]
+    # How close the base must stand to an object for the arm to reach it.
+    reach: Annotated[float, Meta(gt=0.0, le=2.0)] = 0.85
+    arm_urdf: Name = "franka_panda/panda.urdf"
+
+
+class World(Frozen):
+    name: Name
+    rooms: Annotated[list[Room], Meta(min_length=1)]
+    furniture: list[Furniture]
+    objects: list[WorldObject]
+    robot: RobotSpec
+    keep_out: list[KeepOut] = []
+    places: list[Place] = []
+    humans: list[Human] = []
+
+
+# What perception reports.
+
+
+class PerceivedObject(Frozen):
+    id: Id
+    name: Name
+    cls: Name
+    color: Name
+    position: Vec3
+    room: Id | None = None
+    on: Id | None = None  # a furniture id, "gripper", or None when on the floor
+    stamp: float = 0.0
+
+
+class PerceivedObjects(Frozen):
+    stamp: float
+    objects: list[PerceivedObject]
+
+
+class PerceivedHuman(Frozen):
+    id: Id
+    name: Name
+    pose: Pose2D
+    room: Id | None = None
+
+
+class PerceivedHumans(Frozen):
+    stamp: float
+    humans: list[PerceivedHuman]
+
+
+class Empty(Frozen):
+    pass
+
+
+class GroundTruth(Frozen):
+    """The simulator's own state, for verifying outcomes: never used to decide anything."""
+
+    sim_time: float
+    robot: Pose2D
+    linear_speed: float
+    holding: Id | None
+    objects: list[PerceivedObject]

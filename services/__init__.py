@@ -1,0 +1,1 @@
+"""tether's services: each a small package whose logic does not import zenoh."""

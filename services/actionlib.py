@@ -1,0 +1,245 @@
+"""Actions over Zenoh on the five ROS 2 action keys: a goal server and a client."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+from schemas.actions import (
+    CancelGoal,
+    CancelResponse,
+    Feedback,
+    GetResult,
+    GoalResponse,
+    GoalState,
+    GoalStatus,
+    ResultResponse,
+    SendGoal,
+)
+from schemas.common import ErrorKind, ServiceError
+from schemas.keys import Action
+from services.runtime import CallError, Node
+
+log = logging.getLogger(__name__)
+
+G = TypeVar("G")
+F = TypeVar("F")
+R = TypeVar("R")
+
+# How long a finished goal's result stays available to get_result.
+RESULT_RETENTION = 300.0
+MAX_RESULT_WAIT = 3600.0
+
+
+@dataclass(frozen=True)
+class Outcome(Generic[R]):
+    """What a goal ended as: the terminal state, its result value and a message for people."""
+
+    state: GoalState
+    result: R | None = None
+    message: str = ""
+
+
+@dataclass
+class GoalHandle(Generic[G, F]):
+    """The executing side of one goal: read the goal, publish feedback, watch for cancel or abort."""
+
+    goal_id: str
+    goal: G
+    _publish_feedback: Callable[[str, F], None]
+    cancel_requested: threading.Event = field(default_factory=threading.Event)
+    abort_reason: str = ""
+    done: threading.Event = field(default_factory=threading.Event)
+    outcome: Outcome[Any] | None = None
+    finished_at: float = 0.0
+
+    def feedback(self, message: F) -> None:
+        self._publish_feedback(self.goal_id, message)
+
+    @property
+    def should_stop(self) -> bool:
+        return self.cancel_requested.is_set()
+
+    def wait_stop(self, timeout: float) -> bool:
+        """Wait up to `timeout` for a cancel or abort; the clock for loops that pace themselves."""
+        return self.cancel_requested.wait(timeout)
+
+
+class ActionServer(Generic[G, F, R]):
+    """Serves one action. Each accepted goal runs `execute` on its own thread.
+
+    `accept` returns None to accept a goal or the reason to reject it. With `exclusive`, a goal
+    that arrives while another runs is rejected.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        action: Action[G, F, R],
+        execute: Callable[[GoalHandle[G, F]], Outcome[R]],
+        *,
+        accept: Callable[[G], str | None] | None = None,
+        exclusive: bool = True,
+    ) -> None:
+        self._node = node
+        self._action = action
+        self._execute = execute
+        self._accept = accept
+        self._exclusive = exclusive
+        self._goals: dict[str, GoalHandle[G, F]] = {}
+        self._lock = threading.Lock()
+        self._feedback = node.publisher(action.feedback)
+        self._status = node.publisher(action.status)
+        node.serve(action.send_goal, self._on_send_goal)
+        node.serve(action.cancel_goal, self._on_cancel)
+        node.serve(action.get_result, self._on_get_result)
+
+    def active(self) -> list[GoalHandle[G, F]]:
+        with self._lock:
+            return [g for g in self._goals.values() if not g.done.is_set()]
+
+    def abort_all(self, reason: str) -> None:
+        """Stop every running goal (e-stop, lost heartbeat); each ends as aborted with `reason`."""
+        for handle in self.active():
+            handle.abort_reason = reason
+            handle.cancel_requested.set()
+
+    def _publish_status(self, goal_id: str, state: GoalState, message: str = "") -> None:
+        self._status.put(GoalStatus(goal_id=goal_id, state=state, message=message, stamp=time.time()))
+
+    def _on_send_goal(self, request: SendGoal[G]) -> GoalResponse:
+        reason = self._accept(request.goal) if self._accept else None
+        with self._lock:
+            self._forget_old()
+            if reason is None and request.goal_id in self._goals:
+                reason = f"goal id {request.goal_id} was already used"
+            if reason is None and self._exclusive and any(not g.done.is_set() for g in self._goals.values()):
+                reason = f"{self._action.path} is busy with another goal"
+            if reason is not None:
+                log.info("rejected goal %s on %s: %s", request.goal_id, self._action.path, reason)
+                return GoalResponse(goal_id=request.goal_id, accepted=False, reason=reason)
+            handle: GoalHandle[G, F] = GoalHandle(request.goal_id, request.goal, self._publish_feedback)
+            self._goals[request.goal_id] = handle
+        self._publish_status(handle.goal_id, GoalState.ACCEPTED)
+        threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
+        return GoalResponse(goal_id=request.goal_id, accepted=True)
+
+    def _publish_feedback(self, goal_id: str, message: F) -> None:
+        self._feedback.put(Feedback(goal_id=goal_id, feedback=message))
+
+    def _run(self, handle: GoalHandle[G, F]) -> None:
+        self._publish_status(handle.goal_id, GoalState.EXECUTING)
+        try:
+            outcome: Outcome[Any] = self._execute(handle)
+        except Exception as exc:
+            log.exception("goal %s on %s failed", handle.goal_id, self._action.path)
+            outcome = Outcome(GoalState.ABORTED, None, f"{self._action.path} failed: {exc}")
+        if handle.abort_reason and outcome.state is not GoalState.SUCCEEDED:
+            outcome = Outcome(GoalState.ABORTED, outcome.result, handle.abort_reason)
+        handle.outcome = outcome
+        handle.finished_at = time.monotonic()
+        handle.done.set()
+        self._publish_status(handle.goal_id, outcome.state, outcome.message)
+
+    def _on_cancel(self, request: CancelGoal) -> CancelResponse:
+        with self._lock:
+            handle = self._goals.get(request.goal_id)
+        if handle is None or handle.done.is_set():
+            return CancelResponse(goal_id=request.goal_id, accepted=False, reason="no such running goal")
+        handle.cancel_requested.set()
+        self._publish_status(handle.goal_id, GoalState.CANCELING)
+        return CancelResponse(goal_id=request.goal_id, accepted=True)
+
+    def _on_get_result(self, request: GetResult) -> ResultResponse[R]:
+        with self._lock:
+            handle = self._goals.get(request.goal_id)
+        if handle is None:
+            raise CallError(ServiceError(kind=ErrorKind.INVALID_REQUEST, message=f"unknown goal {request.goal_id}"))
+        handle.done.wait(MAX_RESULT_WAIT)
+        outcome = handle.outcome or Outcome(GoalState.EXECUTING, None, "still running")
+        return ResultResponse(
+            goal_id=handle.goal_id, state=outcome.state, result=outcome.result, message=outcome.message
+        )
+
+    def _forget_old(self) -> None:
+        cutoff = time.monotonic() - RESULT_RETENTION
+        for goal_id in [g for g, h in self._goals.items() if h.done.is_set() and h.finished_at < cutoff]:
+            del self._goals[goal_id]
+
+
+class GoalRejected(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+class ClientGoal(Generic[G, F, R]):
+    def __init__(self, client: ActionClient[G, F, R], goal_id: str) -> None:
+        self._client = client
+        self.goal_id = goal_id
+
+    def result(self, timeout: float) -> ResultResponse[R]:
+        """Wait for the goal to end; raises CallError if no result comes within `timeout`."""
+        return self._client._node.call(
+            self._client._action.get_result, GetResult(goal_id=self.goal_id), timeout=timeout
+        )
+
+    def cancel(self, timeout: float = 2.0) -> CancelResponse:
+        return self._client._node.call(
+            self._client._action.cancel_goal, CancelGoal(goal_id=self.goal_id), timeout=timeout
+        )
+
+
+class ActionClient(Generic[G, F, R]):
+    """Sends goals on an action's keys; `on_feedback(goal_id, feedback)` hears every goal's feedback."""
+
+    def __init__(
+        self,
+        node: Node,
+        action: Action[G, F, R],
+        on_feedback: Callable[[str, F], None] | None = None,
+    ) -> None:
+        self._node = node
+        self._action = action
+        if on_feedback is not None:
+            callback = on_feedback
+            node.subscribe(action.feedback, lambda fb: callback(fb.goal_id, fb.feedback))
+
+    def send(self, goal: G, *, timeout: float = 5.0) -> ClientGoal[G, F, R]:
+        goal_id = uuid.uuid4().hex
+        response = self._node.call(self._action.send_goal, SendGoal(goal_id=goal_id, goal=goal), timeout=timeout)
+        if not response.accepted:
+            raise GoalRejected(response.reason)
+        return ClientGoal(self, goal_id)
+
+    def run(self, goal: G, *, timeout: float, cancel: threading.Event | None = None) -> ResultResponse[R]:
+        """Send `goal` and wait for its result; cancel it if `cancel` is set meanwhile."""
+        handle = self.send(goal)
+        if cancel is None:
+            return handle.result(timeout)
+        box: dict[str, Any] = {}
+
+        def wait() -> None:
+            try:
+                box["result"] = handle.result(timeout)
+            except CallError as exc:
+                box["error"] = exc
+
+        waiter = threading.Thread(target=wait, daemon=True)
+        waiter.start()
+        while waiter.is_alive():
+            if cancel.wait(0.05) and "cancel_sent" not in box:
+                box["cancel_sent"] = True
+                try:
+                    handle.cancel()
+                except CallError as exc:
+                    log.warning("cancel of %s failed: %s", handle.goal_id, exc)
+            waiter.join(0.0 if not cancel.is_set() else 0.05)
+        if "error" in box:
+            raise box["error"]
+        return box["result"]  # type: ignore[no-any-return]

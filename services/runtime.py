@@ -1,0 +1,328 @@
+"""The shared runtime: Zenoh sessions from config, codecs, typed pub/sub/query, liveliness, shutdown."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, TypeVar, cast
+
+import msgspec
+import zenoh
+
+from schemas import keys
+from schemas.common import ErrorKind, ServiceError
+from schemas.keys import Service, Topic
+from schemas.trace import TraceRecord
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+Q = TypeVar("Q")
+A = TypeVar("A")
+
+# Every service listens on its own loopback port, base port + offset, and connects to the others,
+# so any one of them can restart and find the rest without a router or multicast.
+SERVICES = ("sim", "safety", "parser", "resolver", "executor", "recorder")
+DEFAULT_BASE_PORT = 7447
+DEFAULT_ROBOT = "robot1"
+# Bigger queries are refused before decoding; a service may raise its own limit.
+MAX_REQUEST_BYTES = 1024 * 1024
+TRACE_PAYLOAD_LIMIT = 64 * 1024
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """Where a process finds the others: the robot's key prefix and the Zenoh configuration."""
+
+    robot: str = DEFAULT_ROBOT
+    base_port: int = DEFAULT_BASE_PORT
+    host: str = "127.0.0.1"
+    zenoh_config: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not self.robot.replace("_", "").replace("-", "").isalnum():
+            raise ValueError(f"robot name {self.robot!r} must be letters, digits, '-' or '_'")
+        if not 1024 <= self.base_port <= 65535 - len(SERVICES):
+            raise ValueError(f"base port {self.base_port} must be between 1024 and {65535 - len(SERVICES)}")
+        if self.zenoh_config is not None and not self.zenoh_config.is_file():
+            raise ValueError(f"zenoh config {self.zenoh_config} does not exist")
+
+    @classmethod
+    def from_env(cls, **overrides: Any) -> NodeSettings:
+        """Settings from TETHER_ROBOT, TETHER_BASE_PORT and TETHER_ZENOH_CONFIG, then overrides."""
+        values: dict[str, Any] = {}
+        if robot := os.environ.get("TETHER_ROBOT"):
+            values["robot"] = robot
+        if port := os.environ.get("TETHER_BASE_PORT"):
+            try:
+                values["base_port"] = int(port)
+            except ValueError:
+                raise ValueError(f"TETHER_BASE_PORT={port!r} is not a port number") from None
+        if conf := os.environ.get("TETHER_ZENOH_CONFIG"):
+            values["zenoh_config"] = Path(conf)
+        values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls(**values)
+
+    def endpoint(self, service: str) -> str:
+        return f"tcp/{self.host}:{self.base_port + SERVICES.index(service)}"
+
+    def zenoh(self, service: str | None) -> zenoh.Config:
+        """A config file when one is given; else a loopback peer that nothing outside can reach."""
+        if self.zenoh_config is not None:
+            return zenoh.Config.from_file(str(self.zenoh_config))
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        listen = [self.endpoint(service)] if service in SERVICES else []
+        connect = [self.endpoint(s) for s in SERVICES if s != service]
+        conf.insert_json5("listen/endpoints", msgspec.json.encode(listen).decode())
+        conf.insert_json5("connect/endpoints", msgspec.json.encode(connect).decode())
+        return conf
+
+
+@functools.cache
+def decoder(type_: Any) -> msgspec.json.Decoder[Any]:
+    """One decoder per type, built once."""
+    return msgspec.json.Decoder(type_)
+
+
+_encoder = msgspec.json.Encoder()
+
+
+def encode(message: Any) -> bytes:
+    return _encoder.encode(message)
+
+
+class CallError(Exception):
+    """A query got an error value back, or no reply at all."""
+
+    def __init__(self, error: ServiceError) -> None:
+        super().__init__(error.message)
+        self.error = error
+
+
+class Publisher(Generic[T]):
+    def __init__(self, publisher: zenoh.Publisher) -> None:
+        self._publisher = publisher
+
+    def put(self, message: T) -> None:
+        self._publisher.put(encode(message))
+
+
+class Node:
+    """One process's Zenoh session, bound to one robot's keys, under one service name."""
+
+    def __init__(self, service: str, settings: NodeSettings) -> None:
+        self.service = service
+        self.settings = settings
+        self.robot = settings.robot
+        self.session = zenoh.open(settings.zenoh(service))
+        self._declared: list[Any] = []
+        self._trace_publishers: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+
+    # Topics
+
+    def publisher(self, topic: Topic[T]) -> Publisher[T]:
+        pub = self.session.declare_publisher(topic.key(self.robot))
+        self._declared.append(pub)
+        return Publisher(pub)
+
+    def publish(self, topic: Topic[T], message: T) -> None:
+        self.session.put(topic.key(self.robot), encode(message))
+
+    def subscribe(self, topic: Topic[T], callback: Callable[[T], None]) -> None:
+        """Subscribe with a typed callback; a sample that does not decode is logged and dropped."""
+        dec = decoder(cast(Any, topic.type))
+        key = topic.key(self.robot)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = dec.decode(sample.payload.to_bytes())
+            except msgspec.DecodeError as exc:
+                log.warning("dropped undecodable sample on %s: %s", sample.key_expr, exc)
+                return
+            try:
+                callback(message)
+            except Exception:
+                log.exception("subscriber callback for %s failed", key)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(str(sample.key_expr), sample.payload.to_bytes())
+
+        self._declared.append(self.session.declare_subscriber(key_expr, on_sample))
+
+    # Services
+
+    def serve(
+        self,
+        service: Service[Q, A],
+        handler: Callable[[Q], A],
+        *,
+        max_request_bytes: int = MAX_REQUEST_BYTES,
+    ) -> None:
+        """Answer queries on `service`. Always replies: with the handler's value or a ServiceError.
+
+        Each query is handled on its own thread, so a handler may block (waiting for a result)
+        without holding up Zenoh. Each query and its reply is published on `_trace/**`.
+        """
+        dec = decoder(cast(Any, service.request))
+        key = service.key(self.robot)
+
+        def answer(query: zenoh.Query) -> None:
+            started = time.time()
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            request: Any = None
+            reply: bytes | None = None
+            error: ServiceError | None = None
+            try:
+                if len(raw) > max_request_bytes:
+                    error = ServiceError(
+                        kind=ErrorKind.INVALID_REQUEST,
+                        message=f"request is {len(raw)} bytes; {service.path} accepts at most {max_request_bytes}",
+                    )
+                else:
+                    try:
+                        request = dec.decode(raw)
+                    except msgspec.DecodeError as exc:
+                        error = ServiceError(
+                            kind=ErrorKind.INVALID_REQUEST, message=f"invalid request for {service.path}: {exc}"
+                        )
+                if error is None:
+                    try:
+                        reply = encode(handler(request))
+                    except CallError as exc:
+                        error = exc.error
+                    except Exception as exc:
+                        log.exception("handler for %s failed", key)
+                        error = ServiceError(kind=ErrorKind.INTERNAL, message=f"{service.path} failed: {exc}")
+                if error is not None:
+                    query.reply_err(encode(error))
+                else:
+                    assert reply is not None
+                    query.reply(key, reply)
+            finally:
+                query.drop()
+            self._trace(service.path, started, request, raw, reply, error)
+
+        def on_query(query: zenoh.Query) -> None:
+            threading.Thread(target=answer, args=(query,), name=f"q:{service.path}", daemon=True).start()
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def call(self, service: Service[Q, A], request: Q, *, timeout: float = 5.0) -> A:
+        """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
+        key = service.key(self.robot)
+        replies = self.session.get(key, payload=encode(request), timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                return decoder(service.reply).decode(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
+            payload = reply.err.payload.to_bytes() if reply.err is not None else b""
+            try:
+                error = decoder(ServiceError).decode(payload)
+            except msgspec.DecodeError:
+                error = ServiceError(kind=ErrorKind.INTERNAL, message=payload[:500].decode(errors="replace"))
+            raise CallError(error)
+        raise CallError(
+            ServiceError(kind=ErrorKind.UNAVAILABLE, message=f"no reply from {service.path} within {timeout:g} s")
+        )
+
+    def _trace(
+        self, path: str, started: float, request: Any, raw: bytes, reply: bytes | None, error: ServiceError | None
+    ) -> None:
+        record = TraceRecord(
+            stamp=started,
+            service=self.service,
+            key=path,
+            duration=time.time() - started,
+            query=msgspec.Raw(encode(request)) if request is not None else None,
+            reply=msgspec.Raw(reply) if reply is not None and len(reply) <= TRACE_PAYLOAD_LIMIT else None,
+            error=error.message if error else "",
+        )
+        if request is None and raw:
+            record = msgspec.structs.replace(record, error=f"{record.error} (request of {len(raw)} bytes not kept)")
+        key = keys.trace_key(self.robot, self.service, path)
+        with self._lock:
+            pub = self._trace_publishers.get(key)
+            if pub is None:
+                pub = self._trace_publishers[key] = self.session.declare_publisher(key)
+        try:
+            pub.put(encode(record))
+        except zenoh.ZError:
+            log.debug("trace for %s not published: session closing", path)
+
+    # Liveliness
+
+    def declare_alive(self) -> None:
+        self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.robot, self.service)))
+
+    def alive_services(self, timeout: float = 1.0) -> set[str]:
+        replies = self.session.liveliness().get(keys.alive_key(self.robot, "*"), timeout=timeout)
+        return {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
+
+    def wait_alive(self, services: Iterable[str], timeout: float) -> set[str]:
+        """Wait until all `services` hold liveliness tokens; return those still missing at the deadline."""
+        wanted = set(services)
+        seen: set[str] = set()
+        changed = threading.Condition()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            name = str(sample.key_expr).rsplit("/", 1)[-1]
+            with changed:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    seen.add(name)
+                else:
+                    seen.discard(name)
+                changed.notify_all()
+
+        sub = self.session.liveliness().declare_subscriber(keys.alive_key(self.robot, "*"), on_token, history=True)
+        try:
+            with changed:
+                changed.wait_for(lambda: wanted <= seen, timeout=timeout)
+                return wanted - seen
+        finally:
+            sub.undeclare()
+
+    def close(self) -> None:
+        for item in reversed(self._declared):
+            with contextlib.suppress(zenoh.ZError):
+                item.undeclare()
+        self._declared.clear()
+        self.session.close()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def stop_event() -> threading.Event:
+    """An event set by SIGINT or SIGTERM, for a service's main loop to wait on."""
+    stop = threading.Event()
+
+    def handle(signum: int, _frame: object) -> None:
+        log.info("received %s, shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handle)
+    signal.signal(signal.SIGTERM, handle)
+    return stop
+
+
+def configure_logging(level: str = "INFO") -> None:
+    logging.basicConfig(
+        level=os.environ.get("TETHER_LOG_LEVEL", level).upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )

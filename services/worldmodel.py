@@ -1,0 +1,131 @@
+"""The world file loaded and queried: rooms, surfaces and where things rest. Pure logic."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+
+import msgspec
+from shapely.geometry import Point, Polygon, box
+
+from schemas.common import Pose2D, Vec3
+from schemas.world import Furniture, World, WorldObject
+
+DEFAULT_WORLD = "household"
+# An object counts as resting on a surface when its bottom is within this of the top.
+SUPPORT_TOLERANCE = 0.05
+
+
+class WorldFileError(Exception):
+    """The world file is missing or does not validate; the message names the file and the field."""
+
+
+def world_path(name_or_path: str | Path = DEFAULT_WORLD) -> Path:
+    """A bundled world by name ('household'), or a path to a world file."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml", ".json") or path.exists():
+        return path
+    bundled = resources.files("services") / "worlds" / f"{name_or_path}.yaml"
+    return Path(str(bundled))
+
+
+def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:
+    path = world_path(name_or_path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise WorldFileError(f"cannot read world file {path}: {exc.strerror}") from None
+    try:
+        if path.suffix == ".json":
+            world = msgspec.json.decode(data, type=World)
+        else:
+            world = msgspec.yaml.decode(data, type=World)
+    except msgspec.ValidationError as exc:
+        raise WorldFileError(f"world file {path}: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise WorldFileError(f"world file {path} is not valid YAML/JSON: {exc}") from None
+    _check_references(world, path)
+    return world
+
+
+def _check_references(world: World, path: Path) -> None:
+    ids = [
+        *(x.id for x in world.rooms),
+        *(x.id for x in world.furniture),
+        *(x.id for x in world.objects),
+        *(x.id for x in world.places),
+        *(x.id for x in world.humans),
+    ]
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise WorldFileError(f"world file {path}: duplicate ids {duplicates}")
+    furniture = {f.id for f in world.furniture}
+    for obj in world.objects:
+        if obj.support not in furniture:
+            raise WorldFileError(f"world file {path}: object {obj.id!r} rests on unknown furniture {obj.support!r}")
+
+
+@dataclass(frozen=True)
+class WorldModel:
+    """Geometry over a World: which room a point is in, which surface holds an object."""
+
+    world: World
+
+    @cached_property
+    def room_shapes(self) -> dict[str, Polygon]:
+        return {r.id: Polygon(r.polygon) for r in self.world.rooms}
+
+    @cached_property
+    def keep_out_shapes(self) -> dict[str, Polygon]:
+        return {k.id: Polygon(k.polygon) for k in self.world.keep_out}
+
+    @cached_property
+    def furniture(self) -> dict[str, Furniture]:
+        return {f.id: f for f in self.world.furniture}
+
+    @cached_property
+    def objects(self) -> dict[str, WorldObject]:
+        return {o.id: o for o in self.world.objects}
+
+    def footprint(self, item: Furniture) -> Polygon:
+        cx, cy = item.center
+        return box(cx - item.size.x / 2, cy - item.size.y / 2, cx + item.size.x / 2, cy + item.size.y / 2)
+
+    def room_of(self, x: float, y: float) -> str | None:
+        point = Point(x, y)
+        for room_id, shape in self.room_shapes.items():
+            if shape.covers(point):
+                return room_id
+        return None
+
+    def support_under(self, position: Vec3, half_height: float) -> str | None:
+        """The furniture whose top the object at `position` rests on, or None."""
+        bottom = position.z - half_height
+        point = Point(position.x, position.y)
+        for item in self.world.furniture:
+            if abs(bottom - item.size.z) <= SUPPORT_TOLERANCE and self.footprint(item).covers(point):
+                return item.id
+        return None
+
+    def initial_position(self, obj: WorldObject) -> Vec3:
+        """Where the world file puts an object: on its support's top at its offset."""
+        support = self.furniture[obj.support]
+        return Vec3(
+            x=support.center[0] + obj.offset[0],
+            y=support.center[1] + obj.offset[1],
+            z=support.size.z + obj.size.z / 2,
+        )
+
+    def room_pose(self, room_id: str) -> Pose2D:
+        """Where the base goes for 'go to the kitchen': the room's centroid."""
+        c = self.room_shapes[room_id].centroid
+        return Pose2D(x=round(c.x, 3), y=round(c.y, 3), yaw=0.0)
+
+
+def approach_towards(target_x: float, target_y: float, distance: float, from_x: float, from_y: float) -> Pose2D:
+    """A pose `distance` short of the target on the line from (from_x, from_y), facing the target."""
+    yaw = math.atan2(target_y - from_y, target_x - from_x)
+    return Pose2D(x=target_x - distance * math.cos(yaw), y=target_y - distance * math.sin(yaw), yaw=yaw)
