@@ -9,6 +9,7 @@ import os
 import signal
 import threading
 import time
+import tomllib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from schemas.trace import TraceRecord
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+C = TypeVar("C")
 Q = TypeVar("Q")
 A = TypeVar("A")
 
@@ -319,6 +321,26 @@ def stop_event() -> threading.Event:
     signal.signal(signal.SIGINT, handle)
     signal.signal(signal.SIGTERM, handle)
     return stop
+
+
+class ConfigError(Exception):
+    """A config file is unreadable or a value in it is out of bounds; the message names both."""
+
+
+def load_config(cls: type[C], path: Path | None, section: str) -> C:
+    """A service's frozen config from the `[section]` table of a TOML file; defaults without a file."""
+    if path is None:
+        return msgspec.convert({}, cls)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    try:
+        return msgspec.convert(data.get(section, {}), cls)
+    except msgspec.ValidationError as exc:
+        raise ConfigError(f"config file {path} [{section}]: {exc}") from None
 
 
 def configure_logging(level: str = "INFO") -> None:
