@@ -34,6 +34,8 @@ R = TypeVar("R")
 # How long a finished goal's result stays available to get_result.
 RESULT_RETENTION = 300.0
 MAX_RESULT_WAIT = 3600.0
+# A cancel request with this goal id cancels every running goal, as ROS 2's zero UUID does.
+CANCEL_ALL = "all"
 
 
 @dataclass(frozen=True)
@@ -147,6 +149,12 @@ class ActionServer(Generic[G, F, R]):
         self._publish_status(handle.goal_id, outcome.state, outcome.message)
 
     def _on_cancel(self, request: CancelGoal) -> CancelResponse:
+        if request.goal_id == CANCEL_ALL:
+            running = self.active()
+            for handle in running:
+                handle.cancel_requested.set()
+                self._publish_status(handle.goal_id, GoalState.CANCELING)
+            return CancelResponse(goal_id=request.goal_id, accepted=bool(running), reason=f"{len(running)} canceled")
         with self._lock:
             handle = self._goals.get(request.goal_id)
         if handle is None or handle.done.is_set():

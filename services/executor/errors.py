@@ -1,0 +1,17 @@
+"""What can go wrong while executing a plan, as exceptions inside the executor."""
+
+
+class ExecutionError(Exception):
+    """A step could not be carried out; the message says which and why."""
+
+
+class IKFailed(ExecutionError):
+    """The arm cannot reach a target; the message names the target and the residual."""
+
+
+class PreconditionFailed(ExecutionError):
+    """A step's precondition does not hold (placing with an empty gripper, say)."""
+
+
+class Canceled(ExecutionError):
+    """The goal was canceled while the step ran."""

@@ -1,0 +1,137 @@
+"""Motions that make up the steps: driving to a pose, picking from a surface, placing onto one."""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Any
+
+from schemas.actions import GoalState, ResultResponse
+from schemas.common import Pose2D, Vec3
+from schemas.plan import PickStep, PlaceStep
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal
+from services.actionlib import GoalRejected
+from services.executor.config import ExecutorConfig
+from services.executor.errors import Canceled, ExecutionError, PreconditionFailed
+from services.executor.kinematics import ARM_JOINTS, ArmKinematics
+from services.executor.ports import Robot
+from services.worldmodel import WorldModel
+
+GRIPPER_OPEN = 0.08
+GRIPPER_CLOSED = 0.0
+
+
+def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Event) -> Any:
+    if result.state is GoalState.SUCCEEDED:
+        return result.result
+    if result.state is GoalState.CANCELED and cancel.is_set():
+        raise Canceled(f"{what} canceled")
+    raise ExecutionError(f"{what} {result.state}: {result.message}")
+
+
+class Manipulator:
+    """Turns grounded steps into goals for the robot (through safety) and checks each outcome."""
+
+    def __init__(self, robot: Robot, kinematics: ArmKinematics, world: WorldModel, config: ExecutorConfig) -> None:
+        self.robot = robot
+        self.kin = kinematics
+        self.world = world
+        self.config = config
+        self.holding: str | None = None
+
+    # Base
+
+    def drive_to(self, pose: Pose2D, cancel: threading.Event) -> None:
+        try:
+            result = self.robot.navigate(NavigateToPoseGoal(pose=pose), cancel)
+        except GoalRejected as exc:
+            raise ExecutionError(exc.reason) from None
+        check_outcome("navigation", result, cancel)
+
+    def ensure_at(self, approach: Pose2D, cancel: threading.Event) -> None:
+        """Drive to `approach` unless the base already stands there."""
+        here = self.robot.base_pose()
+        if here is not None:
+            distance = math.hypot(here.x - approach.x, here.y - approach.y)
+            yaw_error = abs(math.remainder(here.yaw - approach.yaw, math.tau))
+            if distance <= self.config.approach_tolerance and yaw_error <= self.config.approach_yaw_tolerance:
+                return
+        self.drive_to(approach, cancel)
+
+    # Arm and gripper
+
+    def _base(self) -> Pose2D:
+        base = self.robot.base_pose()
+        if base is None:
+            raise PreconditionFailed("no odometry from the robot: its pose is unknown")
+        return base
+
+    def _arm_now(self) -> list[float]:
+        q = self.robot.arm_positions()
+        if q is None:
+            raise PreconditionFailed("no joint states from the robot")
+        return q
+
+    def move_arm_to(self, q_target: list[float], what: str, cancel: threading.Event) -> None:
+        points = self.kin.joint_trajectory(self._arm_now(), q_target, self.config.max_joint_speed)
+        goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
+        try:
+            result = self.robot.trajectory(goal, cancel)
+        except GoalRejected as exc:
+            raise ExecutionError(f"{what}: {exc.reason}") from None
+        check_outcome(what, result, cancel)
+
+    def reach(self, point: Vec3, what: str, cancel: threading.Event) -> None:
+        """Bring the fingertips to `point` (map frame), hand pointing down."""
+        mount = self.world.world.robot.arm_mount
+        target = self.kin.world_to_arm(self._base(), mount, point)
+        q = self.kin.solve_top_down(target, self._arm_now())
+        self.move_arm_to([float(x) for x in q], what, cancel)
+
+    def stow(self, cancel: threading.Event) -> None:
+        self.move_arm_to(list(self.world.world.robot.home_joints), "stowing the arm", cancel)
+
+    def gripper(self, position: float, cancel: threading.Event, object_id: str | None = None) -> Any:
+        try:
+            result = self.robot.gripper(GripperCommandGoal(position=position, object_id=object_id), cancel)
+        except GoalRejected as exc:
+            raise ExecutionError(exc.reason) from None
+        return check_outcome("gripper", result, cancel)
+
+    # Steps
+
+    def pick(self, step: PickStep, cancel: threading.Event) -> None:
+        if self.holding is not None:
+            raise PreconditionFailed(f"already holding {self.holding}")
+        self.ensure_at(step.approach, cancel)
+        # Where perception sees it now, not where it was when the plan was resolved.
+        position = self.robot.object_position(step.object_id) or step.position
+        above = Vec3(x=position.x, y=position.y, z=position.z + self.config.pregrasp_height)
+        self.gripper(GRIPPER_OPEN, cancel)
+        self.reach(above, f"moving above {step.object_name}", cancel)
+        self.reach(position, f"reaching {step.object_name}", cancel)
+        result = self.gripper(GRIPPER_CLOSED, cancel, object_id=step.object_id)
+        if result is None or result.holding != step.object_id:
+            held = None if result is None else result.holding
+            self.gripper(GRIPPER_OPEN, cancel)
+            raise ExecutionError(f"gripper closed on {held or 'nothing'}, not {step.object_name}")
+        self.holding = step.object_id
+        self.reach(above, f"lifting {step.object_name}", cancel)
+        self.stow(cancel)
+
+    def place(self, step: PlaceStep, cancel: threading.Event) -> str:
+        if self.holding is None:
+            raise PreconditionFailed("the gripper holds nothing to place")
+        held = self.world.objects.get(self.holding)
+        name = held.name if held else self.holding
+        half_height = held.size.z / 2 if held else 0.05
+        self.ensure_at(step.approach, cancel)
+        at = Vec3(x=step.position.x, y=step.position.y, z=step.position.z + half_height + self.config.place_clearance)
+        above = Vec3(x=at.x, y=at.y, z=at.z + self.config.pregrasp_height)
+        self.reach(above, f"moving {name} above {step.surface_name}", cancel)
+        self.reach(at, f"lowering {name} onto {step.surface_name}", cancel)
+        self.gripper(GRIPPER_OPEN, cancel)
+        self.holding = None
+        self.reach(above, "lifting the hand", cancel)
+        self.stow(cancel)
+        return name

@@ -1,0 +1,133 @@
+"""Executor transport: the execute_plan action, the planner services and the robot through safety."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import msgspec
+
+from schemas import keys
+from schemas.actions import GoalState, ResultResponse
+from schemas.common import Pose2D, Stage, Vec3
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
+from schemas.robot import (
+    FollowJointTrajectoryGoal,
+    GripperCommandGoal,
+    JointState,
+    NavigateToPoseGoal,
+    Odometry,
+    Twist,
+)
+from schemas.world import PerceivedObjects
+from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from services.executor.config import ExecutorConfig
+from services.executor.kinematics import ARM_JOINTS
+from services.executor.runner import PlanRunner
+from services.runtime import CallError, Node
+
+log = logging.getLogger(__name__)
+
+
+class NodePlanner:
+    """Parser, resolver and safety's plan check, reached by queries."""
+
+    def __init__(self, node: Node, config: ExecutorConfig) -> None:
+        self.node = node
+        self.config = config
+
+    def _call(self, stage: Stage, service: Any, request: Any, timeout: float) -> Any:
+        try:
+            return self.node.call(service, request, timeout=timeout)
+        except CallError as exc:
+            raise CallError(msgspec.structs.replace(exc.error, stage=stage)) from None
+
+    def parse(self, text: str, fmt: str) -> ParseReply:
+        request = PlanText(text=text, format=fmt)  # type: ignore[arg-type]
+        return self._call(Stage.PARSE, keys.PLAN_PARSE, request, self.config.parse_timeout)  # type: ignore[no-any-return]
+
+    def resolve(self, plan: Plan) -> ResolveReply:
+        return self._call(Stage.RESOLVE, keys.PLAN_RESOLVE, plan, self.config.resolve_timeout)  # type: ignore[no-any-return]
+
+    def check(self, plan: GroundedPlan) -> PlanCheckReply:
+        return self._call(Stage.SAFETY, keys.PLAN_CHECK, plan, self.config.check_timeout)  # type: ignore[no-any-return]
+
+
+class NodeRobot:
+    """The robot as the executor may reach it: goals on cmd/** (safety), state from robot/** topics."""
+
+    def __init__(self, node: Node, config: ExecutorConfig) -> None:
+        self.config = config
+        self._navigate = ActionClient(node, keys.CMD_NAVIGATE)
+        self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY)
+        self._gripper = ActionClient(node, keys.CMD_GRIPPER)
+        self._cmd_vel = node.publisher(keys.CMD_VEL)
+        self._odom: Odometry | None = None
+        self._joints: JointState | None = None
+        self._objects: PerceivedObjects | None = None
+        node.subscribe(keys.ODOM, self._set_odom)
+        node.subscribe(keys.JOINT_STATES, self._set_joints)
+        node.subscribe(keys.OBJECTS, self._set_objects)
+
+    def _set_odom(self, msg: Odometry) -> None:
+        self._odom = msg
+
+    def _set_joints(self, msg: JointState) -> None:
+        self._joints = msg
+
+    def _set_objects(self, msg: PerceivedObjects) -> None:
+        self._objects = msg
+
+    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._navigate.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+
+    def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._trajectory.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+
+    def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._gripper.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+
+    def cmd_vel(self, twist: Twist) -> None:
+        self._cmd_vel.put(twist)
+
+    def base_pose(self) -> Pose2D | None:
+        odom = self._odom
+        return odom.pose if odom else None
+
+    def arm_positions(self) -> list[float] | None:
+        joints = self._joints
+        if joints is None:
+            return None
+        by_name = dict(zip(joints.name, joints.position, strict=False))
+        if not all(n in by_name for n in ARM_JOINTS):
+            return None
+        return [by_name[n] for n in ARM_JOINTS]
+
+    def object_position(self, object_id: str) -> Vec3 | None:
+        objects = self._objects
+        if objects is None:
+            return None
+        for obj in objects.objects:
+            if obj.id == object_id:
+                return obj.position
+        return None
+
+
+OUTCOME_STATE = {
+    PlanStatus.SUCCEEDED: GoalState.SUCCEEDED,
+    PlanStatus.CANCELED: GoalState.CANCELED,
+    PlanStatus.FAILED: GoalState.ABORTED,
+    PlanStatus.REJECTED: GoalState.ABORTED,
+}
+
+
+def serve_execute_plan(node: Node, runner: PlanRunner) -> ActionServer[Any, Any, Any]:
+    def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
+        log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
+        result = runner.run(handle.goal, handle.cancel_requested, handle.feedback)
+        log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)
+        return Outcome(OUTCOME_STATE[result.status], result, result.reason)
+
+    return ActionServer(node, keys.EXECUTE_PLAN, execute, exclusive=True)

@@ -1,0 +1,35 @@
+"""`tether run safety`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pybullet_data
+
+from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.safety.config import SafetyConfig
+from services.safety.latch import EstopLatch
+from services.safety.node import SafetyNode
+from services.safety.operator import ensure_token, token_path
+from services.safety.policy import SafetyPolicy, joint_limits_from_urdf
+from services.worldmodel import WorldModel, load_world
+
+log = logging.getLogger(__name__)
+
+
+def main(settings: NodeSettings, config_file: Path | None) -> None:
+    configure_logging()
+    config = load_config(SafetyConfig, config_file, "safety")
+    world = load_world(config.world)
+    limits = joint_limits_from_urdf(Path(pybullet_data.getDataPath()) / world.robot.arm_urdf)
+    policy = SafetyPolicy(WorldModel(world), config, limits)
+    token_file = token_path(config.operator_token_file)
+    latch = EstopLatch(ensure_token(token_file))
+    stop = stop_event()
+    with Node("safety", settings) as node:
+        safety = SafetyNode(node, policy, latch, config)
+        node.declare_alive()
+        log.info("safety up for robot %s; operator token in %s", settings.robot, token_file)
+        stop.wait()
+        safety.close()

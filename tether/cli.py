@@ -1,0 +1,427 @@
+"""The `tether` command line: start services, send plans, watch, stop and reset the robot."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import math
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from schemas import keys
+from schemas.actions import CancelGoal
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
+from schemas.plan import MAX_PLAN_BYTES
+from schemas.robot import Odometry
+from schemas.safety import SafetyStatus
+from schemas.world import Empty, PerceivedObjects
+from services.actionlib import CANCEL_ALL, GoalRejected
+from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings
+from services.worldmodel import WorldFileError
+from tether.client import (
+    EXIT_CODES,
+    EXIT_UNREACHABLE,
+    PlanRun,
+    PlanSender,
+    next_message,
+    operator_name,
+    reset_estop,
+    trigger_estop,
+)
+from tether.supervisor import Supervisor
+
+app = typer.Typer(help="tether: LLM plans to safe robot actions over Zenoh.", no_args_is_help=True)
+console = Console(stderr=True)
+out = Console()
+
+DEMO_PLAN = json.dumps(
+    {
+        "plan": [
+            {"action": "navigate_to", "target": "kitchen counter", "description": "go to where the cup is"},
+            {"action": "pick", "target": "red cup"},
+            {"action": "navigate_to", "target": "coffee table"},
+            {"action": "place", "target": "coffee table"},
+        ],
+        "description": "bring the red cup from the kitchen counter to the coffee table",
+    },
+    indent=2,
+)
+
+RobotOpt = Annotated[str | None, typer.Option("--robot", envvar="TETHER_ROBOT", help="Robot name in the keys.")]
+PortOpt = Annotated[
+    int | None, typer.Option("--base-port", envvar="TETHER_BASE_PORT", help="First of the services' loopback ports.")
+]
+ZenohOpt = Annotated[
+    Path | None, typer.Option("--zenoh-config", envvar="TETHER_ZENOH_CONFIG", help="A Zenoh config file.")
+]
+
+
+@app.callback()
+def common(
+    ctx: typer.Context, robot: RobotOpt = None, base_port: PortOpt = None, zenoh_config: ZenohOpt = None
+) -> None:
+    """Flags every command shares, written once."""
+    try:
+        ctx.obj = NodeSettings.from_env(robot=robot, base_port=base_port, zenoh_config=zenoh_config)
+    except ValueError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from None
+
+
+def settings_of(ctx: typer.Context) -> NodeSettings:
+    settings: NodeSettings = ctx.obj
+    return settings
+
+
+def client(ctx: typer.Context) -> Node:
+    return Node("cli", settings_of(ctx))
+
+
+# Services
+
+
+@app.command()
+def run(
+    ctx: typer.Context,
+    service: Annotated[str, typer.Argument(help=f"One of: {', '.join(SERVICES)}.")],
+    config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [SERVICE] table.")] = None,
+) -> None:
+    """Run one service in the foreground until SIGINT or SIGTERM."""
+    if service not in SERVICES:
+        console.print(f"[red]error:[/] unknown service {service!r}; services are {', '.join(SERVICES)}")
+        raise typer.Exit(2)
+    module = importlib.import_module(f"services.{service}.main")
+    try:
+        module.main(settings_of(ctx), config)
+    except (ConfigError, WorldFileError) as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from None
+
+
+def start_services(ctx: typer.Context, config: Path | None, log_dir: Path, timeout: float) -> tuple[Supervisor, Node]:
+    settings = settings_of(ctx)
+    supervisor = Supervisor(settings, log_dir, config)
+    supervisor.start_all()
+    node = client(ctx)
+    with console.status(f"starting {len(SERVICES)} services for robot {settings.robot}..."):
+        missing = node.wait_alive(SERVICES, timeout)
+    table = Table("service", "pid", "state")
+    for name in SERVICES:
+        table.add_row(name, str(supervisor.procs[name].pid), "[red]not up[/]" if name in missing else "[green]up[/]")
+    console.print(table)
+    if missing:
+        for name in sorted(missing):
+            console.print(f"[red]{name} did not come up within {timeout:.0f} s; its log:[/]")
+            console.print(supervisor.log_tail(name), markup=False, highlight=False)
+        node.close()
+        supervisor.stop_all()
+        raise typer.Exit(1)
+    return supervisor, node
+
+
+ConfigOpt = Annotated[
+    Path | None, typer.Option("--config", help="TOML file with one table per service ([sim], [safety], ...).")
+]
+LogDirOpt = Annotated[Path, typer.Option("--log-dir", help="Where each service's log goes.")]
+
+
+@app.command()
+def up(
+    ctx: typer.Context,
+    config: ConfigOpt = None,
+    log_dir: LogDirOpt = Path("logs"),
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for every service to come up.")] = 60.0,
+) -> None:
+    """Start every service, wait until all are alive, and stop them all cleanly on Ctrl-C."""
+    supervisor, node = start_services(ctx, config, log_dir, timeout)
+    console.print(f"all services up; logs in {log_dir}/. Ctrl-C stops them.")
+    stop = threading.Event()
+    try:
+        while not stop.wait(0.5):
+            for name, code in supervisor.exited().items():
+                console.print(f"[yellow]{name} exited with {code}; restarting it[/]")
+                supervisor.start(name)
+    except KeyboardInterrupt:
+        console.print("stopping services...")
+    finally:
+        node.close()
+        codes = supervisor.stop_all()
+        console.print("stopped: " + ", ".join(f"{k} ({v})" for k, v in codes.items()))
+
+
+# Plans
+
+
+def read_plan(plan: str) -> str:
+    if plan == "-":
+        return sys.stdin.read()
+    path = Path(plan)
+    if len(plan) < 4096 and "\n" not in plan and path.is_file():
+        return path.read_text(errors="replace")
+    return plan
+
+
+def print_feedback(fb: ExecutePlanFeedback) -> None:
+    if fb.step is None:
+        console.print(f"[dim]{fb.stage}[/]: {fb.message}")
+        return
+    mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: "[red]failed[/]"}.get(fb.status, "...")
+    console.print(f"step {fb.step + 1} {fb.action}: {fb.message} {mark}")
+
+
+def print_result(run: PlanRun, as_json: bool) -> None:
+    if as_json:
+        out.print_json(data=run.as_json()) if sys.stdout.isatty() else print(json.dumps(run.as_json()))
+        return
+    result = run.result
+    if result is None:
+        console.print(f"plan accepted (goal {run.goal_id}); executing. `tether status` follows it.")
+        return
+    colour = "green" if result.status is PlanStatus.SUCCEEDED else "red"
+    console.print(
+        f"[{colour}]{result.status}[/] at stage {result.stage}" + (f": {result.reason}" if result.reason else "")
+    )
+
+
+@app.command()
+def send(
+    ctx: typer.Context,
+    plan: Annotated[str, typer.Argument(help="Plan text, a file holding it, or - for stdin.")],
+    fmt: Annotated[str, typer.Option("--format", help="auto, json, yaml or text.")] = "auto",
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Parse, resolve and check only; nothing moves.")] = False,
+    wait: Annotated[bool, typer.Option("--wait", help="Wait until the plan has finished.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object with the outcome.")] = False,
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for the outcome.")] = 600.0,
+) -> None:
+    """Send a plan to the executor. Exit 0 succeeded, 1 failed or canceled, 2 rejected, 3 unreachable.
+
+    Without --wait, returns once the plan is parsed, resolved, approved and moving (status 'accepted').
+    """
+    if fmt not in ("auto", "json", "yaml", "text"):
+        console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {fmt!r}")
+        raise typer.Exit(2)
+    text = read_plan(plan)
+    if len(text.encode()) > MAX_PLAN_BYTES:
+        reason = f"plan is {len(text.encode())} bytes; the limit is {MAX_PLAN_BYTES}"
+        if as_json:
+            print(json.dumps({"status": "rejected", "stage": "parse", "reason": reason, "steps": []}))
+        else:
+            console.print(f"[red]rejected[/] at stage parse: {reason}")
+        raise typer.Exit(2)
+    with client(ctx) as node:
+        if "executor" not in node.alive_services(timeout=2.0):
+            console.print("[red]no executor reachable[/]: start the services with `tether up`")
+            raise typer.Exit(EXIT_UNREACHABLE)
+        sender = PlanSender(node, None if as_json else print_feedback)
+        try:
+            handle = sender.send(ExecutePlanGoal(text=text, format=fmt, dry_run=dry_run))  # type: ignore[arg-type]
+        except GoalRejected as exc:
+            if as_json:
+                print(json.dumps({"status": "rejected", "stage": "execute", "reason": exc.reason, "steps": []}))
+            else:
+                console.print(f"[red]rejected[/]: {exc.reason}")
+            raise typer.Exit(2) from None
+        except CallError as exc:
+            console.print(f"[red]executor unreachable[/]: {exc}")
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+        try:
+            run_ = sender.wait(handle, timeout, until_started=not (wait or dry_run))
+        except KeyboardInterrupt:
+            console.print("canceling...")
+            handle.cancel()
+            run_ = sender.wait(handle, 30.0)
+        except CallError as exc:
+            console.print(f"[red]no outcome[/]: {exc}")
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+        print_result(run_, as_json)
+        raise typer.Exit(EXIT_CODES[run_.result.status] if run_.result else 0)
+
+
+@app.command()
+def cancel(ctx: typer.Context, goal_id: Annotated[str, typer.Argument(help="A goal id, or all.")] = CANCEL_ALL) -> None:
+    """Cancel the running plan (or the goal given)."""
+    with client(ctx) as node:
+        try:
+            reply = node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=3.0)
+        except CallError as exc:
+            console.print(f"[red]executor unreachable[/]: {exc}")
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+        console.print("cancel requested" if reply.accepted else f"nothing to cancel ({reply.reason})")
+
+
+# Safety
+
+
+@app.command()
+def estop(
+    ctx: typer.Context,
+    reason: Annotated[str, typer.Option(help="Why; kept in the latch and the recording.")] = "operator e-stop",
+) -> None:
+    """Trigger the e-stop. It latches until `tether reset`."""
+    with client(ctx) as node:
+        status = trigger_estop(node, f"operator:{operator_name()}", reason)
+    if status is None:
+        console.print("[red]e-stop sent, but no heartbeat from safety confirmed it[/]")
+        raise typer.Exit(EXIT_UNREACHABLE)
+    console.print(f"[red]E-STOP latched[/] by {status.estop.source}: {status.estop.reason}")
+
+
+@app.command()
+def reset(
+    ctx: typer.Context,
+    token_file: Annotated[str | None, typer.Option(help="The operator token file safety created.")] = None,
+) -> None:
+    """Clear a latched e-stop (operator only: needs the operator token file)."""
+    with client(ctx) as node:
+        try:
+            reply = reset_estop(node, token_file)
+        except OSError as exc:
+            console.print(f"[red]cannot read the operator token[/]: {exc}")
+            raise typer.Exit(2) from None
+        except CallError as exc:
+            console.print(f"[red]safety unreachable[/]: {exc}")
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+    if not reply.ok:
+        console.print(f"[red]refused[/]: {reply.message}")
+        raise typer.Exit(2)
+    console.print(reply.message)
+
+
+# State
+
+
+def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
+    found: dict[str, Any] = {}
+
+    def grab(name: str, topic: Any) -> None:
+        found[name] = next_message(node, topic, timeout)
+
+    threads = [
+        threading.Thread(target=grab, args=a)
+        for a in (("heartbeat", keys.HEARTBEAT), ("odom", keys.ODOM), ("objects", keys.OBJECTS))
+    ]
+    for t in threads:
+        t.start()
+    alive = node.alive_services(timeout=timeout)
+    for t in threads:
+        t.join()
+    beat: SafetyStatus | None = found["heartbeat"]
+    odom: Odometry | None = found["odom"]
+    objects: PerceivedObjects | None = found["objects"]
+    return {
+        "services": {name: name in alive for name in SERVICES},
+        "estop": (
+            {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
+            if beat
+            else {"latched": None, "source": "", "reason": "no heartbeat from safety"}
+        ),
+        "robot": (
+            {
+                "pose": {"x": odom.pose.x, "y": odom.pose.y, "yaw": odom.pose.yaw},
+                "linear_x": odom.linear_x,
+                "angular_z": odom.angular_z,
+            }
+            if odom
+            else None
+        ),
+        "objects": [
+            {
+                "name": o.name,
+                "id": o.id,
+                "room": o.room,
+                "on": o.on,
+                "pose": {"x": o.position.x, "y": o.position.y, "z": o.position.z},
+            }
+            for o in (objects.objects if objects else [])
+        ],
+    }
+
+
+@app.command()
+def status(ctx: typer.Context, as_json: Annotated[bool, typer.Option("--json")] = False) -> None:
+    """Which services are alive, the e-stop latch, the robot's pose and where objects are."""
+    with client(ctx) as node:
+        state = status_dict(node)
+    if as_json:
+        print(json.dumps(state))
+        return
+    services = "  ".join(
+        f"{k} [{'green' if v else 'red'}]{'up' if v else 'down'}[/]" for k, v in state["services"].items()
+    )
+    console.print(services)
+    e = state["estop"]
+    console.print(
+        f"e-stop: {'[red]LATCHED[/] by ' + e['source'] + ': ' + e['reason'] if e['latched'] else e['latched']}"
+    )
+    if state["robot"]:
+        p = state["robot"]["pose"]
+        console.print(f"robot at x={p['x']:.2f} y={p['y']:.2f} yaw={math.degrees(p['yaw']):.0f} deg")
+    table = Table("object", "room", "on", "x", "y", "z")
+    for o in state["objects"]:
+        table.add_row(o["name"], o["room"] or "-", o["on"] or "-", *(f"{o['pose'][k]:.2f}" for k in "xyz"))
+    console.print(table)
+
+
+# The demo
+
+
+@app.command()
+def demo(
+    ctx: typer.Context,
+    sim_speed: Annotated[float, typer.Option(help="Simulated seconds per wall-clock second.")] = 2.0,
+    log_dir: LogDirOpt = Path("logs"),
+    recordings: Annotated[Path, typer.Option(help="Where the MCAP recording goes.")] = Path("recordings"),
+    timeout: Annotated[float, typer.Option(help="Seconds allowed for the plan.")] = 600.0,
+) -> None:
+    """Start everything, bring the red cup to the coffee table, check it in the simulator, keep the recording."""
+    logging.basicConfig(level=logging.WARNING)
+    with tempfile.TemporaryDirectory() as tmp:
+        config = Path(tmp) / "demo.toml"
+        config.write_text(
+            f'[sim]\nrealtime_factor = {sim_speed}\n\n[recorder]\noutput_dir = "{recordings.resolve()}"\n'
+        )
+        supervisor, node = start_services(ctx, config, log_dir, timeout=90.0)
+        ok = False
+        recording = "(unknown)"
+        try:
+            try:
+                recording = node.call(keys.RECORDER_STATUS, Empty(), timeout=3.0).path
+            except CallError as exc:
+                console.print(f"[yellow]recorder did not answer: {exc}[/]")
+            console.print("sending the plan:")
+            console.print(DEMO_PLAN, markup=False, highlight=False)
+            started = time.monotonic()
+            run_ = PlanSender(node, print_feedback).run(ExecutePlanGoal(text=DEMO_PLAN), timeout)
+            print_result(run_, as_json=False)
+            ok = run_.result is not None and run_.result.status is PlanStatus.SUCCEEDED
+            ok = verify_demo(node) and ok
+            console.print(f"plan took {time.monotonic() - started:.1f} s")
+        except CallError as exc:
+            console.print(f"[red]demo failed[/]: {exc}")
+        finally:
+            node.close()
+            supervisor.stop_all()
+        console.print(f"recording: {recording}")
+        console.print("[green]demo succeeded[/]" if ok else "[red]demo failed[/]")
+        raise typer.Exit(0 if ok else 1)
+
+
+def verify_demo(node: Node) -> bool:
+    """Ask the simulator, not the executor: is the red cup resting on the coffee table?"""
+    truth = node.call(keys.GROUND_TRUTH, Empty(), timeout=3.0)
+    cup = next((o for o in truth.objects if o.id == "red_cup"), None)
+    if cup is None:
+        console.print("[red]ground truth has no red cup[/]")
+        return False
+    where = f"({cup.position.x:.2f}, {cup.position.y:.2f}, {cup.position.z:.2f})"
+    console.print(f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding}")
+    return cup.on == "coffee_table" and truth.holding is None

@@ -1,0 +1,145 @@
+"""Client-side helpers shared by the CLI, the demo and the tests: send plans, read robot state."""
+
+from __future__ import annotations
+
+import getpass
+import threading
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import msgspec
+
+from schemas import keys
+from schemas.common import Stage
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.keys import Topic
+from schemas.safety import EStop, ResetReply, ResetRequest, SafetyStatus
+from services.actionlib import ActionClient, ClientGoal, GoalRejected
+from services.runtime import CallError, Node
+from services.safety.operator import read_token, token_path
+
+T = TypeVar("T")
+
+EXIT_CODES = {
+    PlanStatus.SUCCEEDED: 0,
+    PlanStatus.FAILED: 1,
+    PlanStatus.CANCELED: 1,
+    PlanStatus.REJECTED: 2,
+}
+EXIT_UNREACHABLE = 3
+
+
+def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
+    """The next message published on `topic`, or None if none arrives by the deadline."""
+    box: list[T] = []
+    arrived = threading.Event()
+
+    def on_message(msg: T) -> None:
+        if not box:
+            box.append(msg)
+            arrived.set()
+
+    node.subscribe(topic, on_message)
+    arrived.wait(timeout)
+    return box[0] if box else None
+
+
+def operator_name() -> str:
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):
+        return "operator"
+
+
+def trigger_estop(node: Node, source: str, reason: str, timeout: float = 2.0) -> SafetyStatus | None:
+    """Publish an e-stop and wait for a heartbeat that shows it latched; None if safety never confirms."""
+    confirmed: list[SafetyStatus] = []
+    latched = threading.Event()
+
+    def on_beat(status: SafetyStatus) -> None:
+        if status.estop.latched and not confirmed:
+            confirmed.append(status)
+            latched.set()
+
+    node.subscribe(keys.HEARTBEAT, on_beat)
+    node.publish(keys.ESTOP, EStop(source=source, reason=reason))
+    latched.wait(timeout)
+    return confirmed[0] if confirmed else None
+
+
+def reset_estop(node: Node, token_file: str | None = None, timeout: float = 3.0) -> ResetReply:
+    token = read_token(token_path(token_file))
+    return node.call(keys.RESET, ResetRequest(operator=operator_name(), token=token), timeout=timeout)
+
+
+@dataclass
+class PlanRun:
+    """One execute_plan goal as the client sees it: feedback as it comes, then the result."""
+
+    goal_id: str = ""
+    feedback: list[ExecutePlanFeedback] = field(default_factory=list)
+    result: ExecutePlanResult | None = None
+
+    def as_json(self) -> dict[str, Any]:
+        r = self.result
+        if r is None:
+            return {"status": "accepted", "stage": Stage.EXECUTE, "reason": "", "goal_id": self.goal_id, "steps": []}
+        out: dict[str, Any] = msgspec.to_builtins(r)
+        out["goal_id"] = self.goal_id
+        return out
+
+
+class PlanSender:
+    """Sends plans to the executor and follows them; `on_feedback` hears progress."""
+
+    def __init__(self, node: Node, on_feedback: Any = None) -> None:
+        self.node = node
+        self._runs: dict[str, PlanRun] = {}
+        self._started: dict[str, threading.Event] = {}
+        self._on_feedback = on_feedback
+        self._client = ActionClient(node, keys.EXECUTE_PLAN, self._feedback)
+        self._lock = threading.Lock()
+
+    def _feedback(self, goal_id: str, fb: ExecutePlanFeedback) -> None:
+        with self._lock:
+            run = self._runs.setdefault(goal_id, PlanRun(goal_id=goal_id))
+            run.feedback.append(fb)
+            started = self._started.setdefault(goal_id, threading.Event())
+        if fb.stage is Stage.EXECUTE:
+            started.set()
+        if self._on_feedback is not None:
+            self._on_feedback(fb)
+
+    def send(self, goal: ExecutePlanGoal) -> ClientGoal[Any, Any, Any]:
+        """Raises GoalRejected when the executor is busy, CallError when it is unreachable."""
+        return self._client.send(goal)
+
+    def wait(self, handle: ClientGoal[Any, Any, Any], timeout: float, until_started: bool = False) -> PlanRun:
+        """Wait for the result, or with `until_started` only until execution begins."""
+        with self._lock:
+            run = self._runs.setdefault(handle.goal_id, PlanRun(goal_id=handle.goal_id))
+            started = self._started.setdefault(handle.goal_id, threading.Event())
+        done = threading.Event()
+        errors: list[CallError] = []
+
+        def fetch() -> None:
+            try:
+                response = handle.result(timeout)
+                run.result = response.result
+            except CallError as exc:
+                errors.append(exc)
+            finally:
+                done.set()
+                started.set()
+
+        threading.Thread(target=fetch, daemon=True).start()
+        (started if until_started else done).wait(timeout)
+        if done.is_set() and errors:
+            raise errors[0]
+        return run
+
+    def run(self, goal: ExecutePlanGoal, timeout: float) -> PlanRun:
+        return self.wait(self.send(goal), timeout)
+
+
+__all__ = ["GoalRejected", "PlanRun", "PlanSender", "next_message", "reset_estop", "trigger_estop"]

@@ -1,0 +1,111 @@
+"""Starts services as child processes and stops them cleanly: used by `tether up`, the demo and tests."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import IO
+
+from services.runtime import SERVICES, NodeSettings
+
+log = logging.getLogger(__name__)
+
+# Stopped first to last: nothing new is planned, then nothing moves, and the recorder hears it all.
+STOP_ORDER = ("executor", "parser", "resolver", "sim", "safety", "recorder")
+
+
+class Supervisor:
+    """Each service in its own process group, its output in `log_dir/<service>.log`."""
+
+    def __init__(
+        self,
+        settings: NodeSettings,
+        log_dir: Path,
+        config_file: Path | None = None,
+        extra_env: dict[str, str] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.log_dir = log_dir
+        self.config_file = config_file
+        self.extra_env = extra_env or {}
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+        self._logs: dict[str, IO[bytes]] = {}
+        log_dir.mkdir(parents=True, exist_ok=True)
+
+    def env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        env["TETHER_ROBOT"] = self.settings.robot
+        env["TETHER_BASE_PORT"] = str(self.settings.base_port)
+        if self.settings.zenoh_config is not None:
+            env["TETHER_ZENOH_CONFIG"] = str(self.settings.zenoh_config)
+        env.update(self.extra_env)
+        return env
+
+    def start(self, service: str) -> subprocess.Popen[bytes]:
+        if service not in SERVICES:
+            raise ValueError(f"unknown service {service!r}; services are {', '.join(SERVICES)}")
+        cmd = [sys.executable, "-m", "tether", "run", service]
+        if self.config_file is not None:
+            cmd += ["--config", str(self.config_file)]
+        out = self._logs.get(service)
+        if out is None or out.closed:
+            out = self._logs[service] = open(self.log_dir / f"{service}.log", "ab")  # noqa: SIM115
+        proc = subprocess.Popen(
+            cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env(), start_new_session=True
+        )
+        self.procs[service] = proc
+        log.info("started %s (pid %d)", service, proc.pid)
+        return proc
+
+    def start_all(self, services: tuple[str, ...] = SERVICES) -> None:
+        for service in services:
+            self.start(service)
+
+    def exited(self) -> dict[str, int]:
+        """Services whose process has ended, with their exit codes."""
+        return {name: code for name, proc in self.procs.items() if (code := proc.poll()) is not None}
+
+    def kill(self, service: str) -> None:
+        """SIGKILL, as a crash would: no clean-up runs in the service."""
+        proc = self.procs[service]
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+
+    def stop(self, service: str, timeout: float = 10.0) -> int | None:
+        proc = self.procs.get(service)
+        if proc is None:
+            return None
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop within %.0f s; killing it", service, timeout)
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=10)
+            except ProcessLookupError:
+                pass
+        return proc.returncode
+
+    def stop_all(self, timeout: float = 10.0) -> dict[str, int | None]:
+        order = [s for s in STOP_ORDER if s in self.procs] + [s for s in self.procs if s not in STOP_ORDER]
+        codes = {service: self.stop(service, timeout) for service in order}
+        for out in self._logs.values():
+            out.close()
+        return codes
+
+    def log_tail(self, service: str, lines: int = 40) -> str:
+        path = self.log_dir / f"{service}.log"
+        if not path.exists():
+            return ""
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+
+    def __enter__(self) -> Supervisor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop_all()
