@@ -1,0 +1,113 @@
+"""Real processes over real Zenoh on loopback: a stack per test, always torn down."""
+
+from __future__ import annotations
+
+import socket
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from services.runtime import SERVICES, Node, NodeSettings
+from tether.supervisor import Supervisor
+
+STARTUP_TIMEOUT = 90.0
+
+
+def free_port_block(size: int = len(SERVICES)) -> int:
+    """A base port with `size` free ports after it, for one test's services."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + size > 65000:
+            continue
+        try:
+            socks = []
+            for port in range(base, base + size):
+                s = socket.socket()
+                socks.append(s)
+                s.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no free block of ports")
+
+
+@dataclass
+class Stack:
+    settings: NodeSettings
+    supervisor: Supervisor
+    node: Node
+    tmp: Path
+    token_file: Path
+
+    @property
+    def recordings(self) -> Path:
+        return self.tmp / "recordings"
+
+
+def write_config(path: Path, realtime_factor: float) -> Path:
+    path.write_text(
+        f"[sim]\nrealtime_factor = {realtime_factor}\n\n"
+        f'[recorder]\noutput_dir = "{path.parent / "recordings"}"\n\n'
+        f'[safety]\noperator_token_file = "{path.parent / "operator-token"}"\n'
+    )
+    return path
+
+
+def start_stack(tmp: Path, realtime_factor: float, services: tuple[str, ...] = SERVICES) -> Stack:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port_block())
+    config = write_config(tmp / "tether.toml", realtime_factor)
+    token = tmp / "operator-token"
+    supervisor = Supervisor(settings, tmp / "logs", config, extra_env={"TETHER_OPERATOR_TOKEN_FILE": str(token)})
+    node: Node | None = None
+    try:
+        supervisor.start_all(services)
+        node = Node("cli", settings)
+        missing = node.wait_alive(services, STARTUP_TIMEOUT)
+        assert not missing, f"services not up: {missing}\n" + "\n".join(supervisor.log_tail(s) for s in missing)
+    except BaseException:
+        if node is not None:
+            node.close()
+        supervisor.stop_all()
+        dump_logs(supervisor, services)
+        raise
+    return Stack(settings, supervisor, node, tmp, token)
+
+
+def stop_stack(stack: Stack) -> None:
+    stack.node.close()
+    stack.supervisor.stop_all()
+    dump_logs(stack.supervisor, tuple(stack.supervisor.procs))
+
+
+def dump_logs(supervisor: Supervisor, services: tuple[str, ...]) -> None:
+    """Shown by pytest only when the test failed."""
+    for service in services:
+        print(f"----- {service} log -----\n{supervisor.log_tail(service, 60)}")
+
+
+@pytest.fixture
+def stack(tmp_path: Path) -> Iterator[Stack]:
+    """Every service, the sim four times faster than real time."""
+    s = start_stack(tmp_path, realtime_factor=4.0)
+    try:
+        yield s
+    finally:
+        stop_stack(s)
+
+
+@pytest.fixture
+def realtime_stack(tmp_path: Path) -> Iterator[Stack]:
+    """Every service with the sim at real time, for measuring stops in sim time finely."""
+    s = start_stack(tmp_path, realtime_factor=1.0)
+    try:
+        yield s
+    finally:
+        stop_stack(s)

@@ -1,0 +1,185 @@
+"""The whole pipeline as real processes: demo plan, keep-out, e-stop, safety crash, recording."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import msgspec
+from mcap.reader import make_reader
+
+from schemas import keys
+from schemas.actions import SendGoal
+from schemas.common import Pose2D
+from schemas.executor import ExecutePlanGoal, PlanStatus
+from schemas.plan import Plan, PlanText
+from schemas.robot import NavigateToPoseGoal
+from schemas.world import Empty, GroundTruth
+from tests.integration.conftest import Stack, start_stack, stop_stack
+from tests.integration.watch import Watch
+from tether.cli import DEMO_PLAN
+from tether.client import PlanSender, reset_estop, trigger_estop
+
+STAIRS_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "stairs"}]})
+FAR_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen table"}]})
+BACK_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "coffee table"}]})
+
+
+def truth(stack: Stack) -> GroundTruth:
+    return stack.node.call(keys.GROUND_TRUTH, Empty(), timeout=5.0)
+
+
+def run_plan(stack: Stack, text: str, timeout: float = 300.0) -> tuple[PlanStatus, str, str]:
+    run = PlanSender(stack.node).run(ExecutePlanGoal(text=text), timeout)
+    assert run.result is not None
+    return run.result.status, str(run.result.stage), run.result.reason
+
+
+def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: Stack) -> None:
+    before = truth(stack)
+    cup = next(o for o in before.objects if o.id == "red_cup")
+    assert cup.on == "kitchen_counter"
+
+    status, stage, reason = run_plan(stack, DEMO_PLAN)
+    assert (status, stage) == (PlanStatus.SUCCEEDED, "execute"), reason
+
+    after = truth(stack)
+    cup = next(o for o in after.objects if o.id == "red_cup")
+    assert cup.on == "coffee_table", f"the simulator has the red cup on {cup.on} at {cup.position}"
+    assert cup.room == "living_room"
+    assert after.holding is None
+
+    # Stop the recorder cleanly so the file is complete, then read it back.
+    status_reply = stack.node.call(keys.RECORDER_STATUS, Empty(), timeout=3.0)
+    stack.supervisor.stop("recorder")
+    topics: dict[str, int] = {}
+    safety_decisions: list[dict[str, object]] = []
+    with open(status_reply.path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            assert schema is not None and schema.encoding == "jsonschema"
+            assert channel.message_encoding == "json"
+            path = channel.topic.split("/", 2)[2]
+            topics[path] = topics.get(path, 0) + 1
+            if path == keys.SAFETY_EVENTS.path:
+                safety_decisions.append(json.loads(message.data))
+            if path == "_trace/parser/plan/parse":
+                record = json.loads(message.data)
+                assert "red cup" in record["query"]["text"], "the plan text is in the recording"
+    # The plan, the queries with their replies, every command, every safety decision.
+    assert topics.get("_trace/parser/plan/parse")
+    assert topics.get("_trace/resolver/plan/resolve")
+    assert topics.get("_trace/safety/safety/check_plan")
+    for action in ("navigate_to_pose", "follow_joint_trajectory", "gripper_command"):
+        assert topics.get(f"_trace/safety/cmd/{action}/_action/send_goal"), action
+        assert topics.get(f"_trace/sim/robot/{action}/_action/send_goal"), action
+    assert topics.get("robot/odom") and topics.get("robot/joint_states") and topics.get("safety/heartbeat")
+    decided = {(d["key"], d["decision"]) for d in safety_decisions}
+    assert ("safety/check_plan", "approved") in decided
+    assert ("cmd/gripper_command/_action/send_goal", "approved") in decided
+
+
+def test_a_plan_into_the_stairs_is_rejected_by_safety_and_nothing_moves(stack: Stack) -> None:
+    before = truth(stack)
+    status, stage, reason = run_plan(stack, STAIRS_PLAN)
+    assert (status, stage) == (PlanStatus.REJECTED, "safety")
+    assert "stairs" in reason
+    after = truth(stack)
+    assert math.hypot(after.robot.x - before.robot.x, after.robot.y - before.robot.y) < 0.01
+    assert after.sim_time > before.sim_time, "the sim kept running while the plan was refused"
+
+
+def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_stack: Stack) -> None:
+    stack = realtime_stack
+    odom = Watch(stack.node, keys.ODOM)
+    sender = PlanSender(stack.node)
+    moving_goal = sender.send(ExecutePlanGoal(text=FAR_PLAN))
+    assert odom.wait_for(lambda o: abs(o.linear_x) > 0.2, timeout=60.0), "the base never started moving"
+
+    n = len(odom)
+    pressed = time.time()
+    assert trigger_estop(stack.node, "test", "stop during navigation") is not None
+    before = [o for o in odom.messages[:n] if o.stamp <= pressed]
+    stopped = odom.wait_for(lambda o: o.stamp > pressed and abs(o.linear_x) < 0.01, timeout=2.0, after=n)
+    assert stopped is not None, "the base kept moving after the e-stop"
+    assert stopped.sim_time - before[-1].sim_time <= 0.1 + 0.02, "stopped later than 100 ms of sim time"
+
+    result = sender.wait(moving_goal, timeout=30.0).result
+    assert result is not None and result.status is PlanStatus.FAILED
+
+    # Every later plan is refused, and no plan can clear the latch.
+    for text in (BACK_PLAN, json.dumps({"plan": [{"action": "reset", "target": "estop"}]})):
+        status, stage, _ = run_plan(stack, text)
+        assert status is PlanStatus.REJECTED, stage
+    status, stage, reason = run_plan(stack, BACK_PLAN)
+    assert (status, stage) == (PlanStatus.REJECTED, "safety") and "e-stop" in reason
+    beat = Watch(stack.node, keys.HEARTBEAT).latest(timeout=2.0)
+    assert beat is not None and beat.estop.latched
+
+    # A reset without the operator's token is refused; `tether reset` with it clears the latch.
+    wrong = stack.tmp / "wrong-token"
+    wrong.write_text("not-the-token\n")
+    assert not reset_estop(stack.node, str(wrong)).ok
+    cli = subprocess.run(
+        [sys.executable, "-m", "tether", "reset", "--token-file", str(stack.token_file)],
+        env=stack.supervisor.env(),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert cli.returncode == 0, cli.stderr
+    beats = Watch(stack.node, keys.HEARTBEAT)
+    assert beats.wait_for(lambda b: not b.estop.latched, timeout=2.0)
+    status, _, reason = run_plan(stack, BACK_PLAN)
+    assert status is PlanStatus.SUCCEEDED, reason
+
+
+def test_killing_safety_stops_the_base_and_the_sim_refuses_goals_until_it_returns(realtime_stack: Stack) -> None:
+    stack = realtime_stack
+    odom = Watch(stack.node, keys.ODOM)
+    PlanSender(stack.node).send(ExecutePlanGoal(text=FAR_PLAN))
+    assert odom.wait_for(lambda o: abs(o.linear_x) > 0.2, timeout=60.0), "the base never started moving"
+
+    n = len(odom)
+    killed = time.time()
+    stack.supervisor.kill("safety")
+    stopped = odom.wait_for(lambda o: o.stamp > killed and abs(o.linear_x) < 0.01, timeout=2.0, after=n)
+    assert stopped is not None, "the base kept moving without safety"
+    assert stopped.stamp - killed <= 0.3, f"stopped {stopped.stamp - killed:.3f} s after safety died"
+
+    # Asked directly (as any peer could), the sim refuses while safety is gone.
+    goal = SendGoal(goal_id="direct1", goal=NavigateToPoseGoal(pose=Pose2D(x=6.0, y=1.2)))
+    reply = stack.node.call(keys.ROBOT_NAVIGATE.send_goal, goal, timeout=5.0)
+    assert not reply.accepted and "heartbeat" in reply.reason
+
+    stack.supervisor.start("safety")
+    assert not stack.node.wait_alive(["safety"], 60.0)
+    beats = Watch(stack.node, keys.HEARTBEAT)
+    assert beats.wait_for(lambda b: not b.estop.latched, timeout=5.0)
+    status, _, reason = run_plan(stack, BACK_PLAN)
+    assert status is PlanStatus.SUCCEEDED, reason
+
+
+def test_the_parser_refuses_garbage_empty_and_huge_input_and_keeps_serving(tmp_path: Path) -> None:
+    stack = start_stack(tmp_path, realtime_factor=4.0, services=("parser",))
+    try:
+        key = keys.PLAN_PARSE.key(stack.settings.robot)
+        for bad in (b"", b"   ", b"\x00\xff garbage {{{", b"x" * (10 * 1024 * 1024)):
+            # Raw bytes as a hostile peer would send them, and the same text inside a valid request.
+            for payload in (bad, msgspec.json.encode({"text": bad.decode(errors="replace"), "format": "auto"})):
+                replies = list(stack.node.session.get(key, payload=payload, timeout=30))
+                assert len(replies) == 1, "exactly one reply, never silence"
+                reply = replies[0]
+                body = reply.ok.payload.to_bytes() if reply.ok is not None else reply.err.payload.to_bytes()
+                error = json.loads(body)
+                assert error["type"] == "error" and error["message"], error
+                if len(bad) > 1000:
+                    assert "bytes" in error["message"], error["message"]
+        good = stack.node.call(keys.PLAN_PARSE, PlanText(text=DEMO_PLAN), timeout=5.0)
+        assert isinstance(good, Plan), good
+        assert [str(s.action) for s in good.steps] == ["navigate_to", "pick", "navigate_to", "place"]
+    finally:
+        stop_stack(stack)

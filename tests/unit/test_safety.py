@@ -1,0 +1,125 @@
+"""Safety's pure checks: keep-out zones, speed, joints, payload, the e-stop latch."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pybullet_data
+import pytest
+
+from schemas.common import Pose2D, Vec3
+from schemas.plan import GroundedPlan, NavigateStep, PickStep, Plan, Step
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
+from services.safety.config import SafetyConfig
+from services.safety.errors import Unauthorized, Vetoed
+from services.safety.latch import EstopLatch
+from services.safety.operator import ensure_token
+from services.safety.policy import SafetyPolicy, joint_limits_from_urdf
+from services.worldmodel import WorldModel, load_world
+
+ARM = [f"panda_joint{i}" for i in range(1, 8)]
+HOME = [0.0, -1.2, 0.0, -2.7, 0.0, 1.5, 0.785]
+
+
+@pytest.fixture(scope="module")
+def policy() -> SafetyPolicy:
+    world = load_world()
+    limits = joint_limits_from_urdf(Path(pybullet_data.getDataPath()) / world.robot.arm_urdf)
+    return SafetyPolicy(WorldModel(world), SafetyConfig(max_joint_speed=1.5), limits)
+
+
+def test_goal_in_the_stairs_is_vetoed_naming_the_zone(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match="keep-out zone 'stairs'"):
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=11.2, y=8.0)), Pose2D(x=9.0, y=6.0))
+
+
+def test_a_path_through_the_stairs_is_vetoed(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match="crosses keep-out zone 'stairs'"):
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=11.5, y=6.5)), Pose2D(x=10.0, y=8.5))
+
+
+def test_a_goal_off_the_map_is_vetoed(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match="outside every room"):
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=30.0, y=2.0)), None)
+
+
+def test_a_clear_goal_passes_and_its_speed_is_clamped(policy: SafetyPolicy) -> None:
+    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=2.0)
+    sent = policy.check_navigation(goal, Pose2D(x=6.0, y=1.2))
+    assert sent.pose == goal.pose
+    assert sent.max_speed == pytest.approx(0.6)
+
+
+def test_cmd_vel_is_clamped_to_the_robot_limits(policy: SafetyPolicy) -> None:
+    assert policy.check_cmd_vel(Twist(linear_x=5.0, angular_z=-9.0)) == Twist(linear_x=0.6, angular_z=-1.2)
+    assert policy.check_cmd_vel(Twist(linear_x=0.2)) == Twist(linear_x=0.2)
+    with pytest.raises(Vetoed, match="not finite"):
+        policy.check_cmd_vel(Twist(linear_x=float("nan")))
+
+
+def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
+    return FollowJointTrajectoryGoal(
+        joint_names=ARM, points=[TrajectoryPoint(positions=q, time_from_start=t) for q, t in points]
+    )
+
+
+def test_trajectories_within_limits_pass(policy: SafetyPolicy) -> None:
+    target = [*HOME[:3], -2.0, *HOME[4:]]
+    goal = trajectory((HOME, 0.1), (target, 1.0))
+    assert policy.check_trajectory(goal) == goal
+
+
+def test_trajectories_past_a_joint_limit_or_too_fast_are_vetoed(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match=r"panda_joint4 = 0\.500 rad is outside"):
+        policy.check_trajectory(trajectory(([*HOME[:3], 0.5, *HOME[4:]], 1.0)))
+    with pytest.raises(Vetoed, match="rad/s"):
+        policy.check_trajectory(trajectory((HOME, 0.1), ([2.0, *HOME[1:]], 0.2)))
+    with pytest.raises(Vetoed, match="unknown joints"):
+        policy.check_trajectory(
+            FollowJointTrajectoryGoal(
+                joint_names=["elbow"], points=[TrajectoryPoint(positions=[0.0], time_from_start=1.0)]
+            )
+        )
+
+
+def test_payload_comes_from_the_world_file(policy: SafetyPolicy) -> None:
+    assert policy.check_gripper(GripperCommandGoal(position=0.0, object_id="red_cup")).object_id == "red_cup"
+    with pytest.raises(Vetoed, match=r"weighs 4\.5 kg, over the arm.s payload of 3 kg"):
+        policy.check_gripper(GripperCommandGoal(position=0.0, object_id="cast_iron_pan"))
+    with pytest.raises(Vetoed, match="unknown object"):
+        policy.check_gripper(GripperCommandGoal(position=0.0, object_id="anvil"))
+
+
+def test_plans_are_checked_step_by_step(policy: SafetyPolicy) -> None:
+    source = Plan(steps=[Step(action="pick", target="pan")])  # type: ignore[arg-type]
+    pan = PickStep(
+        object_id="cast_iron_pan",
+        object_name="cast-iron pan",
+        position=Vec3(x=3.25, y=0.35, z=0.925),
+        mass=0.1,  # a lie in the message: safety reads the mass from its own world file
+        support_id="kitchen_counter",
+        approach=Pose2D(x=2.5, y=1.05, yaw=-1.57),
+    )
+    go = NavigateStep(target="kitchen counter", goal=Pose2D(x=2.5, y=1.05, yaw=-1.57))
+    assert policy.check_plan(GroundedPlan(steps=[go], source=source), Pose2D(x=6.0, y=1.2))
+    with pytest.raises(Vetoed, match=r"step 2 \(pick\).*payload"):
+        policy.check_plan(GroundedPlan(steps=[go, pan], source=source), Pose2D(x=6.0, y=1.2))
+    stairs = NavigateStep(target="stairs", goal=Pose2D(x=11.2, y=8.0))
+    with pytest.raises(Vetoed, match=r"step 1 \(navigate_to\).*'stairs'"):
+        policy.check_plan(GroundedPlan(steps=[stairs], source=source), Pose2D(x=6.0, y=1.2))
+
+
+def test_the_latch_holds_until_the_operator_token_resets_it(tmp_path: Path) -> None:
+    token = ensure_token(tmp_path / "token")
+    assert (tmp_path / "token").stat().st_mode & 0o777 == 0o600
+    latch = EstopLatch(token)
+    assert latch.trigger("executor", "test")
+    assert not latch.trigger("agent", "again"), "a second trigger does not overwrite the first"
+    assert latch.state.source == "executor"
+    with pytest.raises(Unauthorized):
+        latch.reset("agent", "guess")
+    with pytest.raises(Unauthorized):
+        latch.reset("agent", "")
+    assert latch.state.latched
+    latch.reset("operator", token)
+    assert not latch.state.latched
