@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import msgspec
+import pytest
 from mcap.reader import make_reader
 
 from schemas import keys
@@ -82,14 +83,54 @@ def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: 
     assert ("cmd/gripper_command/_action/send_goal", "approved") in decided
 
 
+def tether_cli(stack: Stack, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "tether", *args],
+        env=stack.supervisor.env(),
+        input=stdin,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
 def test_a_plan_into_the_stairs_is_rejected_by_safety_and_nothing_moves(stack: Stack) -> None:
     before = truth(stack)
-    status, stage, reason = run_plan(stack, STAIRS_PLAN)
-    assert (status, stage) == (PlanStatus.REJECTED, "safety")
-    assert "stairs" in reason
+    sent = tether_cli(stack, "send", "-", "--wait", "--json", stdin=STAIRS_PLAN)
+    assert sent.returncode == 2, sent.stderr
+    outcome = json.loads(sent.stdout)
+    assert (outcome["status"], outcome["stage"]) == ("rejected", "safety")
+    assert "stairs" in outcome["reason"]
+
     after = truth(stack)
     assert math.hypot(after.robot.x - before.robot.x, after.robot.y - before.robot.y) < 0.01
     assert after.sim_time > before.sim_time, "the sim kept running while the plan was refused"
+
+    shown = tether_cli(stack, "status", "--json")
+    assert shown.returncode == 0, shown.stderr
+    state = json.loads(shown.stdout)
+    assert all(state["services"].values()), state["services"]
+    assert state["estop"]["latched"] is False
+    assert state["robot"]["pose"]["x"] == pytest.approx(before.robot.x, abs=0.01)
+    cup = next(o for o in state["objects"] if o["name"] == "red cup")
+    assert (cup["room"], cup["on"]) == ("kitchen", "kitchen_counter")
+    assert set(cup["pose"]) == {"x", "y", "z"}
+
+
+def test_send_exit_codes(stack: Stack) -> None:
+    unknown = tether_cli(stack, "send", '{"plan": [{"action": "teleport", "target": "moon"}]}', "--json")
+    assert unknown.returncode == 2
+    assert json.loads(unknown.stdout)["stage"] == "parse"
+    assert "teleport" in json.loads(unknown.stdout)["reason"]
+    ambiguous = tether_cli(stack, "send", '[{"action": "pick", "target_object": "cup"}]', "--json", "--dry-run")
+    assert ambiguous.returncode == 2
+    outcome = json.loads(ambiguous.stdout)
+    assert outcome["stage"] == "resolve" and "red cup" in outcome["reason"] and "blue cup" in outcome["reason"]
+    dry = tether_cli(stack, "send", DEMO_PLAN, "--json", "--dry-run")
+    assert dry.returncode == 0, dry.stdout + dry.stderr
+    assert json.loads(dry.stdout)["status"] == "succeeded"
+    unreachable = tether_cli(stack, "--base-port", "1100", "--robot", "nobody", "send", DEMO_PLAN, "--json")
+    assert unreachable.returncode == 3
 
 
 def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_stack: Stack) -> None:
