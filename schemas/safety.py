@@ -59,4 +59,4 @@ class SafetyEvent(Frozen):
     key: Text
     decision: Decision
     reason: Text = ""
-    command: msgspec.Raw | None = None
+    command: msgspec.Raw = msgspec.field(default_factory=lambda: msgspec.Raw(b"null"))

@@ -12,8 +12,9 @@ class TraceRecord(Frozen):
     service: str
     key: str
     duration: float
-    query: msgspec.Raw | None = None
-    reply: msgspec.Raw | None = None
+    # Raw JSON, `null` when absent (msgspec cannot decode `Raw | None`).
+    query: msgspec.Raw = msgspec.field(default_factory=lambda: msgspec.Raw(b"null"))
+    reply: msgspec.Raw = msgspec.field(default_factory=lambda: msgspec.Raw(b"null"))
     error: str = ""
 
 

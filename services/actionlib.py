@@ -151,9 +151,9 @@ class ActionServer(Generic[G, F, R]):
     def _on_cancel(self, request: CancelGoal) -> CancelResponse:
         if request.goal_id == CANCEL_ALL:
             running = self.active()
-            for handle in running:
-                handle.cancel_requested.set()
-                self._publish_status(handle.goal_id, GoalState.CANCELING)
+            for each in running:
+                each.cancel_requested.set()
+                self._publish_status(each.goal_id, GoalState.CANCELING)
             return CancelResponse(goal_id=request.goal_id, accepted=bool(running), reason=f"{len(running)} canceled")
         with self._lock:
             handle = self._goals.get(request.goal_id)

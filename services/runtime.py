@@ -248,8 +248,8 @@ class Node:
             service=self.service,
             key=path,
             duration=time.time() - started,
-            query=msgspec.Raw(encode(request)) if request is not None else None,
-            reply=msgspec.Raw(reply) if reply is not None and len(reply) <= TRACE_PAYLOAD_LIMIT else None,
+            query=msgspec.Raw(encode(request) if request is not None else b"null"),
+            reply=msgspec.Raw(reply if reply is not None and len(reply) <= TRACE_PAYLOAD_LIMIT else b"null"),
             error=error.message if error else "",
         )
         if request is None and raw:

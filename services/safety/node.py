@@ -175,7 +175,7 @@ class SafetyNode:
         self.node.subscribe(robot.status, status.put)
 
     def _event(self, key: str, decision: Decision, reason: str, command: Any) -> None:
-        raw = msgspec.Raw(encode(command)) if command is not None else None
+        raw = msgspec.Raw(encode(command) if command is not None else b"null")
         self._events.put(SafetyEvent(stamp=time.time(), key=key, decision=decision, reason=reason, command=raw))
         if decision is Decision.VETOED:
             log.warning("vetoed %s: %s", key, reason)

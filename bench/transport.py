@@ -1,0 +1,236 @@
+"""Round trip of a tether query (Node.serve/Node.call) between two processes, against bare Zenoh get/queryable.
+
+    python -m bench.transport --json        one JSON object on stdout
+    python -m bench.transport               a short table
+
+The server is a child process on its own robot name; readiness is its liveliness token. Both round
+trips use the same two sessions and the same payload, interleaved so drift hits both alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.metadata
+import json
+import os
+import platform
+import random
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from typing import IO, Any
+
+import zenoh
+
+from schemas import keys
+from schemas.keys import Service
+from schemas.plan import PlanText
+from services import runtime
+from services.runtime import Node, NodeSettings
+
+# A bench-only echo service shaped like plan/parse: a real PlanText in, the same PlanText back.
+ECHO: Service[PlanText, PlanText] = Service("bench/echo", PlanText, PlanText)
+RAW_PATH = "bench/raw_echo"
+SERVER, CLIENT = "parser", "executor"
+REQUEST = PlanText(text="pick up the red cup from the kitchen counter and bring it to me", format="text")
+MAX_SAMPLES = 20_000
+READY_TIMEOUT = 20.0
+CALL_TIMEOUT = 2.0
+
+
+def free_base_port(count: int = len(runtime.SERVICES)) -> int:
+    """A base port whose `count` consecutive loopback ports are free right now."""
+    rng = random.Random()
+    for _ in range(100):
+        base = rng.randrange(20_000, 60_000)
+        try:
+            with contextlib.ExitStack() as stack:
+                for port in range(base, base + count):
+                    sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+                    sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError("no block of free loopback ports found")
+
+
+def serve(settings: NodeSettings) -> None:
+    """The child process: the tether echo and the bare echo on one session, until SIGINT/SIGTERM."""
+    stop = runtime.stop_event()
+    with Node(SERVER, settings) as node:
+        raw_key = f"{keys.prefix(settings.robot)}/{RAW_PATH}"
+
+        def raw_echo(query: zenoh.Query) -> None:
+            try:
+                query.reply(raw_key, query.payload.to_bytes() if query.payload is not None else b"")
+            finally:
+                query.drop()
+
+        node.serve(ECHO, lambda request: request)
+        node.session.declare_queryable(raw_key, raw_echo)
+        node.declare_alive()
+        stop.wait()
+
+
+def percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
+
+
+def summary(ms: list[float]) -> dict[str, float]:
+    return {"median_ms": round(statistics.median(ms), 4), "p99_ms": round(percentile(ms, 99), 4)}
+
+
+def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
+    """Interleaved round trips, in ms: (bare zenoh, tether); stops early at `max_seconds`."""
+    raw_key = f"{keys.prefix(node.robot)}/{RAW_PATH}"
+    payload = runtime.encode(REQUEST)
+
+    def bare() -> None:
+        for reply in node.session.get(raw_key, payload=payload, timeout=CALL_TIMEOUT):
+            if reply.ok is None or reply.ok.payload.to_bytes() != payload:
+                raise RuntimeError(f"bare echo failed: {reply.err.payload.to_string() if reply.err else reply}")
+            return
+        raise RuntimeError("bare echo: no reply")
+
+    def tether() -> None:
+        if node.call(ECHO, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
+            raise RuntimeError("tether echo returned a different message")
+
+    def timed(call: Callable[[], None]) -> float:
+        started = time.perf_counter_ns()
+        call()
+        return (time.perf_counter_ns() - started) / 1e6
+
+    baseline: list[float] = []
+    measured: list[float] = []
+    deadline = time.monotonic() + max_seconds
+    for i in range(warmup + samples):
+        if time.monotonic() > deadline and len(baseline) >= 10:
+            break
+        # Alternate which goes first, so neither always runs on a warmer path.
+        first, second = (bare, tether) if i % 2 == 0 else (tether, bare)
+        a, b = timed(first), timed(second)
+        if i >= warmup:
+            baseline.append(a if first is bare else b)
+            measured.append(b if first is bare else a)
+    return baseline, measured
+
+
+def machine_notes(payload_bytes: int, warmup: int) -> dict[str, Any]:
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "zenoh": importlib.metadata.version("eclipse-zenoh"),
+        "cpus": os.cpu_count(),
+        "loadavg_1m": round(os.getloadavg()[0], 2),
+        "transport": "tcp on loopback, peer to peer, multicast scouting off",
+        "payload_bytes": payload_bytes,
+        "warmup": warmup,
+        "order": "interleaved, alternating first call",
+        "tether_path": "msgspec decode+encode, a thread per query, a _trace publication per query",
+    }
+
+
+def spawn_server(settings: NodeSettings, log: IO[bytes]) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "TETHER_ROBOT": settings.robot, "TETHER_BASE_PORT": str(settings.base_port)}
+    env.pop("TETHER_ZENOH_CONFIG", None)
+    return subprocess.Popen(
+        [sys.executable, "-m", "bench.transport", "--serve"],
+        env=env,
+        stdout=log,
+        stderr=log,
+        start_new_session=True,
+    )
+
+
+def stop_server(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is not None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGINT)
+    try:
+        proc.wait(timeout=5)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=5)
+
+
+def run(samples: int, warmup: int, max_seconds: float) -> dict[str, Any]:
+    base_port = int(os.environ.get("TETHER_BASE_PORT") or free_base_port())
+    settings = NodeSettings(robot=f"bench-{os.getpid()}", base_port=base_port)
+    with tempfile.TemporaryFile() as log:
+        proc = spawn_server(settings, log)
+        try:
+            with Node(CLIENT, settings) as node:
+                missing = node.wait_alive({SERVER}, timeout=READY_TIMEOUT)
+                if missing:
+                    raise RuntimeError(f"bench server not alive within {READY_TIMEOUT:g} s")
+                baseline, measured = measure(node, samples, warmup, max_seconds)
+        except BaseException:
+            stop_server(proc)
+            log.seek(0)
+            sys.stderr.write(f"bench server output (exit {proc.returncode}):\n{log.read().decode(errors='replace')}\n")
+            raise
+        stop_server(proc)
+    base, teth = summary(baseline), summary(measured)
+    return {
+        "samples": len(measured),
+        "baseline": base,
+        "tether": teth,
+        "ratio_median": round(teth["median_ms"] / base["median_ms"], 3),
+        "ratio_p99": round(teth["p99_ms"] / base["p99_ms"], 3),
+        "notes": machine_notes(len(runtime.encode(REQUEST)), warmup),
+    }
+
+
+def print_table(result: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"query round trip between two processes ({result['samples']} samples)")
+    table.add_column("")
+    table.add_column("median ms", justify="right")
+    table.add_column("p99 ms", justify="right")
+    table.add_row("bare zenoh get", f"{result['baseline']['median_ms']:.3f}", f"{result['baseline']['p99_ms']:.3f}")
+    table.add_row("tether call", f"{result['tether']['median_ms']:.3f}", f"{result['tether']['p99_ms']:.3f}")
+    table.add_row("ratio", f"{result['ratio_median']:.2f}x", f"{result['ratio_p99']:.2f}x")
+    console = Console()
+    console.print(table)
+    notes = result["notes"]
+    console.print(f"{notes['platform']}, {notes['cpus']} CPUs, load {notes['loadavg_1m']}, zenoh {notes['zenoh']}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.transport", description=__doc__.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--samples", type=int, default=1000, help=f"round trips of each kind (max {MAX_SAMPLES})")
+    parser.add_argument("--warmup", type=int, default=50, help="round trips of each kind not counted")
+    parser.add_argument("--max-seconds", type=float, default=30.0, help="stop measuring after this long")
+    parser.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)  # the child process
+    args = parser.parse_args(argv)
+    if args.serve:
+        runtime.configure_logging("WARNING")
+        serve(NodeSettings.from_env())
+        return
+    if not 10 <= args.samples <= MAX_SAMPLES:
+        parser.error(f"--samples must be between 10 and {MAX_SAMPLES}")
+    if not 0 < args.max_seconds <= 600:
+        parser.error("--max-seconds must be in (0, 600]")
+    runtime.configure_logging("WARNING")
+    result = run(args.samples, max(0, args.warmup), args.max_seconds)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print_table(result)
+
+
+if __name__ == "__main__":
+    main()

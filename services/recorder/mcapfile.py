@@ -1,0 +1,156 @@
+"""An MCAP file of tether traffic: one json channel per key, each with the JSON Schema of its message type."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import msgspec
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType, Writer
+
+from schemas import keys
+from schemas.trace import RecorderStatus
+
+log = logging.getLogger(__name__)
+
+PROFILE = ""  # no well-known profile fits; json + jsonschema is what Foxglove reads
+LIBRARY = "tether recorder"
+# A key outside the known topics still gets a channel; its schema accepts any JSON value.
+PERMISSIVE_SCHEMA_NAME = "any"
+PERMISSIVE_SCHEMA = b"{}"
+
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def json_schema(type_: Any) -> tuple[str, bytes]:
+    """The schema name and JSON Schema document for a message type, its root inlined for viewers."""
+    document: dict[str, Any] = msgspec.json.schema(type_)
+    defs: dict[str, Any] = document.get("$defs", {})
+    ref = document.get("$ref", "")
+    root_name = ref.removeprefix("#/$defs/")
+    if ref.startswith("#/$defs/") and root_name in defs:
+        # Some viewers only look at the root; keep $defs for the nested $refs.
+        document = {**defs[root_name], "$defs": defs}
+    name = str(document.get("title") or getattr(type_, "__name__", repr(type_)))
+    return name, json.dumps(document, separators=(",", ":")).encode()
+
+
+class Recording:
+    """Writes each (key, JSON payload) pair as an MCAP message on the key's own channel; thread-safe.
+
+    A payload that is not JSON is dropped and counted: a `json` channel must hold JSON or readers
+    choke on the whole file. Payloads are not checked against their schema: a message of the wrong
+    shape is exactly what an incident review needs to see.
+    """
+
+    def __init__(
+        self,
+        output: str | Path | BinaryIO,
+        robot: str,
+        *,
+        compression: str = "zstd",
+        chunk_size: int = 1024 * 1024,
+        clock: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.robot = robot
+        self.path = str(output) if isinstance(output, str | Path) else getattr(output, "name", "<stream>")
+        self._clock = clock
+        self._stream: BinaryIO
+        self._owns_stream = isinstance(output, str | Path)
+        self._stream = open(output, "wb") if isinstance(output, str | Path) else output  # noqa: SIM115
+        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
+        self._lock = threading.Lock()
+        self._schemas: dict[tuple[str, bytes], int] = {}  # (name, document) -> schema id
+        self._channels: dict[str, int] = {}  # key -> channel id
+        self._warned: set[str] = set()
+        self.started_ns = clock()
+        self.messages = 0
+        self.dropped = 0
+        self.finished = False
+        self._writer.start(profile=PROFILE, library=LIBRARY)
+        self._writer.add_metadata("tether", {"robot": robot, "started_ns": str(self.started_ns)})
+
+    def record(self, key: str, payload: bytes, *, log_time: int | None = None, publish_time: int | None = None) -> bool:
+        """Write one message; False if it was dropped (not JSON, or the recording is finished)."""
+        now = self._clock() if log_time is None else log_time
+        try:
+            msgspec.json.decode(payload)
+        except msgspec.DecodeError as exc:
+            self._drop(key, f"payload of {len(payload)} bytes is not JSON ({exc})")
+            return False
+        with self._lock:
+            if self.finished:
+                self.dropped += 1
+                log.debug("dropped a message on %s: recording finished", key)
+                return False
+            channel = self._channels.get(key)
+            if channel is None:
+                channel = self._channels[key] = self._register(key)
+            self._writer.add_message(
+                channel_id=channel,
+                log_time=now,
+                publish_time=now if publish_time is None else publish_time,
+                data=payload,
+                sequence=self.messages,
+            )
+            self.messages += 1
+        return True
+
+    def _register(self, key: str) -> int:
+        topic = keys.topic_for_key(self.robot, key)
+        if topic is None:
+            name, schema = PERMISSIVE_SCHEMA_NAME, PERMISSIVE_SCHEMA
+        else:
+            name, schema = json_schema(topic.type)
+        schema_id = self._schemas.get((name, schema))
+        if schema_id is None:
+            schema_id = self._schemas[name, schema] = self._writer.register_schema(
+                name=name, encoding=SchemaEncoding.JSONSchema, data=schema
+            )
+        return int(self._writer.register_channel(topic=key, message_encoding=MessageEncoding.JSON, schema_id=schema_id))
+
+    def _drop(self, key: str, why: str) -> None:
+        with self._lock:
+            self.dropped += 1
+            first = key not in self._warned
+            self._warned.add(key)
+        # Once per key at warning level, so a noisy publisher cannot flood the log.
+        log.log(logging.WARNING if first else logging.DEBUG, "dropped a message on %s: %s", key, why)
+
+    def flush(self) -> None:
+        """Write the chunk in progress, so a crash loses at most what arrived since."""
+        with self._lock:
+            if not self.finished:
+                self._writer.flush()
+
+    def finish(self) -> None:
+        """Write the summary and index, and close the file if this recording opened it. Idempotent."""
+        with self._lock:
+            if self.finished:
+                return
+            self.finished = True
+            self._writer.finish()
+            self._stream.flush()
+            if self._owns_stream:
+                self._stream.close()
+
+    def status(self) -> RecorderStatus:
+        with self._lock:
+            return RecorderStatus(path=self.path, messages=self.messages, started=self.started_ns / 1e9)
+
+    @property
+    def channels(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._channels)
+
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.finish()

@@ -1,0 +1,253 @@
+"""The recorder's MCAP writer and config: write messages, finish, read back with mcap's own reader."""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import threading
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import pytest
+from mcap.reader import make_reader
+
+from schemas import keys
+from schemas.actions import Feedback
+from schemas.common import Pose2D, Stage
+from schemas.executor import ExecutePlanFeedback
+from schemas.plan import PlanText
+from schemas.robot import NavigateToPoseFeedback, Twist
+from schemas.trace import TraceRecord
+from services.recorder.config import RecorderConfig
+from services.recorder.mcapfile import Recording
+from services.runtime import ConfigError, encode, load_config
+
+ROBOT = "r1"
+CMD_VEL = keys.CMD_VEL.key(ROBOT)
+FEEDBACK = keys.EXECUTE_PLAN.feedback.key(ROBOT)
+TRACE = keys.trace_key(ROBOT, "parser", keys.PLAN_PARSE.path)
+UNKNOWN = f"{keys.prefix(ROBOT)}/someone/else"
+
+TRACE_RECORD = TraceRecord(
+    stamp=1.5,
+    service="parser",
+    key=keys.PLAN_PARSE.path,
+    duration=0.002,
+    query=msgspec.Raw(encode(PlanText(text="go to the kitchen"))),
+    error="",
+)
+MESSAGES: list[tuple[str, Any]] = [
+    (CMD_VEL, Twist(linear_x=0.5, angular_z=-0.1)),
+    (FEEDBACK, Feedback(goal_id="g1", feedback=ExecutePlanFeedback(stage=Stage.PARSE, step=0, action="navigate"))),
+    (TRACE, TRACE_RECORD),
+    (CMD_VEL, Twist(linear_x=0.0)),
+]
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_000_000_000
+
+    def __call__(self) -> int:
+        self.now += 1000
+        return self.now
+
+
+def read(data: bytes) -> tuple[dict[str, Any], list[tuple[Any, Any, Any]]]:
+    reader = make_reader(io.BytesIO(data))
+    summary = reader.get_summary()
+    assert summary is not None, "finish() must write a summary"
+    return {c.topic: c for c in summary.channels.values()}, list(reader.iter_messages(log_time_order=True))
+
+
+def write(messages: list[tuple[str, Any]]) -> tuple[Recording, bytes]:
+    stream = io.BytesIO()
+    recording = Recording(stream, ROBOT, clock=Clock())
+    for key, message in messages:
+        assert recording.record(key, encode(message))
+    recording.finish()
+    return recording, stream.getvalue()
+
+
+def test_one_json_channel_per_key_with_the_json_schema_of_its_type() -> None:
+    _, data = write(MESSAGES)
+    channels, messages = read(data)
+
+    assert set(channels) == {CMD_VEL, FEEDBACK, TRACE}
+    assert len(messages) == len(MESSAGES)
+    for schema, channel, _ in messages:
+        assert channel.message_encoding == "json"
+        assert schema.encoding == "jsonschema"
+        document = json.loads(schema.data)
+        assert document["type"] == "object"
+    names = {channel.topic: schema.name for schema, channel, _ in messages}
+    assert names[CMD_VEL] == "Twist"
+    assert names[TRACE] == "TraceRecord"
+    assert names[FEEDBACK] == "Feedback[ExecutePlanFeedback]"
+
+
+def test_messages_decode_back_into_their_structs() -> None:
+    _, data = write(MESSAGES)
+    _, messages = read(data)
+
+    decoded = []
+    for _, channel, message in messages:
+        topic = keys.topic_for_key(ROBOT, channel.topic)
+        assert topic is not None
+        if topic.type is TraceRecord:
+            # See test_a_trace_record_decodes_back: the Struct itself cannot decode its Raw fields yet.
+            decoded.append((channel.topic, json.loads(message.data)))
+        else:
+            decoded.append((channel.topic, msgspec.json.decode(message.data, type=topic.type)))
+    expected = [(key, json.loads(encode(m)) if isinstance(m, TraceRecord) else m) for key, m in MESSAGES]
+    assert decoded == expected
+    assert decoded[2][1]["query"] == {"text": "go to the kitchen", "format": "auto"}
+
+
+def test_a_trace_record_decodes_back() -> None:
+    _, data = write([(TRACE, TRACE_RECORD)])
+    _, [(_, _, message)] = read(data)
+    record = msgspec.json.decode(message.data, type=TraceRecord)
+    assert record.query is not None
+    assert msgspec.json.decode(record.query, type=PlanText).text == "go to the kitchen"
+
+
+def test_times_are_nanoseconds_and_in_order() -> None:
+    _, data = write(MESSAGES)
+    _, messages = read(data)
+
+    times = [m.log_time for _, _, m in messages]
+    assert times == sorted(times)
+    assert all(m.publish_time == m.log_time for _, _, m in messages)
+    assert [m.sequence for _, _, m in messages] == [0, 1, 2, 3]
+
+
+def test_a_schema_is_written_once_for_keys_of_the_same_type() -> None:
+    cmd_feedback = keys.CMD_NAVIGATE.feedback.key(ROBOT)
+    robot_feedback = keys.ROBOT_NAVIGATE.feedback.key(ROBOT)
+    feedback = Feedback(
+        goal_id="g2", feedback=NavigateToPoseFeedback(pose=Pose2D(x=1.0, y=2.0), distance_remaining=1.0)
+    )
+    _, data = write([(cmd_feedback, feedback), (robot_feedback, feedback)])
+
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    assert summary is not None
+    assert len(summary.channels) == 2
+    assert len(summary.schemas) == 1
+
+
+def test_an_unknown_key_under_the_prefix_is_recorded_with_a_permissive_schema() -> None:
+    _, data = write([(UNKNOWN, {"anything": [1, 2]})])
+    _, messages = read(data)
+
+    [(schema, channel, message)] = messages
+    assert channel.topic == UNKNOWN
+    assert json.loads(schema.data) == {}
+    assert json.loads(message.data) == {"anything": [1, 2]}
+
+
+def test_a_payload_that_is_not_json_is_dropped_and_counted() -> None:
+    stream = io.BytesIO()
+    recording = Recording(stream, ROBOT)
+    assert not recording.record(CMD_VEL, b"\x00\x01 not json")
+    assert recording.record(CMD_VEL, encode(Twist()))
+    recording.finish()
+
+    assert (recording.messages, recording.dropped) == (1, 1)
+    _, messages = read(stream.getvalue())
+    assert len(messages) == 1
+
+
+def test_finish_is_idempotent_and_later_messages_are_dropped() -> None:
+    recording, _ = write(MESSAGES[:1])
+    recording.finish()
+    assert not recording.record(CMD_VEL, encode(Twist()))
+    assert recording.dropped == 1
+    recording.flush()  # a no-op once finished
+
+
+def test_flush_writes_a_readable_chunk_before_finish() -> None:
+    stream = io.BytesIO()
+    recording = Recording(stream, ROBOT)
+    recording.record(CMD_VEL, encode(Twist(linear_x=0.2)))
+    recording.flush()
+    # An unfinished file has no summary, but the flushed chunk is already there.
+    assert len(stream.getvalue()) > 100
+    recording.finish()
+
+
+def test_concurrent_writers_lose_nothing() -> None:
+    stream = io.BytesIO()
+    recording = Recording(stream, ROBOT)
+    threads_count, per_thread = 4, 250
+
+    def publish(n: int) -> None:
+        for i in range(per_thread):
+            recording.record(f"{keys.prefix(ROBOT)}/load/{n}", encode({"i": i}))
+
+    threads = [threading.Thread(target=publish, args=(n,)) for n in range(threads_count)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    recording.finish()
+
+    channels, messages = read(stream.getvalue())
+    assert len(channels) == threads_count
+    assert len(messages) == recording.messages == threads_count * per_thread
+
+
+def test_status_names_the_file_and_counts_messages(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with Recording(path, ROBOT) as recording:
+        recording.record(CMD_VEL, encode(Twist()))
+        status = recording.status()
+    assert status.path == str(path)
+    assert status.messages == 1
+    assert status.started > 0
+    with path.open("rb") as f:
+        assert len(list(make_reader(f).iter_messages())) == 1
+
+
+def test_compression_options_all_read_back() -> None:
+    for compression in ("zstd", "lz4", "none"):
+        stream = io.BytesIO()
+        with Recording(stream, ROBOT, compression=compression) as recording:
+            recording.record(CMD_VEL, encode(Twist(linear_x=0.1)))
+        _, messages = read(stream.getvalue())
+        assert len(messages) == 1, compression
+
+
+def test_config_defaults_and_file_name() -> None:
+    config = load_config(RecorderConfig, None, "recorder")
+    started = dt.datetime(2025, 1, 31, 13, 0, 5, tzinfo=dt.timezone(dt.timedelta(hours=1)))
+    assert config.path_for("robot1", started) == Path("recordings/robot1_20250131T120005Z.mcap")
+
+
+def test_config_from_a_file(tmp_path: Path) -> None:
+    path = tmp_path / "tether.toml"
+    path.write_text('[recorder]\noutput_dir = "/var/lib/tether"\nfile_pattern = "{stamp}-{robot}.mcap"\n')
+    config = load_config(RecorderConfig, path, "recorder")
+    started = dt.datetime(2025, 1, 31, 12, tzinfo=dt.UTC)
+    assert config.path_for("r2", started) == Path("/var/lib/tether/20250131T120000Z-r2.mcap")
+
+
+@pytest.mark.parametrize(
+    ("table", "named"),
+    [
+        ('file_pattern = "{robot}.mcap"', "file_pattern"),
+        ('file_pattern = "{robot}_{stamp}_{user}.mcap"', "file_pattern"),
+        ('file_pattern = "sub/{robot}_{stamp}.mcap"', "file_pattern"),
+        ('compression = "gzip"', "compression"),
+        ("flush_interval = 0", "flush_interval"),
+        ("colour = 1", "colour"),
+    ],
+)
+def test_a_bad_config_value_is_named_with_the_file(tmp_path: Path, table: str, named: str) -> None:
+    path = tmp_path / "tether.toml"
+    path.write_text(f"[recorder]\n{table}\n")
+    with pytest.raises(ConfigError, match=named) as err:
+        load_config(RecorderConfig, path, "recorder")
+    assert str(path) in str(err.value)
