@@ -149,7 +149,7 @@ class Node:
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 message = dec.decode(sample.payload.to_bytes())
-            except msgspec.DecodeError as exc:
+            except (msgspec.DecodeError, UnicodeDecodeError) as exc:
                 log.warning("dropped undecodable sample on %s: %s", sample.key_expr, exc)
                 return
             try:
@@ -197,7 +197,7 @@ class Node:
                 else:
                     try:
                         request = dec.decode(raw)
-                    except msgspec.DecodeError as exc:
+                    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
                         error = ServiceError(
                             kind=ErrorKind.INVALID_REQUEST, message=f"invalid request for {service.path}: {exc}"
                         )
@@ -229,11 +229,15 @@ class Node:
         replies = self.session.get(key, payload=encode(request), timeout=timeout)
         for reply in replies:
             if reply.ok is not None:
-                return decoder(service.reply).decode(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
+                try:
+                    return decoder(service.reply).decode(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
+                except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+                    message = f"undecodable reply from {service.path}: {exc}"
+                    raise CallError(ServiceError(kind=ErrorKind.INTERNAL, message=message)) from None
             payload = reply.err.payload.to_bytes() if reply.err is not None else b""
             try:
                 error = decoder(ServiceError).decode(payload)
-            except msgspec.DecodeError:
+            except (msgspec.DecodeError, UnicodeDecodeError):
                 error = ServiceError(kind=ErrorKind.INTERNAL, message=payload[:500].decode(errors="replace"))
             raise CallError(error)
         raise CallError(

@@ -208,7 +208,7 @@ def test_the_parser_refuses_garbage_empty_and_huge_input_and_keeps_serving(tmp_p
     stack = start_stack(tmp_path, realtime_factor=4.0, services=("parser",))
     try:
         key = keys.PLAN_PARSE.key(stack.settings.robot)
-        for bad in (b"", b"   ", b"\x00\xff garbage {{{", b"x" * (10 * 1024 * 1024)):
+        for bad in (b"", b"   ", b"\x00\xff garbage {{{", b'{"text": "\xff\xfe"}', b"x" * (10 * 1024 * 1024)):
             # Raw bytes as a hostile peer would send them, and the same text inside a valid request.
             for payload in (bad, msgspec.json.encode({"text": bad.decode(errors="replace"), "format": "auto"})):
                 replies = list(stack.node.session.get(key, payload=payload, timeout=30))

@@ -1,0 +1,46 @@
+"""The parser on the wire: PlanText on plan/parse, answered with a Plan or a ServiceError."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from schemas import keys
+from schemas.common import ServiceError
+from schemas.plan import MAX_PLAN_BYTES, ParseReply, PlanText
+from services.parser.config import ParserConfig
+from services.parser.parser import Parser, answer
+from services.parser.vocabulary import load_vocabulary
+from services.runtime import Node
+
+log = logging.getLogger(__name__)
+
+
+def build_parser(config: ParserConfig) -> Parser:
+    vocabulary = load_vocabulary(Path(config.vocabulary) if config.vocabulary else None)
+    return Parser(
+        vocabulary,
+        max_depth=config.max_depth,
+        lenient_json=config.lenient_json,
+        max_repair_chars=config.max_repair_chars,
+    )
+
+
+def handler(parser: Parser) -> Callable[[PlanText], ParseReply]:
+    """A handler that always answers: a Plan, or a ServiceError saying what was wrong."""
+
+    def handle(request: PlanText) -> ParseReply:
+        reply = answer(parser, request)
+        if isinstance(reply, ServiceError):
+            log.info("refused plan: %s", reply.message)
+        else:
+            log.info("parsed plan: %d steps, %d warnings", len(reply.steps), len(reply.warnings))
+        return reply
+
+    return handle
+
+
+def declare(node: Node, parser: Parser) -> None:
+    # The size limit is checked on the raw bytes before decoding: a 10 MB request is refused unread.
+    node.serve(keys.PLAN_PARSE, handler(parser), max_request_bytes=MAX_PLAN_BYTES + 4096)

@@ -1,0 +1,60 @@
+"""Where on a table top to put something down: near the edge the robot stands at, clear of the rest."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from schemas.common import Vec3
+from schemas.world import Furniture
+
+# How far apart the candidate spots along an edge are tried.
+SEARCH_STEP = 0.05
+
+
+def _offsets(low: float, high: float, start: float) -> list[float]:
+    """Points in [low, high], starting at `start` (clamped) and fanning out both ways."""
+    if low > high:
+        return [(low + high) / 2]
+    start = min(max(start, low), high)
+    points = [start]
+    k = 1
+    while start - k * SEARCH_STEP >= low - 1e-9 or start + k * SEARCH_STEP <= high + 1e-9:
+        for p in (start + k * SEARCH_STEP, start - k * SEARCH_STEP):
+            if low - 1e-9 <= p <= high + 1e-9:
+                points.append(p)
+        k += 1
+    return points
+
+
+def place_position(
+    surface: Furniture,
+    occupied: Sequence[tuple[float, float]],
+    *,
+    inset: float,
+    clearance: float,
+) -> Vec3 | None:
+    """A spot on `surface`'s top, `inset` in from the edge nearest its approach pose, at least
+    `clearance` (xy) from every occupied point, shifted sideways along the edge (then further in)
+    as needed; None when the top has no such spot."""
+    cx, cy = surface.center
+    half = (surface.size.x / 2, surface.size.y / 2)
+    ax, ay = surface.approach.x, surface.approach.y
+    # The approach side: the axis along which the approach pose lies farther out, relative to size.
+    across = 0 if abs(ax - cx) / half[0] >= abs(ay - cy) / half[1] else 1
+    along = 1 - across
+    centre = (cx, cy)
+    approach = (ax, ay)
+    sign = 1.0 if approach[across] >= centre[across] else -1.0
+    edge = centre[across] + sign * half[across]
+    depths = _offsets(inset, 2 * half[across] - inset, inset)
+    depths = sorted(d for d in depths if d >= inset - 1e-9) or [half[across]]
+    sideways = _offsets(centre[along] - half[along] + inset, centre[along] + half[along] - inset, approach[along])
+    for depth in depths:
+        for side in sideways:
+            point = [0.0, 0.0]
+            point[across] = edge - sign * depth
+            point[along] = side
+            if all(math.dist(point, other) >= clearance - 1e-9 for other in occupied):
+                return Vec3(x=round(point[0], 3), y=round(point[1], 3), z=round(surface.size.z, 3))
+    return None

@@ -1,0 +1,317 @@
+"""The parser: the plan shapes LLMs emit become Plans; everything else is refused with a reason."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from schemas.common import ErrorKind, ServiceError, Stage
+from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS, Action, Plan, PlanText
+from services.parser.errors import ParseError, VocabularyError
+from services.parser.parser import Parser, answer, default_parser, parse
+from services.parser.vocabulary import load_vocabulary
+
+DEMO = {
+    "plan": [
+        {"action": "navigate_to", "target": "kitchen counter"},
+        {"action": "pick", "target": "red cup"},
+        {"action": "navigate_to", "target": "coffee table"},
+        {"action": "place", "target": "coffee table"},
+    ]
+}
+
+# The shape of seed 001: an object holding a "plan" array of {action, target, parameters}.
+OBJECT_SHAPE = {
+    "description": "Bring the mug to the living room",
+    "plan": [
+        {"action": "navigate_to", "target": "kitchen", "parameters": {"x": 3.0, "y": 2.5}, "description": "go"},
+        {"action": "detect_object", "target": "coffee mug", "parameters": {}},
+        {"action": "grasp_object", "target": "coffee mug", "parameters": {"approach": "top"}},
+        {"action": "place_object", "target": "coffee table", "parameters": {}},
+        {"action": "speak_text", "target": "Here is your mug.", "parameters": {"volume": 0.8}},
+    ],
+}
+
+# The shape of seed 000: a bare array of {action, target_object, target_location, parameters}.
+ARRAY_SHAPE = [
+    {"action": "navigate", "target_location": "kitchen table", "parameters": {}, "description": "walk over"},
+    {"action": "pick_up", "target_object": "blue cup", "target_location": "kitchen table"},
+    {"action": "put_down", "target_object": "blue cup", "target_location": "shelf"},
+    {"action": "pause", "parameters": {"duration": 2}},
+    {"action": "halt"},
+]
+
+
+def refusal(text: str, fmt: str = "auto") -> ServiceError:
+    with pytest.raises(ParseError) as caught:
+        parse(text, fmt)
+    error = caught.value.error
+    assert error.stage is Stage.PARSE
+    return error
+
+
+def test_demo_plan_parses() -> None:
+    plan = parse(json.dumps(DEMO))
+    assert [s.action for s in plan.steps] == [Action.NAVIGATE_TO, Action.PICK, Action.NAVIGATE_TO, Action.PLACE]
+    assert plan.steps[0].target == "kitchen counter"
+    assert plan.steps[1].target == "red cup"
+    assert (plan.steps[3].target, plan.steps[3].location) == (None, "coffee table")
+    assert plan.warnings == []
+
+
+def test_object_with_plan_array() -> None:
+    plan = parse(json.dumps(OBJECT_SHAPE))
+    assert plan.description == "Bring the mug to the living room"
+    assert [s.action for s in plan.steps] == [Action.NAVIGATE_TO, Action.DETECT, Action.PICK, Action.PLACE, Action.SAY]
+    assert plan.steps[0].params == {}
+    assert plan.steps[0].description == "go"
+    assert plan.steps[2].params == {"approach": "top"}
+    assert plan.steps[3].location == "coffee table"
+    assert plan.steps[4].params == {"text": "Here is your mug.", "volume": 0.8}
+    assert plan.warnings == ["step 1: parameters x, y ignored: positions come from the world model"]
+
+
+def test_bare_array_with_target_object_and_location() -> None:
+    plan = parse(json.dumps(ARRAY_SHAPE))
+    navigate, pick, place, wait, stop = plan.steps
+    assert (navigate.action, navigate.target) == (Action.NAVIGATE_TO, "kitchen table")
+    assert navigate.description == "walk over"
+    assert (pick.action, pick.target, pick.location) == (Action.PICK, "blue cup", "kitchen table")
+    assert (place.action, place.target, place.location) == (Action.PLACE, "blue cup", "shelf")
+    assert (wait.action, wait.params) == (Action.WAIT, {"duration": 2.0})
+    assert stop.action is Action.STOP
+    assert plan.warnings == []
+
+
+def test_fenced_block_with_prose_around_it() -> None:
+    text = (
+        "Sure! Here is a plan for the robot:\n\n```json\n"
+        + json.dumps(DEMO, indent=2)
+        + "\n```\n\nThe robot first goes to the counter. Let me know if you need anything else {or not}."
+    )
+    plan = parse(text)
+    assert len(plan.steps) == 4
+
+
+def test_plain_fence_and_unfenced_json_in_prose() -> None:
+    assert len(parse("Plan:\n```\n" + json.dumps(ARRAY_SHAPE) + "\n```").steps) == 5
+    text = "Here [as asked] is the plan: " + json.dumps(DEMO) + " -- hope it helps"
+    assert len(parse(text).steps) == 4
+
+
+@pytest.mark.parametrize(
+    ("name", "action"),
+    [
+        ("go_to", Action.NAVIGATE_TO),
+        ("Move To", Action.NAVIGATE_TO),
+        ("goto", Action.NAVIGATE_TO),
+        ("grab", Action.PICK),
+        ("pickUp", Action.PICK),
+        ("take", Action.PICK),
+        ("put", Action.PLACE),
+        ("drop-off", Action.PLACE),
+        ("locate", Action.DETECT),
+        ("find", Action.DETECT),
+        ("halt", Action.STOP),
+    ],
+)
+def test_synonyms(name: str, action: Action) -> None:
+    step = {"action": name, "target": "red cup"} if action is not Action.STOP else {"action": name}
+    assert parse(json.dumps([step])).steps[0].action is action
+
+
+def test_say_and_wait_values() -> None:
+    plan = parse(
+        json.dumps(
+            [
+                {"action": "tell", "parameters": {"text": "hello", "volume": "0.5"}},
+                {"action": "sleep", "parameters": {"duration": "1.5 seconds"}},
+                {"action": "wait", "parameters": {"seconds": "500 ms"}},
+            ]
+        )
+    )
+    assert plan.steps[0].params == {"text": "hello", "volume": 0.5}
+    assert plan.steps[1].params == {"duration": 1.5}
+    assert plan.steps[2].params == {"duration": 0.5}
+
+
+def test_unknown_parameters_and_fields_are_warned_about_not_kept() -> None:
+    text = json.dumps(
+        [
+            {"action": "pick", "target": "red cup", "parameters": {"force": 9, "approach": "side"}, "confidence": 1},
+            {"action": "stop", "target": "everything"},
+        ]
+    )
+    plan = parse(text)
+    assert plan.steps[0].params == {"approach": "side"}
+    assert plan.steps[1].target is None
+    assert any(w.startswith("step 1: unknown parameter(s) 'force' for pick ignored") for w in plan.warnings)
+    assert any(w.startswith("step 1: field(s) 'confidence' ignored") for w in plan.warnings)
+    assert any(w.startswith("step 2: target 'everything' ignored") for w in plan.warnings)
+
+
+def test_unknown_action_suggests_the_nearest() -> None:
+    steps = [{"action": "navigate_to", "target": "x"}, {"action": "plcae", "target": "t"}]
+    error = refusal(json.dumps({"plan": steps}))
+    assert error.kind is ErrorKind.UNKNOWN_ACTION
+    assert error.step == 1
+    assert "step 2" in error.message
+    assert "did you mean 'place'?" in error.message
+    assert "navigate_to, pick, place, detect, say, wait, stop" in error.message
+    assert error.candidates[0] == "place"
+
+
+def test_unknown_action_without_a_near_name_lists_known_ones() -> None:
+    error = refusal(json.dumps([{"action": "wave", "target": ""}]))
+    assert error.kind is ErrorKind.UNKNOWN_ACTION
+    assert "'wave'" in error.message and "known actions" in error.message
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("", "plan text is empty"),
+        ("  \n\t ", "only whitespace"),
+        ("I could not make a plan, sorry.", "no plan found: expected a JSON object with a 'plan' array"),
+        ('{"goal": "tidy up"}', "found an object with keys 'goal'"),
+        ("42", "no plan found"),
+        ('{"plan": []}', "the plan has no steps"),
+        ('{"plan": "go to the kitchen"}', "'plan' must be an array of steps"),
+        ("```yaml\nplan:\n  - action: stop\n```", "YAML plans are not supported yet"),
+    ],
+)
+def test_garbage_is_refused_with_a_reason(text: str, expected: str) -> None:
+    error = refusal(text)
+    assert error.kind is ErrorKind.INVALID_REQUEST
+    assert expected in error.message
+
+
+def test_malformed_json_names_the_position() -> None:
+    # Cut off mid-plan: never repaired, since the missing steps would be silently lost.
+    error = refusal('{"plan": [\n  {"action": "pick", "target": "red cup"},\n  {"action": "pla')
+    assert "malformed JSON" in error.message
+    assert "line 3" in error.message
+    assert "still open" in error.message
+
+
+def test_mismatched_brackets_are_refused() -> None:
+    error = refusal('{"plan": [{"action": "stop"}}')
+    assert "malformed JSON at line 1" in error.message
+
+
+def test_small_repairable_json_is_read_with_a_warning() -> None:
+    plan = parse("{'plan': [{'action': 'pick', 'target': 'red cup',},]}")
+    assert plan.steps[0].target == "red cup"
+    assert plan.warnings and "read leniently" in plan.warnings[0]
+
+
+def test_strict_parser_refuses_what_lenient_repairs() -> None:
+    strict = Parser(load_vocabulary(), lenient_json=False)
+    with pytest.raises(ParseError) as caught:
+        strict.parse('{"plan": [{"action": "stop",}]}')
+    assert "malformed JSON: Expecting property name" in caught.value.error.message
+
+
+@pytest.mark.parametrize(
+    ("steps", "expected", "step"),
+    [
+        (["go to the kitchen"], "step 1: is a string, not an object with an 'action'", 0),
+        ([{"action": "stop"}, {"target": "red cup"}], "step 2: has no 'action'", 1),
+        ([{"action": 7}], "'action' must be a string", 0),
+        ([{"action": "pick"}], "pick needs a target", 0),
+        ([{"action": "place", "target_object": "red cup"}], "place needs a location", 0),
+        ([{"action": "say"}], "say needs the words", 0),
+        ([{"action": "wait"}], "wait needs parameter 'duration'", 0),
+        ([{"action": "wait", "parameters": {"duration": 61}}], "'duration' is 61 s; allowed 0..60 s", 0),
+        ([{"action": "wait", "parameters": {"duration": -1}}], "allowed 0..60 s", 0),
+        ([{"action": "wait", "parameters": {"duration": "2 hours"}}], "unit 'hours'", 0),
+        ([{"action": "wait", "parameters": {"duration": True}}], "must be a number", 0),
+        ([{"action": "say", "target": "hi", "parameters": {"volume": 3}}], "'volume' is 3; allowed 0..1", 0),
+        ([{"action": "pick", "target": "cup", "parameters": {"approach": "under"}}], "expected one of top, side", 0),
+        ([{"action": "pick", "target": {"name": "cup"}}], "'target' must be a name", 0),
+        ([{"action": "pick", "target": "x" * 500}], "a name has at most 200", 0),
+        ([{"action": "pick", "target": "cup", "parameters": [1]}], "'parameters' must be an object", 0),
+    ],
+)
+def test_bad_steps_are_refused_naming_the_step(steps: list[object], expected: str, step: int) -> None:
+    error = refusal(json.dumps(steps))
+    assert expected in error.message
+    assert error.step == step
+
+
+def test_nan_and_infinity_are_refused() -> None:
+    error = refusal('[{"action": "wait", "parameters": {"duration": NaN}}]')
+    assert "finite" in error.message
+    error = refusal('[{"action": "wait", "parameters": {"duration": 1e999}}]')
+    assert "finite" in error.message
+
+
+def test_too_many_steps() -> None:
+    error = refusal(json.dumps([{"action": "stop"}] * (MAX_STEPS + 1)))
+    assert f"{MAX_STEPS + 1} steps; at most {MAX_STEPS}" in error.message
+
+
+def test_too_large_text() -> None:
+    error = refusal('{"plan": [{"action": "say", "target": "' + "a" * MAX_PLAN_BYTES + '"}]}')
+    assert "bytes; at most" in error.message
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "[" * 50_000,
+        "[" * 5_000 + "]" * 5_000,
+        '{"plan": ' + '{"a": ' * 1000 + "1" + "}" * 1000 + "}",
+        "Here: " + "{" * 20_000,
+        '{"plan": [{"action": "pick", "target": "' + "\\u0000" * 100 + '"}]}',
+        "\x00\x01\x02 binary",
+        "\ud800 lone surrogate",
+        '"just a string"',
+        "```json\n```",
+        "{" + '"a": 1, ' * 10_000 + "}",
+    ],
+)
+def test_hostile_input_is_refused_not_raised(text: str) -> None:
+    error = refusal(text)
+    assert error.kind in (ErrorKind.INVALID_REQUEST, ErrorKind.UNKNOWN_ACTION)
+    assert len(error.message) <= 4000
+
+
+def test_huge_unknown_parameter_set_gives_a_bounded_warning() -> None:
+    params = {f"p{i}": i for i in range(5000)}
+    plan = parse(json.dumps([{"action": "stop", "parameters": params}]))
+    assert len(plan.warnings) == 1
+    assert "and 4990 more" in plan.warnings[0]
+
+
+def test_formats() -> None:
+    assert len(parse(json.dumps(DEMO), "json").steps) == 4
+    for later in ("yaml", "text"):
+        error = refusal(json.dumps(DEMO), later)
+        assert f"format '{later}' is not supported yet" in error.message
+    assert "unknown format 'xml'" in refusal(json.dumps(DEMO), "xml").message
+
+
+def test_plans_round_trip_the_wire_schema() -> None:
+    plan = parse(json.dumps(OBJECT_SHAPE))
+    assert msgspec.json.decode(msgspec.json.encode(plan), type=Plan) == plan
+
+
+def test_answer_is_always_a_value() -> None:
+    assert isinstance(answer(default_parser(), PlanText(text=json.dumps(DEMO))), Plan)
+    reply = answer(default_parser(), PlanText(text="{{{{"))
+    assert isinstance(reply, ServiceError)
+    assert reply.stage is Stage.PARSE
+
+
+def test_vocabulary_file_errors_name_the_file(tmp_path: Path) -> None:
+    bad = tmp_path / "vocabulary.yaml"
+    bad.write_text("actions:\n  pick: {synonyms: [grab]}\n")
+    with pytest.raises(VocabularyError, match="no entry for actions"):
+        load_vocabulary(bad)
+    bad.write_text("actions: {}\nfoo: 1\n")
+    with pytest.raises(VocabularyError, match=str(bad)):
+        load_vocabulary(bad)
