@@ -1,0 +1,37 @@
+"""`tether run sim`."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.sim.config import SimConfig
+from services.sim.node import SimNode
+from services.sim.physics import Simulation
+from services.worldmodel import load_world
+
+log = logging.getLogger(__name__)
+
+
+def main(settings: NodeSettings, config_file: Path | None) -> None:
+    configure_logging()
+    config = load_config(SimConfig, config_file, "sim")
+    world = load_world(config.world)
+    stop = stop_event()
+    sim = Simulation(world, physics_hz=config.physics_hz)
+    try:
+        with Node("sim", settings) as node:
+            sim_node = SimNode(node, sim, config)
+            node.declare_alive()
+            log.info(
+                "sim up for robot %s: world %s at %gx real time; the robot stays still until safety's heartbeat",
+                settings.robot,
+                world.name,
+                config.realtime_factor,
+            )
+            # This thread owns pybullet from here on; everything else reaches it through SimNode.submit.
+            sim_node.run(stop)
+            sim_node.close()
+    finally:
+        sim.close()

@@ -1,0 +1,245 @@
+"""The simulator on Zenoh: one thread owns pybullet; actions, cmd_vel and the heartbeat feed it."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from schemas import keys
+from schemas.actions import GoalState
+from schemas.common import ErrorKind, ServiceError
+from schemas.robot import FollowJointTrajectoryGoal, Twist
+from schemas.safety import SafetyStatus
+from schemas.world import Empty, GroundTruth
+from services.actionlib import ActionServer, GoalHandle, Outcome
+from services.runtime import CallError, Node
+from services.sim.config import SimConfig
+from services.sim.physics import Motion, Simulation
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+Command = Callable[[Simulation], None]
+Execute = Callable[[GoalHandle[Any, Any]], Outcome[Any]]
+
+FEEDBACK_PERIOD = 0.1  # wall seconds
+START_TIMEOUT = 5.0
+GROUND_TRUTH_TIMEOUT = 2.0
+# If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
+MAX_LAG = 0.5
+
+
+class SimNode:
+    """Binds a Simulation to the robot keys. Call run() on the thread that should own pybullet."""
+
+    def __init__(self, node: Node, sim: Simulation, config: SimConfig) -> None:
+        self.node = node
+        self.sim = sim
+        self.config = config
+        self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()
+        self._heartbeat: SafetyStatus | None = None
+        self._heartbeat_at = 0.0
+        self._blocked_reason: str | None = "no safety heartbeat received yet"
+        self._joint_states = node.publisher(keys.JOINT_STATES)
+        self._odom = node.publisher(keys.ODOM)
+        self._objects = node.publisher(keys.OBJECTS)
+        self._humans = node.publisher(keys.HUMANS)
+        self.servers: list[ActionServer[Any, Any, Any]] = [
+            ActionServer(node, keys.ROBOT_NAVIGATE, self._run_goal(Simulation.navigate), accept=self._accept),
+            ActionServer(
+                node,
+                keys.ROBOT_TRAJECTORY,
+                self._run_goal(Simulation.follow_trajectory),
+                accept=self._accept_trajectory,
+            ),
+            ActionServer(node, keys.ROBOT_GRIPPER, self._run_goal(Simulation.gripper), accept=self._accept),
+        ]
+        node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
+        node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
+        node.serve(keys.GROUND_TRUTH, self._on_ground_truth)
+
+    # Safety: fail closed
+
+    def _on_heartbeat(self, status: SafetyStatus) -> None:
+        with self._lock:
+            self._heartbeat, self._heartbeat_at = status, time.monotonic()
+
+    def safety_block(self) -> str | None:
+        """Why the robot must stay still right now, or None when safety says it may move."""
+        with self._lock:
+            status, at = self._heartbeat, self._heartbeat_at
+        if status is None:
+            return "no safety heartbeat received yet"
+        age = time.monotonic() - at
+        if age > self.config.heartbeat_timeout:
+            return f"no safety heartbeat for {age * 1000:.0f} ms"
+        if status.estop.latched:
+            return f"e-stop latched by {status.estop.source or 'unknown'}: {status.estop.reason or 'no reason given'}"
+        return None
+
+    def _accept(self, _goal: object) -> str | None:
+        return self.safety_block()
+
+    def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
+        return self.safety_block() or self.sim.check_trajectory(goal)
+
+    def _enforce_safety(self) -> None:
+        """On the sim thread: stop everything when safety goes quiet or latches."""
+        reason = self.safety_block()
+        was_blocked = self._blocked_reason is not None
+        self._blocked_reason = reason
+        if reason is not None and not was_blocked:
+            log.warning("stopping the robot: %s", reason)
+            self.sim.stop(reason)
+            for server in self.servers:
+                server.abort_all(reason)
+        elif reason is None and was_blocked:
+            log.info("safety heartbeat present and e-stop clear: the robot may move")
+
+    # Inputs
+
+    def _on_cmd_vel(self, twist: Twist) -> None:
+        reason = self.safety_block()
+        if reason is not None:
+            log.debug("ignored cmd_vel: %s", reason)
+            return
+        hold_for = self.config.cmd_vel_timeout * self.config.realtime_factor
+        self.submit(lambda sim: self._apply_cmd_vel(sim, twist, hold_for))
+
+    def _apply_cmd_vel(self, sim: Simulation, twist: Twist, hold_for: float) -> None:
+        if self._blocked_reason is None and not sim.set_cmd_vel(twist, hold_for):
+            log.info("ignored cmd_vel while a navigate_to_pose goal runs")
+
+    def submit(self, command: Command) -> None:
+        """Run `command` on the sim thread."""
+        self._commands.put(command)
+        self._wake.set()
+
+    def _ask(self, query: Callable[[Simulation], T], timeout: float) -> T | None:
+        """Run `query` on the sim thread and wait for its value; None if the thread does not answer."""
+        box: list[T] = []
+        answered = threading.Event()
+
+        def run(sim: Simulation) -> None:
+            try:
+                box.append(query(sim))
+            finally:
+                answered.set()
+
+        self.submit(run)
+        answered.wait(timeout)
+        return box[0] if box else None
+
+    def _on_ground_truth(self, _request: Empty) -> GroundTruth:
+        truth = self._ask(Simulation.ground_truth, GROUND_TRUTH_TIMEOUT)
+        if truth is None:
+            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message="the simulator did not answer within 2 s"))
+        return truth
+
+    # Goals
+
+    def _run_goal(self, start: Callable[[Simulation, Any], Motion[Any, Any]]) -> Execute:
+        """An ActionServer execute callback: start the motion on the sim thread, relay feedback, wait."""
+
+        def execute(handle: GoalHandle[Any, Any]) -> Outcome[Any]:
+            def begin(sim: Simulation) -> Motion[Any, Any] | str:
+                return self._blocked_reason or start(sim, handle.goal)
+
+            started = self._ask(begin, START_TIMEOUT)
+            if started is None:
+                return Outcome(GoalState.ABORTED, None, "the simulator did not start the goal")
+            if isinstance(started, str):
+                return Outcome(GoalState.ABORTED, None, started)
+            motion = started
+            cancel_sent = False
+            while not motion.done.wait(FEEDBACK_PERIOD):
+                if motion.feedback is not None:
+                    handle.feedback(motion.feedback)
+                if handle.should_stop and not cancel_sent:
+                    cancel_sent = True
+                    self.submit(self._canceller(motion, handle.abort_reason))
+            return Outcome(motion.state, motion.result, motion.message)
+
+        return execute
+
+    @staticmethod
+    def _canceller(motion: Motion[Any, Any], abort_reason: str) -> Command:
+        """Ends `motion` as aborted (safety, shutdown) when there is a reason, else as canceled."""
+        if abort_reason:
+            return lambda sim: sim.cancel(motion, GoalState.ABORTED, abort_reason)
+        return lambda sim: sim.cancel(motion, GoalState.CANCELED, "canceled")
+
+    # The sim thread
+
+    def run(self, stop: threading.Event) -> None:
+        """Step physics paced to wall time x realtime_factor, publish, and obey safety, until `stop`."""
+        sim, config = self.sim, self.config
+        factor = config.realtime_factor
+        wall_start, sim_start = time.monotonic(), sim.sim_time
+        due = {"joint_states": 0.0, "odom": 0.0, "objects": 0.0, "humans": 0.0}
+        periods = {
+            "joint_states": 1.0 / config.joint_states_hz,
+            "odom": 1.0 / config.odom_hz,
+            "objects": 1.0 / config.objects_hz,
+            "humans": 1.0 / config.humans_hz,
+        }
+        try:
+            while not stop.is_set():
+                self._drain()
+                self._enforce_safety()
+                now = time.monotonic()
+                target = sim_start + (now - wall_start) * factor
+                if target - sim.sim_time > MAX_LAG:
+                    log.warning(
+                        "simulation is %.2f s behind the wall clock; dropping the backlog", target - sim.sim_time
+                    )
+                    wall_start, sim_start = now, sim.sim_time
+                    target = sim.sim_time
+                while sim.sim_time + sim.dt <= target and not stop.is_set():
+                    sim.step()
+                    self._drain()
+                    self._enforce_safety()
+                self._publish(due, periods)
+                next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
+                self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
+                self._wake.clear()
+        finally:
+            sim.stop("the simulator is shutting down")
+            self._drain()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                command = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                command(self.sim)
+            except Exception:
+                log.exception("sim command failed")
+
+    def _publish(self, due: dict[str, float], periods: dict[str, float]) -> None:
+        now = time.monotonic()
+        stamp = time.time()
+        for name, period in periods.items():
+            if now < due[name]:
+                continue
+            due[name] = now + period
+            if name == "joint_states":
+                self._joint_states.put(self.sim.joint_state(stamp))
+            elif name == "odom":
+                self._odom.put(self.sim.odometry(stamp))
+            elif name == "objects":
+                self._objects.put(self.sim.perceived_objects(stamp))
+            else:
+                self._humans.put(self.sim.perceived_humans(stamp))
+
+    def close(self) -> None:
+        for server in self.servers:
+            server.abort_all("the simulator is shutting down")

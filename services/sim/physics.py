@@ -1,0 +1,739 @@
+"""The simulated household and robot in pybullet: world building, controllers and ground truth. Pure logic."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import pybullet
+import pybullet_data
+from pybullet_utils import bullet_client
+
+from schemas.actions import GoalState
+from schemas.common import Pose2D, Vec3
+from schemas.robot import (
+    FollowJointTrajectoryFeedback,
+    FollowJointTrajectoryGoal,
+    FollowJointTrajectoryResult,
+    GripperCommandFeedback,
+    GripperCommandGoal,
+    GripperCommandResult,
+    JointState,
+    NavigateToPoseFeedback,
+    NavigateToPoseGoal,
+    NavigateToPoseResult,
+    Odometry,
+    Twist,
+)
+from schemas.world import (
+    GroundTruth,
+    PerceivedHuman,
+    PerceivedHumans,
+    PerceivedObject,
+    PerceivedObjects,
+    World,
+    WorldObject,
+)
+from services.sim.robot_urdf import BASE_LINK, BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT, mobile_manipulator_urdf
+from services.worldmodel import WorldModel
+
+log = logging.getLogger(__name__)
+
+F = TypeVar("F")
+R = TypeVar("R")
+M = TypeVar("M", bound="Motion[Any, Any]")
+
+ARM_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
+FINGER_JOINTS: tuple[str, str] = ("panda_finger_joint1", "panda_finger_joint2")
+HAND_LINK = "panda_hand"
+FINGER_LINKS: tuple[str, str] = ("panda_leftfinger", "panda_rightfinger")
+GRIPPER_OPEN = 0.08
+GRAVITY = -9.81
+
+# The base: wheels are abstracted as velocity motors on planar joints. The force is large so a
+# stop takes a few milliseconds, yet finite so furniture still blocks the base.
+BASE_FORCE = 4000.0
+BASE_TORQUE = 2000.0
+LINEAR_ACCELERATION = 1.5  # m/s^2, for commanded (not emergency) speed changes
+ANGULAR_ACCELERATION = 3.0  # rad/s^2
+# Arm joint torques: the URDF's effort limits, raised so the arm stays stiff while the base brakes.
+ARM_FORCES = (300.0, 300.0, 300.0, 300.0, 100.0, 100.0, 100.0)
+ARM_POSITION_GAIN = 0.3
+FINGER_SPEED = 0.1  # m/s per finger
+
+# navigate_to_pose
+GOAL_POSITION_TOLERANCE = 0.01  # aim well inside the 5 cm / 0.05 rad promise
+GOAL_YAW_TOLERANCE = 0.02
+WAYPOINT_TOLERANCE = 0.15
+# The last leg is driven straight in from this far behind the goal, along the goal's heading, so
+# the base never swings its corners around next to the furniture it is parking at.
+PRE_GOAL_DISTANCE = 0.4
+PRE_GOAL_TOLERANCE = 0.03
+# Heading error (rad) above which the base turns in place; stricter when starting from rest, so
+# it sets off on the line instead of curving towards it.
+TURN_IN_PLACE_ABOVE = 0.35
+START_DRIVING_BELOW = 0.05
+STALL_TIME = 4.0  # sim seconds without progress
+SETTLED_SPEED = 0.05
+
+# follow_joint_trajectory
+TRAJECTORY_SETTLE_TIME = 1.0
+
+# gripper_command
+GRIPPER_TIMEOUT = 2.0
+GRIPPER_STILL_TIME = 0.1
+GRIPPER_REACHED = 0.002
+
+HUMAN_RADIUS = 0.2
+HUMAN_HEIGHT = 1.7
+
+
+def wrap_angle(angle: float) -> float:
+    return math.atan2(math.sin(angle), math.cos(angle))
+
+
+def _clamp(value: float, limit: float) -> float:
+    return max(-limit, min(limit, value))
+
+
+class Motion(Generic[F, R]):
+    """A goal being carried out. The sim thread ticks it; other threads read `feedback` and wait on `done`."""
+
+    kind = "motion"
+
+    def __init__(self, sim: Simulation) -> None:
+        self.started = sim.sim_time
+        self.feedback: F | None = None
+        self.state = GoalState.EXECUTING
+        self.result: R | None = None
+        self.message = ""
+        self.done = threading.Event()
+
+    @property
+    def running(self) -> bool:
+        return not self.done.is_set()
+
+    def tick(self, sim: Simulation) -> None:
+        raise NotImplementedError
+
+    def result_now(self, sim: Simulation) -> R:
+        """The result as things stand, for when the motion ends early."""
+        raise NotImplementedError
+
+    def finish(self, state: GoalState, result: R, message: str = "") -> None:
+        if self.done.is_set():
+            return
+        self.state, self.result, self.message = state, result, message
+        log.info("%s %s: %s", self.kind, state.value, message or "done")
+        self.done.set()
+
+    def end(self, sim: Simulation, state: GoalState, message: str) -> None:
+        """End early (cancel, abort, stop) with the result as things stand."""
+        self.finish(state, self.result_now(sim), message)
+
+
+class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
+    """Turn towards each waypoint, drive to it, and at the end turn to the goal's yaw."""
+
+    kind = "navigate_to_pose"
+
+    def __init__(self, sim: Simulation, goal: NavigateToPoseGoal) -> None:
+        super().__init__(sim)
+        robot = sim.world.robot
+        self.goal = goal
+        start = sim.base_pose()
+        final = goal.pose
+        self.waypoints = [(p.x, p.y) for p in goal.path]
+        self.tolerances = [WAYPOINT_TOLERANCE] * len(self.waypoints)
+        leg_start = self.waypoints[-1] if self.waypoints else (start.x, start.y)
+        if math.dist(leg_start, (final.x, final.y)) > PRE_GOAL_DISTANCE + WAYPOINT_TOLERANCE:
+            back = PRE_GOAL_DISTANCE
+            self.waypoints.append((final.x - back * math.cos(final.yaw), final.y - back * math.sin(final.yaw)))
+            self.tolerances.append(PRE_GOAL_TOLERANCE)
+        self.waypoints.append((final.x, final.y))
+        self.tolerances.append(GOAL_POSITION_TOLERANCE)
+        self.index = 0
+        self.max_speed = min(goal.max_speed, robot.max_linear_speed)
+        self.max_turn = robot.max_angular_speed
+        self.position_reached = False
+        length = self._remaining(start)
+        turns = len(self.waypoints) + 1
+        self.deadline = sim.sim_time + 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
+        self.best_progress = math.inf
+        self.last_progress = sim.sim_time
+
+    def _remaining(self, pose: Pose2D) -> float:
+        points = [(pose.x, pose.y), *self.waypoints[self.index :]]
+        return sum(math.dist(a, b) for a, b in itertools.pairwise(points))
+
+    def _distance_to(self, pose: Pose2D, index: int) -> float:
+        return math.dist((pose.x, pose.y), self.waypoints[index])
+
+    def result_now(self, sim: Simulation) -> NavigateToPoseResult:
+        return NavigateToPoseResult(pose=sim.base_pose())
+
+    def tick(self, sim: Simulation) -> None:
+        pose = sim.base_pose()
+        last = len(self.waypoints) - 1
+        while self.index < last and self._distance_to(pose, self.index) < self.tolerances[self.index]:
+            self.index += 1
+        remaining = self._remaining(pose)
+        self.feedback = NavigateToPoseFeedback(pose=pose, distance_remaining=remaining)
+        tx, ty = self.waypoints[self.index]
+        distance = math.dist((pose.x, pose.y), (tx, ty))
+        if self.index == last and distance <= GOAL_POSITION_TOLERANCE:
+            self.position_reached = True
+        if self.index == last and self.position_reached:
+            yaw_error = wrap_angle(self.goal.pose.yaw - pose.yaw)
+            linear, angular = sim.base_velocity()
+            if abs(yaw_error) < GOAL_YAW_TOLERANCE and abs(angular) < SETTLED_SPEED and abs(linear) < SETTLED_SPEED:
+                sim.command_base(0.0, 0.0)
+                self.finish(GoalState.SUCCEEDED, NavigateToPoseResult(pose=pose, message="reached the goal pose"))
+                return
+            sim.command_base(0.0, self._turn_rate(yaw_error))
+            progress = remaining + 0.3 * abs(yaw_error)
+        else:
+            heading_error = wrap_angle(math.atan2(ty - pose.y, tx - pose.x) - pose.yaw)
+            direction = 1.0
+            if self.index == last and distance < 0.3 and abs(heading_error) > math.pi / 2:
+                # Overshot by a little: back up rather than turn around.
+                direction, heading_error = -1.0, wrap_angle(heading_error + math.pi)
+            speed = 0.0
+            moving = abs(sim.base_velocity()[0]) > SETTLED_SPEED
+            if abs(heading_error) < (TURN_IN_PLACE_ABOVE if moving else START_DRIVING_BELOW):
+                stops_there = self.tolerances[self.index] < WAYPOINT_TOLERANCE
+                brake = math.sqrt(2.0 * LINEAR_ACCELERATION * 0.8 * distance) if stops_there else self.max_speed
+                speed = min(self.max_speed, brake, 2.0 * distance + 0.02) * math.cos(heading_error)
+            sim.command_base(direction * speed, self._turn_rate(heading_error))
+            progress = remaining + 0.3 * abs(heading_error)
+        if progress < self.best_progress - 0.01:
+            self.best_progress, self.last_progress = progress, sim.sim_time
+        elif sim.sim_time - self.last_progress > STALL_TIME:
+            self._fail(sim, pose, f"stalled for {STALL_TIME:g} s with {remaining:.2f} m to go; is the way blocked?")
+        elif sim.sim_time > self.deadline:
+            self._fail(sim, pose, f"timed out after {sim.sim_time - self.started:.1f} s with {remaining:.2f} m to go")
+
+    def _turn_rate(self, error: float) -> float:
+        magnitude = min(self.max_turn, math.sqrt(2.0 * ANGULAR_ACCELERATION * 0.8 * abs(error)), 3.0 * abs(error))
+        return math.copysign(magnitude, error)
+
+    def _fail(self, sim: Simulation, pose: Pose2D, why: str) -> None:
+        sim.command_base(0.0, 0.0)
+        goal = self.goal.pose
+        message = f"navigation to ({goal.x:.2f}, {goal.y:.2f}) aborted at ({pose.x:.2f}, {pose.y:.2f}): {why}"
+        self.finish(GoalState.ABORTED, NavigateToPoseResult(pose=pose, message=message), message)
+
+
+class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajectoryResult]):
+    """Linear interpolation of the points in sim time under position control, then a short settle."""
+
+    kind = "follow_joint_trajectory"
+
+    def __init__(self, sim: Simulation, goal: FollowJointTrajectoryGoal) -> None:
+        super().__init__(sim)
+        self.goal = goal
+        self.indices = [ARM_JOINTS.index(name) for name in goal.joint_names]
+        times = [p.time_from_start for p in goal.points]
+        positions = [p.positions for p in goal.points]
+        if times[0] > 0.0:
+            current = sim.arm_positions()
+            times.insert(0, 0.0)
+            positions.insert(0, [current[i] for i in self.indices])
+        self.times = np.array(times)
+        self.positions = np.array(positions)
+        self.final = self.positions[-1]
+
+    def _desired(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        if t >= self.times[-1]:
+            return self.final, np.zeros_like(self.final)
+        k = int(np.searchsorted(self.times, t, side="right")) - 1
+        span = self.times[k + 1] - self.times[k]
+        if span <= 0.0:
+            return self.positions[k + 1], np.zeros_like(self.final)
+        blend = (t - self.times[k]) / span
+        desired = self.positions[k] + blend * (self.positions[k + 1] - self.positions[k])
+        return desired, (self.positions[k + 1] - self.positions[k]) / span
+
+    def _actual(self, sim: Simulation) -> np.ndarray:
+        arm = sim.arm_positions()
+        return np.array([arm[i] for i in self.indices])
+
+    def result_now(self, sim: Simulation) -> FollowJointTrajectoryResult:
+        error = float(np.max(np.abs(self._actual(sim) - self.final)))
+        return FollowJointTrajectoryResult(error=error)
+
+    def tick(self, sim: Simulation) -> None:
+        t = sim.sim_time - self.started
+        desired, velocity = self._desired(t)
+        sim.command_arm(self.indices, desired, velocity)
+        actual = self._actual(sim)
+        self.feedback = FollowJointTrajectoryFeedback(
+            desired=desired.tolist(), actual=actual.tolist(), time_from_start=t
+        )
+        if t < self.times[-1]:
+            return
+        error = float(np.max(np.abs(actual - self.final)))
+        if error < self.goal.goal_tolerance:
+            self.finish(GoalState.SUCCEEDED, FollowJointTrajectoryResult(error=error, message="reached the last point"))
+        elif t > self.times[-1] + TRAJECTORY_SETTLE_TIME:
+            message = f"final joint error {error:.3f} rad exceeds the tolerance {self.goal.goal_tolerance:g} rad"
+            self.finish(GoalState.ABORTED, FollowJointTrajectoryResult(error=error, message=message), message)
+
+
+class GripperMotion(Motion[GripperCommandFeedback, GripperCommandResult]):
+    """Move both fingers; a closing gripper that stops on an object takes hold of it."""
+
+    kind = "gripper_command"
+
+    def __init__(self, sim: Simulation, goal: GripperCommandGoal) -> None:
+        super().__init__(sim)
+        self.goal = goal
+        self.closing = goal.position < sim.gripper_gap() - 1e-4
+        if not self.closing and sim.holding is not None:
+            sim.release()
+        sim.command_fingers(goal.position, goal.max_effort)
+        self.still_since = sim.sim_time
+
+    def result_now(self, sim: Simulation) -> GripperCommandResult:
+        gap = sim.gripper_gap()
+        return GripperCommandResult(
+            position=gap,
+            stalled=False,
+            reached_goal=abs(gap - self.goal.position) < GRIPPER_REACHED,
+            holding=sim.holding,
+        )
+
+    def tick(self, sim: Simulation) -> None:
+        gap = sim.gripper_gap()
+        self.feedback = GripperCommandFeedback(position=gap)
+        elapsed = sim.sim_time - self.started
+        reached = abs(gap - self.goal.position) < GRIPPER_REACHED
+        if sim.finger_speed() > 1e-3:
+            self.still_since = sim.sim_time
+        still = sim.sim_time - self.still_since > GRIPPER_STILL_TIME and elapsed > GRIPPER_STILL_TIME
+        if not (reached or still or elapsed > GRIPPER_TIMEOUT):
+            return
+        message = f"gripper at {gap * 1000:.0f} mm"
+        stalled = False
+        if self.closing:
+            grasped = sim.object_between_fingers()
+            if grasped is not None:
+                stalled = True
+                why_not = sim.grasp(grasped)
+                message = why_not or f"holding {grasped}"
+        result = GripperCommandResult(position=gap, stalled=stalled, reached_goal=reached, holding=sim.holding)
+        self.finish(GoalState.SUCCEEDED, result, message)
+
+
+class Simulation:
+    """One household world and one mobile manipulator, stepped by whoever owns this object (one thread)."""
+
+    def __init__(self, world: World, *, physics_hz: float = 240.0) -> None:
+        self.world = world
+        self.model = WorldModel(world)
+        self.dt = 1.0 / physics_hz
+        self.sim_time = 0.0
+        self.holding: str | None = None
+        self._grasp_constraint: int | None = None
+        self._base_command = (0.0, 0.0)  # what the controllers ask: linear_x, angular_z
+        self._base_actual = (0.0, 0.0)  # after the acceleration limits
+        self._cmd_vel: Twist | None = None
+        self._cmd_vel_until = 0.0
+        self.motions: dict[str, Motion[Any, Any]] = {}
+        self.bullet: Any = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
+        self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
+        self.bullet.setGravity(0.0, 0.0, GRAVITY)
+        self.bullet.setTimeStep(self.dt)
+        self.bullet.loadURDF("plane.urdf")
+        self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
+        self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
+        self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
+        self.robot = self._add_robot()
+        log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
+
+    # Building the world
+
+    def _add_furniture(self, center: list[float], size: Any, rgba: list[float]) -> int:
+        half = [size.x / 2, size.y / 2, size.z / 2]
+        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+        visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=rgba)
+        body: int = self.bullet.createMultiBody(0.0, shape, visual, [center[0], center[1], size.z / 2])
+        self.bullet.changeDynamics(body, -1, lateralFriction=1.0)
+        return body
+
+    def _add_object(self, obj: WorldObject) -> int:
+        size = obj.size
+        if obj.shape == "cylinder":
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=size.x / 2, height=size.z)
+            visual = self.bullet.createVisualShape(
+                pybullet.GEOM_CYLINDER, radius=size.x / 2, length=size.z, rgbaColor=obj.rgba
+            )
+        elif obj.shape == "sphere":
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_SPHERE, radius=size.x / 2)
+            visual = self.bullet.createVisualShape(pybullet.GEOM_SPHERE, radius=size.x / 2, rgbaColor=obj.rgba)
+        else:
+            half = [size.x / 2, size.y / 2, size.z / 2]
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+            visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=obj.rgba)
+        where = self.model.initial_position(obj)
+        body: int = self.bullet.createMultiBody(obj.mass, shape, visual, [where.x, where.y, where.z])
+        self.bullet.changeDynamics(body, -1, lateralFriction=1.0, spinningFriction=0.01, rollingFriction=0.001)
+        return body
+
+    def _add_human(self, pose: Pose2D) -> int:
+        visual = self.bullet.createVisualShape(
+            pybullet.GEOM_CYLINDER, radius=HUMAN_RADIUS, length=HUMAN_HEIGHT, rgbaColor=[0.9, 0.7, 0.5, 1.0]
+        )
+        body: int = self.bullet.createMultiBody(0.0, -1, visual, [pose.x, pose.y, HUMAN_HEIGHT / 2])
+        return body
+
+    def _add_robot(self) -> int:
+        spec = self.world.robot
+        with tempfile.TemporaryDirectory(prefix="tether-sim-") as tmp:
+            path = Path(tmp) / "mobile_panda.urdf"
+            path.write_text(mobile_manipulator_urdf(spec))
+            robot: int = self.bullet.loadURDF(str(path), useFixedBase=True)
+        self.joint_index: dict[str, int] = {}
+        self.link_index: dict[str, int] = {}
+        for i in range(self.bullet.getNumJoints(robot)):
+            info = self.bullet.getJointInfo(robot, i)
+            self.joint_index[info[1].decode()] = i
+            self.link_index[info[12].decode()] = i
+        self._base_joints = [self.joint_index[n] for n in (BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT)]
+        self._arm_joints = [self.joint_index[n] for n in ARM_JOINTS]
+        self._finger_joints = [self.joint_index[n] for n in FINGER_JOINTS]
+        self._hand = self.link_index[HAND_LINK]
+        self._fingers = [self.link_index[n] for n in FINGER_LINKS]
+        self._base_link = self.link_index[BASE_LINK]
+        infos = [self.bullet.getJointInfo(robot, j) for j in self._arm_joints]
+        # Kept as plain lists so check_trajectory can run on any thread without touching pybullet.
+        self._arm_limits = ([float(i[8]) for i in infos], [float(i[9]) for i in infos])
+        start = spec.start
+        for joint, value in zip(self._base_joints, (start.x, start.y, start.yaw), strict=True):
+            self.bullet.resetJointState(robot, joint, value)
+        for joint, value in zip(self._arm_joints, spec.home_joints, strict=True):
+            self.bullet.resetJointState(robot, joint, value)
+        for joint in self._finger_joints:
+            self.bullet.resetJointState(robot, joint, GRIPPER_OPEN / 2)
+            self.bullet.changeDynamics(robot, joint, lateralFriction=1.0)
+        self._arm_targets = np.array(spec.home_joints, dtype=float)
+        self._arm_velocities = np.zeros(7)
+        self._finger_target, self._finger_force = GRIPPER_OPEN / 2, 40.0
+        self.robot = robot
+        self._apply_arm()
+        self._apply_fingers()
+        self._apply_base()
+        return robot
+
+    def close(self) -> None:
+        self.bullet.disconnect()
+
+    # Stepping
+
+    def step(self, steps: int = 1) -> None:
+        """Advance physics by `steps` ticks, running every controller before each."""
+        for _ in range(steps):
+            if self._cmd_vel is not None and self.sim_time >= self._cmd_vel_until:
+                self._cmd_vel = None
+                self._base_command = (0.0, 0.0)
+            for kind, motion in list(self.motions.items()):
+                if motion.running:
+                    motion.tick(self)
+                if not motion.running:
+                    del self.motions[kind]
+            if self._cmd_vel is not None and "navigate_to_pose" not in self.motions:
+                self._base_command = (self._cmd_vel.linear_x, self._cmd_vel.angular_z)
+            self._apply_base()
+            self.bullet.stepSimulation()
+            self.sim_time += self.dt
+
+    def run(self, motion: Motion[F, R], timeout: float) -> Motion[F, R]:
+        """Step until `motion` ends, or abort it after `timeout` sim seconds. For tests and scripts."""
+        deadline = self.sim_time + timeout
+        while motion.running and self.sim_time < deadline:
+            self.step()
+        if motion.running:
+            self.cancel(motion, GoalState.ABORTED, f"{motion.kind} did not finish within {timeout:g} s")
+        return motion
+
+    def settle(self, seconds: float) -> None:
+        self.step(max(1, round(seconds / self.dt)))
+
+    # Goals
+
+    def _start(self, motion: M) -> M:
+        previous = self.motions.get(motion.kind)
+        if previous is not None and previous.running:
+            previous.end(self, GoalState.ABORTED, f"preempted by a new {motion.kind} goal")
+        self.motions[motion.kind] = motion
+        return motion
+
+    def navigate(self, goal: NavigateToPoseGoal) -> Navigation:
+        self._cmd_vel = None
+        return self._start(Navigation(self, goal))
+
+    def check_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
+        """Why a trajectory goal cannot run, or None when it can. Safe from any thread."""
+        unknown = [n for n in goal.joint_names if n not in ARM_JOINTS]
+        if unknown:
+            return f"unknown joints {unknown}; this arm has {list(ARM_JOINTS)}"
+        if len(set(goal.joint_names)) != len(goal.joint_names):
+            return f"joint names repeat: {goal.joint_names}"
+        lower, upper = self.arm_limits()
+        previous = -1.0
+        for k, point in enumerate(goal.points):
+            if len(point.positions) != len(goal.joint_names):
+                return f"point {k} has {len(point.positions)} positions for {len(goal.joint_names)} joints"
+            if point.time_from_start < previous:
+                return f"point {k} goes back in time ({point.time_from_start:g} s after {previous:g} s)"
+            previous = point.time_from_start
+            for name, value in zip(goal.joint_names, point.positions, strict=True):
+                i = ARM_JOINTS.index(name)
+                if not lower[i] <= value <= upper[i]:
+                    return f"point {k}: {name} = {value:.3f} rad is outside [{lower[i]:.3f}, {upper[i]:.3f}]"
+        return None
+
+    def follow_trajectory(self, goal: FollowJointTrajectoryGoal) -> Motion[Any, Any]:
+        reason = self.check_trajectory(goal)
+        if reason is not None:
+            motion = Motion[FollowJointTrajectoryFeedback, FollowJointTrajectoryResult](self)
+            motion.finish(GoalState.ABORTED, FollowJointTrajectoryResult(error=0.0, message=reason), reason)
+            return motion
+        return self._start(TrajectoryFollow(self, goal))
+
+    def gripper(self, goal: GripperCommandGoal) -> GripperMotion:
+        return self._start(GripperMotion(self, goal))
+
+    def cancel(
+        self, motion: Motion[Any, Any], state: GoalState = GoalState.CANCELED, message: str = "canceled"
+    ) -> None:
+        """End one motion early; the base stops and the arm holds where it is."""
+        if not motion.running:
+            return
+        if isinstance(motion, Navigation):
+            self.command_base(0.0, 0.0)
+        if isinstance(motion, TrajectoryFollow):
+            self.hold_arm()
+        motion.end(self, state, message)
+
+    def set_cmd_vel(self, twist: Twist, hold_for: float) -> bool:
+        """Drive the base at `twist` for `hold_for` sim seconds; refused while navigating."""
+        if "navigate_to_pose" in self.motions:
+            return False
+        self._cmd_vel = twist
+        self._cmd_vel_until = self.sim_time + hold_for
+        return True
+
+    def stop(self, reason: str) -> None:
+        """Base velocity to zero at once, arm held where it is, every running goal aborted."""
+        self._cmd_vel = None
+        self._base_command = self._base_actual = (0.0, 0.0)
+        self._apply_base()
+        self.hold_arm()
+        for motion in list(self.motions.values()):
+            motion.end(self, GoalState.ABORTED, reason)
+        self.motions.clear()
+
+    # Actuators
+
+    def command_base(self, linear_x: float, angular_z: float) -> None:
+        robot = self.world.robot
+        self._base_command = (
+            _clamp(linear_x, robot.max_linear_speed),
+            _clamp(angular_z, robot.max_angular_speed),
+        )
+
+    def _apply_base(self) -> None:
+        want_v, want_w = self._base_command
+        have_v, have_w = self._base_actual
+        dv, dw = LINEAR_ACCELERATION * self.dt, ANGULAR_ACCELERATION * self.dt
+        v = have_v + max(-dv, min(dv, want_v - have_v))
+        w = have_w + max(-dw, min(dw, want_w - have_w))
+        self._base_actual = (v, w)
+        yaw = self.base_pose().yaw
+        self.bullet.setJointMotorControlArray(
+            self.robot,
+            self._base_joints,
+            pybullet.VELOCITY_CONTROL,
+            targetVelocities=[v * math.cos(yaw), v * math.sin(yaw), w],
+            forces=[BASE_FORCE, BASE_FORCE, BASE_TORQUE],
+        )
+
+    def command_arm(self, indices: list[int], positions: np.ndarray, velocities: np.ndarray) -> None:
+        self._arm_targets[indices] = positions
+        self._arm_velocities[:] = 0.0
+        self._arm_velocities[indices] = velocities
+        self._apply_arm()
+
+    def hold_arm(self) -> None:
+        self._arm_targets = np.array(self.arm_positions())
+        self._arm_velocities = np.zeros(7)
+        self._apply_arm()
+
+    def _apply_arm(self) -> None:
+        self.bullet.setJointMotorControlArray(
+            self.robot,
+            self._arm_joints,
+            pybullet.POSITION_CONTROL,
+            targetPositions=self._arm_targets.tolist(),
+            targetVelocities=self._arm_velocities.tolist(),
+            forces=list(ARM_FORCES),
+            positionGains=[ARM_POSITION_GAIN] * 7,
+        )
+
+    def command_fingers(self, gap: float, max_effort: float) -> None:
+        self._finger_target = min(max(gap, 0.0), GRIPPER_OPEN) / 2
+        self._finger_force = max_effort
+        self._apply_fingers()
+
+    def _apply_fingers(self) -> None:
+        for joint in self._finger_joints:
+            self.bullet.setJointMotorControl2(
+                self.robot,
+                joint,
+                pybullet.POSITION_CONTROL,
+                targetPosition=self._finger_target,
+                force=self._finger_force,
+                maxVelocity=FINGER_SPEED,
+            )
+
+    # Grasping
+
+    def object_between_fingers(self) -> str | None:
+        """The object touching both fingers, or failing that one sitting squarely between them."""
+        for object_id, body in self.object_bodies.items():
+            touching = [bool(self.bullet.getContactPoints(self.robot, body, link, -1)) for link in self._fingers]
+            if all(touching):
+                return object_id
+        hand_position, hand_orientation = self.bullet.getLinkState(self.robot, self._hand)[4:6]
+        to_hand = self.bullet.invertTransform(hand_position, hand_orientation)
+        gap = self.gripper_gap()
+        for object_id, body in self.object_bodies.items():
+            position, _ = self.bullet.getBasePositionAndOrientation(body)
+            local, _ = self.bullet.multiplyTransforms(to_hand[0], to_hand[1], position, [0, 0, 0, 1])
+            if abs(local[0]) < 0.02 and abs(local[1]) < gap / 2 + 0.01 and 0.07 < local[2] < 0.13:
+                return object_id
+        return None
+
+    def grasp(self, object_id: str) -> str | None:
+        """Fix the object to the hand; the reason when it cannot be held (too heavy), else None."""
+        obj = self.model.objects[object_id]
+        payload = self.world.robot.payload
+        if obj.mass > payload:
+            return f"{object_id} weighs {obj.mass:g} kg, over the {payload:g} kg payload; it slips out"
+        body = self.object_bodies[object_id]
+        hand_com = self.bullet.getLinkState(self.robot, self._hand)[0:2]
+        object_pose = self.bullet.getBasePositionAndOrientation(body)
+        inverse = self.bullet.invertTransform(*hand_com)
+        relative = self.bullet.multiplyTransforms(inverse[0], inverse[1], *object_pose)
+        # A real friction grasp in pybullet is flaky; a fixed constraint stands in for the grip.
+        self._grasp_constraint = self.bullet.createConstraint(
+            self.robot,
+            self._hand,
+            body,
+            -1,
+            pybullet.JOINT_FIXED,
+            [0, 0, 0],
+            relative[0],
+            [0, 0, 0],
+            relative[1],
+            [0, 0, 0, 1],
+        )
+        self.bullet.changeConstraint(self._grasp_constraint, maxForce=200.0)
+        self.holding = object_id
+        return None
+
+    def release(self) -> None:
+        if self._grasp_constraint is not None:
+            self.bullet.removeConstraint(self._grasp_constraint)
+        self._grasp_constraint = None
+        self.holding = None
+
+    # Sensing
+
+    def base_pose(self) -> Pose2D:
+        x, y, yaw = (s[0] for s in self.bullet.getJointStates(self.robot, self._base_joints))
+        return Pose2D(x=x, y=y, yaw=wrap_angle(yaw))
+
+    def base_velocity(self) -> tuple[float, float]:
+        """Measured linear_x and angular_z in the base frame."""
+        states = self.bullet.getJointStates(self.robot, self._base_joints)
+        yaw = states[2][0]
+        vx, vy, w = (s[1] for s in states)
+        return vx * math.cos(yaw) + vy * math.sin(yaw), w
+
+    def base_speed(self) -> float:
+        vx, vy = (s[1] for s in self.bullet.getJointStates(self.robot, self._base_joints[:2]))
+        return math.hypot(vx, vy)
+
+    def arm_positions(self) -> list[float]:
+        return [s[0] for s in self.bullet.getJointStates(self.robot, self._arm_joints)]
+
+    def arm_limits(self) -> tuple[list[float], list[float]]:
+        """Lower and upper limits of the seven arm joints, from the URDF."""
+        return self._arm_limits
+
+    def gripper_gap(self) -> float:
+        return float(sum(s[0] for s in self.bullet.getJointStates(self.robot, self._finger_joints)))
+
+    def finger_speed(self) -> float:
+        return float(max(abs(s[1]) for s in self.bullet.getJointStates(self.robot, self._finger_joints)))
+
+    def joint_state(self, stamp: float) -> JointState:
+        joints = [*self._arm_joints, *self._finger_joints]
+        states = self.bullet.getJointStates(self.robot, joints)
+        return JointState(
+            stamp=stamp,
+            name=[*ARM_JOINTS, *FINGER_JOINTS],
+            position=[s[0] for s in states],
+            velocity=[s[1] for s in states],
+        )
+
+    def odometry(self, stamp: float) -> Odometry:
+        linear, angular = self.base_velocity()
+        return Odometry(stamp=stamp, sim_time=self.sim_time, pose=self.base_pose(), linear_x=linear, angular_z=angular)
+
+    def object_position(self, object_id: str) -> Vec3:
+        (x, y, z), _ = self.bullet.getBasePositionAndOrientation(self.object_bodies[object_id])
+        return Vec3(x=x, y=y, z=z)
+
+    def perceived_objects(self, stamp: float) -> PerceivedObjects:
+        objects = []
+        for obj in self.world.objects:
+            position = self.object_position(obj.id)
+            on = "gripper" if obj.id == self.holding else self.model.support_under(position, obj.size.z / 2)
+            objects.append(
+                PerceivedObject(
+                    id=obj.id,
+                    name=obj.name,
+                    cls=obj.cls,
+                    color=obj.color,
+                    position=position,
+                    room=self.model.room_of(position.x, position.y),
+                    on=on,
+                    stamp=stamp,
+                )
+            )
+        return PerceivedObjects(stamp=stamp, objects=objects)
+
+    def perceived_humans(self, stamp: float) -> PerceivedHumans:
+        humans = [
+            PerceivedHuman(id=h.id, name=h.name, pose=h.pose, room=self.model.room_of(h.pose.x, h.pose.y))
+            for h in self.world.humans
+        ]
+        return PerceivedHumans(stamp=stamp, humans=humans)
+
+    def ground_truth(self) -> GroundTruth:
+        return GroundTruth(
+            sim_time=self.sim_time,
+            robot=self.base_pose(),
+            linear_speed=self.base_speed(),
+            holding=self.holding,
+            objects=self.perceived_objects(self.sim_time).objects,
+        )

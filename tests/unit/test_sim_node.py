@@ -1,0 +1,109 @@
+"""The sim's transport with two real Zenoh sessions in one process: fail closed, goals, ground truth."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import pytest
+
+from schemas import keys
+from schemas.actions import GoalState
+from schemas.common import Pose2D
+from schemas.robot import NavigateToPoseGoal
+from schemas.safety import EstopState, SafetyStatus
+from schemas.world import Empty
+from services.actionlib import ActionClient, GoalRejected
+from services.runtime import Node, NodeSettings
+from services.sim.config import SimConfig
+from services.sim.node import SimNode
+from services.sim.physics import Simulation
+from services.worldmodel import load_world
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Rig:
+    client: Node
+    sim_node: SimNode
+    latched: threading.Event
+    beating: threading.Event
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    config = SimConfig(realtime_factor=4.0)
+    sim = Simulation(load_world(config.world), physics_hz=config.physics_hz)
+    stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
+    with Node("sim", settings) as sim_session, Node("test", settings) as client:
+        sim_node = SimNode(sim_session, sim, config)
+        sim_session.declare_alive()
+        runner = threading.Thread(target=sim_node.run, args=(stop,), daemon=True)
+        runner.start()
+
+        def heartbeat() -> None:
+            seq = 0
+            while not stop.wait(0.05):
+                if beating.is_set():
+                    seq += 1
+                    estop = EstopState(latched=latched.is_set(), source="operator", reason="test")
+                    client.publish(keys.HEARTBEAT, SafetyStatus(seq=seq, stamp=time.time(), estop=estop))
+
+        beater = threading.Thread(target=heartbeat, daemon=True)
+        beater.start()
+        assert not client.wait_alive(["sim"], timeout=10.0)
+        try:
+            yield Rig(client, sim_node, latched, beating)
+        finally:
+            stop.set()
+            runner.join(5.0)
+            beater.join(5.0)
+            sim_node.close()
+    sim.close()
+
+
+FAR = NavigateToPoseGoal(pose=Pose2D(x=10.0, y=1.2, yaw=0.0), max_speed=0.6)
+
+
+def test_goals_are_rejected_until_a_heartbeat_arrives(rig: Rig) -> None:
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    with pytest.raises(GoalRejected, match="no safety heartbeat"):
+        navigate.send(FAR)
+
+
+def test_losing_the_heartbeat_stops_the_base_and_aborts_the_goal(rig: Rig) -> None:
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    rig.beating.set()
+    deadline = time.monotonic() + 5.0
+    while rig.sim_node.safety_block() is not None and time.monotonic() < deadline:
+        time.sleep(0.02)  # polling the heartbeat's arrival with a deadline, not standing in for work
+    goal = navigate.send(FAR)
+    deadline = time.monotonic() + 5.0
+    while rig.client.call(keys.GROUND_TRUTH, Empty()).linear_speed < 0.3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    rig.beating.clear()
+    result = goal.result(timeout=5.0)
+    assert result.state is GoalState.ABORTED
+    assert "no safety heartbeat for" in result.message
+    assert rig.client.call(keys.GROUND_TRUTH, Empty()).linear_speed < 0.01
+
+
+def test_a_latched_estop_rejects_goals_naming_who_and_why(rig: Rig) -> None:
+    rig.latched.set()
+    rig.beating.set()
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    deadline = time.monotonic() + 5.0
+    while "e-stop" not in (rig.sim_node.safety_block() or "") and time.monotonic() < deadline:
+        time.sleep(0.02)
+    with pytest.raises(GoalRejected, match="e-stop latched by operator: test"):
+        navigate.send(FAR)
