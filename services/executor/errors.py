@@ -13,5 +13,9 @@ class PreconditionFailed(ExecutionError):
     """A step's precondition does not hold (placing with an empty gripper, say)."""
 
 
+class PostconditionFailed(ExecutionError):
+    """The motions went through but the world is not as the step promised."""
+
+
 class Canceled(ExecutionError):
     """The goal was canceled while the step ran."""

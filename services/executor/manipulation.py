@@ -9,16 +9,18 @@ from typing import Any
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import Pose2D, Vec3
 from schemas.plan import PickStep, PlaceStep
-from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint
 from services.actionlib import GoalRejected
 from services.executor.config import ExecutorConfig
-from services.executor.errors import Canceled, ExecutionError, PreconditionFailed
-from services.executor.kinematics import ARM_JOINTS, ArmKinematics
+from services.executor.errors import Canceled, ExecutionError, PostconditionFailed, PreconditionFailed
+from services.executor.kinematics import ARM_JOINTS, ArmKinematics, waypoint_trajectory
 from services.executor.ports import Robot
 from services.worldmodel import WorldModel
 
 GRIPPER_OPEN = 0.08
 GRIPPER_CLOSED = 0.0
+# Perception publishes a few times a second; wait at most this for its next report.
+PERCEPTION_TIMEOUT = 2.0
 
 
 def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Event) -> Any:
@@ -74,6 +76,9 @@ class Manipulator:
 
     def move_arm_to(self, q_target: list[float], what: str, cancel: threading.Event) -> None:
         points = self.kin.joint_trajectory(self._arm_now(), q_target, self.config.max_joint_speed)
+        self._run_trajectory(points, what, cancel)
+
+    def _run_trajectory(self, points: list[TrajectoryPoint], what: str, cancel: threading.Event) -> None:
         goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
         try:
             result = self.robot.trajectory(goal, cancel)
@@ -82,11 +87,18 @@ class Manipulator:
         check_outcome(what, result, cancel)
 
     def reach(self, point: Vec3, what: str, cancel: threading.Event) -> None:
-        """Bring the fingertips to `point` (map frame), hand pointing down."""
+        """Bring the fingertips to `point` (map frame), hand pointing down, through free space."""
         mount = self.world.world.robot.arm_mount
         target = self.kin.world_to_arm(self._base(), mount, point)
         q = self.kin.solve_top_down(target, self._arm_now())
         self.move_arm_to([float(x) for x in q], what, cancel)
+
+    def slide(self, point: Vec3, what: str, cancel: threading.Event) -> None:
+        """Move the fingertips in a straight line to `point`: the descent to and lift from an object."""
+        mount = self.world.world.robot.arm_mount
+        target = self.kin.world_to_arm(self._base(), mount, point)
+        path = self.kin.straight_line(self._arm_now(), target)
+        self._run_trajectory(waypoint_trajectory(path, self.config.max_joint_speed), what, cancel)
 
     def stow(self, cancel: threading.Event) -> None:
         self.move_arm_to(list(self.world.world.robot.home_joints), "stowing the arm", cancel)
@@ -109,14 +121,14 @@ class Manipulator:
         above = Vec3(x=position.x, y=position.y, z=position.z + self.config.pregrasp_height)
         self.gripper(GRIPPER_OPEN, cancel)
         self.reach(above, f"moving above {step.object_name}", cancel)
-        self.reach(position, f"reaching {step.object_name}", cancel)
+        self.slide(position, f"reaching {step.object_name}", cancel)
         result = self.gripper(GRIPPER_CLOSED, cancel, object_id=step.object_id)
         if result is None or result.holding != step.object_id:
             held = None if result is None else result.holding
             self.gripper(GRIPPER_OPEN, cancel)
             raise ExecutionError(f"gripper closed on {held or 'nothing'}, not {step.object_name}")
         self.holding = step.object_id
-        self.reach(above, f"lifting {step.object_name}", cancel)
+        self.slide(above, f"lifting {step.object_name}", cancel)
         self.stow(cancel)
 
     def place(self, step: PlaceStep, cancel: threading.Event) -> str:
@@ -129,9 +141,14 @@ class Manipulator:
         at = Vec3(x=step.position.x, y=step.position.y, z=step.position.z + half_height + self.config.place_clearance)
         above = Vec3(x=at.x, y=at.y, z=at.z + self.config.pregrasp_height)
         self.reach(above, f"moving {name} above {step.surface_name}", cancel)
-        self.reach(at, f"lowering {name} onto {step.surface_name}", cancel)
+        self.slide(at, f"lowering {name} onto {step.surface_name}", cancel)
         self.gripper(GRIPPER_OPEN, cancel)
         self.holding = None
-        self.reach(above, "lifting the hand", cancel)
+        self.slide(above, "lifting the hand", cancel)
         self.stow(cancel)
+        # Done means perception sees it on the surface, not that the motions went through.
+        seen = self.robot.next_perception(held.id if held else "", PERCEPTION_TIMEOUT)
+        if seen is None or seen.on != step.surface_id:
+            where = "nowhere" if seen is None else (seen.on or "the floor")
+            raise PostconditionFailed(f"after placing, perception has {name} on {where}, not on {step.surface_name}")
         return name

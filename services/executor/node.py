@@ -21,7 +21,7 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.world import PerceivedObjects
+from schemas.world import PerceivedObject, PerceivedObjects
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.executor.config import ExecutorConfig
 from services.executor.kinematics import ARM_JOINTS
@@ -67,6 +67,8 @@ class NodeRobot:
         self._odom: Odometry | None = None
         self._joints: JointState | None = None
         self._objects: PerceivedObjects | None = None
+        self._objects_seq = 0
+        self._objects_changed = threading.Condition()
         node.subscribe(keys.ODOM, self._set_odom)
         node.subscribe(keys.JOINT_STATES, self._set_joints)
         node.subscribe(keys.OBJECTS, self._set_objects)
@@ -78,7 +80,19 @@ class NodeRobot:
         self._joints = msg
 
     def _set_objects(self, msg: PerceivedObjects) -> None:
-        self._objects = msg
+        with self._objects_changed:
+            self._objects = msg
+            self._objects_seq += 1
+            self._objects_changed.notify_all()
+
+    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
+        with self._objects_changed:
+            seq = self._objects_seq
+            self._objects_changed.wait_for(lambda: self._objects_seq > seq, timeout)
+            objects = self._objects
+        if objects is None:
+            return None
+        return next((o for o in objects.objects if o.id == object_id), None)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         return self._navigate.run(goal, timeout=self.config.motion_timeout, cancel=cancel)

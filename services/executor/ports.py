@@ -9,6 +9,7 @@ from schemas.actions import ResultResponse
 from schemas.common import Pose2D, Vec3
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, ResolveReply
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.world import PerceivedObject
 
 
 class Planner(Protocol):
@@ -29,3 +30,6 @@ class Robot(Protocol):
     def base_pose(self) -> Pose2D | None: ...
     def arm_positions(self) -> list[float] | None: ...
     def object_position(self, object_id: str) -> Vec3 | None: ...
+    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
+        """The object as the next perception update reports it (None if absent or none comes)."""
+        ...

@@ -196,4 +196,5 @@ def test_pick_red_cup_from_counter_and_place_it_on_the_coffee_table(
     cup_now = next(o for o in truth.objects if o.id == "red_cup")
     assert truth.holding is None
     assert (cup_now.on, cup_now.room) == ("coffee_table", "living_room")
-    assert math.hypot(cup_now.position.x - spot.x, cup_now.position.y - spot.y) < 0.03
+    # The fingers centre the cup as they close, so it may sit up to the finger gap off the spot.
+    assert math.hypot(cup_now.position.x - spot.x, cup_now.position.y - spot.y) < 0.045

@@ -1,0 +1,91 @@
+"""The executor's manipulation against the real pybullet sim, in process: no Zenoh, no fakes."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from schemas.actions import ResultResponse
+from schemas.common import Pose2D, Vec3
+from schemas.plan import Plan, Step
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.world import PerceivedObject
+from services.executor.config import ExecutorConfig
+from services.executor.kinematics import ArmKinematics
+from services.executor.manipulation import Manipulator
+from services.resolver.resolver import Resolver
+from services.sim.physics import Motion, Simulation
+from services.worldmodel import WorldModel, load_world
+
+
+class SimRobot:
+    """The executor's Robot port served by a Simulation directly, as the sim node would."""
+
+    def __init__(self, sim: Simulation) -> None:
+        self.sim = sim
+
+    def _run(self, motion: Motion[Any, Any]) -> ResultResponse[Any]:
+        done = self.sim.run(motion, timeout=120.0)
+        return ResultResponse(goal_id="x", state=done.state, result=done.result, message=done.message)
+
+    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._run(self.sim.navigate(goal))
+
+    def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._run(self.sim.follow_trajectory(goal))
+
+    def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._run(self.sim.gripper(goal))
+
+    def cmd_vel(self, twist: Twist) -> None:
+        self.sim.set_cmd_vel(twist, 0.5)
+
+    def base_pose(self) -> Pose2D | None:
+        return self.sim.base_pose()
+
+    def arm_positions(self) -> list[float] | None:
+        return self.sim.arm_positions()
+
+    def object_position(self, object_id: str) -> Vec3 | None:
+        return self.sim.object_position(object_id)
+
+    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
+        self.sim.settle(0.2)
+        return next((o for o in self.sim.perceived_objects(0.0).objects if o.id == object_id), None)
+
+
+@pytest.fixture
+def sim() -> Iterator[Simulation]:
+    simulation = Simulation(load_world())
+    yield simulation
+    simulation.close()
+
+
+def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_table(sim: Simulation) -> None:
+    world = WorldModel(sim.world)
+    plan = Plan(
+        steps=[
+            Step(action="navigate_to", target="kitchen counter"),  # type: ignore[arg-type]
+            Step(action="pick", target="red cup"),  # type: ignore[arg-type]
+            Step(action="navigate_to", target="coffee table"),  # type: ignore[arg-type]
+            Step(action="place", location="coffee table"),  # type: ignore[arg-type]
+        ]
+    )
+    grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
+    robot = SimRobot(sim)
+    manipulator = Manipulator(robot, ArmKinematics(), world, ExecutorConfig())
+    cancel = threading.Event()
+    go, pick, go2, place = grounded.steps
+    manipulator.drive_to(go.goal, cancel)  # type: ignore[union-attr]
+    manipulator.pick(pick, cancel)  # type: ignore[arg-type]
+    assert sim.ground_truth().holding == "red_cup"
+    manipulator.drive_to(go2.goal, cancel)  # type: ignore[union-attr]
+    manipulator.place(place, cancel)  # type: ignore[arg-type]
+    sim.settle(0.5)
+    truth = sim.ground_truth()
+    cup = next(o for o in truth.objects if o.id == "red_cup")
+    assert truth.holding is None
+    assert (cup.on, cup.room) == ("coffee_table", "living_room"), cup
