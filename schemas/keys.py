@@ -66,6 +66,8 @@ class Service(Generic[Q, A]):
     path: str
     request: type[Q]
     reply: Any  # a Struct type or a tagged union of them
+    # Request fields never published in traces (secrets).
+    redact: tuple[str, ...] = ()
 
     def key(self, robot: str) -> str:
         return f"{prefix(robot)}/{self.path}"
@@ -114,7 +116,7 @@ CMD_VEL = Topic("cmd/cmd_vel", Twist)
 HEARTBEAT = Topic("safety/heartbeat", SafetyStatus)
 ESTOP = Topic("safety/estop", EStop)
 SAFETY_EVENTS = Topic("safety/events", SafetyEvent)
-RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply)
+RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply, redact=("token",))
 
 # The robot interface: only safety writes the command keys here.
 ROBOT_NAVIGATE = Action("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)

@@ -36,6 +36,7 @@ RESULT_RETENTION = 300.0
 MAX_RESULT_WAIT = 3600.0
 # A cancel request with this goal id cancels every running goal, as ROS 2's zero UUID does.
 CANCEL_ALL = "all"
+CANCEL_POLL = 0.05
 
 
 @dataclass(frozen=True)
@@ -229,25 +230,38 @@ class ActionClient(Generic[G, F, R]):
         """Send `goal` and wait for its result; cancel it if `cancel` is set meanwhile."""
         handle = self.send(goal)
         if cancel is None:
-            return handle.result(timeout)
-        box: dict[str, Any] = {}
+            try:
+                return handle.result(timeout)
+            except CallError:
+                self._cancel_quietly(handle)
+                raise
+        outcome: list[ResultResponse[R] | CallError] = []
+        done = threading.Event()
 
         def wait() -> None:
             try:
-                box["result"] = handle.result(timeout)
+                outcome.append(handle.result(timeout))
             except CallError as exc:
-                box["error"] = exc
+                outcome.append(exc)
+            done.set()
 
-        waiter = threading.Thread(target=wait, daemon=True)
-        waiter.start()
-        while waiter.is_alive():
-            if cancel.wait(0.05) and "cancel_sent" not in box:
-                box["cancel_sent"] = True
-                try:
-                    handle.cancel()
-                except CallError as exc:
-                    log.warning("cancel of %s failed: %s", handle.goal_id, exc)
-            waiter.join(0.0 if not cancel.is_set() else 0.05)
-        if "error" in box:
-            raise box["error"]
-        return box["result"]  # type: ignore[no-any-return]
+        threading.Thread(target=wait, name=f"result:{handle.goal_id}", daemon=True).start()
+        cancel_sent = False
+        # Two things to wait for and Python has no wait-for-either: check the cancel flag between
+        # short waits for the result.
+        while not done.wait(CANCEL_POLL):
+            if cancel.is_set() and not cancel_sent:
+                cancel_sent = True
+                self._cancel_quietly(handle)
+        if isinstance(outcome[0], CallError):
+            # No result in time: the goal must not go on moving the robot behind our back.
+            self._cancel_quietly(handle)
+            raise outcome[0]
+        return outcome[0]
+
+    @staticmethod
+    def _cancel_quietly(handle: ClientGoal[G, F, R]) -> None:
+        try:
+            handle.cancel()
+        except CallError as exc:
+            log.warning("cancel of %s failed: %s", handle.goal_id, exc)

@@ -119,6 +119,17 @@ class Publisher(Generic[T]):
         self._publisher.put(encode(message))
 
 
+class Subscription:
+    """A subscriber that can be dropped before its node closes."""
+
+    def __init__(self, node: Node, subscriber: zenoh.Subscriber[Any]) -> None:
+        self._node = node
+        self._subscriber = subscriber
+
+    def undeclare(self) -> None:
+        self._node._forget(self._subscriber)
+
+
 class Node:
     """One process's Zenoh session, bound to one robot's keys, under one service name."""
 
@@ -141,7 +152,7 @@ class Node:
     def publish(self, topic: Topic[T], message: T) -> None:
         self.session.put(topic.key(self.robot), encode(message))
 
-    def subscribe(self, topic: Topic[T], callback: Callable[[T], None]) -> None:
+    def subscribe(self, topic: Topic[T], callback: Callable[[T], None]) -> Subscription:
         """Subscribe with a typed callback; a sample that does not decode is logged and dropped."""
         dec = decoder(cast(Any, topic.type))
         key = topic.key(self.robot)
@@ -157,7 +168,9 @@ class Node:
             except Exception:
                 log.exception("subscriber callback for %s failed", key)
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        subscriber = self.session.declare_subscriber(key, on_sample)
+        self._declared.append(subscriber)
+        return Subscription(self, subscriber)
 
     def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
         def on_sample(sample: zenoh.Sample) -> None:
@@ -216,6 +229,8 @@ class Node:
                     query.reply(key, reply)
             finally:
                 query.drop()
+            if request is not None and service.redact:
+                request = msgspec.structs.replace(request, **dict.fromkeys(service.redact, "(redacted)"))
             self._trace(service.path, started, request, raw, reply, error)
 
         def on_query(query: zenoh.Query) -> None:
@@ -299,6 +314,12 @@ class Node:
                 return wanted - seen
         finally:
             sub.undeclare()
+
+    def _forget(self, item: Any) -> None:
+        if item in self._declared:
+            self._declared.remove(item)
+            with contextlib.suppress(zenoh.ZError):
+                item.undeclare()
 
     def close(self) -> None:
         for item in reversed(self._declared):

@@ -15,6 +15,11 @@ from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, World, WorldObject
 
 DEFAULT_WORLD = "household"
+# The base drives the last leg straight in from this far behind the goal, along the goal's
+# heading, so its corners never swing around next to the furniture it parks at.
+PRE_GOAL_DISTANCE = 0.4
+# A pre-goal point is only added when the last leg is longer than this.
+PRE_GOAL_MIN_LEG = 0.55
 # An object counts as resting on a surface when its bottom is within this of the top.
 SUPPORT_TOLERANCE = 0.05
 
@@ -129,3 +134,17 @@ def approach_towards(target_x: float, target_y: float, distance: float, from_x: 
     """A pose `distance` short of the target on the line from (from_x, from_y), facing the target."""
     yaw = math.atan2(target_y - from_y, target_x - from_x)
     return Pose2D(x=target_x - distance * math.cos(yaw), y=target_y - distance * math.sin(yaw), yaw=yaw)
+
+
+def drive_route(start: Pose2D, path: list[Pose2D], goal: Pose2D) -> list[tuple[float, float]]:
+    """The points the base actually drives through, in order: the path, a pre-goal, the goal.
+
+    The sim follows exactly this route and safety checks exactly this route.
+    """
+    points = [(p.x, p.y) for p in path]
+    leg_start = points[-1] if points else (start.x, start.y)
+    if math.dist(leg_start, (goal.x, goal.y)) > PRE_GOAL_MIN_LEG:
+        back = PRE_GOAL_DISTANCE
+        points.append((goal.x - back * math.cos(goal.yaw), goal.y - back * math.sin(goal.yaw)))
+    points.append((goal.x, goal.y))
+    return points

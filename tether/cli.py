@@ -11,7 +11,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -192,6 +192,14 @@ def print_result(run: PlanRun, as_json: bool) -> None:
     )
 
 
+def unreachable(as_json: bool, reason: str) -> NoReturn:
+    if as_json:
+        print(json.dumps({"status": "unreachable", "stage": None, "reason": reason, "steps": []}))
+    else:
+        console.print(f"[red]{reason}[/]")
+    raise typer.Exit(EXIT_UNREACHABLE)
+
+
 @app.command()
 def send(
     ctx: typer.Context,
@@ -219,8 +227,7 @@ def send(
         raise typer.Exit(2)
     with client(ctx) as node:
         if "executor" not in node.alive_services(timeout=2.0):
-            console.print("[red]no executor reachable[/]: start the services with `tether up`")
-            raise typer.Exit(EXIT_UNREACHABLE)
+            unreachable(as_json, "no executor reachable: start the services with `tether up`")
         sender = PlanSender(node, None if as_json else print_feedback)
         try:
             handle = sender.send(ExecutePlanGoal(text=text, format=fmt, dry_run=dry_run))  # type: ignore[arg-type]
@@ -231,8 +238,7 @@ def send(
                 console.print(f"[red]rejected[/]: {exc.reason}")
             raise typer.Exit(2) from None
         except CallError as exc:
-            console.print(f"[red]executor unreachable[/]: {exc}")
-            raise typer.Exit(EXIT_UNREACHABLE) from None
+            unreachable(as_json, f"executor unreachable: {exc}")
         try:
             run_ = sender.wait(handle, timeout, until_started=not (wait or dry_run))
         except KeyboardInterrupt:
@@ -240,8 +246,7 @@ def send(
             handle.cancel()
             run_ = sender.wait(handle, 30.0)
         except CallError as exc:
-            console.print(f"[red]no outcome[/]: {exc}")
-            raise typer.Exit(EXIT_UNREACHABLE) from None
+            unreachable(as_json, f"no outcome: {exc}")
         print_result(run_, as_json)
         raise typer.Exit(EXIT_CODES[run_.result.status] if run_.result else 0)
 

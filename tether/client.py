@@ -39,8 +39,11 @@ def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
             box.append(msg)
             arrived.set()
 
-    node.subscribe(topic, on_message)
-    arrived.wait(timeout)
+    subscription = node.subscribe(topic, on_message)
+    try:
+        arrived.wait(timeout)
+    finally:
+        subscription.undeclare()
     return box[0] if box else None
 
 
@@ -61,9 +64,12 @@ def trigger_estop(node: Node, source: str, reason: str, timeout: float = 2.0) ->
             confirmed.append(status)
             latched.set()
 
-    node.subscribe(keys.HEARTBEAT, on_beat)
-    node.publish(keys.ESTOP, EStop(source=source, reason=reason))
-    latched.wait(timeout)
+    subscription = node.subscribe(keys.HEARTBEAT, on_beat)
+    try:
+        node.publish(keys.ESTOP, EStop(source=source, reason=reason))
+        latched.wait(timeout)
+    finally:
+        subscription.undeclare()
     return confirmed[0] if confirmed else None
 
 

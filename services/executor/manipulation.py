@@ -39,7 +39,6 @@ class Manipulator:
         self.kin = kinematics
         self.world = world
         self.config = config
-        self.holding: str | None = None
 
     # Base
 
@@ -113,8 +112,10 @@ class Manipulator:
     # Steps
 
     def pick(self, step: PickStep, cancel: threading.Event) -> None:
-        if self.holding is not None:
-            raise PreconditionFailed(f"already holding {self.holding}")
+        # What the hand holds comes from perception, never from bookkeeping that a failed step
+        # could have left stale.
+        if (held_now := self.robot.held_object()) is not None:
+            raise PreconditionFailed(f"the gripper already holds {held_now}")
         self.ensure_at(step.approach, cancel)
         # Where perception sees it now, not where it was when the plan was resolved.
         position = self.robot.object_position(step.object_id) or step.position
@@ -127,15 +128,15 @@ class Manipulator:
             held = None if result is None else result.holding
             self.gripper(GRIPPER_OPEN, cancel)
             raise ExecutionError(f"gripper closed on {held or 'nothing'}, not {step.object_name}")
-        self.holding = step.object_id
         self.slide(above, f"lifting {step.object_name}", cancel)
         self.stow(cancel)
 
     def place(self, step: PlaceStep, cancel: threading.Event) -> str:
-        if self.holding is None:
+        held_id = self.robot.held_object()
+        if held_id is None:
             raise PreconditionFailed("the gripper holds nothing to place")
-        held = self.world.objects.get(self.holding)
-        name = held.name if held else self.holding
+        held = self.world.objects.get(held_id)
+        name = held.name if held else held_id
         half_height = held.size.z / 2 if held else 0.05
         self.ensure_at(step.approach, cancel)
         at = Vec3(x=step.position.x, y=step.position.y, z=step.position.z + half_height + self.config.place_clearance)
@@ -143,11 +144,10 @@ class Manipulator:
         self.reach(above, f"moving {name} above {step.surface_name}", cancel)
         self.slide(at, f"lowering {name} onto {step.surface_name}", cancel)
         self.gripper(GRIPPER_OPEN, cancel)
-        self.holding = None
         self.slide(above, "lifting the hand", cancel)
         self.stow(cancel)
         # Done means perception sees it on the surface, not that the motions went through.
-        seen = self.robot.next_perception(held.id if held else "", PERCEPTION_TIMEOUT)
+        seen = self.robot.next_perception(held_id, PERCEPTION_TIMEOUT)
         if seen is None or seen.on != step.surface_id:
             where = "nowhere" if seen is None else (seen.on or "the floor")
             raise PostconditionFailed(f"after placing, perception has {name} on {where}, not on {step.surface_name}")

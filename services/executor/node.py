@@ -85,6 +85,12 @@ class NodeRobot:
             self._objects_seq += 1
             self._objects_changed.notify_all()
 
+    def held_object(self) -> str | None:
+        objects = self._objects
+        if objects is None:
+            return None
+        return next((o.id for o in objects.objects if o.on == "gripper"), None)
+
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
         with self._objects_changed:
             seq = self._objects_seq

@@ -75,6 +75,10 @@ def _scan(text: str, start: int, max_depth: int) -> _Span:
     return _Span(start, None, len(stack))
 
 
+# Code blocks tried at most; a plan is in the first few, and a text of thousands is an attack.
+MAX_CANDIDATES = 16
+
+
 class JsonFinder:
     """Locates and decodes the plan's JSON; lenient repair only for complete, small candidates."""
 
@@ -85,15 +89,17 @@ class JsonFinder:
 
     def find(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Extracted:
         """The first candidate that looks like a plan; else the first that decodes; else the first error."""
-        starts: list[int] = []
+        starts: dict[int, None] = {}  # ordered and O(1) to test, for texts full of fences
         stripped = text.lstrip()
         if stripped[:1] in _CLOSERS:
-            starts.append(len(text) - len(stripped))
+            starts[len(text) - len(stripped)] = None
         for fence in _FENCE.finditer(text):
             body = fence.group(2)
             offset = fence.start(2) + len(body) - len(body.lstrip())
-            if text[offset : offset + 1] in _CLOSERS and offset not in starts:
-                starts.append(offset)
+            if text[offset : offset + 1] in _CLOSERS:
+                starts[offset] = None
+            if len(starts) >= MAX_CANDIDATES:
+                break
         if not starts:
             for fence in _FENCE.finditer(text):
                 if fence.group(1).lower() in ("yaml", "yml"):

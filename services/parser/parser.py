@@ -293,7 +293,13 @@ class Parser:
         if isinstance(value, bool) or not isinstance(value, int | float | str):
             raise ParseError(f"{where} must be a number, got {_type_name(value)}", step=index)
         if not isinstance(value, str):
-            return float(value)
+            try:
+                number = float(value)
+            except OverflowError:
+                raise ParseError(f"{where} is too large a number", step=index) from None
+            if not math.isfinite(number):
+                raise ParseError(f"{where} must be a finite number", step=index)
+            return number
         match = _NUMBER_WITH_UNIT.match(value[:100])
         if match is None:
             raise ParseError(f"{where} must be a number, got {echo(value)}", step=index)

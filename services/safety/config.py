@@ -19,3 +19,9 @@ class SafetyConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # Where the operator's reset token lives; None: $TETHER_OPERATOR_TOKEN_FILE or ~/.config/tether.
     operator_token_file: str | None = None
     forward_timeout: Annotated[float, Meta(gt=0.0, le=60.0)] = 5.0
+    # cmd_vel is refused if holding it this long would reach a keep-out zone or leave the map.
+    cmd_vel_horizon: Annotated[float, Meta(gt=0.0, le=10.0)] = 1.0
+    # Older odometry or joint states count as unknown: commands needing them are refused.
+    state_max_age: Annotated[float, Meta(gt=0.0, le=10.0)] = 0.5
+    # Where the latch survives a restart; None: estop-<robot>.json beside the operator token.
+    estop_state_file: str | None = None

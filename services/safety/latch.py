@@ -1,20 +1,52 @@
-"""The e-stop latch: anyone may set it; only a valid operator token clears it."""
+"""The e-stop latch: anyone may set it; only a valid operator token clears it; it survives restarts."""
 
 from __future__ import annotations
 
+import logging
+import os
 import threading
 import time
+from pathlib import Path
+
+import msgspec
 
 from schemas.safety import EstopState
 from services.safety.errors import Unauthorized
 from services.safety.operator import token_matches
 
+log = logging.getLogger(__name__)
+
 
 class EstopLatch:
-    def __init__(self, operator_token: str) -> None:
+    """With a `state_file`, a latched e-stop is written down before it is announced, and read back
+    at start: restarting safety (by hand, systemd or `tether up`) does not clear it."""
+
+    def __init__(self, operator_token: str, state_file: Path | None = None) -> None:
         self._token = operator_token
-        self._state = EstopState(latched=False)
+        self._file = state_file
         self._lock = threading.Lock()
+        self._state = self._load()
+
+    def _load(self) -> EstopState:
+        if self._file is None or not self._file.exists():
+            return EstopState(latched=False)
+        try:
+            state = msgspec.json.decode(self._file.read_bytes(), type=EstopState)
+        except (OSError, msgspec.DecodeError) as exc:
+            # Fail closed: a state we cannot read might have been a latched one.
+            log.error("e-stop state file %s is unreadable (%s): starting latched", self._file, exc)
+            return EstopState(latched=True, source="safety", reason=f"unreadable e-stop state file {self._file}")
+        if state.latched:
+            log.warning("e-stop still latched from before the restart (by %s: %s)", state.source, state.reason)
+        return state
+
+    def _save(self, state: EstopState) -> None:
+        if self._file is None:
+            return
+        self._file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._file.with_suffix(".tmp")
+        tmp.write_bytes(msgspec.json.encode(state))
+        os.replace(tmp, self._file)
 
     @property
     def state(self) -> EstopState:
@@ -27,6 +59,7 @@ class EstopLatch:
             if self._state.latched:
                 return False
             self._state = EstopState(latched=True, source=source, reason=reason, stamp=time.time())
+            self._save(self._state)
             return True
 
     def reset(self, operator: str, token: str) -> EstopState:
@@ -34,4 +67,5 @@ class EstopLatch:
             if not token_matches(self._token, token):
                 raise Unauthorized(f"reset refused for '{operator}': not the operator's token")
             self._state = EstopState(latched=False, source=operator, reason="reset by operator", stamp=time.time())
+            self._save(self._state)
             return self._state

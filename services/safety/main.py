@@ -25,7 +25,8 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     limits = joint_limits_from_urdf(Path(pybullet_data.getDataPath()) / world.robot.arm_urdf)
     policy = SafetyPolicy(WorldModel(world), config, limits)
     token_file = token_path(config.operator_token_file)
-    latch = EstopLatch(ensure_token(token_file))
+    state_file = Path(config.estop_state_file) if config.estop_state_file else None
+    latch = EstopLatch(ensure_token(token_file), state_file or token_file.parent / f"estop-{settings.robot}.json")
     stop = stop_event()
     with Node("safety", settings) as node:
         safety = SafetyNode(node, policy, latch, config)

@@ -15,7 +15,7 @@ from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse,
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
 from schemas.keys import Action
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
-from schemas.robot import Odometry, Twist
+from schemas.robot import JointState, Odometry, Twist
 from schemas.safety import Decision, EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
 from services.actionlib import MAX_RESULT_WAIT
 from services.runtime import Node, encode
@@ -33,7 +33,8 @@ class SafetyNode:
         self.policy = policy
         self.latch = latch
         self.config = config
-        self._pose: Pose2D | None = None
+        self._odom: tuple[float, Pose2D] | None = None
+        self._joints: tuple[float, dict[str, float]] | None = None
         self._seq = 0
         self._forwarded: dict[str, Action[Any, Any, Any]] = {}
         self._lock = threading.Lock()
@@ -43,12 +44,13 @@ class SafetyNode:
         self._stop = threading.Event()
 
         node.subscribe(keys.ODOM, self._on_odom)
+        node.subscribe(keys.JOINT_STATES, self._on_joints)
         node.subscribe(keys.ESTOP, self._on_estop)
         node.subscribe(keys.CMD_VEL, self._on_cmd_vel)
         node.serve(keys.RESET, self._on_reset)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda g: policy.check_navigation(g, self._pose))
-        self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, policy.check_trajectory)
+        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda g: policy.check_navigation(g, self.pose()))
+        self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, lambda g: policy.check_trajectory(g, self.joints()))
         self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, policy.check_gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
@@ -60,10 +62,10 @@ class SafetyNode:
     # Heartbeat and e-stop
 
     def _publish_heartbeat(self) -> None:
+        # Under one lock, so a beat read before a latch can never be sent after the latched one.
         with self._lock:
             self._seq += 1
-            seq = self._seq
-        self._heartbeat.put(SafetyStatus(seq=seq, stamp=time.time(), estop=self.latch.state))
+            self._heartbeat.put(SafetyStatus(seq=self._seq, stamp=time.time(), estop=self.latch.state))
 
     def _beat(self) -> None:
         period = 1.0 / self.config.heartbeat_hz
@@ -80,7 +82,8 @@ class SafetyNode:
             self._publish_heartbeat()
             self._robot_cmd_vel.put(Twist())
             self._event("safety/estop", Decision.LATCHED, f"by {msg.source}: {msg.reason}", msg)
-            self._cancel_forwarded()
+            # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
+            threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
 
     def _cancel_forwarded(self) -> None:
         with self._lock:
@@ -105,7 +108,23 @@ class SafetyNode:
     # Commands
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._pose = msg.pose
+        self._odom = (time.monotonic(), msg.pose)
+
+    def _on_joints(self, msg: JointState) -> None:
+        self._joints = (time.monotonic(), dict(zip(msg.name, msg.position, strict=False)))
+
+    def pose(self) -> Pose2D | None:
+        """The base pose, or None when odometry is missing or stale."""
+        odom = self._odom
+        if odom is None or time.monotonic() - odom[0] > self.config.state_max_age:
+            return None
+        return odom[1]
+
+    def joints(self) -> dict[str, float] | None:
+        joints = self._joints
+        if joints is None or time.monotonic() - joints[0] > self.config.state_max_age:
+            return None
+        return joints[1]
 
     def _on_cmd_vel(self, twist: Twist) -> None:
         estop = self.latch.state
@@ -113,9 +132,11 @@ class SafetyNode:
             self._event(keys.CMD_VEL.path, Decision.VETOED, "e-stop latched", twist)
             return
         try:
-            sent = self.policy.check_cmd_vel(twist)
+            sent = self.policy.check_cmd_vel(twist, self.pose())
         except Vetoed as exc:
-            self._event(keys.CMD_VEL.path, Decision.VETOED, str(exc), twist)
+            # Dropping it is not enough: the last approved twist would carry on until it expires.
+            self._robot_cmd_vel.put(Twist())
+            self._event(keys.CMD_VEL.path, Decision.VETOED, f"{exc}; base stopped", twist)
             return
         if sent != twist:
             self._event(keys.CMD_VEL.path, Decision.CLAMPED, "clamped to speed limits", sent)
@@ -126,7 +147,7 @@ class SafetyNode:
         try:
             if estop.latched:
                 raise Vetoed(f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it")
-            checks = self.policy.check_plan(plan, self._pose)
+            checks = self.policy.check_plan(plan, self.pose())
         except Vetoed as exc:
             self._event(keys.PLAN_CHECK.path, Decision.VETOED, str(exc), plan)
             kind = ErrorKind.ESTOP if estop.latched else ErrorKind.VETOED

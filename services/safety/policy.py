@@ -9,16 +9,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shapely.geometry import LineString, Point
+from shapely.geometry.base import BaseGeometry
 
 from schemas.common import Pose2D
 from schemas.plan import GroundedPlan, NavigateStep, PickStep, PlaceStep
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.world import KeepOut
 from services.safety.config import SafetyConfig
 from services.safety.errors import Vetoed
-from services.worldmodel import WorldModel
+from services.worldmodel import WorldModel, drive_route
 
 # Joint positions may not come closer than this to the hard limits.
 JOINT_LIMIT_MARGIN = 0.01
+# A trajectory's first point, at time zero, may differ this much from the measured position.
+START_TOLERANCE = 0.05
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,10 @@ def _fmt(x: float) -> str:
     return f"{x:.2f}"
 
 
+def _why(zone: KeepOut) -> str:
+    return f": {zone.reason}" if zone.reason else ""
+
+
 class SafetyPolicy:
     """Pure checks. Each `check_*` returns the command to forward, or raises Vetoed naming why."""
 
@@ -54,57 +62,82 @@ class SafetyPolicy:
         robot = world.world.robot
         self.max_linear = min(config.max_linear_speed or robot.max_linear_speed, robot.max_linear_speed)
         self.max_angular = min(config.max_angular_speed or robot.max_angular_speed, robot.max_angular_speed)
+        # Zones grown by the base's half-diagonal: the base centre must stay that far out.
+        radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2
+        self.zones = {zone_id: shape.buffer(radius) for zone_id, shape in world.keep_out_shapes.items()}
 
     # Navigation
 
-    def check_route(self, start: Pose2D | None, waypoints: list[Pose2D]) -> None:
-        """Every waypoint on the map and out of keep-out zones; every leg clear of them too."""
-        for i, pose in enumerate(waypoints):
-            point = Point(pose.x, pose.y)
-            if not (math.isfinite(pose.x) and math.isfinite(pose.y) and math.isfinite(pose.yaw)):
-                raise Vetoed(f"waypoint {i + 1} is not a finite pose")
-            if self.world.room_of(pose.x, pose.y) is None:
-                raise Vetoed(f"({_fmt(pose.x)}, {_fmt(pose.y)}) is outside every room of the map")
-            for zone in self.world.world.keep_out:
-                if self.world.keep_out_shapes[zone.id].covers(point):
-                    raise Vetoed(
-                        f"goal ({_fmt(pose.x)}, {_fmt(pose.y)}) is inside keep-out zone '{zone.name}'"
-                        + (f": {zone.reason}" if zone.reason else "")
-                    )
-        points = ([start] if start is not None else []) + waypoints
+    def _zone_hit(self, geometry: BaseGeometry) -> KeepOut | None:
+        for zone in self.world.world.keep_out:
+            if geometry.intersects(self.zones[zone.id]):
+                return zone
+        return None
+
+    def check_route(self, start: Pose2D | None, path: list[Pose2D], goal: Pose2D) -> None:
+        """The route the base will drive (see worldmodel.drive_route): on the map, its footprint
+        clear of every keep-out zone at every point and along every leg."""
+        if start is None:
+            raise Vetoed("the robot's pose is unknown (no recent odometry), so no route can be checked")
+        for pose in (*path, goal):
+            if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.yaw)):
+                raise Vetoed("a waypoint is not a finite pose")
+        points = [(start.x, start.y), *drive_route(start, path, goal)]
+        for x, y in points[1:]:
+            if self.world.room_of(x, y) is None:
+                raise Vetoed(f"({_fmt(x)}, {_fmt(y)}) is outside every room of the map")
+            if zone := self._zone_hit(Point(x, y)):
+                raise Vetoed(f"goal ({_fmt(x)}, {_fmt(y)}) is inside keep-out zone '{zone.name}'{_why(zone)}")
         for a, b in itertools.pairwise(points):
-            leg = LineString([(a.x, a.y), (b.x, b.y)])
-            for zone in self.world.world.keep_out:
-                if leg.intersects(self.world.keep_out_shapes[zone.id]):
-                    raise Vetoed(
-                        f"path from ({_fmt(a.x)}, {_fmt(a.y)}) to ({_fmt(b.x)}, {_fmt(b.y)}) "
-                        f"crosses keep-out zone '{zone.name}'"
-                    )
+            if zone := self._zone_hit(LineString([a, b])):
+                raise Vetoed(
+                    f"path from ({_fmt(a[0])}, {_fmt(a[1])}) to ({_fmt(b[0])}, {_fmt(b[1])}) "
+                    f"crosses keep-out zone '{zone.name}'{_why(zone)}"
+                )
 
     def check_navigation(self, goal: NavigateToPoseGoal, start: Pose2D | None) -> NavigateToPoseGoal:
-        self.check_route(start, [*goal.path, goal.pose])
+        self.check_route(start, goal.path, goal.pose)
         if goal.max_speed > self.max_linear:
             # Clamp rather than refuse: a slower arrival is always safe.
             return NavigateToPoseGoal(pose=goal.pose, path=goal.path, max_speed=self.max_linear)
         return goal
 
-    def check_cmd_vel(self, twist: Twist) -> Twist:
+    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None) -> Twist:
+        """Clamp to the speed limits; veto a twist that would carry the base off the map or into a
+        keep-out zone within the horizon. Stopping is always allowed."""
         if not (math.isfinite(twist.linear_x) and math.isfinite(twist.angular_z)):
             raise Vetoed("cmd_vel is not finite")
-        return Twist(
+        sent = Twist(
             linear_x=max(-self.max_linear, min(self.max_linear, twist.linear_x)),
             angular_z=max(-self.max_angular, min(self.max_angular, twist.angular_z)),
         )
+        if sent.linear_x == 0.0:
+            return sent
+        if pose is None:
+            raise Vetoed("the robot's pose is unknown (no recent odometry): only a stop is allowed")
+        reach = sent.linear_x * self.config.cmd_vel_horizon
+        ahead = (pose.x + reach * math.cos(pose.yaw), pose.y + reach * math.sin(pose.yaw))
+        if self.world.room_of(*ahead) is None:
+            raise Vetoed(f"cmd_vel would leave the map within {self.config.cmd_vel_horizon:g} s")
+        if zone := self._zone_hit(LineString([(pose.x, pose.y), ahead])):
+            raise Vetoed(f"cmd_vel would enter keep-out zone '{zone.name}' within {self.config.cmd_vel_horizon:g} s")
+        return sent
 
     # Arm
 
-    def check_trajectory(self, goal: FollowJointTrajectoryGoal) -> FollowJointTrajectoryGoal:
+    def check_trajectory(
+        self, goal: FollowJointTrajectoryGoal, current: dict[str, float] | None
+    ) -> FollowJointTrajectoryGoal:
+        """Known joints inside their limits, and no joint faster than the limit on any segment,
+        the first one starting from where the arm is now."""
         unknown = [n for n in goal.joint_names if n not in self.joint_limits]
         if unknown:
             raise Vetoed(f"unknown joints {unknown}")
         if len(set(goal.joint_names)) != len(goal.joint_names):
             raise Vetoed("a joint is named twice")
-        previous: list[float] | None = None
+        if current is None or not all(n in current for n in goal.joint_names):
+            raise Vetoed("the arm's joint positions are unknown (no recent joint states)")
+        previous = [current[n] for n in goal.joint_names]
         previous_time = 0.0
         for i, point in enumerate(goal.points):
             if len(point.positions) != len(goal.joint_names):
@@ -113,17 +146,21 @@ class SafetyPolicy:
                 lim = self.joint_limits[name]
                 if not (lim.lower + JOINT_LIMIT_MARGIN <= q <= lim.upper - JOINT_LIMIT_MARGIN):
                     raise Vetoed(f"point {i}: {name} = {q:.3f} rad is outside [{lim.lower:.3f}, {lim.upper:.3f}]")
-            if previous is not None:
-                dt = point.time_from_start - previous_time
+            dt = point.time_from_start - previous_time
+            for name, q0, q1 in zip(goal.joint_names, previous, point.positions, strict=True):
                 if dt <= 0:
-                    raise Vetoed(f"point {i}: time_from_start does not increase")
-                for name, q0, q1 in zip(goal.joint_names, previous, point.positions, strict=True):
-                    speed = abs(q1 - q0) / dt
-                    if speed > self.config.max_joint_speed + 1e-6:
-                        raise Vetoed(
-                            f"point {i}: {name} would move at {speed:.2f} rad/s, "
-                            f"limit {self.config.max_joint_speed:.2f} rad/s"
-                        )
+                    # A point at the start time must be where the arm already is.
+                    if abs(q1 - q0) > START_TOLERANCE:
+                        raise Vetoed(f"point {i}: {name} would jump {abs(q1 - q0):.3f} rad at once")
+                    continue
+                speed = abs(q1 - q0) / dt
+                if speed > self.config.max_joint_speed + 1e-6:
+                    raise Vetoed(
+                        f"point {i}: {name} would move at {speed:.2f} rad/s, "
+                        f"limit {self.config.max_joint_speed:.2f} rad/s"
+                    )
+            if dt < 0:
+                raise Vetoed(f"point {i}: time_from_start goes backwards")
             previous, previous_time = list(point.positions), point.time_from_start
         return goal
 
@@ -150,16 +187,16 @@ class SafetyPolicy:
         for i, step in enumerate(plan.steps):
             try:
                 if isinstance(step, NavigateStep):
-                    self.check_route(position, [step.goal])
+                    self.check_route(position, [], step.goal)
                     position = step.goal
                     checks.append(f"step {i + 1}: route to {step.target} is clear of keep-out zones")
                 elif isinstance(step, PickStep):
                     self.check_payload(step.object_id)
-                    self.check_route(position, [step.approach])
+                    self.check_route(position, [], step.approach)
                     position = step.approach
                     checks.append(f"step {i + 1}: {step.object_name} is within payload")
                 elif isinstance(step, PlaceStep):
-                    self.check_route(position, [step.approach])
+                    self.check_route(position, [], step.approach)
                     position = step.approach
                     checks.append(f"step {i + 1}: route to {step.surface_name} is clear")
             except Vetoed as exc:

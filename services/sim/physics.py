@@ -41,7 +41,7 @@ from schemas.world import (
     WorldObject,
 )
 from services.sim.robot_urdf import BASE_LINK, BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT, mobile_manipulator_urdf
-from services.worldmodel import WorldModel
+from services.worldmodel import WorldModel, drive_route
 
 log = logging.getLogger(__name__)
 
@@ -71,9 +71,6 @@ FINGER_SPEED = 0.1  # m/s per finger
 GOAL_POSITION_TOLERANCE = 0.01  # aim well inside the 5 cm / 0.05 rad promise
 GOAL_YAW_TOLERANCE = 0.02
 WAYPOINT_TOLERANCE = 0.15
-# The last leg is driven straight in from this far behind the goal, along the goal's heading, so
-# the base never swings its corners around next to the furniture it is parking at.
-PRE_GOAL_DISTANCE = 0.4
 PRE_GOAL_TOLERANCE = 0.03
 # Heading error (rad) above which the base turns in place; stricter when starting from rest, so
 # it sets off on the line instead of curving towards it.
@@ -149,14 +146,12 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         self.goal = goal
         start = sim.base_pose()
         final = goal.pose
-        self.waypoints = [(p.x, p.y) for p in goal.path]
-        self.tolerances = [WAYPOINT_TOLERANCE] * len(self.waypoints)
-        leg_start = self.waypoints[-1] if self.waypoints else (start.x, start.y)
-        if math.dist(leg_start, (final.x, final.y)) > PRE_GOAL_DISTANCE + WAYPOINT_TOLERANCE:
-            back = PRE_GOAL_DISTANCE
-            self.waypoints.append((final.x - back * math.cos(final.yaw), final.y - back * math.sin(final.yaw)))
+        # The same route safety checked: the path, maybe a pre-goal point, the goal.
+        self.waypoints = drive_route(start, goal.path, final)
+        pre_goal = len(self.waypoints) - 2 >= len(goal.path)
+        self.tolerances = [WAYPOINT_TOLERANCE] * len(goal.path)
+        if pre_goal:
             self.tolerances.append(PRE_GOAL_TOLERANCE)
-        self.waypoints.append((final.x, final.y))
         self.tolerances.append(GOAL_POSITION_TOLERANCE)
         self.index = 0
         self.max_speed = min(goal.max_speed, robot.max_linear_speed)

@@ -131,6 +131,7 @@ def test_send_exit_codes(stack: Stack) -> None:
     assert json.loads(dry.stdout)["status"] == "succeeded"
     unreachable = tether_cli(stack, "--base-port", "1100", "--robot", "nobody", "send", DEMO_PLAN, "--json")
     assert unreachable.returncode == 3
+    assert json.loads(unreachable.stdout)["status"] == "unreachable"
 
 
 def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_stack: Stack) -> None:
@@ -159,6 +160,13 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
     assert (status, stage) == (PlanStatus.REJECTED, "safety") and "e-stop" in reason
     beat = Watch(stack.node, keys.HEARTBEAT).latest(timeout=2.0)
     assert beat is not None and beat.estop.latched
+
+    # Nor does a crash and restart of safety (as systemd or `tether up` would do).
+    stack.supervisor.kill("safety")
+    stack.supervisor.start("safety")
+    assert not stack.node.wait_alive(["safety"], 60.0)
+    beat = Watch(stack.node, keys.HEARTBEAT).latest(timeout=5.0)
+    assert beat is not None and beat.estop.latched and beat.estop.source == "test"
 
     # A reset without the operator's token is refused; `tether reset` with it clears the latch.
     wrong = stack.tmp / "wrong-token"

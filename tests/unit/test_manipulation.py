@@ -52,6 +52,9 @@ class SimRobot:
     def object_position(self, object_id: str) -> Vec3 | None:
         return self.sim.object_position(object_id)
 
+    def held_object(self) -> str | None:
+        return self.sim.ground_truth().holding
+
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
         self.sim.settle(0.2)
         return next((o for o in self.sim.perceived_objects(0.0).objects if o.id == object_id), None)

@@ -315,3 +315,14 @@ def test_vocabulary_file_errors_name_the_file(tmp_path: Path) -> None:
     bad.write_text("actions: {}\nfoo: 1\n")
     with pytest.raises(VocabularyError, match=str(bad)):
         load_vocabulary(bad)
+
+
+def test_a_number_too_large_for_a_float_is_refused_not_crashed() -> None:
+    error = refusal('[{"action": "wait", "parameters": {"duration": ' + "9" * 400 + "}}]")
+    assert "too large" in error.message and error.step == 0
+
+
+def test_a_text_full_of_code_blocks_gets_a_refusal() -> None:
+    text = ("```\n{}\n```\n" * 30000)[: MAX_PLAN_BYTES - 1]
+    error = answer(default_parser(), PlanText(text=text))
+    assert isinstance(error, ServiceError) and "no plan found" in error.message

@@ -83,6 +83,9 @@ class ScriptedRobot:
     def object_position(self, object_id: str) -> Vec3 | None:
         return None
 
+    def held_object(self) -> str | None:
+        return None
+
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
         return None
 
@@ -163,12 +166,16 @@ def test_a_wait_step_ends_early_on_cancel() -> None:
     assert result.status is PlanStatus.CANCELED
 
 
-def test_the_executor_knows_no_robot_command_key() -> None:
-    """Invariant 1 by construction: the executor's code never names a robot/** command key."""
+def test_the_plan_side_knows_no_robot_command_key_and_no_reset() -> None:
+    """Invariants 1 and 3 by construction: parser, resolver and executor never name a robot/**
+    command key or the e-stop reset, so no plan can reach either."""
     from pathlib import Path
 
-    import services.executor as package
+    import services
 
-    source = "\n".join(p.read_text() for p in Path(package.__file__).parent.glob("*.py"))
-    for name in ("ROBOT_NAVIGATE", "ROBOT_TRAJECTORY", "ROBOT_GRIPPER", "ROBOT_CMD_VEL", '"robot/'):
-        assert name not in source, name
+    forbidden = ("ROBOT_NAVIGATE", "ROBOT_TRAJECTORY", "ROBOT_GRIPPER", "ROBOT_CMD_VEL", '"robot/', "RESET", "reset")
+    for package in ("parser", "resolver", "executor"):
+        for path in (Path(services.__file__).parent / package).glob("*.py"):
+            source = path.read_text()
+            for name in forbidden:
+                assert name not in source, f"{path} names {name}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pybullet_data
@@ -40,7 +41,27 @@ def test_a_path_through_the_stairs_is_vetoed(policy: SafetyPolicy) -> None:
 
 def test_a_goal_off_the_map_is_vetoed(policy: SafetyPolicy) -> None:
     with pytest.raises(Vetoed, match="outside every room"):
-        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=30.0, y=2.0)), None)
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=30.0, y=2.0)), Pose2D(x=6.0, y=1.2))
+
+
+def test_without_a_known_pose_no_route_is_approved(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match="pose is unknown"):
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05)), None)
+
+
+def test_the_route_checked_is_the_route_driven_including_the_straight_in_leg(policy: SafetyPolicy) -> None:
+    # The goal and the direct leg stay clear of the stairs, but the base parks by driving in from
+    # 0.4 m behind the goal along its heading, and that point is at the stairs.
+    goal = Pose2D(x=9.9, y=8.5, yaw=math.pi)
+    with pytest.raises(Vetoed, match="keep-out zone 'stairs'"):
+        policy.check_navigation(NavigateToPoseGoal(pose=goal), Pose2D(x=9.0, y=6.0))
+    # Facing the other way, the same goal is driven into from the clear side.
+    policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=9.9, y=8.5, yaw=0.0)), Pose2D(x=9.0, y=6.0))
+
+
+def test_the_footprint_not_just_the_centre_stays_out_of_zones(policy: SafetyPolicy) -> None:
+    with pytest.raises(Vetoed, match="stairs"):
+        policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=10.3, y=7.5)), Pose2D(x=9.0, y=7.5))
 
 
 def test_a_clear_goal_passes_and_its_speed_is_clamped(policy: SafetyPolicy) -> None:
@@ -51,10 +72,22 @@ def test_a_clear_goal_passes_and_its_speed_is_clamped(policy: SafetyPolicy) -> N
 
 
 def test_cmd_vel_is_clamped_to_the_robot_limits(policy: SafetyPolicy) -> None:
-    assert policy.check_cmd_vel(Twist(linear_x=5.0, angular_z=-9.0)) == Twist(linear_x=0.6, angular_z=-1.2)
-    assert policy.check_cmd_vel(Twist(linear_x=0.2)) == Twist(linear_x=0.2)
+    here = Pose2D(x=6.0, y=1.2)
+    assert policy.check_cmd_vel(Twist(linear_x=5.0, angular_z=-9.0), here) == Twist(linear_x=0.6, angular_z=-1.2)
+    assert policy.check_cmd_vel(Twist(linear_x=0.2), here) == Twist(linear_x=0.2)
     with pytest.raises(Vetoed, match="not finite"):
-        policy.check_cmd_vel(Twist(linear_x=float("nan")))
+        policy.check_cmd_vel(Twist(linear_x=float("nan")), here)
+
+
+def test_cmd_vel_towards_the_stairs_or_blind_is_vetoed_but_stopping_never_is(policy: SafetyPolicy) -> None:
+    facing_stairs = Pose2D(x=10.0, y=8.0, yaw=0.0)
+    with pytest.raises(Vetoed, match="keep-out zone 'stairs'"):
+        policy.check_cmd_vel(Twist(linear_x=0.5), facing_stairs)
+    assert policy.check_cmd_vel(Twist(linear_x=-0.3), facing_stairs) == Twist(linear_x=-0.3)
+    with pytest.raises(Vetoed, match="pose is unknown"):
+        policy.check_cmd_vel(Twist(linear_x=0.1), None)
+    assert policy.check_cmd_vel(Twist(), None) == Twist()
+    assert policy.check_cmd_vel(Twist(angular_z=0.5), None) == Twist(angular_z=0.5)
 
 
 def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
@@ -63,22 +96,40 @@ def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
     )
 
 
+NOW = dict(zip(ARM, HOME, strict=True))
+
+
 def test_trajectories_within_limits_pass(policy: SafetyPolicy) -> None:
     target = [*HOME[:3], -2.0, *HOME[4:]]
-    goal = trajectory((HOME, 0.1), (target, 1.0))
-    assert policy.check_trajectory(goal) == goal
+    goal = trajectory((HOME, 0.0), (target, 1.0))
+    assert policy.check_trajectory(goal, NOW) == goal
 
 
 def test_trajectories_past_a_joint_limit_or_too_fast_are_vetoed(policy: SafetyPolicy) -> None:
     with pytest.raises(Vetoed, match=r"panda_joint4 = 0\.500 rad is outside"):
-        policy.check_trajectory(trajectory(([*HOME[:3], 0.5, *HOME[4:]], 1.0)))
+        policy.check_trajectory(trajectory(([*HOME[:3], 0.5, *HOME[4:]], 1.0)), NOW)
     with pytest.raises(Vetoed, match="rad/s"):
-        policy.check_trajectory(trajectory((HOME, 0.1), ([2.0, *HOME[1:]], 0.2)))
+        policy.check_trajectory(trajectory((HOME, 0.1), ([2.0, *HOME[1:]], 0.2)), NOW)
+
+
+def test_the_first_segment_starts_where_the_arm_is(policy: SafetyPolicy) -> None:
+    far = [2.0, *HOME[1:]]
+    # One point, reached in 0.1 s from where the arm really is: 20 rad/s.
+    with pytest.raises(Vetoed, match="rad/s"):
+        policy.check_trajectory(trajectory((far, 0.1)), NOW)
+    with pytest.raises(Vetoed, match="would jump"):
+        policy.check_trajectory(trajectory((far, 0.0), (far, 5.0)), NOW)
+    with pytest.raises(Vetoed, match="joint positions are unknown"):
+        policy.check_trajectory(trajectory((HOME, 1.0)), None)
+
+
+def test_unknown_joints_are_vetoed(policy: SafetyPolicy) -> None:
     with pytest.raises(Vetoed, match="unknown joints"):
         policy.check_trajectory(
             FollowJointTrajectoryGoal(
                 joint_names=["elbow"], points=[TrajectoryPoint(positions=[0.0], time_from_start=1.0)]
-            )
+            ),
+            NOW,
         )
 
 
@@ -123,3 +174,14 @@ def test_the_latch_holds_until_the_operator_token_resets_it(tmp_path: Path) -> N
     assert latch.state.latched
     latch.reset("operator", token)
     assert not latch.state.latched
+
+
+def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_path: Path) -> None:
+    state = tmp_path / "estop.json"
+    EstopLatch("secret", state).trigger("watchdog", "lost the arm")
+    again = EstopLatch("secret", state)
+    assert again.state.latched and again.state.source == "watchdog"
+    again.reset("operator", "secret")
+    assert not EstopLatch("secret", state).state.latched
+    state.write_text("{ not json")
+    assert EstopLatch("secret", state).state.latched
