@@ -99,6 +99,11 @@ class StopStep(Frozen, tag="stop"):
 GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep
 
 
+def step_kind(step: GroundedStep) -> str:
+    """The action a grounded step performs: its tag."""
+    return str(type(step).__struct_config__.tag)
+
+
 class GroundedPlan(Frozen, tag="grounded_plan"):
     steps: Annotated[list[GroundedStep], Meta(min_length=1, max_length=MAX_STEPS)]
     source: Plan

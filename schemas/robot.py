@@ -14,6 +14,10 @@ RadiansPerSecond = Annotated[float, Meta(ge=-100.0, le=100.0)]
 MAX_JOINTS = 16
 MAX_TRAJECTORY_POINTS = 2000
 MAX_PATH_POINTS = 500
+# The arm's joint names and the gripper's widest opening (Franka Panda): part of the interface.
+ARM_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
+FINGER_JOINTS: tuple[str, str] = ("panda_finger_joint1", "panda_finger_joint2")
+GRIPPER_MAX_GAP = 0.08
 
 
 class Twist(Frozen):
@@ -95,7 +99,7 @@ class GripperCommandGoal(Frozen):
     `object_id` names what a closing gripper is meant to hold, so safety can check the payload.
     """
 
-    position: Annotated[float, Meta(ge=0.0, le=0.08)]
+    position: Annotated[float, Meta(ge=0.0, le=GRIPPER_MAX_GAP)]
     max_effort: Annotated[float, Meta(ge=0.0, le=140.0)] = 40.0
     object_id: Id | None = None
 

@@ -12,11 +12,9 @@ import pinocchio as pin
 import pybullet_data
 
 from schemas.common import Pose2D, Vec3
-from schemas.robot import TrajectoryPoint
+from schemas.robot import ARM_JOINTS, FINGER_JOINTS, TrajectoryPoint
 from services.executor.errors import IKFailed
 
-ARM_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
-FINGER_JOINTS: tuple[str, ...] = ("panda_finger_joint1", "panda_finger_joint2")
 GRASP_FRAME = "panda_grasptarget"
 DEFAULT_ARM_URDF = "franka_panda/panda.urdf"
 # Keep solutions a hair inside the limits so position control never pushes against a stop.

@@ -9,15 +9,22 @@ from typing import Any
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import Pose2D, Vec3
 from schemas.plan import PickStep, PlaceStep
-from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint
+from schemas.robot import (
+    ARM_JOINTS,
+    GRIPPER_MAX_GAP,
+    FollowJointTrajectoryGoal,
+    GripperCommandGoal,
+    NavigateToPoseGoal,
+    TrajectoryPoint,
+)
 from services.actionlib import GoalRejected
 from services.executor.config import ExecutorConfig
 from services.executor.errors import Canceled, ExecutionError, PostconditionFailed, PreconditionFailed
-from services.executor.kinematics import ARM_JOINTS, ArmKinematics, waypoint_trajectory
+from services.executor.kinematics import ArmKinematics, waypoint_trajectory
 from services.executor.ports import Robot
 from services.worldmodel import WorldModel
 
-GRIPPER_OPEN = 0.08
+GRIPPER_OPEN = GRIPPER_MAX_GAP
 GRIPPER_CLOSED = 0.0
 # Perception publishes a few times a second; wait at most this for its next report.
 PERCEPTION_TIMEOUT = 2.0

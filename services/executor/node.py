@@ -14,6 +14,7 @@ from schemas.common import Pose2D, Stage, Vec3
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
 from schemas.robot import (
+    ARM_JOINTS,
     FollowJointTrajectoryGoal,
     GripperCommandGoal,
     JointState,
@@ -24,7 +25,6 @@ from schemas.robot import (
 from schemas.world import PerceivedObject, PerceivedObjects
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.executor.config import ExecutorConfig
-from services.executor.kinematics import ARM_JOINTS
 from services.executor.runner import PlanRunner
 from services.runtime import CallError, Node
 

@@ -19,6 +19,7 @@ from schemas.plan import (
     SayStep,
     StopStep,
     WaitStep,
+    step_kind,
 )
 from schemas.robot import Twist
 from services.executor.errors import Canceled, ExecutionError
@@ -29,10 +30,6 @@ from services.runtime import CallError
 log = logging.getLogger(__name__)
 
 FeedbackSink = Callable[[ExecutePlanFeedback], None]
-
-
-def step_action(step: GroundedStep) -> str:
-    return str(type(step).__struct_config__.tag)
 
 
 class PlanRunner:
@@ -51,7 +48,7 @@ class PlanRunner:
                 stage=Stage.SAFETY,
                 reason="dry run: parsed, resolved and approved by safety; nothing moved",
                 steps=[
-                    StepResult(index=i, action=step_action(s), status=StepStatus.SKIPPED)
+                    StepResult(index=i, action=step_kind(s), status=StepStatus.SKIPPED)
                     for i, s in enumerate(grounded.steps)
                 ],
             )
@@ -80,7 +77,7 @@ class PlanRunner:
     def _execute(self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
         results: list[StepResult] = []
         for i, step in enumerate(plan.steps):
-            action = step_action(step)
+            action = step_kind(step)
             feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, step=i, action=action, message=describe(step)))
             try:
                 if cancel.is_set():
@@ -109,7 +106,7 @@ class PlanRunner:
         self, plan: GroundedPlan, results: list[StepResult], status: PlanStatus, reason: str
     ) -> ExecutePlanResult:
         skipped = [
-            StepResult(index=i, action=step_action(s), status=StepStatus.SKIPPED)
+            StepResult(index=i, action=step_kind(s), status=StepStatus.SKIPPED)
             for i, s in enumerate(plan.steps)
             if i >= len(results)
         ]
@@ -142,7 +139,7 @@ class PlanRunner:
         if isinstance(step, StopStep):
             self.robot.cmd_vel(Twist())
             return "base stopped"
-        raise ExecutionError(f"no way to execute {step_action(step)}")
+        raise ExecutionError(f"no way to execute {step_kind(step)}")
 
 
 def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> ExecutePlanResult:
@@ -177,4 +174,4 @@ def describe(step: GroundedStep) -> str:
         return f"saying: {step.text}"
     if isinstance(step, WaitStep):
         return f"waiting {step.duration:g} s"
-    return step_action(step)
+    return step_kind(step)

@@ -12,7 +12,7 @@ from shapely.geometry import LineString, Point
 from shapely.geometry.base import BaseGeometry
 
 from schemas.common import Pose2D
-from schemas.plan import GroundedPlan, NavigateStep, PickStep, PlaceStep
+from schemas.plan import GroundedPlan, NavigateStep, PickStep, PlaceStep, step_kind
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import KeepOut
 from services.safety.config import SafetyConfig
@@ -200,10 +200,5 @@ class SafetyPolicy:
                     position = step.approach
                     checks.append(f"step {i + 1}: route to {step.surface_name} is clear")
             except Vetoed as exc:
-                raise Vetoed(f"step {i + 1} ({step_name(step)}): {exc}") from None
+                raise Vetoed(f"step {i + 1} ({step_kind(step)}): {exc}") from None
         return checks
-
-
-def step_name(step: object) -> str:
-    tag = type(step).__struct_config__.tag  # type: ignore[attr-defined]
-    return str(tag)

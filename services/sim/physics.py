@@ -18,6 +18,9 @@ from pybullet_utils import bullet_client
 from schemas.actions import GoalState
 from schemas.common import Pose2D, Vec3
 from schemas.robot import (
+    ARM_JOINTS,
+    FINGER_JOINTS,
+    GRIPPER_MAX_GAP,
     FollowJointTrajectoryFeedback,
     FollowJointTrajectoryGoal,
     FollowJointTrajectoryResult,
@@ -49,11 +52,9 @@ F = TypeVar("F")
 R = TypeVar("R")
 M = TypeVar("M", bound="Motion[Any, Any]")
 
-ARM_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
-FINGER_JOINTS: tuple[str, str] = ("panda_finger_joint1", "panda_finger_joint2")
 HAND_LINK = "panda_hand"
 FINGER_LINKS: tuple[str, str] = ("panda_leftfinger", "panda_rightfinger")
-GRIPPER_OPEN = 0.08
+GRIPPER_OPEN = GRIPPER_MAX_GAP
 GRAVITY = -9.81
 
 # The base: wheels are abstracted as velocity motors on planar joints. The force is large so a

@@ -21,7 +21,7 @@ from schemas.plan import Plan, PlanText
 from schemas.robot import NavigateToPoseGoal
 from schemas.world import Empty, GroundTruth
 from tests.integration.conftest import Stack, start_stack, stop_stack
-from tests.integration.watch import Watch
+from tests.watch import Watch
 from tether.cli import DEMO_PLAN
 from tether.client import PlanSender, reset_estop, trigger_estop
 

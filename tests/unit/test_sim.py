@@ -13,6 +13,7 @@ import pytest
 from schemas.actions import GoalState
 from schemas.common import Pose2D, Vec3
 from schemas.robot import (
+    ARM_JOINTS,
     FollowJointTrajectoryGoal,
     GripperCommandGoal,
     GripperCommandResult,
@@ -21,7 +22,7 @@ from schemas.robot import (
     Twist,
 )
 from schemas.world import World
-from services.executor.kinematics import ARM_JOINTS, ArmKinematics, joint_trajectory, world_to_arm
+from services.executor.kinematics import ArmKinematics, joint_trajectory, world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
 from services.sim.physics import Simulation
