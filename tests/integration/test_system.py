@@ -17,8 +17,10 @@ from schemas import keys
 from schemas.actions import SendGoal
 from schemas.common import Pose2D
 from schemas.executor import ExecutePlanGoal, PlanStatus
+from schemas.keys import Topic
 from schemas.plan import Plan, PlanText
 from schemas.robot import NavigateToPoseGoal
+from schemas.trace import TraceRecord
 from schemas.world import Empty, GroundTruth
 from tests.integration.conftest import Stack, start_stack, stop_stack
 from tests.watch import Watch
@@ -171,6 +173,7 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
     # A reset without the operator's token is refused; `tether reset` with it clears the latch.
     wrong = stack.tmp / "wrong-token"
     wrong.write_text("not-the-token\n")
+    traces = Watch(stack.node, Topic("_trace/safety/safety/reset", TraceRecord))
     assert not reset_estop(stack.node, str(wrong)).ok
     cli = subprocess.run(
         [sys.executable, "-m", "tether", "reset", "--token-file", str(stack.token_file)],
@@ -180,6 +183,11 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
         timeout=60,
     )
     assert cli.returncode == 0, cli.stderr
+    # Both resets are on the record, and neither carries a token.
+    assert traces.wait_for(lambda _: len(traces) >= 2, timeout=5.0)
+    token = stack.token_file.read_text().strip()
+    for record in traces.messages:
+        assert b"not-the-token" not in bytes(record.query) and token.encode() not in bytes(record.query)
     beats = Watch(stack.node, keys.HEARTBEAT)
     assert beats.wait_for(lambda b: not b.estop.latched, timeout=2.0)
     status, _, reason = run_plan(stack, BACK_PLAN)
