@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from typing import Any
 
 import msgspec
@@ -29,6 +30,9 @@ from services.executor.runner import PlanRunner
 from services.runtime import CallError, Node
 
 log = logging.getLogger(__name__)
+
+# How long to wait for the robot to report its state after a motion.
+STATE_TIMEOUT = 1.0
 
 
 class NodePlanner:
@@ -56,7 +60,12 @@ class NodePlanner:
 
 
 class NodeRobot:
-    """The robot as the executor may reach it: goals on cmd/** (safety), state from robot/** topics."""
+    """The robot as the executor may reach it: goals on cmd/** (safety), state from robot/** topics.
+
+    After each motion, the pose and joint positions it reports are ones that arrived after the
+    motion ended: planning the next move from a state read mid-motion would start it from where
+    the robot no longer is.
+    """
 
     def __init__(self, node: Node, config: ExecutorConfig) -> None:
         self.config = config
@@ -64,26 +73,45 @@ class NodeRobot:
         self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY)
         self._gripper = ActionClient(node, keys.CMD_GRIPPER)
         self._cmd_vel = node.publisher(keys.CMD_VEL)
-        self._odom: Odometry | None = None
-        self._joints: JointState | None = None
+        self._changed = threading.Condition()
+        self._odom: tuple[float, Odometry] | None = None
+        self._joints: tuple[float, JointState] | None = None
+        self._motion_ended = 0.0
         self._objects: PerceivedObjects | None = None
         self._objects_seq = 0
-        self._objects_changed = threading.Condition()
         node.subscribe(keys.ODOM, self._set_odom)
         node.subscribe(keys.JOINT_STATES, self._set_joints)
         node.subscribe(keys.OBJECTS, self._set_objects)
 
     def _set_odom(self, msg: Odometry) -> None:
-        self._odom = msg
+        with self._changed:
+            self._odom = (time.monotonic(), msg)
+            self._changed.notify_all()
 
     def _set_joints(self, msg: JointState) -> None:
-        self._joints = msg
+        with self._changed:
+            self._joints = (time.monotonic(), msg)
+            self._changed.notify_all()
 
     def _set_objects(self, msg: PerceivedObjects) -> None:
-        with self._objects_changed:
+        with self._changed:
             self._objects = msg
             self._objects_seq += 1
-            self._objects_changed.notify_all()
+            self._changed.notify_all()
+
+    def _motion_end(self) -> None:
+        with self._changed:
+            self._motion_ended = time.monotonic()
+
+    def _fresh(self, attribute: str) -> Any:
+        """The latest message of `attribute` received after the last motion ended, or None."""
+        with self._changed:
+            self._changed.wait_for(
+                lambda: (latest := getattr(self, attribute)) is not None and latest[0] > self._motion_ended,
+                STATE_TIMEOUT,
+            )
+            latest = getattr(self, attribute)
+            return latest[1] if latest is not None and latest[0] > self._motion_ended else None
 
     def held_object(self) -> str | None:
         objects = self._objects
@@ -92,32 +120,41 @@ class NodeRobot:
         return next((o.id for o in objects.objects if o.on == "gripper"), None)
 
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
-        with self._objects_changed:
+        with self._changed:
             seq = self._objects_seq
-            self._objects_changed.wait_for(lambda: self._objects_seq > seq, timeout)
+            self._changed.wait_for(lambda: self._objects_seq > seq, timeout)
             objects = self._objects
         if objects is None:
             return None
         return next((o for o in objects.objects if o.id == object_id), None)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._navigate.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        try:
+            return self._navigate.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        finally:
+            self._motion_end()
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._trajectory.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        try:
+            return self._trajectory.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        finally:
+            self._motion_end()
 
     def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._gripper.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        try:
+            return self._gripper.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+        finally:
+            self._motion_end()
 
     def cmd_vel(self, twist: Twist) -> None:
         self._cmd_vel.put(twist)
 
     def base_pose(self) -> Pose2D | None:
-        odom = self._odom
+        odom: Odometry | None = self._fresh("_odom")
         return odom.pose if odom else None
 
     def arm_positions(self) -> list[float] | None:
-        joints = self._joints
+        joints: JointState | None = self._fresh("_joints")
         if joints is None:
             return None
         by_name = dict(zip(joints.name, joints.position, strict=False))
