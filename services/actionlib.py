@@ -7,6 +7,8 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
+from concurrent import futures
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -67,10 +69,6 @@ class GoalHandle(Generic[G, F]):
     @property
     def should_stop(self) -> bool:
         return self.cancel_requested.is_set()
-
-    def wait_stop(self, timeout: float) -> bool:
-        """Wait up to `timeout` for a cancel or abort; the clock for loops that pace themselves."""
-        return self.cancel_requested.wait(timeout)
 
 
 class ActionServer(Generic[G, F, R]):
@@ -198,6 +196,19 @@ class ClientGoal(Generic[G, F, R]):
             self._client._action.get_result, GetResult(goal_id=self.goal_id), timeout=timeout
         )
 
+    def result_future(self, timeout: float) -> Future[ResultResponse[R]]:
+        """The result, fetched on a thread of its own; the future fails with CallError if none comes."""
+        future: Future[ResultResponse[R]] = Future()
+
+        def fetch() -> None:
+            try:
+                future.set_result(self.result(timeout))
+            except CallError as exc:
+                future.set_exception(exc)
+
+        threading.Thread(target=fetch, name=f"result:{self.goal_id}", daemon=True).start()
+        return future
+
     def cancel(self, timeout: float = 2.0) -> CancelResponse:
         return self._client._node.call(
             self._client._action.cancel_goal, CancelGoal(goal_id=self.goal_id), timeout=timeout
@@ -235,29 +246,19 @@ class ActionClient(Generic[G, F, R]):
             except CallError:
                 self._cancel_quietly(handle)
                 raise
-        outcome: list[ResultResponse[R] | CallError] = []
-        done = threading.Event()
-
-        def wait() -> None:
-            try:
-                outcome.append(handle.result(timeout))
-            except CallError as exc:
-                outcome.append(exc)
-            done.set()
-
-        threading.Thread(target=wait, name=f"result:{handle.goal_id}", daemon=True).start()
+        future = handle.result_future(timeout)
         cancel_sent = False
-        # Two things to wait for and Python has no wait-for-either: check the cancel flag between
-        # short waits for the result.
-        while not done.wait(CANCEL_POLL):
+        # Two things to wait for: check the cancel flag between short waits for the result.
+        while not futures.wait([future], CANCEL_POLL).done:
             if cancel.is_set() and not cancel_sent:
                 cancel_sent = True
                 self._cancel_quietly(handle)
-        if isinstance(outcome[0], CallError):
+        try:
+            return future.result()
+        except CallError:
             # No result in time: the goal must not go on moving the robot behind our back.
             self._cancel_quietly(handle)
-            raise outcome[0]
-        return outcome[0]
+            raise
 
     @staticmethod
     def _cancel_quietly(handle: ClientGoal[G, F, R]) -> None:

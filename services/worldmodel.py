@@ -8,11 +8,11 @@ from functools import cached_property
 from importlib import resources
 from pathlib import Path
 
-import msgspec
 from shapely.geometry import Point, Polygon, box
 
 from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, World, WorldObject
+from services.datafile import read_struct
 
 DEFAULT_WORLD = "household"
 # The base drives the last leg straight in from this far behind the goal, along the goal's
@@ -39,19 +39,7 @@ def world_path(name_or_path: str | Path = DEFAULT_WORLD) -> Path:
 
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:
     path = world_path(name_or_path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise WorldFileError(f"cannot read world file {path}: {exc.strerror}") from None
-    try:
-        if path.suffix == ".json":
-            world = msgspec.json.decode(data, type=World)
-        else:
-            world = msgspec.yaml.decode(data, type=World)
-    except msgspec.ValidationError as exc:
-        raise WorldFileError(f"world file {path}: {exc}") from None
-    except msgspec.DecodeError as exc:
-        raise WorldFileError(f"world file {path} is not valid YAML/JSON: {exc}") from None
+    world = read_struct(path, World, "world", WorldFileError)
     _check_references(world, path)
     return world
 

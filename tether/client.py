@@ -14,8 +14,8 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.keys import Topic
 from schemas.safety import EStop, ResetReply, ResetRequest, SafetyStatus
-from services.actionlib import ActionClient, ClientGoal, GoalRejected
-from services.runtime import CallError, Node
+from services.actionlib import ActionClient, ClientGoal
+from services.runtime import Node
 from services.safety.operator import read_token, token_path
 
 T = TypeVar("T")
@@ -125,27 +125,15 @@ class PlanSender:
         with self._lock:
             run = self._runs.setdefault(handle.goal_id, PlanRun(goal_id=handle.goal_id))
             started = self._started.setdefault(handle.goal_id, threading.Event())
-        done = threading.Event()
-        errors: list[CallError] = []
-
-        def fetch() -> None:
-            try:
-                response = handle.result(timeout)
-                run.result = response.result
-            except CallError as exc:
-                errors.append(exc)
-            finally:
-                done.set()
-                started.set()
-
-        threading.Thread(target=fetch, daemon=True).start()
-        (started if until_started else done).wait(timeout)
-        if done.is_set() and errors:
-            raise errors[0]
+        future = handle.result_future(timeout)
+        future.add_done_callback(lambda _: started.set())
+        if until_started:
+            started.wait(timeout)
+            if not future.done():
+                return run
+        # The fetch gives up after `timeout` itself, failing the future with CallError.
+        run.result = future.result().result
         return run
 
     def run(self, goal: ExecutePlanGoal, timeout: float) -> PlanRun:
         return self.wait(self.send(goal), timeout)
-
-
-__all__ = ["GoalRejected", "PlanRun", "PlanSender", "next_message", "reset_estop", "trigger_estop"]

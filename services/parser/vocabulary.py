@@ -11,6 +11,7 @@ import msgspec
 from msgspec import Meta
 
 from schemas.plan import Action
+from services.datafile import read_struct
 from services.parser.errors import VocabularyError
 
 Word = Annotated[str, Meta(min_length=1, max_length=64)]
@@ -57,16 +58,7 @@ def default_vocabulary_path() -> Path:
 
 def load_vocabulary(path: Path | None = None) -> Vocabulary:
     path = path or default_vocabulary_path()
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise VocabularyError(f"cannot read vocabulary file {path}: {exc.strerror}") from None
-    try:
-        vocabulary = msgspec.yaml.decode(data, type=Vocabulary)
-    except msgspec.ValidationError as exc:
-        raise VocabularyError(f"vocabulary file {path}: {exc}") from None
-    except msgspec.DecodeError as exc:
-        raise VocabularyError(f"vocabulary file {path} is not valid YAML: {exc}") from None
+    vocabulary = read_struct(path, Vocabulary, "vocabulary", VocabularyError)
     _check(vocabulary, path)
     return vocabulary
 
