@@ -19,6 +19,9 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     realtime_factor: Annotated[float, Meta(ge=0.1, le=20.0)] = 1.0
     physics_hz: Annotated[float, Meta(ge=60.0, le=2000.0)] = 240.0
     heartbeat_timeout: WallSeconds = 0.2
+    # A goal that arrives before safety's first heartbeat (right after start-up, while the peers are
+    # still connecting) waits this long for it before it is refused.
+    first_heartbeat_wait: WallSeconds = 3.0
     cmd_vel_timeout: WallSeconds = 0.5
     joint_states_hz: Hz = 50.0
     odom_hz: Hz = 50.0

@@ -45,6 +45,7 @@ class SimNode:
         self._lock = threading.Lock()
         self._heartbeat: SafetyStatus | None = None
         self._heartbeat_at = 0.0
+        self._first_heartbeat = threading.Event()
         self._blocked_reason: str | None = "no safety heartbeat received yet"
         self._joint_states = node.publisher(keys.JOINT_STATES)
         self._odom = node.publisher(keys.ODOM)
@@ -69,6 +70,7 @@ class SimNode:
     def _on_heartbeat(self, status: SafetyStatus) -> None:
         with self._lock:
             self._heartbeat, self._heartbeat_at = status, time.monotonic()
+        self._first_heartbeat.set()
 
     def safety_block(self) -> str | None:
         """Why the robot must stay still right now, or None when safety says it may move."""
@@ -84,10 +86,12 @@ class SimNode:
         return None
 
     def _accept(self, _goal: object) -> str | None:
+        # Never moves without a heartbeat: this only waits (bounded) for the first one to arrive.
+        self._first_heartbeat.wait(self.config.first_heartbeat_wait)
         return self.safety_block()
 
     def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
-        return self.safety_block() or self.sim.check_trajectory(goal)
+        return self._accept(goal) or self.sim.check_trajectory(goal)
 
     def _enforce_safety(self) -> None:
         """On the sim thread: stop everything when safety goes quiet or latches."""

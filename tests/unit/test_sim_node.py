@@ -43,7 +43,7 @@ class Rig:
 @pytest.fixture
 def rig() -> Iterator[Rig]:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
-    config = SimConfig(realtime_factor=4.0)
+    config = SimConfig(realtime_factor=4.0, first_heartbeat_wait=0.5)
     sim = Simulation(load_world(config.world), physics_hz=config.physics_hz)
     stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
     with Node("sim", settings) as sim_session, Node("test", settings) as client:
