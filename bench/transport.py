@@ -26,8 +26,6 @@ import time
 from collections.abc import Callable
 from typing import IO, Any
 
-import zenoh
-
 from schemas import keys
 from schemas.keys import Service
 from schemas.plan import PlanText
@@ -36,7 +34,6 @@ from services.runtime import Node, NodeSettings
 
 # A bench-only echo service shaped like plan/parse: a real PlanText in, the same PlanText back.
 ECHO: Service[PlanText, PlanText] = Service("bench/echo", PlanText, PlanText)
-RAW_PATH = "bench/raw_echo"
 SERVER, CLIENT = "parser", "executor"
 REQUEST = PlanText(text="pick up the red cup from the kitchen counter and bring it to me", format="text")
 MAX_SAMPLES = 20_000
@@ -64,16 +61,8 @@ def serve(settings: NodeSettings) -> None:
     """The child process: the tether echo and the bare echo on one session, until SIGINT/SIGTERM."""
     stop = runtime.stop_event()
     with Node(SERVER, settings) as node:
-        raw_key = f"{keys.prefix(settings.robot)}/{RAW_PATH}"
-
-        def raw_echo(query: zenoh.Query) -> None:
-            try:
-                query.reply(raw_key, query.payload.to_bytes() if query.payload is not None else b"")
-            finally:
-                query.drop()
-
         node.serve(ECHO, lambda request: request)
-        node.session.declare_queryable(raw_key, raw_echo)
+        node.declare_bench_echo()
         node.declare_alive()
         stop.wait()
 
@@ -89,7 +78,7 @@ def summary(ms: list[float]) -> dict[str, float]:
 
 def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
     """Interleaved round trips, in ms: (bare zenoh, tether); stops early at `max_seconds`."""
-    raw_key = f"{keys.prefix(node.robot)}/{RAW_PATH}"
+    raw_key = keys.bench_echo_key(node.robot)
     payload = runtime.encode(REQUEST)
 
     def bare() -> None:

@@ -73,3 +73,6 @@ class ServiceError(Frozen, tag="error"):
     stage: Stage | None = None
     step: int | None = None
     candidates: list[str] = []
+    # Where in the text, for refusals of plan text (1-based).
+    line: int | None = None
+    column: int | None = None

@@ -33,19 +33,30 @@ class ExecutePlanGoal(Frozen):
     dry_run: bool = False
 
 
+# Where a step came from in the parsed plan: "2", "3.1" (first sub-step of step 3), "2 on_failure 1".
+Label = Annotated[str, Meta(max_length=64)]
+
+
 class ExecutePlanFeedback(Frozen):
+    """Progress. `step` indexes GroundedPlan.steps, or for an on_failure step its fallback's steps;
+    `label` says which."""
+
     stage: Stage
     step: int | None = None
     action: str = ""
     status: StepStatus = StepStatus.RUNNING
     message: Text = ""
+    label: Label | None = None
 
 
 class StepResult(Frozen):
+    """One step's outcome. `index` as ExecutePlanFeedback.step; `label` names the step in the plan."""
+
     index: int
     action: str
     status: StepStatus
     message: Text = ""
+    label: Label | None = None
 
 
 class ExecutePlanResult(Frozen):

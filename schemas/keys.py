@@ -52,6 +52,11 @@ def prefix(robot: str) -> str:
     return f"{ROOT}/{robot}"
 
 
+def bench_echo_key(robot: str) -> str:
+    """The bare Zenoh echo a service declares for benchmarks (see services.runtime.BENCH_ECHO_ENV)."""
+    return f"{prefix(robot)}/bench/raw_echo"
+
+
 @dataclass(frozen=True)
 class Topic(Generic[T]):
     path: str

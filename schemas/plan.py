@@ -11,21 +11,41 @@ from schemas.common import Frozen, Id, Kilograms, Name, Pose2D, ServiceError, Te
 
 # Requests larger than this are refused before any parsing is attempted.
 MAX_PLAN_BYTES = 256 * 1024
+# Steps in a whole plan, sub-steps and on_failure alternatives included.
 MAX_STEPS = 100
+# Levels of sub-steps and on_failure alternatives below the plan's own steps.
+MAX_NESTING = 8
 
 PlanFormat = Literal["auto", "json", "yaml", "text"]
+# The shape a plan was found in, reported with the parsed plan.
+SourceFormat = Literal[
+    "json",
+    "yaml",
+    "text",
+    "openai_tool_calls",
+    "openai_function_call",
+    "anthropic_tool_use",
+    "mcp_tools_call",
+]
 
 
 class Action(enum.StrEnum):
-    """Canonical actions. Synonyms live in the parser's vocabulary file, not here."""
+    """Canonical actions. Synonyms, parameters and units live in the parser's vocabulary file."""
 
     NAVIGATE_TO = "navigate_to"
     PICK = "pick"
     PLACE = "place"
     DETECT = "detect"
-    SAY = "say"
-    WAIT = "wait"
+    LOOK_AT = "look_at"
+    DRIVE = "drive"
+    TURN = "turn"
     STOP = "stop"
+    SAY = "say"
+    GESTURE = "gesture"
+    WAIT = "wait"
+    OPEN_GRIPPER = "open_gripper"
+    CLOSE_GRIPPER = "close_gripper"
+    MOVE_ARM = "move_arm"
 
 
 class PlanText(Frozen):
@@ -38,18 +58,43 @@ class PlanText(Frozen):
 ParamValue = float | int | bool | str
 
 
+ParamName = Annotated[str, Meta(max_length=64)]
+
+
 class Step(Frozen):
-    action: Action
+    """One action, or (with `action` None) a group of sub-steps run in order.
+
+    Numbers in `params` are SI; `units` names the unit of each one that has a unit ("m", "m/s",
+    "rad", "s"). `on_failure` runs instead when this step (or any of its sub-steps) fails; the plan
+    then goes on after this step. `description` is the LLM's own words, carried along and never
+    read as a command.
+    """
+
+    action: Action | None = None
     target: Name | None = None
     location: Name | None = None
-    params: dict[Annotated[str, Meta(max_length=64)], ParamValue] = {}
+    params: dict[ParamName, ParamValue] = {}
+    units: dict[ParamName, Annotated[str, Meta(max_length=16)]] = {}
     description: Text = ""
+    substeps: Annotated[list[Step], Meta(max_length=MAX_STEPS)] = []
+    on_failure: Annotated[list[Step], Meta(max_length=MAX_STEPS)] = []
 
 
 class Plan(Frozen, tag="plan"):
     steps: Annotated[list[Step], Meta(min_length=1, max_length=MAX_STEPS)]
     description: Text = ""
     warnings: list[Text] = []
+    source_format: SourceFormat = "json"
+
+
+def walk(steps: list[Step]) -> list[Step]:
+    """Every step, depth first: each step, then its sub-steps, then its on_failure alternatives."""
+    out: list[Step] = []
+    for step in steps:
+        out.append(step)
+        out.extend(walk(step.substeps))
+        out.extend(walk(step.on_failure))
+    return out
 
 
 ParseReply = Plan | ServiceError
@@ -59,8 +104,14 @@ ParseReply = Plan | ServiceError
 
 
 class NavigateStep(Frozen, tag="navigate_to"):
+    """Drive the base to `goal`. Also drive, turn and look_at: relative moves grounded as a goal pose.
+
+    `max_speed` (m/s) is the plan's own speed limit, when it gave one; safety clamps it further.
+    """
+
     target: Name
     goal: Pose2D
+    max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
 
 
 class PickStep(Frozen, tag="pick"):
@@ -96,7 +147,23 @@ class StopStep(Frozen, tag="stop"):
     pass
 
 
-GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep
+class GripperStep(Frozen, tag="gripper"):
+    """open_gripper / close_gripper."""
+
+    open: bool
+
+
+GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep | GripperStep
+
+
+class Fallback(Frozen):
+    """The parsed plan's `on_failure`: when any of steps first..last (indices into
+    GroundedPlan.steps) fails, `steps` run instead and the plan goes on after `last`."""
+
+    first: Annotated[int, Meta(ge=0, lt=MAX_STEPS)]
+    last: Annotated[int, Meta(ge=0, lt=MAX_STEPS)]
+    steps: Annotated[list[GroundedStep], Meta(min_length=1, max_length=MAX_STEPS)]
+    labels: list[Annotated[str, Meta(max_length=64)]] = []
 
 
 def step_kind(step: GroundedStep) -> str:
@@ -105,8 +172,12 @@ def step_kind(step: GroundedStep) -> str:
 
 
 class GroundedPlan(Frozen, tag="grounded_plan"):
+    """Sub-steps flattened into one list; `labels[i]` names where steps[i] came from ("2", "3.1")."""
+
     steps: Annotated[list[GroundedStep], Meta(min_length=1, max_length=MAX_STEPS)]
     source: Plan
+    labels: list[Annotated[str, Meta(max_length=64)]] = []
+    fallbacks: list[Fallback] = []
 
 
 ResolveReply = GroundedPlan | ServiceError

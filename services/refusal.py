@@ -22,8 +22,14 @@ class Refusal(Exception):
         kind: ErrorKind = ErrorKind.INVALID_REQUEST,
         step: int | None = None,
         candidates: Iterable[str] = (),
+        where: str | None = None,
+        line: int | None = None,
+        column: int | None = None,
     ) -> None:
-        if step is not None:
+        # `where` ("step 2.1", "line 3, column 5") replaces the default "step N" prefix.
+        if where is not None:
+            message = f"{where}: {message}"
+        elif step is not None:
             message = f"step {step + 1}: {message}"
         super().__init__(message)
         self.error = ServiceError(
@@ -32,4 +38,6 @@ class Refusal(Exception):
             stage=self.stage,
             step=step,
             candidates=list(candidates),
+            line=line,
+            column=column,
         )

@@ -25,6 +25,9 @@ from schemas.trace import TraceRecord
 
 log = logging.getLogger(__name__)
 
+# Set to 1 in a service's environment to have it declare the bare echo benchmarks compare with.
+BENCH_ECHO_ENV = "TETHER_BENCH_ECHO"
+
 T = TypeVar("T")
 C = TypeVar("C")
 Q = TypeVar("Q")
@@ -186,11 +189,14 @@ class Node:
         handler: Callable[[Q], A],
         *,
         max_request_bytes: int = MAX_REQUEST_BYTES,
+        inline: bool = False,
     ) -> None:
         """Answer queries on `service`. Always replies: with the handler's value or a ServiceError.
 
         Each query is handled on its own thread, so a handler may block (waiting for a result)
-        without holding up Zenoh. Each query and its reply is published on `_trace/**`.
+        without holding up Zenoh; `inline` handlers are quick and never block (parsing), and run on
+        Zenoh's callback thread, saving a thread start per query. Each query and its reply is
+        published on `_trace/**`.
         """
         dec = decoder(cast(Any, service.request))
         key = service.key(self.robot)
@@ -236,7 +242,7 @@ class Node:
         def on_query(query: zenoh.Query) -> None:
             threading.Thread(target=answer, args=(query,), name=f"q:{service.path}", daemon=True).start()
 
-        self._declared.append(self.session.declare_queryable(key, on_query))
+        self._declared.append(self.session.declare_queryable(key, answer if inline else on_query))
 
     def call(self, service: Service[Q, A], request: Q, *, timeout: float = 5.0) -> A:
         """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
@@ -286,7 +292,24 @@ class Node:
     # Liveliness
 
     def declare_alive(self) -> None:
+        if os.environ.get(BENCH_ECHO_ENV) == "1":
+            self.declare_bench_echo()
         self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.robot, self.service)))
+
+    def declare_bench_echo(self) -> None:
+        """A bare Zenoh echo on this session: the baseline a benchmark compares this service's queries with.
+
+        Declared by every service started with TETHER_BENCH_ECHO=1 (benchmarks only; off by default).
+        """
+        key = keys.bench_echo_key(self.robot)
+
+        def echo(query: zenoh.Query) -> None:
+            try:
+                query.reply(key, query.payload.to_bytes() if query.payload is not None else b"")
+            finally:
+                query.drop()
+
+        self._declared.append(self.session.declare_queryable(key, echo))
 
     def alive_services(self, timeout: float = 1.0) -> set[str]:
         replies = self.session.liveliness().get(keys.alive_key(self.robot, "*"), timeout=timeout)

@@ -175,7 +175,7 @@ def print_feedback(fb: ExecutePlanFeedback) -> None:
         console.print(f"[dim]{fb.stage}[/]: {fb.message}")
         return
     mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: "[red]failed[/]"}.get(fb.status, "...")
-    console.print(f"step {fb.step + 1} {fb.action}: {fb.message} {mark}")
+    console.print(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message} {mark}")
 
 
 def print_result(run: PlanRun, as_json: bool) -> None:

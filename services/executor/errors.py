@@ -19,3 +19,12 @@ class PostconditionFailed(ExecutionError):
 
 class Canceled(ExecutionError):
     """The goal was canceled while the step ran."""
+
+
+class Vetoed(ExecutionError):
+    """Safety, or the robot behind it, refused a goal. No on_failure alternative runs after this."""
+
+
+class Interrupted(ExecutionError):
+    """A goal was ended by someone other than this executor (safety on an e-stop). No on_failure
+    alternative runs after this."""

@@ -19,7 +19,14 @@ from schemas.robot import (
 )
 from services.actionlib import GoalRejected
 from services.executor.config import ExecutorConfig
-from services.executor.errors import Canceled, ExecutionError, PostconditionFailed, PreconditionFailed
+from services.executor.errors import (
+    Canceled,
+    ExecutionError,
+    Interrupted,
+    PostconditionFailed,
+    PreconditionFailed,
+    Vetoed,
+)
 from services.executor.kinematics import ArmKinematics, waypoint_trajectory
 from services.executor.ports import Robot
 from services.worldmodel import WorldModel
@@ -33,8 +40,11 @@ PERCEPTION_TIMEOUT = 2.0
 def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Event) -> Any:
     if result.state is GoalState.SUCCEEDED:
         return result.result
-    if result.state is GoalState.CANCELED and cancel.is_set():
-        raise Canceled(f"{what} canceled")
+    if result.state is GoalState.CANCELED:
+        if cancel.is_set():
+            raise Canceled(f"{what} canceled")
+        # Not canceled here: safety cancels every goal it forwarded when the e-stop latches.
+        raise Interrupted(f"{what} canceled by the robot side: {result.message or 'no reason given'}")
     raise ExecutionError(f"{what} {result.state}: {result.message}")
 
 
@@ -49,11 +59,14 @@ class Manipulator:
 
     # Base
 
-    def drive_to(self, pose: Pose2D, cancel: threading.Event) -> None:
+    def drive_to(self, pose: Pose2D, cancel: threading.Event, max_speed: float | None = None) -> None:
+        goal = (
+            NavigateToPoseGoal(pose=pose) if max_speed is None else NavigateToPoseGoal(pose=pose, max_speed=max_speed)
+        )
         try:
-            result = self.robot.navigate(NavigateToPoseGoal(pose=pose), cancel)
+            result = self.robot.navigate(goal, cancel)
         except GoalRejected as exc:
-            raise ExecutionError(exc.reason) from None
+            raise Vetoed(exc.reason) from None
         check_outcome("navigation", result, cancel)
 
     def ensure_at(self, approach: Pose2D, cancel: threading.Event) -> None:
@@ -89,7 +102,7 @@ class Manipulator:
         try:
             result = self.robot.trajectory(goal, cancel)
         except GoalRejected as exc:
-            raise ExecutionError(f"{what}: {exc.reason}") from None
+            raise Vetoed(f"{what}: {exc.reason}") from None
         check_outcome(what, result, cancel)
 
     def reach(self, point: Vec3, what: str, cancel: threading.Event) -> None:
@@ -113,8 +126,25 @@ class Manipulator:
         try:
             result = self.robot.gripper(GripperCommandGoal(position=position, object_id=object_id), cancel)
         except GoalRejected as exc:
-            raise ExecutionError(exc.reason) from None
+            raise Vetoed(exc.reason) from None
         return check_outcome("gripper", result, cancel)
+
+    def operate_gripper(self, open_: bool, cancel: threading.Event) -> str:
+        """open_gripper / close_gripper on their own. Opening never drops what the hand holds (that
+        is place's job); closing on what it already holds leaves it as it is."""
+        held_id = self.robot.held_object()
+        held = self.world.objects.get(held_id) if held_id else None
+        held_name = held.name if held else held_id
+        if open_:
+            if held_name is not None:
+                raise PreconditionFailed(f"opening the gripper would drop {held_name}; use place to put it down")
+            self.gripper(GRIPPER_OPEN, cancel)
+            return "gripper open"
+        if held_name is not None:
+            return f"gripper already closed on {held_name}"
+        result = self.gripper(GRIPPER_CLOSED, cancel)
+        holding = None if result is None else result.holding
+        return f"gripper closed on {holding}" if holding else "gripper closed, holding nothing"
 
     # Steps
 

@@ -23,6 +23,7 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
+from schemas.safety import SafetyStatus
 from schemas.world import PerceivedObject, PerceivedObjects
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.executor.config import ExecutorConfig
@@ -33,6 +34,8 @@ log = logging.getLogger(__name__)
 
 # How long to wait for the robot to report its state after a motion.
 STATE_TIMEOUT = 1.0
+# Safety beats at 20 Hz or more; this long without a beat means it is not there.
+HEARTBEAT_STALE = 0.5
 
 
 class NodePlanner:
@@ -79,9 +82,26 @@ class NodeRobot:
         self._motion_ended = 0.0
         self._objects: PerceivedObjects | None = None
         self._objects_seq = 0
+        self._heartbeat: tuple[float, SafetyStatus] | None = None
+        node.subscribe(keys.HEARTBEAT, self._set_heartbeat)
         node.subscribe(keys.ODOM, self._set_odom)
         node.subscribe(keys.JOINT_STATES, self._set_joints)
         node.subscribe(keys.OBJECTS, self._set_objects)
+
+    def _set_heartbeat(self, msg: SafetyStatus) -> None:
+        self._heartbeat = (time.monotonic(), msg)
+
+    def safety_stop(self) -> str | None:
+        heartbeat = self._heartbeat
+        if heartbeat is None:
+            return "no safety heartbeat received"
+        age = time.monotonic() - heartbeat[0]
+        if age > HEARTBEAT_STALE:
+            return f"no safety heartbeat for {age:.1f} s"
+        estop = heartbeat[1].estop
+        if estop.latched:
+            return f"e-stop latched by {estop.source or 'unknown'}: {estop.reason or 'no reason given'}"
+        return None
 
     def _set_odom(self, msg: Odometry) -> None:
         with self._changed:

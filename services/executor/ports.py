@@ -37,3 +37,7 @@ class Robot(Protocol):
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
         """The object as the next perception update reports it (None if absent or none comes)."""
         ...
+
+    def safety_stop(self) -> str | None:
+        """Why safety holds the robot still right now (e-stop latched, no heartbeat), or None."""
+        ...

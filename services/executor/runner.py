@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from schemas.common import ServiceError, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepResult, StepStatus
 from schemas.plan import (
     DetectStep,
+    Fallback,
+    GripperStep,
     GroundedPlan,
     GroundedStep,
     NavigateStep,
@@ -22,7 +26,7 @@ from schemas.plan import (
     step_kind,
 )
 from schemas.robot import Twist
-from services.executor.errors import Canceled, ExecutionError
+from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
 from services.executor.manipulation import Manipulator
 from services.executor.ports import Planner, Robot
 from services.runtime import CallError
@@ -30,6 +34,29 @@ from services.runtime import CallError
 log = logging.getLogger(__name__)
 
 FeedbackSink = Callable[[ExecutePlanFeedback], None]
+
+
+@dataclass(frozen=True)
+class _Failure:
+    """Why the plan stopped or a step failed. `final` says why no on_failure may run, if so."""
+
+    reason: str
+    status: PlanStatus
+    final: str | None = None
+
+
+def step_labels(plan: GroundedPlan) -> list[str]:
+    """Where each step came from in the parsed plan ("2", "3.1"); step numbers if not given."""
+    if len(plan.labels) == len(plan.steps):
+        return list(plan.labels)
+    return [str(i + 1) for i in range(len(plan.steps))]
+
+
+def fallback_labels(fallback: Fallback, labels: list[str]) -> list[str]:
+    if len(fallback.labels) == len(fallback.steps):
+        return list(fallback.labels)
+    owner = labels[fallback.first] if fallback.first < len(labels) else str(fallback.first + 1)
+    return [f"{owner} on_failure {k + 1}" for k in range(len(fallback.steps))]
 
 
 class PlanRunner:
@@ -47,10 +74,7 @@ class PlanRunner:
                 status=PlanStatus.SUCCEEDED,
                 stage=Stage.SAFETY,
                 reason="dry run: parsed, resolved and approved by safety; nothing moved",
-                steps=[
-                    StepResult(index=i, action=step_kind(s), status=StepStatus.SKIPPED)
-                    for i, s in enumerate(grounded.steps)
-                ],
+                steps=dry_run_steps(grounded),
             )
         return self._execute(grounded, cancel, feedback)
 
@@ -75,48 +99,132 @@ class PlanRunner:
         return grounded
 
     def _execute(self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
+        labels = step_labels(plan)
         results: list[StepResult] = []
-        for i, step in enumerate(plan.steps):
-            action = step_kind(step)
-            feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, step=i, action=action, message=describe(step)))
-            try:
-                if cancel.is_set():
-                    raise Canceled("canceled before the step started")
-                message = self._run_step(step, cancel)
-            except Canceled as exc:
-                results.append(StepResult(index=i, action=action, status=StepStatus.CANCELED, message=str(exc)))
-                return self._finish(plan, results, PlanStatus.CANCELED, f"step {i + 1} ({action}) canceled")
-            except (ExecutionError, CallError) as exc:
-                results.append(StepResult(index=i, action=action, status=StepStatus.FAILED, message=str(exc)))
-                feedback(
-                    ExecutePlanFeedback(
-                        stage=Stage.EXECUTE, step=i, action=action, status=StepStatus.FAILED, message=str(exc)
-                    )
+        reported: set[int] = set()  # steps of the plan itself (not alternatives) with a result
+        recovered: list[str] = []
+        i = 0
+        while i < len(plan.steps):
+            result, failure = self._run_one(i, plan.steps[i], labels[i], cancel, feedback)
+            results.append(result)
+            reported.add(i)
+            if failure is None:
+                i += 1
+                continue
+            outcome = self._recover(plan, i, failure, results, cancel, feedback)
+            if isinstance(outcome, _Failure):
+                return self._finish(plan, results, reported, outcome.status, outcome.reason)
+            outcome = min(outcome, len(plan.steps))
+            recovered.append(f"{failure.reason}; its on_failure ran instead")
+            results.extend(
+                StepResult(
+                    index=j,
+                    action=step_kind(plan.steps[j]),
+                    status=StepStatus.SKIPPED,
+                    message=f"not run: step {labels[i]} failed and an on_failure ran instead",
+                    label=labels[j],
                 )
-                return self._finish(plan, results, PlanStatus.FAILED, f"step {i + 1} ({action}) failed: {exc}")
-            results.append(StepResult(index=i, action=action, status=StepStatus.SUCCEEDED, message=message))
+                for j in range(i + 1, outcome)
+            )
+            reported.update(range(i + 1, outcome))
+            i = outcome
+        return ExecutePlanResult(
+            status=PlanStatus.SUCCEEDED, stage=Stage.EXECUTE, reason="; ".join(recovered), steps=results
+        )
+
+    def _run_one(
+        self, index: int, step: GroundedStep, label: str, cancel: threading.Event, feedback: FeedbackSink
+    ) -> tuple[StepResult, _Failure | None]:
+        """Run one step and report it; the failure, if any, says whether an on_failure may follow."""
+        action = step_kind(step)
+
+        def report(status: StepStatus, message: str) -> None:
             feedback(
                 ExecutePlanFeedback(
-                    stage=Stage.EXECUTE, step=i, action=action, status=StepStatus.SUCCEEDED, message=message
+                    stage=Stage.EXECUTE, step=index, action=action, status=status, message=message, label=label
                 )
             )
-        return ExecutePlanResult(status=PlanStatus.SUCCEEDED, stage=Stage.EXECUTE, reason="", steps=results)
+
+        report(StepStatus.RUNNING, describe(step))
+        try:
+            if cancel.is_set():
+                raise Canceled("canceled before the step started")
+            message = self._run_step(step, cancel)
+        except Canceled as exc:
+            result = StepResult(index=index, action=action, status=StepStatus.CANCELED, message=str(exc), label=label)
+            return result, _Failure(f"step {label} ({action}) canceled", PlanStatus.CANCELED, final="canceled")
+        except (ExecutionError, CallError) as exc:
+            report(StepStatus.FAILED, str(exc))
+            result = StepResult(index=index, action=action, status=StepStatus.FAILED, message=str(exc), label=label)
+            return result, _Failure(f"step {label} ({action}) failed: {exc}", PlanStatus.FAILED, self._final(exc))
+        report(StepStatus.SUCCEEDED, message)
+        return StepResult(index=index, action=action, status=StepStatus.SUCCEEDED, message=message, label=label), None
+
+    def _final(self, exc: Exception) -> str | None:
+        """Why no on_failure may run after `exc`, or None when one may."""
+        if isinstance(exc, Vetoed):
+            return "safety refused the motion"
+        if isinstance(exc, Interrupted):
+            return "the robot side ended the motion"
+        return self.robot.safety_stop()
+
+    def _recover(
+        self,
+        plan: GroundedPlan,
+        failed: int,
+        failure: _Failure,
+        results: list[StepResult],
+        cancel: threading.Event,
+        feedback: FeedbackSink,
+    ) -> int | _Failure:
+        """Run the on_failure alternatives covering step `failed`, innermost first, each one taking
+        over when the one inside it fails too. The index to go on from, or the plan's failure."""
+        covering = [f for f in plan.fallbacks if f.first <= failed <= f.last]
+        if not covering:
+            return failure
+        if failure.final is not None:
+            if failure.status is PlanStatus.CANCELED:
+                return failure
+            return _Failure(f"{failure.reason}; no on_failure runs: {failure.final}", failure.status, failure.final)
+        reasons = [failure.reason]
+        labels = step_labels(plan)
+        for fallback in sorted(covering, key=lambda f: (f.last - f.first, -f.first)):
+            alternative_labels = fallback_labels(fallback, labels)
+            for k, step in enumerate(fallback.steps):
+                result, alt_failure = self._run_one(k, step, alternative_labels[k], cancel, feedback)
+                results.append(result)
+                if alt_failure is not None:
+                    break
+            else:
+                return fallback.last + 1
+            results.extend(
+                StepResult(index=j, action=step_kind(s), status=StepStatus.SKIPPED, label=alternative_labels[j])
+                for j, s in enumerate(fallback.steps)
+                if j > k
+            )
+            reasons.append(f"then {alt_failure.reason}")
+            if alt_failure.final is not None:
+                return _Failure("; ".join(reasons), alt_failure.status, alt_failure.final)
+        return _Failure("; ".join(reasons), PlanStatus.FAILED)
 
     def _finish(
-        self, plan: GroundedPlan, results: list[StepResult], status: PlanStatus, reason: str
+        self, plan: GroundedPlan, results: list[StepResult], reported: set[int], status: PlanStatus, reason: str
     ) -> ExecutePlanResult:
+        labels = step_labels(plan)
         skipped = [
-            StepResult(index=i, action=step_kind(s), status=StepStatus.SKIPPED)
+            StepResult(index=i, action=step_kind(s), status=StepStatus.SKIPPED, label=labels[i])
             for i, s in enumerate(plan.steps)
-            if i >= len(results)
+            if i not in reported
         ]
         return ExecutePlanResult(status=status, stage=Stage.EXECUTE, reason=reason, steps=results + skipped)
 
     def _run_step(self, step: GroundedStep, cancel: threading.Event) -> str:
         m = self.manipulator
         if isinstance(step, NavigateStep):
-            m.drive_to(step.goal, cancel)
-            return f"arrived at {step.target}"
+            m.drive_to(step.goal, cancel, step.max_speed)
+            return f"reached {step.target}"
+        if isinstance(step, GripperStep):
+            return m.operate_gripper(step.open, cancel)
         if isinstance(step, PickStep):
             m.pick(step, cancel)
             return f"holding {step.object_name}"
@@ -150,9 +258,10 @@ def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> Exe
             steps.append(
                 StepResult(
                     index=i,
-                    action=str(step.action),
+                    action=str(step.action) if step.action is not None else "group",
                     status=StepStatus.FAILED if failed else StepStatus.SKIPPED,
                     message=error.message if failed else "",
+                    label=str(i + 1),
                 )
             )
     reason = error.message
@@ -161,9 +270,26 @@ def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> Exe
     return ExecutePlanResult(status=PlanStatus.REJECTED, stage=stage, reason=reason, steps=steps)
 
 
+def dry_run_steps(plan: GroundedPlan) -> list[StepResult]:
+    """Every step, each plan step followed by the alternatives that end with it (innermost first)."""
+    labels = step_labels(plan)
+    steps: list[StepResult] = []
+    for i, step in enumerate(plan.steps):
+        steps.append(StepResult(index=i, action=step_kind(step), status=StepStatus.SKIPPED, label=labels[i]))
+        for fallback in sorted((f for f in plan.fallbacks if f.last == i), key=lambda f: -f.first):
+            steps.extend(
+                StepResult(index=k, action=step_kind(s), status=StepStatus.SKIPPED, label=label)
+                for k, (s, label) in enumerate(zip(fallback.steps, fallback_labels(fallback, labels), strict=True))
+            )
+    return steps
+
+
 def describe(step: GroundedStep) -> str:
     if isinstance(step, NavigateStep):
-        return f"navigating to {step.target} ({step.goal.x:.2f}, {step.goal.y:.2f})"
+        goal = step.goal
+        return f"moving the base: {step.target} -> ({goal.x:.2f}, {goal.y:.2f}, {math.degrees(goal.yaw):.0f}°)"
+    if isinstance(step, GripperStep):
+        return "opening the gripper" if step.open else "closing the gripper"
     if isinstance(step, PickStep):
         return f"picking {step.object_name}"
     if isinstance(step, PlaceStep):

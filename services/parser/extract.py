@@ -21,12 +21,6 @@ MAX_PROSE_STARTS = 64
 
 
 @dataclass(frozen=True)
-class Extracted:
-    value: Any
-    warnings: list[str]
-
-
-@dataclass(frozen=True)
 class _Span:
     """An opening bracket and where its match closes it; `end` is None when the text ends first."""
 
@@ -79,6 +73,49 @@ def _scan(text: str, start: int, max_depth: int) -> _Span:
 MAX_CANDIDATES = 16
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """A decoded JSON value that looks like a plan, and the line it starts on."""
+
+    value: Any
+    warnings: list[str]
+    line: int
+
+
+@dataclass
+class Found:
+    """Every plan-like JSON value in a text, and the first error met on the way."""
+
+    plans: list[Candidate]
+    error: ParseError | None = None
+    # The first JSON value that decoded but did not look like a plan.
+    other: Any = None
+    # True when the values were found inside prose rather than as the text or a code block.
+    in_prose: bool = False
+
+
+def fenced_blocks(text: str) -> list[tuple[str, int, str]]:
+    """(language, offset of the body, body) for the first MAX_CANDIDATES fenced code blocks."""
+    blocks = []
+    for fence in _FENCE.finditer(text):
+        blocks.append((fence.group(1).lower(), fence.start(2), fence.group(2)))
+        if len(blocks) >= MAX_CANDIDATES:
+            break
+    return blocks
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object hook that refuses {"action": "pick", "action": "place"} instead of keeping the last."""
+    value = dict(pairs)
+    if len(value) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"the key {key[:60]!r} appears twice in one object")
+            seen.add(key)
+    return value
+
+
 class JsonFinder:
     """Locates and decodes the plan's JSON; lenient repair only for complete, small candidates."""
 
@@ -87,43 +124,36 @@ class JsonFinder:
         self.lenient = lenient
         self.max_repair_chars = max_repair_chars
 
-    def find(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Extracted:
-        """The first candidate that looks like a plan; else the first that decodes; else the first error."""
-        starts: dict[int, None] = {}  # ordered and O(1) to test, for texts full of fences
+    def find(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Found:
+        """The plan-like values: the bare text or fenced blocks if any start with a bracket, else prose."""
+        starts: dict[int, None] = {}  # ordered and O(1) to test
         stripped = text.lstrip()
         if stripped[:1] in _CLOSERS:
             starts[len(text) - len(stripped)] = None
-        for fence in _FENCE.finditer(text):
-            body = fence.group(2)
-            offset = fence.start(2) + len(body) - len(body.lstrip())
+        for _lang, body_at, body in fenced_blocks(text):
+            offset = body_at + len(body) - len(body.lstrip())
             if text[offset : offset + 1] in _CLOSERS:
                 starts[offset] = None
-            if len(starts) >= MAX_CANDIDATES:
-                break
         if not starts:
-            for fence in _FENCE.finditer(text):
-                if fence.group(1).lower() in ("yaml", "yml"):
-                    raise ParseError(
-                        "no JSON plan found, only a YAML code block; YAML plans are not supported yet: send JSON"
-                    )
             return self._search_prose(text, looks_like_plan)
-        first: Extracted | ParseError | None = None
+        found = Found(plans=[])
         for start in starts:
             try:
-                found = self._decode(text, start)
+                decoded = self._decode(text, start)
             except ParseError as exc:
-                first = first or exc
+                found.error = found.error or exc
                 continue
-            if looks_like_plan(found.value):
-                return found
-            first = first or found
-        if isinstance(first, ParseError):
-            raise first
-        assert first is not None
-        return first
+            if looks_like_plan(decoded.value):
+                found.plans.append(decoded)
+            elif found.other is None:
+                found.other = decoded.value
+        return found
 
-    def _decode(self, text: str, start: int) -> Extracted:
+    def _decode(self, text: str, start: int) -> Candidate:
         """The JSON value that starts at `start`; text after its closing bracket is ignored."""
+        fast = self._decode_whole(text, start)
+        if fast is not None:
+            return fast
         span = _scan(text, start, self.max_depth)
         if span.end is None:
             detail = self._json_error(text[start:], start, text)
@@ -132,12 +162,13 @@ class JsonFinder:
                 "(was the output cut off?)"
             )
         chunk = text[start : span.end]
+        line = text.count("\n", 0, start) + 1
         try:
-            return Extracted(json.loads(chunk), [])
+            return Candidate(json.loads(chunk, object_pairs_hook=_no_duplicates), [], line)
         except json.JSONDecodeError as exc:
             detail = f"{exc.msg} at {line_col(text, start + exc.pos)}"
         except (RecursionError, ValueError) as exc:
-            raise ParseError(f"JSON could not be read: {exc}") from None
+            raise ParseError(f"JSON could not be read at line {line}: {exc}") from None
         if not self.lenient or len(chunk) > self.max_repair_chars:
             raise ParseError(f"malformed JSON: {detail}")
         try:
@@ -146,7 +177,26 @@ class JsonFinder:
             raise ParseError(f"malformed JSON: {detail} (repair failed: {exc})") from None
         if not isinstance(value, dict | list) or not value:
             raise ParseError(f"malformed JSON: {detail}")
-        return Extracted(value, [f"the JSON was malformed ({detail}) and was read leniently"])
+        return Candidate(value, [f"the JSON was malformed ({detail}) and was read leniently"], line)
+
+    def _decode_whole(self, text: str, start: int) -> Candidate | None:
+        """The common case first: everything from `start` up to a closing fence or the end is the JSON.
+
+        None sends the caller to the bracket scan, which finds where the value ends and words the
+        error; nesting is measured here only when there are enough brackets for it to matter.
+        """
+        end = text.find("```", start)
+        chunk = text[start : end if end >= 0 else len(text)]
+        if chunk.count("[") + chunk.count("{") > self.max_depth:
+            try:
+                _scan(chunk, 0, self.max_depth)
+            except ParseError:
+                return None
+        try:
+            value = json.loads(chunk, object_pairs_hook=_no_duplicates)
+        except (ValueError, RecursionError):
+            return None
+        return Candidate(value, [], text.count("\n", 0, start) + 1)
 
     def _json_error(self, chunk: str, offset: int, text: str) -> str:
         try:
@@ -157,25 +207,25 @@ class JsonFinder:
             return str(exc)
         return "unexpected end"
 
-    def _search_prose(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Extracted:
-        first_error: ParseError | None = None
+    def _search_prose(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Found:
+        found = Found(plans=[], in_prose=True)
         resume = 0
         for tries, match in enumerate(re.finditer(r"[\[{]", text)):
-            if tries >= MAX_PROSE_STARTS:
+            if tries >= MAX_PROSE_STARTS or len(found.plans) >= MAX_CANDIDATES:
                 break
             if match.start() < resume:
                 continue
             try:
-                found = self._decode(text, match.start())
+                decoded = self._decode(text, match.start())
             except ParseError as exc:
                 # Brackets in prose ("[see below]") are not JSON; keep the first real-looking failure.
-                if first_error is None and '"action"' in text[match.start() : match.start() + 2000]:
-                    first_error = exc
+                if found.error is None and '"action"' in text[match.start() : match.start() + 2000]:
+                    found.error = exc
                 continue
-            if looks_like_plan(found.value):
-                return found
             span = _scan(text, match.start(), self.max_depth)
             resume = span.end or len(text)
-        if first_error is not None:
-            raise first_error
-        raise ParseError("no plan found: expected a JSON object with a 'plan' array or a JSON array of steps")
+            if looks_like_plan(decoded.value):
+                found.plans.append(decoded)
+            elif found.other is None:
+                found.other = decoded.value
+        return found

@@ -1,4 +1,4 @@
-"""Plan text -> Plan: find the JSON, map LLM words onto canonical actions, validate every value."""
+"""Plan text -> Plan: find the plan in whatever shape it came, map LLM words onto canonical actions, validate."""
 
 from __future__ import annotations
 
@@ -12,22 +12,45 @@ import msgspec
 from rapidfuzz import fuzz, process
 
 from schemas.common import ErrorKind, ServiceError, Stage
-from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS, Action, ParamValue, ParseReply, Plan, PlanText, Step
+from schemas.plan import (
+    MAX_NESTING,
+    MAX_PLAN_BYTES,
+    MAX_STEPS,
+    Action,
+    ParamValue,
+    ParseReply,
+    Plan,
+    PlanText,
+    SourceFormat,
+    Step,
+)
 from services.parser.errors import ParseError
-from services.parser.extract import JsonFinder
-from services.parser.vocabulary import ParamSpec, Vocabulary, load_vocabulary, normalise_word
+from services.parser.extract import JsonFinder, fenced_blocks
+from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
+from services.parser.toolcalls import ToolCalls, call_arguments, find_tool_calls
+from services.parser.vocabulary import STEP_FIELDS, ParamSpec, Vocabulary, load_vocabulary, normalise_word
+from services.parser.yamlplan import load_yaml
 
-SUPPORTED_FORMATS = ("auto", "json")
-LATER_FORMATS = ("yaml", "text")
+# A decoded value that looks like a plan: (value, warnings, the line it starts on, its format).
+_Candidate = tuple[Any, list[str], int, SourceFormat]
+
+FORMATS = ("auto", "json", "yaml", "text")
 MAX_NAME_CHARS = 200
 MAX_TEXT_CHARS = 4000
 # Names echoed back in messages are cut to this, so hostile input cannot bloat a reply.
 ECHO_CHARS = 60
 MAX_LISTED = 10
-_NUMBER_WITH_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z/]*)\s*$")
-_STEP_FIELDS = ("target", "target_object", "target_location")
+_NUMBER_WITH_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s.+-][^\d]*?)?\s*$")
+_NAME_FIELDS = ("target", "target_object", "target_location")
 # Control characters have no place in a name or a spoken sentence (newlines and tabs excepted).
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
+# A list item or a heading-like line: the text may be English steps.
+_LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)", re.IGNORECASE | re.MULTILINE)
+_YAML_FENCES = ("yaml", "yml")
+NO_PLAN = (
+    "no plan found: expected a JSON object with a 'plan' array, a JSON array of steps, YAML, "
+    "tool calls, or numbered/bulleted steps in English"
+)
 
 
 def echo(value: object) -> str:
@@ -46,14 +69,67 @@ def _type_name(value: object) -> str:
     )
 
 
+@dataclass(frozen=True)
+class Limits:
+    """What the parser accepts at most; over a limit is refused, as early as it can be seen."""
+
+    max_input_bytes: int = MAX_PLAN_BYTES
+    max_steps: int = MAX_STEPS  # all steps, sub-steps and on_failure alternatives included
+    max_nesting: int = MAX_NESTING  # levels of sub-steps / on_failure below the plan's steps
+    max_depth: int = 32  # JSON or YAML nesting
+    max_string_chars: int = MAX_TEXT_CHARS  # a said sentence or a description
+    max_yaml_nodes: int = 20_000  # YAML nodes with aliases expanded
+
+
+@dataclass(frozen=True)
+class _Where:
+    """Where a step is, for messages: 'step 2.1' in structured plans, 'line 3, column 5' in text."""
+
+    label: str
+    top: int
+    line: int | None = None
+    column: int | None = None
+
+    def refuse(self, message: str, **kwargs: Any) -> ParseError:
+        return ParseError(message, where=self.label, step=self.top, line=self.line, column=self.column, **kwargs)
+
+    def child(self, index: int) -> _Where:
+        return _Where(f"{self.label}.{index + 1}", self.top)
+
+    def alternative(self, index: int) -> _Where:
+        return _Where(f"{self.label} on_failure {index + 1}", self.top)
+
+
+@dataclass
+class _Context:
+    """One parse: its warnings and how many steps it has seen."""
+
+    limits: Limits
+    warnings: list[str] = field(default_factory=list)
+    steps: int = 0
+
+    def count(self, where: _Where) -> None:
+        self.steps += 1
+        if self.steps > self.limits.max_steps:
+            raise where.refuse(
+                f"the plan has more than {self.limits.max_steps} steps (sub-steps and on_failure included); "
+                "split it into smaller plans"
+            )
+
+
 @dataclass
 class _RawStep:
-    """One step's fields after mapping LLM field names onto ours; what is left over is warned about."""
+    """One step's fields after mapping LLM field names onto ours."""
 
     action: Any = None
     names: dict[str, str] = field(default_factory=dict)
-    parameters: dict[str, Any] = field(default_factory=dict)
-    description: str = ""
+    parameters: dict[Any, Any] = field(default_factory=dict)
+    description: Any = ""
+    substeps: Any = None
+    on_failure: Any = None
+    # Fields that are none of ours: parameters of the action if it takes them, else warned about.
+    extra: dict[Any, Any] = field(default_factory=dict)
+    positions: list[str] = field(default_factory=list)
 
 
 class Parser:
@@ -62,152 +138,389 @@ class Parser:
     def __init__(
         self,
         vocabulary: Vocabulary,
+        grammar: TextGrammar | None = None,
         *,
-        max_depth: int = 32,
+        limits: Limits | None = None,
         lenient_json: bool = True,
         max_repair_chars: int = 64 * 1024,
     ) -> None:
         self.vocabulary = vocabulary
-        self.finder = JsonFinder(max_depth=max_depth, lenient=lenient_json, max_repair_chars=max_repair_chars)
-        self.actions: dict[str, Action] = {}
+        self.grammar = grammar if grammar is not None else load_grammar()
+        self.limits = limits or Limits()
+        self.finder = JsonFinder(
+            max_depth=self.limits.max_depth, lenient=lenient_json, max_repair_chars=max_repair_chars
+        )
+        # Every name of an action, with the parameters its variant sets.
+        self.actions: dict[str, tuple[Action, dict[str, str]]] = {}
         for action, spec in vocabulary.actions.items():
             for name in (action.value, *spec.synonyms):
-                self.actions[normalise_word(name)] = action
-        self.params: dict[Action, dict[str, tuple[str, ParamSpec]]] = {}
+                self.actions[normalise_word(name)] = (action, {})
+            for name, preset in spec.variants.items():
+                self.actions[normalise_word(name)] = (action, dict(preset))
+        # Every name of a parameter, with the unit word a bare number under that name is in.
+        self.params: dict[Action, dict[str, tuple[str, ParamSpec, str | None]]] = {}
         for action, spec in vocabulary.actions.items():
-            self.params[action] = {
-                normalise_word(alias): (name, pspec)
-                for name, pspec in spec.params.items()
-                for alias in (name, *pspec.aliases)
-            }
+            names: dict[str, tuple[str, ParamSpec, str | None]] = {}
+            for name, pspec in spec.params.items():
+                for alias in (name, *pspec.aliases):
+                    names[normalise_word(alias)] = (name, pspec, None)
+                for alias, unit in pspec.unit_aliases.items():
+                    names[normalise_word(alias)] = (name, pspec, unit)
+            self.params[action] = names
         self.fields: dict[str, str] = {
             normalise_word(alias): name for name, aliases in vocabulary.fields.items() for alias in aliases
         }
-        for name in ("action", "target", "target_object", "target_location", "parameters", "description"):
+        for name in STEP_FIELDS:
             self.fields.setdefault(name, name)
         self.ignored_fields = {normalise_word(n) for n in vocabulary.ignored_fields}
         self.position_params = {normalise_word(n) for n in vocabulary.position_params}
         self.plan_keys = [normalise_word(k) for k in vocabulary.plan_keys]
+        self.plan_tools = {normalise_word(k) for k in vocabulary.plan_tools}
+        self._known_actions = ", ".join(a.value for a in vocabulary.actions)
+        keys = sorted({*self.plan_keys, *self.fields}, key=len, reverse=True)
+        # A line that starts a YAML plan: "plan:", "- action: pick", "steps:".
+        self._yaml_start = re.compile(
+            r"^\s*(?:-\s+)?[\"']?(?:" + "|".join(re.escape(k) for k in keys) + r")[\"']?\s*:(?:\s|$)",
+            re.IGNORECASE | re.MULTILINE,
+        )
 
     # The whole text
 
     def parse(self, text: str, fmt: str = "auto") -> Plan:
-        if fmt in LATER_FORMATS:
-            raise ParseError(f"format {fmt!r} is not supported yet; send the plan as JSON (format 'json' or 'auto')")
-        if fmt not in SUPPORTED_FORMATS:
-            raise ParseError(f"unknown format {echo(fmt)}; expected one of auto, json, yaml, text")
+        if fmt not in FORMATS:
+            raise ParseError(f"unknown format {echo(fmt)}; expected one of {', '.join(FORMATS)}")
+        self._check_text(text)
+        ctx = _Context(self.limits)
+        if fmt == "text":
+            return self._from_text(text, ctx)
+        if fmt == "yaml":
+            return self._from_candidates(self._yaml_candidates(text, strict=True), ctx)
+        found = self.finder.find(text, self._looks_like_plan)
+        if found.plans and found.in_prose and fmt == "auto":
+            # `- {action: pick}` lines of a YAML plan are JSON objects too: YAML reads them as one plan.
+            candidates = self._yaml_candidates(text, strict=False)
+            if candidates:
+                return self._from_candidates(candidates, ctx)
+        if found.plans:
+            return self._from_candidates([(c.value, c.warnings, c.line, "json") for c in found.plans], ctx)
+        if fmt == "json":
+            if found.error is not None:
+                raise found.error
+            if found.other is not None:
+                return self._from_value(found.other, "json", ctx)  # raises, naming what the JSON held
+            raise ParseError(NO_PLAN)
+        candidates = self._yaml_candidates(text, strict=False)
+        if candidates:
+            return self._from_candidates(candidates, ctx)
+        if not _LIST_ITEM.search(text):
+            if found.error is not None:
+                raise found.error
+            if found.other is not None:
+                return self._from_value(found.other, "json", ctx)
+        try:
+            return self._from_text(text, ctx)
+        except ParseError as exc:
+            if _LIST_ITEM.search(text):
+                raise
+            raise ParseError(
+                f"{NO_PLAN}; read as English: {exc}",
+                line=exc.error.line,
+                column=exc.error.column,
+                candidates=exc.error.candidates,
+            ) from None
+
+    def _check_text(self, text: str) -> None:
         if not isinstance(text, str):
             raise ParseError(f"plan text must be a string, got {_type_name(text)}")
         if not text:
             raise ParseError("plan text is empty")
+        limit = self.limits.max_input_bytes
+        if len(text) > limit:  # every character is at least one byte: refuse without encoding
+            raise ParseError(f"plan text is over {limit} bytes; at most {limit} are accepted")
         if not text.strip():
             raise ParseError("plan text is only whitespace")
         try:
             size = len(text.encode("utf-8"))
         except UnicodeEncodeError as exc:
             raise ParseError(f"plan text is not valid UTF-8 (character {exc.start + 1} is a lone surrogate)") from None
-        if size > MAX_PLAN_BYTES:
-            raise ParseError(f"plan text is {size} bytes; at most {MAX_PLAN_BYTES} are accepted")
+        if size > limit:
+            raise ParseError(f"plan text is {size} bytes; at most {limit} are accepted")
         if "\x00" in text:
             raise ParseError(f"plan text contains a NUL character at position {text.index(chr(0)) + 1}")
-        found = self.finder.find(text, self._looks_like_plan)
-        warnings = list(found.warnings)
-        raw_steps, description = self._steps_of(found.value, warnings)
-        steps = [self._step(i, raw, warnings) for i, raw in enumerate(raw_steps)]
-        plan = Plan(steps=steps, description=self._text(description, "the plan's description", warnings), warnings=[])
-        plan = msgspec.structs.replace(plan, warnings=[w[:MAX_TEXT_CHARS] for w in warnings])
-        return _validated(plan)
 
     def _looks_like_plan(self, value: Any) -> bool:
         if isinstance(value, list):
-            return bool(value) and all(isinstance(v, dict) for v in value)
-        if isinstance(value, dict):
+            if value and all(isinstance(v, dict) for v in value):
+                return True
+        elif isinstance(value, dict):
             keys = {normalise_word(k) for k in value if isinstance(k, str)}
-            return any(k in keys for k in self.plan_keys) or any(self.fields.get(k) == "action" for k in keys)
-        return False
+            if any(k in keys for k in self.plan_keys) or any(self.fields.get(k) == "action" for k in keys):
+                return True
+        else:
+            return False
+        return find_tool_calls(value) is not None
+
+    def _yaml_candidates(self, text: str, *, strict: bool) -> list[_Candidate]:
+        """YAML in ```yaml blocks, else the whole text; in auto mode only when it starts like a plan."""
+        fences = fenced_blocks(text)
+        blocks = [(at, body) for lang, at, body in fences if lang in _YAML_FENCES]
+        if not blocks and not strict:
+            blocks = [(at, body) for lang, at, body in fences if not lang and self._yaml_start.match(body)]
+        if not blocks:
+            if not strict and not self._yaml_start.search(text):
+                return []
+            blocks = [(0, text)]
+        candidates: list[_Candidate] = []
+        for at, body in blocks:
+            line = text.count("\n", 0, at) + 1
+            try:
+                value = load_yaml(body, max_nodes=self.limits.max_yaml_nodes, max_depth=self.limits.max_depth)
+            except ParseError as exc:
+                if strict or (len(blocks) == 1 and at > 0) or _is_bomb(exc):
+                    raise ParseError(f"YAML block at line {line}: {exc}") from None
+                continue
+            if self._looks_like_plan(value):
+                candidates.append((value, [], line, "yaml"))
+            elif strict:
+                self._steps_of(value, [])
+        return candidates
+
+    def _from_candidates(self, candidates: list[_Candidate], ctx: _Context) -> Plan:
+        """One plan from the plan-like blocks: they must agree; a block that fails is dropped if another reads."""
+        if not candidates:
+            raise ParseError(NO_PLAN)
+        if len(candidates) == 1:
+            value, warnings, _line, fmt = candidates[0]
+            ctx.warnings.extend(warnings)
+            return self._from_value(value, fmt, ctx)
+        plans: list[tuple[int, Plan]] = []
+        failures: list[tuple[int, ParseError]] = []
+        for value, warnings, line, fmt in candidates:
+            one = _Context(self.limits, list(warnings))
+            try:
+                plans.append((line, self._from_value(value, fmt, one)))
+            except ParseError as exc:
+                failures.append((line, exc))
+        if not plans:
+            raise failures[0][1]
+        first_line, plan = plans[0]
+        for line, other in plans[1:]:
+            if other.steps != plan.steps:
+                raise ParseError(
+                    f"the text holds {len(plans)} conflicting plans (the code blocks at lines {first_line} and "
+                    f"{line} differ); send exactly one plan",
+                    line=line,
+                )
+        notes = [f"{len(plans)} identical plans found; read once"] if len(plans) > 1 else []
+        notes += [f"the block at line {line} was not read as a plan: {exc}" for line, exc in failures]
+        return msgspec.structs.replace(plan, warnings=[*plan.warnings, *notes][: self.limits.max_steps * 4])
+
+    def _from_value(self, value: Any, fmt: SourceFormat, ctx: _Context) -> Plan:
+        calls = find_tool_calls(value)
+        if calls is not None:
+            ctx.warnings.extend(calls.warnings)
+            raw_steps, description = self._steps_of_calls(calls, ctx), "\n".join(calls.text)
+            fmt = calls.format
+        else:
+            raw_steps, description = self._steps_of(value, ctx.warnings)
+        steps = [self._step(raw, _Where(f"step {i + 1}", i), 0, ctx) for i, raw in enumerate(raw_steps)]
+        return self._plan(steps, description, fmt, ctx)
+
+    def _from_text(self, text: str, ctx: _Context) -> Plan:
+        text_steps, warnings = read_text(
+            text, self.grammar, max_steps=self.limits.max_steps, max_depth=self.limits.max_nesting
+        )
+        ctx.warnings.extend(warnings)
+        if not text_steps:
+            raise ParseError(NO_PLAN)
+        steps = [self._text_step(ts, i, 0, ctx) for i, ts in enumerate(text_steps)]
+        return self._plan(steps, "", "text", ctx)
+
+    def _plan(self, steps: list[Step], description: Any, fmt: SourceFormat, ctx: _Context) -> Plan:
+        if not steps:
+            raise ParseError("the plan has no steps")
+        text = self._text(description, "the plan's description", ctx.warnings)
+        warnings = [w[:MAX_TEXT_CHARS] for w in ctx.warnings[: self.limits.max_steps * 4]]
+        return _validated(Plan(steps=steps, description=text, warnings=warnings, source_format=fmt))
 
     def _steps_of(self, value: Any, warnings: list[str]) -> tuple[list[Any], Any]:
-        no_plan = "no plan found: expected a JSON object with a 'plan' array or a JSON array of steps"
         description: Any = ""
-        if isinstance(value, dict):
-            by_key = {normalise_word(k): k for k in value}
+        plan_key: str | None = None
+        for _ in range(2):  # {"plan": {"steps": [...]}} is read too
+            if not isinstance(value, dict):
+                break
+            by_key = {normalise_word(k): k for k in value if isinstance(k, str)}
             plan_key = next((by_key[k] for k in self.plan_keys if k in by_key), None)
             if plan_key is None:
                 if any(self.fields.get(k) == "action" for k in by_key):
-                    return [value], ""  # a single step on its own
+                    return [value], description  # a single step on its own
                 keys = [echo(k) for k in value]
-                raise ParseError(f"{no_plan}; found an object with keys {_listing(keys)}" if keys else no_plan)
-            steps = value[plan_key]
-            description = value.get(by_key.get("description", ""), "")
-            extra = [echo(k) for k in value if k not in (plan_key, by_key.get("description"))]
+                raise ParseError(f"{NO_PLAN}; found an object with keys {_listing(keys)}" if keys else NO_PLAN)
+            description_key = next((by_key[k] for k in ("description", "goal", "task", "summary") if k in by_key), None)
+            description = value.get(description_key, "") if description_key else description
+            extra = [echo(k) for k in value if k not in (plan_key, description_key)]
             if extra:
                 warnings.append(f"top-level field(s) {_listing(extra)} ignored")
-            if not isinstance(steps, list):
-                raise ParseError(f"'{plan_key}' must be an array of steps, got {_type_name(steps)}")
-        elif isinstance(value, list):
-            steps = value
-        else:
-            raise ParseError(f"{no_plan}; found {_type_name(value)}")
-        if not steps:
+            value = value[plan_key]
+        if plan_key is not None and not isinstance(value, list):
+            raise ParseError(f"'{plan_key}' must be an array of steps, got {_type_name(value)}")
+        if not isinstance(value, list):
+            raise ParseError(f"{NO_PLAN}; found {_type_name(value)}")
+        if not value:
             raise ParseError("the plan has no steps")
-        if len(steps) > MAX_STEPS:
-            raise ParseError(f"the plan has {len(steps)} steps; at most {MAX_STEPS} are accepted")
-        return steps, description
+        if len(value) > self.limits.max_steps:
+            raise ParseError(f"the plan has {len(value)} steps; at most {self.limits.max_steps} are accepted")
+        return value, description
+
+    def _steps_of_calls(self, calls: ToolCalls, ctx: _Context) -> list[Any]:
+        steps: list[Any] = []
+        for call in calls.calls:
+            if not isinstance(call.name, str) or not call.name.strip():
+                raise ParseError(f"{call.where} has no tool name")
+            arguments, warnings = call_arguments(call, self._decode_arguments)
+            ctx.warnings.extend(warnings)
+            name = normalise_word(call.name)
+            if name in self.plan_tools or (name not in self.actions and self._looks_like_plan(arguments)):
+                inner, _ = self._steps_of(arguments, ctx.warnings)
+                steps.extend(inner)
+            else:
+                action_keys = [
+                    k for k in arguments if isinstance(k, str) and self.fields.get(normalise_word(k)) == "action"
+                ]
+                if action_keys:
+                    ctx.warnings.append(
+                        f"{call.where}: field(s) {_listing(action_keys)} ignored: the tool name is the action"
+                    )
+                steps.append({"action": call.name, **{k: v for k, v in arguments.items() if k not in action_keys}})
+            if len(steps) > self.limits.max_steps:
+                raise ParseError(f"the tool calls hold more than {self.limits.max_steps} steps")
+        return steps
+
+    def _decode_arguments(self, text: str, where: str) -> tuple[Any, list[str]]:
+        found = self.finder.find(text, lambda v: isinstance(v, dict))
+        if found.plans:
+            return found.plans[0].value, [f"{where}: {w}" for w in found.plans[0].warnings]
+        if found.error is not None:
+            raise ParseError(f"{where}: arguments are not valid JSON: {found.error}")
+        raise ParseError(f"{where}: arguments must be a JSON object")
 
     # One step
 
-    def _step(self, index: int, value: Any, warnings: list[str]) -> Step:
+    def _step(self, value: Any, where: _Where, depth: int, ctx: _Context) -> Step:
+        ctx.count(where)
+        if depth > self.limits.max_nesting:
+            raise where.refuse(f"sub-steps are nested more than {self.limits.max_nesting} levels deep")
         if not isinstance(value, dict):
-            raise ParseError(f"is {_type_name(value)}, not an object with an 'action'", step=index)
-        raw = self._fields(index, value, warnings)
-        action = self._action(index, raw.action)
-        params = self._params(index, action, raw.parameters, warnings)
-        target, location = self._names(index, action, raw.names, params, warnings)
+            raise where.refuse(f"is {_type_name(value)}, not an object with an 'action'")
+        raw = self._fields(value, where, ctx.warnings)
+        substeps = self._nested(raw.substeps, "substeps", where)
+        on_failure = self._nested(raw.on_failure, "on_failure", where)
+        step = self._build(raw, where, bool(substeps), ctx)
+        return msgspec.structs.replace(
+            step,
+            substeps=[self._step(v, where.child(i), depth + 1, ctx) for i, v in enumerate(substeps)],
+            on_failure=[self._step(v, where.alternative(i), depth + 1, ctx) for i, v in enumerate(on_failure)],
+        )
+
+    def _text_step(self, item: TextStep, top: int, depth: int, ctx: _Context) -> Step:
+        where = _Where(f"line {item.line}, column {item.column}", top, item.line, item.column)
+        ctx.count(where)
+        if depth > self.limits.max_nesting:
+            raise where.refuse(f"sub-steps are nested more than {self.limits.max_nesting} levels deep")
+        raw = self._fields(item.fields, where, ctx.warnings)
+        raw.description = raw.description or item.description
+        step = self._build(raw, where, bool(item.substeps), ctx)
+        return msgspec.structs.replace(
+            step,
+            substeps=[self._text_step(s, top, depth + 1, ctx) for s in item.substeps],
+            on_failure=[self._text_step(s, top, depth + 1, ctx) for s in item.on_failure],
+        )
+
+    def _nested(self, value: Any, name: str, where: _Where) -> list[Any]:
+        if value is None:
+            return []
+        if isinstance(value, dict):
+            return [value]
+        if not isinstance(value, list):
+            raise where.refuse(f"'{name}' must be an array of steps, got {_type_name(value)}")
+        return value
+
+    def _build(self, raw: _RawStep, where: _Where, has_substeps: bool, ctx: _Context) -> Step:
+        """The step itself, without its sub-steps and alternatives; a group when it has sub-steps only."""
+        description = self._text(raw.description, f"{where.label}: description", ctx.warnings)
+        if has_substeps:
+            word = normalise_word(raw.action) if isinstance(raw.action, str) else None
+            if word in self.actions:
+                raise where.refuse(
+                    f"has both an action ({echo(raw.action)}) and sub-steps; a step is either one action "
+                    "or a group of sub-steps"
+                )
+            if isinstance(raw.action, str) and raw.action.strip():
+                description = description or raw.action.strip()[:MAX_TEXT_CHARS]  # a group's name
+            ignored = [*raw.names, *(echo(k) for k in raw.parameters), *(echo(k) for k in raw.extra)]
+            if ignored:
+                ctx.warnings.append(f"{where.label}: field(s) {_listing(ignored)} of a group ignored")
+            return Step(action=None, description=description)
+        action, preset = self._action(where, raw.action)
+        params = self._params(where, action, raw, preset, ctx.warnings)
+        target, location = self._names(where, action, raw.names, params, ctx.warnings)
         for name, pspec in self.vocabulary.actions[action].params.items():
             if pspec.required and name not in params:
-                raise ParseError(f"{action.value} needs parameter '{name}'", step=index)
-        description = self._text(raw.description, f"step {index + 1}: description", warnings)
-        return Step(action=action, target=target, location=location, params=params, description=description)
+                unit = (
+                    f" (in {pspec.unit}, or with a unit such as '{_example(self.vocabulary, pspec)}')"
+                    if pspec.unit
+                    else ""
+                )
+                raise where.refuse(f"{action.value} needs parameter '{name}'{unit}")
+        specs = self.vocabulary.actions[action].params
+        units = {n: specs[n].unit for n, v in params.items() if specs[n].unit and not isinstance(v, str | bool)}
+        return Step(
+            action=action, target=target, location=location, params=params, units=units, description=description
+        )
 
-    def _fields(self, index: int, value: dict[Any, Any], warnings: list[str]) -> _RawStep:
+    def _fields(self, value: dict[Any, Any], where: _Where, warnings: list[str]) -> _RawStep:
         raw = _RawStep()
-        ignored: list[str] = []
         for key, item in value.items():
-            name = self.fields.get(normalise_word(key)) if isinstance(key, str) else None
+            word = normalise_word(key) if isinstance(key, str) else ""
+            name = self.fields.get(word)
             if name is None:
-                if not isinstance(key, str) or normalise_word(key) not in self.ignored_fields:
-                    ignored.append(echo(key))
+                if word not in self.ignored_fields:
+                    raw.extra[key] = item
             elif name == "action":
+                if raw.action is not None and item != raw.action:
+                    raise where.refuse(f"names two actions ({echo(raw.action)} and {echo(item)})")
                 raw.action = item
             elif name == "parameters":
                 if item is None:
                     continue
                 if not isinstance(item, dict):
-                    raise ParseError(f"'{key}' must be an object, got {_type_name(item)}", step=index)
+                    raise where.refuse(f"'{key}' must be an object, got {_type_name(item)}")
                 raw.parameters = item
             elif name == "description":
                 if isinstance(item, str):
                     raw.description = item
                 elif item is not None:
-                    warnings.append(f"step {index + 1}: description ignored: it is {_type_name(item)}, not text")
+                    warnings.append(f"{where.label}: description ignored: it is {_type_name(item)}, not text")
+            elif name in ("substeps", "on_failure"):
+                setattr(raw, name, item)
             elif item is None or (isinstance(item, str) and not item.strip()):
                 continue
+            elif isinstance(item, dict | list) and word in self.position_params:
+                raw.positions.append(str(key)[:ECHO_CHARS])
             elif not isinstance(item, str):
-                raise ParseError(f"'{key}' must be a name (a string), got {_type_name(item)}", step=index)
+                raise where.refuse(f"'{key}' must be a name (a string), got {_type_name(item)}")
             elif _CONTROL.search(item):
-                raise ParseError(f"'{key}' contains control characters", step=index)
+                raise where.refuse(f"'{key}' contains control characters")
             else:
                 raw.names[name] = item.strip()
-        if ignored:
-            warnings.append(f"step {index + 1}: field(s) {_listing(ignored)} ignored: not part of a step")
         return raw
 
-    def _action(self, index: int, value: Any) -> Action:
-        known = ", ".join(a.value for a in self.vocabulary.actions)
+    def _action(self, where: _Where, value: Any) -> tuple[Action, dict[str, str]]:
+        known = self._known_actions
         if value is None or (isinstance(value, str) and not value.strip()):
-            raise ParseError(f"has no 'action'; known actions: {known}", step=index)
+            raise where.refuse(f"has no 'action'; known actions: {known}")
         if not isinstance(value, str):
-            raise ParseError(f"'action' must be a string, got {_type_name(value)}", step=index)
+            raise where.refuse(f"'action' must be a string, got {_type_name(value)}")
         word = normalise_word(value)
         if word in self.actions:
             return self.actions[word]
@@ -216,57 +529,83 @@ class Parser:
         hint = ""
         if suggestions:
             best = suggestions[0]
-            canonical = self.actions[best].value
+            canonical = self.actions[best][0].value
             hint = f" (did you mean '{best}'?)" if best == canonical else f" (did you mean '{best}', i.e. {canonical}?)"
-        raise ParseError(
+        raise where.refuse(
             f"unknown action {echo(value)}{hint}; known actions: {known}",
             kind=ErrorKind.UNKNOWN_ACTION,
-            step=index,
             candidates=suggestions,
         )
 
-    def _params(self, index: int, action: Action, given: dict[Any, Any], warnings: list[str]) -> dict[str, ParamValue]:
+    def _params(
+        self, where: _Where, action: Action, raw: _RawStep, preset: dict[str, str], warnings: list[str]
+    ) -> dict[str, ParamValue]:
         params: dict[str, ParamValue] = {}
-        positions: list[str] = []
+        positions = list(raw.positions)
         unknown: list[str] = []
+        ignored: list[str] = []
         known = self.params[action]
-        for key, value in given.items():
+        given = [(k, v, True) for k, v in raw.parameters.items()] + [(k, v, False) for k, v in raw.extra.items()]
+        for key, value, in_parameters in given:
             word = normalise_word(key) if isinstance(key, str) else ""
             if word in known:
-                name, pspec = known[word]
+                name, pspec, unit = known[word]
                 if name in params:
-                    raise ParseError(f"parameter '{name}' is given twice (as {echo(key)})", step=index)
-                params[name] = self._value(index, name, pspec, value)
+                    raise where.refuse(f"parameter '{name}' is given twice (as {echo(key)})")
+                params[name] = self._value(where, name, pspec, value, unit)
             elif word in self.position_params:
                 positions.append(str(key)[:ECHO_CHARS])
-            else:
+            elif in_parameters:
                 unknown.append(echo(key))
+            else:
+                ignored.append(echo(key))
+        for name, value in preset.items():
+            if params.setdefault(name, value) != value:
+                raise where.refuse(f"the action says {name} {value!r} but parameter '{name}' is {echo(params[name])}")
+        self._apply_signs(action, params)
         if positions:
             noun = "parameter" if len(positions) == 1 else "parameters"
-            warnings.append(
-                f"step {index + 1}: {noun} {_listing(positions)} ignored: {self.vocabulary.position_reason}"
-            )
-        if unknown:
+            warnings.append(f"{where.label}: {noun} {_listing(positions)} ignored: {self.vocabulary.position_reason}")
+        if unknown or ignored:
             names = sorted(self.vocabulary.actions[action].params)
             takes = f"it takes {', '.join(names)}" if names else "it takes none"
-            warnings.append(
-                f"step {index + 1}: unknown parameter(s) {_listing(unknown)} for {action.value} ignored; {takes}"
-            )
+            if unknown:
+                warnings.append(
+                    f"{where.label}: unknown parameter(s) {_listing(unknown)} for {action.value} ignored; {takes}"
+                )
+            if ignored:
+                warnings.append(
+                    f"{where.label}: field(s) {_listing(ignored)} ignored: not part of a step, "
+                    f"nor a parameter of {action.value} ({takes})"
+                )
         return params
 
-    def _value(self, index: int, name: str, spec: ParamSpec, value: Any) -> ParamValue:
-        where = f"parameter '{name}'"
+    def _apply_signs(self, action: Action, params: dict[str, ParamValue]) -> None:
+        """Fold a direction into the signed number it qualifies: turn right 90 degrees -> angle -1.5708."""
+        specs = self.vocabulary.actions[action].params
+        for name, spec in specs.items():
+            if spec.signed_by is None or spec.signed_by not in params:
+                continue
+            direction = params.pop(spec.signed_by)
+            value = params.get(name)
+            if isinstance(value, int | float) and not isinstance(value, bool):
+                negative = direction in specs[spec.signed_by].negative
+                params[name] = -abs(value) if negative else abs(value)
+
+    def _value(self, where: _Where, name: str, spec: ParamSpec, value: Any, unit_word: str | None) -> ParamValue:
+        what = f"parameter '{name}'"
         if spec.type == "str":
             if not isinstance(value, str):
-                raise ParseError(f"{where} must be text, got {_type_name(value)}", step=index)
+                raise where.refuse(f"{what} must be text, got {_type_name(value)}")
             text = value.strip()
             if _CONTROL.search(text):
-                raise ParseError(f"{where} contains control characters", step=index)
-            if len(text) > spec.max_length:
-                raise ParseError(f"{where} is {len(text)} characters; at most {spec.max_length}", step=index)
+                raise where.refuse(f"{what} contains control characters")
+            limit = min(spec.max_length, self.limits.max_string_chars)
+            if len(text) > limit:
+                raise where.refuse(f"{what} is {len(text)} characters; at most {limit}")
             if spec.choices:
                 if text.lower() not in spec.choices:
-                    raise ParseError(f"{where} is {echo(text)}; expected one of {', '.join(spec.choices)}", step=index)
+                    raise where.refuse(f"{what} is {echo(text)}; expected one of {', '.join(spec.choices)}")
                 return text.lower()
             return text
         if spec.type == "bool":
@@ -274,54 +613,65 @@ class Parser:
                 return value
             if isinstance(value, str) and value.strip().lower() in ("true", "false"):
                 return value.strip().lower() == "true"
-            raise ParseError(f"{where} must be true or false, got {echo(value)}", step=index)
-        number = self._number(index, where, spec, value)
+            raise where.refuse(f"{what} must be true or false, got {echo(value)}")
+        number, bare = self._number(where, what, spec, value, unit_word)
         if not math.isfinite(number):
-            raise ParseError(f"{where} must be a finite number, got {echo(value)}", step=index)
+            raise where.refuse(f"{what} must be a finite number, got {echo(value)}")
         unit = f" {spec.unit}" if spec.unit else ""
         if (spec.min is not None and number < spec.min) or (spec.max is not None and number > spec.max):
             low = "" if spec.min is None else f"{spec.min:g}"
             high = "" if spec.max is None else f"{spec.max:g}"
-            raise ParseError(f"{where} is {number:g}{unit}; allowed {low}..{high}{unit}", step=index)
+            hint = ""
+            if bare and spec.unit:
+                example = _example(self.vocabulary, spec, number)
+                hint = f" (a number without a unit is in {spec.unit}; write the unit, e.g. '{example}')"
+            raise where.refuse(f"{what} is {number:g}{unit}; allowed {low}..{high}{unit}{hint}")
         if spec.type == "int":
             if number != int(number):
-                raise ParseError(f"{where} must be a whole number, got {echo(value)}", step=index)
+                raise where.refuse(f"{what} must be a whole number, got {echo(value)}")
             return int(number)
         return float(number)
 
-    def _number(self, index: int, where: str, spec: ParamSpec, value: Any) -> float:
+    def _number(
+        self, where: _Where, what: str, spec: ParamSpec, value: Any, unit_word: str | None
+    ) -> tuple[float, bool]:
+        """The value in the parameter's SI unit, and whether it came without a unit."""
+        factors = self.vocabulary.units.get(spec.unit, {})
         if isinstance(value, bool) or not isinstance(value, int | float | str):
-            raise ParseError(f"{where} must be a number, got {_type_name(value)}", step=index)
+            raise where.refuse(f"{what} must be a number, got {_type_name(value)}")
         if not isinstance(value, str):
             try:
                 number = float(value)
             except OverflowError:
-                raise ParseError(f"{where} is too large a number", step=index) from None
+                raise where.refuse(f"{what} is too large a number") from None
             if not math.isfinite(number):
-                raise ParseError(f"{where} must be a finite number", step=index)
-            return number
+                raise where.refuse(f"{what} must be a finite number")
+            if unit_word is not None:
+                return number * factors[unit_word], False
+            return number, True
         match = _NUMBER_WITH_UNIT.match(value[:100])
         if match is None:
-            raise ParseError(f"{where} must be a number, got {echo(value)}", step=index)
-        number, word = float(match.group(1)), match.group(2).lower()
+            raise where.refuse(f"{what} must be a number, got {echo(value)}")
+        number = float(match.group(1))
+        word = " ".join((match.group(2) or "").lower().split())
         if not word:
-            return number
-        factors = self.vocabulary.units.get(spec.unit, {})
+            if unit_word is not None:
+                return number * factors[unit_word], False
+            return number, True
         if word not in factors:
-            expected = f"in {spec.unit} ({', '.join(factors)})" if factors else "without a unit"
-            raise ParseError(f"{where} has unit {echo(word)}; give it {expected}", step=index)
-        return number * factors[word]
+            expected = f"in {spec.unit} ({', '.join(list(factors)[:12])})" if factors else "without a unit"
+            raise where.refuse(f"{what} has unit {echo(word)}; give it {expected}")
+        return number * factors[word], False
 
     def _names(
         self,
-        index: int,
+        where: _Where,
         action: Action,
         names: dict[str, str],
         params: dict[str, ParamValue],
         warnings: list[str],
     ) -> tuple[str | None, str | None]:
         """Target and location by action, from whichever of target / target_object / target_location was given."""
-        target = names.get("target")
         used: set[str] = set()
 
         def take(*fields: str) -> str | None:
@@ -331,41 +681,50 @@ class Parser:
                     return names[f]
             return None
 
-        new_target: str | None = None
-        new_location: str | None = None
-        if action is Action.NAVIGATE_TO:
-            new_target = take("target", "target_location", "target_object")
-            if new_target is None:
-                raise ParseError("navigate_to needs a target: where to go", step=index)
+        target: str | None = None
+        location: str | None = None
+        if action in (Action.NAVIGATE_TO, Action.LOOK_AT, Action.MOVE_ARM):
+            target = take("target", "target_location", "target_object")
+            if target is None:
+                need = {
+                    Action.NAVIGATE_TO: "where to go",
+                    Action.LOOK_AT: "what to look at",
+                    Action.MOVE_ARM: "a named arm pose such as home or ready",
+                }[action]
+                raise where.refuse(f"{action.value} needs a target: {need}")
         elif action in (Action.PICK, Action.DETECT):
-            new_target = take("target", "target_object")
-            new_location = take("target_location")
-            if new_target is None:
-                raise ParseError(f"{action.value} needs a target: which object", step=index)
+            target = take("target", "target_object")
+            location = take("target_location")
+            if target is None:
+                raise where.refuse(f"{action.value} needs a target: which object")
         elif action is Action.PLACE:
-            new_location = take("target_location", "target")
-            new_target = take("target_object") or (take("target") if "target_location" in names else None)
-            if new_location is None:
-                raise ParseError("place needs a location: the furniture to put the object on", step=index)
+            location = take("target_location", "target")
+            target = take("target_object") or (take("target") if "target_location" in names else None)
+            if location is None:
+                raise where.refuse("place needs a location: the furniture to put the object on")
+        elif action is Action.GESTURE:
+            target = take("target", "target_object")
         elif action is Action.SAY:
             spoken = take("target")
             if spoken is not None:
                 spec = self.params[action]["text"][1]
                 if "text" in params:
-                    warnings.append(f"step {index + 1}: parameter 'text' ignored: the target is what is said")
-                params["text"] = self._value(index, "text", spec, spoken)
+                    warnings.append(f"{where.label}: parameter 'text' ignored: the target is what is said")
+                params["text"] = self._value(where, "text", spec, spoken, None)
             if not params.get("text"):
-                raise ParseError("say needs the words to speak, in 'target' or parameters.text", step=index)
-        elif action is Action.WAIT and "duration" not in params and target is not None:
+                raise where.refuse("say needs the words to speak, in 'target' or parameters.text")
+        elif action is Action.WAIT and "duration" not in params and "target" in names:
             used.add("target")
-            params["duration"] = self._value(index, "duration", self.params[action]["duration"][1], target)
-        for f in _STEP_FIELDS:
+            params["duration"] = self._value(
+                where, "duration", self.params[action]["duration"][1], names["target"], None
+            )
+        for f in _NAME_FIELDS:
             if f in names and f not in used:
-                warnings.append(f"step {index + 1}: {f} {echo(names[f])} ignored: {action.value} does not use it")
-        for value, label in ((new_target, "target"), (new_location, "location")):
+                warnings.append(f"{where.label}: {f} {echo(names[f])} ignored: {action.value} does not use it")
+        for value, label in ((target, "target"), (location, "location")):
             if value is not None and len(value) > MAX_NAME_CHARS:
-                raise ParseError(f"{label} is {len(value)} characters; a name has at most {MAX_NAME_CHARS}", step=index)
-        return new_target, new_location
+                raise where.refuse(f"{label} is {len(value)} characters; a name has at most {MAX_NAME_CHARS}")
+        return target, location
 
     def _text(self, value: Any, what: str, warnings: list[str]) -> str:
         if not isinstance(value, str):
@@ -381,6 +740,17 @@ class Parser:
         return value
 
 
+def _is_bomb(exc: ParseError) -> bool:
+    """Alias bombs and self-references are refused even where other broken YAML would be skipped."""
+    return "alias" in str(exc)
+
+
+def _example(vocabulary: Vocabulary, spec: ParamSpec, number: float = 1.0) -> str:
+    """'90 degrees' for an angle: the number with the first unit word that is not the SI one."""
+    words = [w for w, f in vocabulary.units.get(spec.unit, {}).items() if f != 1.0 and " " not in w]
+    return f"{number:g} {words[0] if words else spec.unit}"
+
+
 def _validated(plan: Plan) -> Plan:
     """Check every bound the schema declares (Struct constructors do not), naming the path on failure."""
     try:
@@ -391,7 +761,7 @@ def _validated(plan: Plan) -> Plan:
 
 @functools.cache
 def default_parser() -> Parser:
-    return Parser(load_vocabulary())
+    return Parser(load_vocabulary(), load_grammar())
 
 
 def parse(text: str, fmt: str = "auto") -> Plan:

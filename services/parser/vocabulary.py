@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import re
 from importlib import resources
 from pathlib import Path
@@ -15,7 +16,19 @@ from services.datafile import read_struct
 from services.parser.errors import VocabularyError
 
 Word = Annotated[str, Meta(min_length=1, max_length=64)]
-StepField = Literal["action", "target", "target_object", "target_location", "parameters", "description"]
+StepField = Literal[
+    "action", "target", "target_object", "target_location", "parameters", "description", "substeps", "on_failure"
+]
+STEP_FIELDS: tuple[StepField, ...] = (
+    "action",
+    "target",
+    "target_object",
+    "target_location",
+    "parameters",
+    "description",
+    "substeps",
+    "on_failure",
+)
 
 
 class ParamSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -28,11 +41,19 @@ class ParamSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     choices: list[Word] = []
     max_length: Annotated[int, Meta(ge=1, le=4000)] = 200
     aliases: list[Word] = []
+    # Other names that also say the unit of a bare number: {angle_deg: deg}.
+    unit_aliases: dict[Word, Word] = {}
     required: bool = False
+    # A str parameter whose value sets this number's sign (turn.angle by direction).
+    signed_by: Word | None = None
+    # For a direction parameter: the choices that mean a negative sign.
+    negative: list[Word] = []
 
 
 class ActionSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     synonyms: list[Word] = []
+    # Synonyms that also set str parameters: {turn_right: {direction: right}}.
+    variants: dict[Word, dict[Word, Word]] = {}
     params: dict[Word, ParamSpec] = {}
 
 
@@ -44,12 +65,19 @@ class Vocabulary(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     fields: dict[StepField, list[Word]] = {}
     ignored_fields: list[Word] = []
     plan_keys: Annotated[list[Word], Meta(min_length=1)] = msgspec.field(default_factory=lambda: ["plan"])
+    # Tools whose arguments hold a whole plan (execute_plan), when a plan arrives as a tool call.
+    plan_tools: list[Word] = []
+
+
+@functools.lru_cache(maxsize=4096)
+def _normalise(word: str) -> str:
+    word = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", word.strip())
+    return re.sub(r"[\s\-]+", "_", word.lower())
 
 
 def normalise_word(word: str) -> str:
-    """'Pick Up', 'pick-up', 'pickUp' -> 'pick_up'."""
-    word = re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", word.strip())
-    return re.sub(r"[\s\-]+", "_", word.lower())
+    """'Pick Up', 'pick-up', 'pickUp' -> 'pick_up'. Cached: the same few field names come again and again."""
+    return _normalise(word) if len(word) <= 64 else _normalise.__wrapped__(word)
 
 
 def default_vocabulary_path() -> Path:
@@ -69,20 +97,38 @@ def _check(vocabulary: Vocabulary, path: Path) -> None:
         raise VocabularyError(f"vocabulary file {path}: no entry for actions {missing}")
     seen: dict[str, str] = {}
     for action, spec in vocabulary.actions.items():
-        for name in (action.value, *spec.synonyms):
+        for name in (action.value, *spec.synonyms, *spec.variants):
             word = normalise_word(name)
             if seen.setdefault(word, action.value) != action.value:
                 raise VocabularyError(f"vocabulary file {path}: {name!r} names both {seen[word]} and {action.value}")
         param_names: set[str] = set()
         for param, pspec in spec.params.items():
-            for name in (param, *pspec.aliases):
+            where = f"vocabulary file {path}: {action.value}.{param}"
+            for name in (param, *pspec.aliases, *pspec.unit_aliases):
                 if normalise_word(name) in param_names:
                     raise VocabularyError(f"vocabulary file {path}: {action.value} parameter {name!r} named twice")
                 param_names.add(normalise_word(name))
             if pspec.unit and pspec.unit not in vocabulary.units:
-                raise VocabularyError(f"vocabulary file {path}: {action.value}.{param} has unknown unit {pspec.unit!r}")
+                raise VocabularyError(f"{where} has unknown unit {pspec.unit!r}")
+            for alias, unit in pspec.unit_aliases.items():
+                if unit not in vocabulary.units.get(pspec.unit, {}):
+                    raise VocabularyError(f"{where}: unit alias {alias!r} names {unit!r}, not a unit of {pspec.unit!r}")
             if pspec.min is not None and pspec.max is not None and pspec.min > pspec.max:
-                raise VocabularyError(f"vocabulary file {path}: {action.value}.{param} has min > max")
+                raise VocabularyError(f"{where} has min > max")
+            if pspec.signed_by is not None:
+                sign = spec.params.get(pspec.signed_by)
+                if sign is None or sign.type != "str" or not sign.negative:
+                    raise VocabularyError(f"{where}: signed_by {pspec.signed_by!r} is not a direction parameter")
+            if not set(pspec.negative) <= set(pspec.choices):
+                raise VocabularyError(f"{where}: negative values must be among its choices")
+        for variant, preset in spec.variants.items():
+            for param, value in preset.items():
+                target = spec.params.get(param)
+                if target is None or value not in target.choices:
+                    raise VocabularyError(
+                        f"vocabulary file {path}: variant {variant!r} sets {param}={value!r}, "
+                        f"not a choice of a parameter of {action.value}"
+                    )
     field_names: dict[str, str] = {}
     for field, names in vocabulary.fields.items():
         for name in names:

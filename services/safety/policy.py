@@ -12,7 +12,16 @@ from shapely.geometry import LineString, Point
 from shapely.geometry.base import BaseGeometry
 
 from schemas.common import Pose2D
-from schemas.plan import GroundedPlan, NavigateStep, PickStep, PlaceStep, step_kind
+from schemas.plan import (
+    Fallback,
+    GripperStep,
+    GroundedPlan,
+    GroundedStep,
+    NavigateStep,
+    PickStep,
+    PlaceStep,
+    step_kind,
+)
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import KeepOut
 from services.safety.config import SafetyConfig
@@ -181,24 +190,126 @@ class SafetyPolicy:
     # Whole plans, before the first motion
 
     def check_plan(self, plan: GroundedPlan, start: Pose2D | None) -> list[str]:
-        """Check every step in order; returns what was checked, raises Vetoed naming the step."""
-        checks: list[str] = []
-        position = start
+        """Check every way the plan can go, on_failure alternatives included, before anything moves.
+
+        Each step is checked from every state (base pose, object held) it can start from: the plan's
+        own steps in order, each alternative from every state the steps it covers start from (a
+        failure can come at any of them), and the steps after it from where it ends. Returns what
+        was checked; raises Vetoed naming the step by its label ("step 2.1 (pick): ...").
+        """
+        labels = _step_labels(plan)
+        self._check_structure(plan)
+        checks: dict[str, None] = {}
+        # before[i]: the states step i can start from.
+        before: list[dict[_PlanState, None]] = [{} for _ in range(len(plan.steps) + 1)]
+        before[0][_PlanState.at(start, None)] = None
+        # States met inside each alternative: an enclosing one may take over from any of them.
+        met: dict[int, dict[_PlanState, None]] = {}
+        innermost_first = sorted(range(len(plan.fallbacks)), key=lambda k: _span(plan.fallbacks[k]))
         for i, step in enumerate(plan.steps):
-            try:
-                if isinstance(step, NavigateStep):
-                    self.check_route(position, [], step.goal)
-                    position = step.goal
-                    checks.append(f"step {i + 1}: route to {step.target} is clear of keep-out zones")
-                elif isinstance(step, PickStep):
-                    self.check_payload(step.object_id)
-                    self.check_route(position, [], step.approach)
-                    position = step.approach
-                    checks.append(f"step {i + 1}: {step.object_name} is within payload")
-                elif isinstance(step, PlaceStep):
-                    self.check_route(position, [], step.approach)
-                    position = step.approach
-                    checks.append(f"step {i + 1}: route to {step.surface_name} is clear")
-            except Vetoed as exc:
-                raise Vetoed(f"step {i + 1} ({step_kind(step)}): {exc}") from None
-        return checks
+            for state in before[i]:
+                before[i + 1][self._check_step(step, labels[i], state, checks)] = None
+            for k in (k for k in innermost_first if plan.fallbacks[k].last == i):
+                fallback = plan.fallbacks[k]
+                starts: dict[_PlanState, None] = {}
+                for j in range(fallback.first, fallback.last + 1):
+                    starts.update(before[j])
+                for inner, states in met.items():
+                    if _within(plan.fallbacks[inner], fallback):
+                        starts.update(states)
+                met[k] = {}
+                alternative_labels = _fallback_labels(fallback, labels)
+                for state in starts:
+                    for step_, label in zip(fallback.steps, alternative_labels, strict=True):
+                        met[k][state] = None
+                        state = self._check_step(step_, label, state, checks)
+                    before[i + 1][state] = None
+        return list(checks)
+
+    def _check_structure(self, plan: GroundedPlan) -> None:
+        if plan.labels and len(plan.labels) != len(plan.steps):
+            raise Vetoed(f"the plan has {len(plan.steps)} steps but {len(plan.labels)} labels")
+        for fallback in plan.fallbacks:
+            if not 0 <= fallback.first <= fallback.last < len(plan.steps):
+                raise Vetoed(
+                    f"an on_failure covers steps {fallback.first + 1}..{fallback.last + 1} "
+                    f"of a plan of {len(plan.steps)} steps"
+                )
+            if not fallback.steps or (fallback.labels and len(fallback.labels) != len(fallback.steps)):
+                raise Vetoed(f"the on_failure of steps {fallback.first + 1}..{fallback.last + 1} is malformed")
+
+    def _check_step(self, step: GroundedStep, label: str, state: _PlanState, checks: dict[str, None]) -> _PlanState:
+        """The state after `step` from `state`, or Vetoed naming the step."""
+        try:
+            if isinstance(step, NavigateStep):
+                self.check_route(state.pose, [], step.goal)
+                checks[f"step {label}: route to {step.target} is clear of keep-out zones"] = None
+                return _PlanState.at(step.goal, state.holding)
+            if isinstance(step, PickStep):
+                self.check_payload(step.object_id)
+                self.check_route(state.pose, [], step.approach)
+                checks[f"step {label}: {step.object_name} is within payload"] = None
+                return _PlanState.at(step.approach, step.object_id)
+            if isinstance(step, PlaceStep):
+                self.check_route(state.pose, [], step.approach)
+                checks[f"step {label}: route to {step.surface_name} is clear"] = None
+                return _PlanState.at(step.approach, None)
+            if isinstance(step, GripperStep):
+                return self._check_gripper_step(step, label, state, checks)
+        except Vetoed as exc:
+            raise Vetoed(f"step {label} ({step_kind(step)}): {exc}") from None
+        return state
+
+    def _check_gripper_step(
+        self, step: GripperStep, label: str, state: _PlanState, checks: dict[str, None]
+    ) -> _PlanState:
+        held = self.world.objects.get(state.holding) if state.holding else None
+        name = held.name if held else state.holding
+        if step.open:
+            if name is not None:
+                # Outside place, the arm is stowed over the base: opening drops the object.
+                raise Vetoed(f"opening the gripper would drop {name} from the stowed arm; use place to put it down")
+            checks[f"step {label}: the gripper opens with nothing in it"] = None
+            return state
+        # The arm is stowed after every pick and place, so a closing gripper can only meet what it
+        # already holds (checked against the payload when it was picked).
+        checks[f"step {label}: the gripper closes on {name or 'nothing'}"] = None
+        return state
+
+
+@dataclass(frozen=True)
+class _PlanState:
+    """Where the base is predicted to stand and what the gripper holds, at a point of a plan."""
+
+    position: tuple[float, float, float] | None
+    holding: str | None
+
+    @staticmethod
+    def at(pose: Pose2D | None, holding: str | None) -> _PlanState:
+        if pose is None:
+            return _PlanState(None, holding)
+        return _PlanState((round(pose.x, 3), round(pose.y, 3), round(pose.yaw, 3)), holding)
+
+    @property
+    def pose(self) -> Pose2D | None:
+        return None if self.position is None else Pose2D(x=self.position[0], y=self.position[1], yaw=self.position[2])
+
+
+def _span(fallback: Fallback) -> tuple[int, int]:
+    return fallback.last - fallback.first, -fallback.first
+
+
+def _within(inner: Fallback, outer: Fallback) -> bool:
+    return outer.first <= inner.first and inner.last <= outer.last and inner is not outer
+
+
+def _step_labels(plan: GroundedPlan) -> list[str]:
+    if len(plan.labels) == len(plan.steps):
+        return list(plan.labels)
+    return [str(i + 1) for i in range(len(plan.steps))]
+
+
+def _fallback_labels(fallback: Fallback, labels: list[str]) -> list[str]:
+    if len(fallback.labels) == len(fallback.steps):
+        return list(fallback.labels)
+    return [f"{labels[fallback.first]} on_failure {k + 1}" for k in range(len(fallback.steps))]

@@ -131,6 +131,19 @@ def test_send_exit_codes(stack: Stack) -> None:
     dry = tether_cli(stack, "send", DEMO_PLAN, "--json", "--dry-run")
     assert dry.returncode == 0, dry.stdout + dry.stderr
     assert json.loads(dry.stdout)["status"] == "succeeded"
+    english = "Here is the plan:\n1. Fetch the cup:\n   a. go to the kitchen counter\n   b. pick up the red cup\n2. Turn left 90 degrees\n"
+    dry_text = tether_cli(stack, "send", "-", "--format", "text", "--json", "--dry-run", stdin=english)
+    assert dry_text.returncode == 0, dry_text.stdout + dry_text.stderr
+    shown_steps = json.loads(dry_text.stdout)["steps"]
+    assert [(s["action"], s["label"]) for s in shown_steps] == [
+        ("navigate_to", "1.1"),
+        ("pick", "1.2"),
+        ("navigate_to", "2"),
+    ], shown_steps
+    unreadable = tether_cli(stack, "send", "1. go to the kitchen\n2. teleport to the moon\n", "--json", "--dry-run")
+    assert unreadable.returncode == 2
+    refused = json.loads(unreadable.stdout)
+    assert refused["stage"] == "parse" and "line 2" in refused["reason"], refused
     unreachable = tether_cli(stack, "--base-port", "1100", "--robot", "nobody", "send", DEMO_PLAN, "--json")
     assert unreachable.returncode == 3
     assert json.loads(unreachable.stdout)["status"] == "unreachable"

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Iterator
 from typing import Any
 
+import msgspec
 import pytest
 
 from schemas.actions import ResultResponse
 from schemas.common import Pose2D, Vec3
-from schemas.plan import Plan, Step
+from schemas.plan import NavigateStep, Plan, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import PerceivedObject
 from services.executor.config import ExecutorConfig
@@ -59,6 +61,9 @@ class SimRobot:
         self.sim.settle(0.2)
         return next((o for o in self.sim.perceived_objects(0.0).objects if o.id == object_id), None)
 
+    def safety_stop(self) -> str | None:
+        return None
+
 
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
@@ -92,3 +97,58 @@ def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_tabl
     cup = next(o for o in truth.objects if o.id == "red_cup")
     assert truth.holding is None
     assert (cup.on, cup.room) == ("coffee_table", "living_room"), cup
+
+
+class TracingSimRobot(SimRobot):
+    """Also records every base pose a navigation passes through."""
+
+    def __init__(self, sim: Simulation) -> None:
+        super().__init__(sim)
+        self.trace: list[Pose2D] = []
+
+    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        self.trace = []
+        motion = self.sim.navigate(goal)
+        while motion.running:
+            self.sim.step(24)
+            self.trace.append(self.sim.base_pose())
+        return ResultResponse(goal_id="x", state=motion.state, result=motion.result, message=motion.message)
+
+
+def test_relative_moves_end_where_the_resolver_predicted(sim: Simulation) -> None:
+    """drive, turn (split past 120 degrees), a long backward drive and look_at, as the sim drives them."""
+    world = WorldModel(sim.world)
+    steps = [
+        {"action": "drive", "params": {"distance": 0.8}},
+        {"action": "turn", "params": {"angle": -math.pi / 2}},
+        {"action": "drive", "params": {"distance": -0.8}},
+        {"action": "turn", "params": {"angle": 1.5 * math.pi}},
+        {"action": "look_at", "target": "me"},
+    ]
+    plan = Plan(steps=[msgspec.convert(s, Step) for s in steps])
+    grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
+    robot = TracingSimRobot(sim)
+    manipulator = Manipulator(robot, ArmKinematics(), world, ExecutorConfig())
+    start = sim.base_pose()
+    for step, label in zip(grounded.steps, grounded.labels, strict=True):
+        assert isinstance(step, NavigateStep)
+        manipulator.drive_to(step.goal, threading.Event(), step.max_speed)
+        here = sim.base_pose()
+        assert math.dist((here.x, here.y), (step.goal.x, step.goal.y)) < 0.05, (label, step, here)
+        assert abs(math.remainder(here.yaw - step.goal.yaw, math.tau)) < 0.05, (label, step, here)
+        if label == "3":
+            # Backing up 0.8 m northward never overshoots the goal to come back to it.
+            assert max(p.y for p in robot.trace) < step.goal.y + 0.05
+    end = sim.base_pose()
+    # 0.8 m east, then backing 0.8 m north while facing south; facing the operator at the end.
+    assert (end.x, end.y) == pytest.approx((start.x + 0.8, start.y + 0.8), abs=0.05)
+    assert end.yaw == pytest.approx(math.atan2(1.5 - end.y, 9.5 - end.x), abs=0.05)
+
+
+def test_open_and_close_gripper_on_nothing(sim: Simulation) -> None:
+    manipulator = Manipulator(SimRobot(sim), ArmKinematics(), WorldModel(sim.world), ExecutorConfig())
+    cancel = threading.Event()
+    assert manipulator.operate_gripper(False, cancel) == "gripper closed, holding nothing"
+    assert sim.gripper_gap() < 0.005
+    assert manipulator.operate_gripper(True, cancel) == "gripper open"
+    assert sim.gripper_gap() > 0.07

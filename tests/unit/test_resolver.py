@@ -12,6 +12,7 @@ import pytest
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
 from schemas.plan import (
     DetectStep,
+    GripperStep,
     GroundedPlan,
     NavigateStep,
     PickStep,
@@ -23,7 +24,6 @@ from schemas.plan import (
     WaitStep,
 )
 from schemas.world import PerceivedHuman, PerceivedHumans, PerceivedObject, PerceivedObjects
-from services.parser.parser import parse
 from services.resolver.errors import ResolveError
 from services.resolver.names import normalise_name
 from services.resolver.resolver import Resolver, answer
@@ -72,6 +72,9 @@ def refusal(resolver: Resolver, plan: Plan, **kwargs: Any) -> ServiceError:
 
 
 def test_demo_plan_parses_and_resolves(resolver: Resolver, model: WorldModel) -> None:
+    # Imported here so a parser mid-change fails this test only, not the whole module.
+    from services.parser.parser import parse
+
     plan = parse(json.dumps(DEMO))
     grounded = resolver.resolve(plan, seen(model), Pose2D(x=6.0, y=1.2))
     go_counter, pick, go_table, place = grounded.steps
@@ -310,3 +313,296 @@ def test_answer_is_always_a_value(resolver: Resolver) -> None:
     assert isinstance(answer(resolver, plan_of({"action": "stop"})), GroundedPlan)
     reply = answer(resolver, plan_of({"action": "pick", "target": "cup"}))
     assert isinstance(reply, ServiceError) and reply.kind is ErrorKind.AMBIGUOUS_NAME
+
+
+# Groups, sub-steps and on_failure alternatives
+
+START = Pose2D(x=6.0, y=1.2, yaw=0.0)
+
+
+def test_groups_are_flattened_in_order_with_labels(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "navigate_to", "target": "kitchen counter"},
+        {"substeps": [{"action": "pick", "target": "red cup"}, {"substeps": [{"action": "say", "target": "got it"}]}]},
+        {"action": "place", "location": "coffee table"},
+    )
+    grounded = resolver.resolve(plan, None, START)
+    assert [type(s).__name__ for s in grounded.steps] == ["NavigateStep", "PickStep", "SayStep", "PlaceStep"]
+    assert grounded.labels == ["1", "2.1", "2.2.1", "3"]
+    assert grounded.fallbacks == []
+    assert msgspec.json.decode(msgspec.json.encode(grounded), type=GroundedPlan) == grounded
+
+
+def test_a_refused_sub_step_is_named_by_its_label(resolver: Resolver) -> None:
+    plan = plan_of({"action": "stop"}, {"substeps": [{"action": "stop"}, {"action": "pick", "target": "cup"}]})
+    error = refusal(resolver, plan)
+    assert error.kind is ErrorKind.AMBIGUOUS_NAME
+    assert error.step == 1 and error.message.startswith("step 2.2: 'cup' is ambiguous")
+
+
+def test_on_failure_covers_the_grounded_range_of_its_step(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "say", "target": "hello"},
+        {
+            "substeps": [{"action": "navigate_to", "target": "counter"}, {"action": "pick", "target": "red cup"}],
+            "on_failure": [{"action": "navigate_to", "target": "dock"}, {"action": "say", "target": "no cup"}],
+        },
+        {"action": "navigate_to", "target": "coffee table"},
+    )
+    grounded = resolver.resolve(plan, None, START)
+    assert grounded.labels == ["1", "2.1", "2.2", "3"]
+    (fallback,) = grounded.fallbacks
+    assert (fallback.first, fallback.last) == (1, 2)
+    assert fallback.labels == ["2 on_failure 1", "2 on_failure 2"]
+    assert fallback.steps == [NavigateStep(target="charging dock", goal=Pose2D(x=11.2, y=0.8)), SayStep(text="no cup")]
+
+
+def test_alternatives_are_grounded_from_the_state_at_the_start_of_their_step(resolver: Resolver) -> None:
+    # Before step 2 the gripper holds the cup, so the alternative may place it; after step 2 it
+    # would hold nothing and the alternative would be refused.
+    plan = plan_of(
+        {"action": "pick", "target": "red cup"},
+        {
+            "action": "place",
+            "location": "coffee table",
+            "on_failure": [{"action": "place", "location": "kitchen table"}],
+        },
+        {"action": "pick", "target": "apple"},
+    )
+    grounded = resolver.resolve(plan, None, START)
+    (fallback,) = grounded.fallbacks
+    assert (fallback.first, fallback.last) == (1, 1)
+    (place,) = fallback.steps
+    assert isinstance(place, PlaceStep) and place.surface_id == "kitchen_table"
+
+
+def test_an_alternative_is_refused_by_its_label(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "stop"}, {"action": "say", "target": "hi", "on_failure": [{"action": "pick", "target": "cup"}]}
+    )
+    error = refusal(resolver, plan)
+    assert error.step == 1 and error.message.startswith("step 2 on_failure 1: 'cup' is ambiguous")
+
+
+def test_an_on_failure_inside_an_alternative_is_refused(resolver: Resolver) -> None:
+    plan = plan_of(
+        {
+            "substeps": [
+                {
+                    "action": "detect",
+                    "target": "apple",
+                    "on_failure": [{"action": "say", "target": "hm", "on_failure": [{"action": "stop"}]}],
+                }
+            ]
+        }
+    )
+    error = refusal(resolver, plan)
+    assert error.kind is ErrorKind.INVALID_REQUEST and error.step == 0
+    assert error.message.startswith("step 1.1 on_failure 1: an on_failure inside an on_failure alternative")
+
+
+def test_on_failure_inside_a_group_with_its_own_on_failure_is_fine(resolver: Resolver) -> None:
+    plan = plan_of(
+        {
+            "substeps": [
+                {"action": "detect", "target": "apple", "on_failure": [{"action": "say", "target": "no apple"}]},
+                {"action": "detect", "target": "blue book"},
+            ],
+            "on_failure": [{"action": "say", "target": "nothing found"}],
+        }
+    )
+    inner, outer = resolver.resolve(plan).fallbacks
+    assert (inner.first, inner.last, inner.labels) == (0, 0, ["1.1 on_failure 1"])
+    assert (outer.first, outer.last, outer.labels) == (0, 1, ["1 on_failure 1"])
+
+
+# Relative moves: drive, turn, look_at
+
+
+def test_drive_and_turn_are_relative_to_the_predicted_pose(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "drive", "params": {"distance": 1.0}, "units": {"distance": "m"}},
+        {"action": "turn", "params": {"angle": math.pi / 2}, "units": {"angle": "rad"}},
+        {"action": "drive", "params": {"distance": 0.5, "speed": 0.2}},
+        {"action": "navigate_to", "target": "kitchen counter"},
+        {"action": "turn", "params": {"angle": -math.pi / 2}},
+    )
+    steps = resolver.resolve(plan, None, START).steps
+    assert steps == [
+        NavigateStep(target="1.00 m forward", goal=Pose2D(x=7.0, y=1.2, yaw=0.0)),
+        NavigateStep(target="90° left", goal=Pose2D(x=7.0, y=1.2, yaw=1.5708)),
+        NavigateStep(target="0.50 m forward", goal=Pose2D(x=7.0, y=1.7, yaw=1.5708), max_speed=0.2),
+        NavigateStep(target="kitchen counter", goal=Pose2D(x=2.5, y=1.05, yaw=-1.5708)),
+        # From the counter's approach pose (facing south): a right turn faces west.
+        NavigateStep(target="90° right", goal=Pose2D(x=2.5, y=1.05, yaw=3.1416)),
+    ]
+
+
+def test_after_pick_and_place_the_robot_stands_at_their_approach(resolver: Resolver, model: WorldModel) -> None:
+    plan = plan_of({"action": "pick", "target": "red cup"}, {"action": "drive", "params": {"distance": -0.2}})
+    back = resolver.resolve(plan, None, START).steps[1]
+    approach = model.furniture["kitchen_counter"].approach  # facing south at (2.5, 1.05)
+    assert isinstance(back, NavigateStep) and back.target == "0.20 m backward"
+    assert (back.goal.x, back.goal.y, back.goal.yaw) == pytest.approx((approach.x, approach.y + 0.2, approach.yaw))
+
+
+def test_a_long_backward_drive_turns_round_drives_and_turns_back(resolver: Resolver) -> None:
+    plan = plan_of({"action": "drive", "params": {"distance": -1.0}}, {"action": "say", "target": "done"})
+    grounded = resolver.resolve(plan, None, START)
+    away, back, _ = grounded.steps
+    # Facing the way it goes, so the straight-in leg to the goal lies between start and goal.
+    assert isinstance(away, NavigateStep) and away.goal == Pose2D(x=5.0, y=1.2, yaw=3.1416)
+    assert isinstance(back, NavigateStep) and back.goal == Pose2D(x=5.0, y=1.2, yaw=0.0)
+    assert grounded.labels == ["1", "1", "2"]
+
+
+def test_a_turn_past_120_degrees_is_split_so_it_turns_the_way_asked(resolver: Resolver) -> None:
+    plan = plan_of({"action": "turn", "params": {"angle": 1.5 * math.pi}})
+    steps = resolver.resolve(plan, None, START).steps
+    assert [s.target for s in steps if isinstance(s, NavigateStep)] == [
+        "270° left (1/3)",
+        "270° left (2/3)",
+        "270° left (3/3)",
+    ]
+    yaws = [s.goal.yaw for s in steps if isinstance(s, NavigateStep)]
+    assert yaws == pytest.approx([math.pi / 2, math.pi, -math.pi / 2], abs=1e-3)
+    # A full turn ends where it started, but does turn.
+    full = resolver.resolve(plan_of({"action": "turn", "params": {"angle": -2 * math.pi}}), None, START).steps
+    assert len(full) == 3 and [s.goal.yaw for s in full if isinstance(s, NavigateStep)][-1] == pytest.approx(0.0)
+
+
+def test_look_at_turns_in_place_to_face_the_target(resolver: Resolver) -> None:
+    plan = plan_of({"action": "look_at", "target": "me"}, {"action": "look_at", "target": "coffee table"})
+    me, table = resolver.resolve(plan, None, START).steps
+    assert isinstance(me, NavigateStep) and me.target == "facing operator"
+    assert (me.goal.x, me.goal.y) == (6.0, 1.2)
+    assert me.goal.yaw == pytest.approx(math.atan2(1.5 - 1.2, 9.5 - 6.0), abs=1e-4)
+    assert isinstance(table, NavigateStep) and table.goal.yaw == pytest.approx(
+        math.atan2(2.5 - 1.2, 8.0 - 6.0), abs=1e-4
+    )
+    held = seen_holding(resolver)
+    error = refusal(resolver, plan_of({"action": "look_at", "target": "red cup"}), objects=held, robot=START)
+    assert error.kind is ErrorKind.PRECONDITION and "in the gripper" in error.message
+
+
+def seen_holding(resolver: Resolver) -> PerceivedObjects:
+    return seen(resolver.model, red_cup=(Vec3(x=6.0, y=1.2, z=1.0), "gripper"))
+
+
+@pytest.mark.parametrize(
+    "step",
+    [
+        {"action": "drive", "params": {"distance": 1.0}},
+        {"action": "turn", "params": {"angle": 1.0}},
+        {"action": "look_at", "target": "me"},
+    ],
+)
+def test_relative_moves_without_a_robot_pose_are_refused(resolver: Resolver, step: dict[str, Any]) -> None:
+    error = refusal(resolver, plan_of(step))
+    assert error.kind is ErrorKind.PRECONDITION and "pose is unknown" in error.message
+    # A named place first makes the pose known.
+    grounded = resolver.resolve(plan_of({"action": "navigate_to", "target": "kitchen"}, step))
+    assert len(grounded.steps) == 2
+
+
+def test_a_relative_move_after_an_on_failure_that_ends_elsewhere_is_refused(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "navigate_to", "target": "kitchen", "on_failure": [{"action": "navigate_to", "target": "dock"}]},
+        {"action": "turn", "params": {"angle": 1.0}},
+    )
+    error = refusal(resolver, plan, robot=START)
+    assert error.step == 1 and "depends on whether its on_failure ran" in error.message
+    # If both ways end at the same place, the pose after is known.
+    plan = plan_of(
+        {"action": "navigate_to", "target": "kitchen", "on_failure": [{"action": "navigate_to", "target": "kitchen"}]},
+        {"action": "turn", "params": {"angle": 1.0}},
+    )
+    assert resolver.resolve(plan, None, START).steps[1] == NavigateStep(
+        target="57° left", goal=Pose2D(x=2.5, y=2.5, yaw=1.0)
+    )
+
+
+def test_relative_moves_in_an_alternative_need_a_step_that_kept_the_base_still(resolver: Resolver) -> None:
+    turn = {"action": "turn", "params": {"angle": math.pi / 2}}
+    # The failing step may stop the base anywhere: where to turn from is unknown.
+    error = refusal(
+        resolver, plan_of({"action": "navigate_to", "target": "kitchen", "on_failure": [turn]}), robot=START
+    )
+    assert error.message.startswith("step 1 on_failure 1: turn moves relative to where the robot stands")
+    assert "when step 1 fails is not known in advance" in error.message
+    # A detect does not move the base: the alternative turns from where it stands.
+    plan = plan_of(
+        {"action": "detect", "target": "apple", "on_failure": [turn, {"action": "detect", "target": "apple"}]}
+    )
+    (fallback,) = resolver.resolve(plan, None, START).fallbacks
+    assert fallback.steps[0] == NavigateStep(target="90° left", goal=Pose2D(x=6.0, y=1.2, yaw=1.5708))
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [
+        ({"action": "drive"}, "drive needs a 'distance' in metres"),
+        ({"action": "drive", "params": {"distance": 8.0}}, "outside -5..5 m"),
+        ({"action": "drive", "params": {"distance": 50}, "units": {"distance": "cm"}}, "it must be in m"),
+        ({"action": "drive", "params": {"distance": "far"}}, "must be a number in m"),
+        ({"action": "drive", "params": {"distance": 1.0, "speed": -1.0}}, "speed -1 m/s is outside"),
+        ({"action": "turn"}, "turn needs an 'angle' in radians"),
+        ({"action": "turn", "params": {"angle": 90}}, "outside one full turn"),
+        ({"action": "turn", "params": {"angle": 1.0, "speed": 0.3}}, "cannot yet turn slower"),
+        ({"action": "look_at"}, "look_at needs a target"),
+    ],
+)
+def test_bad_relative_moves_are_refused(resolver: Resolver, step: dict[str, Any], expected: str) -> None:
+    error = refusal(resolver, plan_of({"action": "stop"}, step), robot=START)
+    assert error.step == 1 and expected in error.message and error.message.startswith("step 2:")
+
+
+def test_navigate_to_carries_the_plan_speed(resolver: Resolver) -> None:
+    step = resolver.resolve(plan_of({"action": "navigate_to", "target": "kitchen", "params": {"speed": 0.3}})).steps[0]
+    assert isinstance(step, NavigateStep) and step.max_speed == 0.3
+
+
+def test_too_many_robot_steps_are_refused(resolver: Resolver) -> None:
+    turns = [{"action": "turn", "params": {"angle": 2 * math.pi}} for _ in range(34)]  # 3 goals each
+    error = refusal(resolver, plan_of(*turns), robot=START)
+    assert "needs 102 robot steps" in error.message
+
+
+# The gripper, and what this robot cannot do
+
+
+def test_open_and_close_gripper(resolver: Resolver) -> None:
+    plan = plan_of({"action": "close_gripper"}, {"action": "open_gripper", "params": {"width": 0.05}})
+    assert resolver.resolve(plan).steps == [GripperStep(open=False), GripperStep(open=True)]
+
+
+def test_opening_the_gripper_releases_what_it_holds(resolver: Resolver) -> None:
+    plan = plan_of(
+        {"action": "pick", "target": "red cup"},
+        {"action": "open_gripper"},
+        {"action": "close_gripper"},  # on nothing: holds nothing
+        {"action": "place", "location": "coffee table"},
+    )
+    error = refusal(resolver, plan, robot=START)
+    assert error.step == 3 and error.kind is ErrorKind.PRECONDITION and "holds nothing" in error.message
+    # The cup was released: it may be picked again.
+    plan = plan_of(
+        {"action": "pick", "target": "red cup"}, {"action": "open_gripper"}, {"action": "pick", "target": "red cup"}
+    )
+    pick = resolver.resolve(plan, None, START).steps[2]
+    assert isinstance(pick, PickStep) and pick.support_id == "floor"
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [
+        ({"action": "gesture", "params": {"gesture": "wave"}}, "this robot cannot gesture yet"),
+        ({"action": "move_arm", "target": "home"}, "this robot cannot move its arm on its own yet"),
+    ],
+)
+def test_what_this_robot_cannot_do_is_refused_not_skipped(
+    resolver: Resolver, step: dict[str, Any], expected: str
+) -> None:
+    error = refusal(resolver, plan_of({"action": "say", "target": "hi"}, step))
+    assert error.kind is ErrorKind.INVALID_REQUEST and error.step == 1
+    assert expected in error.message and "remove the step" in error.message

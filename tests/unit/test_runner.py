@@ -2,15 +2,34 @@
 
 from __future__ import annotations
 
+import re
 import threading
 from typing import Any, cast
 
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
-from schemas.plan import GroundedPlan, NavigateStep, Plan, PlanApproved, SayStep, Step, WaitStep
-from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.plan import (
+    Fallback,
+    GripperStep,
+    GroundedPlan,
+    NavigateStep,
+    Plan,
+    PlanApproved,
+    SayStep,
+    Step,
+    WaitStep,
+)
+from schemas.robot import (
+    GRIPPER_MAX_GAP,
+    FollowJointTrajectoryGoal,
+    GripperCommandGoal,
+    GripperCommandResult,
+    NavigateToPoseGoal,
+    Twist,
+)
 from schemas.world import PerceivedObject
+from services.actionlib import GoalRejected
 from services.executor.config import ExecutorConfig
 from services.executor.kinematics import ArmKinematics
 from services.executor.manipulation import Manipulator
@@ -47,12 +66,25 @@ class ScriptedPlanner:
 
 
 class ScriptedRobot:
-    """Navigation ends as scripted; waits for cancel when told to block."""
+    """Navigation ends as scripted (per goal pose in `outcomes`, else `state`); waits for cancel
+    when told to block. The gripper succeeds and holds nothing."""
 
-    def __init__(self, state: GoalState = GoalState.SUCCEEDED, block: bool = False) -> None:
+    def __init__(
+        self,
+        state: GoalState = GoalState.SUCCEEDED,
+        block: bool = False,
+        outcomes: dict[Pose2D, GoalState | str] | None = None,
+        holding: str | None = None,
+        stop_reason: str | None = None,
+    ) -> None:
         self.state = state
         self.block = block
+        # A GoalState ends the goal so; a string is a rejection by safety with that reason.
+        self.outcomes = outcomes or {}
+        self.holding = holding
+        self.stop_reason = stop_reason
         self.goals: list[NavigateToPoseGoal] = []
+        self.grips: list[GripperCommandGoal] = []
         self.started = threading.Event()
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
@@ -61,15 +93,18 @@ class ScriptedRobot:
         if self.block:
             cancel.wait(5.0)
             return ResultResponse(goal_id="g", state=GoalState.CANCELED, message="canceled")
-        return ResultResponse(
-            goal_id="g", state=self.state, message="stalled" if self.state is not GoalState.SUCCEEDED else ""
-        )
+        state = self.outcomes.get(goal.pose, self.state)
+        if not isinstance(state, GoalState):
+            raise GoalRejected(state)
+        return ResultResponse(goal_id="g", state=state, message="stalled" if state is not GoalState.SUCCEEDED else "")
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
         raise AssertionError("no arm motion in these plans")
 
     def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        raise AssertionError("no gripper motion in these plans")
+        self.grips.append(goal)
+        result = GripperCommandResult(position=goal.position, stalled=False, reached_goal=True)
+        return ResultResponse(goal_id="g", state=GoalState.SUCCEEDED, result=result)
 
     def cmd_vel(self, twist: Twist) -> None:
         pass
@@ -84,10 +119,13 @@ class ScriptedRobot:
         return None
 
     def held_object(self) -> str | None:
-        return None
+        return self.holding
 
     def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
         return None
+
+    def safety_stop(self) -> str | None:
+        return self.stop_reason
 
 
 def runner(planner: ScriptedPlanner, robot: ScriptedRobot) -> PlanRunner:
@@ -173,9 +211,180 @@ def test_the_plan_side_knows_no_robot_command_key_and_no_reset() -> None:
 
     import services
 
-    forbidden = ("ROBOT_NAVIGATE", "ROBOT_TRAJECTORY", "ROBOT_GRIPPER", "ROBOT_CMD_VEL", '"robot/', "RESET", "reset")
+    # Whole words, so "preset" is not "reset".
+    forbidden = ("ROBOT_NAVIGATE", "ROBOT_TRAJECTORY", "ROBOT_GRIPPER", "ROBOT_CMD_VEL", "RESET", "reset")
     for package in ("parser", "resolver", "executor"):
         for path in (Path(services.__file__).parent / package).glob("*.py"):
             source = path.read_text()
+            assert '"robot/' not in source, f"{path} names a robot/ key"
             for name in forbidden:
-                assert name not in source, f"{path} names {name}"
+                assert not re.search(rf"\b{name}\b", source), f"{path} names {name}"
+
+
+# Sub-steps, on_failure alternatives and the gripper
+
+KITCHEN = Pose2D(x=2.5, y=2.5)
+HALLWAY = Pose2D(x=10.0, y=7.0)
+DOCK = Pose2D(x=11.2, y=0.8)
+
+
+def go(pose: Pose2D, name: str = "somewhere") -> NavigateStep:
+    return NavigateStep(target=name, goal=pose)
+
+
+def grounded(
+    steps: list[Any], labels: list[str] | None = None, fallbacks: list[Fallback] | None = None
+) -> GroundedPlan:
+    return GroundedPlan(
+        steps=steps, source=PLAN, labels=labels or [str(i + 1) for i in range(len(steps))], fallbacks=fallbacks or []
+    )
+
+
+def outcome(plan: GroundedPlan, robot: ScriptedRobot, cancel: threading.Event | None = None) -> Any:
+    result, _ = run(ScriptedPlanner(resolve=plan), robot, cancel)
+    return result
+
+
+def table(result: Any) -> list[tuple[str | None, StepStatus]]:
+    return [(s.label, s.status) for s in result.steps]
+
+
+def test_results_and_feedback_carry_the_label_of_each_step() -> None:
+    plan = grounded([go(KITCHEN), SayStep(text="a"), SayStep(text="b")], labels=["1", "2.1", "2.2"])
+    result, feedback = run(ScriptedPlanner(resolve=plan), ScriptedRobot())
+    assert table(result) == [("1", StepStatus.SUCCEEDED), ("2.1", StepStatus.SUCCEEDED), ("2.2", StepStatus.SUCCEEDED)]
+    assert [f.label for f in feedback if f.status is StepStatus.SUCCEEDED] == ["1", "2.1", "2.2"]
+
+
+def test_gripper_steps_use_the_gripper_action() -> None:
+    robot = ScriptedRobot()
+    result = outcome(grounded([GripperStep(open=False), GripperStep(open=True)]), robot)
+    assert result.status is PlanStatus.SUCCEEDED
+    assert [g.position for g in robot.grips] == [0.0, GRIPPER_MAX_GAP]
+    assert all(g.object_id is None for g in robot.grips)
+    assert "holding nothing" in result.steps[0].message
+
+
+def test_opening_the_gripper_never_drops_what_it_holds() -> None:
+    robot = ScriptedRobot(holding="red_cup")
+    result = outcome(grounded([GripperStep(open=True)]), robot)
+    assert result.status is PlanStatus.FAILED and "would drop red cup" in result.reason
+    assert robot.grips == []
+    # Closing on what it holds sends nothing: it is closed already.
+    result = outcome(grounded([GripperStep(open=False)]), robot)
+    assert result.status is PlanStatus.SUCCEEDED and robot.grips == []
+
+
+def test_the_plan_speed_limit_reaches_the_navigation_goal() -> None:
+    robot = ScriptedRobot()
+    outcome(grounded([NavigateStep(target="1.00 m forward", goal=KITCHEN, max_speed=0.2), go(DOCK)]), robot)
+    assert [g.max_speed for g in robot.goals] == [0.2, NavigateToPoseGoal(pose=DOCK).max_speed]
+
+
+def test_a_failed_step_runs_its_on_failure_and_the_plan_goes_on_after_it() -> None:
+    # Step 1 is a group (1.1, 1.2); 1.1 fails, so 1.2 is skipped, the alternative runs, then step 2.
+    alternative = Fallback(
+        first=0, last=1, steps=[go(DOCK), SayStep(text="sorry")], labels=["1 on_failure 1", "1 on_failure 2"]
+    )
+    plan = grounded([go(KITCHEN), SayStep(text="there"), go(HALLWAY)], ["1.1", "1.2", "2"], [alternative])
+    robot = ScriptedRobot(outcomes={KITCHEN: GoalState.ABORTED})
+    result = outcome(plan, robot)
+    assert result.status is PlanStatus.SUCCEEDED
+    assert table(result) == [
+        ("1.1", StepStatus.FAILED),
+        ("1 on_failure 1", StepStatus.SUCCEEDED),
+        ("1 on_failure 2", StepStatus.SUCCEEDED),
+        ("1.2", StepStatus.SKIPPED),
+        ("2", StepStatus.SUCCEEDED),
+    ]
+    assert [g.pose for g in robot.goals] == [KITCHEN, DOCK, HALLWAY]
+    assert "step 1.1 (navigate_to) failed: navigation aborted: stalled" in result.reason
+    assert "on_failure ran instead" in result.reason
+
+
+def test_when_the_on_failure_fails_too_the_plan_fails_with_both_reasons() -> None:
+    alternative = Fallback(
+        first=0, last=0, steps=[go(DOCK), SayStep(text="never")], labels=["1 on_failure 1", "1 on_failure 2"]
+    )
+    plan = grounded([go(KITCHEN), go(HALLWAY)], fallbacks=[alternative])
+    robot = ScriptedRobot(outcomes={KITCHEN: GoalState.ABORTED, DOCK: GoalState.ABORTED})
+    result = outcome(plan, robot)
+    assert result.status is PlanStatus.FAILED
+    assert result.reason == (
+        "step 1 (navigate_to) failed: navigation aborted: stalled; "
+        "then step 1 on_failure 1 (navigate_to) failed: navigation aborted: stalled"
+    )
+    assert table(result) == [
+        ("1", StepStatus.FAILED),
+        ("1 on_failure 1", StepStatus.FAILED),
+        ("1 on_failure 2", StepStatus.SKIPPED),
+        ("2", StepStatus.SKIPPED),
+    ]
+    assert [g.pose for g in robot.goals] == [KITCHEN, DOCK]
+
+
+def test_an_enclosing_on_failure_takes_over_when_the_inner_one_fails() -> None:
+    # Step 1 is a group whose sub-step 1.1 has its own on_failure; both alternatives are tried.
+    inner = Fallback(first=0, last=0, steps=[go(DOCK)], labels=["1.1 on_failure 1"])
+    outer = Fallback(first=0, last=1, steps=[SayStep(text="gave up")], labels=["1 on_failure 1"])
+    plan = grounded([go(KITCHEN), SayStep(text="x"), go(HALLWAY)], ["1.1", "1.2", "2"], [inner, outer])
+    robot = ScriptedRobot(outcomes={KITCHEN: GoalState.ABORTED, DOCK: GoalState.ABORTED})
+    result = outcome(plan, robot)
+    assert result.status is PlanStatus.SUCCEEDED
+    assert table(result) == [
+        ("1.1", StepStatus.FAILED),
+        ("1.1 on_failure 1", StepStatus.FAILED),
+        ("1 on_failure 1", StepStatus.SUCCEEDED),
+        ("1.2", StepStatus.SKIPPED),
+        ("2", StepStatus.SUCCEEDED),
+    ]
+    # When the inner one works, the group goes on with 1.2.
+    robot = ScriptedRobot(outcomes={KITCHEN: GoalState.ABORTED})
+    result = outcome(plan, robot)
+    assert [label for label, status in table(result) if status is StepStatus.SUCCEEDED] == [
+        "1.1 on_failure 1",
+        "1.2",
+        "2",
+    ]
+
+
+def test_no_on_failure_runs_after_a_veto_an_estop_or_an_interruption() -> None:
+    alternative = Fallback(first=0, last=0, steps=[SayStep(text="should not be said")], labels=["1 on_failure 1"])
+    plan = grounded([go(KITCHEN), go(HALLWAY)], fallbacks=[alternative])
+    for robot, why in (
+        (ScriptedRobot(outcomes={KITCHEN: "vetoed by safety: inside keep-out zone"}), "safety refused the motion"),
+        (ScriptedRobot(state=GoalState.ABORTED, stop_reason="e-stop latched by operator: test"), "e-stop latched"),
+        (ScriptedRobot(outcomes={KITCHEN: GoalState.CANCELED}), "the robot side ended the motion"),
+    ):
+        result = outcome(plan, robot)
+        assert result.status is PlanStatus.FAILED, why
+        assert f"no on_failure runs: {why}" in result.reason
+        assert table(result) == [("1", StepStatus.FAILED), ("2", StepStatus.SKIPPED)]
+        assert [g.pose for g in robot.goals] == [KITCHEN]
+
+
+def test_no_on_failure_runs_after_a_cancel() -> None:
+    alternative = Fallback(first=0, last=0, steps=[SayStep(text="should not be said")], labels=["1 on_failure 1"])
+    robot = ScriptedRobot(block=True)
+    cancel = threading.Event()
+    box: list[Any] = []
+    plan = grounded([go(KITCHEN), go(HALLWAY)], fallbacks=[alternative])
+    worker = threading.Thread(target=lambda: box.append(outcome(plan, robot, cancel)))
+    worker.start()
+    assert robot.started.wait(5.0)
+    cancel.set()
+    worker.join(5.0)
+    result = box[0]
+    assert result.status is PlanStatus.CANCELED
+    assert table(result) == [("1", StepStatus.CANCELED), ("2", StepStatus.SKIPPED)]
+
+
+def test_a_dry_run_lists_the_alternatives_after_the_steps_they_cover() -> None:
+    alternative = Fallback(first=0, last=1, steps=[SayStep(text="sorry")], labels=["1 on_failure 1"])
+    plan = grounded([go(KITCHEN), SayStep(text="x"), go(HALLWAY)], ["1.1", "1.2", "2"], [alternative])
+    robot = ScriptedRobot()
+    result = runner(ScriptedPlanner(resolve=plan), robot).run(
+        ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list().append
+    )
+    assert [s.label for s in result.steps] == ["1.1", "1.2", "1 on_failure 1", "2"]
+    assert robot.goals == []

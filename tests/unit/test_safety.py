@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import msgspec
 import pybullet_data
 import pytest
 
 from schemas.common import Pose2D, Vec3
-from schemas.plan import GroundedPlan, NavigateStep, PickStep, Plan, Step
+from schemas.plan import Fallback, GripperStep, GroundedPlan, NavigateStep, PickStep, PlaceStep, Plan, SayStep, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
 from services.safety.config import SafetyConfig
 from services.safety.errors import Unauthorized, Vetoed
@@ -185,3 +186,75 @@ def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_p
     assert not EstopLatch("secret", state).state.latched
     state.write_text("{ not json")
     assert EstopLatch("secret", state).state.latched
+
+
+# Whole plans with sub-steps, on_failure alternatives and the gripper
+
+SOURCE = Plan(steps=[Step(action="stop")])  # type: ignore[arg-type]
+CLEAR = Pose2D(x=9.0, y=6.0)
+# From CLEAR the way to EAST runs south of the stairs; from NORTH it cuts through them.
+NORTH = Pose2D(x=9.8, y=8.5)
+EAST = Pose2D(x=11.5, y=6.0)
+
+
+def nav(pose: Pose2D, name: str = "there") -> NavigateStep:
+    return NavigateStep(target=name, goal=pose)
+
+
+def test_an_unsafe_alternative_refuses_the_plan_naming_it(policy: SafetyPolicy) -> None:
+    stairs = Fallback(first=0, last=0, steps=[nav(Pose2D(x=11.2, y=8.0), "stairs")], labels=["1.1 on_failure 1"])
+    plan = GroundedPlan(steps=[nav(CLEAR), SayStep(text="hi")], source=SOURCE, labels=["1.1", "1.2"])
+    assert policy.check_plan(plan, Pose2D(x=9.0, y=5.5))
+    with pytest.raises(Vetoed, match=r"^step 1\.1 on_failure 1 \(navigate_to\).*'stairs'"):
+        policy.check_plan(msgspec.structs.replace(plan, fallbacks=[stairs]), Pose2D(x=9.0, y=5.5))
+
+
+def test_an_alternative_is_checked_from_wherever_the_steps_it_covers_start(policy: SafetyPolicy) -> None:
+    # Step 2 can fail when the base stands at NORTH: the alternative would drive from there.
+    to_east = Fallback(first=0, last=1, steps=[nav(EAST)], labels=["1 on_failure 1"])
+    plan = GroundedPlan(steps=[nav(NORTH), nav(CLEAR)], source=SOURCE, labels=["1.1", "1.2"], fallbacks=[to_east])
+    with pytest.raises(Vetoed, match=r"^step 1 on_failure 1 \(navigate_to\).*crosses keep-out zone 'stairs'"):
+        policy.check_plan(plan, CLEAR)
+    # Covering only the first step, it only starts from CLEAR.
+    covering_first = msgspec.structs.replace(to_east, last=0)
+    assert policy.check_plan(msgspec.structs.replace(plan, fallbacks=[covering_first]), CLEAR)
+
+
+def test_the_steps_after_an_alternative_are_checked_from_where_it_ends(policy: SafetyPolicy) -> None:
+    plan = GroundedPlan(steps=[nav(CLEAR), nav(EAST)], source=SOURCE)
+    assert policy.check_plan(plan, Pose2D(x=9.0, y=5.5))
+    north = Fallback(first=0, last=0, steps=[nav(NORTH)])
+    with pytest.raises(Vetoed, match=r"^step 2 \(navigate_to\).*crosses keep-out zone 'stairs'"):
+        policy.check_plan(msgspec.structs.replace(plan, fallbacks=[north]), Pose2D(x=9.0, y=5.5))
+
+
+def test_the_gripper_may_not_drop_what_it_holds(policy: SafetyPolicy) -> None:
+    counter = Pose2D(x=2.5, y=1.05, yaw=-1.57)
+    cup = PickStep(
+        object_id="red_cup",
+        object_name="red cup",
+        position=Vec3(x=2.2, y=0.55, z=0.95),
+        mass=0.25,
+        support_id="kitchen_counter",
+        approach=counter,
+    )
+    place = PlaceStep(
+        surface_id="kitchen_counter", surface_name="kitchen counter", position=cup.position, approach=counter
+    )
+    start = Pose2D(x=2.5, y=2.0)
+    with pytest.raises(Vetoed, match=r"^step 3 \(gripper\): opening the gripper would drop red cup"):
+        policy.check_plan(
+            GroundedPlan(steps=[cup, GripperStep(open=False), GripperStep(open=True)], source=SOURCE), start
+        )
+    checks = policy.check_plan(GroundedPlan(steps=[cup, place, GripperStep(open=True)], source=SOURCE), start)
+    assert "step 3: the gripper opens with nothing in it" in checks
+    # An alternative that drops it is refused too.
+    drop = Fallback(first=1, last=1, steps=[GripperStep(open=True)], labels=["2 on_failure 1"])
+    with pytest.raises(Vetoed, match=r"^step 2 on_failure 1 \(gripper\): .*would drop red cup"):
+        policy.check_plan(GroundedPlan(steps=[cup, place], source=SOURCE, fallbacks=[drop]), start)
+
+
+def test_a_malformed_alternative_is_refused(policy: SafetyPolicy) -> None:
+    beyond = Fallback(first=0, last=3, steps=[SayStep(text="x")])
+    with pytest.raises(Vetoed, match=r"covers steps 1\.\.4 of a plan of 1 steps"):
+        policy.check_plan(GroundedPlan(steps=[SayStep(text="hi")], source=SOURCE, fallbacks=[beyond]), CLEAR)

@@ -1,0 +1,359 @@
+"""Parser throughput in-process, and plan/parse round trips to the real parser service against bare Zenoh.
+
+    python -m bench.parser --json        one JSON object on stdout, progress on stderr
+    python -m bench.parser               a short table
+
+Throughput: a 10-step JSON plan and a 10-line English plan through `services.parser.parser.parse`,
+each timed alone; plans/s is one over the median parse time.
+
+Round trips: the parser service is a real process started by the Supervisor on its own robot name
+and ports; readiness is its liveliness token. The baseline is the bare Zenoh echo of
+`bench.transport`, answered by the same parser process on the same session: the service declares it
+when started with TETHER_BENCH_ECHO=1 (a runtime hook; without it the baseline is reported missing).
+Both kinds of round trip are interleaved, alternating which goes first, as in `bench.transport`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.metadata
+import json
+import os
+import platform
+import signal
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from bench.transport import free_base_port, percentile
+from schemas import keys
+from schemas.common import ServiceError
+from schemas.plan import Plan, PlanText
+from services import runtime
+from services.runtime import CallError, Node, NodeSettings
+from tether.supervisor import Supervisor
+
+SERVICE = "parser"
+GOALS = {"goal_json_plans_per_s": 5000.0, "goal_text_plans_per_s": 1000.0, "goal_ratio_p50": 1.5}
+READY_TIMEOUT = 30.0
+CALL_TIMEOUT = 2.0
+STOP_TIMEOUT = 5.0
+MAX_N = 20_000
+
+JSON_PLAN = json.dumps(
+    {
+        "description": "Bring the red cup from the kitchen to the living room",
+        "plan": [
+            {"action": "navigate_to", "target": "kitchen", "description": "go where the cup is"},
+            {"action": "pick_up", "target_object": "red cup", "target_location": "kitchen counter"},
+            {"action": "navigate_to", "target": "living room", "parameters": {"speed": 0.5}},
+            {"action": "place", "target_object": "red cup", "target_location": "coffee table"},
+            {"action": "say", "parameters": {"text": "here you are"}},
+            {"action": "turn", "parameters": {"angle": "90 degrees", "direction": "left"}},
+            {"action": "drive", "parameters": {"distance": "30 cm", "direction": "forward"}},
+            {"action": "wait", "parameters": {"duration": 2}},
+            {"action": "open_gripper"},
+            {"action": "navigate_to", "target": "kitchen", "description": "go back"},
+        ],
+    },
+    indent=2,
+)
+TEXT_PLAN = (
+    "1. Go to the kitchen\n"
+    "2. Pick up the red cup from the kitchen counter\n"
+    "3. Go to the living room\n"
+    "4. Put it on the coffee table\n"
+    '5. Say "here you are"\n'
+    "6. Turn left 90 degrees\n"
+    "7. Drive forward 30 cm\n"
+    "8. Wait 2 seconds\n"
+    "9. Open the gripper\n"
+    "10. Go back to the kitchen"
+)
+REQUEST = PlanText(text=JSON_PLAN, format="json")
+
+
+class BenchError(Exception):
+    """A part of the bench could not run; the message says which and why."""
+
+
+def progress(message: str) -> None:
+    print(f"bench.parser: {message}", file=sys.stderr, flush=True)
+
+
+def ms_summary(ms: list[float]) -> tuple[float, float]:
+    return round(statistics.median(ms), 4), round(percentile(ms, 99), 4)
+
+
+# In-process throughput
+
+
+def parse_times(text: str, fmt: str, seconds: float, warmup: int) -> list[float]:
+    """Milliseconds per parse, each timed alone, for `seconds` after `warmup` uncounted parses."""
+    try:
+        # Imported here, so a parser that does not even import is reported like one that fails.
+        from services.parser.parser import parse
+
+        plan = parse(text, fmt)
+    except Exception as exc:  # a bench reports any failure of the code it measures, then goes on
+        raise BenchError(f"{fmt} plan: {type(exc).__name__}: {exc}") from None
+    if len(plan.steps) != 10:
+        progress(f"note: the {fmt} plan parsed into {len(plan.steps)} steps, not 10")
+    for _ in range(warmup):
+        parse(text, fmt)
+    times: list[float] = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline or len(times) < 10:
+        started = time.perf_counter_ns()
+        parse(text, fmt)
+        times.append((time.perf_counter_ns() - started) / 1e6)
+    return times
+
+
+def throughput(text: str, fmt: str, seconds: float, warmup: int) -> dict[str, Any]:
+    progress(f"parsing the {fmt} plan in-process for {seconds:g} s")
+    times = parse_times(text, fmt, seconds, warmup)
+    p50, p99 = ms_summary(times)
+    return {"plans_per_s": round(1000.0 / p50, 1), "p50_ms": p50, "p99_ms": p99, "n": len(times)}
+
+
+# Round trips to the service
+
+
+@contextlib.contextmanager
+def parser_service(settings: NodeSettings, log_dir: Path) -> Iterator[Node]:
+    """The parser service as a child process, with a client Node once it is alive; always stopped."""
+    supervisor = Supervisor(settings, log_dir, extra_env={runtime.BENCH_ECHO_ENV: "1"})
+    node: Node | None = None
+    try:
+        supervisor.start(SERVICE)
+        node = Node("cli", settings)
+        wait_ready(node, supervisor)
+        yield node
+    finally:
+        # A second Ctrl-C must not leave the child running: stopping takes at most STOP_TIMEOUT + 10 s.
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            if node is not None:
+                node.close()
+            supervisor.stop_all(timeout=STOP_TIMEOUT)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+
+def wait_ready(node: Node, supervisor: Supervisor) -> None:
+    """Until the service holds its liveliness token; a service that exits is reported at once."""
+    deadline = time.monotonic() + READY_TIMEOUT
+    while node.wait_alive({SERVICE}, timeout=0.5):
+        code = supervisor.exited().get(SERVICE)
+        if code is None and time.monotonic() < deadline:
+            continue
+        why = f"not alive within {READY_TIMEOUT:g} s" if code is None else f"exited with code {code}"
+        tail = supervisor.log_tail(SERVICE)
+        progress(f"parser service log:\n{tail}")
+        raise BenchError(f"parser service {why}: {last_line(tail)}")
+
+
+def last_line(log: str) -> str:
+    """The last line of a log with text on it: the exception of a traceback, without rich's box drawing."""
+    lines = [line.strip(" \u2502\u2570\u2500\u256f\u256d\u256e") for line in log.splitlines()]
+    return next((line for line in reversed(lines) if line), "no output")
+
+
+def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float | None]]:
+    """Interleaved round trips in ms: (plan/parse, bare echo); bare entries are None without the echo."""
+    raw_key = keys.bench_echo_key(node.robot)
+    # The echo carries the same bytes as the parse request, so both move the same payload out.
+    payload = runtime.encode(REQUEST)
+
+    def bare() -> bool:
+        for reply in node.session.get(raw_key, payload=payload, timeout=CALL_TIMEOUT):
+            if reply.ok is None or reply.ok.payload.to_bytes() != payload:
+                raise BenchError(f"bare echo failed: {reply.err.payload.to_string() if reply.err else reply}")
+            return True
+        return False
+
+    def query() -> bool:
+        try:
+            plan = node.call(keys.PLAN_PARSE, REQUEST, timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            raise BenchError(f"plan/parse refused the JSON plan: {exc.error.message}") from None
+        if isinstance(plan, ServiceError):
+            raise BenchError(f"plan/parse refused the JSON plan: {plan.message}")
+        if not isinstance(plan, Plan):
+            raise BenchError(f"plan/parse replied with {type(plan).__name__}, not a Plan")
+        return True
+
+    def timed(call: Callable[[], bool]) -> float | None:
+        started = time.perf_counter_ns()
+        answered = call()
+        return (time.perf_counter_ns() - started) / 1e6 if answered else None
+
+    has_echo = bare()
+    if not has_echo:
+        progress(f"no bare echo on {raw_key} ({runtime.BENCH_ECHO_ENV} ignored); measuring plan/parse only")
+    queries: list[float] = []
+    baseline: list[float | None] = []
+    deadline = time.monotonic() + max_seconds
+    for i in range(warmup + n):
+        if time.monotonic() > deadline and len(queries) >= 10:
+            progress(f"stopped after {max_seconds:g} s with {len(queries)} round trips of each kind")
+            break
+        # Alternate which goes first, so neither always runs on a warmer path.
+        if not has_echo:
+            q, b = timed(query), None
+        elif i % 2 == 0:
+            b, q = timed(bare), timed(query)
+        else:
+            q, b = timed(query), timed(bare)
+        if i >= warmup:
+            assert q is not None
+            queries.append(q)
+            baseline.append(b)
+    return queries, baseline
+
+
+def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
+    # The service gets our settings only: an inherited Zenoh config file would point it at other peers.
+    os.environ.pop("TETHER_ZENOH_CONFIG", None)
+    settings = NodeSettings(
+        robot=f"bench-parser-{os.getpid()}", base_port=int(os.environ.get("TETHER_BASE_PORT") or free_base_port())
+    )
+    with tempfile.TemporaryDirectory(prefix="bench-parser-") as tmp:
+        progress(f"starting the parser service (robot {settings.robot}, base port {settings.base_port})")
+        with parser_service(settings, Path(tmp)) as node:
+            progress(f"measuring up to {n} round trips of each kind (+{warmup} warm-up, at most {max_seconds:g} s)")
+            queries, baseline = round_trips(node, n, warmup, max_seconds)
+    q50, q99 = ms_summary(queries)
+    result: dict[str, Any] = {"query_p50_ms": q50, "query_p99_ms": q99, "n": len(queries)}
+    bare = [b for b in baseline if b is not None]
+    if bare:
+        b50, b99 = ms_summary(bare)
+        result |= {"bare_p50_ms": b50, "bare_p99_ms": b99, "ratio_p50": round(q50 / b50, 3)}
+        result["ratio_p99"] = round(q99 / b99, 3)
+    return result
+
+
+# The whole bench
+
+
+def run(seconds: float, n: int, warmup: int, max_query_seconds: float) -> dict[str, Any]:
+    result: dict[str, Any] = {
+        "json_plans_per_s": None,
+        "text_plans_per_s": None,
+        "query_p50_ms": None,
+        "query_p99_ms": None,
+        "bare_p50_ms": None,
+        "bare_p99_ms": None,
+        "ratio_p50": None,
+        "ratio_p99": None,
+        "n": 0,
+        "warmup": warmup,
+        **GOALS,
+    }
+    errors: list[str] = []
+    parse_detail: dict[str, Any] = {}
+    for fmt, text in (("json", JSON_PLAN), ("text", TEXT_PLAN)):
+        try:
+            measured = throughput(text, fmt, seconds, warmup)
+        except BenchError as exc:
+            errors.append(str(exc))
+            progress(f"error: {exc}")
+            continue
+        result[f"{fmt}_plans_per_s"] = measured.pop("plans_per_s")
+        parse_detail[fmt] = measured
+    try:
+        result |= service_latency(n, warmup, max_query_seconds)
+    except BenchError as exc:
+        errors.append(str(exc))
+        progress(f"error: {exc}")
+    if result["query_p50_ms"] is not None and result["ratio_p50"] is None:
+        errors.append(
+            "no baseline: the parser process did not answer the bare echo on bench/raw_echo "
+            f"(started with {runtime.BENCH_ECHO_ENV}=1)"
+        )
+    result["goals_met"] = {
+        "json_plans_per_s": _at_least(result["json_plans_per_s"], GOALS["goal_json_plans_per_s"]),
+        "text_plans_per_s": _at_least(result["text_plans_per_s"], GOALS["goal_text_plans_per_s"]),
+        "ratio_p50": None if result["ratio_p50"] is None else result["ratio_p50"] <= GOALS["goal_ratio_p50"],
+    }
+    result["errors"] = errors
+    result["notes"] = {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "zenoh": importlib.metadata.version("eclipse-zenoh"),
+        "cpus": os.cpu_count(),
+        "loadavg_1m": round(os.getloadavg()[0], 2),
+        "parse_seconds_per_format": seconds,
+        "parse": parse_detail,
+        "plans_per_s": "1000 / median ms of a single parse, each parse timed alone, after warm-up",
+        "query": "plan/parse with the 10-step JSON plan (format json) to a parser process started by the Supervisor",
+        "bare": "bare Zenoh get on bench/raw_echo, echoed by the same parser process and session, same request bytes",
+        "order": "interleaved, alternating first call",
+        "request_bytes": len(runtime.encode(REQUEST)),
+        "service_log_level": os.environ.get("TETHER_LOG_LEVEL", "INFO"),
+    }
+    return result
+
+
+def _at_least(value: float | None, goal: float) -> bool | None:
+    return None if value is None else value >= goal
+
+
+def print_table(result: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    def show(value: Any, unit: str = "") -> str:
+        return "-" if value is None else f"{value:,.3f}{unit}" if isinstance(value, float) else f"{value}{unit}"
+
+    table = Table(title=f"parser ({result['n']} round trips, {result['warmup']} warm-up)")
+    table.add_column("")
+    table.add_column("measured", justify="right")
+    table.add_column("goal", justify="right")
+    table.add_row("JSON plans/s", show(result["json_plans_per_s"]), show(GOALS["goal_json_plans_per_s"]))
+    table.add_row("text plans/s", show(result["text_plans_per_s"]), show(GOALS["goal_text_plans_per_s"]))
+    table.add_row("plan/parse p50 / p99 ms", f"{show(result['query_p50_ms'])} / {show(result['query_p99_ms'])}", "")
+    table.add_row("bare zenoh p50 / p99 ms", f"{show(result['bare_p50_ms'])} / {show(result['bare_p99_ms'])}", "")
+    table.add_row("ratio p50", show(result["ratio_p50"], "x"), show(GOALS["goal_ratio_p50"], "x"))
+    console = Console()
+    console.print(table)
+    for error in result["errors"]:
+        console.print(f"[red]error:[/] {error}", markup=True, highlight=False)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench.parser", description=__doc__.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--seconds", type=float, default=5.0, help="in-process parsing time per format")
+    parser.add_argument("--n", type=int, default=1000, help=f"round trips of each kind (10..{MAX_N})")
+    parser.add_argument("--warmup", type=int, default=50, help="parses and round trips of each kind not counted")
+    parser.add_argument("--max-query-seconds", type=float, default=15.0, help="stop the round trips after this long")
+    args = parser.parse_args(argv)
+    if not 10 <= args.n <= MAX_N:
+        parser.error(f"--n must be between 10 and {MAX_N}")
+    if not 0 < args.seconds <= 600 or not 0 < args.max_query_seconds <= 600:
+        parser.error("--seconds and --max-query-seconds must be in (0, 600]")
+    runtime.configure_logging("WARNING")
+    # SIGTERM unwinds like Ctrl-C, so the service process is stopped either way.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        result = run(args.seconds, args.n, max(0, args.warmup), args.max_query_seconds)
+    except KeyboardInterrupt:
+        progress("interrupted")
+        sys.exit(130)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print_table(result)
+    if result["errors"]:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
