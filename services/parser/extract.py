@@ -116,6 +116,14 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return value
 
 
+class TruncatedJson(ParseError):
+    """JSON whose brackets are still open where the text ends: output cut off."""
+
+
+# Words that make an unclosed bracket in prose the start of a plan that was cut off.
+_PLAN_WORDS = re.compile(r'["\'](?:action|plan|steps|actions|tasks)["\']\s*:')
+
+
 class JsonFinder:
     """Locates and decodes the plan's JSON; lenient repair only for complete, small candidates."""
 
@@ -157,7 +165,7 @@ class JsonFinder:
         span = _scan(text, start, self.max_depth)
         if span.end is None:
             detail = self._json_error(text[start:], start, text)
-            raise ParseError(
+            raise TruncatedJson(
                 f"malformed JSON: {detail}; the text ends with {span.open_brackets} bracket(s) still open "
                 "(was the output cut off?)"
             )
@@ -172,12 +180,22 @@ class JsonFinder:
         if not self.lenient or len(chunk) > self.max_repair_chars:
             raise ParseError(f"malformed JSON: {detail}")
         try:
-            value = json_repair.loads(chunk)
+            value = self._repair(chunk)
         except (RecursionError, ValueError, TypeError) as exc:
             raise ParseError(f"malformed JSON: {detail} (repair failed: {exc})") from None
         if not isinstance(value, dict | list) or not value:
             raise ParseError(f"malformed JSON: {detail}")
         return Candidate(value, [f"the JSON was malformed ({detail}) and was read leniently"], line)
+
+    @staticmethod
+    def _repair(chunk: str) -> Any:
+        """json-repair, except that a key given twice is refused rather than kept once."""
+        try:
+            return json_repair.loads(chunk, strict=True)
+        except ValueError as exc:
+            if "duplicate key" in str(exc).lower():
+                raise ParseError("malformed JSON: a key appears twice in one object") from None
+        return json_repair.loads(chunk)
 
     def _decode_whole(self, text: str, start: int) -> Candidate | None:
         """The common case first: everything from `start` up to a closing fence or the end is the JSON.
@@ -217,6 +235,11 @@ class JsonFinder:
                 continue
             try:
                 decoded = self._decode(text, match.start())
+            except TruncatedJson as exc:
+                if _PLAN_WORDS.search(text, match.start(), match.start() + 2000):
+                    # A plan cut off: the complete steps inside it are not a plan of their own.
+                    return Found(plans=[], error=exc, in_prose=True)
+                continue
             except ParseError as exc:
                 # Brackets in prose ("[see below]") are not JSON; keep the first real-looking failure.
                 if found.error is None and '"action"' in text[match.start() : match.start() + 2000]:

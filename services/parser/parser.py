@@ -47,6 +47,8 @@ _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
 # A list item or a heading-like line: the text may be English steps.
 _LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)", re.IGNORECASE | re.MULTILINE)
 _YAML_FENCES = ("yaml", "yml")
+# "plan:" followed by an indented list or key: YAML, not a prose heading like "Plan:".
+_YAML_BODY = re.compile(r"[^\n]*\n[ \t]+(?:-\s|[\w\"']+\s*:)")
 NO_PLAN = (
     "no plan found: expected a JSON object with a 'plan' array, a JSON array of steps, YAML, "
     "tool calls, or numbered/bulleted steps in English"
@@ -202,7 +204,10 @@ class Parser:
             if candidates:
                 return self._from_candidates(candidates, ctx)
         if found.plans:
-            return self._from_candidates([(c.value, c.warnings, c.line, "json") for c in found.plans], ctx)
+            candidates = [(c.value, c.warnings, c.line, "json") for c in found.plans]
+            if fmt == "auto":  # a ```yaml block beside them must agree with them
+                candidates += self._yaml_candidates(text, strict=False, fences_only=True)
+            return self._from_candidates(candidates, ctx)
         if fmt == "json":
             if found.error is not None:
                 raise found.error
@@ -215,7 +220,7 @@ class Parser:
         if not _LIST_ITEM.search(text):
             if found.error is not None:
                 raise found.error
-            if found.other is not None:
+            if found.other is not None and not (found.in_prose and _no_objects(found.other)):
                 return self._from_value(found.other, "json", ctx)
         try:
             return self._from_text(text, ctx)
@@ -260,15 +265,20 @@ class Parser:
             return False
         return find_tool_calls(value) is not None
 
-    def _yaml_candidates(self, text: str, *, strict: bool) -> list[_Candidate]:
+    def _yaml_candidates(self, text: str, *, strict: bool, fences_only: bool = False) -> list[_Candidate]:
         """YAML in ```yaml blocks, else the whole text; in auto mode only when it starts like a plan."""
         fences = fenced_blocks(text)
         blocks = [(at, body) for lang, at, body in fences if lang in _YAML_FENCES]
-        if not blocks and not strict:
+        if fences_only:
+            strict = False
+        elif not blocks and not strict:
             blocks = [(at, body) for lang, at, body in fences if not lang and self._yaml_start.match(body)]
-        if not blocks:
+        if not blocks and not fences_only:
             if not strict and not self._yaml_start.search(text):
                 return []
+            # A text whose first line starts a YAML plan is YAML: its errors are YAML errors.
+            head = text.lstrip()
+            strict = strict or bool(self._yaml_start.match(head) and _YAML_BODY.match(head))
             blocks = [(0, text)]
         candidates: list[_Candidate] = []
         for at, body in blocks:
@@ -295,7 +305,7 @@ class Parser:
             return self._from_value(value, fmt, ctx)
         plans: list[tuple[int, Plan]] = []
         failures: list[tuple[int, ParseError]] = []
-        for value, warnings, line, fmt in candidates:
+        for value, warnings, line, fmt in sorted(candidates, key=lambda c: c[2]):
             one = _Context(self.limits, list(warnings))
             try:
                 plans.append((line, self._from_value(value, fmt, one)))
@@ -307,8 +317,8 @@ class Parser:
         for line, other in plans[1:]:
             if other.steps != plan.steps:
                 raise ParseError(
-                    f"the text holds {len(plans)} conflicting plans (the code blocks at lines {first_line} and "
-                    f"{line} differ); send exactly one plan",
+                    f"the text holds {len(plans)} conflicting plans (the plans at lines {first_line} and {line} "
+                    "differ); send exactly one plan, with all its steps in one array",
                     line=line,
                 )
         notes = [f"{len(plans)} identical plans found; read once"] if len(plans) > 1 else []
@@ -381,12 +391,13 @@ class Parser:
             ctx.warnings.extend(warnings)
             name = normalise_word(call.name)
             if name in self.plan_tools or (name not in self.actions and self._looks_like_plan(arguments)):
-                inner, _ = self._steps_of(arguments, ctx.warnings)
+                inner, description = self._steps_of(arguments, ctx.warnings)
+                if isinstance(description, str) and description.strip():
+                    calls.text.append(description)
                 steps.extend(inner)
             else:
-                action_keys = [
-                    k for k in arguments if isinstance(k, str) and self.fields.get(normalise_word(k)) == "action"
-                ]
+                # Only a literal "action" collides with the tool name; "type": "wave" may be a parameter.
+                action_keys = [k for k in arguments if isinstance(k, str) and normalise_word(k) == "action"]
                 if action_keys:
                     ctx.warnings.append(
                         f"{call.where}: field(s) {_listing(action_keys)} ignored: the tool name is the action"
@@ -456,7 +467,9 @@ class Parser:
                     "or a group of sub-steps"
                 )
             if isinstance(raw.action, str) and raw.action.strip():
-                description = description or raw.action.strip()[:MAX_TEXT_CHARS]  # a group's name
+                description = description or raw.action.strip()[: self.limits.max_string_chars]  # its name
+            elif raw.action is not None:
+                ctx.warnings.append(f"{where.label}: 'action' of a group ignored: it is {_type_name(raw.action)}")
             ignored = [*raw.names, *(echo(k) for k in raw.parameters), *(echo(k) for k in raw.extra)]
             if ignored:
                 ctx.warnings.append(f"{where.label}: field(s) {_listing(ignored)} of a group ignored")
@@ -487,9 +500,13 @@ class Parser:
                 if word not in self.ignored_fields:
                     raw.extra[key] = item
             elif name == "action":
-                if raw.action is not None and item != raw.action:
-                    raise where.refuse(f"names two actions ({echo(raw.action)} and {echo(item)})")
-                raw.action = item
+                if raw.action is None:
+                    raw.action = item
+                elif item != raw.action:
+                    first, second = (self._canonical(v) for v in (raw.action, item))
+                    if first is not None and second is not None and first is not second:
+                        raise where.refuse(f"names two actions ({echo(raw.action)} and {echo(item)})")
+                    raw.extra[key] = item  # {"action": "gesture", "type": "wave"}: a parameter
             elif name == "parameters":
                 if item is None:
                     continue
@@ -514,6 +531,10 @@ class Parser:
             else:
                 raw.names[name] = item.strip()
         return raw
+
+    def _canonical(self, value: Any) -> Action | None:
+        known = self.actions.get(normalise_word(value)) if isinstance(value, str) else None
+        return known[0] if known is not None else None
 
     def _action(self, where: _Where, value: Any) -> tuple[Action, dict[str, str]]:
         known = self._known_actions
@@ -548,6 +569,11 @@ class Parser:
         given = [(k, v, True) for k, v in raw.parameters.items()] + [(k, v, False) for k, v in raw.extra.items()]
         for key, value, in_parameters in given:
             word = normalise_word(key) if isinstance(key, str) else ""
+            field_name = self.fields.get(word)
+            if in_parameters and word not in known and field_name in _NAME_FIELDS and isinstance(value, str):
+                if value.strip() and field_name not in raw.names:  # {"parameters": {"object": "cup"}}
+                    raw.names[field_name] = value.strip()
+                continue
             if word in known:
                 name, pspec, unit = known[word]
                 if name in params:
@@ -562,7 +588,7 @@ class Parser:
         for name, value in preset.items():
             if params.setdefault(name, value) != value:
                 raise where.refuse(f"the action says {name} {value!r} but parameter '{name}' is {echo(params[name])}")
-        self._apply_signs(action, params)
+        self._apply_signs(where, action, params)
         if positions:
             noun = "parameter" if len(positions) == 1 else "parameters"
             warnings.append(f"{where.label}: {noun} {_listing(positions)} ignored: {self.vocabulary.position_reason}")
@@ -580,7 +606,7 @@ class Parser:
                 )
         return params
 
-    def _apply_signs(self, action: Action, params: dict[str, ParamValue]) -> None:
+    def _apply_signs(self, where: _Where, action: Action, params: dict[str, ParamValue]) -> None:
         """Fold a direction into the signed number it qualifies: turn right 90 degrees -> angle -1.5708."""
         specs = self.vocabulary.actions[action].params
         for name, spec in specs.items():
@@ -589,8 +615,13 @@ class Parser:
             direction = params.pop(spec.signed_by)
             value = params.get(name)
             if isinstance(value, int | float) and not isinstance(value, bool):
+                if value < 0:
+                    raise where.refuse(
+                        f"parameter '{name}' is negative and the direction is {direction!r}; give the "
+                        f"{name} as a positive number and the direction on its own"
+                    )
                 negative = direction in specs[spec.signed_by].negative
-                params[name] = -abs(value) if negative else abs(value)
+                params[name] = -value if negative else value
 
     def _value(self, where: _Where, name: str, spec: ParamSpec, value: Any, unit_word: str | None) -> ParamValue:
         what = f"parameter '{name}'"
@@ -734,10 +765,16 @@ class Parser:
         if _CONTROL.search(value):
             warnings.append(f"{what}: control characters removed")
             value = _CONTROL.sub("", value)
-        if len(value) > MAX_TEXT_CHARS:
-            warnings.append(f"{what} cut to {MAX_TEXT_CHARS} characters (was {len(value)})")
-            return value[:MAX_TEXT_CHARS]
+        limit = self.limits.max_string_chars
+        if len(value) > limit:
+            warnings.append(f"{what} cut to {limit} characters (was {len(value)})")
+            return value[:limit]
         return value
+
+
+def _no_objects(value: Any) -> bool:
+    """[1] in "as noted in [1]" is a citation, not a plan."""
+    return isinstance(value, list) and not any(isinstance(v, dict) for v in value)
 
 
 def _is_bomb(exc: ParseError) -> bool:

@@ -131,7 +131,10 @@ def test_send_exit_codes(stack: Stack) -> None:
     dry = tether_cli(stack, "send", DEMO_PLAN, "--json", "--dry-run")
     assert dry.returncode == 0, dry.stdout + dry.stderr
     assert json.loads(dry.stdout)["status"] == "succeeded"
-    english = "Here is the plan:\n1. Fetch the cup:\n   a. go to the kitchen counter\n   b. pick up the red cup\n2. Turn left 90 degrees\n"
+    english = (
+        "Here is the plan:\n1. Fetch the cup:\n   a. go to the kitchen counter\n   b. pick up the red cup\n"
+        "2. Turn left 90 degrees\n"
+    )
     dry_text = tether_cli(stack, "send", "-", "--format", "text", "--json", "--dry-run", stdin=english)
     assert dry_text.returncode == 0, dry_text.stdout + dry_text.stderr
     shown_steps = json.loads(dry_text.stdout)["steps"]

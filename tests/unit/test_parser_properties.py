@@ -17,6 +17,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from bench.parser import TEXT_PLAN
 from schemas.common import ServiceError, Stage
 from schemas.plan import Action, Plan, PlanText
 from services.parser.errors import ParseError
@@ -74,18 +75,7 @@ STEPS: list[dict[str, Any]] = [
     {"action": "say", "parameters": {"text": "here you are"}},
     {"action": "wait", "parameters": {"duration": 2}},
 ]
-ENGLISH = (
-    "1. Go to the kitchen\n"
-    "2. Pick up the red cup from the kitchen counter\n"
-    "3. Go to the living room\n"
-    "4. Put it on the coffee table\n"
-    '5. Say "here you are"\n'
-    "6. Turn left 90 degrees\n"
-    "7. Drive forward 30 cm\n"
-    "8. Wait 2 seconds\n"
-    "9. Open the gripper\n"
-    "10. Go back to the kitchen"
-)
+ENGLISH = TEXT_PLAN  # the benchmark's ten-line English plan
 
 
 def openai_calls(steps: list[dict[str, Any]]) -> dict[str, Any]:

@@ -200,3 +200,46 @@ def test_a_refusal_is_only_ever_a_parse_error() -> None:
     with pytest.raises(ParseError):
         parse("```yaml\n[[[[\n```", "yaml")
     assert isinstance(parse('{"action": "stop"}'), Plan)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        # A plan cut off inside prose: its complete steps are not a shorter plan.
+        ('Here is the plan: {"plan": [{"action": "pick", "target": "cup"}, {"action": "place", "ta', "cut off"),
+        # A key given twice stays refused when the JSON needs repair.
+        ('{"plan": [{"action": "pick", "action": "place", "target": "cup",}]}', "appears twice"),
+        # A YAML block and a JSON block that disagree.
+        (
+            '```yaml\nplan:\n  - action: stop\n```\n```json\n{"plan": [{"action": "wait", "duration": 2}]}\n```',
+            "conflicting",
+        ),
+        # A sign and a direction that disagree are not silently overridden.
+        ('[{"action": "drive", "direction": "forward", "distance": -0.3}]', "is negative and the direction"),
+        # Broken YAML is reported as YAML, not as unreadable English.
+        ("plan:\n  - action: pick\n    action: place\n    target: cup\n", "the key 'action' appears twice at line 3"),
+    ],
+)
+def test_what_review_found_is_refused(text: str, expected: str) -> None:
+    assert expected in refusal(text).message
+
+
+def test_names_and_gestures_in_the_shapes_llms_use() -> None:
+    gesture = parse('{"plan": [{"action": "gesture", "type": "wave"}]}').steps[0]
+    assert (gesture.action, gesture.params) == (Action.GESTURE, {"gesture": "wave"})
+    tool = parse('{"type": "tool_use", "id": "x", "name": "gesture", "input": {"type": "nod"}}').steps[0]
+    assert tool.params == {"gesture": "nod"}
+    inside = parse('[{"action": "pick", "parameters": {"object": "red cup"}}]').steps[0]
+    assert inside.target == "red cup" and not parse('[{"action": "pick", "parameters": {"object": "cup"}}]').warnings
+    planned = parse(
+        json.dumps(
+            {
+                "function_call": {
+                    "name": "execute_plan",
+                    "arguments": json.dumps({"goal": "tidy", "steps": [{"action": "stop"}]}),
+                }
+            }
+        )
+    )
+    assert planned.description == "tidy"
+    assert "no plan found" in refusal("As noted in [1], the robot should pick up the cup.").message
