@@ -180,6 +180,21 @@ class GroundedPlan(Frozen, tag="grounded_plan"):
     fallbacks: list[Fallback] = []
 
 
+def step_labels(plan: GroundedPlan) -> list[str]:
+    """Where each step came from in the parsed plan ("2", "3.1"); step numbers if not given."""
+    if len(plan.labels) == len(plan.steps):
+        return list(plan.labels)
+    return [str(i + 1) for i in range(len(plan.steps))]
+
+
+def fallback_labels(fallback: Fallback, labels: list[str]) -> list[str]:
+    """Labels of a fallback's steps ("2 on_failure 1"); `labels` are the plan's step_labels."""
+    if len(fallback.labels) == len(fallback.steps):
+        return list(fallback.labels)
+    owner = labels[fallback.first] if fallback.first < len(labels) else str(fallback.first + 1)
+    return [f"{owner} on_failure {k + 1}" for k in range(len(fallback.steps))]
+
+
 ResolveReply = GroundedPlan | ServiceError
 
 

@@ -12,7 +12,6 @@ from schemas.common import ServiceError, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepResult, StepStatus
 from schemas.plan import (
     DetectStep,
-    Fallback,
     GripperStep,
     GroundedPlan,
     GroundedStep,
@@ -23,7 +22,9 @@ from schemas.plan import (
     SayStep,
     StopStep,
     WaitStep,
+    fallback_labels,
     step_kind,
+    step_labels,
 )
 from schemas.robot import Twist
 from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
@@ -43,20 +44,6 @@ class _Failure:
     reason: str
     status: PlanStatus
     final: str | None = None
-
-
-def step_labels(plan: GroundedPlan) -> list[str]:
-    """Where each step came from in the parsed plan ("2", "3.1"); step numbers if not given."""
-    if len(plan.labels) == len(plan.steps):
-        return list(plan.labels)
-    return [str(i + 1) for i in range(len(plan.steps))]
-
-
-def fallback_labels(fallback: Fallback, labels: list[str]) -> list[str]:
-    if len(fallback.labels) == len(fallback.steps):
-        return list(fallback.labels)
-    owner = labels[fallback.first] if fallback.first < len(labels) else str(fallback.first + 1)
-    return [f"{owner} on_failure {k + 1}" for k in range(len(fallback.steps))]
 
 
 class PlanRunner:

@@ -20,7 +20,9 @@ from schemas.plan import (
     NavigateStep,
     PickStep,
     PlaceStep,
+    fallback_labels,
     step_kind,
+    step_labels,
 )
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import KeepOut
@@ -197,7 +199,7 @@ class SafetyPolicy:
         failure can come at any of them), and the steps after it from where it ends. Returns what
         was checked; raises Vetoed naming the step by its label ("step 2.1 (pick): ...").
         """
-        labels = _step_labels(plan)
+        labels = step_labels(plan)
         self._check_structure(plan)
         checks: dict[str, None] = {}
         # before[i]: the states step i can start from.
@@ -218,7 +220,7 @@ class SafetyPolicy:
                     if _within(plan.fallbacks[inner], fallback):
                         starts.update(states)
                 met[k] = {}
-                alternative_labels = _fallback_labels(fallback, labels)
+                alternative_labels = fallback_labels(fallback, labels)
                 for state in starts:
                     for step_, label in zip(fallback.steps, alternative_labels, strict=True):
                         met[k][state] = None
@@ -301,15 +303,3 @@ def _span(fallback: Fallback) -> tuple[int, int]:
 
 def _within(inner: Fallback, outer: Fallback) -> bool:
     return outer.first <= inner.first and inner.last <= outer.last and inner is not outer
-
-
-def _step_labels(plan: GroundedPlan) -> list[str]:
-    if len(plan.labels) == len(plan.steps):
-        return list(plan.labels)
-    return [str(i + 1) for i in range(len(plan.steps))]
-
-
-def _fallback_labels(fallback: Fallback, labels: list[str]) -> list[str]:
-    if len(fallback.labels) == len(fallback.steps):
-        return list(fallback.labels)
-    return [f"{labels[fallback.first]} on_failure {k + 1}" for k in range(len(fallback.steps))]
