@@ -29,7 +29,7 @@ from services.parser.extract import JsonFinder, fenced_blocks
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
 from services.parser.toolcalls import ToolCalls, call_arguments, find_tool_calls
 from services.parser.vocabulary import STEP_FIELDS, ParamSpec, Vocabulary, load_vocabulary, normalise_word
-from services.parser.yamlplan import load_yaml
+from services.parser.yamlplan import AliasBomb, load_yaml
 
 # A decoded value that looks like a plan: (value, warnings, the line it starts on, its format).
 _Candidate = tuple[Any, list[str], int, SourceFormat]
@@ -286,7 +286,8 @@ class Parser:
             try:
                 value = load_yaml(body, max_nodes=self.limits.max_yaml_nodes, max_depth=self.limits.max_depth)
             except ParseError as exc:
-                if strict or (len(blocks) == 1 and at > 0) or _is_bomb(exc):
+                # Alias bombs are refused even where other broken YAML would be skipped.
+                if strict or (len(blocks) == 1 and at > 0) or isinstance(exc, AliasBomb):
                     raise ParseError(f"YAML block at line {line}: {exc}") from None
                 continue
             if self._looks_like_plan(value):
@@ -775,11 +776,6 @@ class Parser:
 def _no_objects(value: Any) -> bool:
     """[1] in "as noted in [1]" is a citation, not a plan."""
     return isinstance(value, list) and not any(isinstance(v, dict) for v in value)
-
-
-def _is_bomb(exc: ParseError) -> bool:
-    """Alias bombs and self-references are refused even where other broken YAML would be skipped."""
-    return "alias" in str(exc)
 
 
 def _example(vocabulary: Vocabulary, spec: ParamSpec, number: float = 1.0) -> str:

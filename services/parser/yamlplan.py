@@ -12,6 +12,10 @@ from services.parser.errors import ParseError
 _Loader: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
+class AliasBomb(ParseError):
+    """Anchors and aliases that expand too far or refer to themselves: an attack, never a typo."""
+
+
 def _where(mark: Any) -> str:
     return f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "an unknown place"
 
@@ -84,7 +88,7 @@ class _Measure:
             count = self.sizes[key]
             self.aliased = True
         elif key in self.open:
-            raise ParseError(f"a YAML alias at {_where(node.start_mark)} refers to a node that contains it")
+            raise AliasBomb(f"a YAML alias at {_where(node.start_mark)} refers to a node that contains it")
         else:
             self.open.add(key)
             count = 1 + self._children(node, depth)
@@ -92,7 +96,7 @@ class _Measure:
             self.sizes[key] = count
         if count > self.max_nodes:
             if self.aliased:
-                raise ParseError(
+                raise AliasBomb(
                     f"YAML anchors and aliases expand to more than {self.max_nodes} nodes "
                     f"(at {_where(node.start_mark)}); a plan needs far fewer: write it out without aliases"
                 )
