@@ -9,7 +9,7 @@ each timed alone; plans/s is one over the median parse time.
 Round trips: the parser service is a real process started by the Supervisor on its own robot name
 and ports; readiness is its liveliness token. The baseline is the bare Zenoh echo of
 `bench.transport`, answered by the same parser process on the same session: the service declares it
-when started with TETHER_BENCH_ECHO=1 (a runtime hook; without it the baseline is reported missing).
+when started with TETHER_BENCH_ECHO=1 (services.runtime.BENCH_ECHO_ENV).
 Both kinds of round trip are interleaved, alternating which goes first, as in `bench.transport`.
 """
 
@@ -26,13 +26,12 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from bench.transport import free_base_port, percentile
+from bench.transport import bare_echo, free_base_port, interleaved, percentile
 from schemas import keys
-from schemas.common import ServiceError
 from schemas.plan import Plan, PlanText
 from services import runtime
 from services.runtime import CallError, Node, NodeSettings
@@ -165,57 +164,21 @@ def last_line(log: str) -> str:
     return next((line for line in reversed(lines) if line), "no output")
 
 
-def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float | None]]:
-    """Interleaved round trips in ms: (plan/parse, bare echo); bare entries are None without the echo."""
-    raw_key = keys.bench_echo_key(node.robot)
-    # The echo carries the same bytes as the parse request, so both move the same payload out.
-    payload = runtime.encode(REQUEST)
+def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
+    """Interleaved round trips in ms: (bare echo, plan/parse), the echo carrying the parse request's bytes."""
 
-    def bare() -> bool:
-        for reply in node.session.get(raw_key, payload=payload, timeout=CALL_TIMEOUT):
-            if reply.ok is None or reply.ok.payload.to_bytes() != payload:
-                raise BenchError(f"bare echo failed: {reply.err.payload.to_string() if reply.err else reply}")
-            return True
-        return False
-
-    def query() -> bool:
+    def query() -> None:
         try:
             plan = node.call(keys.PLAN_PARSE, REQUEST, timeout=CALL_TIMEOUT)
         except CallError as exc:
             raise BenchError(f"plan/parse refused the JSON plan: {exc.error.message}") from None
-        if isinstance(plan, ServiceError):
-            raise BenchError(f"plan/parse refused the JSON plan: {plan.message}")
         if not isinstance(plan, Plan):
             raise BenchError(f"plan/parse replied with {type(plan).__name__}, not a Plan")
-        return True
 
-    def timed(call: Callable[[], bool]) -> float | None:
-        started = time.perf_counter_ns()
-        answered = call()
-        return (time.perf_counter_ns() - started) / 1e6 if answered else None
-
-    has_echo = bare()
-    if not has_echo:
-        progress(f"no bare echo on {raw_key} ({runtime.BENCH_ECHO_ENV} ignored); measuring plan/parse only")
-    queries: list[float] = []
-    baseline: list[float | None] = []
-    deadline = time.monotonic() + max_seconds
-    for i in range(warmup + n):
-        if time.monotonic() > deadline and len(queries) >= 10:
-            progress(f"stopped after {max_seconds:g} s with {len(queries)} round trips of each kind")
-            break
-        # Alternate which goes first, so neither always runs on a warmer path.
-        if not has_echo:
-            q, b = timed(query), None
-        elif i % 2 == 0:
-            b, q = timed(bare), timed(query)
-        else:
-            q, b = timed(query), timed(bare)
-        if i >= warmup:
-            assert q is not None
-            queries.append(q)
-            baseline.append(b)
-    return queries, baseline
+    try:
+        return interleaved(bare_echo(node, runtime.encode(REQUEST)), query, n, warmup, max_seconds)
+    except RuntimeError as exc:  # the bare echo failed or did not answer
+        raise BenchError(str(exc)) from None
 
 
 def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
@@ -228,15 +191,18 @@ def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
         progress(f"starting the parser service (robot {settings.robot}, base port {settings.base_port})")
         with parser_service(settings, Path(tmp)) as node:
             progress(f"measuring up to {n} round trips of each kind (+{warmup} warm-up, at most {max_seconds:g} s)")
-            queries, baseline = round_trips(node, n, warmup, max_seconds)
+            bare, queries = round_trips(node, n, warmup, max_seconds)
     q50, q99 = ms_summary(queries)
-    result: dict[str, Any] = {"query_p50_ms": q50, "query_p99_ms": q99, "n": len(queries)}
-    bare = [b for b in baseline if b is not None]
-    if bare:
-        b50, b99 = ms_summary(bare)
-        result |= {"bare_p50_ms": b50, "bare_p99_ms": b99, "ratio_p50": round(q50 / b50, 3)}
-        result["ratio_p99"] = round(q99 / b99, 3)
-    return result
+    b50, b99 = ms_summary(bare)
+    return {
+        "query_p50_ms": q50,
+        "query_p99_ms": q99,
+        "bare_p50_ms": b50,
+        "bare_p99_ms": b99,
+        "ratio_p50": round(q50 / b50, 3),
+        "ratio_p99": round(q99 / b99, 3),
+        "n": len(queries),
+    }
 
 
 # The whole bench
@@ -272,11 +238,6 @@ def run(seconds: float, n: int, warmup: int, max_query_seconds: float) -> dict[s
     except BenchError as exc:
         errors.append(str(exc))
         progress(f"error: {exc}")
-    if result["query_p50_ms"] is not None and result["ratio_p50"] is None:
-        errors.append(
-            "no baseline: the parser process did not answer the bare echo on bench/raw_echo "
-            f"(started with {runtime.BENCH_ECHO_ENV}=1)"
-        )
     result["goals_met"] = {
         "json_plans_per_s": _at_least(result["json_plans_per_s"], GOALS["goal_json_plans_per_s"]),
         "text_plans_per_s": _at_least(result["text_plans_per_s"], GOALS["goal_text_plans_per_s"]),

@@ -76,21 +76,24 @@ def summary(ms: list[float]) -> dict[str, float]:
     return {"median_ms": round(statistics.median(ms), 4), "p99_ms": round(percentile(ms, 99), 4)}
 
 
-def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
-    """Interleaved round trips, in ms: (bare zenoh, tether); stops early at `max_seconds`."""
-    raw_key = keys.bench_echo_key(node.robot)
-    payload = runtime.encode(REQUEST)
+def bare_echo(node: Node, payload: bytes) -> Callable[[], None]:
+    """One round trip to the bare Zenoh echo a service declares with BENCH_ECHO_ENV: the baseline."""
+    key = keys.bench_echo_key(node.robot)
 
-    def bare() -> None:
-        for reply in node.session.get(raw_key, payload=payload, timeout=CALL_TIMEOUT):
+    def call() -> None:
+        for reply in node.session.get(key, payload=payload, timeout=CALL_TIMEOUT):
             if reply.ok is None or reply.ok.payload.to_bytes() != payload:
                 raise RuntimeError(f"bare echo failed: {reply.err.payload.to_string() if reply.err else reply}")
             return
-        raise RuntimeError("bare echo: no reply")
+        raise RuntimeError(f"no reply from the bare echo on {key}")
 
-    def tether() -> None:
-        if node.call(ECHO, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
-            raise RuntimeError("tether echo returned a different message")
+    return call
+
+
+def interleaved(
+    bare: Callable[[], None], measured: Callable[[], None], samples: int, warmup: int, max_seconds: float
+) -> tuple[list[float], list[float]]:
+    """Round trips in ms, (bare, measured), alternating which goes first; stops early at `max_seconds`."""
 
     def timed(call: Callable[[], None]) -> float:
         started = time.perf_counter_ns()
@@ -98,18 +101,28 @@ def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[
         return (time.perf_counter_ns() - started) / 1e6
 
     baseline: list[float] = []
-    measured: list[float] = []
+    results: list[float] = []
     deadline = time.monotonic() + max_seconds
     for i in range(warmup + samples):
         if time.monotonic() > deadline and len(baseline) >= 10:
             break
         # Alternate which goes first, so neither always runs on a warmer path.
-        first, second = (bare, tether) if i % 2 == 0 else (tether, bare)
+        first, second = (bare, measured) if i % 2 == 0 else (measured, bare)
         a, b = timed(first), timed(second)
         if i >= warmup:
             baseline.append(a if first is bare else b)
-            measured.append(b if first is bare else a)
-    return baseline, measured
+            results.append(b if first is bare else a)
+    return baseline, results
+
+
+def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
+    """Interleaved round trips, in ms: (bare zenoh, tether); stops early at `max_seconds`."""
+
+    def tether() -> None:
+        if node.call(ECHO, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
+            raise RuntimeError("tether echo returned a different message")
+
+    return interleaved(bare_echo(node, runtime.encode(REQUEST)), tether, samples, warmup, max_seconds)
 
 
 def machine_notes(payload_bytes: int, warmup: int) -> dict[str, Any]:
