@@ -6,17 +6,18 @@ import functools
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, get_args
 
 import msgspec
 from rapidfuzz import fuzz, process
 
-from schemas.common import ErrorKind, ServiceError, Stage
+from schemas.common import ErrorKind, Metres, ServiceError, Stage
 from schemas.plan import (
     MAX_NESTING,
     MAX_PLAN_BYTES,
     MAX_STEPS,
     Action,
+    Coordinates,
     ParamValue,
     ParseReply,
     Plan,
@@ -28,9 +29,11 @@ from services.parser.errors import ParseError
 from services.parser.extract import JsonFinder, fenced_blocks
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
 from services.parser.toolcalls import ToolCalls, call_arguments, find_tool_calls
-from services.parser.vocabulary import STEP_FIELDS, ParamSpec, Vocabulary, load_vocabulary, normalise_word
+from services.parser.vocabulary import AXES, STEP_FIELDS, ParamSpec, Vocabulary, load_vocabulary, normalise_word
 from services.parser.yamlplan import AliasBomb, load_yaml
 
+# A point as (x, y, z) in metres, map frame.
+_Point = tuple[float, float, float | None]
 # A decoded value that looks like a plan: (value, warnings, the line it starts on, its format).
 _Candidate = tuple[Any, list[str], int, SourceFormat]
 
@@ -49,6 +52,20 @@ _LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)",
 _YAML_FENCES = ("yaml", "yml")
 # "plan:" followed by an indented list or key: YAML, not a prose heading like "Plan:".
 _YAML_BODY = re.compile(r"[^\n]*\n[ \t]+(?:-\s|[\w\"']+\s*:)")
+# The bounds of a coordinate are those of the schema's Metres.
+_METRES = get_args(Metres)[1]
+METRES_MIN, METRES_MAX = float(_METRES.ge), float(_METRES.le)
+# Two sources of one point agree when they differ by less than this (metres): rounding, not a choice.
+SAME_POINT = 1e-6
+# "(3.5, 2.0)", "[3.5, 2.0, 0.7]", "x=3.5, y=2": brackets around a point written as text, and axis labels.
+_POINT_BRACKETS = {"(": ")", "[": "]"}
+_AXIS_LABEL = re.compile(r"^\s*([xyz])\s*[:=]?\s*(?=[-+.\d])", re.IGNORECASE)
+MAX_POINT_CHARS = 200
+# geometry_msgs PoseStamped: {pose: {position: {x, y, z}}} is two levels below the key.
+MAX_POINT_NESTING = 2
+POINT_SHAPES = '{"x": 3.5, "y": 2.0}, [3.5, 2.0] or \'3.5, 2.0\' (metres, map frame)'
+# A ROS PoseStamped keeps its frame in "header".
+_HEADER = "header"
 NO_PLAN = (
     "no plan found: expected a JSON object with a 'plan' array, a JSON array of steps, YAML, "
     "tool calls, or numbered/bulleted steps in English"
@@ -131,7 +148,8 @@ class _RawStep:
     on_failure: Any = None
     # Fields that are none of ours: parameters of the action if it takes them, else warned about.
     extra: dict[Any, Any] = field(default_factory=dict)
-    positions: list[str] = field(default_factory=list)
+    # Position-like keys (x, pose, yaw, joints...): key as given, normalised key, value, inside parameters.
+    places: list[tuple[str, str, Any, bool]] = field(default_factory=list)
 
 
 class Parser:
@@ -175,7 +193,16 @@ class Parser:
         for name in STEP_FIELDS:
             self.fields.setdefault(name, name)
         self.ignored_fields = {normalise_word(n) for n in vocabulary.ignored_fields}
+        coordinates = vocabulary.coordinates
+        self.coordinate_actions = frozenset(coordinates.actions)
+        self.point_keys = {normalise_word(n) for n in coordinates.points}
+        self.pose_keys = {normalise_word(n) for n in coordinates.poses}
+        self.heading_keys = {normalise_word(n) for n in coordinates.headings}
+        self.frame_keys = {normalise_word(n) for n in coordinates.frames}
+        self.map_frames = [n.lower() for n in coordinates.map_frames]
         self.position_params = {normalise_word(n) for n in vocabulary.position_params}
+        self.place_keys = {*AXES, *self.point_keys, *self.heading_keys, *self.position_params}
+        self._metres_spec = ParamSpec(type="float", unit="m", min=METRES_MIN, max=METRES_MAX)
         self.plan_keys = [normalise_word(k) for k in vocabulary.plan_keys]
         self.plan_tools = {normalise_word(k) for k in vocabulary.plan_tools}
         self._known_actions = ", ".join(a.value for a in vocabulary.actions)
@@ -477,7 +504,8 @@ class Parser:
             return Step(action=None, description=description)
         action, preset = self._action(where, raw.action)
         params = self._params(where, action, raw, preset, ctx.warnings)
-        target, location = self._names(where, action, raw.names, params, ctx.warnings)
+        coordinates = self._coordinates(where, action, raw.places, ctx.warnings)
+        target, location = self._names(where, action, raw.names, params, ctx.warnings, coordinates is not None)
         for name, pspec in self.vocabulary.actions[action].params.items():
             if pspec.required and name not in params:
                 unit = (
@@ -489,7 +517,13 @@ class Parser:
         specs = self.vocabulary.actions[action].params
         units = {n: specs[n].unit for n, v in params.items() if specs[n].unit and not isinstance(v, str | bool)}
         return Step(
-            action=action, target=target, location=location, params=params, units=units, description=description
+            action=action,
+            target=target,
+            location=location,
+            params=params,
+            units=units,
+            description=description,
+            coordinates=coordinates,
         )
 
     def _fields(self, value: dict[Any, Any], where: _Where, warnings: list[str]) -> _RawStep:
@@ -523,8 +557,8 @@ class Parser:
                 setattr(raw, name, item)
             elif item is None or (isinstance(item, str) and not item.strip()):
                 continue
-            elif isinstance(item, dict | list) and word in self.position_params:
-                raw.positions.append(str(key)[:ECHO_CHARS])
+            elif isinstance(item, dict | list) and word in self.point_keys:
+                raw.extra[key] = item  # "location": [2.0, 3.5] is a point, not a name
             elif not isinstance(item, str):
                 raise where.refuse(f"'{key}' must be a name (a string), got {_type_name(item)}")
             elif _CONTROL.search(item):
@@ -563,7 +597,6 @@ class Parser:
         self, where: _Where, action: Action, raw: _RawStep, preset: dict[str, str], warnings: list[str]
     ) -> dict[str, ParamValue]:
         params: dict[str, ParamValue] = {}
-        positions = list(raw.positions)
         unknown: list[str] = []
         ignored: list[str] = []
         known = self.params[action]
@@ -580,8 +613,8 @@ class Parser:
                 if name in params:
                     raise where.refuse(f"parameter '{name}' is given twice (as {echo(key)})")
                 params[name] = self._value(where, name, pspec, value, unit)
-            elif word in self.position_params:
-                positions.append(str(key)[:ECHO_CHARS])
+            elif word in self.place_keys or (word in self.frame_keys and action in self.coordinate_actions):
+                raw.places.append((str(key)[:ECHO_CHARS], word, value, in_parameters))
             elif in_parameters:
                 unknown.append(echo(key))
             else:
@@ -590,9 +623,6 @@ class Parser:
             if params.setdefault(name, value) != value:
                 raise where.refuse(f"the action says {name} {value!r} but parameter '{name}' is {echo(params[name])}")
         self._apply_signs(where, action, params)
-        if positions:
-            noun = "parameter" if len(positions) == 1 else "parameters"
-            warnings.append(f"{where.label}: {noun} {_listing(positions)} ignored: {self.vocabulary.position_reason}")
         if unknown or ignored:
             names = sorted(self.vocabulary.actions[action].params)
             takes = f"it takes {', '.join(names)}" if names else "it takes none"
@@ -623,6 +653,172 @@ class Parser:
                     )
                 negative = direction in specs[spec.signed_by].negative
                 params[name] = -value if negative else value
+
+    # Coordinates
+
+    def _coordinates(
+        self, where: _Where, action: Action, places: list[tuple[str, str, Any, bool]], warnings: list[str]
+    ) -> Coordinates | None:
+        """The point the step wrote down, if its action takes one; headings and joints are warned about."""
+        if not places:
+            return None
+        reason = self.vocabulary.position_reason
+        if action not in self.coordinate_actions:
+            self._ignored(where, [key for key, *_ in places], reason, warnings)
+            return None
+        self._ignored(where, [k for k, w, *_ in places if w in self.position_params], reason, warnings)
+        headings = [k for k, w, *_ in places if w in self.heading_keys]
+        self._ignored(where, headings, self.vocabulary.coordinates.heading_reason, warnings)
+        axes: dict[str, tuple[str, float]] = {}
+        sources: list[tuple[str, _Point]] = []
+        for key, word, value, in_parameters in places:
+            if value is None:
+                continue  # "pose": null says nothing
+            if word in AXES:
+                number = self._metres(where, f"coordinate {echo(key)}", value)
+                given = f"{echo(key)} {'in parameters' if in_parameters else 'beside the action'}"
+                if word in axes and abs(axes[word][1] - number) > SAME_POINT:
+                    raise where.refuse(
+                        f"gives coordinate {word!r} twice: {axes[word][1]:g} ({axes[word][0]}) and {number:g} "
+                        f"({given}); give the point once"
+                    )
+                axes[word] = (given, number)
+            elif word in self.point_keys:
+                sources.append((echo(key), self._point(where, key, word, value, warnings)))
+        if axes:
+            missing = [a for a in ("x", "y") if a not in axes]
+            if missing:
+                named = " and ".join(repr(a) for a in axes)
+                raise where.refuse(
+                    f"gives coordinate {named} without {' and '.join(repr(a) for a in missing)}: a point needs "
+                    "x and y (z is optional), in metres in the map frame"
+                )
+            sources.insert(0, ("/".join(axes), (axes["x"][1], axes["y"][1], axes["z"][1] if "z" in axes else None)))
+        frames = [(key, value) for key, word, value, _ in places if word in self.frame_keys]
+        if not sources:
+            self._ignored(where, [key for key, _ in frames], "the step gives no coordinates", warnings)
+            return None
+        for _, frame in frames:
+            self._check_frame(where, "the step's point", frame)
+        label, (x, y, z) = sources[0]
+        for other, (ox, oy, oz) in sources[1:]:
+            if (
+                abs(x - ox) > SAME_POINT
+                or abs(y - oy) > SAME_POINT
+                or (z is not None and oz is not None and abs(z - oz) > SAME_POINT)
+            ):
+                raise where.refuse(
+                    f"gives two different points: {label} {_point_text((x, y, z))} and {other} "
+                    f"{_point_text((ox, oy, oz))}; give one point, in metres in the map frame"
+                )
+            z = z if z is not None else oz
+        return Coordinates(x=x, y=y, z=z)
+
+    def _ignored(self, where: _Where, keys: list[str], reason: str, warnings: list[str]) -> None:
+        if keys:
+            noun = "parameter" if len(keys) == 1 else "parameters"
+            warnings.append(f"{where.label}: {noun} {_listing(keys)} ignored: {reason}")
+
+    def _point(self, where: _Where, key: str, word: str, value: Any, warnings: list[str], depth: int = 0) -> _Point:
+        """A point written as {x, y, z?}, [x, y], [x, y, z] or "x, y": (x, y, z) in metres, or a refusal."""
+        name = echo(key)
+        if isinstance(value, dict):
+            return self._point_object(where, key, value, warnings, depth)
+        if isinstance(value, str):
+            numbers: list[Any] = self._point_in_text(where, name, value)
+        elif isinstance(value, list):
+            numbers = value
+        else:
+            raise where.refuse(f"{name} must be a point such as {POINT_SHAPES}, got {_type_name(value)}")
+        if len(numbers) not in (2, 3):
+            raise where.refuse(
+                f"{name} must be 2 or 3 numbers (x, y and optionally z, in metres in the map frame), "
+                f"got {len(numbers)} {'items' if isinstance(value, list) else 'numbers'}"
+            )
+        if len(numbers) == 3 and word in self.pose_keys:
+            raise where.refuse(
+                f"{name} has three numbers, and in a pose the third may be z or a heading; write "
+                f'{{"x": ..., "y": ...}} or {{"x": ..., "y": ..., "z": ...}} '
+                f"({self.vocabulary.coordinates.heading_reason})"
+            )
+        x, y, *z = (self._metres(where, f"{name} {axis}", n) for axis, n in zip(AXES, numbers, strict=False))
+        return x, y, z[0] if z else None
+
+    def _point_object(self, where: _Where, key: str, value: dict[Any, Any], warnings: list[str], depth: int) -> _Point:
+        """{x, y, z?}, with a heading and a frame beside them, or a ROS pose ({position: {x, y, z}, orientation})."""
+        name = echo(key)
+        by_word = {normalise_word(k) if isinstance(k, str) else repr(k): k for k in value}
+        if len(by_word) < len(value):
+            raise where.refuse(f"{name} gives a coordinate twice (keys {_listing([echo(k) for k in value])})")
+        axes = [a for a in AXES if a in by_word]
+        inner = [w for w in by_word if w in self.point_keys and isinstance(value[by_word[w]], dict | list | str)]
+        nest = not axes and len(inner) == 1 and depth < MAX_POINT_NESTING
+        headings, unknown = [], []
+        for word, k in by_word.items():
+            if word in self.frame_keys:
+                self._check_frame(where, name, value[k])
+            elif word == _HEADER and isinstance(value[k], dict):
+                for header_key, frame in value[k].items():
+                    if isinstance(header_key, str) and normalise_word(header_key) in self.frame_keys:
+                        self._check_frame(where, name, frame)
+            elif word in self.heading_keys:
+                headings.append(word)
+            elif word not in AXES and not (nest and word == inner[0]):
+                unknown.append(echo(k))
+        if headings:
+            reason = self.vocabulary.coordinates.heading_reason
+            warnings.append(f"{where.label}: {name} {_listing(headings)} ignored: {reason}")
+        if unknown:
+            warnings.append(f"{where.label}: {name} field(s) {_listing(unknown)} ignored: a point has x, y and z")
+        if nest:
+            inner_key = by_word[inner[0]]
+            return self._point(where, f"{key}.{inner_key}", inner[0], value[inner_key], warnings, depth + 1)
+        if "x" not in axes or "y" not in axes:
+            found = f"got {_listing([echo(k) for k in value])}" if value else "got an empty object"
+            hint = "; a name goes in 'target'" if not axes else ""
+            raise where.refuse(f"{name} needs x and y (z is optional), in metres in the map frame; {found}{hint}")
+        x, y = (self._metres(where, f"{name} {a}", value[by_word[a]]) for a in ("x", "y"))
+        z = value[by_word["z"]] if "z" in axes else None
+        return x, y, None if z is None else self._metres(where, f"{name} z", z)
+
+    def _point_in_text(self, where: _Where, name: str, value: str) -> list[str]:
+        """'3.5, 2.0', '(3.5, 2.0)', 'x=3.5, y=2 m' -> the numbers as written, in x, y, z order."""
+        if len(value) > MAX_POINT_CHARS:
+            raise where.refuse(f"{name} is {len(value)} characters; a point is at most {MAX_POINT_CHARS}")
+        text = value.strip()
+        if text[:1] in _POINT_BRACKETS and text.endswith(_POINT_BRACKETS[text[0]]):
+            text = text[1:-1]
+        pieces = [p.strip() for p in text.split(",")]
+        labels = [_AXIS_LABEL.match(p) for p in pieces]
+        if any(labels):
+            axes = [m.group(1).lower() if m else "" for m in labels]
+            if len(set(axes)) != len(axes) or set(axes) not in ({"x", "y"}, {"x", "y", "z"}):
+                raise where.refuse(f"{name} must be a point such as {POINT_SHAPES}, got {echo(value)}")
+            by_axis = {a: p[m.end() :] for a, p, m in zip(axes, pieces, labels, strict=True) if m}
+            pieces = [by_axis[a] for a in AXES if a in by_axis]
+        if len(pieces) not in (2, 3) or not all(_NUMBER_WITH_UNIT.match(p) for p in pieces):
+            hint = "; a name goes in 'target'" if not any(c.isdigit() for c in value) else ""
+            raise where.refuse(f"{name} must be a point such as {POINT_SHAPES}, got {echo(value)}{hint}")
+        return pieces
+
+    def _check_frame(self, where: _Where, subject: str, frame: Any) -> None:
+        if frame is None or (isinstance(frame, str) and frame.strip().lstrip("/").lower() in self.map_frames):
+            return
+        shown = echo(frame) if isinstance(frame, str) else _type_name(frame)
+        raise where.refuse(
+            f"{subject} is in frame {shown}; coordinates are read in the map frame only "
+            f"({', '.join(self.map_frames)}): convert the point to the map frame, or name the place"
+        )
+
+    def _metres(self, where: _Where, what: str, value: Any) -> float:
+        number, _ = self._number(where, what, self._metres_spec, value, None)
+        if not math.isfinite(number):
+            raise where.refuse(f"{what} must be a finite number, got {echo(value)}")
+        if not METRES_MIN <= number <= METRES_MAX:
+            raise where.refuse(
+                f"{what} is {number:g} m; allowed {METRES_MIN:g}..{METRES_MAX:g} m (metres, in the map frame)"
+            )
+        return number
 
     def _value(self, where: _Where, name: str, spec: ParamSpec, value: Any, unit_word: str | None) -> ParamValue:
         what = f"parameter '{name}'"
@@ -702,8 +898,12 @@ class Parser:
         names: dict[str, str],
         params: dict[str, ParamValue],
         warnings: list[str],
+        has_point: bool = False,
     ) -> tuple[str | None, str | None]:
-        """Target and location by action, from whichever of target / target_object / target_location was given."""
+        """Target and location by action, from whichever of target / target_object / target_location was given.
+
+        A step with coordinates needs no name: the resolver grounds the point (a name, when given, wins).
+        """
         used: set[str] = set()
 
         def take(*fields: str) -> str | None:
@@ -717,23 +917,24 @@ class Parser:
         location: str | None = None
         if action in (Action.NAVIGATE_TO, Action.LOOK_AT, Action.MOVE_ARM):
             target = take("target", "target_location", "target_object")
-            if target is None:
+            if target is None and not has_point:
                 need = {
                     Action.NAVIGATE_TO: "where to go",
                     Action.LOOK_AT: "what to look at",
                     Action.MOVE_ARM: "a named arm pose such as home or ready",
                 }[action]
-                raise where.refuse(f"{action.value} needs a target: {need}")
+                raise where.refuse(f"{action.value} needs a target: {need}{self._or_point(action)}")
         elif action in (Action.PICK, Action.DETECT):
             target = take("target", "target_object")
             location = take("target_location")
-            if target is None:
-                raise where.refuse(f"{action.value} needs a target: which object")
+            if target is None and not has_point:
+                raise where.refuse(f"{action.value} needs a target: which object{self._or_point(action)}")
         elif action is Action.PLACE:
             location = take("target_location", "target")
             target = take("target_object") or (take("target") if "target_location" in names else None)
-            if location is None:
-                raise where.refuse("place needs a location: the furniture to put the object on")
+            if location is None and not has_point:
+                need = "the furniture to put the object on"
+                raise where.refuse(f"place needs a location: {need}{self._or_point(action)}")
         elif action is Action.GESTURE:
             target = take("target", "target_object")
         elif action is Action.SAY:
@@ -757,6 +958,9 @@ class Parser:
             if value is not None and len(value) > MAX_NAME_CHARS:
                 raise where.refuse(f"{label} is {len(value)} characters; a name has at most {MAX_NAME_CHARS}")
         return target, location
+
+    def _or_point(self, action: Action) -> str:
+        return ", or coordinates x and y in metres" if action in self.coordinate_actions else ""
 
     def _text(self, value: Any, what: str, warnings: list[str]) -> str:
         if not isinstance(value, str):
@@ -782,6 +986,10 @@ def _example(vocabulary: Vocabulary, spec: ParamSpec, number: float = 1.0) -> st
     """'90 degrees' for an angle: the number with the first unit word that is not the SI one."""
     words = [w for w, f in vocabulary.units.get(spec.unit, {}).items() if f != 1.0 and " " not in w]
     return f"{number:g} {words[0] if words else spec.unit}"
+
+
+def _point_text(point: tuple[float, float, float | None]) -> str:
+    return "(" + ", ".join(f"{n:g}" for n in point if n is not None) + ")"
 
 
 def _validated(plan: Plan) -> Plan:

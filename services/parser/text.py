@@ -63,6 +63,8 @@ class GrammarFile(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     on_failure: list[Phrase] = []
     numbers: dict[Phrase, Digits] = {}
     quantities: dict[Phrase, list[Phrase]] = {}
+    # The quantity whose unit words a number of a {point} may carry ("(3.5 m, 2 m)").
+    point_quantity: Phrase | None = None
     refusals: list[RefusalEntry] = []
 
 
@@ -92,6 +94,9 @@ _UNNAMED = re.compile(r"\(\?P<\w+>")
 _HEAD_END = r"(?=[\s,;:.!?]|$)"
 _TOKEN = re.compile(r"\s+|[\[\]()|]|\{[^{}]*\}|[^\s\[\](){}|]+")
 _NOUN_SLOTS = {"target": "target", "location": "target_location"}
+# A {point} becomes this parameter: a list of the numbers as written, which the parser checks.
+POINT_PARAM = "point"
+_RESERVED_SLOTS = ("target", "location", "text", "point")
 _CLOSING_QUOTES = {'"': '"\u201d', "\u201c": '"\u201d', "'": "'\u2019", "\u2018": "'\u2019"}
 
 
@@ -135,13 +140,14 @@ def _phrase_regex(phrase: str, space: str) -> str:
 class _PatternCompiler:
     """Recursive descent over one pattern's tokens, producing an anchored regex and its slots."""
 
-    def __init__(self, text: str, quantities: dict[str, str]) -> None:
+    def __init__(self, text: str, quantities: dict[str, str], point: str) -> None:
         pieces = [m.group() for m in _TOKEN.finditer(text)]
         if "".join(pieces) != text:
             raise _PatternProblem("unbalanced '{' or '}'")
         self.tokens = [p for p in pieces if not p.isspace()]
         self.pos = 0
         self.quantities = quantities
+        self.point = point
         self.slots: list[_Slot] = []
 
     def compile(self) -> tuple[str, str, frozenset[str]]:
@@ -256,10 +262,13 @@ class _PatternCompiler:
         if name == "text":
             self.slots.append(_Slot(name, "text", name))
             return _Fragment(r"\ (?P<text>.+)", None, False, False)
+        if name == "point":
+            self.slots.append(_Slot(name, "point", POINT_PARAM))
+            return _Fragment(rf"\ (?P<point>{self.point})", None, False, False)
         if name in self.quantities:
             self.slots.append(_Slot(name, "quantity", name))
             return _Fragment(rf"\ (?P<{name}>{self.quantities[name]})", None, False, False)
-        known = ", ".join(["target", "location", "text", "_", *self.quantities])
+        known = ", ".join([*_RESERVED_SLOTS, "_", *self.quantities])
         raise _PatternProblem(f"unknown slot {{{body}}}; slots are {known} and {{name:a|b}} choices")
 
 
@@ -283,12 +292,17 @@ class TextGrammar:
         number = _alternation([_NUMBER, *(_phrase_regex(w, " ") for w, _ in self.numbers)])
         quantities: dict[str, str] = {}
         for name, units in spec.quantities.items():
-            if not _NAME.fullmatch(name) or name in ("target", "location", "text"):
+            if not _NAME.fullmatch(name) or name in _RESERVED_SLOTS:
                 raise self._error(
-                    f"quantities.{name}", "a quantity needs a lower-case name other than target/location/text"
+                    f"quantities.{name}", f"a quantity needs a lower-case name other than {'/'.join(_RESERVED_SLOTS)}"
                 )
-            unit = f"(?: ?{_alternation([_phrase_regex(u, ' ') for u in units])})?" if units else ""
-            quantities[name] = number + unit
+            quantities[name] = number + _units(units)
+        point_units: list[str] = []
+        if spec.point_quantity is not None:
+            if spec.point_quantity not in spec.quantities:
+                raise self._error("point_quantity", f"{spec.point_quantity!r} is not one of the quantities")
+            point_units = spec.quantities[spec.point_quantity]
+        self.point, self.point_numbers = _point_regexes(_units(point_units))
         self.patterns: dict[str, list[_Pattern]] = {}
         self.refusals: dict[str, list[_Pattern]] = {}
         self.actions_by_verb: dict[str, list[Action]] = {}
@@ -326,7 +340,7 @@ class TextGrammar:
         self, entry: str, text: str, quantities: dict[str, str], action: Action | None, fixed: dict[str, str]
     ) -> tuple[_Pattern, str, frozenset[str]]:
         try:
-            compiler = _PatternCompiler(text, quantities)
+            compiler = _PatternCompiler(text, quantities, self.point)
             regex, head, firsts = compiler.compile()
             compiled = re.compile(regex, re.IGNORECASE)
         except _PatternProblem as exc:
@@ -397,7 +411,7 @@ class TextGrammar:
 
     def _fields(self, pattern: _Pattern, match: re.Match[str], tail: str) -> dict[str, Any] | None:
         fields: dict[str, Any] = {"action": pattern.action}
-        params: dict[str, str] = {}
+        params: dict[str, Any] = {}
         for slot in pattern.slots:
             value = match.group(slot.group)
             if value is None:
@@ -423,6 +437,9 @@ class TextGrammar:
                 value = self._digits(value)
             elif slot.kind == "choice":
                 value = slot.choices[value.lower()]
+            elif slot.kind == "point":
+                params[slot.name] = [m.group("number") for m in self.point_numbers.finditer(value)]
+                continue
             params[slot.name] = value
         for name, value in pattern.fixed:
             if name in _NOUN_SLOTS:
@@ -441,6 +458,24 @@ class TextGrammar:
                 if lowered.startswith(word) and (len(lowered) == len(word) or not lowered[len(word)].isalpha()):
                     return digits + quantity[len(word) :]
         return quantity
+
+
+def _units(words: list[str]) -> str:
+    """An optional unit word after a number ("30 cm", "30cm")."""
+    return f"(?: ?{_alternation([_phrase_regex(u, ' ') for u in words])})?" if words else ""
+
+
+def _point_regexes(units: str) -> tuple[str, re.Pattern[str]]:
+    """A {point}: "(3.5, 2.0)", "3.5, 2.0, 0.7", "x 3.5 y 2", "[x=3.5, y=2 m]"; and the regex that finds its numbers.
+
+    Two or three numbers, each optionally with a unit; labelled x, y, z in that order, or not at all.
+    """
+    number = rf"{_NUMBER}{units}"
+    plain = rf"{number} ?, ?{number}(?: ?, ?{number})?"
+    labelled = rf"x ?[:=]? ?{number}(?:, ?| )y ?[:=]? ?{number}(?:(?:, ?| )z ?[:=]? ?{number})?"
+    inner = f"(?:{plain}|{labelled})"
+    point = rf"(?:\( ?{inner} ?\)|\[ ?{inner} ?\]|{inner})"
+    return point, re.compile(rf"(?P<number>{number})", re.IGNORECASE)
 
 
 def _examples(examples: list[str]) -> str:

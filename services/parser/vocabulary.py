@@ -19,6 +19,8 @@ Word = Annotated[str, Meta(min_length=1, max_length=64)]
 StepField = Literal[
     "action", "target", "target_object", "target_location", "parameters", "description", "substeps", "on_failure"
 ]
+# The axes of schemas.plan.Coordinates: numbers beside the action or in its parameters.
+AXES = ("x", "y", "z")
 STEP_FIELDS: tuple[StepField, ...] = (
     "action",
     "target",
@@ -57,8 +59,25 @@ class ActionSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     params: dict[Word, ParamSpec] = {}
 
 
+class CoordinateSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Where a plan may write a point (metres, map frame) and which actions carry it in Step.coordinates."""
+
+    actions: list[Action] = []
+    # Keys holding a whole point: {x, y, z?}, [x, y], [x, y, z] or "x, y".
+    points: list[Word] = []
+    # Points that may also hold a heading: a third number there may be z or yaw, so it is refused.
+    poses: list[Word] = []
+    # Headings, beside the point or inside it: ignored with `heading_reason`.
+    headings: list[Word] = []
+    heading_reason: str = "the resolver chooses headings"
+    # Keys of a point object naming its frame, and the frame names that mean the map frame.
+    frames: list[Word] = []
+    map_frames: list[Word] = msgspec.field(default_factory=lambda: ["map"])
+
+
 class Vocabulary(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     actions: dict[Action, ActionSpec]
+    coordinates: CoordinateSpec = CoordinateSpec()
     position_params: list[Word] = []
     position_reason: str = "positions come from the world model"
     units: dict[Word, dict[Word, Annotated[float, Meta(gt=0.0)]]] = {}
@@ -134,3 +153,27 @@ def _check(vocabulary: Vocabulary, path: Path) -> None:
         for name in names:
             if field_names.setdefault(normalise_word(name), field) != field:
                 raise VocabularyError(f"vocabulary file {path}: step field {name!r} means two fields")
+    _check_coordinates(vocabulary, path, field_names)
+
+
+def _check_coordinates(vocabulary: Vocabulary, path: Path, field_names: dict[str, str]) -> None:
+    spec = vocabulary.coordinates
+    field_names = {**{name: name for name in STEP_FIELDS}, **field_names}
+    kinds: dict[str, str] = {}
+    groups = (
+        ("coordinate axis", AXES),
+        ("point", spec.points),
+        ("heading", spec.headings),
+        ("frame", spec.frames),
+        ("position", vocabulary.position_params),
+    )
+    for kind, names in groups:
+        for name in names:
+            word = normalise_word(name)
+            if kinds.setdefault(word, kind) != kind:
+                raise VocabularyError(f"vocabulary file {path}: {name!r} is listed as a {kinds[word]} and a {kind} key")
+            # A name field ("location": "kitchen") may also hold a point ("location": [2, 3]); nothing else may.
+            if word in field_names and (kind != "point" or field_names[word] != "target_location"):
+                raise VocabularyError(f"vocabulary file {path}: {kind} key {name!r} is also a step field")
+    if not {normalise_word(p) for p in spec.poses} <= {normalise_word(p) for p in spec.points}:
+        raise VocabularyError(f"vocabulary file {path}: coordinates.poses must be among coordinates.points")

@@ -12,7 +12,7 @@ import pytest
 
 from schemas import keys
 from schemas.common import ServiceError, Stage
-from schemas.plan import ParseReply, Plan, PlanText
+from schemas.plan import Coordinates, ParseReply, Plan, PlanText
 from tests.integration.conftest import Stack, start_stack, stop_stack
 from tests.unit.test_parser_properties import SEEDS, billion_laughs
 
@@ -75,3 +75,16 @@ def test_concurrent_queries_each_get_their_own_reply(parser_stack: Stack) -> Non
     assert not parser_stack.supervisor.exited(), "the parser exited while serving"
     # Still serving after the burst, through the typed client.
     assert isinstance(parser_stack.node.call(keys.PLAN_PARSE, PlanText(text=SEEDS["json array"][0])), Plan)
+
+
+def test_coordinates_cross_the_wire_and_malformed_ones_are_refused(parser_stack: Stack) -> None:
+    text = json.dumps([{"action": "navigate_to", "x": 3.5, "y": 2.0}, {"action": "look_at", "point": "1, 2, 1.2"}])
+    reply = ask(parser_stack, encode_request(text, "auto"))
+    assert isinstance(reply, Plan)
+    assert [(s.target, s.coordinates) for s in reply.steps] == [
+        (None, Coordinates(x=3.5, y=2.0)),
+        (None, Coordinates(x=1.0, y=2.0, z=1.2)),
+    ]
+    refused = ask(parser_stack, encode_request('[{"action": "navigate_to", "position": [1, 2, 3, 4, 5]}]', "auto"))
+    assert isinstance(refused, ServiceError) and refused.stage is Stage.PARSE
+    assert "'position' must be 2 or 3 numbers" in refused.message and refused.step == 0

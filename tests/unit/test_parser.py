@@ -9,7 +9,7 @@ import msgspec
 import pytest
 
 from schemas.common import ErrorKind, ServiceError, Stage
-from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS, Action, Plan, PlanText
+from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS, Action, Coordinates, Plan, PlanText
 from services.parser.errors import ParseError, VocabularyError
 from services.parser.parser import Parser, answer, default_parser, parse
 from services.parser.vocabulary import load_vocabulary
@@ -71,7 +71,10 @@ def test_object_with_plan_array() -> None:
     assert plan.steps[2].params == {"approach": "top"}
     assert plan.steps[3].location == "coffee table"
     assert plan.steps[4].params == {"text": "Here is your mug.", "volume": 0.8}
-    assert plan.warnings == ["step 1: parameters x, y ignored: positions come from the world model"]
+    # The LLM's coordinates are carried, untrusted, for the resolver to check against the kitchen.
+    assert plan.steps[0].coordinates == Coordinates(x=3.0, y=2.5)
+    assert [s.coordinates for s in plan.steps[1:]] == [None] * 4
+    assert plan.warnings == []
 
 
 def test_bare_array_with_target_object_and_location() -> None:
@@ -327,3 +330,186 @@ def test_a_text_full_of_code_blocks_gets_a_refusal() -> None:
     text = ("```\n{}\n```\n" * 30000)[: MAX_PLAN_BYTES - 1]
     error = answer(default_parser(), PlanText(text=text))
     assert isinstance(error, ServiceError) and "no plan found" in error.message
+
+
+# Coordinates: carried, untrusted, for the resolver; malformed ones refuse the step.
+
+
+@pytest.mark.parametrize(
+    ("fields", "point"),
+    [
+        ({"x": 3.5, "y": 2.0}, Coordinates(x=3.5, y=2.0)),
+        ({"parameters": {"x": 3, "y": -2, "z": 0.5}}, Coordinates(x=3.0, y=-2.0, z=0.5)),
+        ({"x": "350 cm", "parameters": {"y": "2 m"}}, Coordinates(x=3.5, y=2.0)),
+        ({"position": {"x": 1, "y": 2}}, Coordinates(x=1.0, y=2.0)),
+        ({"coordinates": [1, 2, 0.7]}, Coordinates(x=1.0, y=2.0, z=0.7)),
+        ({"coords": "3.5, 2.0"}, Coordinates(x=3.5, y=2.0)),
+        ({"point": "(3.5, 2.0)"}, Coordinates(x=3.5, y=2.0)),
+        ({"xyz": "[1, 2, 3]"}, Coordinates(x=1.0, y=2.0, z=3.0)),
+        ({"parameters": {"position": "x: 1, y = 2, z 30 cm"}}, Coordinates(x=1.0, y=2.0, z=0.3)),
+        ({"location": [1, 2]}, Coordinates(x=1.0, y=2.0)),
+        ({"pose": {"x": 1, "y": 2, "yaw": 1.57}}, Coordinates(x=1.0, y=2.0)),
+        ({"target_pose": [1, 2]}, Coordinates(x=1.0, y=2.0)),
+        ({"goal_pose": {"position": {"x": 1, "y": 2, "z": 0}, "orientation": {"w": 1}}}, Coordinates(x=1, y=2, z=0)),
+        ({"goal_pose": {"header": {"frame_id": "/map"}, "pose": {"position": [1, 2]}}}, Coordinates(x=1.0, y=2.0)),
+        ({"x": 1, "y": 2, "frame_id": "map"}, Coordinates(x=1.0, y=2.0)),
+        ({"x": 1, "y": 2, "position": {"x": "100 cm", "y": 2, "z": 0.4}}, Coordinates(x=1.0, y=2.0, z=0.4)),
+        ({"x": -1000, "y": 1000}, Coordinates(x=-1000.0, y=1000.0)),
+        ({"x": None, "y": None, "pose": None}, None),
+    ],
+)
+def test_coordinates_in_the_shapes_llms_write_them(fields: dict[str, object], point: Coordinates | None) -> None:
+    step = parse(json.dumps([{"action": "navigate_to", "target": "kitchen", **fields}])).steps[0]
+    assert step.target == "kitchen"
+    assert step.coordinates == point
+
+
+@pytest.mark.parametrize(
+    "step",
+    [
+        {"action": "navigate_to"},
+        {"action": "look_at"},
+        {"action": "pick"},
+        {"action": "detect"},
+        {"action": "place", "target_object": "red cup"},
+    ],
+)
+def test_a_step_with_coordinates_needs_no_name(step: dict[str, object]) -> None:
+    parsed = parse(json.dumps([{**step, "x": 1.5, "y": 2.5}])).steps[0]
+    assert parsed.coordinates == Coordinates(x=1.5, y=2.5)
+    assert parsed.location is None
+    assert parsed.target == step.get("target_object")
+    error = refusal(json.dumps([step]))
+    assert "or coordinates x and y in metres" in error.message
+
+
+def test_a_name_and_coordinates_are_both_kept_for_the_resolver_to_compare() -> None:
+    plan = parse(json.dumps([{"action": "place", "object": "cup", "surface": "shelf", "position": [4, 1, 0.9]}]))
+    step = plan.steps[0]
+    assert (step.target, step.location, step.coordinates) == ("cup", "shelf", Coordinates(x=4.0, y=1.0, z=0.9))
+    assert plan.warnings == []
+
+
+def test_actions_without_a_point_ignore_coordinates_with_a_warning() -> None:
+    plan = parse(
+        json.dumps(
+            [
+                {"action": "drive", "distance": 1, "x": 1, "y": 2},
+                {"action": "say", "target": "hi", "position": "not even a point"},
+                {"action": "move_arm", "target": "home", "joints": [0, 1, 2]},
+            ]
+        )
+    )
+    assert [s.coordinates for s in plan.steps] == [None, None, None]
+    assert plan.warnings == [
+        "step 1: parameters x, y ignored: positions come from the world model",
+        "step 2: parameter position ignored: positions come from the world model",
+        "step 3: parameter joints ignored: positions come from the world model",
+    ]
+
+
+def test_headings_and_joints_are_ignored_with_a_warning_beside_a_point() -> None:
+    plan = parse(json.dumps([{"action": "navigate_to", "x": 1, "y": 2, "theta": 1.5, "latitude": 52.5}]))
+    assert plan.steps[0].coordinates == Coordinates(x=1.0, y=2.0)
+    assert plan.warnings == [
+        "step 1: parameter latitude ignored: positions come from the world model",
+        "step 1: parameter theta ignored: the resolver chooses headings",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [
+        ({"x": 1}, "gives coordinate 'x' without 'y'"),
+        ({"y": 1, "z": 0}, "gives coordinate 'y' and 'z' without 'x'"),
+        ({"x": "abc", "y": 1}, "coordinate 'x' must be a number, got 'abc'"),
+        ({"x": True, "y": 1}, "coordinate 'x' must be a number, got a boolean"),
+        ({"x": [1], "y": 1}, "coordinate 'x' must be a number, got an array"),
+        ({"x": 1001, "y": 1}, "coordinate 'x' is 1001 m; allowed -1000..1000 m"),
+        ({"x": "2 km", "y": 1}, "coordinate 'x' has unit 'km'"),
+        ({"x": "1e999", "y": 1}, "coordinate 'x' must be a finite number"),
+        ({"position": [1, 2, 3, 4, 5]}, "'position' must be 2 or 3 numbers"),
+        ({"position": [1]}, "'position' must be 2 or 3 numbers"),
+        ({"position": [1, True]}, "'position' y must be a number, got a boolean"),
+        ({"position": "1, 2, 3, 4"}, "'position' must be a point such as"),
+        ({"position": "the window"}, "got 'the window'; a name goes in 'target'"),
+        ({"position": "x=1, x=2"}, "'position' must be a point such as"),
+        ({"position": "(1; 2)"}, "'position' must be a point such as"),
+        ({"position": 5}, "'position' must be a point such as"),
+        ({"position": {"x": 1}}, "'position' needs x and y"),
+        ({"position": {"room": "kitchen"}}, "got 'room'; a name goes in 'target'"),
+        ({"position": {"x": 1, "X": 2, "y": 0}}, "'position' gives a coordinate twice"),
+        ({"location": {"x": 1, "y": "far"}}, "'location' y must be a number"),
+        ({"pose": [1, 2, 0.5]}, "'pose' has three numbers"),
+        ({"pose": "1, 2, 0.5"}, "'pose' has three numbers"),
+        ({"pose": {"x": 1, "y": 2, "frame_id": "odom"}}, "'pose' is in frame 'odom'; coordinates are read in the map"),
+        ({"pose": {"header": {"frame_id": 7}, "x": 1, "y": 2}}, "'pose' is in frame a number"),
+        ({"x": 1, "y": 2, "frame": "base_link"}, "the step's point is in frame 'base_link'"),
+        ({"position": "1, " * 200}, "a point is at most 200"),
+    ],
+)
+def test_malformed_coordinates_are_refused_naming_the_field(fields: dict[str, object], expected: str) -> None:
+    error = refusal(json.dumps([{"action": "stop"}, {"action": "navigate_to", "target": "kitchen", **fields}]))
+    assert expected in error.message
+    assert error.message.startswith("step 2: ") and error.step == 1
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [
+        ({"x": 1, "y": 2, "position": [1, 3]}, "two different points: x/y (1, 2) and 'position' (1, 3)"),
+        ({"pose": {"x": 1, "y": 2}, "point": "1, 2.5"}, "two different points: 'pose' (1, 2) and 'point' (1, 2.5)"),
+        ({"x": 1, "y": 2, "z": 0, "xyz": [1, 2, 1]}, "x/y/z (1, 2, 0) and 'xyz' (1, 2, 1)"),
+        (
+            {"x": 1, "y": 2, "parameters": {"x": 1.5}},
+            "gives coordinate 'x' twice: 1.5 ('x' in parameters) and 1 ('x' beside the action)",
+        ),
+    ],
+)
+def test_coordinate_sources_that_disagree_are_refused_naming_both(fields: dict[str, object], expected: str) -> None:
+    error = refusal(json.dumps([{"action": "pick", "target": "cup", **fields}]))
+    assert expected in error.message
+
+
+def test_a_location_name_is_still_a_name() -> None:
+    step = parse(json.dumps([{"action": "navigate_to", "location": "kitchen"}])).steps[0]
+    assert (step.target, step.coordinates) == ("kitchen", None)
+
+
+def test_english_points_become_coordinates() -> None:
+    plan = parse("1. Go to (3.5, 2.0)\n2. go to the kitchen at x 2.5 y 250 cm\n3. look at 1, 2, 1.2", "text")
+    assert [(s.target, s.coordinates) for s in plan.steps] == [
+        (None, Coordinates(x=3.5, y=2.0)),
+        ("kitchen", Coordinates(x=2.5, y=2.5)),
+        (None, Coordinates(x=1.0, y=2.0, z=1.2)),
+    ]
+    error = refusal("1. go to the kitchen\n2. go to (1, 2000)", "text")
+    assert (error.line, error.step) == (2, 1)
+    assert "'point' y is 2000 m" in error.message
+
+
+def test_coordinates_round_trip_the_wire_schema() -> None:
+    plan = parse(json.dumps([{"action": "pick", "target": "cup", "position": [1, 2, 0.9]}, {"action": "stop"}]))
+    assert msgspec.json.decode(msgspec.json.encode(plan), type=Plan) == plan
+
+
+@pytest.mark.parametrize(
+    ("coordinates", "problem"),
+    [
+        ({"points": ["position", "target"], "poses": []}, "point key 'target' is also a step field"),
+        ({"points": ["position", "surface"], "poses": []}, ""),  # a target_location name may also hold a point
+        ({"headings": ["yaw", "x"]}, "'x' is listed as a coordinate axis and a heading key"),
+        ({"points": ["spot"], "poses": ["pose"]}, "coordinates.poses must be among coordinates.points"),
+    ],
+)
+def test_vocabulary_coordinate_keys_are_checked(tmp_path: Path, coordinates: dict[str, object], problem: str) -> None:
+    vocabulary = msgspec.to_builtins(load_vocabulary())
+    vocabulary["coordinates"].update(coordinates)
+    path = tmp_path / "vocabulary.yaml"
+    path.write_text(json.dumps(vocabulary))  # JSON is YAML
+    if not problem:
+        assert load_vocabulary(path).coordinates.points == coordinates["points"]
+        return
+    with pytest.raises(VocabularyError, match=str(path)) as caught:
+        load_vocabulary(path)
+    assert problem in str(caught.value)

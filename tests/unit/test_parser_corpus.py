@@ -8,6 +8,7 @@ and NAME.expect.yaml, which opens with a one-line comment saying what the case i
     steps:                   # the expected steps; an omitted field is not compared, except action
       - {action: navigate_to, target: kitchen}
       - {action: drive, params: {distance: -0.3}}
+      - {action: navigate_to, coordinates: {x: 3.5, y: 2.0}}   # null: no coordinates
     warnings: [leniently]    # substrings, each in some warning; absent: the plan has no warnings
 
 or, for text that must be refused at stage parse:
@@ -18,8 +19,9 @@ or, for text that must be refused at stage parse:
       line: 3                                        # optional: ServiceError.line (1-based)
 
 Strings in `contains` and `warnings` match case-insensitively. `params` compares numbers with an
-absolute tolerance of 1e-4 and needs exactly the keys given; `substeps` and `on_failure` are
-compared with the same rules and must have the same length.
+absolute tolerance of 1e-4 and needs exactly the keys given; `coordinates` compares x, y and z the
+same way (an omitted z must be absent); `substeps` and `on_failure` are compared with the same
+rules and must have the same length.
 """
 
 from __future__ import annotations
@@ -41,9 +43,10 @@ MIN_CASES = 60
 ABS_TOLERANCE = 1e-4
 
 TOP_KEYS = {"format", "source_format", "steps", "warnings", "refusal"}
-STEP_KEYS = {"action", "target", "location", "params", "units", "description", "substeps", "on_failure"}
-REFUSAL_KEYS = {"contains", "step", "line"}
 NESTED_KEYS = ("substeps", "on_failure")
+STEP_KEYS = {"action", "target", "location", "params", "units", "description", "coordinates", *NESTED_KEYS}
+AXES = ("x", "y", "z")
+REFUSAL_KEYS = {"contains", "step", "line"}
 
 
 def _stems(suffix: str) -> set[str]:
@@ -80,6 +83,13 @@ def _step_problems(steps: Any, where: str) -> list[str]:
         for key in ("params", "units"):
             if key in step and not isinstance(step[key], dict):
                 problems.append(f"{at}.{key}: must be a mapping")
+        point = step.get("coordinates")
+        if point is not None and (
+            not isinstance(point, dict)
+            or not {"x", "y"} <= set(point) <= set(AXES)
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in point.values())
+        ):
+            problems.append(f"{at}.coordinates: must be null or a mapping of numbers x, y and optionally z")
         for key in NESTED_KEYS:
             if key in step and step[key] != []:
                 problems.extend(_step_problems(step[key], f"{at}.{key}"))
@@ -152,6 +162,15 @@ def _compare_step(want: dict[str, Any], got: Step, where: str, problems: list[st
                 problems.append(f"{where}.params.{key}: expected {value!r}, got {got.params[key]!r}")
     if "units" in want and want["units"] != got.units:
         problems.append(f"{where}.units: expected {want['units']!r}, got {got.units!r}")
+    if "coordinates" in want:
+        point = want["coordinates"]
+        got_point = None if got.coordinates is None else {a: getattr(got.coordinates, a) for a in AXES}
+        if point is None or got_point is None:
+            same = point is None and got_point is None
+        else:
+            same = all(_same_value(point[a], got_point[a]) if a in point else got_point[a] is None for a in AXES)
+        if not same:
+            problems.append(f"{where}.coordinates: expected {point!r}, got {got_point!r}")
     for key in NESTED_KEYS:
         if key in want:
             _compare_steps(want[key], getattr(got, key), f"{where}.{key}", problems)

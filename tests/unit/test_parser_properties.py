@@ -74,8 +74,11 @@ STEPS: list[dict[str, Any]] = [
     {"action": "place", "target_object": "red cup", "target_location": "coffee table"},
     {"action": "say", "parameters": {"text": "here you are"}},
     {"action": "wait", "parameters": {"duration": 2}},
+    {"action": "navigate_to", "parameters": {"x": 3.5, "y": 2.0}},
+    {"action": "pick", "target": "apple", "position": [2.6, 3.1, 0.75], "pose": {"x": 2.6, "y": 3.1, "yaw": 0}},
 ]
 ENGLISH = TEXT_PLAN  # the benchmark's ten-line English plan
+ENGLISH_POINTS = "1. Go to (3.5, 2.0)\n2. go to the kitchen at x 2.5 y 250 cm\n3. look at 1, 2, 1.2\n"
 
 
 def openai_calls(steps: list[dict[str, Any]]) -> dict[str, Any]:
@@ -115,6 +118,7 @@ SEEDS: dict[str, tuple[str, str]] = {
     "yaml": (yaml.safe_dump({"plan": STEPS}, sort_keys=False), "yaml"),
     "yaml in prose": ("Sure:\n```yaml\n" + yaml.safe_dump({"plan": STEPS}, sort_keys=False) + "```\n", "auto"),
     "english": (ENGLISH, "text"),
+    "english points": (ENGLISH_POINTS, "text"),
     "english in prose": ("Here's what I'll do:\n\n" + ENGLISH + "\n\nLet me know if that works.", "auto"),
     "openai tool calls": (json.dumps(openai_calls(STEPS)), "auto"),
     "anthropic tool_use": (json.dumps(anthropic_calls(STEPS)), "auto"),
@@ -141,25 +145,29 @@ KEYS = [
     "target", "target_object", "target_location", "object", "destination", "location", "parameters", "params",
     "args", "arguments", "input", "description", "reason", "substeps", "children", "on_failure", "fallback",
     "speed", "distance", "angle", "direction", "duration", "text", "volume", "approach", "gesture", "width",
-    "force", "x", "y", "yaw", "pose", "angle_deg", "distance_cm", "duration_ms", "seconds", "id", "step",
+    "force", "x", "y", "z", "yaw", "pose", "position", "coordinates", "point", "goal_pose", "frame_id",
+    "angle_deg", "distance_cm", "duration_ms", "seconds", "id", "step",
     "tool_calls", "function", "content", "tool_use", "method", "jsonrpc", "choices", "message", "",
 ]  # fmt: skip
 PARAM_KEYS = [
     "speed", "distance", "angle", "direction", "duration", "text", "volume", "approach", "gesture", "width",
-    "force", "x", "yaw", "angle_deg", "distance_cm", "duration_ms", "seconds", "unit", "Speed", "max-speed",
+    "force", "x", "y", "yaw", "position", "coords", "angle_deg", "distance_cm", "duration_ms", "seconds", "unit",
+    "Speed", "max-speed",
 ]  # fmt: skip
 VALUE_STRINGS = [
     "kitchen", "red cup", "coffee table", "30 cm", "90 degrees", "90°", "2 seconds", "1.5 m/s", "-1e309 m",
     "1e400", "nan", "inf deg", "-inf", "2 minutes", "left", "right", "forward", "back", "top", " TRUE ",
     "false", "1_000", "0x10", "\u0663", "\U0001d7d7 m", "1.5.3 m", "1e-400 m", "5 km/h", "-0", "°", "3 parsecs",
-    "here you are", "\u202ereversed", "line\nbreak", "tab\there", "bell\x07", "\ud800",
+    "here you are", "\u202ereversed", "line\nbreak", "tab\there", "bell\x07", "\ud800", "(3.5, 2.0)",
+    "x=1, y=2", "1, 2, 3", "3.5 m, 20 cm", "[1e400, 2]", "(1, 2",
 ]  # fmt: skip
 WORDS = [
     "go", "to", "the", "kitchen", "pick", "up", "red", "cup", "from", "counter", "put", "it", "on", "coffee",
     "table", "say", '"here you are"', "turn", "left", "right", "90", "degrees", "drive", "forward", "backward",
     "30", "cm", "wait", "2", "seconds", "open", "close", "gripper", "back", "and", "then", "if", "that", "fails",
     "otherwise", "wave", "look", "at", "stop", "-5", "1e309", "nan", "°", "m/s", "slowly", "twice", "…", "\n",
-    "{", "}", "[", "]", ":", "-", "*", "&a", "*a", "```", "#", "1.", "2)", "Step", "3:",
+    "{", "}", "[", "]", ":", "-", "*", "&a", "*a", "```", "#", "1.", "2)", "Step", "3:", "(3.5,", "2.0)", "x", "y",
+    "3.5,", "(1,", "x=1,", "y=2",
 ]  # fmt: skip
 STRUCTURAL = "{}[]\",:\\ \n\t`'-#&*!|>%@0123456789.eE+aplnstu"
 

@@ -170,13 +170,13 @@ def test_variants_fold_direction_into_the_sign_and_units_are_si() -> None:
         )
     )
     right, left, back, forward = plan.steps
-    assert math.isclose(right.params["angle"], -math.pi / 2, rel_tol=1e-6) and right.units == {"angle": "rad"}
-    assert math.isclose(left.params["angle"], math.pi / 4, rel_tol=1e-6) and "direction" not in left.params
-    assert math.isclose(back.params["distance"], -0.3) and back.units == {"distance": "m"}
+    assert math.isclose(float(right.params["angle"]), -math.pi / 2, rel_tol=1e-6) and right.units == {"angle": "rad"}
+    assert math.isclose(float(left.params["angle"]), math.pi / 4, rel_tol=1e-6) and "direction" not in left.params
+    assert math.isclose(float(back.params["distance"]), -0.3) and back.units == {"distance": "m"}
     assert (
         "allowed 0.05..1 m/s" in refusal(json.dumps([{"action": "drive", "distance": 1, "speed": "36 km/h"}])).message
     )
-    assert forward.params["distance"] == 1.0 and math.isclose(forward.params["speed"], 0.1, rel_tol=1e-4)
+    assert forward.params["distance"] == 1.0 and math.isclose(float(forward.params["speed"]), 0.1, rel_tol=1e-4)
     conflict = [{"action": "turn_right", "parameters": {"angle": 1, "direction": "left"}}]
     assert "says direction 'right'" in refusal(json.dumps(conflict)).message
     bare = refusal(json.dumps([{"action": "turn", "angle": 90}])).message

@@ -381,6 +381,58 @@ def test_angles(clause: str, angle: str) -> None:
 # Refusals
 
 
+@pytest.mark.parametrize(
+    ("clause", "expected"),
+    [
+        ("go to (3.5, 2.0)", {"action": "navigate_to", "parameters": {"point": ["3.5", "2.0"]}}),
+        ("go to 3.5, 2.0", {"action": "navigate_to", "parameters": {"point": ["3.5", "2.0"]}}),
+        ("navigate to x 3.5 y 2", {"action": "navigate_to", "parameters": {"point": ["3.5", "2"]}}),
+        ("Go To X=3, Y=-2", {"action": "navigate_to", "parameters": {"point": ["3", "-2"]}}),
+        ("go to [1, 2, 0.5]", {"action": "navigate_to", "parameters": {"point": ["1", "2", "0.5"]}}),
+        ("go to the point (1 m, 250 cm)", {"action": "navigate_to", "parameters": {"point": ["1 m", "250 cm"]}}),
+        (
+            "drive to coordinates 1, 2 at 0.3 m/s",
+            {"action": "navigate_to", "parameters": {"point": ["1", "2"], "speed": "0.3 m/s"}},
+        ),
+        (
+            "go to the kitchen at (2.5, 2.5)",
+            {"action": "navigate_to", "target": "kitchen", "parameters": {"point": ["2.5", "2.5"]}},
+        ),
+        ("look at (1, 2, 1.2)", {"action": "look_at", "parameters": {"point": ["1", "2", "1.2"]}}),
+        (
+            "pick up the cup at (2.6, 3.1, 0.9)",
+            {"action": "pick", "target": "cup", "parameters": {"point": ["2.6", "3.1", "0.9"]}},
+        ),
+        (
+            "put it on the table at (1, 2)",
+            {"action": "place", "target": "it", "target_location": "table", "parameters": {"point": ["1", "2"]}},
+        ),
+        ("find the apple near 1, 2", {"action": "detect", "target": "apple", "parameters": {"point": ["1", "2"]}}),
+        # Not points: a speed after a name, and one number is no point.
+        ("go to the kitchen at 0.5", {"action": "navigate_to", "target": "kitchen", "parameters": {"speed": "0.5"}}),
+    ],
+)
+def test_points(clause: str, expected: dict[str, Any]) -> None:
+    assert fields("1. " + clause) == expected
+
+
+def test_a_point_is_not_split_at_its_comma_but_a_step_after_it_is() -> None:
+    steps = read("1. go to 3.5, 2.0, then pick up the cup and go to 1, 2 and look at (0, 0)")
+    assert [s.fields for s in steps] == [
+        {"action": "navigate_to", "parameters": {"point": ["3.5", "2.0"]}},
+        {"action": "pick", "target": "cup"},
+        {"action": "navigate_to", "parameters": {"point": ["1", "2"]}},
+        {"action": "look_at", "parameters": {"point": ["0", "0"]}},
+    ]
+
+
+@pytest.mark.parametrize("clause", ["go to (1, 2, 3, 4)", "go to (1 2)", "go to (1, two)", "go to (1, 2"])
+def test_what_is_not_a_point_is_refused(clause: str) -> None:
+    error = refused("1. " + clause)
+    assert at(error) == (1, 4)
+    assert "cannot read" in error.error.message
+
+
 def test_unknown_verb_is_refused_with_did_you_mean() -> None:
     error = refused("1. go to the kitchen\n2. plce the cup on the table")
     assert at(error) == (2, 4)
@@ -622,6 +674,10 @@ def test_the_grammar_emits_only_parameters_and_choices_the_vocabulary_knows() ->
             for slot in pattern.slots:
                 if slot.name in ("target", "target_location"):
                     continue
+                if slot.kind == "point":  # read like coordinates in JSON, by the actions that take them
+                    assert slot.name in vocabulary["coordinates"]["points"], (pattern.action, slot.name)
+                    assert pattern.action in vocabulary["coordinates"]["actions"], pattern.action
+                    continue
                 assert slot.name in params, (pattern.action, slot.name)
                 for value in slot.choices.values():
                     assert value in params[slot.name]["choices"], (pattern.action, value)
@@ -659,6 +715,8 @@ def write(tmp_path: Path, text: str) -> Path:
         ),
         ("actions: {stop: {examples: [stop], patterns: [stop]}}\nverbs: []", "unknown field"),
         ("actions: {fly: {examples: [fly], patterns: [fly]}}", "fly"),
+        ("point_quantity: length\nactions: {stop: {examples: [stop], patterns: [stop]}}", "point_quantity"),
+        ("quantities: {point: [m]}\nactions: {stop: {examples: [stop], patterns: [stop]}}", "quantities.point"),
         ("actions: {stop: {examples: [], patterns: [stop]}}", "examples"),
         ("actions: [", "not valid YAML"),
     ],
