@@ -8,40 +8,32 @@ each timed alone; plans/s is one over the median parse time.
 
 Round trips: the parser service is a real process started by the Supervisor on its own robot name
 and ports; readiness is its liveliness token. The baseline is the bare Zenoh echo of
-`bench.transport`, answered by the same parser process on the same session: the service declares it
-when started with TETHER_BENCH_ECHO=1 (services.runtime.BENCH_ECHO_ENV).
+`bench.transport`, answered by the same parser process on the same session (see `bench.service`).
 Both kinds of round trip are interleaved, alternating which goes first, as in `bench.transport`.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import importlib.metadata
 import json
 import os
-import platform
 import signal
-import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from bench.transport import bare_echo, free_base_port, interleaved, percentile
+from bench.service import BenchError, against_echo, bench_settings, ms_summary, running_service
+from bench.transport import machine
 from schemas import keys
 from schemas.plan import Plan, PlanText
 from services import runtime
-from services.runtime import CallError, Node, NodeSettings
-from tether.supervisor import Supervisor
+from services.runtime import CallError, Node
 
 SERVICE = "parser"
 GOALS = {"goal_json_plans_per_s": 5000.0, "goal_text_plans_per_s": 1000.0, "goal_ratio_p50": 1.5}
-READY_TIMEOUT = 30.0
 CALL_TIMEOUT = 2.0
-STOP_TIMEOUT = 5.0
 MAX_N = 20_000
 
 JSON_PLAN = json.dumps(
@@ -77,16 +69,8 @@ TEXT_PLAN = (
 REQUEST = PlanText(text=JSON_PLAN, format="json")
 
 
-class BenchError(Exception):
-    """A part of the bench could not run; the message says which and why."""
-
-
 def progress(message: str) -> None:
     print(f"bench.parser: {message}", file=sys.stderr, flush=True)
-
-
-def ms_summary(ms: list[float]) -> tuple[float, float]:
-    return round(statistics.median(ms), 4), round(percentile(ms, 99), 4)
 
 
 # In-process throughput
@@ -124,46 +108,6 @@ def throughput(text: str, fmt: str, seconds: float, warmup: int) -> dict[str, An
 # Round trips to the service
 
 
-@contextlib.contextmanager
-def parser_service(settings: NodeSettings, log_dir: Path) -> Iterator[Node]:
-    """The parser service as a child process, with a client Node once it is alive; always stopped."""
-    supervisor = Supervisor(settings, log_dir, extra_env={runtime.BENCH_ECHO_ENV: "1"})
-    node: Node | None = None
-    try:
-        supervisor.start(SERVICE)
-        node = Node("cli", settings)
-        wait_ready(node, supervisor)
-        yield node
-    finally:
-        # A second Ctrl-C must not leave the child running: stopping takes at most STOP_TIMEOUT + 10 s.
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        try:
-            if node is not None:
-                node.close()
-            supervisor.stop_all(timeout=STOP_TIMEOUT)
-        finally:
-            signal.signal(signal.SIGINT, previous)
-
-
-def wait_ready(node: Node, supervisor: Supervisor) -> None:
-    """Until the service holds its liveliness token; a service that exits is reported at once."""
-    deadline = time.monotonic() + READY_TIMEOUT
-    while node.wait_alive({SERVICE}, timeout=0.5):
-        code = supervisor.exited().get(SERVICE)
-        if code is None and time.monotonic() < deadline:
-            continue
-        why = f"not alive within {READY_TIMEOUT:g} s" if code is None else f"exited with code {code}"
-        tail = supervisor.log_tail(SERVICE)
-        progress(f"parser service log:\n{tail}")
-        raise BenchError(f"parser service {why}: {last_line(tail)}")
-
-
-def last_line(log: str) -> str:
-    """The last line of a log with text on it: the exception of a traceback, without rich's box drawing."""
-    lines = [line.strip(" \u2502\u2570\u2500\u256f\u256d\u256e") for line in log.splitlines()]
-    return next((line for line in reversed(lines) if line), "no output")
-
-
 def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
     """Interleaved round trips in ms: (bare echo, plan/parse), the echo carrying the parse request's bytes."""
 
@@ -175,21 +119,14 @@ def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[li
         if not isinstance(plan, Plan):
             raise BenchError(f"plan/parse replied with {type(plan).__name__}, not a Plan")
 
-    try:
-        return interleaved(bare_echo(node, runtime.encode(REQUEST)), query, n, warmup, max_seconds)
-    except RuntimeError as exc:  # the bare echo failed or did not answer
-        raise BenchError(str(exc)) from None
+    return against_echo(node, runtime.encode(REQUEST), query, n, warmup, max_seconds)
 
 
 def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
-    # The service gets our settings only: an inherited Zenoh config file would point it at other peers.
-    os.environ.pop("TETHER_ZENOH_CONFIG", None)
-    settings = NodeSettings(
-        robot=f"bench-parser-{os.getpid()}", base_port=int(os.environ.get("TETHER_BASE_PORT") or free_base_port())
-    )
+    settings = bench_settings(SERVICE)
     with tempfile.TemporaryDirectory(prefix="bench-parser-") as tmp:
         progress(f"starting the parser service (robot {settings.robot}, base port {settings.base_port})")
-        with parser_service(settings, Path(tmp)) as node:
+        with running_service(SERVICE, settings, Path(tmp), progress) as node:
             progress(f"measuring up to {n} round trips of each kind (+{warmup} warm-up, at most {max_seconds:g} s)")
             bare, queries = round_trips(node, n, warmup, max_seconds)
     q50, q99 = ms_summary(queries)
@@ -245,11 +182,7 @@ def run(seconds: float, n: int, warmup: int, max_query_seconds: float) -> dict[s
     }
     result["errors"] = errors
     result["notes"] = {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "zenoh": importlib.metadata.version("eclipse-zenoh"),
-        "cpus": os.cpu_count(),
-        "loadavg_1m": round(os.getloadavg()[0], 2),
+        **machine(),
         "parse_seconds_per_format": seconds,
         "parse": parse_detail,
         "plans_per_s": "1000 / median ms of a single parse, each parse timed alone, after warm-up",

@@ -125,13 +125,20 @@ def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[
     return interleaved(bare_echo(node, runtime.encode(REQUEST)), tether, samples, warmup, max_seconds)
 
 
-def machine_notes(payload_bytes: int, warmup: int) -> dict[str, Any]:
+def machine() -> dict[str, Any]:
+    """Where a bench ran: for the notes of its JSON."""
     return {
         "platform": platform.platform(),
         "python": platform.python_version(),
         "zenoh": importlib.metadata.version("eclipse-zenoh"),
         "cpus": os.cpu_count(),
         "loadavg_1m": round(os.getloadavg()[0], 2),
+    }
+
+
+def machine_notes(payload_bytes: int, warmup: int) -> dict[str, Any]:
+    return {
+        **machine(),
         "transport": "tcp on loopback, peer to peer, multicast scouting off",
         "payload_bytes": payload_bytes,
         "warmup": warmup,

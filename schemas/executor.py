@@ -60,7 +60,11 @@ class StepResult(Frozen):
 
 
 class ExecutePlanResult(Frozen):
+    """`warnings` are the parser's and the resolver's: what they read differently from how it was
+    written (a near-miss name, ignored parameters, coordinates overruled by a named entity)."""
+
     status: PlanStatus
     stage: Stage
     reason: Text = ""
     steps: list[StepResult] = []
+    warnings: list[Text] = []

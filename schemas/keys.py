@@ -37,7 +37,15 @@ from schemas.robot import (
 )
 from schemas.safety import EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
 from schemas.trace import RecorderStatus, TraceRecord
-from schemas.world import Empty, GroundTruth, PerceivedHumans, PerceivedObjects
+from schemas.world import (
+    Empty,
+    GroundTruth,
+    MoveEntity,
+    MoveReply,
+    PerceivedHumans,
+    PerceivedObjects,
+    SceneDescription,
+)
 
 ROOT = "tether"
 T = TypeVar("T")
@@ -139,9 +147,13 @@ ODOM = Topic("robot/odom", Odometry)
 # What the robot perceives.
 OBJECTS = Topic("world/objects", PerceivedObjects)
 HUMANS = Topic("world/humans", PerceivedHumans)
+# The resolver's view of the world: objects where last seen, relations, a description for prompts.
+SCENE: Service[Empty, SceneDescription] = Service("world/scene", Empty, SceneDescription)
 
 # Simulator and recorder introspection.
 GROUND_TRUTH: Service[Empty, GroundTruth] = Service("sim/ground_truth", Empty, GroundTruth)
+# Moves an object or a person in the simulated world (the world changing, not the robot acting).
+SIM_MOVE: Service[MoveEntity, MoveReply] = Service("sim/move", MoveEntity, MoveReply)
 RECORDER_STATUS: Service[Empty, RecorderStatus] = Service("recorder/status", Empty, RecorderStatus)
 
 ACTIONS: tuple[Action[Any, Any, Any], ...] = (
@@ -171,7 +183,9 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     PLAN_RESOLVE,
     PLAN_CHECK,
     RESET,
+    SCENE,
     GROUND_TRUTH,
+    SIM_MOVE,
     RECORDER_STATUS,
     *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result)),
 )

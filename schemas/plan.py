@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from msgspec import Meta
 
-from schemas.common import Frozen, Id, Kilograms, Name, Pose2D, ServiceError, Text, Vec3
+from schemas.common import Frozen, Id, Kilograms, Metres, Name, Pose2D, ServiceError, Text, Vec3
 
 # Requests larger than this are refused before any parsing is attempted.
 MAX_PLAN_BYTES = 256 * 1024
@@ -61,6 +61,15 @@ ParamValue = float | int | bool | str
 ParamName = Annotated[str, Meta(max_length=64)]
 
 
+class Coordinates(Frozen):
+    """A point a plan wrote down, in the map frame (metres). Untrusted: the resolver uses it only when
+    the step names nothing (and then only inside the map, off obstacles); a named entity wins."""
+
+    x: Metres
+    y: Metres
+    z: Metres | None = None
+
+
 class Step(Frozen):
     """One action, or (with `action` None) a group of sub-steps run in order.
 
@@ -76,6 +85,7 @@ class Step(Frozen):
     params: dict[ParamName, ParamValue] = {}
     units: dict[ParamName, Annotated[str, Meta(max_length=16)]] = {}
     description: Text = ""
+    coordinates: Coordinates | None = None
     substeps: Annotated[list[Step], Meta(max_length=MAX_STEPS)] = []
     on_failure: Annotated[list[Step], Meta(max_length=MAX_STEPS)] = []
 
@@ -171,13 +181,37 @@ def step_kind(step: GroundedStep) -> str:
     return str(type(step).__struct_config__.tag)
 
 
+ResolvedVia = Literal["name", "fuzzy", "attribute", "relation", "context", "pronoun", "coordinates"]
+
+
+class Resolution(Frozen):
+    """What one name in the plan was taken to mean, and how sure the resolver is.
+
+    `via` says what settled it: the name itself, a near-miss of a name ("fuzzy"), a colour or size,
+    a spatial relation, the robot's room, a pronoun, or bare coordinates. `confidence` is 1.0 for an
+    exact name and the match score (0..1) for a near-miss."""
+
+    label: Annotated[str, Meta(max_length=64)]
+    text: Name
+    kind: Literal["room", "furniture", "place", "object", "human", "point"]
+    name: Name
+    id: Id | None = None
+    via: ResolvedVia = "name"
+    confidence: Annotated[float, Meta(ge=0.0, le=1.0)] = 1.0
+
+
 class GroundedPlan(Frozen, tag="grounded_plan"):
-    """Sub-steps flattened into one list; `labels[i]` names where steps[i] came from ("2", "3.1")."""
+    """Sub-steps flattened into one list; `labels[i]` names where steps[i] came from ("2", "3.1").
+
+    `warnings` are the resolver's: a near-miss name, coordinates that disagree with the named
+    entity, an object not seen for a while. `resolutions` lists every name and what it became."""
 
     steps: Annotated[list[GroundedStep], Meta(min_length=1, max_length=MAX_STEPS)]
     source: Plan
     labels: list[Annotated[str, Meta(max_length=64)]] = []
     fallbacks: list[Fallback] = []
+    warnings: list[Text] = []
+    resolutions: list[Resolution] = []
 
 
 def step_labels(plan: GroundedPlan) -> list[str]:

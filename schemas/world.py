@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 from msgspec import Meta
 
-from schemas.common import Frozen, Id, Kilograms, Metres, Name, Pose2D, Text, Vec3
+from schemas.common import Frozen, Id, Kilograms, Metres, Name, Pose2D, Radians, ServiceError, Text, Vec3
 
 Point2 = Annotated[list[Metres], Meta(min_length=2, max_length=2)]
 Polygon = Annotated[list[Point2], Meta(min_length=3, max_length=256)]
@@ -54,6 +54,8 @@ class Furniture(Frozen):
     approach: Pose2D
     rgba: Rgba = msgspec.field(default_factory=lambda: [0.6, 0.45, 0.3, 1.0])
     synonyms: list[Name] = []
+    # What kind of furniture it is ("table"), for "the table"; default: the last word of its name.
+    cls: Name | None = None
 
 
 class WorldObject(Frozen):
@@ -116,7 +118,10 @@ class PerceivedObject(Frozen):
     position: Vec3
     room: Id | None = None
     on: Id | None = None  # a furniture id, "gripper", or None when on the floor
+    # When it was seen (wall clock, seconds). In the resolver's memory: when it was last seen, and
+    # `stale` once that is longer ago than its `stale_after`.
     stamp: float = 0.0
+    stale: bool = False
 
 
 class PerceivedObjects(Frozen):
@@ -148,3 +153,51 @@ class GroundTruth(Frozen):
     linear_speed: float
     holding: Id | None
     objects: list[PerceivedObject]
+
+
+# The scene as the resolver knows it: for people and LLM prompts.
+
+RelationName = Literal["on", "in", "near", "left_of", "right_of"]
+
+
+class SceneRelation(Frozen):
+    """`subject` is `relation` `object`: "red_cup on kitchen_counter", "apple right_of blue_cup"
+    (left and right as seen from the robot)."""
+
+    subject: Id
+    relation: RelationName
+    object: Id
+
+
+class SceneDescription(Frozen):
+    """What the robot knows about the world now: objects where last seen (or where the world file
+    puts them, `stamp` 0), the relations between things, and `text`, a short description in English."""
+
+    stamp: float
+    robot: Pose2D | None = None
+    robot_room: Id | None = None
+    objects: list[PerceivedObject] = []
+    relations: list[SceneRelation] = []
+    text: Text = ""
+
+
+# The simulated world changing under the robot's feet (tests, demos).
+
+
+class MoveEntity(Frozen):
+    """Put an object or a person somewhere else in the simulation. An object is dropped at (x, y)
+    with its bottom at `z` (metres; None: on top of whatever furniture is there, else the floor)."""
+
+    id: Id
+    x: Metres
+    y: Metres
+    z: Metres | None = None
+    yaw: Radians | None = None
+
+
+class Moved(Frozen, tag="moved"):
+    id: Id
+    position: Vec3
+
+
+MoveReply = Moved | ServiceError

@@ -19,13 +19,14 @@ from rich.table import Table
 
 from schemas import keys
 from schemas.actions import CancelGoal
+from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.plan import MAX_PLAN_BYTES
 from schemas.robot import Odometry
 from schemas.safety import SafetyStatus
-from schemas.world import Empty, PerceivedObjects
+from schemas.world import Empty, MoveEntity, PerceivedObjects
 from services.actionlib import CANCEL_ALL, GoalRejected
-from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings
+from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode
 from services.worldmodel import WorldFileError
 from tether.client import (
     EXIT_CODES,
@@ -186,6 +187,8 @@ def print_result(run: PlanRun, as_json: bool) -> None:
     if result is None:
         console.print(f"plan accepted (goal {run.goal_id}); executing. `tether status` follows it.")
         return
+    for warning in result.warnings:
+        console.print(f"[yellow]warning[/]: {warning}")
     colour = "green" if result.status is PlanStatus.SUCCEEDED else "red"
     console.print(
         f"[{colour}]{result.status}[/] at stage {result.stage}" + (f": {result.reason}" if result.reason else "")
@@ -374,6 +377,91 @@ def status(ctx: typer.Context, as_json: Annotated[bool, typer.Option("--json")] 
     for o in state["objects"]:
         table.add_row(o["name"], o["room"] or "-", o["on"] or "-", *(f"{o['pose'][k]:.2f}" for k in "xyz"))
     console.print(table)
+
+
+# The simulated world
+
+world_app = typer.Typer(
+    help="The SIMULATED world: change it under the robot's feet, for demos and tests.", no_args_is_help=True
+)
+app.add_typer(world_app, name="world")
+
+# How a refusal from the simulator maps to an exit code; anything else is 1.
+WORLD_EXIT_CODES = {ErrorKind.INVALID_REQUEST: 2, ErrorKind.PRECONDITION: 2, ErrorKind.UNAVAILABLE: EXIT_UNREACHABLE}
+
+
+def world_failed(error: ServiceError) -> NoReturn:
+    console.print(f"[red]{error.kind}[/]: {error.message}")
+    if error.candidates:
+        console.print("known: " + ", ".join(error.candidates))
+    raise typer.Exit(WORLD_EXIT_CODES.get(error.kind, 1))
+
+
+@world_app.command("move")
+def world_move(
+    ctx: typer.Context,
+    entity: Annotated[str, typer.Argument(metavar="ID", help="An object or person id: red_cup, operator, ...")],
+    x: Annotated[float, typer.Argument(help="Map x in metres.")],
+    y: Annotated[float, typer.Argument(help="Map y in metres.")],
+    z: Annotated[
+        float | None,
+        typer.Option(help="Height of an object's bottom in metres. Default: the top of the furniture there, or 0."),
+    ] = None,
+    yaw: Annotated[float | None, typer.Option(help="Heading in radians. Default: as it is.")] = None,
+) -> None:
+    """Move an object or a person in the SIMULATED world, for demos and tests (not a robot action).
+
+    An object is set down upright at (x, y) and let settle; a person stands there. Prints where it ended up.
+
+    Exit 0 moved, 2 refused (an unknown id, a point outside every room, the object in the gripper), 3 no simulator.
+    """
+    with client(ctx) as node:
+        if "sim" not in node.alive_services(timeout=2.0):
+            console.print("[red]no simulator reachable[/]: start it with `tether up` or `tether run sim`")
+            raise typer.Exit(EXIT_UNREACHABLE)
+        try:
+            reply = node.call(keys.SIM_MOVE, MoveEntity(id=entity, x=x, y=y, z=z, yaw=yaw), timeout=10.0)
+        except CallError as exc:
+            world_failed(exc.error)
+    if isinstance(reply, ServiceError):
+        world_failed(reply)
+    p = reply.position
+    out.print(f"{reply.id} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
+
+
+@world_app.command("scene")
+def world_scene(
+    ctx: typer.Context,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the SceneDescription as one JSON object.")] = False,
+) -> None:
+    """What the resolver knows about the world: where each object was last seen, the relations
+    between things (on, in, near, left of, right of), and the description an LLM prompt can use.
+
+    Exit 0, 3 when no resolver is reachable.
+    """
+    with client(ctx) as node:
+        if "resolver" not in node.alive_services(timeout=2.0):
+            console.print("[red]no resolver reachable[/]: start the services with `tether up`")
+            raise typer.Exit(EXIT_UNREACHABLE)
+        try:
+            scene = node.call(keys.SCENE, Empty(), timeout=5.0)
+        except CallError as exc:
+            console.print(f"[red]{exc.error.kind}[/]: {exc.error.message}")
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+    if as_json:
+        print(encode(scene).decode())
+        return
+    console.print(scene.text, markup=False, highlight=False)
+    table = Table("object", "on", "room", "x", "y", "z", "seen")
+    for o in scene.objects:
+        seen = "stale" if o.stale else ("yes" if o.stamp else "world file")
+        p = o.position
+        table.add_row(o.name, o.on or "-", o.room or "-", f"{p.x:.2f}", f"{p.y:.2f}", f"{p.z:.2f}", seen)
+    console.print(table)
+    relations = [
+        f"{r.subject} {r.relation.replace('_', ' ')} {r.object}" for r in scene.relations if r.relation != "in"
+    ]
+    console.print("relations: " + "; ".join(relations), markup=False, highlight=False)
 
 
 # The demo

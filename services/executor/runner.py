@@ -8,6 +8,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import msgspec
+
 from schemas.common import ServiceError, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepResult, StepStatus
 from schemas.plan import (
@@ -53,7 +55,14 @@ class PlanRunner:
         self.manipulator = manipulator
 
     def run(self, goal: ExecutePlanGoal, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
-        grounded = self._prepare(goal, feedback)
+        warnings: list[str] = []
+        result = self._run(goal, cancel, feedback, warnings)
+        return msgspec.structs.replace(result, warnings=warnings) if warnings else result
+
+    def _run(
+        self, goal: ExecutePlanGoal, cancel: threading.Event, feedback: FeedbackSink, warnings: list[str]
+    ) -> ExecutePlanResult:
+        grounded = self._prepare(goal, feedback, warnings)
         if isinstance(grounded, ExecutePlanResult):
             return grounded
         if goal.dry_run:
@@ -65,17 +74,22 @@ class PlanRunner:
             )
         return self._execute(grounded, cancel, feedback)
 
-    def _prepare(self, goal: ExecutePlanGoal, feedback: FeedbackSink) -> GroundedPlan | ExecutePlanResult:
-        """Parse, resolve and check the whole plan before anything moves."""
+    def _prepare(
+        self, goal: ExecutePlanGoal, feedback: FeedbackSink, warnings: list[str]
+    ) -> GroundedPlan | ExecutePlanResult:
+        """Parse, resolve and check the whole plan before anything moves; `warnings` collects what
+        the parser and the resolver said back."""
         try:
             feedback(ExecutePlanFeedback(stage=Stage.PARSE, message="parsing"))
             parsed = self.planner.parse(goal.text, goal.format)
             if isinstance(parsed, ServiceError):
                 return rejected(Stage.PARSE, parsed)
+            warnings.extend(parsed.warnings)
             feedback(ExecutePlanFeedback(stage=Stage.RESOLVE, message=f"resolving {len(parsed.steps)} steps"))
             grounded = self.planner.resolve(parsed)
             if isinstance(grounded, ServiceError):
                 return rejected(Stage.RESOLVE, grounded, parsed)
+            warnings.extend(grounded.warnings)
             feedback(ExecutePlanFeedback(stage=Stage.SAFETY, message="checking the whole plan with safety"))
             verdict = self.planner.check(grounded)
             if isinstance(verdict, ServiceError):

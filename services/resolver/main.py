@@ -15,6 +15,6 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     resolver = build_resolver(config)
     stop = stop_event()
     with Node("resolver", settings) as node:
-        declare(node, resolver)
+        declare(node, resolver, config)
         node.declare_alive()
         stop.wait()

@@ -1,4 +1,4 @@
-"""Every name the world knows, normalised, mapped to the things it may mean."""
+"""Every name the world knows, normalised, mapped to the things it may mean; near-misses scored."""
 
 from __future__ import annotations
 
@@ -22,6 +22,12 @@ KIND_NOUNS: dict[Kind, str] = {
 _FILLER = frozenset({"the", "a", "an", "some", "my", "this", "that", "please"})
 _PUNCTUATION = re.compile(r"[^\w\s]|_")
 MAX_SUGGESTIONS = 3
+# Near-misses scoring below this (0..100) are not even suggested.
+SUGGESTION_CUTOFF = 60.0
+# ...nor when they score this much (0..1) below the best.
+SUGGESTION_SPREAD = 0.1
+# Longer names are cut before fuzzy matching: no real name is this long.
+MAX_MATCH_CHARS = 200
 
 
 def normalise_name(text: str) -> str:
@@ -37,16 +43,28 @@ class Entity:
     name: str
 
 
+@dataclass(frozen=True)
+class Scored:
+    """Things a near-miss may mean, with how well it matched (0..1) and the name it matched."""
+
+    entities: tuple[Entity, ...]
+    score: float
+    matched: str
+
+
 class NameIndex:
     """Ids, names and synonyms of rooms, furniture, places, objects and people; objects also by
-    class ("cup") and colour and class ("red cup")."""
+    class ("cup") and colour and class ("red cup"), furniture by its kind ("table")."""
 
     def __init__(self, world: World) -> None:
         self._by_name: dict[str, list[Entity]] = {}
+        self.entities: list[Entity] = []
+        self.colours: dict[str, str] = {o.id: normalise_name(o.color) for o in world.objects}
         for room in world.rooms:
             self._add(Entity("room", room.id, room.name), room.id, room.name, *room.synonyms)
         for item in world.furniture:
-            self._add(Entity("furniture", item.id, item.name), item.id, item.name, *item.synonyms)
+            kind = item.cls or item.name.split()[-1]
+            self._add(Entity("furniture", item.id, item.name), item.id, item.name, kind, *item.synonyms)
         for place in world.places:
             self._add(Entity("place", place.id, place.name), place.id, place.name, *place.synonyms)
         for obj in world.objects:
@@ -54,8 +72,11 @@ class NameIndex:
             self._add(Entity("object", obj.id, obj.name), *names)
         for human in world.humans:
             self._add(Entity("human", human.id, human.name), human.id, human.name, *human.synonyms)
+        self._keys = list(self._by_name)
+        self.by_id = {e.id: e for e in self.entities}
 
     def _add(self, entity: Entity, *names: str) -> None:
+        self.entities.append(entity)
         for name in names:
             key = normalise_name(name)
             if key:
@@ -66,14 +87,28 @@ class NameIndex:
     def lookup(self, name: str) -> list[Entity]:
         return list(self._by_name.get(normalise_name(name), []))
 
-    def suggestions(self, name: str) -> list[str]:
-        """Display names of the things `name` most likely meant, best first."""
-        key = normalise_name(name)[:200]
+    def of_kind(self, kind: Kind) -> list[Entity]:
+        return [e for e in self.entities if e.kind == kind]
+
+    def near_misses(self, name: str, limit: int = 8) -> list[Scored]:
+        """Names `name` may be a misspelling of, best first, each with the things it names."""
+        key = normalise_name(name)[:MAX_MATCH_CHARS]
         if not key:
             return []
-        found: list[str] = []
-        for match, _score, _ in process.extract(key, list(self._by_name), scorer=fuzz.WRatio, limit=8, score_cutoff=75):
-            for entity in self._by_name[match]:
-                if entity.name not in found:
-                    found.append(entity.name)
-        return found[:MAX_SUGGESTIONS]
+        found = process.extract(
+            key, self._keys, scorer=fuzz.token_sort_ratio, limit=limit, score_cutoff=SUGGESTION_CUTOFF
+        )
+        return [Scored(tuple(self._by_name[match]), score / 100.0, match) for match, score, _ in found]
+
+    def suggestions(self, name: str) -> list[str]:
+        """Display names of the things `name` most likely meant, best first."""
+        names: list[str] = []
+        scored_names = self.near_misses(name)
+        best = scored_names[0].score if scored_names else 0.0
+        for scored in scored_names:
+            if scored.score < best - SUGGESTION_SPREAD:
+                break
+            for entity in scored.entities:
+                if entity.name not in names:
+                    names.append(entity.name)
+        return names[:MAX_SUGGESTIONS]

@@ -1,36 +1,52 @@
-"""The resolver on the wire: Plan on plan/resolve, grounded with the latest perception and odometry."""
+"""The resolver on the wire: Plan on plan/resolve, grounded with remembered perception and the latest
+odometry; the scene it sees on world/scene."""
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from schemas import keys
 from schemas.common import Pose2D, ServiceError
 from schemas.plan import Plan, ResolveReply
 from schemas.robot import Odometry
-from schemas.world import PerceivedHumans, PerceivedObjects
+from schemas.world import Empty, PerceivedHumans, PerceivedObjects, SceneDescription
+from services.resolver.cache import ResolutionCache, WorldKey, world_key
 from services.resolver.config import ResolverConfig
+from services.resolver.memory import ObjectMemory
 from services.resolver.resolver import Resolver, answer
-from services.runtime import Node
+from services.runtime import Node, encode
 from services.worldmodel import WorldModel, load_world
 
 log = logging.getLogger(__name__)
 
 
-class Latest:
-    """The newest perception, odometry and people seen; written by subscribers, read per query."""
+@dataclass(frozen=True)
+class Snapshot:
+    """What the resolver believes at one moment: objects where last seen, the robot, the people."""
 
-    def __init__(self) -> None:
+    objects: PerceivedObjects | None
+    robot: Pose2D | None
+    humans: PerceivedHumans | None
+    key: WorldKey
+
+
+class Latest:
+    """Perception remembered, the newest odometry and people; written by subscribers, read per query."""
+
+    def __init__(self, memory: ObjectMemory, clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
-        self._objects: PerceivedObjects | None = None
+        self._memory = memory
+        self._clock = clock
         self._robot: Pose2D | None = None
         self._humans: PerceivedHumans | None = None
 
     def on_objects(self, message: PerceivedObjects) -> None:
         with self._lock:
-            self._objects = message
+            self._memory.update(message, self._clock())
 
     def on_odom(self, message: Odometry) -> None:
         with self._lock:
@@ -40,14 +56,20 @@ class Latest:
         with self._lock:
             self._humans = message
 
-    def snapshot(self) -> tuple[PerceivedObjects | None, Pose2D | None, PerceivedHumans | None]:
+    def snapshot(self) -> Snapshot:
         with self._lock:
-            return self._objects, self._robot, self._humans
+            objects = self._memory.snapshot(self._clock())
+            key = world_key(self._memory.version, self._robot, self._humans)
+            return Snapshot(objects, self._robot, self._humans, key)
 
 
 def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(
         WorldModel(load_world(config.world)),
+        min_confidence=config.min_confidence,
+        confidence_margin=config.confidence_margin,
+        near_distance=config.near_distance,
+        coordinate_tolerance=config.coordinate_tolerance,
         place_inset=config.place_inset,
         place_clearance=config.place_clearance,
         human_standoff=config.human_standoff,
@@ -55,25 +77,46 @@ def build_resolver(config: ResolverConfig) -> Resolver:
     )
 
 
-def handler(resolver: Resolver, latest: Latest) -> Callable[[Plan], ResolveReply]:
+def build_latest(config: ResolverConfig) -> Latest:
+    return Latest(ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance))
+
+
+def handler(resolver: Resolver, latest: Latest, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
     """A handler that always answers: a GroundedPlan, or a ServiceError naming the step."""
 
     def handle(plan: Plan) -> ResolveReply:
-        objects, robot, humans = latest.snapshot()
-        reply = answer(resolver, plan, objects, robot, humans)
+        snap = latest.snapshot()
+        request = encode(plan)
+        cached = cache.get(snap.key, request)
+        if cached is not None:
+            log.debug("grounded plan of %d steps from the cache (%d hits)", len(cached.steps), cache.hits)
+            return cached
+        reply = answer(resolver, plan, snap.objects, snap.robot, snap.humans)
         if isinstance(reply, ServiceError):
             log.info("refused plan: %s", reply.message)
         else:
+            cache.put(snap.key, request, reply)
             log.info("grounded plan of %d steps", len(reply.steps))
         return reply
 
     return handle
 
 
-def declare(node: Node, resolver: Resolver) -> Latest:
-    latest = Latest()
+def scene_handler(resolver: Resolver, latest: Latest) -> Callable[[Empty], SceneDescription]:
+    """world/scene: the scene as the next plan would be resolved in it."""
+
+    def handle(_request: Empty) -> SceneDescription:
+        snap = latest.snapshot()
+        return resolver.describe(snap.objects, snap.robot, humans=snap.humans, stamp=time.time())
+
+    return handle
+
+
+def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Latest:
+    latest = build_latest(config)
     node.subscribe(keys.OBJECTS, latest.on_objects)
     node.subscribe(keys.ODOM, latest.on_odom)
     node.subscribe(keys.HUMANS, latest.on_humans)
-    node.serve(keys.PLAN_RESOLVE, handler(resolver, latest))
+    node.serve(keys.PLAN_RESOLVE, handler(resolver, latest, ResolutionCache(config.cache_size)))
+    node.serve(keys.SCENE, scene_handler(resolver, latest))
     return latest

@@ -33,10 +33,12 @@ def place_position(
     *,
     inset: float,
     clearance: float,
+    near: tuple[float, float] | None = None,
 ) -> Vec3 | None:
     """A spot on `surface`'s top, `inset` in from the edge nearest its approach pose, at least
     `clearance` (xy) from every occupied point, shifted sideways along the edge (then further in)
-    as needed; None when the top has no such spot."""
+    as needed; with `near`, the free spot closest to that point instead. None when the top has no
+    free spot."""
     cx, cy = surface.center
     half = (surface.size.x / 2, surface.size.y / 2)
     ax, ay = surface.approach.x, surface.approach.y
@@ -50,11 +52,15 @@ def place_position(
     depths = _offsets(inset, 2 * half[across] - inset, inset)
     depths = sorted(d for d in depths if d >= inset - 1e-9) or [half[across]]
     sideways = _offsets(centre[along] - half[along] + inset, centre[along] + half[along] - inset, approach[along])
+    free = []
     for depth in depths:
         for side in sideways:
             point = [0.0, 0.0]
             point[across] = edge - sign * depth
             point[along] = side
             if all(math.dist(point, other) >= clearance - 1e-9 for other in occupied):
-                return Vec3(x=round(point[0], 3), y=round(point[1], 3), z=round(surface.size.z, 3))
-    return None
+                free.append((point[0], point[1]))
+    if not free:
+        return None
+    x, y = free[0] if near is None else min(free, key=lambda p: math.dist(p, near))
+    return Vec3(x=round(x, 3), y=round(y, 3), z=round(surface.size.z, 3))

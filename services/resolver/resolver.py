@@ -7,10 +7,14 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
+import msgspec
+from shapely.geometry import Point
+
 from schemas.common import ErrorKind, Pose2D, Vec3
 from schemas.plan import (
     MAX_STEPS,
     Action,
+    Coordinates,
     DetectStep,
     Fallback,
     GripperStep,
@@ -20,19 +24,22 @@ from schemas.plan import (
     PickStep,
     PlaceStep,
     Plan,
+    Resolution,
     ResolveReply,
     SayStep,
     Step,
     StopStep,
     WaitStep,
 )
-from schemas.world import PerceivedHumans, PerceivedObjects
+from schemas.world import Furniture, PerceivedHumans, PerceivedObjects, SceneDescription
 from services.resolver.errors import ResolveError
+from services.resolver.match import Matcher, NoMatch
 from services.resolver.names import KIND_NOUNS, Entity, Kind, NameIndex
 from services.resolver.placement import place_position
+from services.resolver.reference import parse_reference
+from services.resolver.scene import GRIPPER, Belief, Scene, describe_scene, perceived, scene_graph
 from services.worldmodel import PRE_GOAL_MIN_LEG, WorldModel, approach_towards
 
-GRIPPER = "gripper"
 FLOOR = "floor"
 MAX_WAIT = 60.0
 # Bounds of the relative moves, as the parser's vocabulary states them.
@@ -47,6 +54,8 @@ MAX_TURN_PER_GOAL = math.tau / 3
 SAME_POSITION = 1e-3
 SAME_YAW = 1e-3
 ECHO_CHARS = 60
+# A spot a plan gives for place must be this far in from the edge of the top.
+PLACE_EDGE_MARGIN = 0.05
 # Steps whose grounding drives the base (pick and place drive to their approach pose first).
 MOVES_BASE = (NavigateStep, PickStep, PlaceStep)
 
@@ -59,15 +68,6 @@ def _wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
-@dataclass
-class _Belief:
-    """Where an object is thought to be as the plan unfolds: perceived, or from the world file."""
-
-    position: Vec3
-    on: str | None  # a furniture id, GRIPPER, or None for the floor
-    half_height: float = 0.0
-
-
 class _Unknown:
     """The gripper's content when nothing has been perceived yet."""
 
@@ -76,19 +76,34 @@ UNKNOWN = _Unknown()
 
 
 @dataclass
+class _Notes:
+    """What the resolution says back besides the steps: warnings, and what each name became."""
+
+    warnings: list[str] = field(default_factory=list)
+    resolutions: list[Resolution] = field(default_factory=list)
+
+
+@dataclass
 class _State:
     """What the resolver predicts as the plan unfolds: where things are, what the gripper holds,
-    where the base stands. `robot` is None when that is not known; `pose_note` then says why, if
-    it is not simply missing odometry."""
+    where the base stands, which object "it" is. `robot` is None when that is not known;
+    `pose_note` then says why, if it is not simply missing odometry. `humans` and `notes` are shared
+    by every copy."""
 
-    beliefs: dict[str, _Belief]
+    beliefs: dict[str, Belief]
     holding: str | _Unknown | None
     robot: Pose2D | None
+    humans: dict[str, Pose2D]
+    notes: _Notes
     pose_note: str | None = None
+    last_object: str | None = None
 
     def copy(self) -> _State:
         beliefs = {k: dataclasses.replace(b) for k, b in self.beliefs.items()}
-        return _State(beliefs, self.holding, self.robot, self.pose_note)
+        return dataclasses.replace(self, beliefs=beliefs)
+
+    def scene(self, model: WorldModel) -> Scene:
+        return Scene(model, self.beliefs, self.robot, self.humans)
 
 
 @dataclass(frozen=True)
@@ -105,6 +120,9 @@ class _At:
         where = None if self.label == str(self.index + 1) else f"step {self.label}"
         return ResolveError(message, kind=kind, step=self.index, where=where, candidates=candidates)
 
+    def warn(self, state: _State, message: str) -> None:
+        state.notes.warnings.append(f"step {self.label}: {message}")
+
 
 @dataclass
 class _Grounded:
@@ -120,6 +138,10 @@ class Resolver:
         self,
         world_model: WorldModel,
         *,
+        min_confidence: float = 0.8,
+        confidence_margin: float = 0.05,
+        near_distance: float = 0.75,
+        coordinate_tolerance: float = 0.5,
         place_inset: float = 0.15,
         place_clearance: float = 0.15,
         human_standoff: float = 0.8,
@@ -128,12 +150,17 @@ class Resolver:
         self.model = world_model
         self.world = world_model.world
         self.names = NameIndex(self.world)
+        self.matcher = Matcher(
+            self.names, world_model, min_confidence=min_confidence, margin=confidence_margin, near=near_distance
+        )
+        self.coordinate_tolerance = coordinate_tolerance
         self.place_inset = place_inset
         self.place_clearance = place_clearance
         self.human_standoff = human_standoff
         self.object_standoff = object_standoff
         self._places = {p.id: p for p in self.world.places}
-        self._humans = {h.id: h for h in self.world.humans}
+        base = self.world.robot.base_size
+        self._base_radius = math.hypot(base.x / 2, base.y / 2)
 
     def resolve(
         self,
@@ -145,53 +172,82 @@ class Resolver:
     ) -> GroundedPlan:
         """The grounded plan, or ResolveError naming the step: `step` is the 0-based top-level step,
         the message says "step N" (1-based) or, for a sub-step or an alternative, its label."""
-        state = self._initial_state(objects, robot)
-        human_poses = {h.id: h.pose for h in self.world.humans}
-        if humans is not None:
-            human_poses.update({h.id: h.pose for h in humans.humans})
+        state = self._initial_state(objects, robot, humans)
         out = _Grounded()
-        self._ground_steps(plan.steps, "", None, state, out, human_poses, in_alternative=False)
+        self._ground_steps(plan.steps, "", None, state, out, in_alternative=False)
         too_long = [len(out.steps), *(len(f.steps) for f in out.fallbacks)]
         if max(too_long) > MAX_STEPS:
             raise ResolveError(
                 f"the plan needs {max(too_long)} robot steps in a row (long turns and backward drives take "
                 f"more than one); the limit is {MAX_STEPS}: split it into several plans"
             )
-        return GroundedPlan(steps=out.steps, source=plan, labels=out.labels, fallbacks=out.fallbacks)
+        return GroundedPlan(
+            steps=out.steps,
+            source=plan,
+            labels=out.labels,
+            fallbacks=out.fallbacks,
+            warnings=list(dict.fromkeys(state.notes.warnings)),
+            resolutions=state.notes.resolutions,
+        )
 
-    def _initial_state(self, objects: PerceivedObjects | None, robot: Pose2D | None) -> _State:
-        beliefs = {o.id: _Belief(self.model.initial_position(o), o.support, o.size.z / 2) for o in self.world.objects}
+    def describe(
+        self,
+        objects: PerceivedObjects | None = None,
+        robot: Pose2D | None = None,
+        *,
+        humans: PerceivedHumans | None = None,
+        stamp: float = 0.0,
+    ) -> SceneDescription:
+        """The scene as plans are resolved in it: objects where last seen (or where the world file
+        puts them), the relations between things, and a few sentences for an LLM prompt."""
+        scene = self._initial_state(objects, robot, humans).scene(self.model)
+        things = self.names.of_kind("object")
+        objects_known = self.model.objects
+        return SceneDescription(
+            stamp=stamp,
+            robot=robot,
+            robot_room=self.model.room_of(robot.x, robot.y) if robot is not None else None,
+            objects=[perceived(e, scene, objects_known[e.id].cls, objects_known[e.id].color) for e in things],
+            relations=scene_graph(scene, things, self.names.of_kind("furniture"), self.matcher.near),
+            text=describe_scene(
+                scene,
+                things,
+                self.names.of_kind("human"),
+                payload=self.world.robot.payload,
+                masses={o.id: o.mass for o in self.world.objects},
+            ),
+        )
+
+    def _initial_state(
+        self, objects: PerceivedObjects | None, robot: Pose2D | None, humans: PerceivedHumans | None
+    ) -> _State:
+        beliefs = {o.id: Belief(self.model.initial_position(o), o.support, o.size.z / 2) for o in self.world.objects}
         holding: str | _Unknown | None = UNKNOWN
         if objects is not None:
             holding = None
             for seen in objects.objects:
                 known = beliefs.get(seen.id)
-                beliefs[seen.id] = _Belief(seen.position, seen.on, known.half_height if known else 0.0)
+                if known is None:
+                    continue  # perception of something the world file does not know: no name to refer to it
+                beliefs[seen.id] = Belief(seen.position, seen.on, known.half_height, seen.stamp, seen.stale)
                 if seen.on == GRIPPER:
                     holding = seen.id
-        return _State(beliefs, holding, robot)
+        human_poses = {h.id: h.pose for h in self.world.humans}
+        if humans is not None:
+            human_poses.update({h.id: h.pose for h in humans.humans if h.id in human_poses})
+        return _State(beliefs, holding, robot, human_poses, _Notes())
 
     # Groups, sub-steps and alternatives
 
     def _ground_steps(
-        self,
-        steps: list[Step],
-        prefix: str,
-        top: int | None,
-        state: _State,
-        out: _Grounded,
-        humans: dict[str, Pose2D],
-        *,
-        in_alternative: bool,
+        self, steps: list[Step], prefix: str, top: int | None, state: _State, out: _Grounded, *, in_alternative: bool
     ) -> None:
         """Flatten `steps` into `out` in the order they run, labelled `prefix` + 1-based position."""
         for position, step in enumerate(steps):
             at = _At(position if top is None else top, f"{prefix}{position + 1}")
-            self._ground_step(at, step, state, out, humans, in_alternative=in_alternative)
+            self._ground_step(at, step, state, out, in_alternative=in_alternative)
 
-    def _ground_step(
-        self, at: _At, step: Step, state: _State, out: _Grounded, humans: dict[str, Pose2D], *, in_alternative: bool
-    ) -> None:
+    def _ground_step(self, at: _At, step: Step, state: _State, out: _Grounded, *, in_alternative: bool) -> None:
         if step.on_failure and in_alternative:
             raise at.error(
                 "an on_failure inside an on_failure alternative cannot be run (alternatives do not nest); "
@@ -202,28 +258,17 @@ class Resolver:
         if step.action is None:
             if not step.substeps:
                 raise at.error("the step has neither an action nor sub-steps")
-            self._ground_steps(
-                step.substeps, f"{at.label}.", at.index, state, out, humans, in_alternative=in_alternative
-            )
+            self._ground_steps(step.substeps, f"{at.label}.", at.index, state, out, in_alternative=in_alternative)
         else:
             if step.substeps:
                 raise at.error(f"{step.action} cannot also have sub-steps: put the action in the group as a sub-step")
-            for grounded in self._step(at, step, state, humans):
+            for grounded in self._step(at, step, state):
                 out.steps.append(grounded)
                 out.labels.append(at.label)
         if before is not None:
-            self._alternatives(at, step, before, first, state, out, humans)
+            self._alternatives(at, step, before, first, state, out)
 
-    def _alternatives(
-        self,
-        at: _At,
-        step: Step,
-        before: _State,
-        first: int,
-        state: _State,
-        out: _Grounded,
-        humans: dict[str, Pose2D],
-    ) -> None:
+    def _alternatives(self, at: _At, step: Step, before: _State, first: int, state: _State, out: _Grounded) -> None:
         """Ground `step.on_failure` as a Fallback over the grounded steps from `first` on.
 
         The alternatives are grounded from the state predicted at the start of that range. When the
@@ -235,7 +280,7 @@ class Resolver:
             before.pose_note = f"where the robot stands when step {at.label} fails is not known in advance"
         alternative = _Grounded()
         self._ground_steps(
-            step.on_failure, f"{at.label} on_failure ", at.index, before, alternative, humans, in_alternative=True
+            step.on_failure, f"{at.label} on_failure ", at.index, before, alternative, in_alternative=True
         )
         out.fallbacks.append(Fallback(first=first, last=last, steps=alternative.steps, labels=alternative.labels))
         # The plan goes on from the step's own outcome; objects are followed along that path (the
@@ -246,21 +291,18 @@ class Resolver:
 
     # One step
 
-    def _step(self, at: _At, step: Step, state: _State, humans: dict[str, Pose2D]) -> list[GroundedStep]:
+    def _step(self, at: _At, step: Step, state: _State) -> list[GroundedStep]:
         match step.action:
             case Action.NAVIGATE_TO:
-                return [self._navigate(at, step, state, humans)]
+                return [self._navigate(at, step, state)]
             case Action.PICK:
                 return [self._pick(at, step, state)]
             case Action.PLACE:
                 return [self._place(at, step, state)]
             case Action.DETECT:
-                target = self._required(at, step.target, "detect needs a target: which object")
-                entity = self._entity(at, target, ("object", "human"), hint=step.location)
-                self._expect_kind(at, "detect", target, entity, ("object", "human"))
-                return [DetectStep(object_id=entity.id, object_name=entity.name)]
+                return [self._detect(at, step, state)]
             case Action.LOOK_AT:
-                return [self._look_at(at, step, state, humans)]
+                return [self._look_at(at, step, state)]
             case Action.DRIVE:
                 return self._drive(at, step, state)
             case Action.TURN:
@@ -300,40 +342,123 @@ class Resolver:
             raise at.error(message)
         return name
 
-    def _entity(self, at: _At, name: str, prefer: tuple[Kind, ...] = (), *, hint: str | None = None) -> Entity:
-        """The one thing `name` means; kinds in `prefer` win a tie, then the support named by `hint`."""
-        found = self.names.lookup(name)
-        if not found:
-            suggestions = self.names.suggestions(name)
-            if suggestions:
-                listed = " or ".join(f"'{s}'" for s in suggestions)
-                detail = f" (did you mean {listed}?)"
-            else:
-                detail = f": no room, furniture, place, object or person in world '{self.world.name}' has that name"
-            raise at.error(f"unknown name {_echo(name)}{detail}", ErrorKind.UNKNOWN_NAME, suggestions)
-        if len(found) > 1 and prefer:
-            found = [e for e in found if e.kind in prefer] or found
-        if len(found) > 1 and hint:
-            supports = {e.id for e in self.names.lookup(hint) if e.kind == "furniture"}
-            on_hint = [e for e in found if e.kind == "object" and self._support_of(e.id) in supports]
-            found = on_hint or found
-        if len(found) > 1:
-            names = [e.name for e in found]
-            raise at.error(
-                f"{_echo(name)} is ambiguous: it could be {', '.join(names[:-1])} or {names[-1]}; name one of them",
-                ErrorKind.AMBIGUOUS_NAME,
-                names,
+    def _find(
+        self,
+        at: _At,
+        text: str,
+        state: _State,
+        prefer: tuple[Kind, ...] = (),
+        *,
+        hint: str | None = None,
+        coordinates: Coordinates | None = None,
+    ) -> Entity:
+        """The one thing `text` means at this point of the plan; kinds in `prefer` win a tie, then
+        the place named by `hint` (the step's location), then the robot's room. Recorded in the notes."""
+        scene = state.scene(self.model)
+        antecedent = self.names.by_id.get(state.last_object) if state.last_object else None
+        where = parse_reference(hint) if hint and hint.strip() else None
+        try:
+            match = self.matcher.find(parse_reference(text), scene, prefer, antecedent=antecedent, hint=where)
+        except NoMatch as exc:
+            raise at.error(exc.message, exc.kind, exc.candidates) from None
+        entity = match.entity
+        state.notes.resolutions.append(
+            Resolution(
+                label=at.label,
+                text=text,
+                kind=entity.kind,
+                id=entity.id,
+                name=entity.name,
+                via=match.via,
+                confidence=round(match.confidence, 3),
             )
-        return found[0]
+        )
+        for said in (match.reading, match.elsewhere):
+            if said is not None:
+                at.warn(state, said)
+        if entity.kind == "object" and state.beliefs[entity.id].stale:
+            at.warn(
+                state,
+                f"{entity.name} has not been seen for a while; it is taken to be {scene.where(entity)}, "
+                "where perception last saw it",
+            )
+        if coordinates is not None:
+            self._check_coordinates(at, state, scene, entity, coordinates)
+        return entity
 
-    def _support_of(self, object_id: str) -> str | None:
-        obj = self.model.objects.get(object_id)
-        return obj.support if obj else None
+    def _check_coordinates(self, at: _At, state: _State, scene: Scene, entity: Entity, point: Coordinates) -> None:
+        """A named entity wins over coordinates the plan gave it; a disagreement is said back."""
+        off = scene.gap(point.x, point.y, entity)
+        if off > self.coordinate_tolerance:
+            x, y = scene.point(entity)
+            at.warn(
+                state,
+                f"the plan gives ({point.x:.2f}, {point.y:.2f}) for {entity.name}, {off:.1f} m from where it is "
+                f"({x:.2f}, {y:.2f}); the position of {entity.name} is used",
+            )
 
     def _expect_kind(self, at: _At, verb: str, name: str, entity: Entity, kinds: tuple[Kind, ...]) -> None:
         if entity.kind not in kinds:
             wanted = " or ".join(KIND_NOUNS[k] for k in kinds)
             raise at.error(f"cannot {verb} {_echo(name)}: {entity.name} is {KIND_NOUNS[entity.kind]}, not {wanted}")
+
+    def _handled(self, state: _State, entity: Entity) -> None:
+        """`entity` is what "it" means from here on, if it is an object."""
+        if entity.kind == "object":
+            state.last_object = entity.id
+
+    # Bare coordinates: used only when the step names nothing, and only where the robot can be
+
+    def _point(self, at: _At, state: _State, point: Coordinates, verb: str) -> tuple[float, float]:
+        """(x, y) when it lies on the map: inside a room. Recorded in the notes."""
+        x, y = point.x, point.y
+        if self.model.room_of(x, y) is None:
+            raise at.error(f"cannot {verb} ({x:.2f}, {y:.2f}): that point is outside the map (outside every room)")
+        label = f"({x:.2f}, {y:.2f})"
+        state.notes.resolutions.append(
+            Resolution(label=at.label, text=label, kind="point", name=label, via="coordinates")
+        )
+        return x, y
+
+    def _free_point(self, at: _At, state: _State, point: Coordinates) -> tuple[float, float]:
+        """A point on the map where the base fits, clear of every piece of furniture."""
+        x, y = self._point(at, state, point, "go to")
+        for item in self.world.furniture:
+            if self.model.footprint(item).distance(Point(x, y)) < self._base_radius:
+                raise at.error(
+                    f"cannot go to ({x:.2f}, {y:.2f}): the base (radius {self._base_radius:.2f} m) would stand in "
+                    f"the {item.name}; give a point clear of it, or name the {item.name}"
+                )
+        return x, y
+
+    def _object_at(self, at: _At, state: _State, point: Coordinates) -> Entity:
+        """The object perception places at the given coordinates (within coordinate_tolerance)."""
+        scene = state.scene(self.model)
+        objects = [e for e in self.names.of_kind("object") if not scene.in_gripper(e)]
+        ranked = sorted(objects, key=lambda e: math.dist(scene.point(e), (point.x, point.y)))
+        near = [e for e in ranked if math.dist(scene.point(e), (point.x, point.y)) <= self.coordinate_tolerance]
+        where = f"({point.x:.2f}, {point.y:.2f})"
+        if not near:
+            closest = f"; the nearest is the {scene.describe(ranked[0])}" if ranked else ""
+            raise at.error(
+                f"no object is within {self.coordinate_tolerance:g} m of {where}{closest}; name the object",
+                ErrorKind.UNKNOWN_NAME,
+                [e.name for e in ranked[:1]],
+            )
+        if len(near) > 1:
+            first, second = (math.dist(scene.point(e), (point.x, point.y)) for e in near[:2])
+            if second - first < self.coordinate_tolerance / 2:
+                described = [scene.describe(e) for e in near]
+                raise at.error(
+                    f"more than one object is near {where}: the {', the '.join(described)}; name the object",
+                    ErrorKind.AMBIGUOUS_NAME,
+                    described,
+                )
+        entity = near[0]
+        state.notes.resolutions.append(
+            Resolution(label=at.label, text=where, kind="object", id=entity.id, name=entity.name, via="coordinates")
+        )
+        return entity
 
     # Numbers
 
@@ -357,10 +482,20 @@ class Resolver:
 
     # Steps
 
-    def _navigate(self, at: _At, step: Step, state: _State, humans: dict[str, Pose2D]) -> NavigateStep:
-        name = self._required(at, step.target or step.location, "navigate_to needs a target: where to go")
-        entity = self._entity(at, name)
+    def _navigate(self, at: _At, step: Step, state: _State) -> NavigateStep:
         speed = self._speed(at, step)
+        name = step.target or step.location
+        if (name is None or not name.strip()) and step.coordinates is not None:
+            x, y = self._free_point(at, state, step.coordinates)
+            start = state.robot
+            yaw = start.yaw if start is not None else 0.0
+            if start is not None and math.hypot(x - start.x, y - start.y) > 1e-6:
+                yaw = math.atan2(y - start.y, x - start.x)  # arrive facing the way it drove
+            spot = _rounded(Pose2D(x=x, y=y, yaw=yaw))
+            self._moved_to(state, spot)
+            return NavigateStep(target=f"({x:.2f}, {y:.2f})", goal=spot, max_speed=speed)
+        name = self._required(at, name, "navigate_to needs a target: where to go")
+        entity = self._find(at, name, state, coordinates=step.coordinates)
         goal: Pose2D
         if entity.kind == "room":
             goal = self.model.room_pose(entity.id)
@@ -369,12 +504,13 @@ class Resolver:
         elif entity.kind == "place":
             goal = self._places[entity.id].pose
         elif entity.kind == "human":
-            goal = self._towards_human(humans[entity.id], state.robot)
+            goal = self._towards_human(state.humans[entity.id], state.robot)
         else:
             belief = state.beliefs[entity.id]
             if belief.on == GRIPPER:
                 raise at.error(f"cannot go to {entity.name}: it is in the gripper", ErrorKind.PRECONDITION)
             goal = self._object_approach(belief, state.robot)
+            self._handled(state, entity)
         goal = _rounded(goal)
         self._moved_to(state, goal)
         return NavigateStep(target=entity.name, goal=goal, max_speed=speed)
@@ -389,7 +525,7 @@ class Resolver:
         ahead = (human.x + math.cos(human.yaw), human.y + math.sin(human.yaw))
         return approach_towards(human.x, human.y, self.human_standoff, *ahead)
 
-    def _object_approach(self, belief: _Belief, robot: Pose2D | None) -> Pose2D:
+    def _object_approach(self, belief: Belief, robot: Pose2D | None) -> Pose2D:
         if belief.on is not None and belief.on in self.model.furniture:
             return self.model.furniture[belief.on].approach
         start = robot or self.world.robot.start
@@ -457,30 +593,39 @@ class Resolver:
             self._moved_to(state, goal)
         return steps
 
-    def _look_at(self, at: _At, step: Step, state: _State, humans: dict[str, Pose2D]) -> NavigateStep:
-        name = self._required(at, step.target or step.location, "look_at needs a target: what to face")
-        entity = self._entity(at, name, ("human", "object"), hint=step.location if step.target else None)
+    def _detect(self, at: _At, step: Step, state: _State) -> DetectStep:
+        if step.target is None and step.coordinates is not None:
+            entity = self._object_at(at, state, step.coordinates)
+        else:
+            target = self._required(at, step.target, "detect needs a target: which object")
+            entity = self._find(
+                at, target, state, ("object", "human"), hint=step.location, coordinates=step.coordinates
+            )
+            self._expect_kind(at, "detect", target, entity, ("object", "human"))
+        self._handled(state, entity)
+        return DetectStep(object_id=entity.id, object_name=entity.name)
+
+    def _look_at(self, at: _At, step: Step, state: _State) -> NavigateStep:
+        name = step.target or step.location
         x: float
         y: float
-        if entity.kind == "human":
-            x, y = humans[entity.id].x, humans[entity.id].y
-        elif entity.kind == "object":
-            belief = state.beliefs[entity.id]
-            if belief.on == GRIPPER:
-                raise at.error(f"cannot look at {entity.name}: it is in the gripper", ErrorKind.PRECONDITION)
-            x, y = belief.position.x, belief.position.y
-        elif entity.kind == "furniture":
-            x, y = self.model.furniture[entity.id].center
-        elif entity.kind == "place":
-            x, y = self._places[entity.id].pose.x, self._places[entity.id].pose.y
+        if (name is None or not name.strip()) and step.coordinates is not None:
+            x, y = self._point(at, state, step.coordinates, "look at")
+            facing = f"({x:.2f}, {y:.2f})"
         else:
-            room = self.model.room_pose(entity.id)
-            x, y = room.x, room.y
+            name = self._required(at, name, "look_at needs a target: what to face")
+            hint = step.location if step.target else None
+            entity = self._find(at, name, state, ("human", "object"), hint=hint, coordinates=step.coordinates)
+            if entity.kind == "object" and state.beliefs[entity.id].on == GRIPPER:
+                raise at.error(f"cannot look at {entity.name}: it is in the gripper", ErrorKind.PRECONDITION)
+            x, y = state.scene(self.model).point(entity)
+            facing = entity.name
+            self._handled(state, entity)
         start = self._base_pose(at, "look_at", state)
         yaw = start.yaw if math.hypot(x - start.x, y - start.y) < 1e-6 else math.atan2(y - start.y, x - start.x)
         goal = _rounded(Pose2D(x=start.x, y=start.y, yaw=yaw))
         self._moved_to(state, goal)
-        return NavigateStep(target=f"facing {entity.name}", goal=goal)
+        return NavigateStep(target=f"facing {facing}", goal=goal)
 
     def _gripper(self, open_: bool, state: _State) -> GripperStep:
         if open_:
@@ -489,15 +634,19 @@ class Resolver:
                 # It falls; the resolver only needs to know it is no longer on anything.
                 belief = state.beliefs[held]
                 x, y = (state.robot.x, state.robot.y) if state.robot else (belief.position.x, belief.position.y)
-                state.beliefs[held] = _Belief(Vec3(x=x, y=y, z=belief.half_height), None, belief.half_height)
+                state.beliefs[held] = Belief(Vec3(x=x, y=y, z=belief.half_height), None, belief.half_height)
             state.holding = None
         # Closing on nothing holds nothing; closing on what is held keeps holding it.
         return GripperStep(open=open_)
 
     def _pick(self, at: _At, step: Step, state: _State) -> PickStep:
-        name = self._required(at, step.target, "pick needs a target: which object")
-        entity = self._entity(at, name, ("object",), hint=step.location)
-        self._expect_kind(at, "pick", name, entity, ("object",))
+        if step.target is None and step.coordinates is not None:
+            entity = self._object_at(at, state, step.coordinates)
+            name = entity.name
+        else:
+            name = self._required(at, step.target, "pick needs a target: which object")
+            entity = self._find(at, name, state, ("object",), hint=step.location, coordinates=step.coordinates)
+            self._expect_kind(at, "pick", name, entity, ("object",))
         if state.holding == entity.id:
             raise at.error(f"cannot pick {entity.name}: it is already in the gripper", ErrorKind.PRECONDITION)
         if isinstance(state.holding, str):
@@ -520,18 +669,14 @@ class Resolver:
         )
         state.holding = entity.id
         belief.on = GRIPPER
+        self._handled(state, entity)
         self._moved_to(state, approach)
         return pick
 
     def _place(self, at: _At, step: Step, state: _State) -> PlaceStep:
-        name = self._required(
-            at, step.location, "place needs a location: the furniture to put the object on (none given)"
-        )
-        entity = self._entity(at, name, ("furniture",))
-        self._expect_kind(at, "place on", name, entity, ("furniture",))
         held = state.holding
         if step.target is not None:
-            obj = self._entity(at, step.target, ("object",))
+            obj = self._find(at, step.target, state, ("object",))
             self._expect_kind(at, "place", step.target, obj, ("object",))
             if held is None:
                 raise at.error(f"cannot place {obj.name}: the gripper holds nothing", ErrorKind.PRECONDITION)
@@ -540,26 +685,78 @@ class Resolver:
                     f"cannot place {obj.name}: the gripper holds {self._display_name(held)}", ErrorKind.PRECONDITION
                 )
             held = obj.id
+        surface, position = self._put_down_spot(at, step, state, held)
         if held is None:
-            raise at.error(f"cannot place on {entity.name}: the gripper holds nothing", ErrorKind.PRECONDITION)
+            raise at.error(f"cannot place on {surface.name}: the gripper holds nothing", ErrorKind.PRECONDITION)
+        if isinstance(held, str):
+            belief = state.beliefs.get(held)
+            half = belief.half_height if belief else 0.0
+            state.beliefs[held] = Belief(Vec3(x=position.x, y=position.y, z=position.z + half), surface.id, half)
+            state.last_object = held
+        state.holding = None
+        self._moved_to(state, surface.approach)
+        return PlaceStep(surface_id=surface.id, surface_name=surface.name, position=position, approach=surface.approach)
+
+    def _put_down_spot(self, at: _At, step: Step, state: _State, held: str | _Unknown | None) -> tuple[Furniture, Vec3]:
+        """The surface the step names and a free spot on it: where the plan's coordinates say when
+        it gives only those, else near the edge the robot stands at, next to a named object if the
+        location is one ("next to the apple")."""
+        if (step.location is None or not step.location.strip()) and step.coordinates is not None:
+            return self._spot_at(at, state, step.coordinates, held)
+        name = self._required(
+            at, step.location, "place needs a location: the furniture to put the object on (none given)"
+        )
+        entity = self._find(at, name, state, ("furniture",), coordinates=step.coordinates)
+        beside: Belief | None = None
+        if entity.kind == "object" and entity.id != held:
+            beside = state.beliefs[entity.id]
+            if beside.on is None or beside.on not in self.model.furniture:
+                raise at.error(
+                    f"cannot place next to {entity.name}: it is not on a piece of furniture", ErrorKind.PRECONDITION
+                )
+            entity = self.names.by_id[beside.on]
+            state.notes.resolutions[-1] = msgspec.structs.replace(  # the surface is what the location means
+                state.notes.resolutions[-1], kind="furniture", id=entity.id, name=entity.name, via="relation"
+            )
+        self._expect_kind(at, "place on", name, entity, ("furniture",))
         surface = self.model.furniture[entity.id]
-        occupied = [
-            (b.position.x, b.position.y) for oid, b in state.beliefs.items() if b.on == entity.id and oid != held
-        ]
-        position = place_position(surface, occupied, inset=self.place_inset, clearance=self.place_clearance)
+        occupied = self._occupied(state, surface.id, held)
+        near = (beside.position.x, beside.position.y) if beside is not None else None
+        position = place_position(surface, occupied, inset=self.place_inset, clearance=self.place_clearance, near=near)
         if position is None:
             raise at.error(
                 f"no free spot on {entity.name}: every spot near its edge is within "
                 f"{self.place_clearance:g} m of another object",
                 ErrorKind.PRECONDITION,
             )
-        if isinstance(held, str):
-            belief = state.beliefs.get(held)
-            half = belief.half_height if belief else 0.0
-            state.beliefs[held] = _Belief(Vec3(x=position.x, y=position.y, z=position.z + half), entity.id, half)
-        state.holding = None
-        self._moved_to(state, surface.approach)
-        return PlaceStep(surface_id=entity.id, surface_name=entity.name, position=position, approach=surface.approach)
+        return surface, position
+
+    def _occupied(self, state: _State, surface_id: str, held: str | _Unknown | None) -> list[tuple[float, float]]:
+        return [(b.position.x, b.position.y) for oid, b in state.beliefs.items() if b.on == surface_id and oid != held]
+
+    def _spot_at(
+        self, at: _At, state: _State, point: Coordinates, held: str | _Unknown | None
+    ) -> tuple[Furniture, Vec3]:
+        """The plan's own spot, when it lies on a surface, clear of what is on it."""
+        spot = Point(point.x, point.y)
+        where = f"({point.x:.2f}, {point.y:.2f})"
+        surface = next((f for f in self.world.furniture if self.model.footprint(f).covers(spot)), None)
+        if surface is None:
+            raise at.error(f"cannot place at {where}: no furniture top is there; name the surface")
+        inner = self.model.footprint(surface).buffer(-PLACE_EDGE_MARGIN)
+        if not inner.covers(spot):
+            raise at.error(
+                f"cannot place at {where}: it is within {PLACE_EDGE_MARGIN:g} m of the edge of the {surface.name}"
+            )
+        for x, y in self._occupied(state, surface.id, held):
+            if math.dist((x, y), (point.x, point.y)) < self.place_clearance:
+                raise at.error(
+                    f"cannot place at {where}: another object on the {surface.name} is within "
+                    f"{self.place_clearance:g} m of it",
+                    ErrorKind.PRECONDITION,
+                )
+        self._point(at, state, point, "place at")
+        return surface, Vec3(x=round(point.x, 3), y=round(point.y, 3), z=round(surface.size.z, 3))
 
     def _display_name(self, object_id: str) -> str:
         obj = self.model.objects.get(object_id)

@@ -19,7 +19,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     config = load_config(SimConfig, config_file, "sim")
     world = load_world(config.world)
     stop = stop_event()
-    sim = Simulation(world, physics_hz=config.physics_hz)
+    sim = Simulation(world, physics_hz=config.physics_hz, camera=config.camera)
     try:
         with Node("sim", settings) as node:
             sim_node = SimNode(node, sim, config)

@@ -14,11 +14,11 @@ from schemas.actions import GoalState
 from schemas.common import ErrorKind, ServiceError
 from schemas.robot import FollowJointTrajectoryGoal, Twist
 from schemas.safety import SafetyStatus
-from schemas.world import Empty, GroundTruth
+from schemas.world import Empty, GroundTruth, MoveEntity, MoveReply
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import CallError, Node
 from services.sim.config import SimConfig
-from services.sim.physics import Motion, Simulation
+from services.sim.physics import SETTLE_TIMEOUT, Drop, Motion, Simulation
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +28,7 @@ Execute = Callable[[GoalHandle[Any, Any]], Outcome[Any]]
 
 FEEDBACK_PERIOD = 0.1  # wall seconds
 START_TIMEOUT = 5.0
-GROUND_TRUTH_TIMEOUT = 2.0
+ANSWER_TIMEOUT = 2.0
 # If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
 MAX_LAG = 0.5
 
@@ -64,6 +64,7 @@ class SimNode:
         node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
         node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
         node.serve(keys.GROUND_TRUTH, self._on_ground_truth)
+        node.serve(keys.SIM_MOVE, self._on_move)
 
     # Safety: fail closed
 
@@ -140,11 +141,27 @@ class SimNode:
         answered.wait(timeout)
         return box[0] if box else None
 
+    def _answer(self, query: Callable[[Simulation], T]) -> T:
+        """`query`'s value from the sim thread, for a queryable: an unavailable error if it does not answer."""
+        value = self._ask(query, ANSWER_TIMEOUT)
+        if value is None:
+            message = f"the simulator did not answer within {ANSWER_TIMEOUT:g} s"
+            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=message))
+        return value
+
     def _on_ground_truth(self, _request: Empty) -> GroundTruth:
-        truth = self._ask(Simulation.ground_truth, GROUND_TRUTH_TIMEOUT)
-        if truth is None:
-            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message="the simulator did not answer within 2 s"))
-        return truth
+        return self._answer(Simulation.ground_truth)
+
+    def _on_move(self, request: MoveEntity) -> MoveReply:
+        moved = self._answer(lambda sim: sim.move(request))
+        if not isinstance(moved, Drop):
+            return moved
+        # The object falls and comes to rest while the sim thread keeps stepping (and obeying safety).
+        if not moved.done.wait(SETTLE_TIMEOUT / self.config.realtime_factor + ANSWER_TIMEOUT):
+            message = f"{request.id} was moved but the simulator did not report it at rest"
+            raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
+        assert moved.result is not None
+        return moved.result
 
     # Goals
 

@@ -1,4 +1,6 @@
-"""The simulated household and robot in pybullet: world building, controllers and ground truth. Pure logic."""
+"""The simulated household and robot in pybullet: world building, controllers, perception and ground truth.
+
+Pure logic: no Zenoh."""
 
 from __future__ import annotations
 
@@ -14,9 +16,10 @@ import numpy as np
 import pybullet
 import pybullet_data
 from pybullet_utils import bullet_client
+from shapely.geometry import Point
 
 from schemas.actions import GoalState
-from schemas.common import Pose2D, Vec3
+from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
 from schemas.robot import (
     ARM_JOINTS,
     FINGER_JOINTS,
@@ -35,7 +38,10 @@ from schemas.robot import (
     Twist,
 )
 from schemas.world import (
+    Furniture,
     GroundTruth,
+    Moved,
+    MoveEntity,
     PerceivedHuman,
     PerceivedHumans,
     PerceivedObject,
@@ -43,6 +49,9 @@ from schemas.world import (
     World,
     WorldObject,
 )
+from services.sim.camera import Camera
+from services.sim.config import CameraConfig
+from services.sim.detection import Target
 from services.sim.robot_urdf import BASE_LINK, BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT, mobile_manipulator_urdf
 from services.worldmodel import WorldModel, drive_route
 
@@ -90,6 +99,13 @@ GRIPPER_REACHED = 0.002
 
 HUMAN_RADIUS = 0.2
 HUMAN_HEIGHT = 1.7
+
+# sim/move: an object is let go this far above where it is to rest, so it never starts inside
+# anything, and counts as settled once slower than SETTLED_OBJECT_SPEED for SETTLED_OBJECT_TIME.
+DROP_HEIGHT = 0.002
+SETTLED_OBJECT_SPEED = 0.01
+SETTLED_OBJECT_TIME = 0.1
+SETTLE_TIMEOUT = 3.0
 
 
 def wrap_angle(angle: float) -> float:
@@ -327,10 +343,32 @@ class GripperMotion(Motion[GripperCommandFeedback, GripperCommandResult]):
         self.finish(GoalState.SUCCEEDED, result, message)
 
 
+class Drop(Motion[None, Moved]):
+    """An object teleported by sim/move and let go: done once it lies still (or has rolled for too long)."""
+
+    kind = "move"
+
+    def __init__(self, sim: Simulation, object_id: str) -> None:
+        super().__init__(sim)
+        self.object_id = object_id
+        self.still_since = sim.sim_time
+
+    def result_now(self, sim: Simulation) -> Moved:
+        return Moved(id=self.object_id, position=sim.object_position(self.object_id))
+
+    def tick(self, sim: Simulation) -> None:
+        if sim.object_speed(self.object_id) > SETTLED_OBJECT_SPEED:
+            self.still_since = sim.sim_time
+        if sim.sim_time - self.still_since >= SETTLED_OBJECT_TIME:
+            self.finish(GoalState.SUCCEEDED, self.result_now(sim), f"{self.object_id} at rest")
+        elif sim.sim_time - self.started > SETTLE_TIMEOUT:
+            self.finish(GoalState.SUCCEEDED, self.result_now(sim), f"{self.object_id} still moving")
+
+
 class Simulation:
     """One household world and one mobile manipulator, stepped by whoever owns this object (one thread)."""
 
-    def __init__(self, world: World, *, physics_hz: float = 240.0) -> None:
+    def __init__(self, world: World, *, physics_hz: float = 240.0, camera: CameraConfig | None = None) -> None:
         self.world = world
         self.model = WorldModel(world)
         self.dt = 1.0 / physics_hz
@@ -342,6 +380,7 @@ class Simulation:
         self._cmd_vel: Twist | None = None
         self._cmd_vel_until = 0.0
         self.motions: dict[str, Motion[Any, Any]] = {}
+        self._drops: list[Drop] = []
         self.bullet: Any = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
         self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
         self.bullet.setGravity(0.0, 0.0, GRAVITY)
@@ -350,7 +389,11 @@ class Simulation:
         self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
         self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
+        # Where people stand now: they move (sim/move), the world file only says where they start.
+        self.human_poses = {h.id: h.pose for h in world.humans}
         self.robot = self._add_robot()
+        self.camera = Camera(self.bullet, camera or CameraConfig())
+        self._camera_targets = {self.object_bodies[o.id]: Target(o.id, o.size.z) for o in world.objects}
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
     # Building the world
@@ -443,6 +486,9 @@ class Simulation:
                     motion.tick(self)
                 if not motion.running:
                     del self.motions[kind]
+            for drop in self._drops:
+                drop.tick(self)
+            self._drops = [d for d in self._drops if d.running]
             if self._cmd_vel is not None and "navigate_to_pose" not in self.motions:
                 self._base_command = (self._cmd_vel.linear_x, self._cmd_vel.angular_z)
             self._apply_base()
@@ -699,37 +745,124 @@ class Simulation:
         (x, y, z), _ = self.bullet.getBasePositionAndOrientation(self.object_bodies[object_id])
         return Vec3(x=x, y=y, z=z)
 
+    def object_speed(self, object_id: str) -> float:
+        linear, _ = self.bullet.getBaseVelocity(self.object_bodies[object_id])
+        return float(np.linalg.norm(linear))
+
+    def _report(self, obj: WorldObject, position: Vec3, on: str | None, stamp: float) -> PerceivedObject:
+        room = self.model.room_of(position.x, position.y)
+        return PerceivedObject(
+            id=obj.id, name=obj.name, cls=obj.cls, color=obj.color, position=position, room=room, on=on, stamp=stamp
+        )
+
+    def _exact(self, obj: WorldObject, stamp: float) -> PerceivedObject:
+        position = self.object_position(obj.id)
+        on = "gripper" if obj.id == self.holding else self.model.support_under(position, obj.size.z / 2)
+        return self._report(obj, position, on, stamp)
+
     def perceived_objects(self, stamp: float) -> PerceivedObjects:
+        """What the camera sees from where the base stands, and what the gripper holds: the robot
+        knows what it grasped without looking, so that one is exact and `on` the gripper."""
+        targets = {body: t for body, t in self._camera_targets.items() if t.name != self.holding}
+        seen = self.camera.look(self.base_pose(), targets)
         objects = []
         for obj in self.world.objects:
-            position = self.object_position(obj.id)
-            on = "gripper" if obj.id == self.holding else self.model.support_under(position, obj.size.z / 2)
-            objects.append(
-                PerceivedObject(
-                    id=obj.id,
-                    name=obj.name,
-                    cls=obj.cls,
-                    color=obj.color,
-                    position=position,
-                    room=self.model.room_of(position.x, position.y),
-                    on=on,
-                    stamp=stamp,
-                )
-            )
+            if obj.id == self.holding:
+                objects.append(self._exact(obj, stamp))
+            elif obj.id in seen:
+                x, y, z = (float(v) for v in seen[obj.id])
+                position = Vec3(x=x, y=y, z=z)
+                objects.append(self._report(obj, position, self.model.support_under(position, obj.size.z / 2), stamp))
         return PerceivedObjects(stamp=stamp, objects=objects)
 
     def perceived_humans(self, stamp: float) -> PerceivedHumans:
-        humans = [
-            PerceivedHuman(id=h.id, name=h.name, pose=h.pose, room=self.model.room_of(h.pose.x, h.pose.y))
-            for h in self.world.humans
-        ]
+        """Every person where they stand: a people tracker, not the camera."""
+        humans = []
+        for human in self.world.humans:
+            pose = self.human_poses[human.id]
+            room = self.model.room_of(pose.x, pose.y)
+            humans.append(PerceivedHuman(id=human.id, name=human.name, pose=pose, room=room))
         return PerceivedHumans(stamp=stamp, humans=humans)
 
     def ground_truth(self) -> GroundTruth:
+        """The simulator's own state: every object exactly where it is, seen or not."""
         return GroundTruth(
             sim_time=self.sim_time,
             robot=self.base_pose(),
             linear_speed=self.base_speed(),
             holding=self.holding,
-            objects=self.perceived_objects(self.sim_time).objects,
+            objects=[self._exact(o, self.sim_time) for o in self.world.objects],
         )
+
+    # The world changing under the robot's feet (sim/move)
+
+    def move(self, request: MoveEntity) -> Drop | Moved | ServiceError:
+        """Teleport a person (done at once) or an object (let go to settle: wait for the Drop), or say
+        why not."""
+        refusal = self._move_refusal(request)
+        if refusal is not None:
+            return refusal
+        if request.id in self.human_bodies:
+            return self._move_human(request)
+        return self._drop_object(request)
+
+    def _move_refusal(self, request: MoveEntity) -> ServiceError | None:
+        entities = [*self.object_bodies, *self.human_bodies]
+        if request.id not in entities:
+            message = f"no object or person {request.id!r} in the world {self.world.name!r}"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message, candidates=sorted(entities))
+        if self.model.room_of(request.x, request.y) is None:
+            message = f"({request.x:g}, {request.y:g}) is outside every room of the world {self.world.name!r}"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        if request.id == self.holding:
+            message = f"{request.id} is in the robot's gripper; the robot has to put it down first"
+            return ServiceError(kind=ErrorKind.PRECONDITION, message=message)
+        if self._under_the_robot(request.x, request.y):
+            message = f"({request.x:g}, {request.y:g}) is where the robot stands"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        furniture = self._furniture_at(request.x, request.y)
+        if furniture is not None and request.z is not None and request.z < furniture.size.z:
+            message = f"z = {request.z:g} m is inside the {furniture.name}, whose top is at {furniture.size.z:g} m"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        return None
+
+    def _under_the_robot(self, x: float, y: float) -> bool:
+        base, size = self.base_pose(), self.world.robot.base_size
+        dx, dy = x - base.x, y - base.y
+        ahead = dx * math.cos(base.yaw) + dy * math.sin(base.yaw)
+        left = -dx * math.sin(base.yaw) + dy * math.cos(base.yaw)
+        return abs(ahead) <= size.x / 2 and abs(left) <= size.y / 2
+
+    def _furniture_at(self, x: float, y: float) -> Furniture | None:
+        point = Point(x, y)
+        return next((f for f in self.world.furniture if self.model.footprint(f).covers(point)), None)
+
+    def _move_human(self, request: MoveEntity) -> Moved:
+        current = self.human_poses[request.id]
+        yaw = current.yaw if request.yaw is None else request.yaw
+        self.human_poses[request.id] = Pose2D(x=request.x, y=request.y, yaw=yaw)
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+        self.bullet.resetBasePositionAndOrientation(
+            self.human_bodies[request.id], [request.x, request.y, HUMAN_HEIGHT / 2], orientation
+        )
+        log.info("moved %s to (%.2f, %.2f)", request.id, request.x, request.y)
+        return Moved(id=request.id, position=Vec3(x=request.x, y=request.y, z=0.0))
+
+    def _drop_object(self, request: MoveEntity) -> Drop:
+        """Upright at (x, y) with its bottom at z, or on whatever furniture is there, else the floor."""
+        obj = self.model.objects[request.id]
+        body = self.object_bodies[request.id]
+        if request.z is not None:
+            bottom = request.z
+        else:
+            furniture = self._furniture_at(request.x, request.y)
+            bottom = furniture.size.z if furniture is not None else 0.0
+        _, orientation = self.bullet.getBasePositionAndOrientation(body)
+        yaw = self.bullet.getEulerFromQuaternion(orientation)[2] if request.yaw is None else request.yaw
+        centre = [request.x, request.y, bottom + obj.size.z / 2 + DROP_HEIGHT]
+        self.bullet.resetBasePositionAndOrientation(body, centre, self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw]))
+        self.bullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        log.info("moved %s to (%.2f, %.2f, %.2f); letting it settle", request.id, *centre)
+        drop = Drop(self, request.id)
+        self._drops.append(drop)
+        return drop

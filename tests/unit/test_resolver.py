@@ -210,7 +210,7 @@ def test_ambiguous_name_lists_the_candidates(resolver: Resolver) -> None:
     error = refusal(resolver, plan)
     assert error.kind is ErrorKind.AMBIGUOUS_NAME
     assert error.step == 1 and error.message.startswith("step 2: 'cup' is ambiguous")
-    assert sorted(error.candidates) == ["blue cup", "red cup"]
+    assert sorted(error.candidates) == ["blue cup on the kitchen table", "red cup on the kitchen counter"]
     assert "red cup" in error.message and "blue cup" in error.message
 
 
@@ -219,8 +219,15 @@ def test_ambiguous_object_is_settled_by_the_location_it_is_on(resolver: Resolver
     assert isinstance(step, PickStep) and step.object_id == "blue_cup"
 
 
+def test_a_near_miss_resolves_with_a_warning(resolver: Resolver) -> None:
+    grounded = resolver.resolve(plan_of({"action": "navigate_to", "target": "coffe tabel"}))
+    assert grounded.resolutions[0].id == "coffee_table" and grounded.resolutions[0].via == "fuzzy"
+    assert 0.8 <= grounded.resolutions[0].confidence < 1.0
+    assert grounded.warnings == ["step 1: 'coffe tabel' read as coffee table (match 0.87)"]
+
+
 def test_unknown_name_suggests_the_nearest(resolver: Resolver) -> None:
-    error = refusal(resolver, plan_of({"action": "navigate_to", "target": "coffe tabel"}))
+    error = refusal(resolver, plan_of({"action": "navigate_to", "target": "kofi tabel"}))
     assert error.kind is ErrorKind.UNKNOWN_NAME
     assert error.candidates[0] == "coffee table"
     assert "did you mean 'coffee table'" in error.message

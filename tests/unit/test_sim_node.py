@@ -1,4 +1,4 @@
-"""The sim's transport with two real Zenoh sessions in one process: fail closed, goals, ground truth."""
+"""The sim's transport with two real Zenoh sessions in one process: fail closed, goals, ground truth, sim/move."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ import pytest
 
 from schemas import keys
 from schemas.actions import GoalState
-from schemas.common import Pose2D
+from schemas.common import ErrorKind, Pose2D, ServiceError
 from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopState, SafetyStatus
-from schemas.world import Empty
+from schemas.world import Empty, Moved, MoveEntity
 from services.actionlib import ActionClient, GoalRejected
 from services.runtime import Node, NodeSettings
 from services.sim.config import SimConfig
@@ -114,3 +114,17 @@ def test_a_latched_estop_rejects_goals_naming_who_and_why(rig: Rig) -> None:
         time.sleep(0.02)
     with pytest.raises(GoalRejected, match="e-stop latched by operator: test"):
         navigate.send(FAR)
+
+
+def test_sim_move_replies_where_the_object_came_to_rest_or_why_not_even_without_safety(rig: Rig) -> None:
+    # Moving things in the simulated world is not the robot acting: no heartbeat is needed.
+    moved = rig.client.call(keys.SIM_MOVE, MoveEntity(id="blue_book", x=7.8, y=2.5), timeout=10.0)
+    assert isinstance(moved, Moved), moved
+    assert (moved.position.x, moved.position.y, moved.position.z) == pytest.approx((7.8, 2.5, 0.465), abs=0.005)
+    truth = rig.client.call(keys.GROUND_TRUTH, Empty())
+    book = next(o for o in truth.objects if o.id == "blue_book")
+    assert book.on == "coffee_table"
+    assert (book.position.x, book.position.y) == pytest.approx((moved.position.x, moved.position.y), abs=0.001)
+    refused = rig.client.call(keys.SIM_MOVE, MoveEntity(id="blue_book", x=50.0, y=2.5))
+    assert isinstance(refused, ServiceError) and refused.kind is ErrorKind.INVALID_REQUEST, refused
+    assert "outside every room" in refused.message

@@ -1,0 +1,1 @@
+"""Corpora of realistic inputs, each case with the answer it must give."""

@@ -1,0 +1,1 @@
+"""The resolver's reference corpus and its runner."""

@@ -1,0 +1,213 @@
+"""The sim's camera on the household world in pybullet (DIRECT): what it sees, how well, and sim/move."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.actions import GoalState
+from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
+from schemas.robot import NavigateToPoseGoal
+from schemas.world import Moved, MoveEntity, PerceivedObject
+from services.runtime import ConfigError, load_config
+from services.sim.config import CameraConfig, SimConfig
+from services.sim.physics import Drop, Simulation
+from services.worldmodel import load_world
+
+WORLD = load_world("household")
+GRASP_TOLERANCE = 0.015
+EXACT = CameraConfig(noise=0.0)
+
+
+@pytest.fixture
+def sim() -> Iterator[Simulation]:
+    simulation = Simulation(WORLD, camera=EXACT)
+    yield simulation
+    simulation.close()
+
+
+def approach(furniture_id: str) -> Pose2D:
+    return next(f.approach for f in WORLD.furniture if f.id == furniture_id)
+
+
+def drive(sim: Simulation, pose: Pose2D) -> None:
+    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose)), timeout=60.0)
+    assert motion.state is GoalState.SUCCEEDED, motion.message
+
+
+def seen(sim: Simulation) -> dict[str, PerceivedObject]:
+    return {o.id: o for o in sim.perceived_objects(0.0).objects}
+
+
+def error(a: Vec3, b: Vec3) -> float:
+    return math.dist((a.x, a.y, a.z), (b.x, b.y, b.z))
+
+
+def move(sim: Simulation, request: MoveEntity) -> Moved:
+    drop = sim.move(request)
+    assert isinstance(drop, Drop), drop
+    sim.run(drop, timeout=5.0)
+    assert drop.result is not None
+    return drop.result
+
+
+def pixel_of(sim: Simulation, point: Vec3) -> tuple[int, int] | None:
+    """The pixel (row, column) `point` projects to, if inside the image and in range, whatever may
+    stand in between."""
+    camera, lens = sim.camera, sim.camera.intrinsics
+    x, y, z, _ = np.linalg.inv(camera.pose(sim.base_pose())) @ [point.x, point.y, point.z, 1.0]
+    depth = -z
+    if not (lens.near < depth <= camera.config.max_range):
+        return None
+    col = round((x / depth / lens.tan_half_h + 1) / 2 * lens.width)
+    row = round(lens.height - 1 - (y / depth / lens.tan_half_v + 1) / 2 * lens.height)
+    return (row, col) if 0 <= row < lens.height and 0 <= col < lens.width else None
+
+
+@pytest.mark.parametrize("furniture", ["kitchen_counter", "kitchen_table", "coffee_table"])
+def test_from_the_approach_pose_every_object_on_the_furniture_is_seen_well_enough_to_grasp(
+    sim: Simulation, furniture: str
+) -> None:
+    drive(sim, approach(furniture))
+    truth = {o.id: o for o in sim.ground_truth().objects}
+    visible = seen(sim)
+    # The pan, 0.75 m along the counter to the robot's left, is out of the camera's view.
+    expected = {o.id for o in WORLD.objects if o.support == furniture and o.id != "cast_iron_pan"}
+    assert set(visible) == expected
+    for object_id, obj in visible.items():
+        assert (obj.on, obj.room) == (truth[object_id].on, truth[object_id].room)
+        assert error(obj.position, truth[object_id].position) < GRASP_TOLERANCE, object_id
+
+
+@pytest.mark.parametrize("furniture", [f.id for f in WORLD.furniture])
+def test_the_furniture_top_is_in_view_and_the_stowed_arm_never_blocks_it(sim: Simulation, furniture: str) -> None:
+    item = next(f for f in WORLD.furniture if f.id == furniture)
+    drive(sim, approach(furniture))
+    frame = sim.camera.render(sim.base_pose())
+    assert sim.robot not in frame.segmentation
+    # The top's centre, and where things are put down: 15 cm in from the near edge, straight ahead.
+    here = sim.base_pose()
+    cx, cy = item.center
+    half_depth = item.size.y / 2 if abs(math.sin(here.yaw)) > 0.5 else item.size.x / 2
+    near_edge = math.hypot(cx - here.x, cy - here.y) - half_depth
+    spot = (here.x + (near_edge + 0.15) * math.cos(here.yaw), here.y + (near_edge + 0.15) * math.sin(here.yaw))
+    for x, y in ((cx, cy), spot):
+        pixel = pixel_of(sim, Vec3(x=x, y=y, z=item.size.z))
+        assert pixel is not None, f"({x:.2f}, {y:.2f}) on the {furniture} is out of view"
+        assert frame.segmentation[pixel] == sim.furniture_bodies[furniture]
+
+
+def test_from_the_start_the_coffee_table_and_its_book_are_seen_and_the_kitchen_is_not(sim: Simulation) -> None:
+    frame = sim.camera.render(sim.base_pose())
+    assert sim.furniture_bodies["coffee_table"] in frame.segmentation
+    visible = seen(sim)
+    assert set(visible) == {"blue_book"}
+    assert visible["blue_book"].on == "coffee_table"
+    # Far off and seen edge-on, it is still placed within a few centimetres.
+    assert error(visible["blue_book"].position, sim.object_position("blue_book")) < 0.03
+
+
+def test_an_object_hidden_behind_furniture_is_not_reported(sim: Simulation) -> None:
+    drive(sim, approach("kitchen_table"))
+    behind_the_table = move(sim, MoveEntity(id="red_cup", x=2.5, y=4.4))
+    assert behind_the_table.position.z == pytest.approx(0.05, abs=0.005)
+    assert pixel_of(sim, behind_the_table.position) is not None, "only the table is in the way"
+    assert "red_cup" not in seen(sim)
+    cup = next(o for o in sim.ground_truth().objects if o.id == "red_cup")
+    assert (cup.on, cup.room) == (None, "kitchen")
+
+
+def test_the_held_object_is_reported_exactly_and_on_the_gripper(sim: Simulation) -> None:
+    drive(sim, approach("kitchen_counter"))
+    assert sim.grasp("red_cup") is None  # the robot's own record of what it holds, not a camera's
+    visible = seen(sim)
+    assert visible["red_cup"].on == "gripper"
+    assert visible["red_cup"].position == sim.object_position("red_cup")
+    assert visible["coffee_mug"].on == "kitchen_counter"
+
+
+def test_noise_is_seeded_and_has_the_configured_spread() -> None:
+    noisy = CameraConfig(noise=0.004, seed=7)
+    runs = []
+    for config in (noisy, noisy, CameraConfig(noise=0.004, seed=8)):
+        simulation = Simulation(WORLD, camera=config)
+        try:
+            runs.append([seen(simulation)["blue_book"].position for _ in range(40)])
+        finally:
+            simulation.close()
+    assert runs[0] == runs[1], "the same seed gives the same noise"
+    assert runs[0] != runs[2]
+    xs = np.array([[p.x, p.y, p.z] for p in runs[0]])
+    assert 0.002 < float(np.mean(np.std(xs, axis=0))) < 0.006
+
+
+def test_without_noise_every_frame_agrees(sim: Simulation) -> None:
+    first, second = seen(sim)["blue_book"], seen(sim)["blue_book"]
+    assert first.position == second.position
+
+
+def test_an_object_moved_onto_furniture_rests_on_it_and_the_camera_sees_it_there(sim: Simulation) -> None:
+    drive(sim, approach("kitchen_counter"))
+    assert "blue_book" not in seen(sim)
+    moved = move(sim, MoveEntity(id="blue_book", x=2.5, y=0.45, yaw=0.3))
+    assert (moved.position.x, moved.position.y) == pytest.approx((2.5, 0.45), abs=0.005)
+    assert moved.position.z == pytest.approx(0.9 + 0.015, abs=0.003)
+    book = seen(sim)["blue_book"]
+    assert book.on == "kitchen_counter" and book.room == "kitchen"
+    assert error(book.position, moved.position) < GRASP_TOLERANCE
+
+
+def test_an_object_moved_to_the_floor_or_given_a_height_settles_there(sim: Simulation) -> None:
+    on_floor = move(sim, MoveEntity(id="blue_cup", x=7.0, y=1.5))
+    assert on_floor.position.z == pytest.approx(0.05, abs=0.003)
+    dropped = move(sim, MoveEntity(id="coffee_mug", x=7.2, y=1.0, z=0.3))
+    assert dropped.position.z < 0.055, "let go in the air, it falls to the floor (and may tip over)"
+    truth = {o.id: o for o in sim.ground_truth().objects}
+    assert (truth["blue_cup"].on, truth["blue_cup"].room) == (None, "living_room")
+
+
+def test_a_person_moves_at_once_and_keeps_their_heading(sim: Simulation) -> None:
+    before = sim.perceived_humans(0.0).humans[0].pose
+    moved = sim.move(MoveEntity(id="operator", x=2.5, y=2.0))
+    assert moved == Moved(id="operator", position=Vec3(x=2.5, y=2.0, z=0.0))
+    person = sim.perceived_humans(1.0).humans[0]
+    assert (person.pose.x, person.pose.y, person.pose.yaw, person.room) == (2.5, 2.0, before.yaw, "kitchen")
+    sim.move(MoveEntity(id="operator", x=2.5, y=2.0, yaw=1.0))
+    assert sim.perceived_humans(2.0).humans[0].pose.yaw == 1.0
+
+
+@pytest.mark.parametrize(
+    ("request_", "kind", "words"),
+    [
+        (MoveEntity(id="unicorn", x=2.0, y=2.0), ErrorKind.INVALID_REQUEST, "no object or person 'unicorn'"),
+        (MoveEntity(id="red_cup", x=-3.0, y=2.0), ErrorKind.INVALID_REQUEST, "outside every room"),
+        (MoveEntity(id="red_cup", x=2.5, y=3.9, z=0.2), ErrorKind.INVALID_REQUEST, "inside the kitchen table"),
+        (MoveEntity(id="operator", x=6.2, y=1.1), ErrorKind.INVALID_REQUEST, "where the robot stands"),
+        (MoveEntity(id="apple", x=2.0, y=2.0), ErrorKind.PRECONDITION, "in the robot's gripper"),
+    ],
+)
+def test_moves_that_make_no_sense_are_refused_and_change_nothing(
+    sim: Simulation, request_: MoveEntity, kind: ErrorKind, words: str
+) -> None:
+    sim.grasp("apple")
+    before = sim.ground_truth()
+    refused = sim.move(request_)
+    assert isinstance(refused, ServiceError)
+    assert refused.kind is kind and words in refused.message, refused
+    assert sim.ground_truth() == before
+    if request_.id == "unicorn":
+        assert {"red_cup", "operator"} <= set(refused.candidates)
+
+
+def test_camera_config_comes_from_the_sim_table_and_bad_values_are_named(tmp_path: Path) -> None:
+    config = tmp_path / "tether.toml"
+    config.write_text("[sim]\nrealtime_factor = 2\n\n[sim.camera]\nnoise = 0.0\nseed = 3\n")
+    camera = load_config(SimConfig, config, "sim").camera
+    assert (camera.noise, camera.seed, camera.hfov_deg) == (0.0, 3, 87.0)
+    config.write_text("[sim.camera]\nnoise = -0.01\n")
+    with pytest.raises(ConfigError, match=r"camera\.noise"):
+        load_config(SimConfig, config, "sim")
