@@ -25,3 +25,7 @@ class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     # Heights above the grasp point: where the hand waits before descending, and lifts to after.
     pregrasp_height: Annotated[float, Meta(ge=0.0, le=0.5)] = 0.15
     place_clearance: Annotated[float, Meta(ge=0.0, le=0.2)] = 0.02
+    # How far below an object's top the fingertips close at most; objects up to twice this tall
+    # are held at their centre. The palm sits about 4 cm above the fingertips: grasping a 10 cm
+    # cup at its centre pressed the palm onto its rim and tipped it over between the fingers.
+    grasp_depth: Annotated[float, Meta(gt=0.0, le=0.2)] = 0.03

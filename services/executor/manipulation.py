@@ -35,6 +35,8 @@ GRIPPER_OPEN = GRIPPER_MAX_GAP
 GRIPPER_CLOSED = 0.0
 # Perception publishes a few times a second; wait at most this for its next report.
 PERCEPTION_TIMEOUT = 2.0
+# Half the height of a held object the world file does not know.
+DEFAULT_HALF_HEIGHT = 0.05
 
 
 def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Event) -> Any:
@@ -148,6 +150,11 @@ class Manipulator:
 
     # Steps
 
+    def _grasp_height(self, height: float) -> float:
+        """How far above its centre the fingertips close on an object `height` tall: at most
+        grasp_depth below its top, so the palm stays clear of its rim."""
+        return max(0.0, height / 2 - self.config.grasp_depth)
+
     def pick(self, step: PickStep, cancel: threading.Event) -> None:
         # What the hand holds comes from perception, never from bookkeeping that a failed step
         # could have left stale.
@@ -155,7 +162,10 @@ class Manipulator:
             raise PreconditionFailed(f"the gripper already holds {held_now}")
         self.ensure_at(step.approach, cancel)
         # Where perception sees it now, not where it was when the plan was resolved.
-        position = self.robot.object_position(step.object_id) or step.position
+        centre = self.robot.object_position(step.object_id) or step.position
+        obj = self.world.objects.get(step.object_id)
+        grasp_height = self._grasp_height(obj.size.z if obj else 2 * DEFAULT_HALF_HEIGHT)
+        position = Vec3(x=centre.x, y=centre.y, z=centre.z + grasp_height)
         above = Vec3(x=position.x, y=position.y, z=position.z + self.config.pregrasp_height)
         self.gripper(GRIPPER_OPEN, cancel)
         self.reach(above, f"moving above {step.object_name}", cancel)
@@ -174,9 +184,13 @@ class Manipulator:
             raise PreconditionFailed("the gripper holds nothing to place")
         held = self.world.objects.get(held_id)
         name = held.name if held else held_id
-        half_height = held.size.z / 2 if held else 0.05
+        half_height = held.size.z / 2 if held else DEFAULT_HALF_HEIGHT
         self.ensure_at(step.approach, cancel)
-        at = Vec3(x=step.position.x, y=step.position.y, z=step.position.z + half_height + self.config.place_clearance)
+        # The fingertips, with the object's bottom place_clearance above the top, as pick held it.
+        bottom_to_fingertips = half_height + self._grasp_height(2 * half_height)
+        at = Vec3(
+            x=step.position.x, y=step.position.y, z=step.position.z + bottom_to_fingertips + self.config.place_clearance
+        )
         above = Vec3(x=at.x, y=at.y, z=at.z + self.config.pregrasp_height)
         self.reach(above, f"moving {name} above {step.surface_name}", cancel)
         self.slide(at, f"lowering {name} onto {step.surface_name}", cancel)

@@ -12,7 +12,7 @@ import pytest
 
 from schemas.actions import ResultResponse
 from schemas.common import Pose2D, Vec3
-from schemas.plan import NavigateStep, Plan, Step
+from schemas.plan import NavigateStep, PickStep, PlaceStep, Plan, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import PerceivedObject
 from services.executor.config import ExecutorConfig
@@ -97,6 +97,40 @@ def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_tabl
     cup = next(o for o in truth.objects if o.id == "red_cup")
     assert truth.holding is None
     assert (cup.on, cup.room) == ("coffee_table", "living_room"), cup
+
+
+@pytest.mark.parametrize(("surface_id", "shift"), [("coffee_table", 0.0), ("kitchen_table", -0.1)])
+def test_a_placed_cup_stands_upright_on_the_surface(sim: Simulation, surface_id: str, shift: float) -> None:
+    """Grasped at its centre, the palm pressed on the cup's rim and it turned in the fingers: it was
+    put down at 45 degrees and fell on its side, or stayed wedged in the opened hand."""
+    world = WorldModel(sim.world)
+    manipulator = Manipulator(SimRobot(sim), ArmKinematics(), world, ExecutorConfig())
+    cancel = threading.Event()
+    cup = world.objects["red_cup"]
+    counter = world.furniture["kitchen_counter"]
+    pick = PickStep(
+        object_id=cup.id,
+        object_name=cup.name,
+        position=sim.object_position(cup.id),
+        mass=cup.mass,
+        support_id=counter.id,
+        approach=counter.approach,
+    )
+    manipulator.pick(pick, cancel)
+    assert sim.ground_truth().holding == cup.id
+    surface = world.furniture[surface_id]
+    spot = Vec3(x=surface.center[0] + shift, y=surface.center[1] - surface.size.y / 2 + 0.15, z=surface.size.z)
+    place = PlaceStep(surface_id=surface.id, surface_name=surface.name, position=spot, approach=surface.approach)
+    manipulator.place(place, cancel)
+    sim.settle(1.0)
+
+    truth = next(o for o in sim.ground_truth().objects if o.id == cup.id)
+    _, orientation = sim.bullet.getBasePositionAndOrientation(sim.object_bodies[cup.id])
+    up = sim.bullet.getMatrixFromQuaternion(orientation)[8]  # the cup's axis, z component in the map frame
+    assert math.degrees(math.acos(min(1.0, up))) < 10.0
+    assert truth.on == surface_id
+    assert truth.position.z == pytest.approx(surface.size.z + cup.size.z / 2, abs=0.005)
+    assert math.hypot(truth.position.x - spot.x, truth.position.y - spot.y) < 0.02
 
 
 class TracingSimRobot(SimRobot):
