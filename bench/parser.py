@@ -14,17 +14,15 @@ Both kinds of round trip are interleaved, alternating which goes first, as in `b
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import signal
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from bench.service import BenchError, against_echo, bench_settings, ms_summary, running_service
+from bench.service import BenchError, against_echo, bench_settings, command_line, ms_summary, running_service
 from bench.transport import machine
 from schemas import keys
 from schemas.plan import Plan, PlanText
@@ -34,7 +32,6 @@ from services.runtime import CallError, Node
 SERVICE = "parser"
 GOALS = {"goal_json_plans_per_s": 5000.0, "goal_text_plans_per_s": 1000.0, "goal_ratio_p50": 1.5}
 CALL_TIMEOUT = 2.0
-MAX_N = 20_000
 
 JSON_PLAN = json.dumps(
     {
@@ -222,31 +219,16 @@ def print_table(result: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.parser", description=__doc__.splitlines()[0])
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--seconds", type=float, default=5.0, help="in-process parsing time per format")
-    parser.add_argument("--n", type=int, default=1000, help=f"round trips of each kind (10..{MAX_N})")
-    parser.add_argument("--warmup", type=int, default=50, help="parses and round trips of each kind not counted")
-    parser.add_argument("--max-query-seconds", type=float, default=15.0, help="stop the round trips after this long")
-    args = parser.parse_args(argv)
-    if not 10 <= args.n <= MAX_N:
-        parser.error(f"--n must be between 10 and {MAX_N}")
-    if not 0 < args.seconds <= 600 or not 0 < args.max_query_seconds <= 600:
-        parser.error("--seconds and --max-query-seconds must be in (0, 600]")
-    runtime.configure_logging("WARNING")
-    # SIGTERM unwinds like Ctrl-C, so the service process is stopped either way.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        result = run(args.seconds, args.n, max(0, args.warmup), args.max_query_seconds)
-    except KeyboardInterrupt:
-        progress("interrupted")
-        sys.exit(130)
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print_table(result)
-    if result["errors"]:
-        sys.exit(1)
+    command_line(
+        "bench.parser",
+        __doc__ or "",
+        run,
+        print_table,
+        progress,
+        argv,
+        seconds=5.0,
+        seconds_help="in-process parsing time per format",
+    )
 
 
 if __name__ == "__main__":

@@ -17,16 +17,13 @@ answers, and `cached_*` with one plan repeated, which it answers after the first
 
 from __future__ import annotations
 
-import argparse
-import json
-import signal
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
-from bench.service import BenchError, against_echo, bench_settings, ms_summary, running_service
+from bench.service import BenchError, against_echo, bench_settings, command_line, ms_summary, running_service
 from bench.transport import machine
 from schemas import keys
 from schemas.common import ServiceError
@@ -36,7 +33,6 @@ from services.runtime import CallError, Node
 
 SERVICE = "resolver"
 CALL_TIMEOUT = 2.0
-MAX_N = 20_000
 # Distinct wait durations, in ms, before one comes round again: more than any run's queries.
 DISTINCT = 60_000
 INCORRECT_SHOWN = 20
@@ -250,31 +246,16 @@ def print_table(result: dict[str, Any]) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m bench.resolver", description=__doc__.splitlines()[0])
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--n", type=int, default=1000, help=f"round trips of each kind (10..{MAX_N})")
-    parser.add_argument("--warmup", type=int, default=50, help="resolves and round trips of each kind not counted")
-    parser.add_argument("--max-query-seconds", type=float, default=15.0, help="stop each kind of round trip after this")
-    parser.add_argument("--seconds", type=float, default=3.0, help="in-process resolving time")
-    args = parser.parse_args(argv)
-    if not 10 <= args.n <= MAX_N:
-        parser.error(f"--n must be between 10 and {MAX_N}")
-    if not 0 < args.seconds <= 600 or not 0 < args.max_query_seconds <= 600:
-        parser.error("--seconds and --max-query-seconds must be in (0, 600]")
-    runtime.configure_logging("WARNING")
-    # SIGTERM unwinds like Ctrl-C, so the service process is stopped either way.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
-        result = run(args.n, max(0, args.warmup), args.max_query_seconds, args.seconds)
-    except KeyboardInterrupt:
-        progress("interrupted")
-        sys.exit(130)
-    if args.json:
-        print(json.dumps(result))
-    else:
-        print_table(result)
-    if result["errors"]:
-        sys.exit(1)
+    command_line(
+        "bench.resolver",
+        __doc__ or "",
+        lambda seconds, n, warmup, max_query: run(n, warmup, max_query, seconds),
+        print_table,
+        progress,
+        argv,
+        seconds=3.0,
+        seconds_help="in-process resolving time",
+    )
 
 
 if __name__ == "__main__":

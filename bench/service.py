@@ -7,13 +7,17 @@ compared with, interleaved with it.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import json
 import os
 import signal
 import statistics
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 from bench.transport import bare_echo, free_base_port, interleaved, percentile
 from services import runtime
@@ -24,6 +28,8 @@ READY_TIMEOUT = 30.0
 STOP_TIMEOUT = 5.0
 
 Progress = Callable[[str], None]
+# Round trips of each kind a bench may be asked for.
+MAX_N = 20_000
 
 
 class BenchError(Exception):
@@ -91,3 +97,45 @@ def against_echo(
         return interleaved(bare_echo(node, payload), query, n, warmup, max_seconds)
     except RuntimeError as exc:  # the bare echo failed or did not answer
         raise BenchError(str(exc)) from None
+
+
+def command_line(
+    prog: str,
+    doc: str,
+    run: Callable[[float, int, int, float], dict[str, Any]],
+    print_table: Callable[[dict[str, Any]], None],
+    progress: Progress,
+    argv: list[str] | None,
+    *,
+    seconds: float,
+    seconds_help: str,
+) -> None:
+    """The command line every service bench shares: `run(seconds, n, warmup, max_query_seconds)`
+    gives the result, printed as one JSON object with --json, else as a table; exit 1 on errors."""
+    parser = argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.splitlines()[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--seconds", type=float, default=seconds, help=seconds_help)
+    parser.add_argument("--n", type=int, default=1000, help=f"round trips of each kind (10..{MAX_N})")
+    parser.add_argument(
+        "--warmup", type=int, default=50, help="in-process runs and round trips of each kind not counted"
+    )
+    parser.add_argument("--max-query-seconds", type=float, default=15.0, help="stop each kind of round trip after this")
+    args = parser.parse_args(argv)
+    if not 10 <= args.n <= MAX_N:
+        parser.error(f"--n must be between 10 and {MAX_N}")
+    if not 0 < args.seconds <= 600 or not 0 < args.max_query_seconds <= 600:
+        parser.error("--seconds and --max-query-seconds must be in (0, 600]")
+    runtime.configure_logging("WARNING")
+    # SIGTERM unwinds like Ctrl-C, so the service process is stopped either way.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        result = run(args.seconds, args.n, max(0, args.warmup), args.max_query_seconds)
+    except KeyboardInterrupt:
+        progress("interrupted")
+        sys.exit(130)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print_table(result)
+    if result["errors"]:
+        sys.exit(1)
