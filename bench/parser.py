@@ -116,7 +116,7 @@ def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[li
         if not isinstance(plan, Plan):
             raise BenchError(f"plan/parse replied with {type(plan).__name__}, not a Plan")
 
-    return against_echo(node, runtime.encode(REQUEST), query, n, warmup, max_seconds)
+    return against_echo(node, SERVICE, runtime.encode(REQUEST), query, n, warmup, max_seconds)
 
 
 def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
@@ -184,7 +184,8 @@ def run(seconds: float, n: int, warmup: int, max_query_seconds: float) -> dict[s
         "parse": parse_detail,
         "plans_per_s": "1000 / median ms of a single parse, each parse timed alone, after warm-up",
         "query": "plan/parse with the 10-step JSON plan (format json) to a parser process started by the Supervisor",
-        "bare": "bare Zenoh get on bench/raw_echo, echoed by the same parser process and session, same request bytes",
+        "bare": "bare Zenoh get on bench/raw_echo/parser, echoed by the same parser process and session, "
+        "same request bytes",
         "order": "interleaved, alternating first call",
         "request_bytes": len(runtime.encode(REQUEST)),
         "service_log_level": os.environ.get("TETHER_LOG_LEVEL", "INFO"),
@@ -224,7 +225,6 @@ def main(argv: list[str] | None = None) -> None:
         __doc__ or "",
         run,
         print_table,
-        progress,
         argv,
         seconds=5.0,
         seconds_help="in-process parsing time per format",

@@ -136,9 +136,9 @@ def service_latency(n: int, warmup: int, max_seconds: float) -> dict[str, Any]:
 
             resolve(node, repeated)  # the plan resolves, and the cache holds it from now on
             progress(f"measuring up to {n} distinct plans against the echo (+{warmup} warm-up, <= {max_seconds:g} s)")
-            bare, queries = against_echo(node, payload, distinct, n, warmup, max_seconds)
+            bare, queries = against_echo(node, SERVICE, payload, distinct, n, warmup, max_seconds)
             progress(f"measuring up to {n} repeats of one plan against the echo")
-            cached_bare, repeats = against_echo(node, payload, cached, n, warmup, max_seconds)
+            cached_bare, repeats = against_echo(node, SERVICE, payload, cached, n, warmup, max_seconds)
     q50, q99 = ms_summary(queries)
     b50, b99 = ms_summary(bare)
     c50, c99 = ms_summary(repeats)
@@ -202,7 +202,7 @@ def run(n: int, warmup: int, max_query_seconds: float, inprocess_seconds: float)
         "resolve": "plan/resolve to a resolver process started by the Supervisor; a distinct plan each query "
         "(its wait duration), so the translation cache never answers",
         "cached": "plan/resolve with one plan repeated: answered by the translation cache",
-        "bare": "bare Zenoh get on bench/raw_echo, echoed by the same resolver process and session, "
+        "bare": "bare Zenoh get on bench/raw_echo/resolver, echoed by the same resolver process and session, "
         "with as many bytes as the plan",
         "inprocess": "Resolver.resolve of the bench plan in this process, each timed alone, after warm-up",
         "world": "household, world file only: no sim, so no perception and no odometry",
@@ -251,7 +251,6 @@ def main(argv: list[str] | None = None) -> None:
         __doc__ or "",
         lambda seconds, n, warmup, max_query: run(n, warmup, max_query, seconds),
         print_table,
-        progress,
         argv,
         seconds=3.0,
         seconds_help="in-process resolving time",

@@ -76,9 +76,13 @@ def summary(ms: list[float]) -> dict[str, float]:
     return {"median_ms": round(statistics.median(ms), 4), "p99_ms": round(percentile(ms, 99), 4)}
 
 
-def bare_echo(node: Node, payload: bytes) -> Callable[[], None]:
-    """One round trip to the bare Zenoh echo a service declares with BENCH_ECHO_ENV: the baseline."""
-    key = keys.bench_echo_key(node.robot)
+def bare_echo(node: Node, payload: bytes, service: str) -> Callable[[], None]:
+    """One round trip to the bare Zenoh echo `service` declares with BENCH_ECHO_ENV: the baseline."""
+    return raw_echo(node, keys.bench_echo_key(node.robot, service), payload)
+
+
+def raw_echo(node: Node, key: str, payload: bytes) -> Callable[[], None]:
+    """One bare Zenoh get on `key`, which must answer with `payload` itself (an echo or a relay to one)."""
 
     def call() -> None:
         for reply in node.session.get(key, payload=payload, timeout=CALL_TIMEOUT):
@@ -90,28 +94,37 @@ def bare_echo(node: Node, payload: bytes) -> Callable[[], None]:
     return call
 
 
+def timed(call: Callable[[], None]) -> float:
+    """How long `call()` takes, in ms."""
+    started = time.perf_counter_ns()
+    call()
+    return (time.perf_counter_ns() - started) / 1e6
+
+
+def timed_pair(i: int, bare: Callable[[], None], measured: Callable[[], None]) -> tuple[float, float]:
+    """(bare ms, measured ms), run one after the other; which goes first alternates with `i`,
+    so neither always runs on a warmer path."""
+    if i % 2 == 0:
+        b = timed(bare)
+        return b, timed(measured)
+    m = timed(measured)
+    return timed(bare), m
+
+
 def interleaved(
     bare: Callable[[], None], measured: Callable[[], None], samples: int, warmup: int, max_seconds: float
 ) -> tuple[list[float], list[float]]:
     """Round trips in ms, (bare, measured), alternating which goes first; stops early at `max_seconds`."""
-
-    def timed(call: Callable[[], None]) -> float:
-        started = time.perf_counter_ns()
-        call()
-        return (time.perf_counter_ns() - started) / 1e6
-
     baseline: list[float] = []
     results: list[float] = []
     deadline = time.monotonic() + max_seconds
     for i in range(warmup + samples):
         if time.monotonic() > deadline and len(baseline) >= 10:
             break
-        # Alternate which goes first, so neither always runs on a warmer path.
-        first, second = (bare, measured) if i % 2 == 0 else (measured, bare)
-        a, b = timed(first), timed(second)
+        b, m = timed_pair(i, bare, measured)
         if i >= warmup:
-            baseline.append(a if first is bare else b)
-            results.append(b if first is bare else a)
+            baseline.append(b)
+            results.append(m)
     return baseline, results
 
 
@@ -122,7 +135,7 @@ def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[
         if node.call(ECHO, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
             raise RuntimeError("tether echo returned a different message")
 
-    return interleaved(bare_echo(node, runtime.encode(REQUEST)), tether, samples, warmup, max_seconds)
+    return interleaved(bare_echo(node, runtime.encode(REQUEST), SERVER), tether, samples, warmup, max_seconds)
 
 
 def machine() -> dict[str, Any]:

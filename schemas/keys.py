@@ -60,9 +60,23 @@ def prefix(robot: str) -> str:
     return f"{ROOT}/{robot}"
 
 
-def bench_echo_key(robot: str) -> str:
+def bench_echo_key(robot: str, service: str) -> str:
     """The bare Zenoh echo a service declares for benchmarks (see services.runtime.BENCH_ECHO_ENV)."""
-    return f"{prefix(robot)}/bench/raw_echo"
+    return f"{prefix(robot)}/bench/raw_echo/{service}"
+
+
+def bench_relay_key(robot: str) -> str:
+    """Safety's bare relay to the sim's echo, for benchmarks: two hops with no checks."""
+    return f"{prefix(robot)}/bench/raw_relay"
+
+
+def bench_stream_in_key(robot: str) -> str:
+    """Raw samples safety puts again, unchanged, on `bench_stream_out_key`: a topic's baseline."""
+    return f"{prefix(robot)}/bench/raw_stream_in"
+
+
+def bench_stream_out_key(robot: str) -> str:
+    return f"{prefix(robot)}/bench/raw_stream_out"
 
 
 @dataclass(frozen=True)
@@ -123,7 +137,10 @@ CMD_TRAJECTORY = Action(
     "cmd/follow_joint_trajectory", FollowJointTrajectoryGoal, FollowJointTrajectoryFeedback, FollowJointTrajectoryResult
 )
 CMD_GRIPPER = Action("cmd/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
+# From programs (plans, agents): a value over a limit is refused, never silently clamped.
 CMD_VEL = Topic("cmd/cmd_vel", Twist)
+# From a person at a joystick or keyboard: clamped to the limits, and the clamping reported.
+TELEOP_CMD_VEL = Topic("cmd/teleop/cmd_vel", Twist)
 
 # Safety itself.
 HEARTBEAT = Topic("safety/heartbeat", SafetyStatus)
@@ -167,6 +184,7 @@ ACTIONS: tuple[Action[Any, Any, Any], ...] = (
 )
 TOPICS: tuple[Topic[Any], ...] = (
     CMD_VEL,
+    TELEOP_CMD_VEL,
     HEARTBEAT,
     ESTOP,
     SAFETY_EVENTS,

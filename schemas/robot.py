@@ -21,10 +21,15 @@ GRIPPER_MAX_GAP = 0.08
 
 
 class Twist(Frozen):
-    """cmd_vel for the base: forward speed and turn rate in the base frame."""
+    """cmd_vel for the base: forward speed and turn rate in the base frame.
+
+    `stamp` (wall time when sent, 0 if unknown) is carried through safety unchanged, as in ROS's
+    TwistStamped, so a stream's latency can be measured end to end.
+    """
 
     linear_x: MetresPerSecond = 0.0
     angular_z: RadiansPerSecond = 0.0
+    stamp: float = 0.0
 
 
 class JointState(Frozen):
@@ -48,11 +53,15 @@ class Odometry(Frozen):
 
 
 class NavigateToPoseGoal(Frozen):
-    """Drive the base to `pose`, following `path` (map-frame waypoints) when one is given."""
+    """Drive the base to `pose`, following `path` (map-frame waypoints) when one is given.
+
+    `max_speed` (m/s) is the speed asked for; safety refuses one over its limit and fills in its
+    limit when none is given, so the robot always receives a number safety approved.
+    """
 
     pose: Pose2D
     path: Annotated[list[Pose2D], Meta(max_length=MAX_PATH_POINTS)] = []
-    max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] = 0.5
+    max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
 
 
 class NavigateToPoseFeedback(Frozen):

@@ -11,6 +11,16 @@ from msgspec import Meta
 from schemas.common import Frozen, Name, Text
 
 
+class EstopSource(enum.StrEnum):
+    """Who may trigger the e-stop. Anyone may; only an operator's token resets it."""
+
+    OPERATOR = "operator"  # a person: `tether estop`, a hardware button bridged to the key
+    EXECUTOR = "executor"  # the plan runner, when it finds the robot in a state it cannot handle
+    AGENT = "agent"  # an LLM agent or MCP tool
+    WATCHDOG = "watchdog"  # safety's watchdog: the robot's state stopped arriving while it moved
+    MONITOR = "monitor"  # safety's monitors: measured motion beyond a limit, the base in a keep-out zone
+
+
 class EstopState(Frozen):
     latched: bool
     source: Text = ""
@@ -19,17 +29,25 @@ class EstopState(Frozen):
 
 
 class SafetyStatus(Frozen):
-    """The heartbeat. The robot stops when it stops arriving."""
+    """The heartbeat. The robot stops when it stops arriving.
+
+    `speed_scale` is speed-and-separation monitoring: the fraction of its normal speed the robot may
+    use now (base and arm alike; 0 pauses motion without ending goals), with `speed_reason` saying
+    why. `policy_hash` names the policy in force.
+    """
 
     seq: Annotated[int, Meta(ge=0)]
     stamp: float
     estop: EstopState
+    speed_scale: Annotated[float, Meta(ge=0.0, le=1.0)] = 1.0
+    speed_reason: Text = ""
+    policy_hash: Annotated[str, Meta(max_length=80)] = ""
 
 
 class EStop(Frozen):
     """Anyone may publish this; it latches until an operator resets it."""
 
-    source: Name
+    source: EstopSource
     reason: Text = ""
 
 
@@ -50,13 +68,51 @@ class Decision(enum.StrEnum):
     STOPPED = "stopped"
     LATCHED = "latched"
     RESET = "reset"
+    # The speed limit near people changed (slowed, paused or back to full speed).
+    LIMITED = "limited"
+
+
+class Rule(enum.StrEnum):
+    """The rules safety applies, named in every event (services/safety/policy.toml sets their limits)."""
+
+    ESTOP = "estop"  # nothing moves while the e-stop is latched
+    OPERATOR = "operator"  # only the operator's token resets the e-stop
+    POSE_KNOWN = "pose_known"  # motion needs recent odometry / joint states
+    MAP = "map"  # the base stays on the map
+    KEEP_OUT = "keep_out"  # the base's footprint stays out of keep-out zones
+    BASE_SPEED = "base_speed"
+    BASE_ACCELERATION = "base_acceleration"
+    CMD_VEL_HORIZON = "cmd_vel_horizon"  # a held cmd_vel must not reach a zone or leave the map
+    JOINT_LIMITS = "joint_limits"
+    JOINT_SPEED = "joint_speed"
+    WORKSPACE = "workspace"  # the end effector inside its box
+    ARM_KEEP_OUT = "arm_keep_out"  # the end effector out of keep-out zones
+    PAYLOAD = "payload"
+    GRIPPER_FORCE = "gripper_force"
+    GRIPPER_DROP = "gripper_drop"  # no opening the gripper over the floor with something in it
+    HUMAN_SEPARATION = "human_separation"
+    COMMAND_RATE = "command_rate"
+    PLAN = "plan"  # a plan's structure (labels, on_failure ranges)
+    MONITOR_SPEED = "monitor_speed"  # measured base speed within the allowed speed
+    MONITOR_JOINT_SPEED = "monitor_joint_speed"
+    MONITOR_KEEP_OUT = "monitor_keep_out"  # the measured pose out of keep-out zones
+    WATCHDOG = "watchdog"  # the robot's state keeps arriving while it moves
 
 
 class SafetyEvent(Frozen):
-    """One safety decision: what was asked, what was decided, and why."""
+    """One safety decision: what was asked, what was decided, by which rule, on which measurements.
+
+    `rule` is the rule that decided a veto, clamp or latch (None for an approval); `checks` the rules that
+    were applied; `values` the measured values and limits the decision rests on (SI units, named
+    like `speed_mps` and `limit_mps`); `policy_hash` the sha256 of the policy file in force.
+    """
 
     stamp: float
     key: Text
     decision: Decision
     reason: Text = ""
+    rule: Rule | None = None
+    checks: Annotated[list[Rule], Meta(max_length=64)] = []
+    values: Annotated[dict[Annotated[str, Meta(max_length=64)], float], Meta(max_length=64)] = {}
+    policy_hash: Annotated[str, Meta(max_length=80)] = ""
     command: msgspec.Raw = msgspec.field(default_factory=lambda: msgspec.Raw(b"null"))

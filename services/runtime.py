@@ -27,6 +27,10 @@ log = logging.getLogger(__name__)
 
 # Set to 1 in a service's environment to have it declare the bare echo benchmarks compare with.
 BENCH_ECHO_ENV = "TETHER_BENCH_ECHO"
+# Set to a service's name (safety: "sim") to have this service relay bare bench traffic to that
+# service: raw queries to its echo and a raw topic, the baseline for two hops through this process.
+BENCH_RELAY_ENV = "TETHER_BENCH_RELAY"
+BENCH_RELAY_TIMEOUT = 5.0
 
 T = TypeVar("T")
 C = TypeVar("C")
@@ -294,6 +298,8 @@ class Node:
     def declare_alive(self) -> None:
         if os.environ.get(BENCH_ECHO_ENV) == "1":
             self.declare_bench_echo()
+        if relay_to := os.environ.get(BENCH_RELAY_ENV):
+            self.declare_bench_relay(relay_to)
         self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.robot, self.service)))
 
     def declare_bench_echo(self) -> None:
@@ -301,7 +307,7 @@ class Node:
 
         Declared by every service started with TETHER_BENCH_ECHO=1 (benchmarks only; off by default).
         """
-        key = keys.bench_echo_key(self.robot)
+        key = keys.bench_echo_key(self.robot, self.service)
 
         def echo(query: zenoh.Query) -> None:
             try:
@@ -310,6 +316,37 @@ class Node:
                 query.drop()
 
         self._declared.append(self.session.declare_queryable(key, echo))
+
+    def declare_bench_relay(self, target: str) -> None:
+        """Bare Zenoh relays through this session: the baseline for commands passing through this service.
+
+        A query on `bench_relay_key` is forwarded as it is, with a plain get, to `target`'s bench echo,
+        and the first reply's bytes go back; samples on `bench_stream_in_key` are put again on
+        `bench_stream_out_key`. No decoding and no checks. Declared with TETHER_BENCH_RELAY=<target>.
+        """
+        key, echo = keys.bench_relay_key(self.robot), keys.bench_echo_key(self.robot, target)
+
+        def relay(query: zenoh.Query) -> None:
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                for reply in self.session.get(echo, payload=payload, timeout=BENCH_RELAY_TIMEOUT):
+                    if reply.ok is not None:
+                        query.reply(key, reply.ok.payload.to_bytes())
+                    else:
+                        query.reply_err(reply.err.payload.to_bytes() if reply.err is not None else b"")
+                    return
+                query.reply_err(f"no reply from {echo}".encode())
+            finally:
+                query.drop()
+
+        out = self.session.declare_publisher(keys.bench_stream_out_key(self.robot))
+        self._declared.append(out)
+        self._declared.append(self.session.declare_queryable(key, relay))
+        self._declared.append(
+            self.session.declare_subscriber(
+                keys.bench_stream_in_key(self.robot), lambda sample: out.put(sample.payload.to_bytes())
+            )
+        )
 
     def alive_services(self, timeout: float = 1.0) -> set[str]:
         replies = self.session.liveliness().get(keys.alive_key(self.robot, "*"), timeout=timeout)

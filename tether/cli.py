@@ -23,7 +23,7 @@ from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.plan import MAX_PLAN_BYTES
 from schemas.robot import Odometry
-from schemas.safety import SafetyStatus
+from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
 from services.actionlib import CANCEL_ALL, GoalRejected
 from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode
@@ -276,7 +276,7 @@ def estop(
 ) -> None:
     """Trigger the e-stop. It latches until `tether reset`."""
     with client(ctx) as node:
-        status = trigger_estop(node, f"operator:{operator_name()}", reason)
+        status = trigger_estop(node, EstopSource.OPERATOR, f"{reason} ({operator_name()})")
     if status is None:
         console.print("[red]e-stop sent, but no heartbeat from safety confirmed it[/]")
         raise typer.Exit(EXIT_UNREACHABLE)
@@ -302,6 +302,42 @@ def reset(
         console.print(f"[red]refused[/]: {reply.message}")
         raise typer.Exit(2)
     console.print(reply.message)
+
+
+@app.command()
+def policy(
+    file: Annotated[
+        Path | None, typer.Argument(help="A policy file (TOML or YAML); default: the one safety ships with.")
+    ] = None,
+    world: Annotated[str, typer.Option(help="The world file (or name) whose robot the policy must fit.")] = "household",
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """Check a safety policy as safety does at start; show its effective limits and hash.
+
+    Exit 0 when safety would start with it, 2 (naming the bad entry) when it would not.
+    """
+    from services.robotmodel import ArmModel
+    from services.safety.policyfile import PolicyError, load_policy
+    from services.worldmodel import load_world
+
+    try:
+        model = load_world(world)
+        limits = load_policy(file, model.robot, ArmModel(model.robot.arm_urdf), model.keep_out)
+    except (PolicyError, WorldFileError) as exc:
+        if as_json:
+            print(json.dumps({"ok": False, "error": str(exc)}))
+        else:
+            console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(2) from None
+    summary = limits.summary()
+    if as_json:
+        print(json.dumps({"ok": True, **summary}))
+        return
+    console.print(f"policy {summary.pop('path')}\n{summary.pop('hash')}")
+    table = Table("rule", "limits")
+    for section, values in summary.items():
+        table.add_row(section, json.dumps(values))
+    console.print(table)
 
 
 # State

@@ -13,7 +13,7 @@ from schemas import keys
 from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.keys import Topic
-from schemas.safety import EStop, ResetReply, ResetRequest, SafetyStatus
+from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
 from services.actionlib import ActionClient, ClientGoal
 from services.runtime import Node
 from services.safety.operator import read_token, token_path
@@ -54,7 +54,7 @@ def operator_name() -> str:
         return "operator"
 
 
-def trigger_estop(node: Node, source: str, reason: str, timeout: float = 2.0) -> SafetyStatus | None:
+def trigger_estop(node: Node, source: EstopSource, reason: str, timeout: float = 2.0) -> SafetyStatus | None:
     """Publish an e-stop and wait for a heartbeat that shows it latched; None if safety never confirms."""
     confirmed: list[SafetyStatus] = []
     latched = threading.Event()

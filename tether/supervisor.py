@@ -14,8 +14,9 @@ from services.runtime import SERVICES, NodeSettings
 
 log = logging.getLogger(__name__)
 
-# Stopped first to last: nothing new is planned, then nothing moves, and the recorder hears it all.
-STOP_ORDER = ("executor", "parser", "resolver", "sim", "safety", "recorder")
+# Stopped first to last: nothing new is planned; safety goes before the robot so its watchdog never
+# sees a robot vanish mid-motion (the robot stops on the missing heartbeat); the recorder hears it all.
+STOP_ORDER = ("executor", "parser", "resolver", "safety", "sim", "recorder")
 
 
 class Supervisor:

@@ -5,18 +5,15 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-import pybullet_data
 
 from schemas.common import Pose2D, Vec3
-from schemas.robot import ARM_JOINTS, FINGER_JOINTS, TrajectoryPoint
+from schemas.robot import TrajectoryPoint
 from services.executor.errors import IKFailed
+from services.robotmodel import ArmModel, arm_to_world, world_to_arm
 
-GRASP_FRAME = "panda_grasptarget"
-DEFAULT_ARM_URDF = "franka_panda/panda.urdf"
 # Keep solutions a hair inside the limits so position control never pushes against a stop.
 LIMIT_MARGIN = 0.01
 # Reached means within a millimetre and about half a degree.
@@ -26,47 +23,14 @@ ORIENTATION_TOLERANCE = 1e-2
 TOP_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 
 
-def arm_urdf_path(arm_urdf: str | Path = DEFAULT_ARM_URDF) -> Path:
-    """A path inside pybullet_data (the world file's `arm_urdf`), or an absolute path as is."""
-    return Path(pybullet_data.getDataPath()) / arm_urdf
-
-
-def world_to_arm(base: Pose2D, mount: Vec3, point: Vec3) -> np.ndarray:
-    """`point` (map frame) in the arm's base frame panda_link0, mounted at `mount` on the base."""
-    dx, dy = point.x - base.x, point.y - base.y
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    return np.array([c * dx + s * dy - mount.x, -s * dx + c * dy - mount.y, point.z - mount.z])
-
-
-def arm_to_world(base: Pose2D, mount: Vec3, point: Sequence[float] | np.ndarray) -> Vec3:
-    """The inverse of world_to_arm: a point in panda_link0 back in the map frame."""
-    bx, by = float(point[0]) + mount.x, float(point[1]) + mount.y
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    return Vec3(x=base.x + c * bx - s * by, y=base.y + s * bx + c * by, z=float(point[2]) + mount.z)
-
-
 def top_down_rotation(yaw: float) -> np.ndarray:
     """The hand pointing straight down (its z along -z), turned by `yaw` about the vertical."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ TOP_DOWN
 
 
-class ArmKinematics:
-    """The seven arm joints of the Panda, fingers locked open, solved at the grasp target frame."""
-
-    def __init__(self, arm_urdf: str | Path = DEFAULT_ARM_URDF) -> None:
-        full = pin.buildModelFromUrdf(str(arm_urdf_path(arm_urdf)))
-        fingers = [full.getJointId(name) for name in FINGER_JOINTS if full.existJointName(name)]
-        reference = pin.neutral(full)
-        self.model = pin.buildReducedModel(full, fingers, reference)
-        self.data = self.model.createData()
-        self.joint_names: tuple[str, ...] = tuple(self.model.names[1:])
-        if self.joint_names != ARM_JOINTS:
-            raise ValueError(f"{arm_urdf} has joints {self.joint_names}, expected {ARM_JOINTS}")
-        self.frame_id = self.model.getFrameId(GRASP_FRAME)
-        self.lower = np.array(self.model.lowerPositionLimit)
-        self.upper = np.array(self.model.upperPositionLimit)
-        self.max_velocity = np.array(self.model.velocityLimit)
+class ArmKinematics(ArmModel):
+    """The arm model with top-down inverse kinematics and timed trajectories."""
 
     # The module's frame and trajectory helpers, also reachable from an instance.
 
@@ -113,15 +77,6 @@ class ArmKinematics:
                 )
             path.append(q)
         return path
-
-    def within_limits(self, q: Sequence[float] | np.ndarray) -> bool:
-        q = np.asarray(q, dtype=float)
-        return bool(np.all(q >= self.lower - 1e-9) and np.all(q <= self.upper + 1e-9))
-
-    def forward(self, q: Sequence[float] | np.ndarray) -> pin.SE3:
-        """The grasp target's pose in panda_link0."""
-        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
-        return self.data.oMf[self.frame_id].copy()
 
     def solve_top_down(
         self,

@@ -62,9 +62,7 @@ class Manipulator:
     # Base
 
     def drive_to(self, pose: Pose2D, cancel: threading.Event, max_speed: float | None = None) -> None:
-        goal = (
-            NavigateToPoseGoal(pose=pose) if max_speed is None else NavigateToPoseGoal(pose=pose, max_speed=max_speed)
-        )
+        goal = NavigateToPoseGoal(pose=pose, max_speed=max_speed)
         try:
             result = self.robot.navigate(goal, cancel)
         except GoalRejected as exc:

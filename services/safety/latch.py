@@ -18,13 +18,14 @@ log = logging.getLogger(__name__)
 
 
 class EstopLatch:
-    """With a `state_file`, a latched e-stop is written down before it is announced, and read back
-    at start: restarting safety (by hand, systemd or `tether up`) does not clear it."""
+    """With a `state_file`, a latched e-stop is written down as soon as the robot has been told, and
+    read back at start: restarting safety (by hand, systemd or `tether up`) does not clear it."""
 
     def __init__(self, operator_token: str, state_file: Path | None = None) -> None:
         self._token = operator_token
         self._file = state_file
         self._lock = threading.Lock()
+        self._file_lock = threading.Lock()
         self._state = self._load()
 
     def _load(self) -> EstopState:
@@ -40,13 +41,16 @@ class EstopLatch:
             log.warning("e-stop still latched from before the restart (by %s: %s)", state.source, state.reason)
         return state
 
-    def _save(self, state: EstopState) -> None:
+    def save(self) -> None:
+        """Write the current state down (the latest wins when several write at once)."""
         if self._file is None:
             return
-        self._file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self._file.with_suffix(".tmp")
-        tmp.write_bytes(msgspec.json.encode(state))
-        os.replace(tmp, self._file)
+        with self._file_lock:
+            state = self.state
+            self._file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self._file.with_suffix(".tmp")
+            tmp.write_bytes(msgspec.json.encode(state))
+            os.replace(tmp, self._file)
 
     @property
     def state(self) -> EstopState:
@@ -54,12 +58,14 @@ class EstopLatch:
             return self._state
 
     def trigger(self, source: str, reason: str) -> bool:
-        """Latch; returns True if this call latched it (False if it already was)."""
+        """Latch in memory; returns True if this call latched it (False if it already was).
+
+        The caller tells the robot first and then calls save(): a slow disk must not delay a stop.
+        """
         with self._lock:
             if self._state.latched:
                 return False
             self._state = EstopState(latched=True, source=source, reason=reason, stamp=time.time())
-            self._save(self._state)
             return True
 
     def reset(self, operator: str, token: str) -> EstopState:
@@ -67,5 +73,6 @@ class EstopLatch:
             if not token_matches(self._token, token):
                 raise Unauthorized(f"reset refused for '{operator}': not the operator's token")
             self._state = EstopState(latched=False, source=operator, reason="reset by operator", stamp=time.time())
-            self._save(self._state)
-            return self._state
+            state = self._state
+        self.save()
+        return state

@@ -5,14 +5,14 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import pybullet_data
-
-from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.robotmodel import ArmModel
+from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
 from services.safety.latch import EstopLatch
 from services.safety.node import SafetyNode
 from services.safety.operator import ensure_token, token_path
-from services.safety.policy import SafetyPolicy, joint_limits_from_urdf
+from services.safety.policy import SafetyPolicy
+from services.safety.policyfile import PolicyError, load_policy
 from services.worldmodel import WorldModel, load_world
 
 log = logging.getLogger(__name__)
@@ -22,8 +22,12 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     configure_logging()
     config = load_config(SafetyConfig, config_file, "safety")
     world = load_world(config.world)
-    limits = joint_limits_from_urdf(Path(pybullet_data.getDataPath()) / world.robot.arm_urdf)
-    policy = SafetyPolicy(WorldModel(world), config, limits)
+    arm = ArmModel(world.robot.arm_urdf)
+    try:
+        limits = load_policy(Path(config.policy) if config.policy else None, world.robot, arm, world.keep_out)
+    except PolicyError as exc:
+        raise ConfigError(str(exc)) from None
+    policy = SafetyPolicy(WorldModel(world), limits, arm)
     token_file = token_path(config.operator_token_file)
     state_file = Path(config.estop_state_file) if config.estop_state_file else None
     latch = EstopLatch(ensure_token(token_file), state_file or token_file.parent / f"estop-{settings.robot}.json")
@@ -31,6 +35,12 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     with Node("safety", settings) as node:
         safety = SafetyNode(node, policy, latch, config)
         node.declare_alive()
-        log.info("safety up for robot %s; operator token in %s", settings.robot, token_file)
+        log.info(
+            "safety up for robot %s; policy %s (%s); operator token in %s",
+            settings.robot,
+            limits.path,
+            limits.hash,
+            token_file,
+        )
         stop.wait()
         safety.close()

@@ -1,17 +1,23 @@
-"""The checks: every command and every plan against keep-out zones, speed, joint and payload limits."""
+"""The checks: every command and every plan against the policy's limits, each decision with its rule.
+
+Pure logic: no zenoh. Each `check_*` returns a Verdict (the command to forward, the rules applied,
+the values measured) or raises Vetoed naming the rule, the values and why, in words an LLM can act on.
+"""
 
 from __future__ import annotations
 
 import itertools
 import math
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
-from shapely.geometry import LineString, Point
+import msgspec
+import numpy as np
+from shapely.geometry import LineString, Point, Polygon
 from shapely.geometry.base import BaseGeometry
+from shapely.ops import unary_union
 
-from schemas.common import Pose2D
+from schemas.common import Pose2D, Vec3
 from schemas.plan import (
     Fallback,
     GripperStep,
@@ -25,34 +31,37 @@ from schemas.plan import (
     step_labels,
 )
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.safety import Rule
 from schemas.world import KeepOut
-from services.safety.config import SafetyConfig
+from services.robotmodel import ArmModel
 from services.safety.errors import Vetoed
+from services.safety.policyfile import Limits
 from services.worldmodel import WorldModel, drive_route
 
-# Joint positions may not come closer than this to the hard limits.
+T = TypeVar("T")
+
+# Joint positions may not come closer than this to the limits.
 JOINT_LIMIT_MARGIN = 0.01
 # A trajectory's first point, at time zero, may differ this much from the measured position.
 START_TOLERANCE = 0.05
+# Trajectories are checked between their points too, in steps no joint moves more than this.
+INTERPOLATION_STEP = 0.05
+# Slower than this counts as standing still.
+STILL = 1e-6
+
+ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT)
 
 
 @dataclass(frozen=True)
-class JointLimit:
-    lower: float
-    upper: float
-    velocity: float
+class Verdict(Generic[T]):
+    """A command safety lets through: as sent (maybe clamped), the rules applied, the values measured."""
 
-
-def joint_limits_from_urdf(path: Path) -> dict[str, JointLimit]:
-    """Revolute and prismatic joint limits, read from the robot's own URDF."""
-    limits: dict[str, JointLimit] = {}
-    for joint in ET.parse(path).getroot().iter("joint"):
-        limit = joint.find("limit")
-        if joint.get("type") in ("revolute", "prismatic") and limit is not None:
-            limits[joint.get("name", "")] = JointLimit(
-                float(limit.get("lower", "0")), float(limit.get("upper", "0")), float(limit.get("velocity", "0"))
-            )
-    return limits
+    command: T
+    checks: tuple[Rule, ...]
+    values: dict[str, float] = field(default_factory=dict)
+    # The rule that clamped the command and how, when it was changed.
+    clamped_by: Rule | None = None
+    note: str = ""
 
 
 def _fmt(x: float) -> str:
@@ -63,131 +72,362 @@ def _why(zone: KeepOut) -> str:
     return f": {zone.reason}" if zone.reason else ""
 
 
-class SafetyPolicy:
-    """Pure checks. Each `check_*` returns the command to forward, or raises Vetoed naming why."""
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
 
-    def __init__(self, world: WorldModel, config: SafetyConfig, joint_limits: dict[str, JointLimit]) -> None:
+
+class SafetyPolicy:
+    """Pure checks against the effective limits (policy tightened within the robot's own)."""
+
+    def __init__(self, world: WorldModel, limits: Limits, arm: ArmModel) -> None:
         self.world = world
-        self.config = config
-        self.joint_limits = joint_limits
+        self.limits = limits
+        self.policy = limits.policy
+        self.arm = arm
+        self.joint_limits = limits.joints
         robot = world.world.robot
-        self.max_linear = min(config.max_linear_speed or robot.max_linear_speed, robot.max_linear_speed)
-        self.max_angular = min(config.max_angular_speed or robot.max_angular_speed, robot.max_angular_speed)
-        # Zones grown by the base's half-diagonal: the base centre must stay that far out.
-        radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2
-        self.zones = {zone_id: shape.buffer(radius) for zone_id, shape in world.keep_out_shapes.items()}
+        base = self.policy.base
+        self.max_linear = base.max_linear_speed
+        self.max_angular = base.max_angular_speed
+        self.mount = robot.arm_mount
+        # Zones grown by the base's half-diagonal (plus the margin): the base centre stays that far out.
+        radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2 + base.footprint_margin
+        self.zone_shapes = {zone.id: Polygon(zone.polygon) for zone in limits.keep_out}
+        self.zones = {zone_id: shape.buffer(radius) for zone_id, shape in self.zone_shapes.items()}
+        self.payload = self.policy.payload.max_mass
+        self._floor = unary_union(list(world.room_shapes.values()))
 
     # Navigation
 
-    def _zone_hit(self, geometry: BaseGeometry) -> KeepOut | None:
-        for zone in self.world.world.keep_out:
-            if geometry.intersects(self.zones[zone.id]):
+    def _zone_hit(self, geometry: BaseGeometry, grown: bool = True) -> KeepOut | None:
+        shapes = self.zones if grown else self.zone_shapes
+        for zone in self.limits.keep_out:
+            if geometry.intersects(shapes[zone.id]):
                 return zone
         return None
+
+    def zone_at(self, x: float, y: float) -> KeepOut | None:
+        """The keep-out zone the base's centre stands in (not grown), for the monitors."""
+        return self._zone_hit(Point(x, y), grown=False)
 
     def check_route(self, start: Pose2D | None, path: list[Pose2D], goal: Pose2D) -> None:
         """The route the base will drive (see worldmodel.drive_route): on the map, its footprint
         clear of every keep-out zone at every point and along every leg."""
         if start is None:
-            raise Vetoed("the robot's pose is unknown (no recent odometry), so no route can be checked")
+            raise Vetoed(
+                "the robot's pose is unknown (no recent odometry), so no route can be checked", Rule.POSE_KNOWN
+            )
         for pose in (*path, goal):
-            if not all(math.isfinite(v) for v in (pose.x, pose.y, pose.yaw)):
-                raise Vetoed("a waypoint is not a finite pose")
+            if not _finite(pose.x, pose.y, pose.yaw):
+                raise Vetoed("a waypoint is not a finite pose", Rule.MAP)
         points = [(start.x, start.y), *drive_route(start, path, goal)]
-        for x, y in points[1:]:
+        for k, (x, y) in enumerate(points[1:], start=1):
+            where = "the goal" if k == len(points) - 1 else "the route point"
             if self.world.room_of(x, y) is None:
-                raise Vetoed(f"({_fmt(x)}, {_fmt(y)}) is outside every room of the map")
+                raise Vetoed(f"{where} ({_fmt(x)}, {_fmt(y)}) is outside every room of the map", Rule.MAP, x=x, y=y)
             if zone := self._zone_hit(Point(x, y)):
-                raise Vetoed(f"goal ({_fmt(x)}, {_fmt(y)}) is inside keep-out zone '{zone.name}'{_why(zone)}")
+                raise Vetoed(
+                    f"at {where} ({_fmt(x)}, {_fmt(y)}) the base's footprint would be in keep-out zone "
+                    f"'{zone.name}'{_why(zone)}",
+                    Rule.KEEP_OUT,
+                    x=x,
+                    y=y,
+                )
         for a, b in itertools.pairwise(points):
+            if not self._floor.covers(LineString([a, b])):
+                raise Vetoed(
+                    f"the path from ({_fmt(a[0])}, {_fmt(a[1])}) to ({_fmt(b[0])}, {_fmt(b[1])}) leaves the map",
+                    Rule.MAP,
+                    x=b[0],
+                    y=b[1],
+                )
             if zone := self._zone_hit(LineString([a, b])):
                 raise Vetoed(
                     f"path from ({_fmt(a[0])}, {_fmt(a[1])}) to ({_fmt(b[0])}, {_fmt(b[1])}) "
-                    f"crosses keep-out zone '{zone.name}'{_why(zone)}"
+                    f"crosses keep-out zone '{zone.name}'{_why(zone)}",
+                    Rule.KEEP_OUT,
+                    x=b[0],
+                    y=b[1],
                 )
 
-    def check_navigation(self, goal: NavigateToPoseGoal, start: Pose2D | None) -> NavigateToPoseGoal:
-        self.check_route(start, goal.path, goal.pose)
-        if goal.max_speed > self.max_linear:
-            # Clamp rather than refuse: a slower arrival is always safe.
-            return NavigateToPoseGoal(pose=goal.pose, path=goal.path, max_speed=self.max_linear)
-        return goal
+    def check_speed(self, speed: float) -> None:
+        """A speed a plan asked for: over the limit is refused, never silently lowered."""
+        if not _finite(speed) or speed > self.max_linear + STILL:
+            raise Vetoed(
+                f"a speed of {speed:g} m/s exceeds the base's limit of {self.max_linear:g} m/s; "
+                f"ask for {self.max_linear:g} m/s or less",
+                Rule.BASE_SPEED,
+                speed_mps=speed,
+                limit_mps=self.max_linear,
+            )
 
-    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None) -> Twist:
-        """Clamp to the speed limits; veto a twist that would carry the base off the map or into a
-        keep-out zone within the horizon. Stopping is always allowed."""
-        if not (math.isfinite(twist.linear_x) and math.isfinite(twist.angular_z)):
-            raise Vetoed("cmd_vel is not finite")
-        sent = Twist(
-            linear_x=max(-self.max_linear, min(self.max_linear, twist.linear_x)),
-            angular_z=max(-self.max_angular, min(self.max_angular, twist.angular_z)),
-        )
-        if sent.linear_x == 0.0:
-            return sent
+    def check_navigation(self, goal: NavigateToPoseGoal, start: Pose2D | None) -> Verdict[NavigateToPoseGoal]:
+        """The route, and the speed asked for; with none asked for, the limit is filled in."""
+        self.check_route(start, goal.path, goal.pose)
+        if goal.max_speed is None:
+            goal = msgspec.structs.replace(goal, max_speed=self.max_linear)
+        else:
+            self.check_speed(goal.max_speed)
+        values = {"x": goal.pose.x, "y": goal.pose.y, "speed_mps": goal.max_speed or 0.0, "limit_mps": self.max_linear}
+        return Verdict(goal, (*ROUTE_CHECKS, Rule.BASE_SPEED), values)
+
+    # cmd_vel
+
+    def _check_twist_finite(self, twist: Twist) -> None:
+        if not _finite(twist.linear_x, twist.angular_z):
+            raise Vetoed("cmd_vel is not finite", Rule.BASE_SPEED)
+
+    def _check_horizon(self, twist: Twist, pose: Pose2D | None) -> None:
+        """Holding `twist` for the horizon must keep the base on the map and out of keep-out zones."""
+        if abs(twist.linear_x) <= STILL:
+            return
         if pose is None:
-            raise Vetoed("the robot's pose is unknown (no recent odometry): only a stop is allowed")
-        reach = sent.linear_x * self.config.cmd_vel_horizon
+            raise Vetoed("the robot's pose is unknown (no recent odometry): only a stop is allowed", Rule.POSE_KNOWN)
+        horizon = self.policy.base.cmd_vel_horizon
+        reach = twist.linear_x * horizon
         ahead = (pose.x + reach * math.cos(pose.yaw), pose.y + reach * math.sin(pose.yaw))
-        if self.world.room_of(*ahead) is None:
-            raise Vetoed(f"cmd_vel would leave the map within {self.config.cmd_vel_horizon:g} s")
+        x, y = ahead
+        values = {"x": x, "y": y, "speed_mps": twist.linear_x, "horizon_s": horizon}
+        if not self._floor.covers(LineString([(pose.x, pose.y), ahead])):
+            raise Vetoed(
+                f"cmd_vel at {twist.linear_x:g} m/s would leave the map within {horizon:g} s",
+                Rule.CMD_VEL_HORIZON,
+                **values,
+            )
         if zone := self._zone_hit(LineString([(pose.x, pose.y), ahead])):
-            raise Vetoed(f"cmd_vel would enter keep-out zone '{zone.name}' within {self.config.cmd_vel_horizon:g} s")
-        return sent
+            raise Vetoed(
+                f"cmd_vel at {twist.linear_x:g} m/s would enter keep-out zone '{zone.name}' within "
+                f"{horizon:g} s{_why(zone)}",
+                Rule.CMD_VEL_HORIZON,
+                **values,
+            )
+
+    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None) -> Verdict[Twist]:
+        """A cmd_vel from a program (plan, agent): a value over a limit is refused, not clamped."""
+        self._check_twist_finite(twist)
+        if abs(twist.linear_x) > self.max_linear + STILL:
+            raise Vetoed(
+                f"linear_x {twist.linear_x:g} m/s exceeds the limit of {self.max_linear:g} m/s",
+                Rule.BASE_SPEED,
+                speed_mps=twist.linear_x,
+                limit_mps=self.max_linear,
+            )
+        if abs(twist.angular_z) > self.max_angular + STILL:
+            raise Vetoed(
+                f"angular_z {twist.angular_z:g} rad/s exceeds the limit of {self.max_angular:g} rad/s",
+                Rule.BASE_SPEED,
+                turn_rps=twist.angular_z,
+                limit_rps=self.max_angular,
+            )
+        self._check_horizon(twist, pose)
+        values = {"speed_mps": twist.linear_x, "turn_rps": twist.angular_z}
+        return Verdict(twist, (Rule.BASE_SPEED, Rule.CMD_VEL_HORIZON), values)
+
+    def check_teleop(
+        self, twist: Twist, pose: Pose2D | None, previous: Twist, dt: float, scale: float = 1.0
+    ) -> Verdict[Twist]:
+        """A cmd_vel from a person: clamped to the speed limits (times the separation `scale`) and
+        to the acceleration limits from `previous` (what was last sent, `dt` seconds ago); the
+        clamping is reported. Slowing down is never limited. Vetoed only when even the clamped
+        value would leave the map or reach a keep-out zone within the horizon."""
+        self._check_twist_finite(twist)
+        base = self.policy.base
+        linear, angular = twist.linear_x, twist.angular_z
+        clamps: list[tuple[Rule, str]] = []
+        v_max, w_max = self.max_linear * scale, self.max_angular * scale
+        if abs(linear) > v_max + STILL or abs(angular) > w_max + STILL:
+            linear, angular = max(-v_max, min(v_max, linear)), max(-w_max, min(w_max, angular))
+            rule = Rule.HUMAN_SEPARATION if scale < 1.0 else Rule.BASE_SPEED
+            clamps.append((rule, f"speed limit {v_max:.2f} m/s, {w_max:.2f} rad/s"))
+        dt = max(0.0, dt)
+        linear, limited_v = _ramp(previous.linear_x, linear, base.max_linear_acceleration * dt)
+        angular, limited_w = _ramp(previous.angular_z, angular, base.max_angular_acceleration * dt)
+        if limited_v or limited_w:
+            clamps.append(
+                (
+                    Rule.BASE_ACCELERATION,
+                    f"acceleration limit {base.max_linear_acceleration:g} m/s^2, "
+                    f"{base.max_angular_acceleration:g} rad/s^2",
+                )
+            )
+        sent = msgspec.structs.replace(twist, linear_x=linear, angular_z=angular)
+        self._check_horizon(sent, pose)
+        values = {
+            "requested_mps": twist.linear_x,
+            "requested_rps": twist.angular_z,
+            "speed_mps": linear,
+            "turn_rps": angular,
+            "scale": scale,
+        }
+        checks = (Rule.BASE_SPEED, Rule.HUMAN_SEPARATION, Rule.BASE_ACCELERATION, Rule.CMD_VEL_HORIZON)
+        if not clamps:
+            return Verdict(sent, checks, values)
+        note = (
+            f"clamped from ({twist.linear_x:.2f} m/s, {twist.angular_z:.2f} rad/s) to "
+            f"({linear:.2f} m/s, {angular:.2f} rad/s): " + "; ".join(why for _, why in clamps)
+        )
+        return Verdict(sent, checks, values, clamped_by=clamps[0][0], note=note)
 
     # Arm
 
     def check_trajectory(
-        self, goal: FollowJointTrajectoryGoal, current: dict[str, float] | None
-    ) -> FollowJointTrajectoryGoal:
-        """Known joints inside their limits, and no joint faster than the limit on any segment,
-        the first one starting from where the arm is now."""
+        self, goal: FollowJointTrajectoryGoal, current: dict[str, float] | None, base: Pose2D | None
+    ) -> Verdict[FollowJointTrajectoryGoal]:
+        """Every point inside the joint limits; no joint faster than its limit on any segment, the
+        first one from where the arm is now; the end effector, along the whole path, inside the
+        workspace box and out of keep-out zones."""
         unknown = [n for n in goal.joint_names if n not in self.joint_limits]
         if unknown:
-            raise Vetoed(f"unknown joints {unknown}")
+            raise Vetoed(
+                f"unknown joints {unknown}; the arm's joints are {sorted(self.joint_limits)}", Rule.JOINT_LIMITS
+            )
         if len(set(goal.joint_names)) != len(goal.joint_names):
-            raise Vetoed("a joint is named twice")
-        if current is None or not all(n in current for n in goal.joint_names):
-            raise Vetoed("the arm's joint positions are unknown (no recent joint states)")
-        previous = [current[n] for n in goal.joint_names]
-        previous_time = 0.0
+            raise Vetoed("a joint is named twice", Rule.JOINT_LIMITS)
+        if current is None or not all(n in current for n in self.arm.joint_names):
+            raise Vetoed("the arm's joint positions are unknown (no recent joint states)", Rule.POSE_KNOWN)
+        if base is None:
+            raise Vetoed("the robot's pose is unknown (no recent odometry)", Rule.POSE_KNOWN)
+        index = [self.arm.joint_names.index(n) for n in goal.joint_names]
+        full = np.array([current[n] for n in self.arm.joint_names])
+        previous, previous_time = full[index], 0.0
+        fastest = 0.0
+        path = [full.copy()]
         for i, point in enumerate(goal.points):
             if len(point.positions) != len(goal.joint_names):
-                raise Vetoed(f"point {i}: {len(point.positions)} positions for {len(goal.joint_names)} joints")
-            for name, q in zip(goal.joint_names, point.positions, strict=True):
+                raise Vetoed(
+                    f"point {i}: {len(point.positions)} positions for {len(goal.joint_names)} joints", Rule.JOINT_LIMITS
+                )
+            positions = np.array(point.positions, dtype=float)
+            if not np.all(np.isfinite(positions)):
+                raise Vetoed(f"point {i}: a position is not finite", Rule.JOINT_LIMITS)
+            for name, q in zip(goal.joint_names, positions, strict=True):
                 lim = self.joint_limits[name]
-                if not (lim.lower + JOINT_LIMIT_MARGIN <= q <= lim.upper - JOINT_LIMIT_MARGIN):
-                    raise Vetoed(f"point {i}: {name} = {q:.3f} rad is outside [{lim.lower:.3f}, {lim.upper:.3f}]")
+                lower, upper = lim.lower + JOINT_LIMIT_MARGIN, lim.upper - JOINT_LIMIT_MARGIN
+                if not lower <= q <= upper:
+                    raise Vetoed(
+                        f"point {i}: {name} = {q:.4f} rad is outside its limits [{lower:.4f}, {upper:.4f}] rad "
+                        f"(the joint's range less {JOINT_LIMIT_MARGIN:g} rad)",
+                        Rule.JOINT_LIMITS,
+                        position_rad=float(q),
+                        lower_rad=lower,
+                        upper_rad=upper,
+                    )
             dt = point.time_from_start - previous_time
-            for name, q0, q1 in zip(goal.joint_names, previous, point.positions, strict=True):
-                if dt <= 0:
+            if dt < 0:
+                raise Vetoed(f"point {i}: time_from_start goes backwards", Rule.JOINT_SPEED)
+            for name, q0, q1 in zip(goal.joint_names, previous, positions, strict=True):
+                if dt == 0:
                     # A point at the start time must be where the arm already is.
                     if abs(q1 - q0) > START_TOLERANCE:
-                        raise Vetoed(f"point {i}: {name} would jump {abs(q1 - q0):.3f} rad at once")
+                        raise Vetoed(
+                            f"point {i}: {name} would jump {abs(q1 - q0):.3f} rad at once",
+                            Rule.JOINT_SPEED,
+                            jump_rad=float(abs(q1 - q0)),
+                        )
                     continue
-                speed = abs(q1 - q0) / dt
-                if speed > self.config.max_joint_speed + 1e-6:
+                speed = float(abs(q1 - q0) / dt)
+                fastest = max(fastest, speed)
+                limit = self.joint_limits[name].velocity
+                if speed > limit + STILL:
                     raise Vetoed(
-                        f"point {i}: {name} would move at {speed:.2f} rad/s, "
-                        f"limit {self.config.max_joint_speed:.2f} rad/s"
+                        f"point {i}: {name} would move at {speed:.3f} rad/s, over its limit of {limit:.3f} rad/s; "
+                        f"slow the trajectory down",
+                        Rule.JOINT_SPEED,
+                        speed_rps=speed,
+                        limit_rps=limit,
                     )
-            if dt < 0:
-                raise Vetoed(f"point {i}: time_from_start goes backwards")
-            previous, previous_time = list(point.positions), point.time_from_start
-        return goal
+            q = path[-1].copy()
+            q[index] = positions
+            path.append(q)
+            previous, previous_time = positions, point.time_from_start
+        reach = self._check_arm_path(path, base)
+        values = {"points": float(len(goal.points)), "fastest_rps": fastest, **reach}
+        checks = (Rule.POSE_KNOWN, Rule.JOINT_LIMITS, Rule.JOINT_SPEED, Rule.WORKSPACE, Rule.ARM_KEEP_OUT)
+        return Verdict(goal, checks, values)
 
-    def check_gripper(self, goal: GripperCommandGoal) -> GripperCommandGoal:
-        if goal.object_id is not None:
-            self.check_payload(goal.object_id)
-        return goal
+    def _check_arm_path(self, path: list[np.ndarray], base: Pose2D) -> dict[str, float]:
+        """Forward kinematics along the joint path, interpolated finely; raises at the first point out."""
+        lowest, farthest = math.inf, 0.0
+        for q0, q1 in itertools.pairwise(path):
+            steps = max(1, math.ceil(float(np.max(np.abs(q1 - q0), initial=0.0)) / INTERPOLATION_STEP))
+            for k in range(1, steps + 1):
+                point = self.arm.grasp_point(q0 + (q1 - q0) * k / steps)
+                x, y, z = point[0] + self.mount.x, point[1] + self.mount.y, point[2] + self.mount.z
+                self.check_in_workspace(x, y, z, "the end effector")
+                lowest, farthest = min(lowest, z), max(farthest, x)
+                world = _base_to_map(base, x, y)
+                if zone := self._zone_hit(Point(world), grown=False):
+                    raise Vetoed(
+                        f"the end effector would reach into keep-out zone '{zone.name}' at "
+                        f"({_fmt(world[0])}, {_fmt(world[1])}){_why(zone)}",
+                        Rule.ARM_KEEP_OUT,
+                        x=world[0],
+                        y=world[1],
+                    )
+        if not math.isfinite(lowest):
+            return {}
+        return {"lowest_m": lowest, "farthest_m": farthest}
 
-    def check_payload(self, object_id: str) -> None:
-        """Masses come from the world file, never from the command."""
+    def check_in_workspace(self, x: float, y: float, z: float, what: str) -> None:
+        """A point in the base frame inside the workspace box."""
+        box = self.policy.workspace
+        for axis, value, low, high in (
+            ("x", x, box.min.x, box.max.x),
+            ("y", y, box.min.y, box.max.y),
+            ("z", z, box.min.z, box.max.z),
+        ):
+            if not low <= value <= high:
+                raise Vetoed(
+                    f"{what} would be at {axis} = {value:.3f} m in the base frame, outside the workspace "
+                    f"[{low:g}, {high:g}] m",
+                    Rule.WORKSPACE,
+                    **{f"{axis}_m": value, "low_m": low, "high_m": high},
+                )
+
+    def check_reach(self, approach: Pose2D, position: Vec3, what: str) -> None:
+        """The end effector can go to `position` (map frame) from `approach` without leaving the
+        workspace or reaching into a keep-out zone."""
+        dx, dy = position.x - approach.x, position.y - approach.y
+        c, s = math.cos(approach.yaw), math.sin(approach.yaw)
+        self.check_in_workspace(c * dx + s * dy, -s * dx + c * dy, position.z, what)
+        if zone := self._zone_hit(Point(position.x, position.y), grown=False):
+            raise Vetoed(
+                f"{what} at ({_fmt(position.x)}, {_fmt(position.y)}) is inside keep-out zone '{zone.name}'{_why(zone)}",
+                Rule.ARM_KEEP_OUT,
+                x=position.x,
+                y=position.y,
+            )
+
+    def check_gripper(self, goal: GripperCommandGoal) -> Verdict[GripperCommandGoal]:
+        limit = self.policy.gripper.max_force
+        if goal.max_effort > limit + STILL:
+            raise Vetoed(
+                f"a gripper force of {goal.max_effort:g} N exceeds the limit of {limit:g} N",
+                Rule.GRIPPER_FORCE,
+                force_n=goal.max_effort,
+                limit_n=limit,
+            )
+        values = {"force_n": goal.max_effort, "limit_n": limit}
+        if goal.object_id is None:
+            return Verdict(goal, (Rule.GRIPPER_FORCE,), values)
+        mass = self.check_payload(goal.object_id)
+        return Verdict(
+            goal, (Rule.GRIPPER_FORCE, Rule.PAYLOAD), {**values, "mass_kg": mass, "payload_kg": self.payload}
+        )
+
+    def check_payload(self, object_id: str) -> float:
+        """Masses come from the world file, never from the command. Returns the mass."""
         obj = self.world.objects.get(object_id)
         if obj is None:
-            raise Vetoed(f"unknown object '{object_id}': its mass cannot be checked")
-        payload = self.world.world.robot.payload
-        if obj.mass > payload:
-            raise Vetoed(f"'{obj.name}' weighs {obj.mass:g} kg, over the arm's payload of {payload:g} kg")
+            raise Vetoed(f"unknown object '{object_id}': its mass cannot be checked", Rule.PAYLOAD)
+        if obj.mass > self.payload:
+            raise Vetoed(
+                f"'{obj.name}' weighs {obj.mass:g} kg, over the arm's payload of {self.payload:g} kg",
+                Rule.PAYLOAD,
+                mass_kg=obj.mass,
+                payload_kg=self.payload,
+            )
+        return obj.mass
 
     # Whole plans, before the first motion
 
@@ -230,36 +470,43 @@ class SafetyPolicy:
 
     def _check_structure(self, plan: GroundedPlan) -> None:
         if plan.labels and len(plan.labels) != len(plan.steps):
-            raise Vetoed(f"the plan has {len(plan.steps)} steps but {len(plan.labels)} labels")
+            raise Vetoed(f"the plan has {len(plan.steps)} steps but {len(plan.labels)} labels", Rule.PLAN)
         for fallback in plan.fallbacks:
             if not 0 <= fallback.first <= fallback.last < len(plan.steps):
                 raise Vetoed(
                     f"an on_failure covers steps {fallback.first + 1}..{fallback.last + 1} "
-                    f"of a plan of {len(plan.steps)} steps"
+                    f"of a plan of {len(plan.steps)} steps",
+                    Rule.PLAN,
                 )
             if not fallback.steps or (fallback.labels and len(fallback.labels) != len(fallback.steps)):
-                raise Vetoed(f"the on_failure of steps {fallback.first + 1}..{fallback.last + 1} is malformed")
+                raise Vetoed(
+                    f"the on_failure of steps {fallback.first + 1}..{fallback.last + 1} is malformed", Rule.PLAN
+                )
 
     def _check_step(self, step: GroundedStep, label: str, state: _PlanState, checks: dict[str, None]) -> _PlanState:
         """The state after `step` from `state`, or Vetoed naming the step."""
         try:
             if isinstance(step, NavigateStep):
                 self.check_route(state.pose, [], step.goal)
+                if step.max_speed is not None:
+                    self.check_speed(step.max_speed)
                 checks[f"step {label}: route to {step.target} is clear of keep-out zones"] = None
                 return _PlanState.at(step.goal, state.holding)
             if isinstance(step, PickStep):
                 self.check_payload(step.object_id)
                 self.check_route(state.pose, [], step.approach)
-                checks[f"step {label}: {step.object_name} is within payload"] = None
+                self.check_reach(step.approach, step.position, step.object_name)
+                checks[f"step {label}: {step.object_name} is within payload and reach"] = None
                 return _PlanState.at(step.approach, step.object_id)
             if isinstance(step, PlaceStep):
                 self.check_route(state.pose, [], step.approach)
-                checks[f"step {label}: route to {step.surface_name} is clear"] = None
+                self.check_reach(step.approach, step.position, f"the spot on the {step.surface_name}")
+                checks[f"step {label}: route to {step.surface_name} is clear and the spot within reach"] = None
                 return _PlanState.at(step.approach, None)
             if isinstance(step, GripperStep):
                 return self._check_gripper_step(step, label, state, checks)
         except Vetoed as exc:
-            raise Vetoed(f"step {label} ({step_kind(step)}): {exc}") from None
+            raise Vetoed(f"step {label} ({step_kind(step)}): {exc}", exc.rule, **exc.values) from None
         return state
 
     def _check_gripper_step(
@@ -270,7 +517,10 @@ class SafetyPolicy:
         if step.open:
             if name is not None:
                 # Outside place, the arm is stowed over the base: opening drops the object.
-                raise Vetoed(f"opening the gripper would drop {name} from the stowed arm; use place to put it down")
+                raise Vetoed(
+                    f"opening the gripper would drop {name} from the stowed arm; use place to put it down",
+                    Rule.GRIPPER_DROP,
+                )
             checks[f"step {label}: the gripper opens with nothing in it"] = None
             return state
         # The arm is stowed after every pick and place, so a closing gripper can only meet what it
@@ -303,3 +553,18 @@ def _span(fallback: Fallback) -> tuple[int, int]:
 
 def _within(inner: Fallback, outer: Fallback) -> bool:
     return outer.first <= inner.first and inner.last <= outer.last and inner is not outer
+
+
+def _ramp(previous: float, wanted: float, step: float) -> tuple[float, bool]:
+    """`wanted`, but at most `step` faster than `previous`; slowing down (towards zero) is never
+    limited, and reversing brakes to zero freely before speeding up the other way."""
+    if previous * wanted < 0:
+        previous = 0.0
+    if abs(wanted) <= abs(previous) + step + STILL:
+        return wanted, False
+    return math.copysign(abs(previous) + step, wanted), True
+
+
+def _base_to_map(base: Pose2D, x: float, y: float) -> tuple[float, float]:
+    c, s = math.cos(base.yaw), math.sin(base.yaw)
+    return base.x + c * x - s * y, base.y + s * x + c * y

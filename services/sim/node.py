@@ -29,6 +29,8 @@ Execute = Callable[[GoalHandle[Any, Any]], Outcome[Any]]
 FEEDBACK_PERIOD = 0.1  # wall seconds
 START_TIMEOUT = 5.0
 ANSWER_TIMEOUT = 2.0
+# A goal arriving while the e-stop shows latched waits this long for a newer heartbeat (a reset).
+RESET_GRACE = 0.1
 # If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
 MAX_LAG = 0.5
 
@@ -43,6 +45,7 @@ class SimNode:
         self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._wake = threading.Event()
         self._lock = threading.Lock()
+        self._beat = threading.Condition(self._lock)
         self._heartbeat: SafetyStatus | None = None
         self._heartbeat_at = 0.0
         self._first_heartbeat = threading.Event()
@@ -69,9 +72,16 @@ class SimNode:
     # Safety: fail closed
 
     def _on_heartbeat(self, status: SafetyStatus) -> None:
-        with self._lock:
+        with self._beat:
             self._heartbeat, self._heartbeat_at = status, time.monotonic()
+            self._beat.notify_all()
         self._first_heartbeat.set()
+
+    def _next_heartbeat(self, timeout: float) -> None:
+        """Wait (bounded) until a heartbeat newer than the latest arrives."""
+        with self._beat:
+            latest = self._heartbeat
+            self._beat.wait_for(lambda: self._heartbeat is not latest, timeout)
 
     def safety_block(self) -> str | None:
         """Why the robot must stay still right now, or None when safety says it may move."""
@@ -86,26 +96,59 @@ class SimNode:
             return f"e-stop latched by {status.estop.source or 'unknown'}: {status.estop.reason or 'no reason given'}"
         return None
 
+    def speed_scale(self) -> tuple[float, str]:
+        """The fraction of normal speed the latest heartbeat allows, and why; (0, ...) with none."""
+        with self._lock:
+            status = self._heartbeat
+        if status is None:
+            return 0.0, "no safety heartbeat received yet"
+        return status.speed_scale, status.speed_reason
+
     def _accept(self, _goal: object) -> str | None:
         # Never moves without a heartbeat: this only waits (bounded) for the first one to arrive.
         self._first_heartbeat.wait(self.config.first_heartbeat_wait)
-        return self.safety_block()
+        reason = self.safety_block()
+        with self._lock:
+            latched = self._heartbeat is not None and self._heartbeat.estop.latched
+        if latched:
+            # Safety announces a reset with a heartbeat before it approves anything, but a goal it
+            # approved right after can overtake that heartbeat on the way here: hear one more.
+            self._next_heartbeat(RESET_GRACE)
+            reason = self.safety_block()
+        return reason
 
     def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
         return self._accept(goal) or self.sim.check_trajectory(goal)
 
     def _enforce_safety(self) -> None:
-        """On the sim thread: stop everything when safety goes quiet or latches."""
+        """On the sim thread: stop everything when safety goes quiet or latches; otherwise move at
+        the speed scale the heartbeat allows (0 pauses goals without ending them)."""
         reason = self.safety_block()
         was_blocked = self._blocked_reason is not None
         self._blocked_reason = reason
+        # While blocked the scale is 0 too, so nothing moves until a heartbeat says how fast it may.
+        scale, why = (0.0, reason or "") if reason is not None else self.speed_scale()
+        if reason is None and not was_blocked:
+            self._log_speed_change(self.sim.speed_scale, scale, why or "no reason given")
+        self.sim.set_speed_scale(scale)
         if reason is not None and not was_blocked:
             log.warning("stopping the robot: %s", reason)
             self.sim.stop(reason)
             for server in self.servers:
                 server.abort_all(reason)
         elif reason is None and was_blocked:
-            log.info("safety heartbeat present and e-stop clear: the robot may move")
+            log.info("safety heartbeat present and e-stop clear: the robot may move at %.2f of full speed", scale)
+
+    @staticmethod
+    def _log_speed_change(previous: float, scale: float, why: str) -> None:
+        if scale == previous:
+            return
+        if scale == 0.0:
+            log.info("pausing motion, goals kept: speed scale 0 (%s)", why)
+        elif previous == 0.0:
+            log.info("resuming at speed scale %.2f (%s)", scale, why)
+        else:
+            log.debug("speed scale %.2f (%s)", scale, why)
 
     # Inputs
 
@@ -170,6 +213,7 @@ class SimNode:
 
         def execute(handle: GoalHandle[Any, Any]) -> Outcome[Any]:
             def begin(sim: Simulation) -> Motion[Any, Any] | str:
+                self._enforce_safety()  # as of the latest heartbeat, not the last step's
                 return self._blocked_reason or start(sim, handle.goal)
 
             started = self._ask(begin, START_TIMEOUT)

@@ -86,7 +86,9 @@ PRE_GOAL_TOLERANCE = 0.03
 # it sets off on the line instead of curving towards it.
 TURN_IN_PLACE_ABOVE = 0.35
 START_DRIVING_BELOW = 0.05
-STALL_TIME = 4.0  # sim seconds without progress
+# Navigation's stall and deadline clocks run on scaled time (sim seconds times the speed scale),
+# so a pause or slowdown for people nearby never counts as being stuck.
+STALL_TIME = 4.0  # scaled sim seconds without progress
 SETTLED_SPEED = 0.05
 
 # follow_joint_trajectory
@@ -153,7 +155,11 @@ class Motion(Generic[F, R]):
 
 
 class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
-    """Turn towards each waypoint, drive to it, and at the end turn to the goal's yaw."""
+    """Turn towards each waypoint, drive to it, and at the end turn to the goal's yaw.
+
+    The stall detector and the deadline count scaled time (`clock`: each tick adds dt times the
+    speed scale), so they stand still while the sim is paused and run slower while it is slowed.
+    """
 
     kind = "navigate_to_pose"
 
@@ -171,14 +177,15 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
             self.tolerances.append(PRE_GOAL_TOLERANCE)
         self.tolerances.append(GOAL_POSITION_TOLERANCE)
         self.index = 0
-        self.max_speed = min(goal.max_speed, robot.max_linear_speed)
+        self.max_speed = min(goal.max_speed or robot.max_linear_speed, robot.max_linear_speed)
         self.max_turn = robot.max_angular_speed
         self.position_reached = False
         length = self._remaining(start)
         turns = len(self.waypoints) + 1
-        self.deadline = sim.sim_time + 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
+        self.clock = 0.0
+        self.deadline = 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
         self.best_progress = math.inf
-        self.last_progress = sim.sim_time
+        self.last_progress = self.clock
 
     def _remaining(self, pose: Pose2D) -> float:
         points = [(pose.x, pose.y), *self.waypoints[self.index :]]
@@ -191,6 +198,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         return NavigateToPoseResult(pose=sim.base_pose())
 
     def tick(self, sim: Simulation) -> None:
+        self.clock += sim.dt * sim.speed_scale
         pose = sim.base_pose()
         last = len(self.waypoints) - 1
         while self.index < last and self._distance_to(pose, self.index) < self.tolerances[self.index]:
@@ -225,10 +233,10 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
             sim.command_base(direction * speed, self._turn_rate(heading_error))
             progress = remaining + 0.3 * abs(heading_error)
         if progress < self.best_progress - 0.01:
-            self.best_progress, self.last_progress = progress, sim.sim_time
-        elif sim.sim_time - self.last_progress > STALL_TIME:
+            self.best_progress, self.last_progress = progress, self.clock
+        elif self.clock - self.last_progress > STALL_TIME:
             self._fail(sim, pose, f"stalled for {STALL_TIME:g} s with {remaining:.2f} m to go; is the way blocked?")
-        elif sim.sim_time > self.deadline:
+        elif self.clock > self.deadline:
             self._fail(sim, pose, f"timed out after {sim.sim_time - self.started:.1f} s with {remaining:.2f} m to go")
 
     def _turn_rate(self, error: float) -> float:
@@ -243,7 +251,12 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
 
 
 class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajectoryResult]):
-    """Linear interpolation of the points in sim time under position control, then a short settle."""
+    """Linear interpolation of the points under position control, then a short settle.
+
+    The trajectory runs on its own clock, which each tick advances by dt times the speed scale: at
+    half speed the arm takes the same path in twice the time; at 0 it holds the current desired
+    point. The settle after the last point counts on the same clock.
+    """
 
     kind = "follow_joint_trajectory"
 
@@ -260,6 +273,7 @@ class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajecto
         self.times = np.array(times)
         self.positions = np.array(positions)
         self.final = self.positions[-1]
+        self.clock = 0.0  # trajectory time: sim seconds times the speed scale
 
     def _desired(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         if t >= self.times[-1]:
@@ -281,9 +295,10 @@ class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajecto
         return FollowJointTrajectoryResult(error=error)
 
     def tick(self, sim: Simulation) -> None:
-        t = sim.sim_time - self.started
+        t = self.clock
+        self.clock += sim.dt * sim.speed_scale
         desired, velocity = self._desired(t)
-        sim.command_arm(self.indices, desired, velocity)
+        sim.command_arm(self.indices, desired, velocity * sim.speed_scale)
         actual = self._actual(sim)
         self.feedback = FollowJointTrajectoryFeedback(
             desired=desired.tolist(), actual=actual.tolist(), time_from_start=t
@@ -376,7 +391,9 @@ class Simulation:
         self.holding: str | None = None
         self._grasp_constraint: int | None = None
         self._base_command = (0.0, 0.0)  # what the controllers ask: linear_x, angular_z
-        self._base_actual = (0.0, 0.0)  # after the acceleration limits
+        self._base_actual = (0.0, 0.0)  # after the speed scale and the acceleration limits
+        # Speed-and-separation: the fraction of normal speed the base and arm may use (0 pauses).
+        self.speed_scale = 1.0
         self._cmd_vel: Twist | None = None
         self._cmd_vel_until = 0.0
         self.motions: dict[str, Motion[Any, Any]] = {}
@@ -572,6 +589,15 @@ class Simulation:
         self._cmd_vel_until = self.sim_time + hold_for
         return True
 
+    def set_speed_scale(self, scale: float) -> None:
+        """Let the base and arm use `scale` (0..1) of their normal speed from the next step on.
+
+        The base ramps down to the new limit at its normal deceleration; trajectories slow down in
+        time along the same path; navigation's stall and deadline clocks slow down alike; goals keep
+        running, even at 0. The gripper is not scaled.
+        """
+        self.speed_scale = min(1.0, scale) if scale >= 0.0 else 0.0  # NaN counts as 0
+
     def stop(self, reason: str) -> None:
         """Base velocity to zero at once, arm held where it is, every running goal aborted."""
         self._cmd_vel = None
@@ -592,7 +618,9 @@ class Simulation:
         )
 
     def _apply_base(self) -> None:
-        want_v, want_w = self._base_command
+        robot = self.world.robot
+        want_v = _clamp(self._base_command[0], self.speed_scale * robot.max_linear_speed)
+        want_w = _clamp(self._base_command[1], self.speed_scale * robot.max_angular_speed)
         have_v, have_w = self._base_actual
         dv, dw = LINEAR_ACCELERATION * self.dt, ANGULAR_ACCELERATION * self.dt
         v = have_v + max(-dv, min(dv, want_v - have_v))

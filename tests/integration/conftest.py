@@ -52,18 +52,21 @@ class Stack:
         return self.tmp / "recordings"
 
 
-def write_config(path: Path, realtime_factor: float) -> Path:
+def write_config(path: Path, realtime_factor: float, policy: Path | None = None) -> Path:
     path.write_text(
         f"[sim]\nrealtime_factor = {realtime_factor}\n\n"
         f'[recorder]\noutput_dir = "{path.parent / "recordings"}"\n\n'
         f'[safety]\noperator_token_file = "{path.parent / "operator-token"}"\n'
+        + (f'policy = "{policy}"\n' if policy else "")
     )
     return path
 
 
-def start_stack(tmp: Path, realtime_factor: float, services: tuple[str, ...] = SERVICES) -> Stack:
+def start_stack(
+    tmp: Path, realtime_factor: float, services: tuple[str, ...] = SERVICES, policy: Path | None = None
+) -> Stack:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port_block())
-    config = write_config(tmp / "tether.toml", realtime_factor)
+    config = write_config(tmp / "tether.toml", realtime_factor, policy)
     token = tmp / "operator-token"
     supervisor = Supervisor(settings, tmp / "logs", config, extra_env={"TETHER_OPERATOR_TOKEN_FILE": str(token)})
     node: Node | None = None

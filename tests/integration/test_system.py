@@ -20,6 +20,7 @@ from schemas.executor import ExecutePlanGoal, PlanStatus
 from schemas.keys import Topic
 from schemas.plan import Plan, PlanText
 from schemas.robot import NavigateToPoseGoal
+from schemas.safety import EstopSource
 from schemas.trace import TraceRecord
 from schemas.world import Empty, GroundTruth
 from tests.integration.conftest import Stack, start_stack, stop_stack
@@ -163,7 +164,7 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
 
     n = len(odom)
     pressed = time.time()
-    assert trigger_estop(stack.node, "test", "stop during navigation") is not None
+    assert trigger_estop(stack.node, EstopSource.OPERATOR, "stop during navigation") is not None
     before = [o for o in odom.messages[:n] if o.stamp <= pressed]
     stopped = odom.wait_for(lambda o: o.stamp > pressed and abs(o.linear_x) < 0.01, timeout=2.0, after=n)
     assert stopped is not None, "the base kept moving after the e-stop"
@@ -186,7 +187,7 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
     stack.supervisor.start("safety")
     assert not stack.node.wait_alive(["safety"], 60.0)
     beat = Watch(stack.node, keys.HEARTBEAT).latest(timeout=5.0)
-    assert beat is not None and beat.estop.latched and beat.estop.source == "test"
+    assert beat is not None and beat.estop.latched and beat.estop.source == EstopSource.OPERATOR
 
     # A reset without the operator's token is refused; `tether reset` with it clears the latch.
     wrong = stack.tmp / "wrong-token"

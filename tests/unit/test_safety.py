@@ -6,17 +6,18 @@ import math
 from pathlib import Path
 
 import msgspec
-import pybullet_data
 import pytest
 
 from schemas.common import Pose2D, Vec3
 from schemas.plan import Fallback, GripperStep, GroundedPlan, NavigateStep, PickStep, PlaceStep, Plan, SayStep, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
-from services.safety.config import SafetyConfig
+from schemas.safety import Rule
+from services.robotmodel import ArmModel
 from services.safety.errors import Unauthorized, Vetoed
 from services.safety.latch import EstopLatch
 from services.safety.operator import ensure_token
-from services.safety.policy import SafetyPolicy, joint_limits_from_urdf
+from services.safety.policy import SafetyPolicy
+from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
 
 ARM = [f"panda_joint{i}" for i in range(1, 8)]
@@ -26,8 +27,8 @@ HOME = [0.0, -1.2, 0.0, -2.7, 0.0, 1.5, 0.785]
 @pytest.fixture(scope="module")
 def policy() -> SafetyPolicy:
     world = load_world()
-    limits = joint_limits_from_urdf(Path(pybullet_data.getDataPath()) / world.robot.arm_urdf)
-    return SafetyPolicy(WorldModel(world), SafetyConfig(max_joint_speed=1.5), limits)
+    arm = ArmModel(world.robot.arm_urdf)
+    return SafetyPolicy(WorldModel(world), load_policy(None, world.robot, arm, world.keep_out), arm)
 
 
 def test_goal_in_the_stairs_is_vetoed_naming_the_zone(policy: SafetyPolicy) -> None:
@@ -65,17 +66,24 @@ def test_the_footprint_not_just_the_centre_stays_out_of_zones(policy: SafetyPoli
         policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=10.3, y=7.5)), Pose2D(x=9.0, y=7.5))
 
 
-def test_a_clear_goal_passes_and_its_speed_is_clamped(policy: SafetyPolicy) -> None:
-    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=2.0)
-    sent = policy.check_navigation(goal, Pose2D(x=6.0, y=1.2))
-    assert sent.pose == goal.pose
-    assert sent.max_speed == pytest.approx(0.6)
+def test_a_clear_goal_passes_but_a_speed_over_the_limit_is_refused_not_clamped(policy: SafetyPolicy) -> None:
+    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=0.6)
+    assert policy.check_navigation(goal, Pose2D(x=6.0, y=1.2)).command == goal
+    with pytest.raises(Vetoed, match=r"2 m/s exceeds the base's limit of 0\.6 m/s") as refused:
+        policy.check_navigation(NavigateToPoseGoal(pose=goal.pose, max_speed=2.0), Pose2D(x=6.0, y=1.2))
+    assert refused.value.rule is Rule.BASE_SPEED
+    assert refused.value.values == {"speed_mps": 2.0, "limit_mps": 0.6}
 
 
-def test_cmd_vel_is_clamped_to_the_robot_limits(policy: SafetyPolicy) -> None:
+def test_cmd_vel_from_a_program_over_a_limit_is_refused_and_from_a_person_clamped(policy: SafetyPolicy) -> None:
     here = Pose2D(x=6.0, y=1.2)
-    assert policy.check_cmd_vel(Twist(linear_x=5.0, angular_z=-9.0), here) == Twist(linear_x=0.6, angular_z=-1.2)
-    assert policy.check_cmd_vel(Twist(linear_x=0.2), here) == Twist(linear_x=0.2)
+    with pytest.raises(Vetoed, match="exceeds the limit"):
+        policy.check_cmd_vel(Twist(linear_x=5.0), here)
+    assert policy.check_cmd_vel(Twist(linear_x=0.2), here).command == Twist(linear_x=0.2)
+    running = Twist(linear_x=0.6, angular_z=-1.2)
+    clamped = policy.check_teleop(Twist(linear_x=5.0, angular_z=-9.0), here, running, 0.02)
+    assert clamped.command == Twist(linear_x=0.6, angular_z=-1.2)
+    assert clamped.clamped_by is Rule.BASE_SPEED and "clamped" in clamped.note
     with pytest.raises(Vetoed, match="not finite"):
         policy.check_cmd_vel(Twist(linear_x=float("nan")), here)
 
@@ -84,11 +92,11 @@ def test_cmd_vel_towards_the_stairs_or_blind_is_vetoed_but_stopping_never_is(pol
     facing_stairs = Pose2D(x=10.0, y=8.0, yaw=0.0)
     with pytest.raises(Vetoed, match="keep-out zone 'stairs'"):
         policy.check_cmd_vel(Twist(linear_x=0.5), facing_stairs)
-    assert policy.check_cmd_vel(Twist(linear_x=-0.3), facing_stairs) == Twist(linear_x=-0.3)
+    assert policy.check_cmd_vel(Twist(linear_x=-0.3), facing_stairs).command == Twist(linear_x=-0.3)
     with pytest.raises(Vetoed, match="pose is unknown"):
         policy.check_cmd_vel(Twist(linear_x=0.1), None)
-    assert policy.check_cmd_vel(Twist(), None) == Twist()
-    assert policy.check_cmd_vel(Twist(angular_z=0.5), None) == Twist(angular_z=0.5)
+    assert policy.check_cmd_vel(Twist(), None).command == Twist()
+    assert policy.check_cmd_vel(Twist(angular_z=0.5), None).command == Twist(angular_z=0.5)
 
 
 def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
@@ -98,30 +106,31 @@ def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
 
 
 NOW = dict(zip(ARM, HOME, strict=True))
+START = Pose2D(x=6.0, y=1.2)
 
 
 def test_trajectories_within_limits_pass(policy: SafetyPolicy) -> None:
     target = [*HOME[:3], -2.0, *HOME[4:]]
     goal = trajectory((HOME, 0.0), (target, 1.0))
-    assert policy.check_trajectory(goal, NOW) == goal
+    assert policy.check_trajectory(goal, NOW, START).command == goal
 
 
 def test_trajectories_past_a_joint_limit_or_too_fast_are_vetoed(policy: SafetyPolicy) -> None:
-    with pytest.raises(Vetoed, match=r"panda_joint4 = 0\.500 rad is outside"):
-        policy.check_trajectory(trajectory(([*HOME[:3], 0.5, *HOME[4:]], 1.0)), NOW)
+    with pytest.raises(Vetoed, match=r"panda_joint4 = 0\.5000 rad is outside"):
+        policy.check_trajectory(trajectory(([*HOME[:3], 0.5, *HOME[4:]], 1.0)), NOW, START)
     with pytest.raises(Vetoed, match="rad/s"):
-        policy.check_trajectory(trajectory((HOME, 0.1), ([2.0, *HOME[1:]], 0.2)), NOW)
+        policy.check_trajectory(trajectory((HOME, 0.1), ([2.0, *HOME[1:]], 0.2)), NOW, START)
 
 
 def test_the_first_segment_starts_where_the_arm_is(policy: SafetyPolicy) -> None:
     far = [2.0, *HOME[1:]]
     # One point, reached in 0.1 s from where the arm really is: 20 rad/s.
     with pytest.raises(Vetoed, match="rad/s"):
-        policy.check_trajectory(trajectory((far, 0.1)), NOW)
+        policy.check_trajectory(trajectory((far, 0.1)), NOW, START)
     with pytest.raises(Vetoed, match="would jump"):
-        policy.check_trajectory(trajectory((far, 0.0), (far, 5.0)), NOW)
+        policy.check_trajectory(trajectory((far, 0.0), (far, 5.0)), NOW, START)
     with pytest.raises(Vetoed, match="joint positions are unknown"):
-        policy.check_trajectory(trajectory((HOME, 1.0)), None)
+        policy.check_trajectory(trajectory((HOME, 1.0)), None, START)
 
 
 def test_unknown_joints_are_vetoed(policy: SafetyPolicy) -> None:
@@ -131,11 +140,12 @@ def test_unknown_joints_are_vetoed(policy: SafetyPolicy) -> None:
                 joint_names=["elbow"], points=[TrajectoryPoint(positions=[0.0], time_from_start=1.0)]
             ),
             NOW,
+            START,
         )
 
 
 def test_payload_comes_from_the_world_file(policy: SafetyPolicy) -> None:
-    assert policy.check_gripper(GripperCommandGoal(position=0.0, object_id="red_cup")).object_id == "red_cup"
+    assert policy.check_gripper(GripperCommandGoal(position=0.0, object_id="red_cup")).command.object_id == "red_cup"
     with pytest.raises(Vetoed, match=r"weighs 4\.5 kg, over the arm.s payload of 3 kg"):
         policy.check_gripper(GripperCommandGoal(position=0.0, object_id="cast_iron_pan"))
     with pytest.raises(Vetoed, match="unknown object"):
@@ -179,7 +189,10 @@ def test_the_latch_holds_until_the_operator_token_resets_it(tmp_path: Path) -> N
 
 def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_path: Path) -> None:
     state = tmp_path / "estop.json"
-    EstopLatch("secret", state).trigger("watchdog", "lost the arm")
+    first = EstopLatch("secret", state)
+    assert first.trigger("watchdog", "lost the arm")
+    assert not EstopLatch("secret", state).state.latched, "trigger only latches in memory; save writes it"
+    first.save()
     again = EstopLatch("secret", state)
     assert again.state.latched and again.state.source == "watchdog"
     again.reset("operator", "secret")

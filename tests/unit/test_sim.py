@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -25,7 +26,7 @@ from schemas.world import World
 from services.executor.kinematics import ArmKinematics, joint_trajectory, world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
-from services.sim.physics import Simulation
+from services.sim.physics import LINEAR_ACCELERATION, STALL_TIME, Simulation
 from services.worldmodel import load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
@@ -136,6 +137,123 @@ def test_cmd_vel_drives_and_expires(sim: Simulation) -> None:
     sim.settle(0.6)
     assert sim.base_speed() < 0.01
     assert sim.base_pose().x > start.x + 0.2
+
+
+def test_cmd_vel_is_limited_by_the_speed_scale(sim: Simulation) -> None:
+    robot = sim.world.robot
+    sim.set_speed_scale(0.5)
+    assert sim.set_cmd_vel(Twist(linear_x=robot.max_linear_speed, angular_z=robot.max_angular_speed), hold_for=1.0)
+    sim.settle(0.8)
+    linear, angular = sim.base_velocity()
+    assert linear == pytest.approx(0.5 * robot.max_linear_speed, abs=0.01)
+    assert angular == pytest.approx(0.5 * robot.max_angular_speed, abs=0.02)
+
+
+# Two metres straight ahead of the start pose, with nothing in the way.
+AHEAD = NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2, yaw=0.0), max_speed=0.6)
+
+
+def largest_drop(speeds: list[float]) -> float:
+    return max(a - b for a, b in itertools.pairwise(speeds))
+
+
+def speeds_over(sim: Simulation, seconds: float) -> list[float]:
+    speeds = []
+    for _ in range(round(seconds / sim.dt)):
+        sim.step()
+        speeds.append(sim.base_speed())
+    return speeds
+
+
+def test_navigation_slows_to_the_speed_scale_and_still_arrives(sim: Simulation) -> None:
+    limit = 0.5 * sim.world.robot.max_linear_speed
+    motion = sim.navigate(AHEAD)
+    sim.settle(1.5)
+    before = sim.base_speed()
+    assert before > 0.55
+    sim.set_speed_scale(0.5)
+    ramp = (before - limit) / LINEAR_ACCELERATION
+    speeds = [before, *speeds_over(sim, 2.0)]
+    # Slowed down at the normal deceleration, not at once, then held to the limit.
+    assert largest_drop(speeds) < 1.2 * LINEAR_ACCELERATION * sim.dt
+    settled = round((ramp + 0.05) / sim.dt)
+    assert max(speeds[settled:]) < limit + 0.01
+    assert speeds[settled] > limit - 0.02, "slowed down further than asked"
+    while motion.running:
+        sim.step()
+        assert sim.base_speed() < limit + 0.01
+    assert motion.state is GoalState.SUCCEEDED, motion.message
+    assert sim.base_pose().x == pytest.approx(AHEAD.pose.x, abs=0.05)
+
+
+def test_a_pause_stops_the_base_gently_and_keeps_the_goal_running(sim: Simulation) -> None:
+    motion = sim.navigate(AHEAD)
+    sim.settle(1.2)
+    assert sim.base_speed() > 0.3
+    sim.set_speed_scale(0.0)
+    speeds = [sim.base_speed(), *speeds_over(sim, 1.0)]
+    assert largest_drop(speeds) < 1.2 * LINEAR_ACCELERATION * sim.dt
+    stopped_after = next(k for k, v in enumerate(speeds) if v < 0.01) * sim.dt
+    assert stopped_after > 0.8 * 0.3 / LINEAR_ACCELERATION
+    assert speeds[-1] < 0.001
+    # Long past the stall time, the paused goal runs on: the stall and deadline clocks stand still.
+    clock, here = motion.clock, sim.base_pose()
+    sim.settle(3.0 * STALL_TIME)
+    assert motion.running
+    assert motion.clock == clock
+    assert math.dist((here.x, here.y), (sim.base_pose().x, sim.base_pose().y)) < 0.005
+    sim.set_speed_scale(1.0)
+    drive(sim, AHEAD.pose)
+
+
+def trajectory_time(sim: Simulation, q: list[float]) -> float:
+    start = sim.sim_time
+    move_arm(sim, q)
+    return sim.sim_time - start
+
+
+ELSEWHERE_JOINTS = [0.3, -1.0, 0.2, -2.0, 0.1, 1.3, 0.5]
+
+
+def test_trajectories_at_half_speed_take_twice_as_long(sim: Simulation) -> None:
+    full = trajectory_time(sim, ELSEWHERE_JOINTS)
+    sim.set_speed_scale(0.5)
+    # The way back: the same joint distances, so the same trajectory timing.
+    half = trajectory_time(sim, CARRY_JOINTS)
+    assert half == pytest.approx(2.0 * full, rel=0.05)
+
+
+def test_a_paused_trajectory_holds_the_arm_and_keeps_the_goal_running(sim: Simulation) -> None:
+    points = joint_trajectory(sim.arm_positions(), ELSEWHERE_JOINTS, JOINT_SPEED)
+    goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
+    motion = sim.follow_trajectory(goal)
+    sim.settle(0.2)
+    sim.set_speed_scale(0.0)
+    sim.settle(0.2)
+    held = sim.arm_positions()
+    # Paused for longer than the trajectory and its settle time together.
+    for _ in range(round(2.0 / sim.dt)):
+        sim.step()
+        arm = sim.joint_state(0.0).velocity[: len(ARM_JOINTS)]
+        assert max(abs(v) for v in arm) < 1e-3
+    assert motion.running
+    assert sim.arm_positions() == pytest.approx(held, abs=1e-3)
+    assert sim.arm_positions() != pytest.approx(ELSEWHERE_JOINTS, abs=0.05)
+    sim.set_speed_scale(1.0)
+    assert sim.run(motion, timeout=5.0).state is GoalState.SUCCEEDED, motion.message
+    assert sim.arm_positions() == pytest.approx(ELSEWHERE_JOINTS, abs=0.01)
+
+
+def gripper_time(sim: Simulation, position: float) -> float:
+    start = sim.sim_time
+    assert gripper(sim, position).reached_goal
+    return sim.sim_time - start
+
+
+def test_the_gripper_is_not_slowed(sim: Simulation) -> None:
+    closing = gripper_time(sim, 0.0)
+    sim.set_speed_scale(0.0)
+    assert gripper_time(sim, 0.08) == pytest.approx(closing, rel=0.1)
 
 
 def test_navigation_into_furniture_aborts_with_a_reason(sim: Simulation, world: World) -> None:

@@ -21,7 +21,7 @@ from services.actionlib import ActionClient, GoalRejected
 from services.runtime import Node, NodeSettings
 from services.sim.config import SimConfig
 from services.sim.node import SimNode
-from services.sim.physics import Simulation
+from services.sim.physics import STALL_TIME, Simulation
 from services.worldmodel import load_world
 from tests.watch import Watch
 
@@ -38,6 +38,7 @@ class Rig:
     sim_node: SimNode
     latched: threading.Event
     beating: threading.Event
+    speed_scale: float = 1.0  # what the heartbeat carries
 
 
 @pytest.fixture
@@ -51,6 +52,7 @@ def rig() -> Iterator[Rig]:
         sim_session.declare_alive()
         runner = threading.Thread(target=sim_node.run, args=(stop,), daemon=True)
         runner.start()
+        rig = Rig(client, sim_node, latched, beating)
 
         def heartbeat() -> None:
             seq = 0
@@ -58,13 +60,16 @@ def rig() -> Iterator[Rig]:
                 if beating.is_set():
                     seq += 1
                     estop = EstopState(latched=latched.is_set(), source="operator", reason="test")
-                    client.publish(keys.HEARTBEAT, SafetyStatus(seq=seq, stamp=time.time(), estop=estop))
+                    status = SafetyStatus(
+                        seq=seq, stamp=time.time(), estop=estop, speed_scale=rig.speed_scale, speed_reason="test"
+                    )
+                    client.publish(keys.HEARTBEAT, status)
 
         beater = threading.Thread(target=heartbeat, daemon=True)
         beater.start()
         assert not client.wait_alive(["sim"], timeout=10.0)
         try:
-            yield Rig(client, sim_node, latched, beating)
+            yield rig
         finally:
             stop.set()
             runner.join(5.0)
@@ -82,12 +87,39 @@ def test_goals_are_rejected_until_a_heartbeat_arrives(rig: Rig) -> None:
         navigate.send(FAR)
 
 
-def test_losing_the_heartbeat_stops_the_base_and_aborts_the_goal(rig: Rig) -> None:
-    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+def wait_for_heartbeat(rig: Rig) -> None:
     rig.beating.set()
     deadline = time.monotonic() + 5.0
     while rig.sim_node.safety_block() is not None and time.monotonic() < deadline:
         time.sleep(0.02)  # polling the heartbeat's arrival with a deadline, not standing in for work
+    assert rig.sim_node.safety_block() is None
+
+
+def test_speed_scale_zero_pauses_navigation_without_aborting_it(rig: Rig) -> None:
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    wait_for_heartbeat(rig)
+    odom = Watch(rig.client, keys.ODOM)
+    goal = navigate.send(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2, yaw=0.0), max_speed=0.6))
+    result = goal.result_future(timeout=30.0)
+    assert odom.wait_for(lambda o: o.linear_x > 0.3, timeout=10.0), "the base never got going"
+    rig.speed_scale = 0.0
+    still = odom.wait_for(lambda o: abs(o.linear_x) < 0.001, timeout=5.0, after=len(odom))
+    assert still is not None, "the base did not come to rest"
+    # Paused well past the stall time (sim seconds): the goal is neither aborted nor moving.
+    paused = len(odom)
+    assert odom.wait_for(lambda o: o.sim_time > still.sim_time + STALL_TIME + 1.0, timeout=10.0, after=paused)
+    assert not result.done()
+    assert max(abs(o.linear_x) for o in odom.messages[paused:]) < 0.001
+    assert abs(odom.messages[-1].pose.x - still.pose.x) < 0.005
+    rig.speed_scale = 1.0
+    outcome = result.result(timeout=30.0)
+    assert outcome.state is GoalState.SUCCEEDED, outcome.message
+    assert outcome.result is not None and outcome.result.pose.x == pytest.approx(8.0, abs=0.05)
+
+
+def test_losing_the_heartbeat_stops_the_base_and_aborts_the_goal(rig: Rig) -> None:
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    wait_for_heartbeat(rig)
     odom = Watch(rig.client, keys.ODOM)
     goal = navigate.send(FAR)
     assert odom.wait_for(lambda o: o.linear_x > 0.3, timeout=10.0), "the base never got going"

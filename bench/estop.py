@@ -1,0 +1,162 @@
+"""E-stop to a measured standstill: from an operator's e-stop on `safety/estop` to zero velocity of base and arm.
+
+    python -m bench.estop --json        one JSON object on stdout, progress on stderr
+    python -m bench.estop               a short table
+
+Measured, in each trial: the base is driven with cmd_vel on `cmd/cmd_vel` (through safety, 20 Hz,
+0.3 m/s, forwards and backwards in turn so it stays in the room) while the arm follows a trajectory
+moving panda_joint1 by 0.8 rad over 2 s (the other way in the next trial). Once odometry shows
+|linear_x| > 0.1 m/s and joint states an arm joint faster than 0.1 rad/s, t0 = time.time() and
+`EStop(source=operator)` is published. The halt is the first sample, by the `stamp` the sim puts on
+odometry and joint states (its wall clock), from which the base's |linear_x| and |angular_z| and
+every arm joint's |velocity| are all below 0.01 (see `bench.service.RobotState`). The cmd_vel stream
+goes on until then, as a joystick's would. Then the operator resets the e-stop with the token, as
+`tether reset` does, and the next trial waits for a heartbeat showing the latch clear.
+
+The sim and safety are real processes started by the Supervisor on their own robot name and ports;
+the sim runs at real time and reports odometry and joint states at 500 Hz, so a halt is resolved to
+about 2 ms. Baseline from the same run: `heartbeat_period_ms`, safety's beat period as heard here
+(median gap between heartbeat arrivals): the sim hears an e-stop at the latest with the next beat.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import uuid
+from typing import Any
+
+from bench.service import (
+    BenchError,
+    Heartbeats,
+    RobotState,
+    Stack,
+    bench_main,
+    bounded,
+    drive,
+    halt_trials,
+    measured,
+    ms_summary,
+    notes,
+    print_rows,
+    reporter,
+    reset_latch,
+    robot_ready,
+    show,
+    wait_until,
+)
+from schemas import keys
+from schemas.actions import GetResult, SendGoal
+from schemas.robot import FollowJointTrajectoryGoal, TrajectoryPoint
+from schemas.safety import EStop, EstopSource
+from services.runtime import CallError
+
+PROG = "bench.estop"
+GOALS = {"goal_p99_ms": 50.0}
+SIM = {"realtime_factor": 1.0, "odom_hz": 500.0, "joint_states_hz": 500.0}
+SPEED = 0.3  # m/s, base
+SWING = 0.8  # rad, panda_joint1
+SWING_TIME = 2.0  # s
+MOVE_TIMEOUT = 5.0
+HALT_TIMEOUT = 2.0
+progress = reporter(PROG)
+
+
+def swing_arm(stack: Stack, state: RobotState, direction: float) -> str:
+    """Start panda_joint1 moving by `direction` * SWING rad over SWING_TIME; the goal's id."""
+    joints = state.joints.message
+    assert joints is not None
+    start = joints.position[joints.name.index("panda_joint1")]
+    point = TrajectoryPoint(positions=[start + direction * SWING], time_from_start=SWING_TIME)
+    request = SendGoal(
+        goal_id=uuid.uuid4().hex, goal=FollowJointTrajectoryGoal(joint_names=["panda_joint1"], points=[point])
+    )
+    try:
+        reply = stack.node.call(keys.CMD_TRAJECTORY.send_goal, request)
+    except CallError as exc:
+        raise BenchError(f"the arm's trajectory: {exc.error.message}") from None
+    if not reply.accepted:
+        raise BenchError(f"the arm's trajectory was rejected: {reply.reason}")
+    return request.goal_id
+
+
+def trial(stack: Stack, state: RobotState, beats: Heartbeats, i: int, heard: list[float]) -> float:
+    """One e-stop of the moving robot; ms to the halt. Appends to `heard` the ms to the latched beat."""
+    direction = 1.0 if i % 2 == 0 else -1.0
+    estop = EStop(source=EstopSource.OPERATOR, reason=f"{PROG} trial {i + 1}")
+    with drive(stack.node, direction * SPEED):
+        goal_id = swing_arm(stack, state, direction)
+        wait_until(state.moving, MOVE_TIMEOUT, "the base and the arm moving")
+        halt = state.halt_ms(lambda: stack.node.publish(keys.ESTOP, estop), HALT_TIMEOUT)
+    beats.wait(lambda beat: beat.estop.latched, HALT_TIMEOUT, "a latched heartbeat", after=state.t0)
+    latched_ms = beats.latched_after(state.t0)
+    assert latched_ms is not None  # a latched beat arrived after t0, and the latch was clear before
+    heard.append(round(latched_ms, 2))
+    # The e-stop ended the trajectory (aborted); collect it so safety forgets it.
+    stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=10.0)
+    reset_latch(stack, beats)
+    return halt
+
+
+def bench(trials: int) -> dict[str, Any]:
+    with robot_ready("estop", progress, SIM, arm=True) as (stack, state, beats):
+        heard: list[float] = []
+        halts = halt_trials(trials, lambda i: trial(stack, state, beats, i, heard), progress, "the e-stop")
+        period = beats.period_ms()
+    p50, p99 = ms_summary(halts)
+    heard_p50, _ = ms_summary(heard)
+    return {
+        "halt_p50_ms": p50,
+        "halt_p99_ms": p99,
+        "halt_max_ms": max(halts),
+        "halts_ms": halts,
+        "trials": len(halts),
+        "heartbeat_period_ms": period,
+        "ratio_p50": round(p50 / period, 3) if period else None,
+        "latch_heard_p50_ms": heard_p50,
+        "latch_heard_max_ms": max(heard),
+        "latch_heard_ms": heard,
+        "goals_met": {"p99_ms": p99 <= GOALS["goal_p99_ms"]},
+    }
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    defaults: dict[str, Any] = {"halt_p50_ms": None, "halt_p99_ms": None, "halt_max_ms": None, "trials": 0, **GOALS}
+    result = measured(defaults, lambda: bench(args.trials), progress)
+    result["notes"] = notes(
+        trial="base on a 20 Hz cmd_vel stream at 0.3 m/s and panda_joint1 on a 0.8 rad / 2 s trajectory; "
+        "e-stop once both move faster than 0.1; halt at the first odometry and joint states sample with "
+        "everything below 0.01 (m/s, rad/s), by the sim's stamps",
+        baseline="heartbeat_period_ms: median gap between safety heartbeats arriving here",
+        ratio_p50="halt_p50_ms / heartbeat_period_ms",
+        latch_heard="ms from t0 to the first heartbeat showing the latch arriving here: safety's part of the halt",
+        sim=SIM,
+    )
+    return result
+
+
+def print_table(result: dict[str, Any]) -> None:
+    def pair(a: str, b: str) -> str:
+        return f"{show(result.get(a))} / {show(result.get(b))}"
+
+    rows = [
+        ("halt p50 / p99 ms", pair("halt_p50_ms", "halt_p99_ms"), ""),
+        ("halt max ms", show(result["halt_max_ms"]), f"p99 <= {show(GOALS['goal_p99_ms'])}"),
+        ("latched beat heard p50 / max ms", pair("latch_heard_p50_ms", "latch_heard_max_ms"), ""),
+        ("heartbeat period ms (baseline)", show(result.get("heartbeat_period_ms")), ""),
+    ]
+    print_rows(f"e-stop to standstill ({result['trials']} trials)", rows, result["errors"])
+    if result.get("halts_ms"):
+        print(f"halts ms: {statistics.median(result['halts_ms']):.1f} median of {result['halts_ms']}")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--trials", type=bounded(int, 1, 1000), default=20, help="e-stops (at least 20 for a p99)")
+
+
+def main(argv: list[str] | None = None) -> None:
+    bench_main(PROG, __doc__ or "", add_arguments, run, print_table, argv)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,283 @@
+"""Action goals through the safety gate: send_goal from a client, through safety's checks, to the sim and back.
+
+    python -m bench.gate --json        one JSON object on stdout, progress on stderr
+    python -m bench.gate               a short table
+
+Measured: the round trip of a `cmd/<action>/_action/send_goal` query from this process (standing in
+for the executor) to safety, which checks the goal, forwards it on
+`robot/<action>/_action/send_goal` to the sim, and relays the sim's accept reply back. The sim and
+safety are real processes started by the Supervisor on their own robot name and ports (see
+`bench.service`); the sim runs at real time (`--realtime-factor`: faster brings results sooner, but
+pybullet then holds the sim's CPU and GIL). The goals are real and accepted, cycling through three
+kinds that leave the robot where it is: `gripper` (open to 0.08 m, as it already is), `trajectory`
+(all seven arm joints to where joint_states says they are, in 0.3 s) and `navigate` (to the pose
+odometry reports). After each send_goal its result is fetched (get_result through safety, not
+timed), so goals never pile up. Safety allows each action 10 goals a second (its default policy, a
+token bucket), so goals of one kind are sent at most `--goals-per-second` (default 8).
+
+Baseline: safety's bare relay (TETHER_BENCH_RELAY=sim): a raw Zenoh get to safety, which forwards
+the bytes with a plain get to the sim's bare echo and replies with the first reply's bytes. The same
+two processes and two hops, carrying the same request bytes, with no decoding and no checks. Each
+goal is interleaved with one relay round trip, alternating which goes first.
+
+`ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
+reason in `errors`), `failed` goals accepted whose result was not `succeeded`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from bench.service import (
+    MAX_N,
+    BenchError,
+    RobotState,
+    Stack,
+    bench_main,
+    bounded,
+    measured,
+    ms_summary,
+    notes,
+    print_rows,
+    reporter,
+    robot_ready,
+    show,
+)
+from bench.transport import raw_echo, timed_pair
+from schemas import keys
+from schemas.actions import GetResult, GoalResponse, GoalState, SendGoal
+from schemas.keys import Action
+from schemas.robot import (
+    ARM_JOINTS,
+    GRIPPER_MAX_GAP,
+    FollowJointTrajectoryGoal,
+    GripperCommandGoal,
+    NavigateToPoseGoal,
+    TrajectoryPoint,
+)
+from services import runtime
+from services.runtime import CallError
+
+PROG = "bench.gate"
+GOALS = {"goal_ratio_p50": 1.5, "goal_p99_ms": 5.0}
+# At real time the sim thread leaves the CPU (and the GIL) to the goal path, as a robot driver would.
+REALTIME_FACTOR = 1.0
+CALL_TIMEOUT = 5.0
+RESULT_TIMEOUT = 30.0
+HOLD_TIME = 0.3  # the trajectory's one point, seconds from start
+progress = reporter(PROG)
+
+
+@dataclass(frozen=True)
+class Kind:
+    """A kind of goal that leaves the robot where it is, built from its current state."""
+
+    name: str
+    action: Action[Any, Any, Any]
+    goal: Callable[[RobotState], Any]
+
+
+def hold_arm(state: RobotState) -> FollowJointTrajectoryGoal:
+    joints = state.joints.message
+    assert joints is not None
+    now = dict(zip(joints.name, joints.position, strict=False))
+    point = TrajectoryPoint(positions=[now[name] for name in ARM_JOINTS], time_from_start=HOLD_TIME)
+    return FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=[point])
+
+
+def stay(state: RobotState) -> NavigateToPoseGoal:
+    odom = state.odom.message
+    assert odom is not None
+    return NavigateToPoseGoal(pose=odom.pose)
+
+
+KINDS = (
+    Kind("gripper", keys.CMD_GRIPPER, lambda _: GripperCommandGoal(position=GRIPPER_MAX_GAP)),
+    Kind("trajectory", keys.CMD_TRAJECTORY, hold_arm),
+    Kind("navigate", keys.CMD_NAVIGATE, stay),
+)
+
+
+@dataclass
+class Samples:
+    """Round trips in ms by kind, (relay, gate), and goals that did not go through."""
+
+    times: dict[str, tuple[list[float], list[float]]]
+    rejected: int = 0
+    failed: int = 0
+    errors: list[str] = field(default_factory=list)
+
+    def note(self, count: int, what: str) -> None:
+        """The first of each kind of trouble goes into the errors."""
+        if count == 1:
+            self.errors.append(what)
+            progress(what)
+
+
+def one_goal(stack: Stack, state: RobotState, kind: Kind, i: int) -> tuple[float, float, GoalResponse]:
+    """(relay ms, gate ms, the reply) for one send_goal of `kind`, interleaved with the relay."""
+    node = stack.node
+    request = SendGoal(goal_id=uuid.uuid4().hex, goal=kind.goal(state))
+    relay = raw_echo(node, keys.bench_relay_key(node.robot), runtime.encode(request))
+    replies: list[GoalResponse] = []
+
+    def gate() -> None:
+        replies.append(node.call(kind.action.send_goal, request, timeout=CALL_TIMEOUT))
+
+    try:
+        relay_ms, gate_ms = timed_pair(i, relay, gate)
+    except RuntimeError as exc:  # the relay failed
+        raise BenchError(str(exc)) from None
+    except CallError as exc:
+        raise BenchError(f"{kind.action.send_goal.path}: {exc.error.message}") from None
+    return relay_ms, gate_ms, replies[0]
+
+
+def finish(stack: Stack, kind: Kind, goal_id: str, samples: Samples) -> None:
+    """Wait for the goal's result (not timed), so the next goal finds the robot idle."""
+    try:
+        result = stack.node.call(kind.action.get_result, GetResult(goal_id=goal_id), timeout=RESULT_TIMEOUT)
+    except CallError as exc:
+        raise BenchError(f"{kind.action.get_result.path}: {exc.error.message}") from None
+    if result.state is not GoalState.SUCCEEDED:
+        samples.failed += 1
+        samples.note(samples.failed, f"a {kind.name} goal ended {result.state}: {result.message}")
+
+
+def measure(stack: Stack, state: RobotState, n: int, warmup: int, max_seconds: float, rate: float) -> Samples:
+    samples = Samples({kind.name: ([], []) for kind in KINDS})
+    deadline = time.monotonic() + max_seconds
+    last_sent = dict.fromkeys(samples.times, -math.inf)
+    for i in range((warmup + n) * len(KINDS)):
+        kind = KINDS[i % len(KINDS)]
+        relay, gate = samples.times[kind.name]
+        if time.monotonic() > deadline and len(gate) >= 10:
+            progress(f"stopped after {max_seconds:g} s")
+            break
+        time.sleep(max(0.0, last_sent[kind.name] + 1.0 / rate - time.monotonic()))
+        last_sent[kind.name] = time.monotonic()
+        # Each kind alternates which goes first from one round to the next.
+        relay_ms, gate_ms, reply = one_goal(stack, state, kind, i // len(KINDS))
+        if not reply.accepted:
+            samples.rejected += 1
+            samples.note(samples.rejected, f"a {kind.name} goal was rejected: {reply.reason}")
+            continue
+        finish(stack, kind, reply.goal_id, samples)
+        if i >= warmup * len(KINDS):
+            relay.append(relay_ms)
+            gate.append(gate_ms)
+    return samples
+
+
+def summarize(samples: Samples) -> dict[str, Any]:
+    everything = [[ms for k in KINDS for ms in samples.times[k.name][j]] for j in (0, 1)]
+    if not everything[1]:
+        raise BenchError(f"no goal went through the gate ({samples.rejected} rejected)")
+    r50, r99 = ms_summary(everything[0])
+    g50, g99 = ms_summary(everything[1])
+    kinds: dict[str, Any] = {}
+    for name, (relay, gate) in samples.times.items():
+        if gate:
+            p50, p99 = ms_summary(gate)
+            kinds[name] = {"p50_ms": p50, "p99_ms": p99, "relay_p50_ms": ms_summary(relay)[0], "samples": len(gate)}
+    return {
+        "gate_p50_ms": g50,
+        "gate_p99_ms": g99,
+        "relay_p50_ms": r50,
+        "relay_p99_ms": r99,
+        "ratio_p50": round(g50 / r50, 3),
+        "samples": len(everything[1]),
+        "kinds": kinds,
+        "goals_met": {"ratio_p50": g50 / r50 <= GOALS["goal_ratio_p50"], "p99_ms": g99 <= GOALS["goal_p99_ms"]},
+    }
+
+
+def bench(args: argparse.Namespace) -> dict[str, Any]:
+    n, warmup, max_seconds = args.n, args.warmup, args.max_seconds
+    with robot_ready("gate", progress, {"realtime_factor": args.realtime_factor}, arm=True) as (stack, state, _):
+        progress(f"measuring {n} goals of each kind against the relay (+{warmup} warm-up, <= {max_seconds:g} s)")
+        samples = measure(stack, state, n, warmup, max_seconds, args.goals_per_second)
+    return {
+        **summarize(samples),
+        "rejected": samples.rejected,
+        "failed": samples.failed,
+        "errors": samples.errors,
+    }
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    defaults: dict[str, Any] = {
+        "gate_p50_ms": None,
+        "gate_p99_ms": None,
+        "relay_p50_ms": None,
+        "relay_p99_ms": None,
+        "ratio_p50": None,
+        "samples": 0,
+        "kinds": {},
+        **GOALS,
+        "rejected": 0,
+        "failed": 0,
+        "warmup": args.warmup,
+    }
+    result = measured(defaults, lambda: bench(args), progress)
+    result["notes"] = notes(
+        gate="send_goal on cmd/<action> to safety: decode, e-stop and policy checks, a safety event, then "
+        "send_goal on robot/<action> to the sim and its reply back; a thread per query in each service",
+        relay="raw get on bench/raw_relay: safety forwards the bytes with a plain get to the sim's "
+        "bench/raw_echo/sim and replies with them; same request bytes as the goal",
+        order="interleaved, alternating first call; each goal's result fetched (untimed) before the next",
+        goals_per_second_per_kind=args.goals_per_second,
+        sim={"realtime_factor": args.realtime_factor},
+    )
+    return result
+
+
+def print_table(result: dict[str, Any]) -> None:
+    def pair(prefix: str) -> str:
+        return f"{show(result[f'{prefix}_p50_ms'])} / {show(result[f'{prefix}_p99_ms'])}"
+
+    rows = [
+        ("gate p50 / p99 ms", pair("gate"), f"- / {show(GOALS['goal_p99_ms'])}"),
+        ("relay p50 / p99 ms", pair("relay"), ""),
+        ("ratio p50", show(result["ratio_p50"], "x"), show(GOALS["goal_ratio_p50"], "x")),
+        *(
+            (f"  {name} p50 / p99 ms", f"{show(k['p50_ms'])} / {show(k['p99_ms'])}", "")
+            for name, k in result["kinds"].items()
+        ),
+        ("rejected / failed goals", f"{result['rejected']} / {result['failed']}", "0 / 0"),
+    ]
+    print_rows(f"goals through safety ({result['samples']} samples)", rows, result["errors"])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--n", type=bounded(int, 10, MAX_N), default=200, help="goals of each kind")
+    parser.add_argument("--warmup", type=bounded(int, 0, MAX_N), default=20, help="goals of each kind not counted")
+    parser.add_argument(
+        "--max-seconds", type=bounded(float, 0.0, 600.0, open_low=True), default=180.0, help="stop measuring then"
+    )
+    parser.add_argument(
+        "--goals-per-second",
+        type=bounded(float, 0.0, 1000.0, open_low=True),
+        default=8.0,
+        help="goals of one kind a second at most (safety's default policy allows 10)",
+    )
+    parser.add_argument(
+        "--realtime-factor",
+        type=bounded(float, 0.1, 20.0),
+        default=REALTIME_FACTOR,
+        help="the sim's speed (faster than real time: results come sooner, but physics takes the CPU)",
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    bench_main(PROG, __doc__ or "", add_arguments, run, print_table, argv)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,74 @@
+"""The arm as pinocchio sees it, shared by the executor (IK, trajectories) and safety (limits, FK).
+
+The Panda's seven arm joints from its URDF (fingers locked), its joint limits as the URDF states
+them, forward kinematics of the grasp point, and the frames between the map, the base and the arm.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pybullet_data
+
+from schemas.common import Pose2D, Vec3
+from schemas.robot import ARM_JOINTS, FINGER_JOINTS
+
+GRASP_FRAME = "panda_grasptarget"
+DEFAULT_ARM_URDF = "franka_panda/panda.urdf"
+
+
+def arm_urdf_path(arm_urdf: str | Path = DEFAULT_ARM_URDF) -> Path:
+    """A path inside pybullet_data (the world file's `arm_urdf`), or an absolute path as is."""
+    return Path(pybullet_data.getDataPath()) / arm_urdf
+
+
+def world_to_arm(base: Pose2D, mount: Vec3, point: Vec3) -> np.ndarray:
+    """`point` (map frame) in the arm's base frame panda_link0, mounted at `mount` on the base."""
+    dx, dy = point.x - base.x, point.y - base.y
+    c, s = math.cos(base.yaw), math.sin(base.yaw)
+    return np.array([c * dx + s * dy - mount.x, -s * dx + c * dy - mount.y, point.z - mount.z])
+
+
+def arm_to_world(base: Pose2D, mount: Vec3, point: Sequence[float] | np.ndarray) -> Vec3:
+    """The inverse of world_to_arm: a point in panda_link0 back in the map frame."""
+    bx, by = float(point[0]) + mount.x, float(point[1]) + mount.y
+    c, s = math.cos(base.yaw), math.sin(base.yaw)
+    return Vec3(x=base.x + c * bx - s * by, y=base.y + s * bx + c * by, z=float(point[2]) + mount.z)
+
+
+class ArmModel:
+    """The seven arm joints of the Panda, fingers locked open, with the grasp target as end effector."""
+
+    def __init__(self, arm_urdf: str | Path = DEFAULT_ARM_URDF) -> None:
+        full = pin.buildModelFromUrdf(str(arm_urdf_path(arm_urdf)))
+        fingers = [full.getJointId(name) for name in FINGER_JOINTS if full.existJointName(name)]
+        self.model = pin.buildReducedModel(full, fingers, pin.neutral(full))
+        self.data = self.model.createData()
+        # pinocchio's Data is scratch space: one computation at a time (safety checks and watches at once).
+        self._lock = threading.Lock()
+        self.joint_names: tuple[str, ...] = tuple(self.model.names[1:])
+        if self.joint_names != ARM_JOINTS:
+            raise ValueError(f"{arm_urdf} has joints {self.joint_names}, expected {ARM_JOINTS}")
+        self.frame_id = self.model.getFrameId(GRASP_FRAME)
+        self.lower = np.array(self.model.lowerPositionLimit)
+        self.upper = np.array(self.model.upperPositionLimit)
+        self.max_velocity = np.array(self.model.velocityLimit)
+
+    def within_limits(self, q: Sequence[float] | np.ndarray) -> bool:
+        q = np.asarray(q, dtype=float)
+        return bool(np.all(q >= self.lower - 1e-9) and np.all(q <= self.upper + 1e-9))
+
+    def forward(self, q: Sequence[float] | np.ndarray) -> pin.SE3:
+        """The grasp target's pose in panda_link0. Safe to call from several threads."""
+        with self._lock:
+            pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+            return self.data.oMf[self.frame_id].copy()
+
+    def grasp_point(self, q: Sequence[float] | np.ndarray) -> np.ndarray:
+        """Where the grasp target is, in panda_link0 (metres)."""
+        return np.array(self.forward(q).translation)

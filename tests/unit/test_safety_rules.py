@@ -1,0 +1,721 @@
+"""Every rule the pure checks enforce, at its boundary: just inside passes, just outside is refused.
+
+Each refusal is checked for its rule, for a message that names the measured value and the limit
+(told apart), and for `values` carrying both. The limits come from the default policy and world
+files, so the tests follow the files when those change. Monitors and rate limits are in
+test_safety_monitor.py, the policy file itself in test_policyfile.py.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+
+import msgspec
+import numpy as np
+import pytest
+
+from schemas.common import Pose2D, Vec3
+from schemas.plan import (
+    Fallback,
+    GripperStep,
+    GroundedPlan,
+    GroundedStep,
+    NavigateStep,
+    PickStep,
+    PlaceStep,
+    Plan,
+    Step,
+)
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
+from schemas.safety import Rule
+from schemas.world import World
+from services.robotmodel import ArmModel
+from services.safety.errors import Vetoed
+from services.safety.policy import JOINT_LIMIT_MARGIN, START_TOLERANCE, SafetyPolicy
+from services.safety.policyfile import Limits, PayloadPolicy, load_policy, resolve
+from services.worldmodel import WorldModel, load_world
+
+WORLD = load_world()
+ROBOT = WORLD.robot
+# How far outside and inside a limit the two cases of each pair are (metres, radians, seconds, kg, N).
+EPS = 1e-3
+# Keep-out zones are grown by the base's half-diagonal (plus base.footprint_margin, 0 by default).
+RADIUS = math.hypot(ROBOT.base_size.x, ROBOT.base_size.y) / 2
+STAIRS = next(zone for zone in WORLD.keep_out if zone.id == "stairs")
+STAIRS_WEST = min(x for x, _ in STAIRS.polygon)  # 10.5
+STAIRS_SOUTH = min(y for _, y in STAIRS.polygon)  # 7.0
+STAIRS_MID_Y = (STAIRS_SOUTH + max(y for _, y in STAIRS.polygon)) / 2  # 8.0
+MAP_WEST = min(x for room in WORLD.rooms for x, _ in room.polygon)  # 0.0, the kitchen's and bedroom's wall
+
+ARM = [f"panda_joint{i}" for i in range(1, 8)]
+HOME = [0.0, -1.2, 0.0, -2.7, 0.0, 1.5, 0.785]
+NOW = dict(zip(ARM, HOME, strict=True))
+START = Pose2D(x=6.0, y=1.2)  # the living room, facing east, nothing near
+SOURCE = Plan(steps=[Step(action="stop")])  # type: ignore[arg-type]
+
+# The rules this file tests at their boundaries, and those tested elsewhere or not by pure checks.
+PURE = {
+    Rule.POSE_KNOWN,
+    Rule.MAP,
+    Rule.KEEP_OUT,
+    Rule.BASE_SPEED,
+    Rule.BASE_ACCELERATION,
+    Rule.CMD_VEL_HORIZON,
+    Rule.JOINT_LIMITS,
+    Rule.JOINT_SPEED,
+    Rule.WORKSPACE,
+    Rule.ARM_KEEP_OUT,
+    Rule.PAYLOAD,
+    Rule.GRIPPER_FORCE,
+    Rule.GRIPPER_DROP,
+    Rule.HUMAN_SEPARATION,  # the teleop clamp here; separation() in test_safety_monitor.py
+    Rule.PLAN,
+    Rule.MONITOR_KEEP_OUT,  # zone_at here
+}
+ELSEWHERE = {
+    Rule.COMMAND_RATE,  # RateLimit: test_safety_monitor.py
+    Rule.MONITOR_SPEED,  # MotionMonitor: test_safety_monitor.py
+    Rule.MONITOR_JOINT_SPEED,
+    Rule.ESTOP,  # the latch and the node, not a limit
+    Rule.OPERATOR,
+    Rule.WATCHDOG,
+}
+
+
+@pytest.fixture(scope="module")
+def arm() -> ArmModel:
+    return ArmModel(ROBOT.arm_urdf)
+
+
+@pytest.fixture(scope="module")
+def limits(arm: ArmModel) -> Limits:
+    return load_policy(None, ROBOT, arm, WORLD.keep_out)
+
+
+@pytest.fixture(scope="module")
+def policy(limits: Limits, arm: ArmModel) -> SafetyPolicy:
+    return SafetyPolicy(WorldModel(WORLD), limits, arm)
+
+
+def tightened(limits: Limits, arm: ArmModel, world: World = WORLD, **sections: object) -> SafetyPolicy:
+    """The default policy with some sections replaced, resolved against the robot like a file."""
+    changed = msgspec.structs.replace(limits.policy, **sections)
+    return SafetyPolicy(
+        WorldModel(world), resolve(changed, limits.path, limits.hash, world.robot, arm, world.keep_out), arm
+    )
+
+
+def refused(check: Callable[[], object], rule: Rule) -> Vetoed:
+    with pytest.raises(Vetoed) as info:
+        check()
+    assert info.value.rule is rule, f"refused by {info.value.rule}, not {rule}: {info.value}"
+    return info.value
+
+
+NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?")
+
+
+def shown_as(message: str, x: float) -> set[float]:
+    """The numbers printed in `message` that are `x` at their printed precision."""
+    found = set()
+    for text in NUMBER.findall(message):
+        decimals = len(text.partition(".")[2])
+        if round(x, decimals) == float(text):
+            found.add(float(text))
+    return found
+
+
+def assert_names(message: str, measured: float, limit: float) -> None:
+    """The message names the measured value and the limit, and a reader can tell them apart."""
+    as_measured, as_limit = shown_as(message, measured), shown_as(message, limit)
+    assert as_measured, f"the measured {measured} is not in: {message}"
+    assert as_limit, f"the limit {limit} is not in: {message}"
+    assert any(a != b for a in as_measured for b in as_limit), f"{measured} and its limit {limit} read alike: {message}"
+
+
+def trajectory(*points: tuple[list[float], float]) -> FollowJointTrajectoryGoal:
+    return FollowJointTrajectoryGoal(
+        joint_names=ARM, points=[TrajectoryPoint(positions=list(q), time_from_start=t) for q, t in points]
+    )
+
+
+def with_joint(q: list[float], name: str, value: float) -> list[float]:
+    out = list(q)
+    out[ARM.index(name)] = value
+    return out
+
+
+def test_every_rule_is_covered_here_or_elsewhere() -> None:
+    # A new rule must get its boundary tests (and be listed above) before this passes.
+    assert set(Rule) == PURE | ELSEWHERE
+    assert not PURE & ELSEWHERE
+
+
+# pose_known
+
+
+def test_without_odometry_or_joint_states_motion_is_refused(policy: SafetyPolicy) -> None:
+    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05))
+    assert policy.check_navigation(goal, START).command.pose == goal.pose
+    refused(lambda: policy.check_navigation(goal, None), Rule.POSE_KNOWN)
+    refused(lambda: policy.check_cmd_vel(Twist(linear_x=0.01), None), Rule.POSE_KNOWN)
+    refused(lambda: policy.check_teleop(Twist(linear_x=0.01), None, Twist(linear_x=0.01), 0.1), Rule.POSE_KNOWN)
+    plan = GroundedPlan(steps=[NavigateStep(target="counter", goal=goal.pose)], source=SOURCE)
+    assert "unknown" in str(refused(lambda: policy.check_plan(plan, None), Rule.POSE_KNOWN))
+    still = trajectory((HOME, 1.0))
+    assert policy.check_trajectory(still, NOW, START).command == still
+    refused(lambda: policy.check_trajectory(still, None, START), Rule.POSE_KNOWN)
+    refused(
+        lambda: policy.check_trajectory(still, {n: q for n, q in NOW.items() if n != "panda_joint7"}, START),
+        Rule.POSE_KNOWN,
+    )
+    refused(lambda: policy.check_trajectory(still, NOW, None), Rule.POSE_KNOWN)
+
+
+# map
+
+
+def test_a_goal_just_inside_the_outer_wall_passes_and_just_outside_is_off_the_map(policy: SafetyPolicy) -> None:
+    start = Pose2D(x=2.5, y=2.5)
+    facing_west = math.pi  # the base drives in from 0.4 m east of the goal: inside the kitchen
+    inside = NavigateToPoseGoal(pose=Pose2D(x=MAP_WEST + 0.01, y=2.5, yaw=facing_west))
+    assert policy.check_navigation(inside, start).command.pose == inside.pose
+    outside = NavigateToPoseGoal(pose=Pose2D(x=MAP_WEST - 0.01, y=2.5, yaw=facing_west))
+    exc = refused(lambda: policy.check_navigation(outside, start), Rule.MAP)
+    assert "(-0.01, 2.50) is outside every room" in str(exc)
+    assert exc.values == {"x": pytest.approx(MAP_WEST - 0.01), "y": 2.5}
+    # A waypoint off the map is refused like the goal.
+    via = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=4.0), path=[Pose2D(x=MAP_WEST - 0.01, y=3.0)])
+    assert refused(lambda: policy.check_navigation(via, start), Rule.MAP).values["x"] == pytest.approx(-0.01)
+
+
+# keep_out
+
+
+@pytest.mark.parametrize(
+    ("start", "pose_at"),
+    [
+        # From the west, facing east: the goal's x runs up to the zone's west edge.
+        (Pose2D(x=9.0, y=STAIRS_MID_Y), lambda d: Pose2D(x=STAIRS_WEST - d, y=STAIRS_MID_Y, yaw=0.0)),
+        # From the south, facing north: the goal's y runs up to the zone's south edge.
+        (Pose2D(x=11.2, y=5.5), lambda d: Pose2D(x=11.2, y=STAIRS_SOUTH - d, yaw=math.pi / 2)),
+    ],
+    ids=["west-edge", "south-edge"],
+)
+def test_a_goal_a_footprint_away_from_the_stairs_passes_and_closer_is_refused(
+    policy: SafetyPolicy, start: Pose2D, pose_at: Callable[[float], Pose2D]
+) -> None:
+    clear = NavigateToPoseGoal(pose=pose_at(RADIUS + EPS))
+    assert policy.check_navigation(clear, start).command.pose == clear.pose
+    close = pose_at(RADIUS - EPS)
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=close), start), Rule.KEEP_OUT)
+    assert f"({close.x:.2f}, {close.y:.2f})" in str(exc)
+    assert "'stairs': the robot could fall down the stairs" in str(exc)
+    assert exc.values == {"x": pytest.approx(close.x), "y": pytest.approx(close.y)}
+
+
+def test_the_footprint_margin_grows_the_zones_further(limits: Limits, arm: ArmModel) -> None:
+    margin = 0.2
+    wider = tightened(limits, arm, base=msgspec.structs.replace(limits.policy.base, footprint_margin=margin))
+    start = Pose2D(x=9.0, y=STAIRS_MID_Y)
+    clear = NavigateToPoseGoal(pose=Pose2D(x=STAIRS_WEST - RADIUS - margin - EPS, y=STAIRS_MID_Y))
+    assert wider.check_navigation(clear, start).command.pose == clear.pose
+    for d in (RADIUS + margin - EPS, RADIUS + EPS):  # the second passes with no margin (above)
+        with pytest.raises(Vetoed) as info:
+            wider.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=STAIRS_WEST - d, y=STAIRS_MID_Y)), start)
+        assert info.value.rule is Rule.KEEP_OUT
+
+
+# base_speed
+
+
+def test_a_navigation_speed_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
+    limit = policy.max_linear
+    at = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=limit)
+    assert policy.check_navigation(at, START).command.max_speed == limit
+    over = msgspec.structs.replace(at, max_speed=limit + EPS)
+    exc = refused(lambda: policy.check_navigation(over, START), Rule.BASE_SPEED)
+    assert_names(str(exc), limit + EPS, limit)
+    assert exc.values == {"speed_mps": limit + EPS, "limit_mps": limit}
+
+
+@pytest.mark.parametrize(("field", "sign"), [("linear_x", 1), ("linear_x", -1), ("angular_z", 1), ("angular_z", -1)])
+def test_cmd_vel_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy, field: str, sign: int) -> None:
+    limit = policy.max_linear if field == "linear_x" else policy.max_angular
+    at = Twist(**{field: sign * limit})
+    assert policy.check_cmd_vel(at, START).command == at
+    over = Twist(**{field: sign * (limit + EPS)})
+    exc = refused(lambda: policy.check_cmd_vel(over, START), Rule.BASE_SPEED)
+    assert field in str(exc)
+    assert_names(str(exc), sign * (limit + EPS), limit)
+    measured, bound = ("speed_mps", "limit_mps") if field == "linear_x" else ("turn_rps", "limit_rps")
+    assert exc.values == {measured: sign * (limit + EPS), bound: limit}
+
+
+def test_a_plan_asking_for_a_speed_just_over_the_limit_is_refused(policy: SafetyPolicy) -> None:
+    limit = policy.max_linear
+    step = NavigateStep(target="kitchen counter", goal=Pose2D(x=2.5, y=1.05), max_speed=limit)
+    assert policy.check_plan(GroundedPlan(steps=[step], source=SOURCE), START)
+    faster = msgspec.structs.replace(step, max_speed=limit + EPS)
+    exc = refused(lambda: policy.check_plan(GroundedPlan(steps=[faster], source=SOURCE), START), Rule.BASE_SPEED)
+    assert str(exc).startswith("step 1 (navigate_to): ")
+    assert_names(str(exc), limit + EPS, limit)
+    assert exc.values == {"speed_mps": limit + EPS, "limit_mps": limit}
+
+
+# base_acceleration (teleop: clamped, not refused)
+
+
+def test_teleop_speeding_up_within_the_acceleration_limit_is_sent_unchanged_and_beyond_is_ramped(
+    policy: SafetyPolicy,
+) -> None:
+    base = policy.policy.base
+    dt = 0.1
+    before = Twist(linear_x=0.2)
+    reachable = 0.2 + base.max_linear_acceleration * dt  # 0.35 m/s
+    within = policy.check_teleop(Twist(linear_x=reachable), START, before, dt)
+    assert within.clamped_by is None and within.command.linear_x == reachable
+    ramped = policy.check_teleop(Twist(linear_x=reachable + EPS), START, before, dt)
+    assert ramped.clamped_by is Rule.BASE_ACCELERATION
+    assert ramped.command.linear_x == pytest.approx(reachable)
+    assert ramped.values["requested_mps"] == reachable + EPS
+    assert ramped.values["speed_mps"] == pytest.approx(reachable)
+    assert f"acceleration limit {base.max_linear_acceleration:g} m/s^2" in ramped.note
+    # Turning: from standing, max_angular_acceleration * dt.
+    turn = base.max_angular_acceleration * dt  # 0.3 rad/s
+    assert policy.check_teleop(Twist(angular_z=-turn), START, Twist(), dt).clamped_by is None
+    turning = policy.check_teleop(Twist(angular_z=-turn - EPS), START, Twist(), dt)
+    assert turning.clamped_by is Rule.BASE_ACCELERATION
+    assert turning.command.angular_z == pytest.approx(-turn)
+
+
+@pytest.mark.parametrize(
+    ("previous", "wanted"),
+    [
+        (0.6, 0.0),  # a stop
+        (0.6, 0.05),  # slowing down
+        (-0.6, -0.1),  # slowing down in reverse
+        (0.3, 0.0),  # reversing... to a stop
+    ],
+)
+def test_teleop_slowing_down_is_never_limited(policy: SafetyPolicy, previous: float, wanted: float) -> None:
+    verdict = policy.check_teleop(Twist(linear_x=wanted), START, Twist(linear_x=previous), 0.001)
+    assert verdict.clamped_by is None
+    assert verdict.command.linear_x == wanted
+
+
+def test_teleop_reversing_brakes_freely_then_ramps_the_other_way(policy: SafetyPolicy) -> None:
+    dt = 0.1
+    step = policy.policy.base.max_linear_acceleration * dt
+    forward = Twist(linear_x=0.3)
+    assert policy.check_teleop(Twist(linear_x=-step), START, forward, dt).clamped_by is None
+    back = policy.check_teleop(Twist(linear_x=-step - EPS), START, forward, dt)
+    assert back.clamped_by is Rule.BASE_ACCELERATION
+    assert back.command.linear_x == pytest.approx(-step)
+
+
+def test_teleop_with_no_time_elapsed_or_a_clock_going_back_gets_no_acceleration(policy: SafetyPolicy) -> None:
+    for dt in (0.0, -1.0):
+        verdict = policy.check_teleop(Twist(linear_x=0.1), START, Twist(), dt)
+        assert verdict.clamped_by is Rule.BASE_ACCELERATION
+        assert verdict.command.linear_x == 0.0
+
+
+# human_separation in teleop: the speed limit times the separation scale
+
+
+def test_teleop_near_a_person_is_clamped_to_the_reduced_speed(policy: SafetyPolicy) -> None:
+    scale = policy.policy.humans.reduced_speed_scale
+    v = policy.max_linear * scale
+    running = Twist(linear_x=v)  # no acceleration involved
+    assert policy.check_teleop(Twist(linear_x=v), START, running, 0.1, scale).clamped_by is None
+    slowed = policy.check_teleop(Twist(linear_x=v + EPS), START, running, 0.1, scale)
+    assert slowed.clamped_by is Rule.HUMAN_SEPARATION
+    assert slowed.command.linear_x == pytest.approx(v)
+    assert slowed.values["scale"] == scale
+    # Full scale: the same kind of clamp is the base's own speed limit.
+    full = policy.check_teleop(Twist(linear_x=policy.max_linear + EPS), START, Twist(linear_x=policy.max_linear), 0.1)
+    assert full.clamped_by is Rule.BASE_SPEED
+    # Paused: nothing moves, but a stop is not a clamp.
+    paused = policy.check_teleop(Twist(linear_x=EPS, angular_z=EPS), START, Twist(), 0.1, 0.0)
+    assert paused.clamped_by is Rule.HUMAN_SEPARATION
+    assert (paused.command.linear_x, paused.command.angular_z) == (0.0, 0.0)
+    assert policy.check_teleop(Twist(), START, running, 0.1, 0.0).clamped_by is None
+
+
+# cmd_vel_horizon
+
+
+def facing_stairs(gap: float, yaw: float = 0.0) -> Pose2D:
+    """The base `gap` metres short of where its footprint would touch the stairs (from the west)."""
+    return Pose2D(x=STAIRS_WEST - RADIUS - gap, y=STAIRS_MID_Y, yaw=yaw)
+
+
+@pytest.mark.parametrize(("yaw", "sign"), [(0.0, 1), (math.pi, -1)], ids=["forward", "reversing"])
+def test_a_cmd_vel_that_stops_short_of_the_stairs_within_the_horizon_passes(
+    policy: SafetyPolicy, yaw: float, sign: int
+) -> None:
+    horizon = policy.policy.base.cmd_vel_horizon
+    gap = 0.5
+    pose = facing_stairs(gap, yaw)
+    short = Twist(linear_x=sign * (gap - EPS) / horizon)
+    assert policy.check_cmd_vel(short, pose).command == short
+    reaching = Twist(linear_x=sign * (gap + EPS) / horizon)
+    exc = refused(lambda: policy.check_cmd_vel(reaching, pose), Rule.CMD_VEL_HORIZON)
+    assert f"would enter keep-out zone 'stairs' within {horizon:g} s" in str(exc)
+    assert exc.values == {
+        "x": pytest.approx(pose.x + sign * math.cos(yaw) * (gap + EPS)),
+        "y": pytest.approx(STAIRS_MID_Y),
+        "speed_mps": reaching.linear_x,
+        "horizon_s": horizon,
+    }
+
+
+def test_a_cmd_vel_that_would_leave_the_map_within_the_horizon_is_refused(policy: SafetyPolicy) -> None:
+    horizon = policy.policy.base.cmd_vel_horizon
+    pose = Pose2D(x=MAP_WEST + 0.5, y=2.5, yaw=math.pi)  # in the kitchen, facing its west wall
+    assert policy.check_cmd_vel(Twist(linear_x=(0.5 - EPS) / horizon), pose)
+    exc = refused(lambda: policy.check_cmd_vel(Twist(linear_x=(0.5 + EPS) / horizon), pose), Rule.CMD_VEL_HORIZON)
+    assert f"would leave the map within {horizon:g} s" in str(exc)
+    assert exc.values["x"] == pytest.approx(MAP_WEST - EPS)
+
+
+def test_teleop_is_refused_by_the_horizon_only_when_even_the_clamped_command_reaches_the_stairs(
+    policy: SafetyPolicy,
+) -> None:
+    horizon = policy.policy.base.cmd_vel_horizon
+    pose = facing_stairs(0.5)
+    # Asked for full speed from 0.2 m/s, ramped to 0.35 m/s: short of the zone.
+    ramped = policy.check_teleop(Twist(linear_x=0.6), pose, Twist(linear_x=0.2), 0.1)
+    assert ramped.clamped_by is Rule.BASE_ACCELERATION
+    running = Twist(linear_x=(0.5 + EPS) / horizon)
+    refused(lambda: policy.check_teleop(running, pose, running, 0.1), Rule.CMD_VEL_HORIZON)
+
+
+# joint_limits
+
+
+JOINT_CASES = [(name, side) for name in ARM for side in ("lower", "upper")]
+
+
+@pytest.mark.parametrize(("name", "side"), JOINT_CASES, ids=[f"{n}-{s}" for n, s in JOINT_CASES])
+def test_a_joint_just_inside_its_limit_passes_and_just_outside_is_refused(
+    policy: SafetyPolicy, name: str, side: str
+) -> None:
+    limit = policy.joint_limits[name]
+    sign = 1 if side == "upper" else -1
+    bound = (limit.upper if side == "upper" else limit.lower) - sign * JOINT_LIMIT_MARGIN
+    rest = list(HOME)
+    if (name, side) == ("panda_joint4", "upper"):
+        rest[1] = 0.0  # stretched from HOME, the hand would be behind the workspace
+    inside = with_joint(rest, name, bound - sign * EPS)
+    now = dict(zip(ARM, inside, strict=True))
+    assert policy.check_trajectory(trajectory((inside, 1.0)), now, START)
+    outside = bound + sign * EPS
+    goal = trajectory((with_joint(rest, name, outside), 1.0))
+    exc = refused(lambda: policy.check_trajectory(goal, now, START), Rule.JOINT_LIMITS)
+    assert f"{name} = {outside:.4f} rad" in str(exc)
+    in_force = {"lower_rad": limit.lower + JOINT_LIMIT_MARGIN, "upper_rad": limit.upper - JOINT_LIMIT_MARGIN}
+    assert exc.values == {"position_rad": pytest.approx(outside), **{k: pytest.approx(v) for k, v in in_force.items()}}
+
+
+def test_a_joint_limit_refusal_names_the_limit_in_force(policy: SafetyPolicy) -> None:
+    # The limit in force is the URDF's (or the policy's) less JOINT_LIMIT_MARGIN. A position between
+    # the two is refused, and the refusal must say so: not "2.958 rad is outside [-2.967, 2.967]".
+    limit = policy.joint_limits["panda_joint1"]
+    in_force = limit.upper - JOINT_LIMIT_MARGIN
+    outside = in_force + EPS
+    goal = trajectory((with_joint(HOME, "panda_joint1", outside), 1.0))
+    exc = refused(lambda: policy.check_trajectory(goal, NOW, START), Rule.JOINT_LIMITS)
+    assert_names(str(exc), outside, in_force)
+    low, high = exc.values["lower_rad"], exc.values["upper_rad"]
+    assert not low <= exc.values["position_rad"] <= high, f"values say the position is within its limits: {exc.values}"
+
+
+@pytest.mark.parametrize(
+    ("goal", "why"),
+    [
+        (
+            FollowJointTrajectoryGoal(
+                joint_names=["panda_joint1", "panda_joint1"],
+                points=[TrajectoryPoint(positions=[0.0, 0.0], time_from_start=1.0)],
+            ),
+            "named twice",
+        ),
+        (trajectory((HOME[:6], 1.0)), "6 positions for 7 joints"),
+        (trajectory((with_joint(HOME, "panda_joint3", math.nan), 1.0)), "not finite"),
+    ],
+    ids=["twice", "short", "nan"],
+)
+def test_malformed_trajectories_are_refused(policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, why: str) -> None:
+    assert why in str(refused(lambda: policy.check_trajectory(goal, NOW, START), Rule.JOINT_LIMITS))
+
+
+# joint_speed
+
+
+def test_a_segment_at_the_joint_speed_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
+    limit = policy.joint_limits["panda_joint1"].velocity  # the policy's max_joint_speed, 1.5 rad/s
+    at = trajectory((with_joint(HOME, "panda_joint1", limit * 1.0), 1.0))
+    assert policy.check_trajectory(at, NOW, START).values["fastest_rps"] == pytest.approx(limit)
+    # The second segment, not just the first from where the arm is.
+    over = trajectory(
+        (with_joint(HOME, "panda_joint1", 0.5), 1.0), (with_joint(HOME, "panda_joint1", 0.5 + limit + 2 * EPS), 2.0)
+    )
+    exc = refused(lambda: policy.check_trajectory(over, NOW, START), Rule.JOINT_SPEED)
+    assert str(exc).startswith("point 1: panda_joint1 ")
+    assert exc.values == {"speed_rps": pytest.approx(limit + 2 * EPS), "limit_rps": limit}
+
+
+def test_a_joint_speed_refusal_tells_the_speed_from_the_limit(policy: SafetyPolicy) -> None:
+    # At 1.502 rad/s against 1.5, the message must not read "1.50 rad/s, over its limit of 1.50 rad/s".
+    limit = policy.joint_limits["panda_joint1"].velocity
+    over = trajectory((with_joint(HOME, "panda_joint1", limit + 2 * EPS), 1.0))
+    exc = refused(lambda: policy.check_trajectory(over, NOW, START), Rule.JOINT_SPEED)
+    assert_names(str(exc), limit + 2 * EPS, limit)
+
+
+def test_a_first_point_at_time_zero_may_differ_from_the_measured_position_only_a_little(policy: SafetyPolicy) -> None:
+    later = with_joint(HOME, "panda_joint1", 0.5)
+    near = trajectory((with_joint(HOME, "panda_joint1", START_TOLERANCE - EPS), 0.0), (later, 2.0))
+    assert policy.check_trajectory(near, NOW, START)
+    jump = trajectory((with_joint(HOME, "panda_joint1", START_TOLERANCE + EPS), 0.0), (later, 2.0))
+    exc = refused(lambda: policy.check_trajectory(jump, NOW, START), Rule.JOINT_SPEED)
+    assert exc.values == {"jump_rad": pytest.approx(START_TOLERANCE + EPS)}
+    backwards = trajectory((later, 2.0), (HOME, 1.0))
+    assert "backwards" in str(refused(lambda: policy.check_trajectory(backwards, NOW, START), Rule.JOINT_SPEED))
+
+
+# workspace
+
+
+AXES = [(axis, side) for axis in "xyz" for side in ("min", "max")]
+
+
+@pytest.mark.parametrize(("axis", "side"), AXES, ids=[f"{a}-{s}" for a, s in AXES])
+def test_a_point_just_inside_the_workspace_box_passes_and_just_outside_is_refused(
+    policy: SafetyPolicy, axis: str, side: str
+) -> None:
+    box = policy.policy.workspace
+    low, high = getattr(box.min, axis), getattr(box.max, axis)
+    bound = high if side == "max" else low
+    sign = 1 if side == "max" else -1
+    centre = {a: (getattr(box.min, a) + getattr(box.max, a)) / 2 for a in "xyz"}
+    policy.check_in_workspace(**{**centre, axis: bound - sign * EPS}, what="the hand")
+    exc = refused(
+        lambda: policy.check_in_workspace(**{**centre, axis: bound + sign * EPS}, what="the hand"), Rule.WORKSPACE
+    )
+    assert str(exc).startswith(f"the hand would be at {axis} = ")
+    assert_names(str(exc), bound + sign * EPS, bound)
+    assert exc.values == {f"{axis}_m": pytest.approx(bound + sign * EPS), "low_m": low, "high_m": high}
+
+
+@pytest.mark.parametrize(("axis", "side"), [("x", "max"), ("y", "max"), ("y", "min"), ("z", "min")])
+def test_reach_is_measured_in_the_frame_of_the_base_at_its_approach_pose(
+    policy: SafetyPolicy, axis: str, side: str
+) -> None:
+    box = policy.policy.workspace
+    approach = Pose2D(x=2.0, y=2.0, yaw=math.pi / 2)  # facing north: base x is map +y, base y is map -x
+    bound = getattr(getattr(box, side), axis)
+    sign = 1 if side == "max" else -1
+    base_frame = {"x": 0.5, "y": 0.0, "z": 0.8}
+
+    def spot(offset: float) -> Vec3:
+        p = {**base_frame, axis: bound + sign * offset}
+        return Vec3(x=approach.x - p["y"], y=approach.y + p["x"], z=p["z"])
+
+    policy.check_reach(approach, spot(-EPS), "the cup")
+    exc = refused(lambda: policy.check_reach(approach, spot(EPS), "the cup"), Rule.WORKSPACE)
+    assert exc.values[f"{axis}_m"] == pytest.approx(bound + sign * EPS)
+
+
+def _lowest_q(arm: ArmModel, z: float) -> list[float]:
+    """The arm reaching forward and down, its grasp point at height `z` above the floor (bisection on
+    panda_joint2, which lowers the hand monotonically here)."""
+    mount = ROBOT.arm_mount.z
+    lo, hi = 1.2, 1.7
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        q = [0.0, mid, 0.0, -1.5, 0.0, 1.5, 0.785]
+        if arm.grasp_point(q)[2] + mount > z:
+            lo = mid
+        else:
+            hi = mid
+    return [0.0, (lo + hi) / 2, 0.0, -1.5, 0.0, 1.5, 0.785]
+
+
+def test_a_trajectory_whose_hand_ends_just_above_the_floor_of_the_workspace_passes_and_just_below_is_refused(
+    policy: SafetyPolicy, arm: ArmModel
+) -> None:
+    floor = policy.policy.workspace.min.z
+    above, below = _lowest_q(arm, floor + EPS), _lowest_q(arm, floor - EPS)
+    now = dict(zip(ARM, above, strict=True))
+    verdict = policy.check_trajectory(trajectory((above, 1.0)), now, START)
+    assert verdict.values["lowest_m"] == pytest.approx(floor + EPS)
+    exc = refused(lambda: policy.check_trajectory(trajectory((below, 1.0)), now, START), Rule.WORKSPACE)
+    assert str(exc).startswith("the end effector would be at z = ")
+    assert_names(str(exc), floor - EPS, floor)
+    assert exc.values["z_m"] == pytest.approx(floor - EPS)
+
+
+def test_a_trajectory_whose_hand_dips_out_of_the_workspace_between_its_points_is_refused(
+    policy: SafetyPolicy, arm: ArmModel
+) -> None:
+    a = [-0.45, 1.76, 2.14, -1.6, -2.41, 2.84, 2.61]
+    b = [0.39, 1.18, -2.18, -1.08, 0.24, 2.61, 2.45]
+    mount = np.array([ROBOT.arm_mount.x, ROBOT.arm_mount.y, ROBOT.arm_mount.z])
+    floor = policy.policy.workspace.min.z
+    # Both ends well inside the box; half way the hand is below its floor.
+    for q in (a, b):
+        x, y, z = arm.grasp_point(q) + mount
+        policy.check_in_workspace(float(x), float(y), float(z), "an end")
+    assert (arm.grasp_point((np.array(a) + b) / 2) + mount)[2] < floor - 0.05
+    exc = refused(
+        lambda: policy.check_trajectory(trajectory((b, 10.0)), dict(zip(ARM, a, strict=True)), START), Rule.WORKSPACE
+    )
+    assert exc.values["z_m"] < floor
+
+
+# arm_keep_out
+
+
+def test_reaching_just_short_of_the_stairs_passes_and_just_over_them_is_refused(policy: SafetyPolicy) -> None:
+    approach = facing_stairs(0.01)  # parked just clear of the (grown) zone, facing it
+    policy.check_reach(approach, Vec3(x=STAIRS_WEST - EPS, y=STAIRS_MID_Y, z=0.8), "the cup")
+    over = Vec3(x=STAIRS_WEST + EPS, y=STAIRS_MID_Y, z=0.8)  # the zone itself, not grown
+    exc = refused(lambda: policy.check_reach(approach, over, "the cup"), Rule.ARM_KEEP_OUT)
+    assert str(exc).startswith("the cup at (10.50, 8.00) is inside keep-out zone 'stairs'")
+
+
+def test_a_reach_into_a_keep_out_zone_is_refused_with_where(policy: SafetyPolicy) -> None:
+    # As check_trajectory's ARM_KEEP_OUT refusals carry x and y, so must check_reach's.
+    over = Vec3(x=STAIRS_WEST + EPS, y=STAIRS_MID_Y, z=0.8)
+    exc = refused(lambda: policy.check_reach(facing_stairs(0.01), over, "the cup"), Rule.ARM_KEEP_OUT)
+    assert exc.values == {"x": pytest.approx(over.x), "y": pytest.approx(over.y)}
+
+
+REACH = [0.0, 0.5, 0.0, -1.5, 0.0, 2.0, 0.785]  # hand forward, about 0.85 m ahead of the base centre
+
+
+def test_a_trajectory_reaching_just_short_of_the_stairs_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
+    goal = trajectory((REACH, 5.0))
+    farthest = policy.check_trajectory(goal, NOW, START).values["farthest_m"]
+    assert farthest > 0.7
+    short = Pose2D(x=STAIRS_WEST - farthest - EPS, y=STAIRS_MID_Y)
+    assert policy.check_trajectory(goal, NOW, short).command == goal
+    over = Pose2D(x=STAIRS_WEST - farthest + EPS, y=STAIRS_MID_Y)
+    exc = refused(lambda: policy.check_trajectory(goal, NOW, over), Rule.ARM_KEEP_OUT)
+    assert "reach into keep-out zone 'stairs'" in str(exc)
+    assert exc.values == {"x": pytest.approx(STAIRS_WEST + EPS), "y": pytest.approx(STAIRS_MID_Y, abs=1e-6)}
+
+
+# payload
+
+
+BOOK = next(obj for obj in WORLD.objects if obj.id == "blue_book")
+
+
+@pytest.mark.parametrize("offset", [EPS, 0.0])
+def test_an_object_at_or_under_the_payload_passes(limits: Limits, arm: ArmModel, offset: float) -> None:
+    rules = tightened(limits, arm, payload=PayloadPolicy(max_mass=BOOK.mass + offset))
+    verdict = rules.check_gripper(GripperCommandGoal(position=0.0, object_id=BOOK.id))
+    assert verdict.values["mass_kg"] == BOOK.mass
+    assert Rule.PAYLOAD in verdict.checks
+
+
+def test_an_object_just_over_the_payload_is_refused_by_its_mass_in_the_world_file(
+    limits: Limits, arm: ArmModel
+) -> None:
+    payload = BOOK.mass - EPS
+    rules = tightened(limits, arm, payload=PayloadPolicy(max_mass=payload))
+    exc = refused(lambda: rules.check_gripper(GripperCommandGoal(position=0.0, object_id=BOOK.id)), Rule.PAYLOAD)
+    assert f"'{BOOK.name}'" in str(exc)
+    assert_names(str(exc), BOOK.mass, payload)
+    assert exc.values == {"mass_kg": BOOK.mass, "payload_kg": payload}
+    # In a plan, too, whatever mass the step claims.
+    table = next(f for f in WORLD.furniture if f.id == BOOK.support)
+    pick = PickStep(
+        object_id=BOOK.id,
+        object_name=BOOK.name,
+        position=Vec3(x=table.center[0] + BOOK.offset[0], y=table.center[1] + BOOK.offset[1], z=table.size.z + 0.015),
+        mass=0.01,
+        support_id=table.id,
+        approach=table.approach,
+    )
+    plan = GroundedPlan(steps=[pick], source=SOURCE)
+    exc = refused(lambda: rules.check_plan(plan, START), Rule.PAYLOAD)
+    assert str(exc).startswith("step 1 (pick): ")
+    at = tightened(limits, arm, payload=PayloadPolicy(max_mass=BOOK.mass))
+    assert at.check_plan(plan, START)
+
+
+# gripper_force
+
+
+def test_a_gripper_force_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
+    limit = policy.policy.gripper.max_force
+    assert policy.check_gripper(GripperCommandGoal(position=0.0, max_effort=limit)).values["force_n"] == limit
+    over = limit + 0.01
+    exc = refused(lambda: policy.check_gripper(GripperCommandGoal(position=0.0, max_effort=over)), Rule.GRIPPER_FORCE)
+    assert_names(str(exc), over, limit)
+    assert exc.values == {"force_n": over, "limit_n": limit}
+
+
+# gripper_drop
+
+
+def test_opening_the_gripper_is_refused_only_while_it_holds_something(policy: SafetyPolicy) -> None:
+    counter = next(f for f in WORLD.furniture if f.id == "kitchen_counter")
+    cup = PickStep(
+        object_id="red_cup",
+        object_name="red cup",
+        position=Vec3(x=2.2, y=0.55, z=0.95),
+        mass=0.25,
+        support_id=counter.id,
+        approach=counter.approach,
+    )
+    put = PlaceStep(surface_id=counter.id, surface_name=counter.name, position=cup.position, approach=counter.approach)
+    start = Pose2D(x=2.5, y=2.0)
+    opened = GripperStep(open=True)
+    assert policy.check_plan(GroundedPlan(steps=[opened, cup, put, opened], source=SOURCE), start)
+    held = GroundedPlan(steps=[cup, GripperStep(open=False), opened], source=SOURCE)
+    exc = refused(lambda: policy.check_plan(held, start), Rule.GRIPPER_DROP)
+    assert str(exc).startswith("step 3 (gripper): opening the gripper would drop red cup")
+
+
+# plan
+
+
+def test_an_on_failure_range_within_the_plan_passes_and_one_past_its_end_is_refused(policy: SafetyPolicy) -> None:
+    steps: list[GroundedStep] = [
+        NavigateStep(target="a", goal=Pose2D(x=5.0, y=1.2)),
+        NavigateStep(target="b", goal=START),
+    ]
+    back: list[GroundedStep] = [NavigateStep(target="back", goal=START)]
+    fits = GroundedPlan(steps=steps, source=SOURCE, fallbacks=[Fallback(first=0, last=1, steps=back)])
+    assert policy.check_plan(fits, START)
+    for fallback in (
+        Fallback(first=0, last=2, steps=back),
+        Fallback(first=1, last=0, steps=back),
+        Fallback(first=0, last=1, steps=[]),
+        Fallback(first=0, last=1, steps=back, labels=["1", "2"]),
+    ):
+        with pytest.raises(Vetoed) as info:
+            policy.check_plan(msgspec.structs.replace(fits, fallbacks=[fallback]), START)
+        assert info.value.rule is Rule.PLAN, fallback
+    exc = refused(lambda: policy.check_plan(msgspec.structs.replace(fits, labels=["1", "2", "3"]), START), Rule.PLAN)
+    assert "2 steps but 3 labels" in str(exc)
+    assert policy.check_plan(msgspec.structs.replace(fits, labels=["1", "2"]), START)
+
+
+# monitor_keep_out: the base's centre in a zone, not grown
+
+
+def test_zone_at_finds_the_zone_the_base_centre_stands_in(policy: SafetyPolicy) -> None:
+    assert policy.zone_at(STAIRS_WEST - EPS, STAIRS_MID_Y) is None
+    zone = policy.zone_at(STAIRS_WEST + EPS, STAIRS_MID_Y)
+    assert zone is not None and zone.id == "stairs"
+    assert policy.zone_at(11.2, STAIRS_SOUTH - EPS) is None
+    assert policy.zone_at(START.x, START.y) is None
