@@ -55,7 +55,7 @@ def check(what: str, ok: bool) -> None:
 
 def received_before_marker(reader: zenoh.Session, writer: zenoh.Session, key: str) -> bool:
     """Does `writer`'s put on `key` reach `reader`? A marker put after it tells when to stop waiting."""
-    marker = f"{ROBOT}/cmd/marker"
+    marker = f"{ROBOT}/plan/marker"
     got: queue.Queue[str] = queue.Queue()
     sub = reader.declare_subscriber(f"{ROBOT}/**", lambda s: got.put(str(s.key_expr)))
     try:
@@ -127,6 +127,12 @@ def main() -> None:
             not received_before_marker(observer, s["executor"], f"{ROBOT}/safety/heartbeat"),
         )
         check("anyone may put safety/estop", received_before_marker(observer, s["executor"], f"{ROBOT}/safety/estop"))
+        teleop = f"{ROBOT}/cmd/teleop/cmd_vel"
+        check("operator may drive by hand", received_before_marker(s["safety"], s["operator"], teleop))
+        check("executor may not drive by hand", not received_before_marker(observer, s["executor"], teleop))
+        humans = f"{ROBOT}/world/humans"
+        check("sim may report people", received_before_marker(observer, s["sim"], humans))
+        check("executor may not report people", not received_before_marker(observer, s["executor"], humans))
 
         goal = f"{ROBOT}/robot/navigate_to_pose/_action/send_goal"
         reset = f"{ROBOT}/safety/reset"

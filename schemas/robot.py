@@ -55,13 +55,15 @@ class Odometry(Frozen):
 class NavigateToPoseGoal(Frozen):
     """Drive the base to `pose`, following `path` (map-frame waypoints) when one is given.
 
-    `max_speed` (m/s) is the speed asked for; safety refuses one over its limit and fills in its
-    limit when none is given, so the robot always receives a number safety approved.
+    `max_speed` (m/s) and `max_turn_rate` (rad/s) are what was asked for; safety refuses one over
+    its limit and fills in its limit when none is given, so the robot always receives numbers
+    safety approved.
     """
 
     pose: Pose2D
     path: Annotated[list[Pose2D], Meta(max_length=MAX_PATH_POINTS)] = []
     max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
+    max_turn_rate: Annotated[float, Meta(gt=0.0, le=10.0)] | None = None
 
 
 class NavigateToPoseFeedback(Frozen):
@@ -106,11 +108,14 @@ class GripperCommandGoal(Frozen):
     """Open or close the gripper. `position` is the finger gap in metres.
 
     `object_id` names what a closing gripper is meant to hold, so safety can check the payload.
+    `payload_limit` (kg) is the heaviest object the gripper may take hold of: safety fills in its
+    limit, and the robot lets anything heavier slip, whatever `object_id` says.
     """
 
     position: Annotated[float, Meta(ge=0.0, le=GRIPPER_MAX_GAP)]
     max_effort: Annotated[float, Meta(ge=0.0, le=140.0)] = 40.0
     object_id: Id | None = None
+    payload_limit: Annotated[float, Meta(gt=0.0, le=1000.0)] | None = None
 
 
 class GripperCommandFeedback(Frozen):

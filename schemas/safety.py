@@ -31,9 +31,11 @@ class EstopState(Frozen):
 class SafetyStatus(Frozen):
     """The heartbeat. The robot stops when it stops arriving.
 
-    `speed_scale` is speed-and-separation monitoring: the fraction of its normal speed the robot may
-    use now (base and arm alike; 0 pauses motion without ending goals), with `speed_reason` saying
-    why. `policy_hash` names the policy in force.
+    `speed_scale` is speed-and-separation monitoring: the fraction of the policy's speed the robot
+    may use now (0 pauses motion without ending goals), with `speed_reason` saying why. The arm
+    applies it to its trajectories; the base keeps within `max_linear_speed` and `max_angular_speed`
+    (the policy's limits times the scale; None: the robot's own times the scale). `policy_hash`
+    names the policy in force.
     """
 
     seq: Annotated[int, Meta(ge=0)]
@@ -41,6 +43,8 @@ class SafetyStatus(Frozen):
     estop: EstopState
     speed_scale: Annotated[float, Meta(ge=0.0, le=1.0)] = 1.0
     speed_reason: Text = ""
+    max_linear_speed: Annotated[float, Meta(ge=0.0, le=10.0)] | None = None
+    max_angular_speed: Annotated[float, Meta(ge=0.0, le=20.0)] | None = None
     policy_hash: Annotated[str, Meta(max_length=80)] = ""
 
 
@@ -87,6 +91,7 @@ class Rule(enum.StrEnum):
     JOINT_SPEED = "joint_speed"
     WORKSPACE = "workspace"  # the end effector inside its box
     ARM_KEEP_OUT = "arm_keep_out"  # the end effector out of keep-out zones
+    BASE_STILL = "base_still"  # the arm moves only while the base stands still
     PAYLOAD = "payload"
     GRIPPER_FORCE = "gripper_force"
     GRIPPER_DROP = "gripper_drop"  # no opening the gripper over the floor with something in it

@@ -91,6 +91,9 @@ class RobotSpec(Frozen):
     payload: Kilograms
     max_linear_speed: Annotated[float, Meta(gt=0.0, le=3.0)]
     max_angular_speed: Annotated[float, Meta(gt=0.0, le=6.0)]
+    # How hard the base speeds up and brakes in normal driving (an e-stop stops it at once).
+    max_linear_acceleration: Annotated[float, Meta(gt=0.0, le=20.0)] = 1.5
+    max_angular_acceleration: Annotated[float, Meta(gt=0.0, le=40.0)] = 3.0
     # How close the base must stand to an object for the arm to reach it.
     reach: Annotated[float, Meta(gt=0.0, le=2.0)] = 0.85
     arm_urdf: Name = "franka_panda/panda.urdf"

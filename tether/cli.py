@@ -276,7 +276,8 @@ def estop(
 ) -> None:
     """Trigger the e-stop. It latches until `tether reset`."""
     with client(ctx) as node:
-        status = trigger_estop(node, EstopSource.OPERATOR, f"{reason} ({operator_name()})")
+        # The reason is bounded in the message; an over-long one is cut rather than lost.
+        status = trigger_estop(node, EstopSource.OPERATOR, f"{reason[:3800]} ({operator_name()[:100]})")
     if status is None:
         console.print("[red]e-stop sent, but no heartbeat from safety confirmed it[/]")
         raise typer.Exit(EXIT_UNREACHABLE)
@@ -322,7 +323,11 @@ def policy(
 
     try:
         model = load_world(world)
-        limits = load_policy(file, model.robot, ArmModel(model.robot.arm_urdf), model.keep_out)
+        try:
+            arm = ArmModel(model.robot.arm_urdf)
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise WorldFileError(f"robot.arm_urdf {model.robot.arm_urdf!r} cannot be loaded: {exc}") from None
+        limits = load_policy(file, model.robot, arm, model.keep_out)
     except (PolicyError, WorldFileError) as exc:
         if as_json:
             print(json.dumps({"ok": False, "error": str(exc)}))

@@ -60,7 +60,8 @@ class EstopLatch:
     def trigger(self, source: str, reason: str) -> bool:
         """Latch in memory; returns True if this call latched it (False if it already was).
 
-        The caller tells the robot first and then calls save(): a slow disk must not delay a stop.
+        The caller tells the robot first and then calls save() (as after a reset): a slow disk must
+        not delay a stop.
         """
         with self._lock:
             if self._state.latched:
@@ -73,6 +74,4 @@ class EstopLatch:
             if not token_matches(self._token, token):
                 raise Unauthorized(f"reset refused for '{operator}': not the operator's token")
             self._state = EstopState(latched=False, source=operator, reason="reset by operator", stamp=time.time())
-            state = self._state
-        self.save()
-        return state
+            return self._state

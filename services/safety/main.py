@@ -22,7 +22,11 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     configure_logging()
     config = load_config(SafetyConfig, config_file, "safety")
     world = load_world(config.world)
-    arm = ArmModel(world.robot.arm_urdf)
+    try:
+        arm = ArmModel(world.robot.arm_urdf)
+    except (OSError, ValueError, RuntimeError) as exc:
+        urdf = world.robot.arm_urdf
+        raise ConfigError(f"world {config.world}: robot.arm_urdf {urdf!r} cannot be loaded: {exc}") from None
     try:
         limits = load_policy(Path(config.policy) if config.policy else None, world.robot, arm, world.keep_out)
     except PolicyError as exc:

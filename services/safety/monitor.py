@@ -6,6 +6,8 @@ Pure logic on plain numbers and timestamps (seconds on any monotonic clock); the
 from __future__ import annotations
 
 import math
+import threading
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -19,22 +21,25 @@ from services.safety.policyfile import HumanPolicy, MonitorPolicy
 
 
 class RateLimit:
-    """A token bucket: `rate` commands a second on average, bursts of `rate * burst_seconds`."""
+    """A token bucket: `rate` commands a second on average, bursts of `rate * burst_seconds`.
+    Safe to call from several threads."""
 
     def __init__(self, rate: float, burst_seconds: float) -> None:
         self.rate = rate
         self.capacity = max(1.0, rate * burst_seconds)
         self._tokens = self.capacity
         self._at: float | None = None
+        self._lock = threading.Lock()
 
     def allow(self, now: float) -> bool:
-        if self._at is not None:
-            self._tokens = min(self.capacity, self._tokens + (now - self._at) * self.rate)
-        self._at = now
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
-            return True
-        return False
+        with self._lock:
+            if self._at is not None:
+                self._tokens = min(self.capacity, self._tokens + max(0.0, now - self._at) * self.rate)
+            self._at = now if self._at is None else max(self._at, now)
+            if self._tokens >= 1.0:
+                self._tokens -= 1.0
+                return True
+            return False
 
 
 @dataclass(frozen=True)
@@ -61,18 +66,51 @@ def footprint(pose: Pose2D, length: float, width: float) -> BaseGeometry:
 
 
 def nearest_person(
-    pose: Pose2D, size: tuple[float, float], hand: tuple[float, float] | None, people: Iterable[Person]
+    pose: Pose2D,
+    size: tuple[float, float],
+    hand: tuple[float, float] | None,
+    people: Iterable[Person],
+    radius: float = 0.0,
 ) -> tuple[float, Person] | None:
-    """The nearest person and their distance from the base's footprint or the hand, whichever is nearer."""
+    """The nearest person and the distance from the base's footprint or the hand, whichever is
+    nearer, to their body (`radius` around where they stand; 0 when touching)."""
     base = footprint(pose, *size)
     best: tuple[float, Person] | None = None
     for person in people:
         distance = base.distance(Point(person.x, person.y))
         if hand is not None:
             distance = min(distance, math.dist(hand, (person.x, person.y)))
+        distance = max(0.0, distance - radius)
         if best is None or distance < best[0]:
             best = (distance, person)
     return best
+
+
+class PeopleReports:
+    """Reports of where people are. Every report of the last `window` seconds counts, so a report
+    with nobody in it cannot hide someone another recent report saw; none within it: unknown."""
+
+    def __init__(self, window: float) -> None:
+        self.window = window
+        self._reports: deque[tuple[float, list[Person]]] = deque()
+        self._lock = threading.Lock()
+
+    def add(self, now: float, people: list[Person]) -> None:
+        with self._lock:
+            self._reports.append((now, people))
+            self._forget(now)
+
+    def _forget(self, now: float) -> None:
+        while self._reports and now - self._reports[0][0] > self.window:
+            self._reports.popleft()
+
+    def people(self, now: float) -> list[Person] | None:
+        """Everyone reported within the window, or None when nothing was reported in it."""
+        with self._lock:
+            self._forget(now)
+            if not self._reports:
+                return None
+            return [person for _, people in self._reports for person in people]
 
 
 def separation(nearest: tuple[float, Person] | None, seen: bool, policy: HumanPolicy) -> Separation:
@@ -101,21 +139,47 @@ class Trip:
     values: dict[str, float]
 
 
-class SpeedEnvelope:
-    """The speed allowed at each moment: the limit times the separation scale, except that after
-    the scale drops the allowance falls at the deceleration limit (the robot needs time to slow)."""
+@dataclass(frozen=True)
+class _Drop:
+    """One drop of the allowed speed: from `start`, held for the reaction time after `at`, then
+    falling at the deceleration limit to `target`."""
 
-    def __init__(self, decay_per_second: float) -> None:
+    target: float
+    start: float
+    at: float
+
+    def allowance(self, now: float, decay: float, reaction_time: float) -> float:
+        return max(self.target, self.start - decay * max(0.0, now - self.at - reaction_time))
+
+
+class SpeedEnvelope:
+    """The speed allowed at each moment, as a fraction of the limit: the separation scale, except
+    that after it drops the allowance holds for `reaction_time` (the robot hears of it and starts
+    braking) and then falls at the deceleration limit (`decay_per_second` of full speed). A further
+    drop during a fall starts its own hold without undoing the fall already under way. The first
+    scale applies at once (nothing was allowed before it)."""
+
+    def __init__(self, decay_per_second: float, reaction_time: float = 0.0) -> None:
         self.decay = decay_per_second
+        self.reaction_time = reaction_time
         self.scale = 1.0
-        self._at: float | None = None
+        self._drops: list[_Drop] = []
+        self._started = False
+
+    def _current(self, now: float) -> float:
+        return min(d.allowance(now, self.decay, self.reaction_time) for d in self._drops)
 
     def update(self, now: float, scale: float) -> float:
-        if self._at is not None and scale < self.scale:
-            self.scale = max(scale, self.scale - self.decay * (now - self._at))
-        else:
+        allowed = self._current(now) if self._drops else self.scale
+        if not self._started or scale >= allowed:
+            self._started = True
+            self._drops = []
             self.scale = scale
-        self._at = now
+            return scale
+        if not self._drops or scale < self._drops[-1].target:
+            self._drops.append(_Drop(scale, allowed, now))
+        # Drops that have reached their target no longer limit anything a later one does not.
+        self.scale = max(scale, self._current(now))
         return self.scale
 
 
@@ -147,8 +211,8 @@ class MotionMonitor:
         self.max_linear = max_linear
         self.max_angular = max_angular
         self.joint_velocity = joint_velocity
-        self._base_envelope = SpeedEnvelope(decay_per_second)
-        self._arm_envelope = SpeedEnvelope(decay_per_second)
+        self._base_envelope = SpeedEnvelope(decay_per_second, policy.reaction_time)
+        self._arm_envelope = SpeedEnvelope(decay_per_second, policy.reaction_time)
         self._base_over = OverLimit(policy.trip_after)
         self._arm_over = OverLimit(policy.trip_after)
 

@@ -29,21 +29,46 @@ from schemas.safety import (
 )
 from schemas.world import PerceivedHumans
 from services.actionlib import MAX_RESULT_WAIT
-from services.runtime import Node, encode
+from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.errors import Unauthorized, Vetoed
 from services.safety.latch import EstopLatch
-from services.safety.monitor import MotionMonitor, Person, RateLimit, Separation, Trip, nearest_person, separation
+from services.safety.monitor import (
+    MotionMonitor,
+    PeopleReports,
+    Person,
+    RateLimit,
+    Separation,
+    Trip,
+    nearest_person,
+    separation,
+)
 from services.safety.policy import SafetyPolicy, Verdict
 
 log = logging.getLogger(__name__)
 
 # Faster than this (m/s, rad/s) counts as moving, for the watchdog.
 MOVING = 0.05
+# The arm may start moving while the base is slower than this (m/s, rad/s): a base that just
+# arrived is still settling.
+STILL_BELOW = 0.1
 # A teleop stream silent this long has stopped the base (the robot holds a cmd_vel for 0.5 s); the
 # first message after it may speed up by at most TELEOP_MAX_STEP seconds of acceleration.
 TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
+# What the whole-plan check applies.
+PLAN_RULES = (
+    Rule.ESTOP,
+    Rule.PLAN,
+    Rule.POSE_KNOWN,
+    Rule.MAP,
+    Rule.KEEP_OUT,
+    Rule.BASE_SPEED,
+    Rule.PAYLOAD,
+    Rule.WORKSPACE,
+    Rule.ARM_KEEP_OUT,
+    Rule.GRIPPER_DROP,
+)
 
 
 class SafetyNode:
@@ -56,10 +81,12 @@ class SafetyNode:
         self.hash = policy.limits.hash
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
-        self._humans: tuple[float, list[Person]] | None = None
-        self._started = time.monotonic()
+        self._state_lock = threading.Lock()
+        self._people = PeopleReports(rules.humans.unseen_after)
         self._separation = Separation(rules.humans.reduced_speed_scale, "no report of people yet")
-        self._teleop_sent: tuple[float, Twist] = (0.0, Twist())
+        # What was last put on robot/cmd_vel, from any path, and when: teleop speeds up from it.
+        self._sent_twist: tuple[float, Twist] = (0.0, Twist())
+        self._twist_lock = threading.Lock()
         self._seq = 0
         self._forwarded: dict[str, Action[Any, Any, Any]] = {}
         self._lock = threading.Lock()
@@ -84,14 +111,19 @@ class SafetyNode:
         node.subscribe(keys.ODOM, self._on_odom)
         node.subscribe(keys.JOINT_STATES, self._on_joints)
         node.subscribe(keys.HUMANS, self._on_humans)
-        node.subscribe(keys.ESTOP, self._on_estop)
+        # Raw: an e-stop that does not decode still stops the robot.
+        node.subscribe_raw(keys.ESTOP.key(node.robot), self._on_estop_raw)
         node.subscribe(keys.CMD_VEL, self._on_cmd_vel)
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
         node.serve(keys.RESET, self._on_reset)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda g: policy.check_navigation(g, self.pose()))
         self._proxy(
-            keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, lambda g: policy.check_trajectory(g, self.joints(), self.pose())
+            keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda g: policy.check_navigation(g, self.pose(), self.reach())
+        )
+        self._proxy(
+            keys.CMD_TRAJECTORY,
+            keys.ROBOT_TRAJECTORY,
+            lambda g: policy.check_trajectory(g, self.joints(), self.pose(), self.base_moving()),
         )
         self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, policy.check_gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
@@ -151,6 +183,8 @@ class SafetyNode:
                     estop=self.latch.state,
                     speed_scale=sep.scale,
                     speed_reason=sep.reason,
+                    max_linear_speed=self.policy.max_linear * sep.scale,
+                    max_angular_speed=self.policy.max_angular * sep.scale,
                     policy_hash=self.hash,
                 )
             )
@@ -161,25 +195,33 @@ class SafetyNode:
         while not self._stop.is_set():
             try:
                 self._update_separation()
+            except Exception as exc:  # the heartbeat goes on, and what cannot be computed stops the robot
+                log.exception("speed and separation failed")
+                self._set_separation(Separation(0.0, f"speed and separation could not be computed: {exc}"))
+            try:
                 self._watchdog()
-            except Exception:  # the heartbeat must go on; a failed update keeps the last limit
-                log.exception("separation or watchdog update failed")
+            except Exception:
+                log.exception("the watchdog failed")
             self._publish_heartbeat()
             next_beat += period
             self._stop.wait(max(0.0, next_beat - time.monotonic()))
 
     def _update_separation(self) -> None:
         humans = self.policy.policy.humans
-        seen = self._humans
-        if seen is None or time.monotonic() - seen[0] > humans.unseen_after:
+        people = self._people.people(time.monotonic())
+        if people is None:
             found = separation(None, False, humans)
-        elif not seen[1]:
+        elif not people:
             found = separation(None, True, humans)
         elif (pose := self.pose()) is None:
             found = Separation(humans.reduced_speed_scale, "the robot's pose is unknown: reduced speed")
         else:
             size = self.policy.world.world.robot.base_size
-            found = separation(nearest_person(pose, (size.x, size.y), self.hand(pose), seen[1]), True, humans)
+            nearest = nearest_person(pose, (size.x, size.y), self.hand(pose), people, humans.person_radius)
+            found = separation(nearest, True, humans)
+        self._set_separation(found)
+
+    def _set_separation(self, found: Separation) -> None:
         previous = self._separation
         self._separation = found
         if found.scale != previous.scale:
@@ -190,62 +232,95 @@ class SafetyNode:
             log.info("speed limit: %s", reason)
             self._event(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, Rule.HUMAN_SEPARATION, (), values)
 
-    def hand(self, pose: Pose2D) -> tuple[float, float] | None:
-        """The end effector on the floor plan (map frame), from the latest joint states."""
+    def _hand_in_base(self) -> tuple[float, float] | None:
+        """The end effector over the floor in the base frame, from the latest joint states."""
         joints = self.joints()
-        if joints is None:
+        names = self.policy.arm.joint_names
+        if joints is None or not all(n in joints for n in names):
             return None
-        point = self.policy.arm.grasp_point([joints[n] for n in self.policy.arm.joint_names])
+        point = self.policy.arm.grasp_point([joints[n] for n in names])
         mount = self.policy.mount
-        x, y = point[0] + mount.x, point[1] + mount.y
+        return float(point[0]) + mount.x, float(point[1]) + mount.y
+
+    def hand(self, pose: Pose2D) -> tuple[float, float] | None:
+        """The end effector on the floor plan (map frame)."""
+        local = self._hand_in_base()
+        if local is None:
+            return None
         c, s = math.cos(pose.yaw), math.sin(pose.yaw)
-        return pose.x + c * x - s * y, pose.y + s * x + c * y
+        return pose.x + c * local[0] - s * local[1], pose.y + s * local[0] + c * local[1]
+
+    def reach(self) -> float:
+        """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
+        local = self._hand_in_base()
+        return math.hypot(*local) if local is not None else self.policy.world.world.robot.reach + 0.3
+
+    def base_moving(self) -> bool:
+        odom = self._odom
+        return odom is not None and (abs(odom[1].linear_x) > STILL_BELOW or abs(odom[1].angular_z) > STILL_BELOW)
 
     def _watchdog(self) -> None:
         """The robot's state stopped arriving while it moved: nothing can be monitored, so stop."""
         max_age = self.policy.policy.monitor.state_max_age
         now = time.monotonic()
-        odom, joints = self._odom, self._joints
-        if odom is not None and now - odom[0] > max_age:
-            moving = abs(odom[1].linear_x) > MOVING or abs(odom[1].angular_z) > MOVING
-            self._odom = None
-            if moving:
-                self._trip(
-                    EstopSource.WATCHDOG,
-                    Trip(
-                        Rule.WATCHDOG,
-                        f"no odometry for {now - odom[0]:.2f} s while the base was moving",
-                        {"age_s": now - odom[0], "speed_mps": odom[1].linear_x},
-                    ),
-                )
-        if joints is not None and now - joints[0] > max_age:
-            moving = any(abs(v) > MOVING for v in joints[1].velocity[: len(ARM_JOINTS)])
-            self._joints = None
-            if moving:
-                self._trip(
-                    EstopSource.WATCHDOG,
-                    Trip(Rule.WATCHDOG, f"no joint states for {now - joints[0]:.2f} s while the arm was moving", {}),
-                )
+        with self._state_lock:
+            odom, joints = self._odom, self._joints
+            if odom is not None and now - odom[0] > max_age:
+                self._odom = None
+            else:
+                odom = None
+            if joints is not None and now - joints[0] > max_age:
+                self._joints = None
+            else:
+                joints = None
+        if odom is not None and (abs(odom[1].linear_x) > MOVING or abs(odom[1].angular_z) > MOVING):
+            age = now - odom[0]
+            why = f"no odometry for {age:.2f} s while the base was moving"
+            self._trip(
+                EstopSource.WATCHDOG,
+                Trip(Rule.WATCHDOG, why, {"age_s": age, "speed_mps": odom[1].linear_x, "turn_rps": odom[1].angular_z}),
+            )
+        if joints is not None:
+            fastest = max((abs(v) for v in joints[1].velocity[: len(ARM_JOINTS)]), default=0.0)
+            if fastest > MOVING:
+                age = now - joints[0]
+                why = f"no joint states for {age:.2f} s while the arm was moving"
+                self._trip(EstopSource.WATCHDOG, Trip(Rule.WATCHDOG, why, {"age_s": age, "speed_rps": fastest}))
 
     def _trip(self, source: EstopSource, trip: Trip) -> None:
         self._latch(source, trip.reason, None, trip.rule, trip.values)
 
     # E-stop
 
-    def _on_estop(self, msg: EStop) -> None:
+    def _on_estop_raw(self, _key: str, payload: bytes) -> None:
+        try:
+            msg: EStop = decoder(EStop).decode(payload)
+        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+            # Fail closed: someone meant to stop the robot.
+            reason = f"an e-stop message that could not be read ({len(payload)} bytes): {exc}"[:1000]
+            self._latch("unknown", reason, None, Rule.ESTOP, {})
+            return
         self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {})
 
-    def _latch(self, source: EstopSource, reason: str, command: object, rule: Rule, values: dict[str, float]) -> None:
+    def _latch(self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float]) -> None:
         if not self.latch.trigger(source, reason):
             return
         # Out of cycle, so the robot hears it now rather than at the next beat; then written down.
         self._publish_heartbeat()
-        self._robot_cmd_vel.put(Twist())
-        self.latch.save()
+        self._put_twist(Twist())
+        self._persist()
         log.warning("E-STOP latched by %s: %s", source, reason)
         self._event(keys.ESTOP.path, Decision.LATCHED, f"by {source}: {reason}", command, rule, (), values)
         # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
         threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
+
+    def _persist(self) -> bool:
+        try:
+            self.latch.save()
+        except OSError as exc:
+            log.error("the e-stop state could not be written (%s): a restart may not remember it", exc)
+            return False
+        return True
 
     def _cancel_forwarded(self) -> None:
         with self._lock:
@@ -265,14 +340,17 @@ class SafetyNode:
             return ResetReply(ok=False, message=str(exc))
         log.warning("e-stop reset by operator %s", req.operator)
         self._publish_heartbeat()
+        saved = self._persist()
         self._event(keys.RESET.path, Decision.RESET, f"by operator {req.operator}", redacted, None, (Rule.OPERATOR,))
-        return ResetReply(ok=True, message=f"e-stop reset by {req.operator}")
+        note = "" if saved else " (the state file could not be written: a restart of safety may come up latched)"
+        return ResetReply(ok=True, message=f"e-stop reset by {req.operator}{note}")
 
     # The robot's state, and the monitors on it
 
     def _on_odom(self, msg: Odometry) -> None:
         now = time.monotonic()
-        self._odom = (now, msg)
+        with self._state_lock:
+            self._odom = (now, msg)
         if self.latch.state.latched:
             return
         with self._monitor_lock:
@@ -288,7 +366,8 @@ class SafetyNode:
 
     def _on_joints(self, msg: JointState) -> None:
         now = time.monotonic()
-        self._joints = (now, msg)
+        with self._state_lock:
+            self._joints = (now, msg)
         if self.latch.state.latched or not msg.velocity:
             return
         velocities = dict(zip(msg.name, msg.velocity, strict=False))
@@ -298,8 +377,7 @@ class SafetyNode:
             self._trip(EstopSource.MONITOR, trip)
 
     def _on_humans(self, msg: PerceivedHumans) -> None:
-        people = [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans]
-        self._humans = (time.monotonic(), people)
+        self._people.add(time.monotonic(), [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans])
 
     def pose(self) -> Pose2D | None:
         """The base pose, or None when odometry is missing or stale."""
@@ -324,25 +402,26 @@ class SafetyNode:
         self._veto(key, exc, command)
         return False
 
-    def _stop_base(self, key: str, exc: Vetoed, twist: Twist) -> None:
-        # Dropping it is not enough: the last approved twist would carry on until it expires.
-        self._robot_cmd_vel.put(Twist())
-        self._event(key, Decision.VETOED, f"{exc}; base stopped", twist, exc.rule, (exc.rule,), exc.values)
+    def _put_twist(self, twist: Twist) -> None:
+        """The only writer of robot/cmd_vel; remembers what was sent (callers hold _twist_lock or not)."""
+        self._robot_cmd_vel.put(twist)
+        self._sent_twist = (time.monotonic(), twist)
 
     def _on_cmd_vel(self, twist: Twist) -> None:
-        self._forward_twist(keys.CMD_VEL, twist, lambda: self.policy.check_cmd_vel(twist, self.pose()))
+        self._forward_twist(
+            keys.CMD_VEL, twist, lambda: self.policy.check_cmd_vel(twist, self.pose(), self._separation.scale)
+        )
 
     def _on_teleop(self, twist: Twist) -> None:
         def check() -> Verdict[Twist]:
-            at, previous = self._teleop_sent
+            # Speed up from what the robot was last told by anyone (a program, a stop, a veto).
+            at, previous = self._sent_twist
             now = time.monotonic()
             # After a pause the base has stopped (the robot drops cmd_vel after half a second).
             if now - at > TELEOP_TIMEOUT:
                 previous = Twist()
             step = min(now - at, TELEOP_MAX_STEP)
-            verdict = self.policy.check_teleop(twist, self.pose(), previous, step, self._separation.scale)
-            self._teleop_sent = (now, verdict.command)
-            return verdict
+            return self.policy.check_teleop(twist, self.pose(), previous, step, self._separation.scale)
 
         self._forward_twist(keys.TELEOP_CMD_VEL, twist, check)
 
@@ -350,17 +429,22 @@ class SafetyNode:
         key = topic.path
         estop = self.latch.state
         if estop.latched:
-            self._veto(key, Vetoed("e-stop latched", Rule.ESTOP), twist)
+            why = f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it"
+            self._veto(key, Vetoed(why, Rule.ESTOP), twist)
             return
         if not self._rate_ok(key, twist):
-            self._robot_cmd_vel.put(Twist())
+            with self._twist_lock:
+                self._put_twist(Twist())
             return
-        try:
-            verdict = check()
-        except Vetoed as exc:
-            self._stop_base(key, exc, twist)
-            return
-        self._robot_cmd_vel.put(verdict.command)
+        with self._twist_lock:
+            try:
+                verdict = check()
+            except Vetoed as exc:
+                # Dropping it is not enough: the last approved twist would carry on until it expires.
+                self._put_twist(Twist())
+                self._event(key, Decision.VETOED, f"{exc}; base stopped", twist, exc.rule, (exc.rule,), exc.values)
+                return
+            self._put_twist(verdict.command)
         self._approve(key, verdict, verdict.command)
 
     def _on_check_plan(self, plan: GroundedPlan) -> PlanCheckReply:
@@ -373,7 +457,7 @@ class SafetyNode:
             self._veto(keys.PLAN_CHECK.path, exc, plan)
             kind = ErrorKind.ESTOP if estop.latched else ErrorKind.VETOED
             return ServiceError(kind=kind, message=str(exc), stage=Stage.SAFETY)
-        self._event(keys.PLAN_CHECK.path, Decision.APPROVED, "; ".join(checks), plan, None, (Rule.PLAN,))
+        self._event(keys.PLAN_CHECK.path, Decision.APPROVED, "; ".join(checks), plan, None, PLAN_RULES)
         return PlanApproved(checks=checks)
 
     def _proxy(

@@ -72,6 +72,10 @@ def _why(zone: KeepOut) -> str:
     return f": {zone.reason}" if zone.reason else ""
 
 
+def _what(reach: float, radius: float) -> str:
+    return "base's footprint" if reach <= radius else f"hand ({reach:.2f} m from the base's centre)"
+
+
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -91,16 +95,18 @@ class SafetyPolicy:
         self.max_angular = base.max_angular_speed
         self.mount = robot.arm_mount
         # Zones grown by the base's half-diagonal (plus the margin): the base centre stays that far out.
-        radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2 + base.footprint_margin
-        self.zone_shapes = {zone.id: Polygon(zone.polygon) for zone in limits.keep_out}
-        self.zones = {zone_id: shape.buffer(radius) for zone_id, shape in self.zone_shapes.items()}
+        self.radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2 + base.footprint_margin
+        self.zone_shapes: dict[str, BaseGeometry] = {zone.id: Polygon(zone.polygon) for zone in limits.keep_out}
+        self.zones = {zone_id: shape.buffer(self.radius) for zone_id, shape in self.zone_shapes.items()}
         self.payload = self.policy.payload.max_mass
         self._floor = unary_union(list(world.room_shapes.values()))
 
     # Navigation
 
-    def _zone_hit(self, geometry: BaseGeometry, grown: bool = True) -> KeepOut | None:
-        shapes = self.zones if grown else self.zone_shapes
+    def _zone_hit(
+        self, geometry: BaseGeometry, grown: bool = True, shapes: dict[str, BaseGeometry] | None = None
+    ) -> KeepOut | None:
+        shapes = shapes or (self.zones if grown else self.zone_shapes)
         for zone in self.limits.keep_out:
             if geometry.intersects(shapes[zone.id]):
                 return zone
@@ -110,9 +116,13 @@ class SafetyPolicy:
         """The keep-out zone the base's centre stands in (not grown), for the monitors."""
         return self._zone_hit(Point(x, y), grown=False)
 
-    def check_route(self, start: Pose2D | None, path: list[Pose2D], goal: Pose2D) -> None:
+    def check_route(self, start: Pose2D | None, path: list[Pose2D], goal: Pose2D, reach: float = 0.0) -> None:
         """The route the base will drive (see worldmodel.drive_route): on the map, its footprint
-        clear of every keep-out zone at every point and along every leg."""
+        clear of every keep-out zone at every point and along every leg. `reach` is how far the
+        hand sticks out from the base's centre; beyond the footprint it widens what must stay clear."""
+        zones = self.zones
+        if reach > self.radius:
+            zones = {zone_id: shape.buffer(reach) for zone_id, shape in self.zone_shapes.items()}
         if start is None:
             raise Vetoed(
                 "the robot's pose is unknown (no recent odometry), so no route can be checked", Rule.POSE_KNOWN
@@ -125,9 +135,9 @@ class SafetyPolicy:
             where = "the goal" if k == len(points) - 1 else "the route point"
             if self.world.room_of(x, y) is None:
                 raise Vetoed(f"{where} ({_fmt(x)}, {_fmt(y)}) is outside every room of the map", Rule.MAP, x=x, y=y)
-            if zone := self._zone_hit(Point(x, y)):
+            if zone := self._zone_hit(Point(x, y), shapes=zones):
                 raise Vetoed(
-                    f"at {where} ({_fmt(x)}, {_fmt(y)}) the base's footprint would be in keep-out zone "
+                    f"at {where} ({_fmt(x)}, {_fmt(y)}) the {_what(reach, self.radius)} would be in keep-out zone "
                     f"'{zone.name}'{_why(zone)}",
                     Rule.KEEP_OUT,
                     x=x,
@@ -141,10 +151,10 @@ class SafetyPolicy:
                     x=b[0],
                     y=b[1],
                 )
-            if zone := self._zone_hit(LineString([a, b])):
+            if zone := self._zone_hit(LineString([a, b]), shapes=zones):
                 raise Vetoed(
                     f"path from ({_fmt(a[0])}, {_fmt(a[1])}) to ({_fmt(b[0])}, {_fmt(b[1])}) "
-                    f"crosses keep-out zone '{zone.name}'{_why(zone)}",
+                    f"takes the {_what(reach, self.radius)} into keep-out zone '{zone.name}'{_why(zone)}",
                     Rule.KEEP_OUT,
                     x=b[0],
                     y=b[1],
@@ -152,7 +162,7 @@ class SafetyPolicy:
 
     def check_speed(self, speed: float) -> None:
         """A speed a plan asked for: over the limit is refused, never silently lowered."""
-        if not _finite(speed) or speed > self.max_linear + STILL:
+        if not _finite(speed) or speed <= 0.0 or speed > self.max_linear + STILL:
             raise Vetoed(
                 f"a speed of {speed:g} m/s exceeds the base's limit of {self.max_linear:g} m/s; "
                 f"ask for {self.max_linear:g} m/s or less",
@@ -161,14 +171,39 @@ class SafetyPolicy:
                 limit_mps=self.max_linear,
             )
 
-    def check_navigation(self, goal: NavigateToPoseGoal, start: Pose2D | None) -> Verdict[NavigateToPoseGoal]:
-        """The route, and the speed asked for; with none asked for, the limit is filled in."""
-        self.check_route(start, goal.path, goal.pose)
-        if goal.max_speed is None:
-            goal = msgspec.structs.replace(goal, max_speed=self.max_linear)
-        else:
+    def check_turn_rate(self, rate: float) -> None:
+        if not _finite(rate) or rate <= 0.0 or rate > self.max_angular + STILL:
+            raise Vetoed(
+                f"a turn rate of {rate:g} rad/s exceeds the base's limit of {self.max_angular:g} rad/s",
+                Rule.BASE_SPEED,
+                turn_rps=rate,
+                limit_rps=self.max_angular,
+            )
+
+    def check_navigation(
+        self, goal: NavigateToPoseGoal, start: Pose2D | None, reach: float = 0.0
+    ) -> Verdict[NavigateToPoseGoal]:
+        """The route (widened when the hand sticks out by `reach`), and the speed and turn rate
+        asked for: over a limit refused, none given filled in with the limit."""
+        self.check_route(start, goal.path, goal.pose, reach)
+        if goal.max_speed is not None:
             self.check_speed(goal.max_speed)
-        values = {"x": goal.pose.x, "y": goal.pose.y, "speed_mps": goal.max_speed or 0.0, "limit_mps": self.max_linear}
+        if goal.max_turn_rate is not None:
+            self.check_turn_rate(goal.max_turn_rate)
+        goal = msgspec.structs.replace(
+            goal,
+            max_speed=self.max_linear if goal.max_speed is None else goal.max_speed,
+            max_turn_rate=self.max_angular if goal.max_turn_rate is None else goal.max_turn_rate,
+        )
+        values = {
+            "x": goal.pose.x,
+            "y": goal.pose.y,
+            "speed_mps": goal.max_speed or 0.0,
+            "limit_mps": self.max_linear,
+            "turn_rps": goal.max_turn_rate or 0.0,
+            "limit_rps": self.max_angular,
+            "reach_m": reach,
+        }
         return Verdict(goal, (*ROUTE_CHECKS, Rule.BASE_SPEED), values)
 
     # cmd_vel
@@ -202,8 +237,9 @@ class SafetyPolicy:
                 **values,
             )
 
-    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None) -> Verdict[Twist]:
-        """A cmd_vel from a program (plan, agent): a value over a limit is refused, not clamped."""
+    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None, scale: float = 1.0) -> Verdict[Twist]:
+        """A cmd_vel from a program (plan, agent): a value over a limit is refused, not clamped.
+        Near people (`scale` < 1) the robot itself keeps to the lower speed; the verdict says so."""
         self._check_twist_finite(twist)
         if abs(twist.linear_x) > self.max_linear + STILL:
             raise Vetoed(
@@ -220,8 +256,14 @@ class SafetyPolicy:
                 limit_rps=self.max_angular,
             )
         self._check_horizon(twist, pose)
-        values = {"speed_mps": twist.linear_x, "turn_rps": twist.angular_z}
-        return Verdict(twist, (Rule.BASE_SPEED, Rule.CMD_VEL_HORIZON), values)
+        values = {"speed_mps": twist.linear_x, "turn_rps": twist.angular_z, "scale": scale}
+        note = ""
+        if scale < 1.0:
+            note = (
+                f"a person is near: the robot moves at most {self.max_linear * scale:.2f} m/s and "
+                f"{self.max_angular * scale:.2f} rad/s for now"
+            )
+        return Verdict(twist, (Rule.BASE_SPEED, Rule.CMD_VEL_HORIZON, Rule.HUMAN_SEPARATION), values, note=note)
 
     def check_teleop(
         self, twist: Twist, pose: Pose2D | None, previous: Twist, dt: float, scale: float = 1.0
@@ -271,11 +313,18 @@ class SafetyPolicy:
     # Arm
 
     def check_trajectory(
-        self, goal: FollowJointTrajectoryGoal, current: dict[str, float] | None, base: Pose2D | None
+        self,
+        goal: FollowJointTrajectoryGoal,
+        current: dict[str, float] | None,
+        base: Pose2D | None,
+        base_moving: bool = False,
     ) -> Verdict[FollowJointTrajectoryGoal]:
         """Every point inside the joint limits; no joint faster than its limit on any segment, the
         first one from where the arm is now; the end effector, along the whole path, inside the
-        workspace box and out of keep-out zones."""
+        workspace box and out of keep-out zones, checked from where the base stands (so the base
+        must stand still)."""
+        if base_moving:
+            raise Vetoed("the base is moving: the arm moves only while the base stands still", Rule.BASE_STILL)
         unknown = [n for n in goal.joint_names if n not in self.joint_limits]
         if unknown:
             raise Vetoed(
@@ -298,7 +347,7 @@ class SafetyPolicy:
                     f"point {i}: {len(point.positions)} positions for {len(goal.joint_names)} joints", Rule.JOINT_LIMITS
                 )
             positions = np.array(point.positions, dtype=float)
-            if not np.all(np.isfinite(positions)):
+            if not np.all(np.isfinite(positions)) or not math.isfinite(point.time_from_start):
                 raise Vetoed(f"point {i}: a position is not finite", Rule.JOINT_LIMITS)
             for name, q in zip(goal.joint_names, positions, strict=True):
                 lim = self.joint_limits[name]
@@ -313,8 +362,14 @@ class SafetyPolicy:
                         upper_rad=upper,
                     )
             dt = point.time_from_start - previous_time
-            if dt < 0:
-                raise Vetoed(f"point {i}: time_from_start goes backwards", Rule.JOINT_SPEED)
+            if dt < 0 or (dt == 0 and i > 0):
+                # Only the first point may be at time zero (where the arm already is): points at
+                # equal times would be jumps, however small each one.
+                raise Vetoed(
+                    f"point {i}: time_from_start {point.time_from_start:g} s does not increase "
+                    f"from {previous_time:g} s",
+                    Rule.JOINT_SPEED,
+                )
             for name, q0, q1 in zip(goal.joint_names, previous, positions, strict=True):
                 if dt == 0:
                     # A point at the start time must be where the arm already is.
@@ -342,7 +397,14 @@ class SafetyPolicy:
             previous, previous_time = positions, point.time_from_start
         reach = self._check_arm_path(path, base)
         values = {"points": float(len(goal.points)), "fastest_rps": fastest, **reach}
-        checks = (Rule.POSE_KNOWN, Rule.JOINT_LIMITS, Rule.JOINT_SPEED, Rule.WORKSPACE, Rule.ARM_KEEP_OUT)
+        checks = (
+            Rule.BASE_STILL,
+            Rule.POSE_KNOWN,
+            Rule.JOINT_LIMITS,
+            Rule.JOINT_SPEED,
+            Rule.WORKSPACE,
+            Rule.ARM_KEEP_OUT,
+        )
         return Verdict(goal, checks, values)
 
     def _check_arm_path(self, path: list[np.ndarray], base: Pose2D) -> dict[str, float]:
@@ -407,13 +469,22 @@ class SafetyPolicy:
                 force_n=goal.max_effort,
                 limit_n=limit,
             )
-        values = {"force_n": goal.max_effort, "limit_n": limit}
-        if goal.object_id is None:
-            return Verdict(goal, (Rule.GRIPPER_FORCE,), values)
-        mass = self.check_payload(goal.object_id)
-        return Verdict(
-            goal, (Rule.GRIPPER_FORCE, Rule.PAYLOAD), {**values, "mass_kg": mass, "payload_kg": self.payload}
+        if goal.payload_limit is not None and goal.payload_limit > self.payload + STILL:
+            raise Vetoed(
+                f"a payload limit of {goal.payload_limit:g} kg exceeds the arm's payload of {self.payload:g} kg",
+                Rule.PAYLOAD,
+                mass_kg=goal.payload_limit,
+                payload_kg=self.payload,
+            )
+        # Whatever the command names, the robot lets anything heavier than this slip.
+        goal = msgspec.structs.replace(
+            goal, payload_limit=self.payload if goal.payload_limit is None else goal.payload_limit
         )
+        values = {"force_n": goal.max_effort, "limit_n": limit, "payload_kg": self.payload}
+        if goal.object_id is None:
+            return Verdict(goal, (Rule.GRIPPER_FORCE, Rule.PAYLOAD), values)
+        values["mass_kg"] = self.check_payload(goal.object_id)
+        return Verdict(goal, (Rule.GRIPPER_FORCE, Rule.PAYLOAD), values)
 
     def check_payload(self, object_id: str) -> float:
         """Masses come from the world file, never from the command. Returns the mass."""

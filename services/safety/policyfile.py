@@ -90,11 +90,13 @@ class GripperPolicy(Section):
 class HumanPolicy(Section):
     """Speed and separation: full speed beyond `slow_distance` (D), `reduced_speed_scale` of it inside,
     stopped inside `stop_distance` (d). Distances from the base's footprint or the end effector,
-    whichever is nearer, to the person."""
+    whichever is nearer, to the person's body (`person_radius` around where they stand)."""
 
     slow_distance: Annotated[float, Meta(gt=0.0, le=20.0)]  # m
     stop_distance: Annotated[float, Meta(ge=0.0, le=20.0)]  # m
     reduced_speed_scale: Annotated[float, Meta(gt=0.0, le=1.0)]
+    # People are reported by where they stand; distances are to their body, this far around it.
+    person_radius: Annotated[float, Meta(ge=0.0, le=2.0)] = 0.2  # m
     # With no report of people for this long, someone may be near: reduced speed.
     unseen_after: Annotated[float, Meta(gt=0.0, le=60.0)] = 1.0  # s
 
@@ -114,6 +116,8 @@ class MonitorPolicy(Section):
     speed_tolerance: Fraction = 0.1
     speed_slack: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.05  # m/s or rad/s
     trip_after: Annotated[int, Meta(ge=1, le=100)] = 3
+    # After the allowed speed drops, the robot gets this long to react before it must brake.
+    reaction_time: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.3  # s
     # Odometry or joint states older than this are unknown: motion commands are refused, and the
     # watchdog trips the e-stop if the robot was last seen moving.
     state_max_age: Annotated[float, Meta(gt=0.0, le=10.0)] = 0.5  # s
@@ -200,6 +204,13 @@ def resolve(
             "base.max_angular_speed",
             f"{base.max_angular_speed:g} rad/s is above the robot's own {robot.max_angular_speed:g} rad/s",
         )
+    for entry, value, own, unit in (
+        ("base.max_linear_acceleration", base.max_linear_acceleration, robot.max_linear_acceleration, "m/s^2"),
+        ("base.max_angular_acceleration", base.max_angular_acceleration, robot.max_angular_acceleration, "rad/s^2"),
+    ):
+        # Safety's monitors expect the robot to brake this hard; the robot cannot brake harder.
+        if value > own:
+            raise bad(entry, f"{value:g} {unit} is above the robot's own {own:g} {unit}")
     if policy.payload.max_mass > robot.payload:
         raise bad("payload.max_mass", f"{policy.payload.max_mass:g} kg is above the arm's payload {robot.payload:g} kg")
     humans = policy.humans

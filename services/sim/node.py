@@ -130,7 +130,12 @@ class SimNode:
         scale, why = (0.0, reason or "") if reason is not None else self.speed_scale()
         if reason is None and not was_blocked:
             self._log_speed_change(self.sim.speed_scale, scale, why or "no reason given")
-        self.sim.set_speed_scale(scale)
+        with self._lock:
+            status = self._heartbeat
+        if reason is None and status is not None:
+            self.sim.set_speed_scale(scale, status.max_linear_speed, status.max_angular_speed)
+        else:
+            self.sim.set_speed_scale(scale)
         if reason is not None and not was_blocked:
             log.warning("stopping the robot: %s", reason)
             self.sim.stop(reason)

@@ -70,8 +70,6 @@ GRAVITY = -9.81
 # stop takes a few milliseconds, yet finite so furniture still blocks the base.
 BASE_FORCE = 4000.0
 BASE_TORQUE = 2000.0
-LINEAR_ACCELERATION = 1.5  # m/s^2, for commanded (not emergency) speed changes
-ANGULAR_ACCELERATION = 3.0  # rad/s^2
 # Arm joint torques: the URDF's effort limits, raised so the arm stays stiff while the base brakes.
 ARM_FORCES = (300.0, 300.0, 300.0, 300.0, 100.0, 100.0, 100.0)
 ARM_POSITION_GAIN = 0.3
@@ -178,7 +176,8 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         self.tolerances.append(GOAL_POSITION_TOLERANCE)
         self.index = 0
         self.max_speed = min(goal.max_speed or robot.max_linear_speed, robot.max_linear_speed)
-        self.max_turn = robot.max_angular_speed
+        self.max_turn = min(goal.max_turn_rate or robot.max_angular_speed, robot.max_angular_speed)
+        self.accel, self.turn_accel = robot.max_linear_acceleration, robot.max_angular_acceleration
         self.position_reached = False
         length = self._remaining(start)
         turns = len(self.waypoints) + 1
@@ -228,7 +227,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
             moving = abs(sim.base_velocity()[0]) > SETTLED_SPEED
             if abs(heading_error) < (TURN_IN_PLACE_ABOVE if moving else START_DRIVING_BELOW):
                 stops_there = self.tolerances[self.index] < WAYPOINT_TOLERANCE
-                brake = math.sqrt(2.0 * LINEAR_ACCELERATION * 0.8 * distance) if stops_there else self.max_speed
+                brake = math.sqrt(2.0 * self.accel * 0.8 * distance) if stops_there else self.max_speed
                 speed = min(self.max_speed, brake, 2.0 * distance + 0.02) * math.cos(heading_error)
             sim.command_base(direction * speed, self._turn_rate(heading_error))
             progress = remaining + 0.3 * abs(heading_error)
@@ -240,7 +239,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
             self._fail(sim, pose, f"timed out after {sim.sim_time - self.started:.1f} s with {remaining:.2f} m to go")
 
     def _turn_rate(self, error: float) -> float:
-        magnitude = min(self.max_turn, math.sqrt(2.0 * ANGULAR_ACCELERATION * 0.8 * abs(error)), 3.0 * abs(error))
+        magnitude = min(self.max_turn, math.sqrt(2.0 * self.turn_accel * 0.8 * abs(error)), 3.0 * abs(error))
         return math.copysign(magnitude, error)
 
     def _fail(self, sim: Simulation, pose: Pose2D, why: str) -> None:
@@ -352,7 +351,7 @@ class GripperMotion(Motion[GripperCommandFeedback, GripperCommandResult]):
             grasped = sim.object_between_fingers()
             if grasped is not None:
                 stalled = True
-                why_not = sim.grasp(grasped)
+                why_not = sim.grasp(grasped, self.goal.payload_limit)
                 message = why_not or f"holding {grasped}"
         result = GripperCommandResult(position=gap, stalled=stalled, reached_goal=reached, holding=sim.holding)
         self.finish(GoalState.SUCCEEDED, result, message)
@@ -394,6 +393,7 @@ class Simulation:
         self._base_actual = (0.0, 0.0)  # after the speed scale and the acceleration limits
         # Speed-and-separation: the fraction of normal speed the base and arm may use (0 pauses).
         self.speed_scale = 1.0
+        self.base_limits = (self.world.robot.max_linear_speed, self.world.robot.max_angular_speed)
         self._cmd_vel: Twist | None = None
         self._cmd_vel_until = 0.0
         self.motions: dict[str, Motion[Any, Any]] = {}
@@ -589,14 +589,21 @@ class Simulation:
         self._cmd_vel_until = self.sim_time + hold_for
         return True
 
-    def set_speed_scale(self, scale: float) -> None:
-        """Let the base and arm use `scale` (0..1) of their normal speed from the next step on.
+    def set_speed_scale(self, scale: float, linear: float | None = None, angular: float | None = None) -> None:
+        """Let the base and arm use `scale` (0..1) of their normal speed from the next step on; the
+        base at most `linear` m/s and `angular` rad/s when given (else its own maximum times the scale).
 
         The base ramps down to the new limit at its normal deceleration; trajectories slow down in
         time along the same path; navigation's stall and deadline clocks slow down alike; goals keep
         running, even at 0. The gripper is not scaled.
         """
         self.speed_scale = min(1.0, scale) if scale >= 0.0 else 0.0  # NaN counts as 0
+        robot = self.world.robot
+        limits = []
+        for given, own in ((linear, robot.max_linear_speed), (angular, robot.max_angular_speed)):
+            limit = own * self.speed_scale if given is None else min(own, given) if given >= 0.0 else 0.0
+            limits.append(limit)
+        self.base_limits = (limits[0], limits[1])
 
     def stop(self, reason: str) -> None:
         """Base velocity to zero at once, arm held where it is, every running goal aborted."""
@@ -619,10 +626,10 @@ class Simulation:
 
     def _apply_base(self) -> None:
         robot = self.world.robot
-        want_v = _clamp(self._base_command[0], self.speed_scale * robot.max_linear_speed)
-        want_w = _clamp(self._base_command[1], self.speed_scale * robot.max_angular_speed)
+        want_v = _clamp(self._base_command[0], self.base_limits[0])
+        want_w = _clamp(self._base_command[1], self.base_limits[1])
         have_v, have_w = self._base_actual
-        dv, dw = LINEAR_ACCELERATION * self.dt, ANGULAR_ACCELERATION * self.dt
+        dv, dw = robot.max_linear_acceleration * self.dt, robot.max_angular_acceleration * self.dt
         v = have_v + max(-dv, min(dv, want_v - have_v))
         w = have_w + max(-dw, min(dw, want_w - have_w))
         self._base_actual = (v, w)
@@ -691,10 +698,10 @@ class Simulation:
                 return object_id
         return None
 
-    def grasp(self, object_id: str) -> str | None:
+    def grasp(self, object_id: str, payload_limit: float | None = None) -> str | None:
         """Fix the object to the hand; the reason when it cannot be held (too heavy), else None."""
         obj = self.model.objects[object_id]
-        payload = self.world.robot.payload
+        payload = min(self.world.robot.payload, payload_limit or self.world.robot.payload)
         if obj.mass > payload:
             return f"{object_id} weighs {obj.mass:g} kg, over the {payload:g} kg payload; it slips out"
         body = self.object_bodies[object_id]

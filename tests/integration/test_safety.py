@@ -232,17 +232,27 @@ def test_a_runaway_robot_trips_the_monitor_and_a_silent_one_the_watchdog(safety_
     latch = events.wait_for(lambda e: e.decision is Decision.LATCHED, timeout=5.0)
     assert latch is not None and latch.rule is Rule.MONITOR_SPEED and latch.values["speed_mps"] == 1.0
 
+    # Stopped, so the runaway sample is not the last word when the latch is reset.
+    publish_odom(stack, 0.0, 5)
     assert reset_estop(stack.node, str(stack.token_file)).ok
     assert beats.wait_for(lambda b: not b.estop.latched, timeout=5.0, after=len(beats))
 
     # Within the limits, then silence while moving: the watchdog latches.
-    publish_odom(stack, 0.2, 10)
     n = len(events)
+    publish_odom(stack, 0.2, 10)
     silent = beats.wait_for(lambda b: b.estop.latched, timeout=5.0, after=len(beats))
     assert silent is not None and silent.estop.source == EstopSource.WATCHDOG
     assert "no odometry" in silent.estop.reason
     latch = events.wait_for(lambda e: e.decision is Decision.LATCHED, timeout=5.0, after=n)
-    assert latch is not None and latch.rule is Rule.WATCHDOG
+    assert latch is not None and latch.rule is Rule.WATCHDOG and latch.values["speed_mps"] == 0.2
+
+    # An e-stop nobody can read still stops the robot.
+    assert reset_estop(stack.node, str(stack.token_file)).ok
+    assert beats.wait_for(lambda b: not b.estop.latched, timeout=5.0, after=len(beats))
+    stack.node.session.put(keys.ESTOP.key(stack.settings.robot), b'{"source": "big red button"')
+    garbled = beats.wait_for(lambda b: b.estop.latched, timeout=5.0, after=len(beats))
+    assert garbled is not None and garbled.estop.source == "unknown"
+    assert "could not be read" in garbled.estop.reason
 
 
 def test_a_policy_zone_where_the_robot_stands_trips_the_monitor_at_once(tmp_path: Path) -> None:

@@ -149,6 +149,26 @@ WRONG: list[tuple[str, Case, list[str]]] = [
         ["base.max_angular_speed: 1.201 rad/s", "1.2 rad/s"],
     ),
     (
+        "speeding-up-harder-than-the-robot",
+        lambda a, r: changed(**{"base.max_linear_acceleration": r.max_linear_acceleration + EPS}),
+        ["base.max_linear_acceleration: 1.501 m/s^2 is above the robot's own 1.5 m/s^2"],
+    ),
+    (
+        "turning-up-harder-than-the-robot",
+        lambda a, r: changed(**{"base.max_angular_acceleration": r.max_angular_acceleration + EPS}),
+        ["base.max_angular_acceleration: 3.001 rad/s^2 is above the robot's own 3 rad/s^2"],
+    ),
+    (
+        "reaction-time-too-long",
+        lambda a, r: changed(**{"monitor.reaction_time": 5.0 + EPS}),
+        ["`$.monitor.reaction_time`", "<= 5.0"],
+    ),
+    (
+        "negative-person-radius",
+        lambda a, r: changed(**{"humans.person_radius": -EPS}),
+        ["`$.humans.person_radius`", ">= 0.0"],
+    ),
+    (
         "joints-faster-than-the-urdf",
         lambda a, r: changed(**{"arm.max_joint_speed": float(min(a.max_velocity)) + EPS}),
         ["arm.max_joint_speed: 2.176 rad/s is above", "URDF limit 2.175 rad/s"],
@@ -239,6 +259,14 @@ def test_a_wrong_policy_is_refused_naming_the_file_and_the_entry(
 RIGHT: list[tuple[str, Case]] = [
     ("as-fast-as-the-robot", lambda a, r: changed(**{"base.max_linear_speed": r.max_linear_speed})),
     ("turning-as-fast-as-the-robot", lambda a, r: changed(**{"base.max_angular_speed": r.max_angular_speed})),
+    (
+        "speeding-up-as-hard-as-the-robot",
+        lambda a, r: changed(**{"base.max_linear_acceleration": r.max_linear_acceleration}),
+    ),
+    (
+        "turning-up-as-hard-as-the-robot",
+        lambda a, r: changed(**{"base.max_angular_acceleration": r.max_angular_acceleration}),
+    ),
     ("joints-as-fast-as-the-urdf", lambda a, r: changed(**{"arm.max_joint_speed": float(min(a.max_velocity))})),
     ("joint-at-the-urdf", lambda a, r: changed(**{"arm.joints": {"panda_joint1": {"lower": urdf(a, "lower")}}})),
     ("joint-at-the-urdf-top", lambda a, r: changed(**{"arm.joints": {"panda_joint4": {"upper": 0.0}}})),
@@ -325,13 +353,25 @@ def test_a_tightened_joint_speed_is_enforced(tmp_path: Path, arm: ArmModel) -> N
 def test_tightened_base_and_gripper_limits_are_enforced(tmp_path: Path, arm: ArmModel) -> None:
     path = write_yaml(
         tmp_path / "policy.yaml",
-        changed(**{"base.max_linear_speed": 0.3, "base.max_angular_speed": 0.5, "gripper.max_force": 20.0}),
+        changed(
+            **{
+                "base.max_linear_speed": 0.3,
+                "base.max_angular_speed": 0.5,
+                "gripper.max_force": 20.0,
+                "payload.max_mass": 1.0,
+            }
+        ),
     )
     tight = checks(load(path, arm), arm)
     goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=0.3)
     assert tight.check_navigation(goal, START).command.max_speed == 0.3
+    # Not asked for, the tightened limits are filled in.
+    filled = tight.check_navigation(NavigateToPoseGoal(pose=goal.pose), START).command
+    assert (filled.max_speed, filled.max_turn_rate) == (0.3, 0.5)
+    assert tight.check_navigation(msgspec.structs.replace(goal, max_turn_rate=0.5), START)
     for command in (
         lambda: tight.check_navigation(msgspec.structs.replace(goal, max_speed=0.3 + EPS), START),
+        lambda: tight.check_navigation(msgspec.structs.replace(goal, max_turn_rate=0.5 + EPS), START),
         lambda: tight.check_cmd_vel(Twist(linear_x=0.3 + EPS), START),
         lambda: tight.check_cmd_vel(Twist(angular_z=0.5 + EPS), START),
     ):
@@ -342,6 +382,11 @@ def test_tightened_base_and_gripper_limits_are_enforced(tmp_path: Path, arm: Arm
     assert tight.check_gripper(GripperCommandGoal(position=0.0, max_effort=20.0))
     with pytest.raises(Vetoed, match="exceeds the limit of 20 N"):
         tight.check_gripper(GripperCommandGoal(position=0.0, max_effort=20.0 + EPS))
+    # The gripper lets anything over the tightened payload slip, and may not be told otherwise.
+    assert tight.check_gripper(GripperCommandGoal(position=0.0, max_effort=10.0)).command.payload_limit == 1.0
+    with pytest.raises(Vetoed, match="exceeds the arm's payload of 1 kg") as heavier:
+        tight.check_gripper(GripperCommandGoal(position=0.0, max_effort=10.0, payload_limit=1.0 + EPS))
+    assert heavier.value.rule is Rule.PAYLOAD
 
 
 def test_a_policys_own_keep_out_zone_is_enforced_like_the_worlds(tmp_path: Path, arm: ArmModel) -> None:
@@ -364,8 +409,15 @@ def test_a_policys_own_keep_out_zone_is_enforced_like_the_worlds(tmp_path: Path,
         with_nursery.check_navigation(close, start)
     assert refused.value.rule is Rule.KEEP_OUT
     # Driving through it, the monitors finding the base in it, the arm reaching into it.
-    with pytest.raises(Vetoed, match="crosses keep-out zone 'nursery'"):
-        with_nursery.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=0.5, y=7.0)), Pose2D(x=3.6, y=7.0))
+    through = NavigateToPoseGoal(pose=Pose2D(x=0.1, y=7.0, yaw=math.pi))
+    assert without.check_navigation(through, Pose2D(x=3.6, y=7.0)).command.pose == through.pose
+    with pytest.raises(Vetoed) as crossing:
+        with_nursery.check_navigation(through, Pose2D(x=3.6, y=7.0))
+    assert crossing.value.rule is Rule.KEEP_OUT
+    assert str(crossing.value) == (
+        "path from (3.60, 7.00) to (0.50, 7.00) takes the base's footprint into keep-out zone 'nursery': "
+        "the baby is asleep"
+    )
     assert without.zone_at(2.0, 7.0) is None
     zone = with_nursery.zone_at(2.0, 7.0)
     assert zone is not None and zone.id == "nursery"

@@ -37,7 +37,9 @@ def test_goal_in_the_stairs_is_vetoed_naming_the_zone(policy: SafetyPolicy) -> N
 
 
 def test_a_path_through_the_stairs_is_vetoed(policy: SafetyPolicy) -> None:
-    with pytest.raises(Vetoed, match="crosses keep-out zone 'stairs'"):
+    with pytest.raises(
+        Vetoed, match=r"^path from \(10\.00, 8\.50\) to .* takes the base's footprint into keep-out zone 'stairs'"
+    ):
         policy.check_navigation(NavigateToPoseGoal(pose=Pose2D(x=11.5, y=6.5)), Pose2D(x=10.0, y=8.5))
 
 
@@ -68,7 +70,10 @@ def test_the_footprint_not_just_the_centre_stays_out_of_zones(policy: SafetyPoli
 
 def test_a_clear_goal_passes_but_a_speed_over_the_limit_is_refused_not_clamped(policy: SafetyPolicy) -> None:
     goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=0.6)
-    assert policy.check_navigation(goal, Pose2D(x=6.0, y=1.2)).command == goal
+    # The turn rate, not asked for, is filled in with the limit: the robot gets numbers safety approved.
+    assert policy.check_navigation(goal, Pose2D(x=6.0, y=1.2)).command == msgspec.structs.replace(
+        goal, max_turn_rate=1.2
+    )
     with pytest.raises(Vetoed, match=r"2 m/s exceeds the base's limit of 0\.6 m/s") as refused:
         policy.check_navigation(NavigateToPoseGoal(pose=goal.pose, max_speed=2.0), Pose2D(x=6.0, y=1.2))
     assert refused.value.rule is Rule.BASE_SPEED
@@ -196,6 +201,8 @@ def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_p
     again = EstopLatch("secret", state)
     assert again.state.latched and again.state.source == "watchdog"
     again.reset("operator", "secret")
+    assert EstopLatch("secret", state).state.latched, "reset, like trigger, is written by save"
+    again.save()
     assert not EstopLatch("secret", state).state.latched
     state.write_text("{ not json")
     assert EstopLatch("secret", state).state.latched
@@ -226,7 +233,9 @@ def test_an_alternative_is_checked_from_wherever_the_steps_it_covers_start(polic
     # Step 2 can fail when the base stands at NORTH: the alternative would drive from there.
     to_east = Fallback(first=0, last=1, steps=[nav(EAST)], labels=["1 on_failure 1"])
     plan = GroundedPlan(steps=[nav(NORTH), nav(CLEAR)], source=SOURCE, labels=["1.1", "1.2"], fallbacks=[to_east])
-    with pytest.raises(Vetoed, match=r"^step 1 on_failure 1 \(navigate_to\).*crosses keep-out zone 'stairs'"):
+    with pytest.raises(
+        Vetoed, match=r"^step 1 on_failure 1 \(navigate_to\).*takes the base's footprint into keep-out zone 'stairs'"
+    ):
         policy.check_plan(plan, CLEAR)
     # Covering only the first step, it only starts from CLEAR.
     covering_first = msgspec.structs.replace(to_east, last=0)
@@ -237,7 +246,9 @@ def test_the_steps_after_an_alternative_are_checked_from_where_it_ends(policy: S
     plan = GroundedPlan(steps=[nav(CLEAR), nav(EAST)], source=SOURCE)
     assert policy.check_plan(plan, Pose2D(x=9.0, y=5.5))
     north = Fallback(first=0, last=0, steps=[nav(NORTH)])
-    with pytest.raises(Vetoed, match=r"^step 2 \(navigate_to\).*crosses keep-out zone 'stairs'"):
+    with pytest.raises(
+        Vetoed, match=r"^step 2 \(navigate_to\).*takes the base's footprint into keep-out zone 'stairs'"
+    ):
         policy.check_plan(msgspec.structs.replace(plan, fallbacks=[north]), Pose2D(x=9.0, y=5.5))
 
 

@@ -1,17 +1,29 @@
-"""What safety watches while the robot runs, at each limit: command rates, separation from people,
-measured speeds against the allowed ones (and the allowance decaying after the limit drops).
+"""What safety watches while the robot runs, at each limit: command rates, separation from people
+(and the reports of where they are), measured speeds against the allowed ones (and the allowance
+holding for the reaction time, then decaying, after the limit drops).
 
 Pure logic on numbers and timestamps; the numbers are the default policy file's.
 """
 
 from __future__ import annotations
 
+import sys
+import threading
+
 import msgspec
 import pytest
 
 from schemas.common import Pose2D
 from schemas.safety import Rule
-from services.safety.monitor import MotionMonitor, Person, RateLimit, SpeedEnvelope, nearest_person, separation
+from services.safety.monitor import (
+    MotionMonitor,
+    PeopleReports,
+    Person,
+    RateLimit,
+    SpeedEnvelope,
+    nearest_person,
+    separation,
+)
 from services.safety.policyfile import DEFAULT_POLICY, MonitorPolicy, Policy
 from services.worldmodel import load_world
 
@@ -26,6 +38,9 @@ W = POLICY.base.max_angular_speed
 JOINT_SPEED = 1.5
 # As the node sets it: the allowance falls at the base's deceleration.
 DECAY = POLICY.base.max_linear_acceleration / V
+REACTION = MONITOR.reaction_time
+# Long enough after a drop, even to a stop, for the allowance to have reached the new scale.
+SETTLED = REACTION + 1.0 / DECAY + 0.1
 
 
 def allowed(limit: float, scale: float = 1.0) -> float:
@@ -78,6 +93,44 @@ def test_a_bucket_smaller_than_one_command_still_lets_one_through() -> None:
     assert limit.capacity == 1.0
     assert limit.allow(0.0) and not limit.allow(0.5)
     assert limit.allow(1.0)
+
+
+def test_a_clock_going_back_neither_drains_nor_refills_the_bucket() -> None:
+    rate = 8.0  # 1/8 s is exact in binary
+    limit = RateLimit(rate, 0.5)
+    assert limit.allow(100.0)
+    # Earlier than the last command: the tokens left are still there, no fewer.
+    assert all(limit.allow(0.0) for _ in range(3))
+    assert not limit.allow(0.0)
+    # Nor does coming back to the last time refill the bucket: time is counted from the latest.
+    assert not limit.allow(50.0)
+    assert not limit.allow(100.0)
+    assert limit.allow(100.0 + 1.0 / rate)
+    assert not limit.allow(100.0 + 1.0 / rate)
+
+
+def test_a_bucket_shared_by_threads_lets_exactly_its_capacity_through() -> None:
+    threads, each, rate = 8, 300, 1000.0
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as possible, to meet any race
+    try:
+        for _ in range(3):
+            limit = RateLimit(rate, 1.0)
+            passed: list[int] = []
+            start = threading.Barrier(threads)
+
+            def spend(limit: RateLimit = limit, passed: list[int] = passed, start: threading.Barrier = start) -> None:
+                start.wait()
+                passed.append(sum(limit.allow(0.0) for _ in range(each)))
+
+            workers = [threading.Thread(target=spend) for _ in range(threads)]
+            for worker in workers:
+                worker.start()
+            for worker in workers:
+                worker.join()
+            assert sum(passed) == limit.capacity == rate
+    finally:
+        sys.setswitchinterval(previous)
 
 
 # human_separation
@@ -155,6 +208,63 @@ def test_the_hand_counts_when_it_is_nearer_than_the_base_and_the_nearest_person_
     assert nearest_person(here, SIZE, None, []) is None
 
 
+@pytest.mark.parametrize("radius", [HUMANS.person_radius, 0.5])
+def test_the_distance_is_to_the_persons_body_around_where_they_stand(radius: float) -> None:
+    here = Pose2D(x=0.0, y=0.0)
+    front = SIZE[0] / 2
+    person = Person("p", front + 1.0, 0.0)
+    found = nearest_person(here, SIZE, None, [person], radius)
+    assert found is not None and found[0] == pytest.approx(1.0 - radius)
+    # From the hand too, and never below zero when the body touches the robot.
+    found = nearest_person(here, SIZE, (front + 0.6, 0.0), [person], radius)
+    assert found is not None and found[0] == pytest.approx(max(0.0, 0.4 - radius))
+    touching = Person("p", front + radius / 2, 0.0)
+    assert nearest_person(here, SIZE, None, [touching], radius) == (0.0, touching)
+
+
+def test_the_robot_pauses_when_a_persons_body_not_where_they_stand_comes_within_d() -> None:
+    here = Pose2D(x=5.0, y=5.0)
+    front = SIZE[0] / 2
+    radius = HUMANS.person_radius
+    assert radius > 2 * EPS
+    for gap, scale in (
+        (HUMANS.stop_distance + radius + EPS, HUMANS.reduced_speed_scale),
+        (HUMANS.stop_distance + radius - EPS, 0.0),
+    ):
+        found = nearest_person(here, SIZE, None, [Person("p", here.x + front + gap, here.y)], radius)
+        assert found is not None and found[0] == pytest.approx(gap - radius)
+        assert separation(found, True, HUMANS).scale == scale
+
+
+# Reports of people: everyone seen within the window counts
+
+
+def test_with_no_report_within_the_window_where_people_are_is_unknown() -> None:
+    window = HUMANS.unseen_after
+    reports = PeopleReports(window)
+    assert reports.people(0.0) is None
+    reports.add(10.0, [])
+    assert reports.people(10.0) == [], "a report with nobody in it: nobody, and known"
+    assert reports.people(10.0 + window) == []
+    assert reports.people(10.0 + window + EPS) is None
+
+
+def test_an_empty_report_cannot_hide_a_person_another_report_within_the_window_saw() -> None:
+    window = HUMANS.unseen_after
+    reports = PeopleReports(window)
+    alice, bob = Person("alice", 1.0, 0.0), Person("bob", 2.0, 0.0)
+    reports.add(10.0, [alice])  # one camera sees alice
+    reports.add(10.1, [])  # another sees no one
+    assert reports.people(10.1) == [alice]
+    reports.add(10.2, [bob])
+    assert reports.people(10.2) == [alice, bob]
+    # Each report counts for the window from when it came, then no longer.
+    assert reports.people(10.0 + window) == [alice, bob]
+    assert reports.people(10.0 + window + EPS) == [bob]
+    assert reports.people(10.2 + window) == [bob]
+    assert reports.people(10.2 + window + EPS) is None
+
+
 # monitor_speed
 
 
@@ -197,14 +307,17 @@ def test_one_sample_within_the_allowance_restarts_the_count() -> None:
 
 
 def test_the_allowance_follows_the_separation_scale() -> None:
+    # Once the allowance has had time to fall to the scale (see the envelope below).
     scale = HUMANS.reduced_speed_scale
     reduced = monitor(MonitorPolicy(trip_after=1))
-    assert reduced.base(0.0, allowed(V, scale) - EPS, 0.0, scale) is None
-    trip = reduced.base(0.01, allowed(V, scale) + EPS, 0.0, scale)
+    assert reduced.base(0.0, 0.0, 0.0, scale) is None
+    assert reduced.base(SETTLED, allowed(V, scale) - EPS, 0.0, scale) is None
+    trip = reduced.base(SETTLED + 0.01, allowed(V, scale) + EPS, 0.0, scale)
     assert trip is not None and trip.values["allowed_mps"] == pytest.approx(allowed(V, scale))
     paused = monitor(MonitorPolicy(trip_after=1))
-    assert paused.base(0.0, MONITOR.speed_slack, 0.0, 0.0) is None  # only the slack is left
-    assert paused.base(0.01, MONITOR.speed_slack + EPS, 0.0, 0.0) is not None
+    assert paused.base(0.0, 0.0, 0.0, 0.0) is None
+    assert paused.base(SETTLED, MONITOR.speed_slack, 0.0, 0.0) is None  # only the slack is left
+    assert paused.base(SETTLED + 0.01, MONITOR.speed_slack + EPS, 0.0, 0.0) is not None
 
 
 # monitor_joint_speed
@@ -229,46 +342,133 @@ def test_joints_with_no_limit_are_not_monitored() -> None:
     assert watch.joints(0.0, {"panda_finger_joint1": 100.0}, 1.0) is None
 
 
-# After the limit drops, the allowance decays at the deceleration rate
+# After the limit drops, the allowance holds for the reaction time, then decays at the deceleration rate
 
 
-def test_the_envelope_falls_at_its_decay_rate_to_the_new_scale_and_rises_at_once() -> None:
+def test_the_envelope_holds_for_the_reaction_time_then_falls_at_its_decay_rate_and_rises_at_once() -> None:
+    envelope = SpeedEnvelope(2.5, 0.25)
+    assert envelope.update(0.0, 1.0) == 1.0
+    # The hold counts from the first update that sees the drop, not from the last one before it.
+    assert envelope.update(1.0, 0.4) == 1.0
+    assert envelope.update(1.25, 0.4) == 1.0
+    assert envelope.update(1.35, 0.4) == pytest.approx(0.75)
+    assert envelope.update(1.45, 0.4) == pytest.approx(0.5)
+    # At reaction_time + (1 - 0.4) / 2.5 after the drop it is the new scale; just before, a little above.
+    assert envelope.update(1.49 - EPS, 0.4) == pytest.approx(0.4 + 2.5 * EPS)
+    assert envelope.update(1.49, 0.4) == pytest.approx(0.4)
+    assert envelope.update(5.0, 0.4) == 0.4
+    assert envelope.update(5.1, 1.0) == 1.0
+
+
+def test_a_further_drop_gets_its_own_hold_without_undoing_the_fall_under_way() -> None:
+    envelope = SpeedEnvelope(2.5, 0.25)
+    assert envelope.update(0.0, 1.0) == 1.0
+    assert envelope.update(0.0, 0.5) == 1.0
+    assert envelope.update(0.35, 0.5) == pytest.approx(0.75)
+    assert envelope.update(0.35, 0.25) == pytest.approx(0.75)  # further down: held from 0.75 ...
+    assert envelope.update(0.6, 0.25) == pytest.approx(0.5)  # ... while the first fall goes on to 0.5
+    assert envelope.update(0.7, 0.25) == pytest.approx(0.5)  # the second fall has just reached 0.5
+    assert envelope.update(0.9, 0.25) == 0.25
+    assert envelope.update(1.0, 0.5) == 0.5  # a rise applies at once
+
+
+def test_a_rise_while_the_allowance_is_still_falling_stops_it_at_the_new_scale() -> None:
+    envelope = SpeedEnvelope(2.5, 0.25)
+    assert envelope.update(0.0, 1.0) == 1.0
+    assert envelope.update(2.0, 0.25) == 1.0
+    assert envelope.update(2.1, 0.5) == 1.0  # up again, but still below the allowance: the hold goes on
+    assert envelope.update(2.35, 0.5) == pytest.approx(0.75)
+    assert envelope.update(2.5, 0.5) == 0.5
+    assert envelope.update(3.0, 0.5) == 0.5
+
+
+def test_with_no_reaction_time_the_allowance_falls_from_the_first_update_that_sees_the_drop() -> None:
     envelope = SpeedEnvelope(2.5)
     assert envelope.update(0.0, 1.0) == 1.0
-    assert envelope.update(0.1, 0.4) == pytest.approx(0.75)
-    assert envelope.update(0.2, 0.4) == pytest.approx(0.5)
-    assert envelope.update(0.3, 0.4) == 0.4
-    assert envelope.update(0.4, 1.0) == 1.0
-    # A first report sets the scale at once: there is no earlier speed to slow from.
-    assert SpeedEnvelope(2.5).update(5.0, 0.0) == 0.0
+    assert envelope.update(1.0, 0.4) == 1.0
+    assert envelope.update(1.1, 0.4) == pytest.approx(0.75)
+    assert envelope.update(1.3, 0.4) == 0.4
 
 
-@pytest.mark.parametrize("after", [0.01, 0.04, 0.1])
-def test_right_after_the_limit_drops_the_allowance_is_the_decayed_one(after: float) -> None:
-    scale = max(HUMANS.reduced_speed_scale, 1.0 - DECAY * after)
+@pytest.mark.parametrize(
+    "after",
+    [0.01, REACTION - 0.01, REACTION + 0.04, REACTION + 0.1, REACTION + (1.0 - HUMANS.reduced_speed_scale) / DECAY],
+    ids=["just-after", "end-of-hold", "braking", "braking-more", "at-the-new-scale"],
+)
+def test_after_the_limit_drops_the_allowance_is_full_for_the_reaction_time_then_the_decayed_one(
+    after: float,
+) -> None:
+    reduced = HUMANS.reduced_speed_scale
+    scale = max(reduced, 1.0 - DECAY * max(0.0, after - REACTION))
     edge = allowed(V, scale)
+    drop = SETTLED  # the last update at full speed was long before: the hold counts from the drop
     for speed, trips in ((edge - EPS, False), (edge + EPS, True)):
         watch = monitor(MonitorPolicy(trip_after=1))
         assert watch.base(0.0, 0.0, 0.0, 1.0) is None
-        trip = watch.base(after, speed, 0.0, HUMANS.reduced_speed_scale)
+        assert watch.base(drop, 0.0, 0.0, reduced) is None
+        trip = watch.base(drop + after, speed, 0.0, reduced)
         assert (trip is not None) == trips
         if trip is not None:
             assert trip.values["allowed_mps"] == pytest.approx(edge)
 
 
+def test_the_monitors_hold_is_the_policys_reaction_time() -> None:
+    reduced = HUMANS.reduced_speed_scale
+    for reaction, scale in ((0.0, max(reduced, 1.0 - DECAY * 0.1)), (0.2, 1.0)):
+        watch = monitor(MonitorPolicy(trip_after=1, reaction_time=reaction))
+        assert watch.base(0.0, 0.0, 0.0, 1.0) is None
+        assert watch.base(0.0, 0.0, 0.0, reduced) is None
+        trip = watch.base(0.1, V * 2, 0.0, reduced)
+        assert trip is not None and trip.values["allowed_mps"] == pytest.approx(allowed(V, scale))
+
+
+def test_a_speed_a_hair_over_the_decayed_allowance_trips_after_trip_after_samples_once_the_hold_is_over() -> None:
+    reduced = HUMANS.reduced_speed_scale
+    watch = monitor()
+    n = MONITOR.trip_after
+    assert watch.base(0.0, V, 0.0, 1.0) is None
+    assert watch.base(1.0, V, 0.0, reduced) is None
+    # Full speed, however many samples, while the hold lasts.
+    hold = [1.0 + k * 0.01 for k in range(1, round(REACTION / 0.01))]
+    assert all(watch.base(t, V, 0.0, reduced) is None for t in hold)
+    settled = 1.0 + REACTION + (1.0 - reduced) / DECAY
+    over = allowed(V, reduced) + EPS
+    assert all(watch.base(settled + k * 0.01, over, 0.0, reduced) is None for k in range(n - 1))
+    trip = watch.base(settled + (n - 1) * 0.01, over, 0.0, reduced)
+    assert trip is not None and trip.rule is Rule.MONITOR_SPEED
+    assert trip.values["allowed_mps"] == pytest.approx(allowed(V, reduced))
+
+
 def test_full_speed_is_allowed_just_after_the_drop_but_not_once_the_robot_had_time_to_slow() -> None:
     watch = monitor()
     reduced = HUMANS.reduced_speed_scale
+    step = 0.005
     assert watch.base(0.0, V, 0.0, 1.0) is None
-    # The full limit stays allowed while the envelope is above (V - slack) / (V * (1 + tolerance)).
-    still_ok = (1.0 - (V - MONITOR.speed_slack) / (V * (1.0 + MONITOR.speed_tolerance))) / DECAY
-    times = [i * 0.005 for i in range(1, 200)]
+
+    # The drop is first seen at `step`. The full limit stays allowed for the reaction time, then
+    # while the envelope is above (V - slack) / (V * (1 + tolerance)).
+    def still_ok(limit: float) -> float:
+        return (
+            step + REACTION + (1.0 - (limit - MONITOR.speed_slack) / (limit * (1.0 + MONITOR.speed_tolerance))) / DECAY
+        )
+
+    times = [i * step for i in range(1, 200)]
     trips = [t for t in times if watch.base(t, V, 0.0, reduced) is not None]
     assert trips, "full speed long after the limit dropped must trip"
-    first_over = min(t for t in times if t > still_ok)
-    assert trips[0] == pytest.approx(first_over + (MONITOR.trip_after - 1) * 0.005)
-    # The arm's allowance decays the same way.
+    first_over = min(t for t in times if t > still_ok(V))
+    assert trips[0] == pytest.approx(first_over + (MONITOR.trip_after - 1) * step)
+    # The arm's allowance holds and decays the same way.
     arm = monitor()
-    assert arm.joints(0.0, {"panda_joint1": JOINT_SPEED}, 1.0) is None
-    assert arm.joints(0.005, {"panda_joint1": JOINT_SPEED}, reduced) is None
-    assert any(arm.joints(t, {"panda_joint1": JOINT_SPEED}, reduced) is not None for t in times[1:])
+    full = {"panda_joint1": JOINT_SPEED}
+    assert arm.joints(0.0, full, 1.0) is None
+    trips = [t for t in times if arm.joints(t, full, reduced) is not None]
+    first_over = min(t for t in times if t > still_ok(JOINT_SPEED))
+    assert trips[0] == pytest.approx(first_over + (MONITOR.trip_after - 1) * step)
+
+
+def test_the_first_scale_applies_at_once() -> None:
+    # Nothing was allowed before it: a pause reported at start-up allows no speed at all.
+    assert SpeedEnvelope(2.5, 0.3).update(5.0, 0.0) == 0.0
+    envelope = SpeedEnvelope(2.5, 0.3)
+    assert envelope.update(5.0, 0.4) == 0.4
+    assert envelope.update(5.1, 0.0) == 0.4  # a later drop is held for the reaction time

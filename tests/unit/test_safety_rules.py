@@ -67,6 +67,7 @@ PURE = {
     Rule.JOINT_SPEED,
     Rule.WORKSPACE,
     Rule.ARM_KEEP_OUT,
+    Rule.BASE_STILL,
     Rule.PAYLOAD,
     Rule.GRIPPER_FORCE,
     Rule.GRIPPER_DROP,
@@ -211,9 +212,79 @@ def test_a_goal_a_footprint_away_from_the_stairs_passes_and_closer_is_refused(
     assert policy.check_navigation(clear, start).command.pose == clear.pose
     close = pose_at(RADIUS - EPS)
     exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=close), start), Rule.KEEP_OUT)
-    assert f"({close.x:.2f}, {close.y:.2f})" in str(exc)
-    assert "'stairs': the robot could fall down the stairs" in str(exc)
+    assert str(exc) == (
+        f"at the goal ({close.x:.2f}, {close.y:.2f}) the base's footprint would be in keep-out zone 'stairs': "
+        "the robot could fall down the stairs"
+    )
     assert exc.values == {"x": pytest.approx(close.x), "y": pytest.approx(close.y)}
+
+
+# From here the base drives across the stairs' south-west corner, though every point of its route,
+# the pre-goal (11.10, 6.50) and the goal, is CORNER_GAP clear of the stairs.
+CORNER_START = Pose2D(x=10.0, y=8.5)
+CORNER_GOAL = NavigateToPoseGoal(pose=Pose2D(x=11.5, y=6.5))
+CORNER_GAP = 0.5
+
+
+def test_a_leg_of_the_route_that_takes_the_footprint_into_the_stairs_is_refused_naming_the_leg(
+    policy: SafetyPolicy,
+) -> None:
+    assert RADIUS < CORNER_GAP
+    # Around the corner, through the hallway, the same goal is reached.
+    around = msgspec.structs.replace(CORNER_GOAL, path=[Pose2D(x=9.5, y=8.5), Pose2D(x=9.5, y=6.5)])
+    assert policy.check_navigation(around, CORNER_START).command.path == around.path
+    exc = refused(lambda: policy.check_navigation(CORNER_GOAL, CORNER_START), Rule.KEEP_OUT)
+    assert str(exc) == (
+        "path from (10.00, 8.50) to (11.10, 6.50) takes the base's footprint into keep-out zone 'stairs': "
+        "the robot could fall down the stairs"
+    )
+    assert exc.values == {"x": pytest.approx(11.1), "y": pytest.approx(6.5)}
+
+
+# keep_out with the arm out: the zones grown by how far the hand sticks out, when beyond the footprint
+
+
+@pytest.mark.parametrize("reach", [RADIUS + 0.2, 0.85])
+def test_with_the_hand_out_a_goal_its_reach_away_from_the_stairs_passes_and_closer_is_refused(
+    policy: SafetyPolicy, reach: float
+) -> None:
+    start = Pose2D(x=8.5, y=STAIRS_MID_Y)
+    clear = NavigateToPoseGoal(pose=Pose2D(x=STAIRS_WEST - reach - EPS, y=STAIRS_MID_Y))
+    verdict = policy.check_navigation(clear, start, reach)
+    assert verdict.command.pose == clear.pose
+    assert verdict.values["reach_m"] == reach
+    close = Pose2D(x=STAIRS_WEST - reach + EPS, y=STAIRS_MID_Y)
+    assert policy.check_navigation(NavigateToPoseGoal(pose=close), start).command.pose == close, "clear of the base"
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=close), start, reach), Rule.KEEP_OUT)
+    assert str(exc) == (
+        f"at the goal ({close.x:.2f}, {close.y:.2f}) the hand ({reach:.2f} m from the base's centre) would be in "
+        "keep-out zone 'stairs': the robot could fall down the stairs"
+    )
+    assert exc.values == {"x": pytest.approx(close.x), "y": pytest.approx(close.y)}
+
+
+@pytest.mark.parametrize("reach", [0.1, RADIUS], ids=["tucked", "at-the-footprint"])
+def test_a_hand_within_the_footprint_changes_nothing(policy: SafetyPolicy, reach: float) -> None:
+    start = Pose2D(x=9.0, y=STAIRS_MID_Y)
+    clear = NavigateToPoseGoal(pose=Pose2D(x=STAIRS_WEST - RADIUS - EPS, y=STAIRS_MID_Y))
+    assert policy.check_navigation(clear, start, reach).values["reach_m"] == reach
+    close = NavigateToPoseGoal(pose=Pose2D(x=STAIRS_WEST - RADIUS + EPS, y=STAIRS_MID_Y))
+    exc = refused(lambda: policy.check_navigation(close, start, reach), Rule.KEEP_OUT)
+    assert "the base's footprint would be in keep-out zone 'stairs'" in str(exc)
+
+
+def test_a_leg_that_takes_the_hand_into_the_stairs_is_refused_naming_the_hand(policy: SafetyPolicy) -> None:
+    reach = (RADIUS + CORNER_GAP) / 2  # beyond the footprint, short of every point's gap
+    around = msgspec.structs.replace(CORNER_GOAL, path=[Pose2D(x=9.5, y=8.5), Pose2D(x=9.5, y=6.5)])
+    assert policy.check_navigation(around, CORNER_START, reach)
+    exc = refused(lambda: policy.check_navigation(CORNER_GOAL, CORNER_START, reach), Rule.KEEP_OUT)
+    assert str(exc) == (
+        f"path from (10.00, 8.50) to (11.10, 6.50) takes the hand ({reach:.2f} m from the base's centre) into "
+        "keep-out zone 'stairs': the robot could fall down the stairs"
+    )
+    # Reaching as far as the points' gap, the pre-goal point is refused first.
+    exc = refused(lambda: policy.check_navigation(around, CORNER_START, CORNER_GAP + EPS), Rule.KEEP_OUT)
+    assert str(exc).startswith("at the route point (11.10, 6.50) the hand (0.50 m from the base's centre) would be in")
 
 
 def test_the_footprint_margin_grows_the_zones_further(limits: Limits, arm: ArmModel) -> None:
@@ -241,6 +312,44 @@ def test_a_navigation_speed_at_the_limit_passes_and_just_over_is_refused(policy:
     assert exc.values == {"speed_mps": limit + EPS, "limit_mps": limit}
 
 
+def test_a_navigation_turn_rate_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
+    limit = policy.max_angular
+    at = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_turn_rate=limit)
+    verdict = policy.check_navigation(at, START)
+    assert verdict.command.max_turn_rate == limit
+    assert verdict.values["turn_rps"] == limit
+    over = msgspec.structs.replace(at, max_turn_rate=limit + EPS)
+    exc = refused(lambda: policy.check_navigation(over, START), Rule.BASE_SPEED)
+    assert str(exc).startswith("a turn rate of ")
+    assert_names(str(exc), limit + EPS, limit)
+    assert exc.values == {"turn_rps": limit + EPS, "limit_rps": limit}
+
+
+def test_navigation_gets_the_limits_filled_in_when_it_asks_for_no_speed_or_turn_rate(policy: SafetyPolicy) -> None:
+    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05))
+    verdict = policy.check_navigation(goal, START)
+    assert verdict.command == msgspec.structs.replace(
+        goal, max_speed=policy.max_linear, max_turn_rate=policy.max_angular
+    )
+    assert verdict.checks == (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.BASE_SPEED)
+    assert verdict.values == {
+        "x": 2.5,
+        "y": 1.05,
+        "speed_mps": policy.max_linear,
+        "limit_mps": policy.max_linear,
+        "limit_rps": policy.max_angular,
+        "turn_rps": policy.max_angular,
+        "reach_m": 0.0,
+    }
+    # What was asked for, within the limits, is kept: one filled in leaves the other alone.
+    slower = msgspec.structs.replace(goal, max_speed=0.1, max_turn_rate=0.2)
+    assert policy.check_navigation(slower, START).command == slower
+    only_speed = policy.check_navigation(msgspec.structs.replace(goal, max_speed=0.1), START).command
+    assert (only_speed.max_speed, only_speed.max_turn_rate) == (0.1, policy.max_angular)
+    only_turn = policy.check_navigation(msgspec.structs.replace(goal, max_turn_rate=0.2), START).command
+    assert (only_turn.max_speed, only_turn.max_turn_rate) == (policy.max_linear, 0.2)
+
+
 @pytest.mark.parametrize(("field", "sign"), [("linear_x", 1), ("linear_x", -1), ("angular_z", 1), ("angular_z", -1)])
 def test_cmd_vel_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy, field: str, sign: int) -> None:
     limit = policy.max_linear if field == "linear_x" else policy.max_angular
@@ -252,6 +361,26 @@ def test_cmd_vel_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPoli
     assert_names(str(exc), sign * (limit + EPS), limit)
     measured, bound = ("speed_mps", "limit_mps") if field == "linear_x" else ("turn_rps", "limit_rps")
     assert exc.values == {measured: sign * (limit + EPS), bound: limit}
+
+
+def test_a_cmd_vel_near_a_person_passes_with_a_note_of_the_speed_the_robot_keeps_to(policy: SafetyPolicy) -> None:
+    twist = Twist(linear_x=policy.max_linear, angular_z=-policy.max_angular)
+    full = policy.check_cmd_vel(twist, START)
+    assert full.command == twist and full.clamped_by is None and full.note == ""
+    assert full.checks == (Rule.BASE_SPEED, Rule.CMD_VEL_HORIZON, Rule.HUMAN_SEPARATION)
+    assert full.values == {"speed_mps": policy.max_linear, "turn_rps": -policy.max_angular, "scale": 1.0}
+    # Just under full scale the note is there; the command is not changed (the robot keeps to the lower speed).
+    for scale in (1.0 - EPS, policy.policy.humans.reduced_speed_scale, 0.0):
+        near = policy.check_cmd_vel(twist, START, scale)
+        assert near.command == twist and near.clamped_by is None
+        assert near.values["scale"] == scale
+        assert near.note == (
+            f"a person is near: the robot moves at most {policy.max_linear * scale:.2f} m/s and "
+            f"{policy.max_angular * scale:.2f} rad/s for now"
+        )
+    # Over the full limit it is still refused, near a person or not.
+    over = Twist(linear_x=policy.max_linear + EPS)
+    refused(lambda: policy.check_cmd_vel(over, START, policy.policy.humans.reduced_speed_scale), Rule.BASE_SPEED)
 
 
 def test_a_plan_asking_for_a_speed_just_over_the_limit_is_refused(policy: SafetyPolicy) -> None:
@@ -484,8 +613,43 @@ def test_a_first_point_at_time_zero_may_differ_from_the_measured_position_only_a
     jump = trajectory((with_joint(HOME, "panda_joint1", START_TOLERANCE + EPS), 0.0), (later, 2.0))
     exc = refused(lambda: policy.check_trajectory(jump, NOW, START), Rule.JOINT_SPEED)
     assert exc.values == {"jump_rad": pytest.approx(START_TOLERANCE + EPS)}
+    assert str(exc) == f"point 0: panda_joint1 would jump {START_TOLERANCE + EPS:.3f} rad at once"
     backwards = trajectory((later, 2.0), (HOME, 1.0))
-    assert "backwards" in str(refused(lambda: policy.check_trajectory(backwards, NOW, START), Rule.JOINT_SPEED))
+    exc = refused(lambda: policy.check_trajectory(backwards, NOW, START), Rule.JOINT_SPEED)
+    assert str(exc) == "point 1: time_from_start 1 s does not increase from 2 s"
+
+
+@pytest.mark.parametrize("start", [0.0, 1.0], ids=["at-zero", "later"])
+def test_after_the_first_point_each_time_must_increase_so_small_steps_cannot_add_up_to_a_jump(
+    policy: SafetyPolicy, start: float
+) -> None:
+    limit = policy.joint_limits["panda_joint1"].velocity
+    step = START_TOLERANCE - EPS  # each point within the start tolerance of the one before
+    points = [with_joint(HOME, "panda_joint1", k * step) for k in range(1, 5)]  # 0.196 rad in all
+    # Spread out at the joint speed limit, the same points pass; each step a hair apart in time too.
+    spread = trajectory(*((q, start + k * step / limit) for k, q in enumerate(points)))
+    assert policy.check_trajectory(spread, NOW, START).values["fastest_rps"] == pytest.approx(limit)
+    still = trajectory((points[0], start), (points[0], start + EPS))
+    assert policy.check_trajectory(still, NOW, START)
+    # All at one time: the second point is refused, however small its step.
+    at_once = trajectory(*((q, start) for q in points))
+    exc = refused(lambda: policy.check_trajectory(at_once, NOW, START), Rule.JOINT_SPEED)
+    assert str(exc) == f"point 1: time_from_start {start:g} s does not increase from {start:g} s"
+    same = trajectory((points[0], start), (points[0], start))
+    refused(lambda: policy.check_trajectory(same, NOW, START), Rule.JOINT_SPEED)
+
+
+# base_still
+
+
+def test_a_trajectory_passes_while_the_base_stands_still_and_is_refused_while_it_moves(policy: SafetyPolicy) -> None:
+    goal = trajectory((with_joint(HOME, "panda_joint1", 0.5), 1.0))
+    verdict = policy.check_trajectory(goal, NOW, START, base_moving=False)
+    assert verdict.command == goal
+    assert Rule.BASE_STILL in verdict.checks
+    exc = refused(lambda: policy.check_trajectory(goal, NOW, START, base_moving=True), Rule.BASE_STILL)
+    assert str(exc) == "the base is moving: the arm moves only while the base stands still"
+    assert exc.values == {}
 
 
 # workspace
@@ -619,10 +783,33 @@ BOOK = next(obj for obj in WORLD.objects if obj.id == "blue_book")
 
 @pytest.mark.parametrize("offset", [EPS, 0.0])
 def test_an_object_at_or_under_the_payload_passes(limits: Limits, arm: ArmModel, offset: float) -> None:
-    rules = tightened(limits, arm, payload=PayloadPolicy(max_mass=BOOK.mass + offset))
+    payload = BOOK.mass + offset
+    rules = tightened(limits, arm, payload=PayloadPolicy(max_mass=payload))
     verdict = rules.check_gripper(GripperCommandGoal(position=0.0, object_id=BOOK.id))
     assert verdict.values["mass_kg"] == BOOK.mass
-    assert Rule.PAYLOAD in verdict.checks
+    assert verdict.values["payload_kg"] == payload
+    assert verdict.checks == (Rule.GRIPPER_FORCE, Rule.PAYLOAD)
+    assert verdict.command.payload_limit == payload
+
+
+def test_the_gripper_gets_the_payload_filled_in_as_its_limit_and_a_limit_over_it_is_refused(
+    policy: SafetyPolicy,
+) -> None:
+    payload = policy.policy.payload.max_mass
+    force = policy.policy.gripper.max_force
+    # With no object named, the payload still applies: the robot lets anything heavier slip.
+    verdict = policy.check_gripper(GripperCommandGoal(position=0.0))
+    assert verdict.command == GripperCommandGoal(position=0.0, payload_limit=payload)
+    assert verdict.checks == (Rule.GRIPPER_FORCE, Rule.PAYLOAD)
+    assert verdict.values == {"force_n": 40.0, "limit_n": force, "payload_kg": payload}
+    for limit in (payload, 0.5):  # at the payload, and lighter: kept as asked
+        asked = GripperCommandGoal(position=0.0, payload_limit=limit)
+        assert policy.check_gripper(asked).command == asked
+    over = GripperCommandGoal(position=0.0, object_id="red_cup", payload_limit=payload + EPS)
+    exc = refused(lambda: policy.check_gripper(over), Rule.PAYLOAD)
+    assert str(exc).startswith("a payload limit of ")
+    assert_names(str(exc), payload + EPS, payload)
+    assert exc.values == {"mass_kg": payload + EPS, "payload_kg": payload}
 
 
 def test_an_object_just_over_the_payload_is_refused_by_its_mass_in_the_world_file(

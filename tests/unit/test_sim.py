@@ -26,7 +26,7 @@ from schemas.world import World
 from services.executor.kinematics import ArmKinematics, joint_trajectory, world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
-from services.sim.physics import LINEAR_ACCELERATION, STALL_TIME, Simulation
+from services.sim.physics import STALL_TIME, Simulation
 from services.worldmodel import load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
@@ -172,10 +172,10 @@ def test_navigation_slows_to_the_speed_scale_and_still_arrives(sim: Simulation) 
     before = sim.base_speed()
     assert before > 0.55
     sim.set_speed_scale(0.5)
-    ramp = (before - limit) / LINEAR_ACCELERATION
+    ramp = (before - limit) / sim.world.robot.max_linear_acceleration
     speeds = [before, *speeds_over(sim, 2.0)]
     # Slowed down at the normal deceleration, not at once, then held to the limit.
-    assert largest_drop(speeds) < 1.2 * LINEAR_ACCELERATION * sim.dt
+    assert largest_drop(speeds) < 1.2 * sim.world.robot.max_linear_acceleration * sim.dt
     settled = round((ramp + 0.05) / sim.dt)
     assert max(speeds[settled:]) < limit + 0.01
     assert speeds[settled] > limit - 0.02, "slowed down further than asked"
@@ -192,9 +192,9 @@ def test_a_pause_stops_the_base_gently_and_keeps_the_goal_running(sim: Simulatio
     assert sim.base_speed() > 0.3
     sim.set_speed_scale(0.0)
     speeds = [sim.base_speed(), *speeds_over(sim, 1.0)]
-    assert largest_drop(speeds) < 1.2 * LINEAR_ACCELERATION * sim.dt
+    assert largest_drop(speeds) < 1.2 * sim.world.robot.max_linear_acceleration * sim.dt
     stopped_after = next(k for k, v in enumerate(speeds) if v < 0.01) * sim.dt
-    assert stopped_after > 0.8 * 0.3 / LINEAR_ACCELERATION
+    assert stopped_after > 0.8 * 0.3 / sim.world.robot.max_linear_acceleration
     assert speeds[-1] < 0.001
     # Long past the stall time, the paused goal runs on: the stall and deadline clocks stand still.
     clock, here = motion.clock, sim.base_pose()
