@@ -20,6 +20,10 @@ the bytes with a plain get to the sim's bare echo and replies with the first rep
 two processes and two hops, carrying the same request bytes, with no decoding and no checks. Each
 goal is interleaved with one relay round trip, alternating which goes first.
 
+The tail of both is mostly the sim's camera: each frame (`--objects-hz`, 5 a second by default)
+is rendered on the sim's thread and holds its GIL for ~20 ms, delaying whatever the sim process is
+answering then, the relay's echo included. `--objects-hz 0.2` shows the path without it.
+
 `ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
 reason in `errors`), `failed` goals accepted whose result was not `succeeded`.
 """
@@ -200,7 +204,8 @@ def summarize(samples: Samples) -> dict[str, Any]:
 
 def bench(args: argparse.Namespace) -> dict[str, Any]:
     n, warmup, max_seconds = args.n, args.warmup, args.max_seconds
-    with robot_ready("gate", progress, {"realtime_factor": args.realtime_factor}, arm=True) as (stack, state, _):
+    sim = {"realtime_factor": args.realtime_factor, "objects_hz": args.objects_hz}
+    with robot_ready("gate", progress, sim, arm=True) as (stack, state, _):
         progress(f"measuring {n} goals of each kind against the relay (+{warmup} warm-up, <= {max_seconds:g} s)")
         samples = measure(stack, state, n, warmup, max_seconds, args.goals_per_second)
     return {
@@ -233,7 +238,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "bench/raw_echo/sim and replies with them; same request bytes as the goal",
         order="interleaved, alternating first call; each goal's result fetched (untimed) before the next",
         goals_per_second_per_kind=args.goals_per_second,
-        sim={"realtime_factor": args.realtime_factor},
+        sim={"realtime_factor": args.realtime_factor, "objects_hz": args.objects_hz},
     )
     return result
 
@@ -272,6 +277,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=bounded(float, 0.1, 20.0),
         default=REALTIME_FACTOR,
         help="the sim's speed (faster than real time: results come sooner, but physics takes the CPU)",
+    )
+
+    parser.add_argument(
+        "--objects-hz",
+        type=bounded(float, 0.0, 100.0, open_low=True),
+        default=5.0,
+        help="the sim's camera rate; each frame holds the sim's GIL ~20 ms, which is most of the tail",
     )
 
 
