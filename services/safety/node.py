@@ -56,6 +56,8 @@ STILL_BELOW = 0.1
 # first message after it may speed up by at most TELEOP_MAX_STEP seconds of acceleration.
 TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
+# Repeated vetoes of a stream for one rule are one event per this many seconds.
+REPEAT_WINDOW = 1.0
 # What the whole-plan check applies.
 PLAN_RULES = (
     Rule.ESTOP,
@@ -88,6 +90,8 @@ class SafetyNode:
         self._sent_twist: tuple[float, Twist] = (0.0, Twist())
         self._twist_lock = threading.Lock()
         self._seq = 0
+        self._repeats: dict[tuple[str, Rule], tuple[float, int, str]] = {}
+        self._repeat_lock = threading.Lock()
         self._forwarded: dict[str, Action[Any, Any, Any]] = {}
         self._lock = threading.Lock()
         self._monitor_lock = threading.Lock()
@@ -202,6 +206,7 @@ class SafetyNode:
                 self._watchdog()
             except Exception:
                 log.exception("the watchdog failed")
+            self._flush_repeats()
             self._publish_heartbeat()
             next_beat += period
             self._stop.wait(max(0.0, next_beat - time.monotonic()))
@@ -394,12 +399,35 @@ class SafetyNode:
 
     # Commands
 
+    def _veto_repeated(self, key: str, exc: Vetoed, command: object) -> None:
+        """A stream vetoed for the same rule over and over (e-stop latched, over the rate): the first
+        veto is an event, the rest are counted into one event a second (see _flush_repeats)."""
+        now = time.monotonic()
+        with self._repeat_lock:
+            seen = self._repeats.get((key, exc.rule))
+            if seen is not None and now - seen[0] < REPEAT_WINDOW:
+                self._repeats[(key, exc.rule)] = (seen[0], seen[1] + 1, str(exc))
+                return
+            self._repeats[(key, exc.rule)] = (now, 0, str(exc))
+        self._veto(key, exc, command)
+
+    def _flush_repeats(self) -> None:
+        now = time.monotonic()
+        with self._repeat_lock:
+            due = [(k, v) for k, v in self._repeats.items() if now - v[0] >= REPEAT_WINDOW]
+            for k, _ in due:
+                del self._repeats[k]
+        for (key, rule), (at, count, reason) in due:
+            if count:
+                why = f"{count} more vetoed like this in the last {now - at:.1f} s: {reason}"
+                self._event(key, Decision.VETOED, why, None, rule, (rule,), {"count": float(count)})
+
     def _rate_ok(self, key: str, command: object) -> bool:
         if self._rates[key].allow(time.monotonic()):
             return True
         limit = self._rates[key].rate
         exc = Vetoed(f"more than {limit:g} commands a second on {key}", Rule.COMMAND_RATE, limit_hz=limit)
-        self._veto(key, exc, command)
+        self._veto_repeated(key, exc, command)
         return False
 
     def _put_twist(self, twist: Twist) -> None:
@@ -430,7 +458,7 @@ class SafetyNode:
         estop = self.latch.state
         if estop.latched:
             why = f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it"
-            self._veto(key, Vetoed(why, Rule.ESTOP), twist)
+            self._veto_repeated(key, Vetoed(why, Rule.ESTOP), twist)
             return
         if not self._rate_ok(key, twist):
             with self._twist_lock:

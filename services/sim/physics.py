@@ -324,7 +324,11 @@ class GripperMotion(Motion[GripperCommandFeedback, GripperCommandResult]):
         if not self.closing and sim.holding is not None:
             sim.release()
         sim.command_fingers(goal.position, goal.max_effort)
-        self.still_since = sim.sim_time
+        # The gripper's own clock stands still while paused (speed scale 0: a person is too close
+        # for fingers to close); any other scale moves the fingers at their normal speed.
+        self.clock = 0.0
+        self.paused = False
+        self.still_since = 0.0
 
     def result_now(self, sim: Simulation) -> GripperCommandResult:
         gap = sim.gripper_gap()
@@ -338,11 +342,20 @@ class GripperMotion(Motion[GripperCommandFeedback, GripperCommandResult]):
     def tick(self, sim: Simulation) -> None:
         gap = sim.gripper_gap()
         self.feedback = GripperCommandFeedback(position=gap)
-        elapsed = sim.sim_time - self.started
+        if sim.speed_scale <= 0.0:
+            if not self.paused:
+                self.paused = True
+                sim.command_fingers(gap, self.goal.max_effort)
+            return
+        if self.paused:
+            self.paused = False
+            sim.command_fingers(self.goal.position, self.goal.max_effort)
+        self.clock += sim.dt
+        elapsed = self.clock
         reached = abs(gap - self.goal.position) < GRIPPER_REACHED
         if sim.finger_speed() > 1e-3:
-            self.still_since = sim.sim_time
-        still = sim.sim_time - self.still_since > GRIPPER_STILL_TIME and elapsed > GRIPPER_STILL_TIME
+            self.still_since = self.clock
+        still = self.clock - self.still_since > GRIPPER_STILL_TIME and elapsed > GRIPPER_STILL_TIME
         if not (reached or still or elapsed > GRIPPER_TIMEOUT):
             return
         message = f"gripper at {gap * 1000:.0f} mm"
@@ -595,7 +608,7 @@ class Simulation:
 
         The base ramps down to the new limit at its normal deceleration; trajectories slow down in
         time along the same path; navigation's stall and deadline clocks slow down alike; goals keep
-        running, even at 0. The gripper is not scaled.
+        running, even at 0. The gripper is not slowed but pauses at 0.
         """
         self.speed_scale = min(1.0, scale) if scale >= 0.0 else 0.0  # NaN counts as 0
         robot = self.world.robot

@@ -254,6 +254,15 @@ def test_a_runaway_robot_trips_the_monitor_and_a_silent_one_the_watchdog(safety_
     assert garbled is not None and garbled.estop.source == "unknown"
     assert "could not be read" in garbled.estop.reason
 
+    # A stream refused over and over is one event, then one count of the rest.
+    n = len(events)
+    for _ in range(50):
+        stack.node.publish(keys.CMD_VEL, Twist(angular_z=0.1))
+    counted = events.wait_for(lambda e: e.values.get("count", 0) > 0, timeout=5.0, after=n)
+    assert counted is not None and counted.rule is Rule.ESTOP and counted.values["count"] == 49
+    refusals = [e for e in events.messages[n:] if e.key == keys.CMD_VEL.path]
+    assert len(refusals) == 2 and "an operator must reset it" in refusals[0].reason
+
 
 def test_a_policy_zone_where_the_robot_stands_trips_the_monitor_at_once(tmp_path: Path) -> None:
     policy = tmp_path / "policy.toml"

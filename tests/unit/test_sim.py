@@ -250,10 +250,23 @@ def gripper_time(sim: Simulation, position: float) -> float:
     return sim.sim_time - start
 
 
-def test_the_gripper_is_not_slowed(sim: Simulation) -> None:
+def test_the_gripper_is_not_slowed_but_pauses_with_the_robot(sim: Simulation) -> None:
     closing = gripper_time(sim, 0.0)
-    sim.set_speed_scale(0.0)
+    sim.set_speed_scale(0.2)
     assert gripper_time(sim, 0.08) == pytest.approx(closing, rel=0.1)
+    # Paused (a person too close): the fingers hold where they are, and the goal waits.
+    motion = sim.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.1)
+    sim.set_speed_scale(0.0)
+    sim.settle(0.05)
+    held = sim.gripper_gap()
+    assert 0.01 < held < 0.075, held
+    sim.settle(3.0)  # longer than the gripper's own timeout
+    assert motion.running
+    assert sim.gripper_gap() == pytest.approx(held, abs=0.002)
+    sim.set_speed_scale(1.0)
+    sim.run(motion, timeout=5.0)
+    assert motion.state is GoalState.SUCCEEDED and sim.gripper_gap() < 0.002
 
 
 def test_navigation_into_furniture_aborts_with_a_reason(sim: Simulation, world: World) -> None:
