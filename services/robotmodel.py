@@ -27,18 +27,29 @@ def arm_urdf_path(arm_urdf: str | Path = DEFAULT_ARM_URDF) -> Path:
     return Path(pybullet_data.getDataPath()) / arm_urdf
 
 
+def map_to_base(base: Pose2D, x: float, y: float) -> tuple[float, float]:
+    """A floor point (map frame) in the frame of the base standing at `base` (x ahead, y left)."""
+    dx, dy = x - base.x, y - base.y
+    c, s = math.cos(base.yaw), math.sin(base.yaw)
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def base_to_map(base: Pose2D, x: float, y: float) -> tuple[float, float]:
+    """The inverse of map_to_base."""
+    c, s = math.cos(base.yaw), math.sin(base.yaw)
+    return base.x + c * x - s * y, base.y + s * x + c * y
+
+
 def world_to_arm(base: Pose2D, mount: Vec3, point: Vec3) -> np.ndarray:
     """`point` (map frame) in the arm's base frame panda_link0, mounted at `mount` on the base."""
-    dx, dy = point.x - base.x, point.y - base.y
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    return np.array([c * dx + s * dy - mount.x, -s * dx + c * dy - mount.y, point.z - mount.z])
+    x, y = map_to_base(base, point.x, point.y)
+    return np.array([x - mount.x, y - mount.y, point.z - mount.z])
 
 
 def arm_to_world(base: Pose2D, mount: Vec3, point: Sequence[float] | np.ndarray) -> Vec3:
     """The inverse of world_to_arm: a point in panda_link0 back in the map frame."""
-    bx, by = float(point[0]) + mount.x, float(point[1]) + mount.y
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    return Vec3(x=base.x + c * bx - s * by, y=base.y + s * bx + c * by, z=float(point[2]) + mount.z)
+    x, y = base_to_map(base, float(point[0]) + mount.x, float(point[1]) + mount.y)
+    return Vec3(x=x, y=y, z=float(point[2]) + mount.z)
 
 
 class ArmModel:

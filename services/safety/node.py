@@ -29,6 +29,7 @@ from schemas.safety import (
 )
 from schemas.world import PerceivedHumans
 from services.actionlib import MAX_RESULT_WAIT
+from services.robotmodel import base_to_map
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.errors import Unauthorized, Vetoed
@@ -43,7 +44,7 @@ from services.safety.monitor import (
     nearest_person,
     separation,
 )
-from services.safety.policy import SafetyPolicy, Verdict
+from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict
 
 log = logging.getLogger(__name__)
 
@@ -58,19 +59,6 @@ TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
 # Repeated vetoes of a stream for one rule are one event per this many seconds.
 REPEAT_WINDOW = 1.0
-# What the whole-plan check applies.
-PLAN_RULES = (
-    Rule.ESTOP,
-    Rule.PLAN,
-    Rule.POSE_KNOWN,
-    Rule.MAP,
-    Rule.KEEP_OUT,
-    Rule.BASE_SPEED,
-    Rule.PAYLOAD,
-    Rule.WORKSPACE,
-    Rule.ARM_KEEP_OUT,
-    Rule.GRIPPER_DROP,
-)
 
 
 class SafetyNode:
@@ -116,6 +104,7 @@ class SafetyNode:
         node.subscribe(keys.JOINT_STATES, self._on_joints)
         node.subscribe(keys.HUMANS, self._on_humans)
         # Raw: an e-stop that does not decode still stops the robot.
+        self._estop_decoder = decoder(EStop)
         node.subscribe_raw(keys.ESTOP.key(node.robot), self._on_estop_raw)
         node.subscribe(keys.CMD_VEL, self._on_cmd_vel)
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
@@ -250,10 +239,7 @@ class SafetyNode:
     def hand(self, pose: Pose2D) -> tuple[float, float] | None:
         """The end effector on the floor plan (map frame)."""
         local = self._hand_in_base()
-        if local is None:
-            return None
-        c, s = math.cos(pose.yaw), math.sin(pose.yaw)
-        return pose.x + c * local[0] - s * local[1], pose.y + s * local[0] + c * local[1]
+        return None if local is None else base_to_map(pose, *local)
 
     def reach(self) -> float:
         """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
@@ -299,7 +285,7 @@ class SafetyNode:
 
     def _on_estop_raw(self, _key: str, payload: bytes) -> None:
         try:
-            msg: EStop = decoder(EStop).decode(payload)
+            msg: EStop = self._estop_decoder.decode(payload)
         except (msgspec.DecodeError, UnicodeDecodeError) as exc:
             # Fail closed: someone meant to stop the robot.
             reason = f"an e-stop message that could not be read ({len(payload)} bytes): {exc}"[:1000]
@@ -422,13 +408,19 @@ class SafetyNode:
                 why = f"{count} more vetoed like this in the last {now - at:.1f} s: {reason}"
                 self._event(key, Decision.VETOED, why, None, rule, (rule,), {"count": float(count)})
 
-    def _rate_ok(self, key: str, command: object) -> bool:
-        if self._rates[key].allow(time.monotonic()):
-            return True
-        limit = self._rates[key].rate
-        exc = Vetoed(f"more than {limit:g} commands a second on {key}", Rule.COMMAND_RATE, limit_hz=limit)
-        self._veto_repeated(key, exc, command)
-        return False
+    def _estop_veto(self) -> Vetoed | None:
+        """Why nothing may move while the e-stop is latched; None when it is not."""
+        estop = self.latch.state
+        if not estop.latched:
+            return None
+        return Vetoed(f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it", Rule.ESTOP)
+
+    def _rate_veto(self, key: str) -> Vetoed | None:
+        """The command on `key` over its rate limit; None while within it."""
+        limit = self._rates[key]
+        if limit.allow(time.monotonic()):
+            return None
+        return Vetoed(f"more than {limit.rate:g} commands a second on {key}", Rule.COMMAND_RATE, limit_hz=limit.rate)
 
     def _put_twist(self, twist: Twist) -> None:
         """The only writer of robot/cmd_vel; remembers what was sent (callers hold _twist_lock or not)."""
@@ -455,12 +447,11 @@ class SafetyNode:
 
     def _forward_twist(self, topic: Topic[Twist], twist: Twist, check: Callable[[], Verdict[Twist]]) -> None:
         key = topic.path
-        estop = self.latch.state
-        if estop.latched:
-            why = f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it"
-            self._veto_repeated(key, Vetoed(why, Rule.ESTOP), twist)
+        if refused := self._estop_veto():
+            self._veto_repeated(key, refused, twist)
             return
-        if not self._rate_ok(key, twist):
+        if refused := self._rate_veto(key):
+            self._veto_repeated(key, refused, twist)
             with self._twist_lock:
                 self._put_twist(Twist())
             return
@@ -476,14 +467,13 @@ class SafetyNode:
         self._approve(key, verdict, verdict.command)
 
     def _on_check_plan(self, plan: GroundedPlan) -> PlanCheckReply:
-        estop = self.latch.state
         try:
-            if estop.latched:
-                raise Vetoed(f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it", Rule.ESTOP)
+            if refused := self._estop_veto():
+                raise refused
             checks = self.policy.check_plan(plan, self.pose())
         except Vetoed as exc:
             self._veto(keys.PLAN_CHECK.path, exc, plan)
-            kind = ErrorKind.ESTOP if estop.latched else ErrorKind.VETOED
+            kind = ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
             return ServiceError(kind=kind, message=str(exc), stage=Stage.SAFETY)
         self._event(keys.PLAN_CHECK.path, Decision.APPROVED, "; ".join(checks), plan, None, PLAN_RULES)
         return PlanApproved(checks=checks)
@@ -495,13 +485,9 @@ class SafetyNode:
 
         def send_goal(req: SendGoal[Any]) -> GoalResponse:
             key = cmd.send_goal.path
-            estop = self.latch.state
             try:
-                if estop.latched:
-                    raise Vetoed(f"e-stop latched by {estop.source}: {estop.reason}", Rule.ESTOP)
-                if not self._rates[key].allow(time.monotonic()):
-                    limit = self._rates[key].rate
-                    raise Vetoed(f"more than {limit:g} goals a second", Rule.COMMAND_RATE, limit_hz=limit)
+                if refused := self._estop_veto() or self._rate_veto(key):
+                    raise refused
                 verdict = check(req.goal)
             except Vetoed as exc:
                 self._veto(key, exc, req)

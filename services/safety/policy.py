@@ -33,7 +33,7 @@ from schemas.plan import (
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.safety import Rule
 from schemas.world import KeepOut
-from services.robotmodel import ArmModel
+from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
 from services.safety.policyfile import Limits
 from services.worldmodel import WorldModel, drive_route
@@ -50,6 +50,19 @@ INTERPOLATION_STEP = 0.05
 STILL = 1e-6
 
 ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT)
+# What the whole-plan check (check_plan, with the e-stop in the node) applies.
+PLAN_RULES = (
+    Rule.ESTOP,
+    Rule.PLAN,
+    Rule.POSE_KNOWN,
+    Rule.MAP,
+    Rule.KEEP_OUT,
+    Rule.BASE_SPEED,
+    Rule.PAYLOAD,
+    Rule.WORKSPACE,
+    Rule.ARM_KEEP_OUT,
+    Rule.GRIPPER_DROP,
+)
 
 
 @dataclass(frozen=True)
@@ -417,7 +430,7 @@ class SafetyPolicy:
                 x, y, z = point[0] + self.mount.x, point[1] + self.mount.y, point[2] + self.mount.z
                 self.check_in_workspace(x, y, z, "the end effector")
                 lowest, farthest = min(lowest, z), max(farthest, x)
-                world = _base_to_map(base, x, y)
+                world = base_to_map(base, x, y)
                 if zone := self._zone_hit(Point(world), grown=False):
                     raise Vetoed(
                         f"the end effector would reach into keep-out zone '{zone.name}' at "
@@ -449,9 +462,7 @@ class SafetyPolicy:
     def check_reach(self, approach: Pose2D, position: Vec3, what: str) -> None:
         """The end effector can go to `position` (map frame) from `approach` without leaving the
         workspace or reaching into a keep-out zone."""
-        dx, dy = position.x - approach.x, position.y - approach.y
-        c, s = math.cos(approach.yaw), math.sin(approach.yaw)
-        self.check_in_workspace(c * dx + s * dy, -s * dx + c * dy, position.z, what)
+        self.check_in_workspace(*map_to_base(approach, position.x, position.y), position.z, what)
         if zone := self._zone_hit(Point(position.x, position.y), grown=False):
             raise Vetoed(
                 f"{what} at ({_fmt(position.x)}, {_fmt(position.y)}) is inside keep-out zone '{zone.name}'{_why(zone)}",
@@ -634,8 +645,3 @@ def _ramp(previous: float, wanted: float, step: float) -> tuple[float, bool]:
     if abs(wanted) <= abs(previous) + step + STILL:
         return wanted, False
     return math.copysign(abs(previous) + step, wanted), True
-
-
-def _base_to_map(base: Pose2D, x: float, y: float) -> tuple[float, float]:
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    return base.x + c * x - s * y, base.y + s * x + c * y

@@ -96,14 +96,6 @@ class SimNode:
             return f"e-stop latched by {status.estop.source or 'unknown'}: {status.estop.reason or 'no reason given'}"
         return None
 
-    def speed_scale(self) -> tuple[float, str]:
-        """The fraction of normal speed the latest heartbeat allows, and why; (0, ...) with none."""
-        with self._lock:
-            status = self._heartbeat
-        if status is None:
-            return 0.0, "no safety heartbeat received yet"
-        return status.speed_scale, status.speed_reason
-
     def _accept(self, _goal: object) -> str | None:
         # Never moves without a heartbeat: this only waits (bounded) for the first one to arrive.
         self._first_heartbeat.wait(self.config.first_heartbeat_wait)
@@ -126,15 +118,16 @@ class SimNode:
         reason = self.safety_block()
         was_blocked = self._blocked_reason is not None
         self._blocked_reason = reason
-        # While blocked the scale is 0 too, so nothing moves until a heartbeat says how fast it may.
-        scale, why = (0.0, reason or "") if reason is not None else self.speed_scale()
-        if reason is None and not was_blocked:
-            self._log_speed_change(self.sim.speed_scale, scale, why or "no reason given")
         with self._lock:
             status = self._heartbeat
         if reason is None and status is not None:
+            scale = status.speed_scale
+            if not was_blocked:
+                self._log_speed_change(self.sim.speed_scale, scale, status.speed_reason or "no reason given")
             self.sim.set_speed_scale(scale, status.max_linear_speed, status.max_angular_speed)
         else:
+            # While blocked the scale is 0 too, so nothing moves until a heartbeat says how fast it may.
+            scale = 0.0
             self.sim.set_speed_scale(scale)
         if reason is not None and not was_blocked:
             log.warning("stopping the robot: %s", reason)
