@@ -7,7 +7,7 @@ from typing import Annotated, Generic, TypeVar
 
 from msgspec import Meta
 
-from schemas.common import Frozen, Text
+from schemas.common import ErrorKind, Frozen, Text
 
 G = TypeVar("G")
 F = TypeVar("F")
@@ -38,11 +38,13 @@ class SendGoal(Frozen, Generic[G]):
 
 
 class GoalResponse(Frozen):
-    """Reply on `X/_action/send_goal`: accepted, or rejected with the reason."""
+    """Reply on `X/_action/send_goal`: accepted, or rejected with the reason. `kind` says what kind
+    of refusal (safety sets `vetoed` or `estop`); None for a robot that is busy or unreachable."""
 
     goal_id: GoalId
     accepted: bool
     reason: Text = ""
+    kind: ErrorKind | None = None
 
 
 class CancelGoal(Frozen):
@@ -66,6 +68,18 @@ class ResultResponse(Frozen, Generic[R]):
     state: GoalState
     result: R | None = None
     message: Text = ""
+
+
+class GoalProgress(Frozen, Generic[F, R]):
+    """Reply on `X/_action/get_status` (a tether addition to the five ROS 2 keys): where a goal is
+    now, without waiting for it to end. `feedback` is the latest published, `result` set once the
+    goal is terminal."""
+
+    goal_id: GoalId
+    state: GoalState
+    message: Text = ""
+    feedback: F | None = None
+    result: R | None = None
 
 
 class Feedback(Frozen, Generic[F]):

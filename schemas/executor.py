@@ -18,6 +18,25 @@ class PlanStatus(enum.StrEnum):
     CANCELED = "canceled"
 
 
+class FailureKind(enum.StrEnum):
+    """Why a step failed, as pyrobosim names it: each asks for a different next move.
+
+    precondition: the world is not as the step needs (the hand already full, the object not found);
+    planning: no collision-free path for the base or the arm, no grasp that reaches;
+    execution: a motion did not complete (blocked, timed out, ended by the robot);
+    postcondition: the motions went through but perception shows otherwise (not in the hand after
+    closing, not on the surface after placing); canceled; vetoed: safety refused a command or
+    stopped the robot (e-stop).
+    """
+
+    PRECONDITION = "precondition"
+    PLANNING = "planning"
+    EXECUTION = "execution"
+    POSTCONDITION = "postcondition"
+    CANCELED = "canceled"
+    VETOED = "vetoed"
+
+
 class StepStatus(enum.StrEnum):
     PENDING = "pending"
     RUNNING = "running"
@@ -28,9 +47,14 @@ class StepStatus(enum.StrEnum):
 
 
 class ExecutePlanGoal(Frozen):
+    """A plan to run. With `preempt`, a plan already running is canceled (and the robot brought to a
+    stop) before this one starts; without it, this one is rejected while another runs, unless the
+    executor is configured to preempt (`[executor] when_busy = "preempt"`)."""
+
     text: Annotated[str, Meta(max_length=MAX_PLAN_BYTES)]
     format: PlanFormat = "auto"
     dry_run: bool = False
+    preempt: bool = False
 
 
 # Where a step came from in the parsed plan: "2", "3.1" (first sub-step of step 3), "2 on_failure 1".
@@ -47,16 +71,22 @@ class ExecutePlanFeedback(Frozen):
     status: StepStatus = StepStatus.RUNNING
     message: Text = ""
     label: Label | None = None
+    failure: FailureKind | None = None
+    attempt: int = 1
 
 
 class StepResult(Frozen):
-    """One step's outcome. `index` as ExecutePlanFeedback.step; `label` names the step in the plan."""
+    """One step's outcome. `index` as ExecutePlanFeedback.step; `label` names the step in the plan.
+    A failed step says what kind of failure it was, and `attempts` how often it was tried (a retry
+    follows a re-detection and a new plan, see the executor's README)."""
 
     index: int
     action: str
     status: StepStatus
     message: Text = ""
     label: Label | None = None
+    failure: FailureKind | None = None
+    attempts: int = 1
 
 
 class ExecutePlanResult(Frozen):
@@ -68,3 +98,5 @@ class ExecutePlanResult(Frozen):
     reason: Text = ""
     steps: list[StepResult] = []
     warnings: list[Text] = []
+    # The kind of the failure that ended the plan, when a step's failure did.
+    failure: FailureKind | None = None

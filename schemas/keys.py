@@ -14,6 +14,7 @@ from schemas.actions import (
     CancelResponse,
     Feedback,
     GetResult,
+    GoalProgress,
     GoalResponse,
     GoalStatus,
     ResultResponse,
@@ -109,6 +110,8 @@ class Action(Generic[G, F, R]):
     send_goal: Service[Any, GoalResponse] = field(init=False)
     cancel_goal: Service[CancelGoal, CancelResponse] = field(init=False)
     get_result: Service[GetResult, Any] = field(init=False)
+    # Not one of the five ROS 2 keys: where a goal is now, without waiting (for agents that poll).
+    get_status: Service[GetResult, Any] = field(init=False)
     feedback: Topic[Any] = field(init=False)
     status: Topic[GoalStatus] = field(init=False)
 
@@ -118,6 +121,8 @@ class Action(Generic[G, F, R]):
         set_(self, "send_goal", Service(f"{base}/send_goal", SendGoal[self.goal], GoalResponse))  # type: ignore[name-defined]
         set_(self, "cancel_goal", Service(f"{base}/cancel_goal", CancelGoal, CancelResponse))
         set_(self, "get_result", Service(f"{base}/get_result", GetResult, ResultResponse[self.result]))  # type: ignore[name-defined]
+        progress = GoalProgress[self.feedback_type, self.result]  # type: ignore[name-defined]
+        set_(self, "get_status", Service(f"{base}/get_status", GetResult, progress))
         set_(self, "feedback", Topic(f"{base}/feedback", Feedback[self.feedback_type]))  # type: ignore[name-defined]
         set_(self, "status", Topic(f"{base}/status", GoalStatus))
 
@@ -205,7 +210,7 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     GROUND_TRUTH,
     SIM_MOVE,
     RECORDER_STATUS,
-    *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result)),
+    *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result, a.get_status)),
 )
 
 # Command keys under robot/**: what only safety may write.

@@ -57,13 +57,16 @@ class NavigateToPoseGoal(Frozen):
 
     `max_speed` (m/s) and `max_turn_rate` (rad/s) are what was asked for; safety refuses one over
     its limit and fills in its limit when none is given, so the robot always receives numbers
-    safety approved.
+    safety approved. `start` is where the route was checked from: safety fills in the pose it
+    checked it from, and the robot drives the legs that start gives (services/footprint.py), or
+    refuses the goal when it no longer stands there.
     """
 
     pose: Pose2D
     path: Annotated[list[Pose2D], Meta(max_length=MAX_PATH_POINTS)] = []
     max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
     max_turn_rate: Annotated[float, Meta(gt=0.0, le=10.0)] | None = None
+    start: Pose2D | None = None
 
 
 class NavigateToPoseFeedback(Frozen):
@@ -85,9 +88,14 @@ class TrajectoryPoint(Frozen):
 
 
 class FollowJointTrajectoryGoal(Frozen):
+    """Follow `points` in time. `goal_tolerance` (rad) is how close every joint must end to the last
+    point; `path_tolerance` (rad) how far any joint may fall from where the trajectory has it on
+    the way: further (blocked, pushed) aborts the goal, as ROS's path_tolerance does."""
+
     joint_names: Annotated[list[JointName], Meta(min_length=1, max_length=MAX_JOINTS)]
     points: Annotated[list[TrajectoryPoint], Meta(min_length=1, max_length=MAX_TRAJECTORY_POINTS)]
     goal_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.02
+    path_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.1
 
 
 class FollowJointTrajectoryFeedback(Frozen):

@@ -84,6 +84,7 @@ class Rule(enum.StrEnum):
     POSE_KNOWN = "pose_known"  # motion needs recent odometry / joint states
     MAP = "map"  # the base stays on the map
     KEEP_OUT = "keep_out"  # the base's footprint stays out of keep-out zones
+    OBSTACLE = "obstacle"  # the base's footprint, driving its route, touches no wall or furniture
     BASE_SPEED = "base_speed"
     BASE_ACCELERATION = "base_acceleration"
     CMD_VEL_HORIZON = "cmd_vel_horizon"  # a held cmd_vel must not reach a zone or leave the map

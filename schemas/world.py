@@ -44,6 +44,19 @@ class Place(Frozen):
     synonyms: list[Name] = []
 
 
+class Wall(Frozen):
+    """A straight wall on the floor plan: `thickness` across the line from `start` to `end`, which it
+    covers end to end (a doorway is the gap between two walls). `name` is for people ("the wall
+    between the kitchen and the living room")."""
+
+    id: Id
+    start: Point2
+    end: Point2
+    thickness: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.1
+    height: Size = 2.4
+    name: Name = "wall"
+
+
 class Furniture(Frozen):
     """An axis-aligned box whose top is a surface; `approach` is where the base stands to use it."""
 
@@ -108,6 +121,7 @@ class World(Frozen):
     keep_out: list[KeepOut] = []
     places: list[Place] = []
     humans: list[Human] = []
+    walls: list[Wall] = []
 
 
 # What perception reports.
@@ -125,6 +139,9 @@ class PerceivedObject(Frozen):
     # `stale` once that is longer ago than its `stale_after`.
     stamp: float = 0.0
     stale: bool = False
+    # The heading of its footprint's x side (world file `size.x`), modulo a half turn, for an
+    # object whose footprint is not round (a book); None for round ones or when not seen well.
+    yaw: Radians | None = None
 
 
 class PerceivedObjects(Frozen):

@@ -17,6 +17,7 @@ from schemas.actions import (
     CancelResponse,
     Feedback,
     GetResult,
+    GoalProgress,
     GoalResponse,
     GoalState,
     GoalStatus,
@@ -39,6 +40,12 @@ MAX_RESULT_WAIT = 3600.0
 # A cancel request with this goal id cancels every running goal, as ROS 2's zero UUID does.
 CANCEL_ALL = "all"
 CANCEL_POLL = 0.05
+# After a client cancels a goal, it waits this long for the server to report it ended.
+CANCEL_GRACE = 10.0
+# A preempting goal waits this long for the goals it cancels to end before it is accepted.
+PREEMPT_TIMEOUT = 10.0
+# The goal id of a result for a goal that was never sent.
+UNSENT = "unsent"
 
 
 @dataclass(frozen=True)
@@ -62,8 +69,12 @@ class GoalHandle(Generic[G, F]):
     done: threading.Event = field(default_factory=threading.Event)
     outcome: Outcome[Any] | None = None
     finished_at: float = 0.0
+    latest_feedback: F | None = None
+    # Why the goal is being canceled when someone other than its client asked (a preempting goal).
+    cancel_reason: str = ""
 
     def feedback(self, message: F) -> None:
+        self.latest_feedback = message
         self._publish_feedback(self.goal_id, message)
 
     @property
@@ -75,7 +86,10 @@ class ActionServer(Generic[G, F, R]):
     """Serves one action. Each accepted goal runs `execute` on its own thread.
 
     `accept` returns None to accept a goal or the reason to reject it. With `exclusive`, a goal
-    that arrives while another runs is rejected.
+    that arrives while another runs is rejected, unless `preempts(goal)` says it preempts: then the
+    running goals are canceled and the new one is accepted only once they have ended, so two goals
+    never drive the robot at once. A goal `concurrent(goal)` says moves nothing (a dry run) is
+    neither kept out nor keeps others out. Besides the five ROS 2 keys it answers `get_status`.
     """
 
     def __init__(
@@ -86,12 +100,18 @@ class ActionServer(Generic[G, F, R]):
         *,
         accept: Callable[[G], str | None] | None = None,
         exclusive: bool = True,
+        preempts: Callable[[G], bool] | None = None,
+        preempt_timeout: float = PREEMPT_TIMEOUT,
+        concurrent: Callable[[G], bool] | None = None,
     ) -> None:
         self._node = node
         self._action = action
         self._execute = execute
         self._accept = accept
         self._exclusive = exclusive
+        self._preempts = preempts
+        self._preempt_timeout = preempt_timeout
+        self._concurrent = concurrent or (lambda _goal: False)
         self._goals: dict[str, GoalHandle[G, F]] = {}
         self._lock = threading.Lock()
         self._feedback = node.publisher(action.feedback)
@@ -99,6 +119,7 @@ class ActionServer(Generic[G, F, R]):
         node.serve(action.send_goal, self._on_send_goal)
         node.serve(action.cancel_goal, self._on_cancel)
         node.serve(action.get_result, self._on_get_result)
+        node.serve(action.get_status, self._on_get_status)
 
     def active(self) -> list[GoalHandle[G, F]]:
         with self._lock:
@@ -116,10 +137,16 @@ class ActionServer(Generic[G, F, R]):
     def _on_send_goal(self, request: SendGoal[G]) -> GoalResponse:
         reason = self._accept(request.goal) if self._accept else None
         with self._lock:
+            if reason is None and request.goal_id in self._goals:
+                reason = f"goal id {request.goal_id} was already used"
+        exclusive = self._exclusive and not self._concurrent(request.goal)
+        if reason is None and exclusive and self._preempts is not None and self._preempts(request.goal):
+            reason = self._preempt(request.goal_id)
+        with self._lock:
             self._forget_old()
             if reason is None and request.goal_id in self._goals:
                 reason = f"goal id {request.goal_id} was already used"
-            if reason is None and self._exclusive and any(not g.done.is_set() for g in self._goals.values()):
+            if reason is None and exclusive and self._blocking():
                 reason = f"{self._action.path} is busy with another goal"
             if reason is not None:
                 log.info("rejected goal %s on %s: %s", request.goal_id, self._action.path, reason)
@@ -129,6 +156,27 @@ class ActionServer(Generic[G, F, R]):
         self._publish_status(handle.goal_id, GoalState.ACCEPTED)
         threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
         return GoalResponse(goal_id=request.goal_id, accepted=True)
+
+    def _blocking(self) -> list[GoalHandle[G, F]]:
+        """The running goals that keep others out (not the concurrent ones). With the lock held."""
+        return [g for g in self._goals.values() if not g.done.is_set() and not self._concurrent(g.goal)]
+
+    def _preempt(self, goal_id: str) -> str | None:
+        """Cancel every running goal for `goal_id` and wait for them to end; the reason to reject
+        the new goal if they do not end in time."""
+        with self._lock:
+            running = self._blocking()
+        for handle in running:
+            handle.cancel_reason = f"preempted by goal {goal_id}"
+            handle.cancel_requested.set()
+            self._publish_status(handle.goal_id, GoalState.CANCELING, handle.cancel_reason)
+        deadline = time.monotonic() + self._preempt_timeout
+        for handle in running:
+            if not handle.done.wait(max(0.0, deadline - time.monotonic())):
+                return f"goal {handle.goal_id} did not stop within {self._preempt_timeout:g} s of being preempted"
+        if running:
+            log.info("goal %s preempted %s", goal_id, ", ".join(h.goal_id for h in running))
+        return None
 
     def _publish_feedback(self, goal_id: str, message: F) -> None:
         self._feedback.put(Feedback(goal_id=goal_id, feedback=message))
@@ -142,6 +190,10 @@ class ActionServer(Generic[G, F, R]):
             outcome = Outcome(GoalState.ABORTED, None, f"{self._action.path} failed: {exc}")
         if handle.abort_reason and outcome.state is not GoalState.SUCCEEDED:
             outcome = Outcome(GoalState.ABORTED, outcome.result, handle.abort_reason)
+        elif (
+            handle.cancel_reason and outcome.state is GoalState.CANCELED and handle.cancel_reason not in outcome.message
+        ):
+            outcome = Outcome(outcome.state, outcome.result, f"{handle.cancel_reason}; {outcome.message}")
         handle.outcome = outcome
         handle.finished_at = time.monotonic()
         handle.done.set()
@@ -173,6 +225,23 @@ class ActionServer(Generic[G, F, R]):
             goal_id=handle.goal_id, state=outcome.state, result=outcome.result, message=outcome.message
         )
 
+    def _on_get_status(self, request: GetResult) -> GoalProgress[F, R]:
+        with self._lock:
+            handle = self._goals.get(request.goal_id)
+        if handle is None:
+            raise CallError(ServiceError(kind=ErrorKind.INVALID_REQUEST, message=f"unknown goal {request.goal_id}"))
+        outcome = handle.outcome
+        if outcome is None:
+            state = GoalState.CANCELING if handle.cancel_requested.is_set() else GoalState.EXECUTING
+            return GoalProgress(goal_id=handle.goal_id, state=state, feedback=handle.latest_feedback)
+        return GoalProgress(
+            goal_id=handle.goal_id,
+            state=outcome.state,
+            message=outcome.message,
+            feedback=handle.latest_feedback,
+            result=outcome.result,
+        )
+
     def _forget_old(self) -> None:
         cutoff = time.monotonic() - RESULT_RETENTION
         for goal_id in [g for g, h in self._goals.items() if h.done.is_set() and h.finished_at < cutoff]:
@@ -180,9 +249,12 @@ class ActionServer(Generic[G, F, R]):
 
 
 class GoalRejected(Exception):
-    def __init__(self, reason: str) -> None:
+    """The server refused the goal: `reason` in words, `kind` when it says what kind of refusal."""
+
+    def __init__(self, reason: str, kind: ErrorKind | None = None) -> None:
         super().__init__(reason)
         self.reason = reason
+        self.kind = kind
 
 
 class ClientGoal(Generic[G, F, R]):
@@ -223,9 +295,12 @@ class ActionClient(Generic[G, F, R]):
         node: Node,
         action: Action[G, F, R],
         on_feedback: Callable[[str, F], None] | None = None,
+        *,
+        cancel_grace: float = CANCEL_GRACE,
     ) -> None:
         self._node = node
         self._action = action
+        self._cancel_grace = cancel_grace
         if on_feedback is not None:
             callback = on_feedback
             node.subscribe(action.feedback, lambda fb: callback(fb.goal_id, fb.feedback))
@@ -234,11 +309,14 @@ class ActionClient(Generic[G, F, R]):
         goal_id = uuid.uuid4().hex
         response = self._node.call(self._action.send_goal, SendGoal(goal_id=goal_id, goal=goal), timeout=timeout)
         if not response.accepted:
-            raise GoalRejected(response.reason)
+            raise GoalRejected(response.reason, response.kind)
         return ClientGoal(self, goal_id)
 
     def run(self, goal: G, *, timeout: float, cancel: threading.Event | None = None) -> ResultResponse[R]:
-        """Send `goal` and wait for its result; cancel it if `cancel` is set meanwhile."""
+        """Send `goal` and wait for its result; cancel it if `cancel` is set meanwhile. Already
+        canceled, the goal is not sent at all: nothing may start moving after a cancel."""
+        if cancel is not None and cancel.is_set():
+            return ResultResponse(goal_id=UNSENT, state=GoalState.CANCELED, message="canceled before it was sent")
         handle = self.send(goal)
         if cancel is None:
             try:
@@ -247,12 +325,18 @@ class ActionClient(Generic[G, F, R]):
                 self._cancel_quietly(handle)
                 raise
         future = handle.result_future(timeout)
-        cancel_sent = False
+        canceled_at: float | None = None
         # Two things to wait for: check the cancel flag between short waits for the result.
         while not futures.wait([future], CANCEL_POLL).done:
-            if cancel.is_set() and not cancel_sent:
-                cancel_sent = True
+            if cancel.is_set() and canceled_at is None:
+                canceled_at = time.monotonic()
                 self._cancel_quietly(handle)
+            if canceled_at is not None and time.monotonic() - canceled_at > self._cancel_grace:
+                message = (
+                    f"{self._action.path} goal {handle.goal_id} did not end within {self._cancel_grace:g} s "
+                    "of its cancel"
+                )
+                raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
         try:
             return future.result()
         except CallError:

@@ -8,10 +8,12 @@ from functools import cached_property
 from importlib import resources
 from pathlib import Path
 
-from shapely.geometry import Point, Polygon, box
+from shapely.geometry import LineString, Point, Polygon, box
+from shapely.geometry.base import BaseGeometry
+from shapely.ops import unary_union
 
 from schemas.common import Pose2D, Vec3
-from schemas.world import Furniture, World, WorldObject
+from schemas.world import Furniture, Wall, World, WorldObject
 from services.datafile import read_struct
 
 DEFAULT_WORLD = "household"
@@ -22,6 +24,10 @@ PRE_GOAL_DISTANCE = 0.4
 PRE_GOAL_MIN_LEG = 0.55
 # An object counts as resting on a surface when its bottom is within this of the top.
 SUPPORT_TOLERANCE = 0.05
+# "Go to the kitchen" stands the base this far clear of furniture, walls and keep-out zones.
+ROOM_POSE_CLEARANCE = 0.1
+# A free spot found on the edge of the free area is moved this far inside it, so rounding keeps it free.
+SPOT_INSET = 0.01
 
 
 class WorldFileError(Exception):
@@ -51,6 +57,7 @@ def _check_references(world: World, path: Path) -> None:
         *(x.id for x in world.objects),
         *(x.id for x in world.places),
         *(x.id for x in world.humans),
+        *(x.id for x in world.walls),
     ]
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
     if duplicates:
@@ -59,6 +66,21 @@ def _check_references(world: World, path: Path) -> None:
     for obj in world.objects:
         if obj.support not in furniture:
             raise WorldFileError(f"world file {path}: object {obj.id!r} rests on unknown furniture {obj.support!r}")
+
+
+def wall_shape(wall: Wall) -> Polygon:
+    """The wall's outline on the floor: from `start` to `end`, `thickness` across."""
+    return LineString([wall.start, wall.end]).buffer(wall.thickness / 2, cap_style="flat")
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """Something the base cannot drive through: a wall or a piece of furniture, as its outline."""
+
+    id: str
+    name: str
+    shape: Polygon
+    height: float
 
 
 @dataclass(frozen=True)
@@ -82,6 +104,19 @@ class WorldModel:
     @cached_property
     def objects(self) -> dict[str, WorldObject]:
         return {o.id: o for o in self.world.objects}
+
+    @cached_property
+    def obstacles(self) -> list[Obstacle]:
+        """Walls and furniture: what the base must keep clear of."""
+        walls = [Obstacle(w.id, w.name, wall_shape(w), w.height) for w in self.world.walls]
+        furniture = [Obstacle(f.id, f.name, self.footprint(f), f.size.z) for f in self.world.furniture]
+        return walls + furniture
+
+    @cached_property
+    def base_radius(self) -> float:
+        """Half the base's diagonal: turning in place, it stays within this of its centre."""
+        size = self.world.robot.base_size
+        return math.hypot(size.x, size.y) / 2
 
     def footprint(self, item: Furniture) -> Polygon:
         cx, cy = item.center
@@ -112,10 +147,58 @@ class WorldModel:
             z=support.size.z + obj.size.z / 2,
         )
 
+    def approach_near(self, furniture_id: str, x: float, y: float) -> Pose2D:
+        """The furniture's approach pose moved along the edge it faces, to stand opposite (x, y)
+        (kept within the furniture's length), at the same distance and heading."""
+        item = self.furniture[furniture_id]
+        approach = item.approach
+        cx, cy = item.center
+        half = (item.size.x / 2, item.size.y / 2)
+        # The approach side: the axis along which the approach pose lies farther out, relative to size.
+        across = 0 if abs(approach.x - cx) / half[0] >= abs(approach.y - cy) / half[1] else 1
+        along = 1 - across
+        point = [approach.x, approach.y]
+        wanted = (x, y)[along]
+        centre = item.center[along]
+        point[along] = min(max(wanted, centre - half[along]), centre + half[along])
+        return Pose2D(x=round(point[0], 3), y=round(point[1], 3), yaw=approach.yaw)
+
     def room_pose(self, room_id: str) -> Pose2D:
-        """Where the base goes for 'go to the kitchen': the room's centroid."""
-        c = self.room_shapes[room_id].centroid
-        return Pose2D(x=round(c.x, 3), y=round(c.y, 3), yaw=0.0)
+        """Where the base goes for 'go to the kitchen': the room's centroid, or the free spot nearest
+        it where the base can turn round clear of furniture, walls and keep-out zones; facing the
+        first of east, north, west, south (then the diagonals) from which it can drive straight in
+        (drive_route parks from PRE_GOAL_DISTANCE behind the goal)."""
+        room = self.room_shapes[room_id]
+        c = room.centroid
+        radius = self.base_radius + ROOM_POSE_CLEARANCE
+        spot = self.free_spot(c.x, c.y, radius, room)
+        x, y = spot if spot is not None else (c.x, c.y)
+        headings = [k * math.pi / 2 for k in range(4)] + [math.pi / 4 + k * math.pi / 2 for k in range(4)]
+        for yaw in headings:
+            behind = Point(x - PRE_GOAL_DISTANCE * math.cos(yaw), y - PRE_GOAL_DISTANCE * math.sin(yaw))
+            if not self._blocked.intersects(behind.buffer(radius)):
+                return Pose2D(x=round(x, 3), y=round(y, 3), yaw=round(math.remainder(yaw, math.tau), 4))
+        return Pose2D(x=round(x, 3), y=round(y, 3), yaw=0.0)
+
+    @cached_property
+    def _blocked(self) -> BaseGeometry:
+        """Walls, furniture and keep-out zones: where the base may not be."""
+        return unary_union([o.shape for o in self.obstacles] + list(self.keep_out_shapes.values()))
+
+    def free_spot(self, x: float, y: float, radius: float, within: Polygon) -> tuple[float, float] | None:
+        """The point nearest (x, y) inside `within` whose `radius` around it touches no obstacle or
+        keep-out zone; None when there is none."""
+        blocked = self._blocked
+        allowed = within.difference(blocked.buffer(radius)) if not blocked.is_empty else within
+        if allowed.is_empty:
+            return None
+        target = Point(x, y)
+        if allowed.covers(target):
+            return x, y
+        inside = allowed.buffer(-SPOT_INSET)
+        area = inside if not inside.is_empty else allowed
+        nearest = area.boundary.interpolate(area.boundary.project(target))
+        return float(nearest.x), float(nearest.y)
 
 
 def approach_towards(target_x: float, target_y: float, distance: float, from_x: float, from_y: float) -> Pose2D:

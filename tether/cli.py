@@ -13,19 +13,20 @@ import time
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
+import msgspec
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from schemas import keys
-from schemas.actions import CancelGoal
+from schemas.actions import CancelGoal, GetResult
 from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.plan import MAX_PLAN_BYTES
 from schemas.robot import Odometry
 from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
-from services.actionlib import CANCEL_ALL, GoalRejected
+from services.actionlib import CANCEL_ALL, RESULT_RETENTION, GoalRejected
 from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode
 from services.worldmodel import WorldFileError
 from tether.client import (
@@ -175,7 +176,10 @@ def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
         console.print(f"[dim]{fb.stage}[/]: {fb.message}")
         return
-    mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: "[red]failed[/]"}.get(fb.status, "...")
+    failed = f"[red]failed ({fb.failure})[/]" if fb.failure else "[red]failed[/]"
+    mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(fb.status, "...")
+    if fb.status is StepStatus.RUNNING and fb.attempt > 1:
+        mark = "[yellow]retrying[/]"
     console.print(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message} {mark}")
 
 
@@ -185,7 +189,7 @@ def print_result(run: PlanRun, as_json: bool) -> None:
         return
     result = run.result
     if result is None:
-        console.print(f"plan accepted (goal {run.goal_id}); executing. `tether status` follows it.")
+        console.print(f"plan accepted (goal {run.goal_id}); executing. `tether goal {run.goal_id}` follows it.")
         return
     for warning in result.warnings:
         console.print(f"[yellow]warning[/]: {warning}")
@@ -212,10 +216,14 @@ def send(
     wait: Annotated[bool, typer.Option("--wait", help="Wait until the plan has finished.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object with the outcome.")] = False,
     timeout: Annotated[float, typer.Option(help="Seconds to wait for the outcome.")] = 600.0,
+    preempt: Annotated[
+        bool, typer.Option("--preempt", help="Cancel a plan already running (the robot stops first) and run this one.")
+    ] = False,
 ) -> None:
     """Send a plan to the executor. Exit 0 succeeded, 1 failed or canceled, 2 rejected, 3 unreachable.
 
     Without --wait, returns once the plan is parsed, resolved, approved and moving (status 'accepted').
+    While another plan runs this one is rejected, unless --preempt.
     """
     if fmt not in ("auto", "json", "yaml", "text"):
         console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {fmt!r}")
@@ -233,7 +241,8 @@ def send(
             unreachable(as_json, "no executor reachable: start the services with `tether up`")
         sender = PlanSender(node, None if as_json else print_feedback)
         try:
-            handle = sender.send(ExecutePlanGoal(text=text, format=fmt, dry_run=dry_run))  # type: ignore[arg-type]
+            goal = ExecutePlanGoal(text=text, format=fmt, dry_run=dry_run, preempt=preempt)  # type: ignore[arg-type]
+            handle = sender.send(goal)
         except GoalRejected as exc:
             if as_json:
                 print(json.dumps({"status": "rejected", "stage": "execute", "reason": exc.reason, "steps": []}))
@@ -264,6 +273,41 @@ def cancel(ctx: typer.Context, goal_id: Annotated[str, typer.Argument(help="A go
             console.print(f"[red]executor unreachable[/]: {exc}")
             raise typer.Exit(EXIT_UNREACHABLE) from None
         console.print("cancel requested" if reply.accepted else f"nothing to cancel ({reply.reason})")
+
+
+@app.command()
+def goal(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="The goal id `tether send` printed.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """Where a plan is now, without waiting: its state, the step running, the result once it ended.
+
+    Exit 0 running or succeeded, 1 failed or canceled, 2 unknown goal or rejected, 3 unreachable.
+    """
+    with client(ctx) as node:
+        try:
+            progress = node.call(keys.EXECUTE_PLAN.get_status, GetResult(goal_id=goal_id), timeout=3.0)
+        except CallError as exc:
+            if exc.error.kind is ErrorKind.INVALID_REQUEST:
+                if as_json:
+                    print(json.dumps({"goal_id": goal_id, "state": "unknown", "reason": exc.error.message}))
+                else:
+                    kept = RESULT_RETENTION / 60
+                    console.print(f"[red]{exc.error.message}[/] (results are kept for {kept:g} minutes)")
+                raise typer.Exit(2) from None
+            unreachable(as_json, f"executor unreachable: {exc}")
+    result = progress.result
+    code = EXIT_CODES[result.status] if result is not None else 0
+    if as_json:
+        print(json.dumps(msgspec.to_builtins(progress)))
+        raise typer.Exit(code)
+    console.print(f"goal {goal_id}: {progress.state}" + (f" ({progress.message})" if progress.message else ""))
+    if result is None and progress.feedback is not None:
+        print_feedback(progress.feedback)
+    if result is not None:
+        print_result(PlanRun(goal_id=goal_id, result=result), as_json=False)
+    raise typer.Exit(code)
 
 
 # Safety

@@ -14,7 +14,7 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.keys import Topic
 from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
-from services.actionlib import ActionClient, ClientGoal
+from services.actionlib import PREEMPT_TIMEOUT, ActionClient, ClientGoal
 from services.runtime import Node
 from services.safety.operator import read_token, token_path
 
@@ -27,6 +27,8 @@ EXIT_CODES = {
     PlanStatus.REJECTED: 2,
 }
 EXIT_UNREACHABLE = 3
+# How long the executor may take to accept or reject a plan.
+SEND_TIMEOUT = 5.0
 
 
 def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
@@ -117,8 +119,10 @@ class PlanSender:
             self._on_feedback(fb)
 
     def send(self, goal: ExecutePlanGoal) -> ClientGoal[Any, Any, Any]:
-        """Raises GoalRejected when the executor is busy, CallError when it is unreachable."""
-        return self._client.send(goal)
+        """Raises GoalRejected when the executor is busy, CallError when it is unreachable. A goal
+        that preempts (its own `preempt`, or the executor's `when_busy`) is answered only once the
+        plan it preempts has stopped: the wait allows for that."""
+        return self._client.send(goal, timeout=SEND_TIMEOUT + PREEMPT_TIMEOUT)
 
     def wait(self, handle: ClientGoal[Any, Any, Any], timeout: float, until_started: bool = False) -> PlanRun:
         """Wait for the result, or with `until_started` only until execution begins."""

@@ -1,30 +1,51 @@
-"""What can go wrong while executing a plan, as exceptions inside the executor."""
+"""What can go wrong while executing a plan, as exceptions inside the executor, each of a FailureKind."""
+
+from schemas.executor import FailureKind
 
 
 class ExecutionError(Exception):
     """A step could not be carried out; the message says which and why."""
 
+    kind = FailureKind.EXECUTION
 
-class IKFailed(ExecutionError):
+
+class PlanningFailed(ExecutionError):
+    """No motion was found: no collision-free path for the base or the arm, no grasp that reaches.
+    The message says what was asked and why it cannot be done."""
+
+    kind = FailureKind.PLANNING
+
+
+class IKFailed(PlanningFailed):
     """The arm cannot reach a target; the message names the target and the residual."""
 
 
 class PreconditionFailed(ExecutionError):
     """A step's precondition does not hold (placing with an empty gripper, say)."""
 
+    kind = FailureKind.PRECONDITION
+
 
 class PostconditionFailed(ExecutionError):
     """The motions went through but the world is not as the step promised."""
+
+    kind = FailureKind.POSTCONDITION
 
 
 class Canceled(ExecutionError):
     """The goal was canceled while the step ran."""
 
+    kind = FailureKind.CANCELED
+
 
 class Vetoed(ExecutionError):
     """Safety, or the robot behind it, refused a goal. No on_failure alternative runs after this."""
+
+    kind = FailureKind.VETOED
 
 
 class Interrupted(ExecutionError):
     """A goal was ended by someone other than this executor (safety on an e-stop). No on_failure
     alternative runs after this."""
+
+    kind = FailureKind.VETOED

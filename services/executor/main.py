@@ -5,11 +5,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import pybullet_data
-
+from services.executor.armplanning import ArmPlanner, PlannerConfig
 from services.executor.config import ExecutorConfig
-from services.executor.kinematics import ArmKinematics
 from services.executor.manipulation import Manipulator
+from services.executor.navigation import BasePlanner
 from services.executor.node import NodePlanner, NodeRobot, serve_execute_plan
 from services.executor.runner import PlanRunner
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
@@ -22,12 +21,15 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     configure_logging()
     config = load_config(ExecutorConfig, config_file, "executor")
     world = WorldModel(load_world(config.world))
-    kinematics = ArmKinematics(Path(pybullet_data.getDataPath()) / world.world.robot.arm_urdf)
+    # Both planners build their models once, here, before the executor says it is alive.
+    arm = ArmPlanner(world, PlannerConfig(planning_time=config.planning_time))
+    base = BasePlanner(world, clearance=config.base_clearance, time_limit=config.planning_time)
     stop = stop_event()
     with Node("executor", settings) as node:
         robot = NodeRobot(node, config)
-        runner = PlanRunner(NodePlanner(node, config), robot, Manipulator(robot, kinematics, world, config))
-        server = serve_execute_plan(node, runner)
+        manipulator = Manipulator(robot, arm, base, world, config)
+        runner = PlanRunner(NodePlanner(node, config), robot, manipulator, config)
+        server = serve_execute_plan(node, runner, config)
         node.declare_alive()
         log.info("executor up for robot %s", settings.robot)
         stop.wait()

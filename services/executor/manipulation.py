@@ -1,42 +1,81 @@
-"""Motions that make up the steps: driving to a pose, picking from a surface, placing onto one."""
+"""The motions that make up the steps: planned base routes, picks and places, finding moved objects.
+
+Every motion goes to the robot through safety (the Robot port) and every outcome is checked, the
+last ones through perception: after a pick the object must be seen in the gripper, after a place
+on the surface. Pure logic: the planners (navigation.py, armplanning.py) and the port, no Zenoh.
+"""
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+import pinocchio as pin
+
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import Pose2D, Vec3
-from schemas.plan import PickStep, PlaceStep
+from schemas.common import ErrorKind, Pose2D, Vec3
+from schemas.plan import DetectStep, GroundedStep, NavigateStep, PickStep, PlaceStep
 from schemas.robot import (
     ARM_JOINTS,
     GRIPPER_MAX_GAP,
     FollowJointTrajectoryGoal,
     GripperCommandGoal,
     NavigateToPoseGoal,
-    TrajectoryPoint,
 )
+from schemas.world import PerceivedObject
 from services.actionlib import GoalRejected
+from services.executor.armplanning import (
+    GRIPPER,
+    ArmPlanner,
+    ArmScene,
+    HeldObject,
+    SceneObject,
+    plan_pick,
+    plan_place,
+    time_parameterize,
+)
 from services.executor.config import ExecutorConfig
 from services.executor.errors import (
     Canceled,
     ExecutionError,
     Interrupted,
+    PlanningFailed,
     PostconditionFailed,
     PreconditionFailed,
     Vetoed,
 )
-from services.executor.kinematics import ArmKinematics, waypoint_trajectory
+from services.executor.grasps import GraspConfig, grasps, object_pose, placements
+from services.executor.navigation import BasePlanner
 from services.executor.ports import Robot
+from services.robotmodel import map_to_base
 from services.worldmodel import WorldModel
+
+log = logging.getLogger(__name__)
 
 GRIPPER_OPEN = GRIPPER_MAX_GAP
 GRIPPER_CLOSED = 0.0
 # Perception publishes a few times a second; wait at most this for its next report.
 PERCEPTION_TIMEOUT = 2.0
-# Half the height of a held object the world file does not know.
-DEFAULT_HALF_HEIGHT = 0.05
+# The stowed arm counts as stowed within this (rad, every joint).
+STOWED = 0.05
+# After a failed try the hand backs off this far up before the arm is stowed.
+BACK_OFF = 0.1
+# An object not in view from where the base stands may be cut off by the image's edge: the base
+# backs off this far (straight back, metres) and looks again.
+LOOK_BACK = 0.3
+# A planned motion starts from the arm's measured position when that is this close (rad, every
+# joint) to where it was planned from: the previous motion ended within its goal tolerance.
+REPLAN_ABOVE = 0.1
+
+Note = Callable[[str], None]
+
+
+def _quiet(_: str) -> None:
+    pass
 
 
 def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Event) -> Any:
@@ -47,39 +86,102 @@ def check_outcome(what: str, result: ResultResponse[Any], cancel: threading.Even
             raise Canceled(f"{what} canceled")
         # Not canceled here: safety cancels every goal it forwarded when the e-stop latches.
         raise Interrupted(f"{what} canceled by the robot side: {result.message or 'no reason given'}")
-    raise ExecutionError(f"{what} {result.state}: {result.message}")
+    message = result.message or "no reason given"
+    # The robot's own words start with what it was doing ("navigation to (2.50, 1.05) aborted ...").
+    raise ExecutionError(message if message.startswith(what) else f"{what} {result.state}: {message}")
+
+
+def refused(what: str, exc: GoalRejected) -> ExecutionError:
+    """A goal the robot side would not take: safety's veto (or its e-stop) is final; a robot that
+    was busy or unreachable may be asked again."""
+    if exc.kind in (ErrorKind.VETOED, ErrorKind.ESTOP):
+        return Vetoed(f"{what}: {exc.reason}")
+    return ExecutionError(f"{what}: the robot did not take it: {exc.reason}")
+
+
+def _cm(metres: float) -> str:
+    return f"{abs(metres) * 100:.0f} cm"
+
+
+def offset_words(expected: Vec3, seen: Vec3, base: Pose2D) -> str:
+    """Where `seen` is from `expected`, in the robot's words: '4 cm left of', '3 cm beyond'."""
+    ahead, left = map_to_base(base, seen.x, seen.y)
+    ahead0, left0 = map_to_base(base, expected.x, expected.y)
+    parts = []
+    if abs(left - left0) >= 0.01:
+        parts.append(f"{_cm(left - left0)} {'left of' if left > left0 else 'right of'}")
+    if abs(ahead - ahead0) >= 0.01:
+        parts.append(f"{_cm(ahead - ahead0)} {'beyond' if ahead > ahead0 else 'short of'}")
+    if abs(seen.z - expected.z) >= 0.01:
+        parts.append(f"{_cm(seen.z - expected.z)} {'above' if seen.z > expected.z else 'below'}")
+    return " and ".join(parts) or "right at"
+
+
+def grasp_config(config: ExecutorConfig) -> GraspConfig:
+    """The executor's distances as the grasp and placement candidates take them."""
+    return GraspConfig(
+        pregrasp_distance=config.pregrasp_height,
+        lift_height=config.pregrasp_height,
+        grasp_depth=config.grasp_depth,
+        place_clearance=config.place_clearance,
+    )
 
 
 class Manipulator:
-    """Turns grounded steps into goals for the robot (through safety) and checks each outcome."""
+    """Turns grounded steps into goals for the robot (through safety) and checks each outcome.
 
-    def __init__(self, robot: Robot, kinematics: ArmKinematics, world: WorldModel, config: ExecutorConfig) -> None:
+    The base drives routes the base planner found; the arm follows paths the arm planner found
+    around the furniture, the objects perception sees and what the hand holds, timed within the
+    configured joint speed and acceleration. What the hand holds is read from perception, never
+    from bookkeeping a failed step could have left stale; how it is held (the grasp) is remembered
+    from the pick, so the place can put it down upright.
+    """
+
+    def __init__(
+        self, robot: Robot, arm: ArmPlanner, base: BasePlanner, world: WorldModel, config: ExecutorConfig
+    ) -> None:
         self.robot = robot
-        self.kin = kinematics
+        self.arm = arm
+        self.base = base
         self.world = world
         self.config = config
+        self.grasp_config = grasp_config(config)
+        self.home = np.array(world.world.robot.home_joints, dtype=float)
+        self.mount = world.world.robot.arm_mount
+        # The grasp that holds what the hand holds, from the pick that took it.
+        self._held: HeldObject | None = None
+        # Grasps and placements tried and failed, per object, so a retry comes in another way.
+        self._failed: dict[str, set[str]] = {}
 
     # Base
 
-    def drive_to(self, pose: Pose2D, cancel: threading.Event, max_speed: float | None = None) -> None:
-        goal = NavigateToPoseGoal(pose=pose, max_speed=max_speed)
+    def drive_to(self, pose: Pose2D, cancel: threading.Event, max_speed: float | None = None, attempt: int = 1) -> None:
+        """Plan a route to `pose` around walls, furniture and people and drive it. A retry plans
+        anew (another seed, people where they stand now)."""
+        self._stow_if_out(cancel)
+        start = self._base()
+        people = [(p.x, p.y) for p in self.robot.people()]
+        path = self.base.plan(start, pose, people, seed=attempt)
+        goal = NavigateToPoseGoal(pose=pose, path=path, max_speed=max_speed)
         try:
             result = self.robot.navigate(goal, cancel)
         except GoalRejected as exc:
-            raise Vetoed(exc.reason) from None
+            raise refused("navigation", exc) from None
         check_outcome("navigation", result, cancel)
 
-    def ensure_at(self, approach: Pose2D, cancel: threading.Event) -> None:
+    def ensure_at(self, approach: Pose2D, cancel: threading.Event, attempt: int = 1) -> None:
         """Drive to `approach` unless the base already stands there."""
         here = self.robot.base_pose()
-        if here is not None:
-            distance = math.hypot(here.x - approach.x, here.y - approach.y)
-            yaw_error = abs(math.remainder(here.yaw - approach.yaw, math.tau))
-            if distance <= self.config.approach_tolerance and yaw_error <= self.config.approach_yaw_tolerance:
-                return
-        self.drive_to(approach, cancel)
+        if here is not None and self._at(here, approach):
+            return
+        self.drive_to(approach, cancel, attempt=attempt)
 
-    # Arm and gripper
+    def _at(self, here: Pose2D, pose: Pose2D) -> bool:
+        distance = math.hypot(here.x - pose.x, here.y - pose.y)
+        yaw_error = abs(math.remainder(here.yaw - pose.yaw, math.tau))
+        return distance <= self.config.approach_tolerance and yaw_error <= self.config.approach_yaw_tolerance
+
+    # State
 
     def _base(self) -> Pose2D:
         base = self.robot.base_pose()
@@ -87,46 +189,52 @@ class Manipulator:
             raise PreconditionFailed("no odometry from the robot: its pose is unknown")
         return base
 
-    def _arm_now(self) -> list[float]:
+    def _arm_now(self) -> np.ndarray:
         q = self.robot.arm_positions()
         if q is None:
             raise PreconditionFailed("no joint states from the robot")
-        return q
+        return np.array(q, dtype=float)
 
-    def move_arm_to(self, q_target: list[float], what: str, cancel: threading.Event) -> None:
-        points = self.kin.joint_trajectory(self._arm_now(), q_target, self.config.max_joint_speed)
-        self._run_trajectory(points, what, cancel)
+    def _look(self, new: bool = False) -> list[PerceivedObject]:
+        """What perception reports after the last motion ended (with `new`, in its next report from
+        now on): the objects in view and held."""
+        seen = self.robot.look(PERCEPTION_TIMEOUT, new=new)
+        if seen is None:
+            raise PreconditionFailed(f"no report from perception within {PERCEPTION_TIMEOUT:g} s")
+        return seen
 
-    def _run_trajectory(self, points: list[TrajectoryPoint], what: str, cancel: threading.Event) -> None:
+    def _scene(self, base: Pose2D, seen: Sequence[PerceivedObject], held: HeldObject | None = None) -> ArmScene:
+        objects = [
+            SceneObject(self.world.objects[o.id], o.position, o.yaw or 0.0)
+            for o in seen
+            if o.id in self.world.objects and o.on != "gripper"
+        ]
+        return self.arm.scene(base, objects, held)
+
+    # Arm and gripper
+
+    def _follow(self, path: list[np.ndarray], what: str, cancel: threading.Event) -> None:
+        """Run a planned path from where the arm is now: a motion ends within its tolerance of its
+        last point, so the next, planned from there, starts from the measured position instead
+        (safety wants the first point where the arm is); further off, the plan no longer holds."""
+        here = self._arm_now()
+        off = float(np.max(np.abs(here - path[0])))
+        if off > REPLAN_ABOVE:
+            raise ExecutionError(f"{what}: the arm is {off:.2f} rad from where the motion was planned to start")
+        path = [here, *path[1:]]
+        points = time_parameterize(path, self.config.max_joint_speed, self.config.max_joint_acceleration)
         goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
         try:
             result = self.robot.trajectory(goal, cancel)
         except GoalRejected as exc:
-            raise Vetoed(f"{what}: {exc.reason}") from None
+            raise refused(what, exc) from None
         check_outcome(what, result, cancel)
-
-    def reach(self, point: Vec3, what: str, cancel: threading.Event) -> None:
-        """Bring the fingertips to `point` (map frame), hand pointing down, through free space."""
-        mount = self.world.world.robot.arm_mount
-        target = self.kin.world_to_arm(self._base(), mount, point)
-        q = self.kin.solve_top_down(target, self._arm_now())
-        self.move_arm_to([float(x) for x in q], what, cancel)
-
-    def slide(self, point: Vec3, what: str, cancel: threading.Event) -> None:
-        """Move the fingertips in a straight line to `point`: the descent to and lift from an object."""
-        mount = self.world.world.robot.arm_mount
-        target = self.kin.world_to_arm(self._base(), mount, point)
-        path = self.kin.straight_line(self._arm_now(), target)
-        self._run_trajectory(waypoint_trajectory(path, self.config.max_joint_speed), what, cancel)
-
-    def stow(self, cancel: threading.Event) -> None:
-        self.move_arm_to(list(self.world.world.robot.home_joints), "stowing the arm", cancel)
 
     def gripper(self, position: float, cancel: threading.Event, object_id: str | None = None) -> Any:
         try:
             result = self.robot.gripper(GripperCommandGoal(position=position, object_id=object_id), cancel)
         except GoalRejected as exc:
-            raise Vetoed(exc.reason) from None
+            raise refused("gripper", exc) from None
         return check_outcome("gripper", result, cancel)
 
     def operate_gripper(self, open_: bool, cancel: threading.Event) -> str:
@@ -146,58 +254,232 @@ class Manipulator:
         holding = None if result is None else result.holding
         return f"gripper closed on {holding}" if holding else "gripper closed, holding nothing"
 
+    def _stowed(self) -> bool:
+        return bool(np.max(np.abs(self._arm_now() - self.home)) <= STOWED)
+
+    def _stow_if_out(self, cancel: threading.Event) -> None:
+        """The arm over the base before the base moves: the routes are planned for the base alone."""
+        if not self._stowed():
+            self.stow(cancel)
+
+    def stow(self, cancel: threading.Event) -> None:
+        """Back to the stowed pose around what is near, holding what the hand holds; first straight
+        up a little when the hand is down among things (after a failed grasp, say)."""
+        base, q = self._base(), self._arm_now()
+        held_id = self.robot.held_object()
+        held = self._held if self._held is not None and held_id == self._held.obj.id else None
+        seen = self._look()
+        scene = self._scene(base, seen, held)
+        near = [(o.id, GRIPPER) for o in seen if o.id in self.world.objects and o.on != "gripper"]
+        try:
+            path = scene.plan(q, self.home, what="stowing the arm")
+        except PlanningFailed:
+            up = self.arm.kin.forward(q).translation + np.array([0.0, 0.0, BACK_OFF])
+            lift = scene.cartesian(q, up, allowed=near, what="backing the hand off")
+            self._follow(lift, "backing the hand off", cancel)
+            path = scene.plan(lift[-1], self.home, what="stowing the arm")
+        self._follow(path, "stowing the arm", cancel)
+
+    # Finding the object
+
+    def _within_reach(self, base: Pose2D, position: Vec3) -> bool:
+        return math.hypot(position.x - base.x, position.y - base.y) <= self.world.world.robot.reach
+
+    def locate(self, step: PickStep, cancel: threading.Event, note: Note, attempt: int = 1) -> PerceivedObject:
+        """Stand where the object can be picked and see it there: at the step's approach pose, or,
+        when perception has it elsewhere, re-detected: where the resolver last saw it, then on each
+        other surface, nearest first. Raises PreconditionFailed saying where it looked."""
+        self.ensure_at(step.approach, cancel, attempt)
+        found = self._find_in_view(step.object_id, cancel)
+        if found is not None and self._within_reach(self._base(), found.position):
+            return found
+        looked = [self._surface_name(step.support_id)]
+        if found is None:
+            note(f"{step.object_name} is not where it was expected ({looked[0]}); looking for it")
+            for surface in self._search_order(step):
+                if cancel.is_set():
+                    raise Canceled("canceled while looking")
+                self.drive_to(self.world.furniture[surface].approach, cancel, attempt=attempt)
+                found = self._find_in_view(step.object_id, cancel)
+                if found is not None:
+                    break
+                looked.append(self.world.furniture[surface].name)
+        if found is None:
+            raise PreconditionFailed(f"{step.object_name} was not seen on the {', the '.join(looked)}")
+        if not self._within_reach(self._base(), found.position):
+            note(f"{step.object_name} is on the {self._surface_name(found.on)}, out of reach: moving closer")
+            self.drive_to(self.approach_near(found), cancel, attempt=attempt)
+            found = self._seen(step.object_id)
+            if found is None:
+                raise PreconditionFailed(f"{step.object_name} went out of view moving closer to it")
+        return found
+
+    def _seen(self, object_id: str, new: bool = False) -> PerceivedObject | None:
+        return next((o for o in self._look(new) if o.id == object_id), None)
+
+    def _seen_twice(self, object_id: str) -> PerceivedObject | None:
+        """The object in the first report after the last motion, or else in the one after: a report
+        can be under way while a motion ends (the arm still over the object, say)."""
+        return self._seen(object_id) or self._seen(object_id, new=True)
+
+    def _find_in_view(self, object_id: str, cancel: threading.Event) -> PerceivedObject | None:
+        """The object as perception sees it from here, or else from LOOK_BACK further back: close to
+        the edge of a surface, part of it may lie outside the image, and a part is not reported."""
+        found = self._seen_twice(object_id)
+        if found is not None:
+            return found
+        here = self._base()
+        back = Pose2D(
+            x=here.x - LOOK_BACK * math.cos(here.yaw), y=here.y - LOOK_BACK * math.sin(here.yaw), yaw=here.yaw
+        )
+        try:
+            self.drive_to(back, cancel)
+        except PlanningFailed:
+            return None  # no room to back off: it is not in view
+        return self._seen_twice(object_id)
+
+    def _surface_name(self, surface: str | None) -> str:
+        item = self.world.furniture.get(surface or "")
+        return item.name if item else "floor"
+
+    def _search_order(self, step: PickStep) -> list[str]:
+        """Furniture tops to look on: where the resolver last saw the object first, then the rest by
+        distance from where the base stands, the one already looked at left out."""
+        base = self._base()
+        remembered = self.robot.remembered(step.object_id)
+        first = remembered.on if remembered is not None and remembered.on in self.world.furniture else None
+        rest = sorted(
+            (f for f in self.world.furniture.values() if f.id not in (step.support_id, first)),
+            key=lambda f: math.hypot(f.approach.x - base.x, f.approach.y - base.y),
+        )
+        return ([first] if first and first != step.support_id else []) + [f.id for f in rest]
+
+    def approach_near(self, seen: PerceivedObject) -> Pose2D:
+        """The approach pose of the furniture under `seen`, moved along its edge to face it."""
+        support = self.world.furniture.get(seen.on or "")
+        if support is None:
+            raise PreconditionFailed(f"{seen.name} is on the floor, where the arm cannot reach it")
+        return self.world.approach_near(support.id, seen.position.x, seen.position.y)
+
     # Steps
 
-    def _grasp_height(self, height: float) -> float:
-        """How far above its centre the fingertips close on an object `height` tall: at most
-        grasp_depth below its top, so the palm stays clear of its rim."""
-        return max(0.0, height / 2 - self.config.grasp_depth)
-
-    def pick(self, step: PickStep, cancel: threading.Event) -> None:
-        # What the hand holds comes from perception, never from bookkeeping that a failed step
-        # could have left stale.
+    def pick(self, step: PickStep, cancel: threading.Event, attempt: int = 1, note: Note = _quiet) -> str:
         if (held_now := self.robot.held_object()) is not None:
             raise PreconditionFailed(f"the gripper already holds {held_now}")
-        self.ensure_at(step.approach, cancel)
-        # Where perception sees it now, not where it was when the plan was resolved.
-        centre = self.robot.object_position(step.object_id) or step.position
-        obj = self.world.objects.get(step.object_id)
-        grasp_height = self._grasp_height(obj.size.z if obj else 2 * DEFAULT_HALF_HEIGHT)
-        position = Vec3(x=centre.x, y=centre.y, z=centre.z + grasp_height)
-        above = Vec3(x=position.x, y=position.y, z=position.z + self.config.pregrasp_height)
+        target = self.locate(step, cancel, note, attempt)
+        obj = self.world.objects[step.object_id]
+        base, q = self._base(), self._arm_now()
+        seen = self._look()
+        scene = self._scene(base, seen)
+        yaw = target.yaw or 0.0
+        failed = self._failed.setdefault(step.object_id, set())
+        candidates = [g for g in grasps(obj, target.position, yaw, base, self.mount, self.grasp_config)]
+        fresh = [g for g in candidates if g.description not in failed] or candidates
+        plan = plan_pick(scene, q, fresh, obj, target.on, q_stow=self.home)
+        grasp = plan.grasp
         self.gripper(GRIPPER_OPEN, cancel)
-        self.reach(above, f"moving above {step.object_name}", cancel)
-        self.slide(position, f"reaching {step.object_name}", cancel)
+        self._follow(plan.to_pregrasp, f"moving above {step.object_name}", cancel)
+        self._follow(plan.approach, f"reaching {step.object_name}", cancel)
         result = self.gripper(GRIPPER_CLOSED, cancel, object_id=step.object_id)
-        if result is None or result.holding != step.object_id:
-            held = None if result is None else result.holding
+        holding = None if result is None else result.holding
+        in_hand = self._seen(step.object_id)
+        if in_hand is None or in_hand.on != "gripper":
+            in_hand = self._seen(step.object_id, new=True)  # a report may be under way as the gripper closes
+        if holding != step.object_id or in_hand is None or in_hand.on != "gripper":
+            failed.add(grasp.description)
             self.gripper(GRIPPER_OPEN, cancel)
-            raise ExecutionError(f"gripper closed on {held or 'nothing'}, not {step.object_name}")
-        self.slide(above, f"lifting {step.object_name}", cancel)
-        self.stow(cancel)
+            expected = self._map_point(base, (grasp.pose * grasp.object_in_grasp).translation)
+            where = (
+                "no longer in view"
+                if in_hand is None
+                else (f"seen {offset_words(expected, in_hand.position, base)} the expected grasp point")
+            )
+            raise PostconditionFailed(
+                f"{step.object_name} was not in the gripper after closing ({grasp.kind} grasp); it was {where}"
+            )
+        self._held = HeldObject(obj, grasp.object_in_grasp)
+        self._follow(plan.lift, f"lifting {step.object_name}", cancel)
+        assert plan.to_stow is not None
+        self._follow(plan.to_stow, f"stowing {step.object_name}", cancel)
+        failed.clear()
+        return f"holding {step.object_name} ({grasp.kind} grasp)"
 
-    def place(self, step: PlaceStep, cancel: threading.Event) -> str:
+    def _map_point(self, base: Pose2D, point: np.ndarray) -> Vec3:
+        return self.arm.kin.arm_to_world(base, self.mount, point)
+
+    def _held_now(self, held_id: str, base: Pose2D, q: np.ndarray) -> HeldObject:
+        """How the hand holds `held_id` now: the grasp's orientation remembered from the pick, the
+        offset from where perception sees the object (it may have slipped)."""
+        obj = self.world.objects[held_id]
+        grasp_pose = self.arm.kin.forward(q)
+        seen = self._seen_twice(held_id)
+        remembered = self._held if self._held is not None and self._held.obj.id == held_id else None
+        if seen is None:
+            if remembered is None:
+                raise PreconditionFailed(f"perception does not report {obj.name} in the hand")
+            return remembered
+        # Upright: the pick kept it so; without a remembered grasp, its heading along the hand's.
+        yaw = seen.yaw
+        if yaw is None:
+            in_arm = grasp_pose * remembered.in_grasp if remembered else grasp_pose
+            arm_yaw = math.atan2(float(in_arm.rotation[1, 0]), float(in_arm.rotation[0, 0]))
+            yaw = arm_yaw + base.yaw
+        centre = object_pose(seen.position, yaw, base, self.mount)
+        in_grasp = grasp_pose.inverse() * centre
+        if remembered is not None:
+            in_grasp = pin.SE3(remembered.in_grasp.rotation, in_grasp.translation)
+        return HeldObject(obj, in_grasp)
+
+    def place(self, step: PlaceStep, cancel: threading.Event, attempt: int = 1, note: Note = _quiet) -> str:
         held_id = self.robot.held_object()
         if held_id is None:
             raise PreconditionFailed("the gripper holds nothing to place")
-        held = self.world.objects.get(held_id)
-        name = held.name if held else held_id
-        half_height = held.size.z / 2 if held else DEFAULT_HALF_HEIGHT
-        self.ensure_at(step.approach, cancel)
-        # The fingertips, with the object's bottom place_clearance above the top, as pick held it.
-        bottom_to_fingertips = half_height + self._grasp_height(2 * half_height)
-        at = Vec3(
-            x=step.position.x, y=step.position.y, z=step.position.z + bottom_to_fingertips + self.config.place_clearance
-        )
-        above = Vec3(x=at.x, y=at.y, z=at.z + self.config.pregrasp_height)
-        self.reach(above, f"moving {name} above {step.surface_name}", cancel)
-        self.slide(at, f"lowering {name} onto {step.surface_name}", cancel)
+        obj = self.world.objects.get(held_id)
+        if obj is None:
+            raise PreconditionFailed(f"the gripper holds {held_id}, which the world file does not know")
+        self.ensure_at(step.approach, cancel, attempt)
+        base, q = self._base(), self._arm_now()
+        held = self._held_now(held_id, base, q)
+        scene = self._scene(base, self._look(), held)
+        failed = self._failed.setdefault(held_id, set())
+        candidates = placements(obj, held.in_grasp, step.position, base, self.mount, self.grasp_config)
+        fresh = [p for p in candidates if p.description not in failed] or candidates
+        plan = plan_place(scene, q, fresh, step.surface_name, q_stow=self.home)
+        self._follow(plan.to_preplace, f"moving {obj.name} above the {step.surface_name}", cancel)
+        self._follow(plan.lower, f"lowering {obj.name} onto the {step.surface_name}", cancel)
         self.gripper(GRIPPER_OPEN, cancel)
-        self.slide(above, "lifting the hand", cancel)
-        self.stow(cancel)
+        self._held = None
+        self._follow(plan.retreat, "lifting the hand", cancel)
+        assert plan.to_stow is not None
+        self._follow(plan.to_stow, "stowing the arm", cancel)
         # Done means perception sees it on the surface, not that the motions went through.
-        seen = self.robot.next_perception(held_id, PERCEPTION_TIMEOUT)
+        seen = self._find_in_view(held_id, cancel)
         if seen is None or seen.on != step.surface_id:
-            where = "nowhere" if seen is None else (seen.on or "the floor")
-            raise PostconditionFailed(f"after placing, perception has {name} on {where}, not on {step.surface_name}")
-        return name
+            failed.add(plan.placement.description)
+            where = "nowhere in view" if seen is None else f"on the {self._surface_name(seen.on)}"
+            raise PostconditionFailed(
+                f"after placing, perception has {obj.name} {where}, not on the {step.surface_name}"
+            )
+        failed.clear()
+        return f"placed {obj.name} on the {step.surface_name}"
+
+    def detect(self, step: DetectStep, cancel: threading.Event, attempt: int = 1) -> str:
+        """Succeeds when perception, looking now, reports the object (from a little further back
+        too); a retry looks again."""
+        seen = self._find_in_view(step.object_id, cancel)
+        if seen is None:
+            raise PostconditionFailed(f"{step.object_name} is not in view from here")
+        p = seen.position
+        where = f"on the {self._surface_name(seen.on)}" if seen.on != "gripper" else "in the gripper"
+        return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
+
+    def recover(self, step: GroundedStep, cancel: threading.Event) -> None:
+        """Before a retry: the hand open (unless it holds what a place is to put down) and the arm
+        stowed, so the next try starts as a first one would."""
+        if isinstance(step, NavigateStep | DetectStep):
+            self._stow_if_out(cancel)
+            return
+        holding = self.robot.held_object()
+        if holding is None and isinstance(step, PickStep):
+            self.gripper(GRIPPER_OPEN, cancel)
+        self._stow_if_out(cancel)

@@ -11,7 +11,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import Pose2D, Stage, Vec3
+from schemas.common import Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
 from schemas.robot import (
@@ -24,8 +24,8 @@ from schemas.robot import (
     Twist,
 )
 from schemas.safety import SafetyStatus
-from schemas.world import PerceivedObject, PerceivedObjects
-from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
+from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, Outcome
 from services.executor.config import ExecutorConfig
 from services.executor.runner import PlanRunner
 from services.runtime import CallError, Node
@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 STATE_TIMEOUT = 1.0
 # Safety beats at 20 Hz or more; this long without a beat means it is not there.
 HEARTBEAT_STALE = 0.5
+# The resolver answers world/scene from memory; this is generous.
+SCENE_TIMEOUT = 2.0
 
 
 class NodePlanner:
@@ -67,10 +69,12 @@ class NodeRobot:
 
     After each motion, the pose and joint positions it reports are ones that arrived after the
     motion ended: planning the next move from a state read mid-motion would start it from where
-    the robot no longer is.
+    the robot no longer is. A motion's time is bounded by its step's clock (runner.StepClock),
+    which cancels it; the wait for its result here is only a backstop.
     """
 
     def __init__(self, node: Node, config: ExecutorConfig) -> None:
+        self.node = node
         self.config = config
         self._navigate = ActionClient(node, keys.CMD_NAVIGATE)
         self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY)
@@ -80,16 +84,38 @@ class NodeRobot:
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
         self._motion_ended = 0.0
-        self._objects: PerceivedObjects | None = None
-        self._objects_seq = 0
+        self._objects: tuple[float, PerceivedObjects] | None = None
         self._heartbeat: tuple[float, SafetyStatus] | None = None
+        self._humans: PerceivedHumans | None = None
         node.subscribe(keys.HEARTBEAT, self._set_heartbeat)
+        node.subscribe(keys.HUMANS, self._set_humans)
         node.subscribe(keys.ODOM, self._set_odom)
         node.subscribe(keys.JOINT_STATES, self._set_joints)
         node.subscribe(keys.OBJECTS, self._set_objects)
 
     def _set_heartbeat(self, msg: SafetyStatus) -> None:
         self._heartbeat = (time.monotonic(), msg)
+
+    def _set_humans(self, msg: PerceivedHumans) -> None:
+        self._humans = msg
+
+    def people(self) -> list[Pose2D]:
+        humans = self._humans
+        return [h.pose for h in humans.humans] if humans is not None else []
+
+    def speed_scale(self) -> float:
+        heartbeat = self._heartbeat
+        if heartbeat is None or self.safety_stop() is not None:
+            return 0.0
+        return heartbeat[1].speed_scale
+
+    def remembered(self, object_id: str) -> PerceivedObject | None:
+        try:
+            scene = self.node.call(keys.SCENE, Empty(), timeout=SCENE_TIMEOUT)
+        except CallError as exc:
+            log.warning("no scene from the resolver: %s", exc)
+            return None
+        return next((o for o in scene.objects if o.id == object_id), None)
 
     def safety_stop(self) -> str | None:
         heartbeat = self._heartbeat
@@ -115,54 +141,52 @@ class NodeRobot:
 
     def _set_objects(self, msg: PerceivedObjects) -> None:
         with self._changed:
-            self._objects = msg
-            self._objects_seq += 1
+            self._objects = (time.monotonic(), msg)
             self._changed.notify_all()
 
     def _motion_end(self) -> None:
         with self._changed:
             self._motion_ended = time.monotonic()
 
-    def _fresh(self, attribute: str) -> Any:
-        """The latest message of `attribute` received after the last motion ended, or None."""
+    def _fresh(self, attribute: str, timeout: float = STATE_TIMEOUT, since: float | None = None) -> Any:
+        """The latest message of `attribute` received after `since` (default: the end of the last
+        motion), waiting up to `timeout` for one; None if none comes."""
+        after = self._motion_ended if since is None else since
         with self._changed:
             self._changed.wait_for(
-                lambda: (latest := getattr(self, attribute)) is not None and latest[0] > self._motion_ended,
-                STATE_TIMEOUT,
+                lambda: (latest := getattr(self, attribute)) is not None and latest[0] > after, timeout
             )
             latest = getattr(self, attribute)
-            return latest[1] if latest is not None and latest[0] > self._motion_ended else None
+            return latest[1] if latest is not None and latest[0] > after else None
 
     def held_object(self) -> str | None:
-        objects = self._objects
-        if objects is None:
+        latest = self._objects
+        if latest is None:
             return None
-        return next((o.id for o in objects.objects if o.on == "gripper"), None)
+        return next((o.id for o in latest[1].objects if o.on == "gripper"), None)
 
-    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
-        with self._changed:
-            seq = self._objects_seq
-            self._changed.wait_for(lambda: self._objects_seq > seq, timeout)
-            objects = self._objects
-        if objects is None:
-            return None
-        return next((o for o in objects.objects if o.id == object_id), None)
+    def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
+        """What perception reported last, once that report came after the last motion ended:
+        asked again without a motion between, the same frame answers at once. With `new`, the
+        next report from now on."""
+        objects: PerceivedObjects | None = self._fresh("_objects", timeout, time.monotonic() if new else None)
+        return None if objects is None else list(objects.objects)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         try:
-            return self._navigate.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+            return self._navigate.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
         finally:
             self._motion_end()
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
         try:
-            return self._trajectory.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+            return self._trajectory.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
         finally:
             self._motion_end()
 
     def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
         try:
-            return self._gripper.run(goal, timeout=self.config.motion_timeout, cancel=cancel)
+            return self._gripper.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
         finally:
             self._motion_end()
 
@@ -182,15 +206,6 @@ class NodeRobot:
             return None
         return [by_name[n] for n in ARM_JOINTS]
 
-    def object_position(self, object_id: str) -> Vec3 | None:
-        objects = self._objects
-        if objects is None:
-            return None
-        for obj in objects.objects:
-            if obj.id == object_id:
-                return obj.position
-        return None
-
 
 OUTCOME_STATE = {
     PlanStatus.SUCCEEDED: GoalState.SUCCEEDED,
@@ -200,11 +215,23 @@ OUTCOME_STATE = {
 }
 
 
-def serve_execute_plan(node: Node, runner: PlanRunner) -> ActionServer[Any, Any, Any]:
+def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -> ActionServer[Any, Any, Any]:
+    """One plan at a time: another is rejected while one runs, or preempts it (its own `preempt`,
+    or `when_busy = "preempt"`): the running plan is canceled and stopped before the new one starts.
+    A dry run moves nothing, so it runs beside whatever runs."""
+
     def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
         log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
         result = runner.run(handle.goal, handle.cancel_requested, handle.feedback)
+        if result.status is PlanStatus.CANCELED and handle.cancel_reason:
+            result = msgspec.structs.replace(result, reason=f"{handle.cancel_reason}; {result.reason}")
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)
         return Outcome(OUTCOME_STATE[result.status], result, result.reason)
 
-    return ActionServer(node, keys.EXECUTE_PLAN, execute, exclusive=True)
+    def preempts(goal: ExecutePlanGoal) -> bool:
+        return goal.preempt or config.when_busy == "preempt"
+
+    def moves_nothing(goal: ExecutePlanGoal) -> bool:
+        return goal.dry_run
+
+    return ActionServer(node, keys.EXECUTE_PLAN, execute, exclusive=True, preempts=preempts, concurrent=moves_nothing)

@@ -6,7 +6,7 @@ import threading
 from typing import Any, Protocol
 
 from schemas.actions import ResultResponse
-from schemas.common import Pose2D, Vec3
+from schemas.common import Pose2D
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, ResolveReply
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import PerceivedObject
@@ -29,15 +29,28 @@ class Robot(Protocol):
     def cmd_vel(self, twist: Twist) -> None: ...
     def base_pose(self) -> Pose2D | None: ...
     def arm_positions(self) -> list[float] | None: ...
-    def object_position(self, object_id: str) -> Vec3 | None: ...
     def held_object(self) -> str | None:
         """The id of what perception last saw in the gripper, if anything."""
         ...
 
-    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
-        """The object as the next perception update reports it (None if absent or none comes)."""
+    def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
+        """Every object perception reports (in view, or in the gripper) in its latest report made
+        after the last motion ended, or with `new` in its next report from now on, waiting up to
+        `timeout` for one; None if none comes."""
         ...
 
     def safety_stop(self) -> str | None:
         """Why safety holds the robot still right now (e-stop latched, no heartbeat), or None."""
+        ...
+
+    def speed_scale(self) -> float:
+        """The fraction of full speed safety allows now (0 while paused for a person or stopped)."""
+        ...
+
+    def people(self) -> list[Pose2D]:
+        """Where the people perception reports stand now."""
+        ...
+
+    def remembered(self, object_id: str) -> PerceivedObject | None:
+        """Where the object was last seen (the resolver's memory), or None if it was never seen."""
         ...

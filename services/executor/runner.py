@@ -1,17 +1,28 @@
-"""Runs one execute_plan goal: parse, resolve, check the whole plan, then each step in order."""
+"""Runs one execute_plan goal: parse, resolve, check the whole plan, then each step in order, each
+within its time, retried after a failure a retry can mend."""
 
 from __future__ import annotations
 
 import logging
 import math
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import msgspec
 
 from schemas.common import ServiceError, Stage
-from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepResult, StepStatus
+from schemas.executor import (
+    ExecutePlanFeedback,
+    ExecutePlanGoal,
+    ExecutePlanResult,
+    FailureKind,
+    PlanStatus,
+    StepResult,
+    StepStatus,
+)
 from schemas.plan import (
     DetectStep,
     GripperStep,
@@ -29,14 +40,20 @@ from schemas.plan import (
     step_labels,
 )
 from schemas.robot import Twist
+from services.executor.config import ExecutorConfig
 from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
-from services.executor.manipulation import Manipulator
+from services.executor.manipulation import Manipulator, Note
 from services.executor.ports import Planner, Robot
 from services.runtime import CallError
 
 log = logging.getLogger(__name__)
 
 FeedbackSink = Callable[[ExecutePlanFeedback], None]
+
+# What a retry, after re-detecting and planning anew, can mend.
+RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDITION)
+# How often a step's clock looks at the speed scale and the goal's cancel.
+CLOCK_PERIOD = 0.05
 
 
 @dataclass(frozen=True)
@@ -46,13 +63,60 @@ class _Failure:
     reason: str
     status: PlanStatus
     final: str | None = None
+    kind: FailureKind | None = None
+
+
+class StepTimedOut(ExecutionError):
+    """The step used up its time (motion time: pauses for people do not count)."""
+
+
+class StepClock:
+    """A step's time, counted in motion time, and the cancel its motions obey.
+
+    `cancel` is set when the goal is canceled or when `timeout` seconds of motion have passed:
+    each period adds its wall time times the speed scale safety allows (0 while paused for a person).
+    """
+
+    def __init__(self, timeout: float, goal_cancel: threading.Event, speed_scale: Callable[[], float]) -> None:
+        self.timeout = timeout
+        self.goal_cancel = goal_cancel
+        self.speed_scale = speed_scale
+        self.cancel = threading.Event()
+        self.elapsed = 0.0
+        self.expired = False
+        self._done = threading.Event()
+
+    def _watch(self) -> None:
+        last = time.monotonic()
+        while not self._done.wait(CLOCK_PERIOD):
+            now = time.monotonic()
+            self.elapsed += (now - last) * min(1.0, max(0.0, self.speed_scale()))
+            last = now
+            if self.goal_cancel.is_set():
+                self.cancel.set()
+            elif self.elapsed > self.timeout and not self.expired:
+                self.expired = True
+                self.cancel.set()
+
+    @contextmanager
+    def running(self) -> Iterator[threading.Event]:
+        if self.goal_cancel.is_set():
+            self.cancel.set()
+        watcher = threading.Thread(target=self._watch, name="step-clock", daemon=True)
+        watcher.start()
+        try:
+            yield self.cancel
+        finally:
+            self._done.set()
+            watcher.join()
 
 
 class PlanRunner:
-    def __init__(self, planner: Planner, robot: Robot, manipulator: Manipulator) -> None:
+    def __init__(self, planner: Planner, robot: Robot, manipulator: Manipulator, config: ExecutorConfig) -> None:
         self.planner = planner
         self.robot = robot
         self.manipulator = manipulator
+        self.config = config
 
     def run(self, goal: ExecutePlanGoal, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
         warnings: list[str] = []
@@ -112,9 +176,9 @@ class PlanRunner:
             if failure is None:
                 i += 1
                 continue
-            outcome = self._recover(plan, i, failure, results, cancel, feedback)
+            outcome = self._on_failure(plan, i, failure, results, cancel, feedback)
             if isinstance(outcome, _Failure):
-                return self._finish(plan, results, reported, outcome.status, outcome.reason)
+                return self._finish(plan, results, reported, outcome)
             outcome = min(outcome, len(plan.steps))
             recovered.append(f"{failure.reason}; its on_failure ran instead")
             results.extend(
@@ -136,40 +200,109 @@ class PlanRunner:
     def _run_one(
         self, index: int, step: GroundedStep, label: str, cancel: threading.Event, feedback: FeedbackSink
     ) -> tuple[StepResult, _Failure | None]:
-        """Run one step and report it; the failure, if any, says whether an on_failure may follow."""
+        """Run one step, retrying as configured, and report it; the failure, if any, says whether
+        an on_failure may follow."""
         action = step_kind(step)
+        timeout = getattr(self.config.timeouts, action)
+        tries = 1 + getattr(self.config.retries, action)
 
-        def report(status: StepStatus, message: str) -> None:
+        def report(status: StepStatus, message: str, attempt: int, kind: FailureKind | None = None) -> None:
             feedback(
                 ExecutePlanFeedback(
-                    stage=Stage.EXECUTE, step=index, action=action, status=status, message=message, label=label
+                    stage=Stage.EXECUTE,
+                    step=index,
+                    action=action,
+                    status=status,
+                    message=message,
+                    label=label,
+                    failure=kind,
+                    attempt=attempt,
                 )
             )
 
-        report(StepStatus.RUNNING, describe(step))
+        def result(status: StepStatus, message: str, attempt: int, kind: FailureKind | None = None) -> StepResult:
+            return StepResult(
+                index=index,
+                action=action,
+                status=status,
+                message=message,
+                label=label,
+                failure=kind,
+                attempts=attempt,
+            )
+
+        report(StepStatus.RUNNING, describe(step), 1)
+        attempt = 1
+
+        def note(message: str) -> None:
+            report(StepStatus.RUNNING, message, attempt)
+
+        earlier: list[str] = []  # why the tries before the last failed
+        while True:
+            try:
+                message = self._attempt(step, timeout, cancel, attempt, note)
+            except Canceled as exc:
+                failure = _Failure(
+                    f"step {label} ({action}) canceled", PlanStatus.CANCELED, "canceled", FailureKind.CANCELED
+                )
+                return result(StepStatus.CANCELED, str(exc), attempt, FailureKind.CANCELED), failure
+            except (ExecutionError, CallError) as exc:
+                kind = exc.kind if isinstance(exc, ExecutionError) else FailureKind.EXECUTION
+                final = self._final(exc)
+                if final is None and kind in RETRYABLE and attempt < tries and not cancel.is_set():
+                    attempt += 1
+                    report(
+                        StepStatus.RUNNING,
+                        f"attempt {attempt - 1} failed ({kind}): {exc}; re-detecting and planning again, "
+                        f"attempt {attempt} of {tries}",
+                        attempt,
+                        kind,
+                    )
+                    log.info("step %s (%s) attempt %d failed (%s): %s", label, action, attempt - 1, kind, exc)
+                    earlier.append(f"attempt {attempt - 1} ({kind}): {exc}")
+                    continue
+                tried = f" after {attempt} attempts" if attempt > 1 else ""
+                report(StepStatus.FAILED, str(exc), attempt, kind)
+                reason = f"step {label} ({action}) failed{tried} ({kind}): {exc}"
+                if any(not e.endswith(f": {exc}") for e in earlier):
+                    reason += f" (before: {'; '.join(earlier)})"
+                return result(StepStatus.FAILED, str(exc), attempt, kind), _Failure(
+                    reason, PlanStatus.FAILED, final, kind
+                )
+            report(StepStatus.SUCCEEDED, message, attempt)
+            return result(StepStatus.SUCCEEDED, message, attempt), None
+
+    def _attempt(self, step: GroundedStep, timeout: float, cancel: threading.Event, attempt: int, note: Note) -> str:
+        """One try at a step within its time; a retry first brings the robot back to where a step
+        can start (hand empty and open, or holding, with the arm stowed)."""
+        if cancel.is_set():
+            raise Canceled("canceled before the step started")
+        clock = StepClock(timeout, cancel, self.robot.speed_scale)
         try:
-            if cancel.is_set():
-                raise Canceled("canceled before the step started")
-            message = self._run_step(step, cancel)
+            with clock.running() as step_cancel:
+                if attempt > 1:
+                    self.manipulator.recover(step, step_cancel)
+                return self._run_step(step, step_cancel, attempt, note)
         except Canceled as exc:
-            result = StepResult(index=index, action=action, status=StepStatus.CANCELED, message=str(exc), label=label)
-            return result, _Failure(f"step {label} ({action}) canceled", PlanStatus.CANCELED, final="canceled")
-        except (ExecutionError, CallError) as exc:
-            report(StepStatus.FAILED, str(exc))
-            result = StepResult(index=index, action=action, status=StepStatus.FAILED, message=str(exc), label=label)
-            return result, _Failure(f"step {label} ({action}) failed: {exc}", PlanStatus.FAILED, self._final(exc))
-        report(StepStatus.SUCCEEDED, message)
-        return StepResult(index=index, action=action, status=StepStatus.SUCCEEDED, message=message, label=label), None
+            if clock.expired and not cancel.is_set():
+                raise StepTimedOut(
+                    f"{describe(step)}: timed out after {timeout:g} s of motion (pauses for people not counted), "
+                    f"during {str(exc).removesuffix(' canceled')}"
+                ) from None
+            raise
 
     def _final(self, exc: Exception) -> str | None:
-        """Why no on_failure may run after `exc`, or None when one may."""
+        """Why no retry and no on_failure may follow `exc`, or None when they may."""
         if isinstance(exc, Vetoed):
             return "safety refused the motion"
         if isinstance(exc, Interrupted):
             return "the robot side ended the motion"
+        if isinstance(exc, CallError):
+            # A goal sent but never answered for may still be moving the robot.
+            return f"the robot side did not answer ({exc})"
         return self.robot.safety_stop()
 
-    def _recover(
+    def _on_failure(
         self,
         plan: GroundedPlan,
         failed: int,
@@ -186,9 +319,11 @@ class PlanRunner:
         if failure.final is not None:
             if failure.status is PlanStatus.CANCELED:
                 return failure
-            return _Failure(f"{failure.reason}; no on_failure runs: {failure.final}", failure.status, failure.final)
+            reason = f"{failure.reason}; no on_failure runs: {failure.final}"
+            return _Failure(reason, failure.status, failure.final, failure.kind)
         reasons = [failure.reason]
         labels = step_labels(plan)
+        kind = failure.kind
         for fallback in sorted(covering, key=lambda f: (f.last - f.first, -f.first)):
             alternative_labels = fallback_labels(fallback, labels)
             for k, step in enumerate(fallback.steps):
@@ -204,12 +339,13 @@ class PlanRunner:
                 if j > k
             )
             reasons.append(f"then {alt_failure.reason}")
+            kind = alt_failure.kind
             if alt_failure.final is not None:
-                return _Failure("; ".join(reasons), alt_failure.status, alt_failure.final)
-        return _Failure("; ".join(reasons), PlanStatus.FAILED)
+                return _Failure("; ".join(reasons), alt_failure.status, alt_failure.final, kind)
+        return _Failure("; ".join(reasons), PlanStatus.FAILED, kind=kind)
 
     def _finish(
-        self, plan: GroundedPlan, results: list[StepResult], reported: set[int], status: PlanStatus, reason: str
+        self, plan: GroundedPlan, results: list[StepResult], reported: set[int], failure: _Failure
     ) -> ExecutePlanResult:
         labels = step_labels(plan)
         skipped = [
@@ -217,26 +353,27 @@ class PlanRunner:
             for i, s in enumerate(plan.steps)
             if i not in reported
         ]
-        return ExecutePlanResult(status=status, stage=Stage.EXECUTE, reason=reason, steps=results + skipped)
+        return ExecutePlanResult(
+            status=failure.status,
+            stage=Stage.EXECUTE,
+            reason=failure.reason,
+            steps=results + skipped,
+            failure=failure.kind,
+        )
 
-    def _run_step(self, step: GroundedStep, cancel: threading.Event) -> str:
+    def _run_step(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
         m = self.manipulator
         if isinstance(step, NavigateStep):
-            m.drive_to(step.goal, cancel, step.max_speed)
+            m.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
             return f"reached {step.target}"
         if isinstance(step, GripperStep):
             return m.operate_gripper(step.open, cancel)
         if isinstance(step, PickStep):
-            m.pick(step, cancel)
-            return f"holding {step.object_name}"
+            return m.pick(step, cancel, attempt, note)
         if isinstance(step, PlaceStep):
-            placed = m.place(step, cancel)
-            return f"placed {placed} on {step.surface_name}"
+            return m.place(step, cancel, attempt, note)
         if isinstance(step, DetectStep):
-            position = self.robot.object_position(step.object_id)
-            if position is None:
-                raise ExecutionError(f"{step.object_name} is not in the current perception")
-            return f"{step.object_name} seen at ({position.x:.2f}, {position.y:.2f}, {position.z:.2f})"
+            return m.detect(step, cancel, attempt)
         if isinstance(step, SayStep):
             # This robot has no speaker; the text is carried in feedback and the recording.
             log.info("say: %s", step.text)

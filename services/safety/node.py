@@ -16,7 +16,7 @@ from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse,
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
 from schemas.keys import Action, Topic
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
-from schemas.robot import ARM_JOINTS, JointState, Odometry, Twist
+from schemas.robot import ARM_JOINTS, FollowJointTrajectoryGoal, JointState, Odometry, Twist
 from schemas.safety import (
     Decision,
     EStop,
@@ -59,6 +59,9 @@ TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
 # Repeated vetoes of a stream for one rule are one event per this many seconds.
 REPEAT_WINDOW = 1.0
+# How long a trajectory whose start seems to jump waits for a fresher joint state (joint states
+# come at 50 Hz).
+FRESH_JOINTS_WAIT = 0.1
 
 
 class SafetyNode:
@@ -72,6 +75,7 @@ class SafetyNode:
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
         self._state_lock = threading.Lock()
+        self._joints_arrived = threading.Condition(self._state_lock)
         self._people = PeopleReports(rules.humans.unseen_after)
         self._separation = Separation(rules.humans.reduced_speed_scale, "no report of people yet")
         # What was last put on robot/cmd_vel, from any path, and when: teleop speeds up from it.
@@ -113,11 +117,7 @@ class SafetyNode:
         self._proxy(
             keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda g: policy.check_navigation(g, self.pose(), self.reach())
         )
-        self._proxy(
-            keys.CMD_TRAJECTORY,
-            keys.ROBOT_TRAJECTORY,
-            lambda g: policy.check_trajectory(g, self.joints(), self.pose(), self.base_moving()),
-        )
+        self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._check_trajectory)
         self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, policy.check_gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
@@ -359,6 +359,7 @@ class SafetyNode:
         now = time.monotonic()
         with self._state_lock:
             self._joints = (now, msg)
+            self._joints_arrived.notify_all()
         if self.latch.state.latched or not msg.velocity:
             return
         velocities = dict(zip(msg.name, msg.velocity, strict=False))
@@ -376,6 +377,24 @@ class SafetyNode:
         if odom is None or time.monotonic() - odom[0] > self.policy.policy.monitor.state_max_age:
             return None
         return odom[1].pose
+
+    def _check_trajectory(self, goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
+        """A trajectory from where the arm is. A goal sent the moment the previous motion ended may
+        start where the arm has just stopped, while the latest state here is from a moment before:
+        a first point that seems to jump is checked once more against a state measured since."""
+        policy = self.policy
+        checked = self._joints
+        try:
+            return policy.check_trajectory(goal, self.joints(), self.pose(), self.base_moving())
+        except Vetoed as exc:
+            if "jump_rad" not in exc.values or not self._joints_since(checked, FRESH_JOINTS_WAIT):
+                raise
+        return policy.check_trajectory(goal, self.joints(), self.pose(), self.base_moving())
+
+    def _joints_since(self, checked: tuple[float, JointState] | None, timeout: float) -> bool:
+        """Wait for a joint state newer than `checked`; whether one came."""
+        with self._joints_arrived:
+            return self._joints_arrived.wait_for(lambda: self._joints is not checked, timeout)
 
     def joints(self) -> dict[str, float] | None:
         joints = self._joints
@@ -481,7 +500,7 @@ class SafetyNode:
     def _proxy(
         self, cmd: Action[Any, Any, Any], robot: Action[Any, Any, Any], check: Callable[[Any], Verdict[Any]]
     ) -> None:
-        """Serve `cmd`'s five keys: check goals, forward them to `robot`, relay its feedback."""
+        """Serve `cmd`'s keys: check goals, forward them to `robot`, relay its feedback and status."""
 
         def send_goal(req: SendGoal[Any]) -> GoalResponse:
             key = cmd.send_goal.path
@@ -491,7 +510,8 @@ class SafetyNode:
                 verdict = check(req.goal)
             except Vetoed as exc:
                 self._veto(key, exc, req)
-                return GoalResponse(goal_id=req.goal_id, accepted=False, reason=f"vetoed by safety: {exc}")
+                kind = ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
+                return GoalResponse(goal_id=req.goal_id, accepted=False, reason=f"vetoed by safety: {exc}", kind=kind)
             goal = verdict.command
             self._approve(key, verdict, SendGoal(goal_id=req.goal_id, goal=goal))
             response = self.node.call(
@@ -512,9 +532,13 @@ class SafetyNode:
                 with self._lock:
                     self._forwarded.pop(req.goal_id, None)
 
+        def get_status(req: GetResult) -> Any:
+            return self.node.call(robot.get_status, req, timeout=self.config.forward_timeout)
+
         self.node.serve(cmd.send_goal, send_goal)
         self.node.serve(cmd.cancel_goal, cancel_goal)
         self.node.serve(cmd.get_result, get_result)
+        self.node.serve(cmd.get_status, get_status)
         feedback = self.node.publisher(cmd.feedback)
         status = self.node.publisher(cmd.status)
         self.node.subscribe(robot.feedback, feedback.put)

@@ -33,6 +33,7 @@ from schemas.plan import (
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.safety import Rule
 from schemas.world import KeepOut
+from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, route_sweeps
 from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
 from services.safety.policyfile import Limits
@@ -49,7 +50,7 @@ INTERPOLATION_STEP = 0.05
 # Slower than this counts as standing still.
 STILL = 1e-6
 
-ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT)
+ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.OBSTACLE)
 # What the whole-plan check (check_plan, with the e-stop in the node) applies.
 PLAN_RULES = (
     Rule.ESTOP,
@@ -57,6 +58,7 @@ PLAN_RULES = (
     Rule.POSE_KNOWN,
     Rule.MAP,
     Rule.KEEP_OUT,
+    Rule.OBSTACLE,
     Rule.BASE_SPEED,
     Rule.PAYLOAD,
     Rule.WORKSPACE,
@@ -113,6 +115,8 @@ class SafetyPolicy:
         self.zones = {zone_id: shape.buffer(self.radius) for zone_id, shape in self.zone_shapes.items()}
         self.payload = self.policy.payload.max_mass
         self._floor = unary_union(list(world.room_shapes.values()))
+        self.base_size = robot.base_size
+        self.obstacles = [(f"the {o.name}", o.shape) for o in world.obstacles]
 
     # Navigation
 
@@ -129,10 +133,46 @@ class SafetyPolicy:
         """The keep-out zone the base's centre stands in (not grown), for the monitors."""
         return self._zone_hit(Point(x, y), grown=False)
 
+    def check_spot(self, pose: Pose2D) -> None:
+        """Where a plan sends the base: on the map, its footprint out of keep-out zones and as far
+        from walls and furniture as the route there must keep (the robot's tracking tolerance). The
+        way there is planned later and checked goal by goal (check_route)."""
+        if not _finite(pose.x, pose.y, pose.yaw):
+            raise Vetoed("the goal is not a finite pose", Rule.MAP)
+        if self.world.room_of(pose.x, pose.y) is None:
+            raise Vetoed(
+                f"the goal ({_fmt(pose.x)}, {_fmt(pose.y)}) is outside every room of the map",
+                Rule.MAP,
+                x=pose.x,
+                y=pose.y,
+            )
+        if zone := self._zone_hit(Point(pose.x, pose.y)):
+            raise Vetoed(
+                f"at the goal ({_fmt(pose.x)}, {_fmt(pose.y)}) the base's footprint would be in keep-out zone "
+                f"'{zone.name}'{_why(zone)}",
+                Rule.KEEP_OUT,
+                x=pose.x,
+                y=pose.y,
+            )
+        size = self.base_size
+        there = footprint(pose.x, pose.y, pose.yaw, size.x, size.y)
+        name, distance = min(((n, there.distance(shape)) for n, shape in self.obstacles), key=lambda item: item[1])
+        if distance < TRACKING_TOLERANCE:
+            where = "in" if distance <= 0.0 else f"{distance * 100:.0f} cm from"
+            raise Vetoed(
+                f"at the goal ({_fmt(pose.x)}, {_fmt(pose.y)}) the base would stand {where} {name} "
+                f"(it keeps {TRACKING_TOLERANCE * 100:g} cm)",
+                Rule.OBSTACLE,
+                x=pose.x,
+                y=pose.y,
+            )
+
     def check_route(self, start: Pose2D | None, path: list[Pose2D], goal: Pose2D, reach: float = 0.0) -> None:
         """The route the base will drive (see worldmodel.drive_route): on the map, its footprint
-        clear of every keep-out zone at every point and along every leg. `reach` is how far the
-        hand sticks out from the base's centre; beyond the footprint it widens what must stay clear."""
+        clear of every keep-out zone at every point and along every leg, and touching no wall or
+        furniture anywhere on the way as the sim drives it (services/footprint.py). `reach` is how
+        far the hand sticks out from the base's centre; beyond the footprint it widens what must
+        stay clear of keep-out zones."""
         zones = self.zones
         if reach > self.radius:
             zones = {zone_id: shape.buffer(reach) for zone_id, shape in self.zone_shapes.items()}
@@ -172,6 +212,15 @@ class SafetyPolicy:
                     x=b[0],
                     y=b[1],
                 )
+        size = self.base_size
+        # The sim keeps the footprint within its tracking tolerance of the route's sweeps; a hand
+        # sticking out beyond the footprint sweeps further, as far as it reaches.
+        hand = max(0.0, reach - min(size.x, size.y) / 2) if reach > self.radius else 0.0
+        sweeps = route_sweeps(start, points[1:], goal.yaw, size.x, size.y)
+        if problem := clearance_problem(start, sweeps, self.obstacles, TRACKING_TOLERANCE + hand, size.x, size.y):
+            sweep, why = problem
+            with_hand = f" with the hand {reach:.2f} m from the base's centre (stow the arm to drive)" if hand else ""
+            raise Vetoed(f"{why}{with_hand}; plan a path around it", Rule.OBSTACLE, x=sweep.x, y=sweep.y)
 
     def check_speed(self, speed: float) -> None:
         """A speed a plan asked for: over the limit is refused, never silently lowered."""
@@ -207,6 +256,7 @@ class SafetyPolicy:
             goal,
             max_speed=self.max_linear if goal.max_speed is None else goal.max_speed,
             max_turn_rate=self.max_angular if goal.max_turn_rate is None else goal.max_turn_rate,
+            start=start,
         )
         values = {
             "x": goal.pose.x,
@@ -568,22 +618,26 @@ class SafetyPolicy:
     def _check_step(self, step: GroundedStep, label: str, state: _PlanState, checks: dict[str, None]) -> _PlanState:
         """The state after `step` from `state`, or Vetoed naming the step."""
         try:
+            if isinstance(step, NavigateStep | PickStep | PlaceStep) and state.pose is None:
+                raise Vetoed(
+                    "the robot's pose is unknown (no recent odometry), so it cannot be sent anywhere", Rule.POSE_KNOWN
+                )
             if isinstance(step, NavigateStep):
-                self.check_route(state.pose, [], step.goal)
+                self.check_spot(step.goal)
                 if step.max_speed is not None:
                     self.check_speed(step.max_speed)
-                checks[f"step {label}: route to {step.target} is clear of keep-out zones"] = None
+                checks[f"step {label}: {step.target} is on the map, clear of keep-out zones and obstacles"] = None
                 return _PlanState.at(step.goal, state.holding)
             if isinstance(step, PickStep):
                 self.check_payload(step.object_id)
-                self.check_route(state.pose, [], step.approach)
+                self.check_spot(step.approach)
                 self.check_reach(step.approach, step.position, step.object_name)
                 checks[f"step {label}: {step.object_name} is within payload and reach"] = None
                 return _PlanState.at(step.approach, step.object_id)
             if isinstance(step, PlaceStep):
-                self.check_route(state.pose, [], step.approach)
+                self.check_spot(step.approach)
                 self.check_reach(step.approach, step.position, f"the spot on the {step.surface_name}")
-                checks[f"step {label}: route to {step.surface_name} is clear and the spot within reach"] = None
+                checks[f"step {label}: the spot on the {step.surface_name} is within reach"] = None
                 return _PlanState.at(step.approach, None)
             if isinstance(step, GripperStep):
                 return self._check_gripper_step(step, label, state, checks)

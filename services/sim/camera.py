@@ -12,7 +12,7 @@ import pybullet
 
 from schemas.common import Pose2D
 from services.sim.config import CameraConfig
-from services.sim.detection import Intrinsics, Target, camera_pose, detect, view_matrix
+from services.sim.detection import Detection, Intrinsics, Target, camera_pose, detect, view_matrix
 
 
 @dataclass(frozen=True)
@@ -57,9 +57,9 @@ class Camera:
         )
         return Frame(pose=pose, segmentation=np.reshape(segmentation, shape), depth_buffer=np.reshape(depth, shape))
 
-    def look(self, base: Pose2D, targets: Mapping[int, Target]) -> dict[str, np.ndarray]:
+    def look(self, base: Pose2D, targets: Mapping[int, Target]) -> dict[str, Detection]:
         """Where the camera, from a base at `base`, sees each of `targets` (by name): map-frame centres
-        with the configured noise. Targets out of view, out of range or hidden are missing."""
+        with the configured noise, and headings. Targets out of view, out of range or hidden are missing."""
         frame = self.render(base)
         seen = detect(
             frame.segmentation,
@@ -70,4 +70,7 @@ class Camera:
             min_pixels=self.config.min_pixels,
             max_range=self.config.max_range,
         )
-        return {name: centre + self._noise.normal(0.0, self.config.noise, 3) for name, centre in seen.items()}
+        return {
+            name: Detection(found.centre + self._noise.normal(0.0, self.config.noise, 3), found.yaw)
+            for name, found in seen.items()
+        }

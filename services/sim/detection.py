@@ -7,6 +7,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from shapely.geometry import MultiPoint
+
+# An outline narrower than this (metres) is an edge, not a top: it tells no heading.
+MIN_OUTLINE = 0.005
 
 
 @dataclass(frozen=True)
@@ -43,10 +47,21 @@ class Intrinsics:
 
 @dataclass(frozen=True)
 class Target:
-    """A body worth reporting: its name, and its height (the world file knows how tall things are)."""
+    """A body worth reporting: its name, its height (the world file knows how tall things are) and,
+    for one whose footprint is not round, its footprint's sides (x, y), so its heading can be told."""
 
     name: str
     height: float
+    footprint: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Where a body is (map-frame centre) and, when its footprint is not round, its heading: the
+    direction of its footprint's x side, modulo a half turn, in (-pi/2, pi/2]."""
+
+    centre: np.ndarray
+    yaw: float | None = None
 
 
 def camera_pose(x: float, y: float, yaw: float, mount_x: float, mount_z: float, pitch: float) -> np.ndarray:
@@ -101,6 +116,25 @@ def estimate_centre(points: np.ndarray, height: float) -> np.ndarray:
     return np.array([(low[0] + high[0]) / 2, (low[1] + high[1]) / 2, points[:, 2].max() - height / 2])
 
 
+def estimate_yaw(points: np.ndarray, footprint: tuple[float, float]) -> float | None:
+    """The heading of an object whose footprint has sides `footprint` (x, y), from the map-frame
+    points of its visible surface: the smallest rectangle around them seen from above has the
+    object's sides; the one closer in length to the x side gives the heading. None when the points
+    span no area (seen edge on)."""
+    outline = MultiPoint(points[:, :2].tolist()).minimum_rotated_rectangle
+    corners = np.asarray(getattr(outline, "exterior", outline).coords)
+    if len(corners) < 4:
+        return None
+    edges = [corners[1] - corners[0], corners[2] - corners[1]]
+    lengths = [float(np.hypot(*e)) for e in edges]
+    if min(lengths) < MIN_OUTLINE:
+        return None
+    side = min(range(2), key=lambda k: abs(lengths[k] - footprint[0]))
+    yaw = math.atan2(edges[side][1], edges[side][0])
+    # A rectangle looks the same turned half round: keep the heading in (-pi/2, pi/2].
+    return yaw - math.pi if yaw > math.pi / 2 else yaw + math.pi if yaw <= -math.pi / 2 else yaw
+
+
 def detect(
     segmentation: np.ndarray,
     depth_buffer: np.ndarray,
@@ -110,9 +144,9 @@ def detect(
     *,
     min_pixels: int,
     max_range: float,
-) -> dict[str, np.ndarray]:
-    """The estimated centres (map frame) of the bodies in `bodies` (segmentation id -> target) seen
-    in the image, by name.
+) -> dict[str, Detection]:
+    """The estimated centres (map frame), and headings where they tell, of the bodies in `bodies`
+    (segmentation id -> target) seen in the image, by name.
 
     A body counts when at least `min_pixels` of its pixels lie within `max_range` metres along the
     optical axis (beyond that the sensor returns nothing) and none of them touches the image border:
@@ -124,14 +158,15 @@ def detect(
     in_range = depth <= max_range
     rows, cols, depth = rows[in_range], cols[in_range], depth[in_range]
     labels = segmentation[rows, cols]
-    found: dict[str, np.ndarray] = {}
+    found: dict[str, Detection] = {}
     for body in np.unique(labels):
         mine = labels == body
         if np.count_nonzero(mine) < min_pixels or _touches_border(rows[mine], cols[mine], camera):
             continue
         points = unproject(rows[mine], cols[mine], depth[mine], camera, pose)
         target = bodies[int(body)]
-        found[target.name] = estimate_centre(points, target.height)
+        yaw = estimate_yaw(points, target.footprint) if target.footprint is not None else None
+        found[target.name] = Detection(estimate_centre(points, target.height), yaw)
     return found
 
 

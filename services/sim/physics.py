@@ -4,7 +4,6 @@ Pure logic: no Zenoh."""
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import tempfile
@@ -46,9 +45,11 @@ from schemas.world import (
     PerceivedHumans,
     PerceivedObject,
     PerceivedObjects,
+    Wall,
     World,
     WorldObject,
 )
+from services.footprint import TRACKING_TOLERANCE, route_legs
 from services.sim.camera import Camera
 from services.sim.config import CameraConfig
 from services.sim.detection import Target
@@ -76,14 +77,15 @@ ARM_POSITION_GAIN = 0.3
 FINGER_SPEED = 0.1  # m/s per finger
 
 # navigate_to_pose
-GOAL_POSITION_TOLERANCE = 0.01  # aim well inside the 5 cm / 0.05 rad promise
+# The base stops on every point of its route within this before it turns for the next leg.
+WAYPOINT_TOLERANCE = 0.01
 GOAL_YAW_TOLERANCE = 0.02
-WAYPOINT_TOLERANCE = 0.15
-PRE_GOAL_TOLERANCE = 0.03
-# Heading error (rad) above which the base turns in place; stricter when starting from rest, so
-# it sets off on the line instead of curving towards it.
-TURN_IN_PLACE_ABOVE = 0.35
-START_DRIVING_BELOW = 0.05
+# Turning to a leg's heading, the base sets off once within this of it (its corners then within
+# half a centimetre of where the leg's sweep has them).
+ALIGNED = 0.01
+# Driving a leg, the base steers back onto its line at this distance ahead (metres): a lateral
+# error of 1 cm turns it 0.02 rad towards the line.
+LOOKAHEAD = 0.5
 # Navigation's stall and deadline clocks run on scaled time (sim seconds times the speed scale),
 # so a pause or slowdown for people nearby never counts as being stuck.
 STALL_TIME = 4.0  # scaled sim seconds without progress
@@ -97,6 +99,7 @@ GRIPPER_TIMEOUT = 2.0
 GRIPPER_STILL_TIME = 0.1
 GRIPPER_REACHED = 0.002
 
+WALL_RGBA = [0.92, 0.9, 0.86, 1.0]
 HUMAN_RADIUS = 0.2
 HUMAN_HEIGHT = 1.7
 
@@ -106,6 +109,12 @@ DROP_HEIGHT = 0.002
 SETTLED_OBJECT_SPEED = 0.01
 SETTLED_OBJECT_TIME = 0.1
 SETTLE_TIMEOUT = 3.0
+
+
+def _target(obj: WorldObject) -> Target:
+    """What the camera looks for: the object's height, and for a box with unequal sides, its sides."""
+    footprint = (obj.size.x, obj.size.y) if obj.shape == "box" and abs(obj.size.x - obj.size.y) > 1e-3 else None
+    return Target(obj.id, obj.size.z, footprint)
 
 
 def wrap_angle(angle: float) -> float:
@@ -153,10 +162,16 @@ class Motion(Generic[F, R]):
 
 
 class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
-    """Turn towards each waypoint, drive to it, and at the end turn to the goal's yaw.
+    """Drive the route as services/footprint.py describes it, from the start safety checked it from
+    (`goal.start`): for each leg turn in place to its heading, drive along its line holding that
+    heading (backwards for a short leg behind), stop at its end; at the last point turn to the
+    goal's yaw.
 
-    The stall detector and the deadline count scaled time (`clock`: each tick adds dt times the
-    speed scale), so they stand still while the sim is paused and run slower while it is slowed.
+    The footprint may stray at most TRACKING_TOLERANCE from what the legs sweep, measured as the
+    centre's distance from the leg (or from the point it turns at) plus how far the corners are
+    turned off the leg's heading; further (pushed, or blocked and sliding) aborts the goal. The
+    stall detector and the deadline count scaled time (`clock`: each tick adds dt times the speed
+    scale), so they stand still while the sim is paused and run slower while it is slowed.
     """
 
     kind = "navigate_to_pose"
@@ -165,72 +180,97 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         super().__init__(sim)
         robot = sim.world.robot
         self.goal = goal
-        start = sim.base_pose()
-        final = goal.pose
-        # The same route safety checked: the path, maybe a pre-goal point, the goal.
-        self.waypoints = drive_route(start, goal.path, final)
-        pre_goal = len(self.waypoints) - 2 >= len(goal.path)
-        self.tolerances = [WAYPOINT_TOLERANCE] * len(goal.path)
-        if pre_goal:
-            self.tolerances.append(PRE_GOAL_TOLERANCE)
-        self.tolerances.append(GOAL_POSITION_TOLERANCE)
+        start = goal.start or sim.base_pose()
+        # The same legs safety checked: the path, maybe a pre-goal point, the goal.
+        self.legs = route_legs(start, drive_route(start, goal.path, goal.pose))
         self.index = 0
+        self.turning = True  # turning at the current leg's start (or, past the last leg, at the goal)
+        self.half_diagonal = math.hypot(robot.base_size.x, robot.base_size.y) / 2
         self.max_speed = min(goal.max_speed or robot.max_linear_speed, robot.max_linear_speed)
         self.max_turn = min(goal.max_turn_rate or robot.max_angular_speed, robot.max_angular_speed)
         self.accel, self.turn_accel = robot.max_linear_acceleration, robot.max_angular_acceleration
-        self.position_reached = False
-        length = self._remaining(start)
-        turns = len(self.waypoints) + 1
+        length = sum(leg.length for leg in self.legs)
+        turns = len(self.legs) + 1
         self.clock = 0.0
         self.deadline = 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
         self.best_progress = math.inf
         self.last_progress = self.clock
 
-    def _remaining(self, pose: Pose2D) -> float:
-        points = [(pose.x, pose.y), *self.waypoints[self.index :]]
-        return sum(math.dist(a, b) for a, b in itertools.pairwise(points))
-
-    def _distance_to(self, pose: Pose2D, index: int) -> float:
-        return math.dist((pose.x, pose.y), self.waypoints[index])
-
     def result_now(self, sim: Simulation) -> NavigateToPoseResult:
         return NavigateToPoseResult(pose=sim.base_pose())
+
+    def _turn_point(self) -> tuple[float, float]:
+        if self.index < len(self.legs):
+            return self.legs[self.index].start
+        return self.legs[-1].end if self.legs else (self.goal.pose.x, self.goal.pose.y)
+
+    def _along(self, pose: Pose2D) -> tuple[float, float]:
+        """How far along the current leg the centre is, and how far left of its line."""
+        leg = self.legs[self.index]
+        (ax, ay), (bx, by) = leg.start, leg.end
+        tx, ty = (bx - ax) / leg.length, (by - ay) / leg.length
+        dx, dy = pose.x - ax, pose.y - ay
+        return dx * tx + dy * ty, dx * -ty + dy * tx
+
+    def _stray(self, pose: Pose2D) -> float:
+        """How far the footprint is from where the route's sweeps have it (an upper bound)."""
+        if self.turning:
+            return math.dist((pose.x, pose.y), self._turn_point())
+        leg = self.legs[self.index]
+        s, e = self._along(pose)
+        beyond = max(0.0, -s, s - leg.length)
+        return math.hypot(e, beyond) + self.half_diagonal * abs(wrap_angle(pose.yaw - leg.heading))
+
+    def _remaining(self, pose: Pose2D) -> float:
+        if self.index >= len(self.legs):
+            return 0.0
+        along = 0.0 if self.turning else self._along(pose)[0]
+        return self.legs[self.index].length - along + sum(leg.length for leg in self.legs[self.index + 1 :])
 
     def tick(self, sim: Simulation) -> None:
         self.clock += sim.dt * sim.speed_scale
         pose = sim.base_pose()
-        last = len(self.waypoints) - 1
-        while self.index < last and self._distance_to(pose, self.index) < self.tolerances[self.index]:
-            self.index += 1
         remaining = self._remaining(pose)
         self.feedback = NavigateToPoseFeedback(pose=pose, distance_remaining=remaining)
-        tx, ty = self.waypoints[self.index]
-        distance = math.dist((pose.x, pose.y), (tx, ty))
-        if self.index == last and distance <= GOAL_POSITION_TOLERANCE:
-            self.position_reached = True
-        if self.index == last and self.position_reached:
-            yaw_error = wrap_angle(self.goal.pose.yaw - pose.yaw)
-            linear, angular = sim.base_velocity()
-            if abs(yaw_error) < GOAL_YAW_TOLERANCE and abs(angular) < SETTLED_SPEED and abs(linear) < SETTLED_SPEED:
+        stray = self._stray(pose)
+        if stray > TRACKING_TOLERANCE:
+            self._fail(
+                sim,
+                pose,
+                f"{stray * 100:.1f} cm off its route (tolerance {TRACKING_TOLERANCE * 100:g} cm): pushed or blocked?",
+            )
+            return
+        linear, angular = sim.base_velocity()
+        settled = abs(linear) < SETTLED_SPEED and abs(angular) < SETTLED_SPEED
+        if self.index >= len(self.legs):
+            error = wrap_angle(self.goal.pose.yaw - pose.yaw)
+            if abs(error) < GOAL_YAW_TOLERANCE and settled:
                 sim.command_base(0.0, 0.0)
                 self.finish(GoalState.SUCCEEDED, NavigateToPoseResult(pose=pose, message="reached the goal pose"))
                 return
-            sim.command_base(0.0, self._turn_rate(yaw_error))
-            progress = remaining + 0.3 * abs(yaw_error)
+            sim.command_base(0.0, self._turn_rate(error))
+            progress = abs(error)
+        elif self.turning:
+            error = wrap_angle(self.legs[self.index].heading - pose.yaw)
+            if abs(error) < ALIGNED and settled:
+                self.turning = False
+            sim.command_base(0.0, self._turn_rate(error) if self.turning else 0.0)
+            progress = remaining + 0.3 * abs(error)
         else:
-            heading_error = wrap_angle(math.atan2(ty - pose.y, tx - pose.x) - pose.yaw)
-            direction = 1.0
-            if self.index == last and distance < 0.3 and abs(heading_error) > math.pi / 2:
-                # Overshot by a little: back up rather than turn around.
-                direction, heading_error = -1.0, wrap_angle(heading_error + math.pi)
-            speed = 0.0
-            moving = abs(sim.base_velocity()[0]) > SETTLED_SPEED
-            if abs(heading_error) < (TURN_IN_PLACE_ABOVE if moving else START_DRIVING_BELOW):
-                stops_there = self.tolerances[self.index] < WAYPOINT_TOLERANCE
-                brake = math.sqrt(2.0 * self.accel * 0.8 * distance) if stops_there else self.max_speed
-                speed = min(self.max_speed, brake, 2.0 * distance + 0.02) * math.cos(heading_error)
-            sim.command_base(direction * speed, self._turn_rate(heading_error))
-            progress = remaining + 0.3 * abs(heading_error)
+            leg = self.legs[self.index]
+            s, e = self._along(pose)
+            left = leg.length - s  # negative once past the end: it comes back
+            if abs(left) < WAYPOINT_TOLERANCE and settled:
+                self.index += 1
+                self.turning = True
+                sim.command_base(0.0, 0.0)
+            else:
+                speed = min(self.max_speed, math.sqrt(2.0 * self.accel * 0.8 * abs(left)), 2.0 * abs(left) + 0.01)
+                direction = (-1.0 if leg.backwards else 1.0) * math.copysign(1.0, left)
+                # Back onto the line: aim at a point LOOKAHEAD further along it.
+                error = wrap_angle(leg.heading - math.atan2(e, LOOKAHEAD) - pose.yaw)
+                sim.command_base(direction * speed, self._turn_rate(error))
+            progress = remaining
         if progress < self.best_progress - 0.01:
             self.best_progress, self.last_progress = progress, self.clock
         elif self.clock - self.last_progress > STALL_TIME:
@@ -273,6 +313,7 @@ class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajecto
         self.positions = np.array(positions)
         self.final = self.positions[-1]
         self.clock = 0.0  # trajectory time: sim seconds times the speed scale
+        self.commanded: np.ndarray | None = None
 
     def _desired(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         if t >= self.times[-1]:
@@ -295,10 +336,23 @@ class TrajectoryFollow(Motion[FollowJointTrajectoryFeedback, FollowJointTrajecto
 
     def tick(self, sim: Simulation) -> None:
         t = self.clock
+        actual = self._actual(sim)
+        # Where the last tick commanded the joints: this tick's position control has moved them there.
+        lag = np.abs(actual - self.commanded) if self.commanded is not None else np.zeros_like(actual)
+        if float(np.max(lag)) > self.goal.path_tolerance:
+            worst = int(np.argmax(lag))
+            sim.hold_arm()
+            message = (
+                f"{self.goal.joint_names[worst]} was {lag[worst]:.3f} rad from the trajectory at {t:.2f} s "
+                f"(path tolerance {self.goal.path_tolerance:g} rad): blocked or pushed"
+            )
+            result = FollowJointTrajectoryResult(error=float(np.max(np.abs(actual - self.final))), message=message)
+            self.finish(GoalState.ABORTED, result, message)
+            return
         self.clock += sim.dt * sim.speed_scale
         desired, velocity = self._desired(t)
         sim.command_arm(self.indices, desired, velocity * sim.speed_scale)
-        actual = self._actual(sim)
+        self.commanded = desired
         self.feedback = FollowJointTrajectoryFeedback(
             desired=desired.tolist(), actual=actual.tolist(), time_from_start=t
         )
@@ -416,6 +470,7 @@ class Simulation:
         self.bullet.setGravity(0.0, 0.0, GRAVITY)
         self.bullet.setTimeStep(self.dt)
         self.bullet.loadURDF("plane.urdf")
+        self.wall_bodies = {w.id: self._add_wall(w) for w in world.walls}
         self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
         self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
@@ -423,7 +478,7 @@ class Simulation:
         self.human_poses = {h.id: h.pose for h in world.humans}
         self.robot = self._add_robot()
         self.camera = Camera(self.bullet, camera or CameraConfig())
-        self._camera_targets = {self.object_bodies[o.id]: Target(o.id, o.size.z) for o in world.objects}
+        self._camera_targets = {self.object_bodies[o.id]: _target(o) for o in world.objects}
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
     # Building the world
@@ -434,6 +489,16 @@ class Simulation:
         visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=rgba)
         body: int = self.bullet.createMultiBody(0.0, shape, visual, [center[0], center[1], size.z / 2])
         self.bullet.changeDynamics(body, -1, lateralFriction=1.0)
+        return body
+
+    def _add_wall(self, wall: Wall) -> int:
+        (x0, y0), (x1, y1) = wall.start, wall.end
+        half = [math.dist((x0, y0), (x1, y1)) / 2, wall.thickness / 2, wall.height / 2]
+        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+        visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=WALL_RGBA)
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, math.atan2(y1 - y0, x1 - x0)])
+        centre = [(x0 + x1) / 2, (y0 + y1) / 2, wall.height / 2]
+        body: int = self.bullet.createMultiBody(0.0, shape, visual, centre, orientation)
         return body
 
     def _add_object(self, obj: WorldObject) -> int:
@@ -546,9 +611,26 @@ class Simulation:
         self.motions[motion.kind] = motion
         return motion
 
-    def navigate(self, goal: NavigateToPoseGoal) -> Navigation:
+    def navigate(self, goal: NavigateToPoseGoal) -> Motion[Any, Any]:
+        """Drive the goal's route; refused (ended at once) when the base does not stand where the
+        route was checked from: it would drive other legs than those safety approved."""
         self._cmd_vel = None
+        if goal.start is not None and (reason := self._away_from(goal.start)):
+            motion = Motion[NavigateToPoseFeedback, NavigateToPoseResult](self)
+            motion.finish(GoalState.ABORTED, NavigateToPoseResult(pose=self.base_pose(), message=reason), reason)
+            return motion
         return self._start(Navigation(self, goal))
+
+    def _away_from(self, start: Pose2D) -> str | None:
+        here = self.base_pose()
+        half_diagonal = math.hypot(self.world.robot.base_size.x, self.world.robot.base_size.y) / 2
+        off = math.dist((here.x, here.y), (start.x, start.y)) + half_diagonal * abs(wrap_angle(here.yaw - start.yaw))
+        if off <= TRACKING_TOLERANCE:
+            return None
+        return (
+            f"the route was checked from ({start.x:.2f}, {start.y:.2f}, {start.yaw:.2f} rad) but the base stands at "
+            f"({here.x:.2f}, {here.y:.2f}, {here.yaw:.2f} rad)"
+        )
 
     def check_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
         """Why a trajectory goal cannot run, or None when it can. Safe from any thread."""
@@ -696,18 +778,9 @@ class Simulation:
     # Grasping
 
     def object_between_fingers(self) -> str | None:
-        """The object touching both fingers, or failing that one sitting squarely between them."""
+        """The object both fingers touch: only that one is held."""
         for object_id, body in self.object_bodies.items():
-            touching = [bool(self.bullet.getContactPoints(self.robot, body, link, -1)) for link in self._fingers]
-            if all(touching):
-                return object_id
-        hand_position, hand_orientation = self.bullet.getLinkState(self.robot, self._hand)[4:6]
-        to_hand = self.bullet.invertTransform(hand_position, hand_orientation)
-        gap = self.gripper_gap()
-        for object_id, body in self.object_bodies.items():
-            position, _ = self.bullet.getBasePositionAndOrientation(body)
-            local, _ = self.bullet.multiplyTransforms(to_hand[0], to_hand[1], position, [0, 0, 0, 1])
-            if abs(local[0]) < 0.02 and abs(local[1]) < gap / 2 + 0.01 and 0.07 < local[2] < 0.13:
+            if all(self.bullet.getContactPoints(self.robot, body, link, -1) for link in self._fingers):
                 return object_id
         return None
 
@@ -797,16 +870,31 @@ class Simulation:
         linear, _ = self.bullet.getBaseVelocity(self.object_bodies[object_id])
         return float(np.linalg.norm(linear))
 
-    def _report(self, obj: WorldObject, position: Vec3, on: str | None, stamp: float) -> PerceivedObject:
+    def _report(
+        self, obj: WorldObject, position: Vec3, on: str | None, stamp: float, yaw: float | None = None
+    ) -> PerceivedObject:
         room = self.model.room_of(position.x, position.y)
         return PerceivedObject(
-            id=obj.id, name=obj.name, cls=obj.cls, color=obj.color, position=position, room=room, on=on, stamp=stamp
+            id=obj.id,
+            name=obj.name,
+            cls=obj.cls,
+            color=obj.color,
+            position=position,
+            room=room,
+            on=on,
+            stamp=stamp,
+            yaw=yaw,
         )
 
     def _exact(self, obj: WorldObject, stamp: float) -> PerceivedObject:
         position = self.object_position(obj.id)
         on = "gripper" if obj.id == self.holding else self.model.support_under(position, obj.size.z / 2)
-        return self._report(obj, position, on, stamp)
+        yaw = None
+        if self._camera_targets[self.object_bodies[obj.id]].footprint is not None:
+            _, orientation = self.bullet.getBasePositionAndOrientation(self.object_bodies[obj.id])
+            heading = self.bullet.getEulerFromQuaternion(orientation)[2]
+            yaw = math.atan(math.tan(heading)) if abs(math.cos(heading)) > 1e-9 else math.pi / 2
+        return self._report(obj, position, on, stamp, yaw)
 
     def perceived_objects(self, stamp: float) -> PerceivedObjects:
         """What the camera sees from where the base stands, and what the gripper holds: the robot
@@ -818,9 +906,10 @@ class Simulation:
             if obj.id == self.holding:
                 objects.append(self._exact(obj, stamp))
             elif obj.id in seen:
-                x, y, z = (float(v) for v in seen[obj.id])
+                x, y, z = (float(v) for v in seen[obj.id].centre)
                 position = Vec3(x=x, y=y, z=z)
-                objects.append(self._report(obj, position, self.model.support_under(position, obj.size.z / 2), stamp))
+                on = self.model.support_under(position, obj.size.z / 2)
+                objects.append(self._report(obj, position, on, stamp, seen[obj.id].yaw))
         return PerceivedObjects(stamp=stamp, objects=objects)
 
     def perceived_humans(self, stamp: float) -> PerceivedHumans:

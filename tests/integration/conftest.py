@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -88,6 +90,18 @@ def stop_stack(stack: Stack) -> None:
     stack.node.close()
     stack.supervisor.stop_all()
     dump_logs(stack.supervisor, tuple(stack.supervisor.procs))
+
+
+def tether_cli(stack: Stack, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    """The `tether` command line against this stack's services, as a user runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "tether", *args],
+        env=stack.supervisor.env(),
+        input=stdin,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def dump_logs(supervisor: Supervisor, services: tuple[str, ...]) -> None:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,7 +10,7 @@ import pytest
 
 from schemas import keys
 from schemas.world import Empty, Moved, MoveEntity
-from tests.integration.conftest import Stack, start_stack, stop_stack
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 
 # On the coffee table, which the camera sees from the robot's start pose.
@@ -26,16 +24,6 @@ def sim_stack(tmp_path: Path) -> Iterator[Stack]:
         yield stack
     finally:
         stop_stack(stack)
-
-
-def tether_cli(stack: Stack, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tether", *args],
-        env=stack.supervisor.env(),
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
 
 
 def test_a_moved_object_shows_in_ground_truth_and_then_in_perception(sim_stack: Stack) -> None:

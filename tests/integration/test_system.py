@@ -23,7 +23,7 @@ from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopSource
 from schemas.trace import TraceRecord
 from schemas.world import Empty, GroundTruth
-from tests.integration.conftest import Stack, start_stack, stop_stack
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.cli import DEMO_PLAN
 from tether.client import PlanSender, reset_estop, trigger_estop
@@ -84,17 +84,6 @@ def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: 
     decided = {(d["key"], d["decision"]) for d in safety_decisions}
     assert ("safety/check_plan", "approved") in decided
     assert ("cmd/gripper_command/_action/send_goal", "approved") in decided
-
-
-def tether_cli(stack: Stack, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tether", *args],
-        env=stack.supervisor.env(),
-        input=stdin,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
 
 
 def test_a_plan_into_the_stairs_is_rejected_by_safety_and_nothing_moves(stack: Stack) -> None:

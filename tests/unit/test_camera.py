@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,10 +14,11 @@ from schemas.actions import GoalState
 from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
 from schemas.robot import NavigateToPoseGoal
 from schemas.world import Moved, MoveEntity, PerceivedObject
+from services.executor.navigation import BasePlanner
 from services.runtime import ConfigError, load_config
 from services.sim.config import CameraConfig, SimConfig
 from services.sim.physics import Drop, Simulation
-from services.worldmodel import load_world
+from services.worldmodel import WorldModel, load_world
 
 WORLD = load_world("household")
 GRASP_TOLERANCE = 0.015
@@ -34,8 +36,19 @@ def approach(furniture_id: str) -> Pose2D:
     return next(f.approach for f in WORLD.furniture if f.id == furniture_id)
 
 
+@functools.cache
+def _planner(world_name: str) -> BasePlanner:
+    return BasePlanner(WorldModel(load_world(world_name)))
+
+
+def route_planner(sim: Simulation) -> BasePlanner:
+    return _planner(sim.world.name)
+
+
 def drive(sim: Simulation, pose: Pose2D) -> None:
-    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose)), timeout=60.0)
+    # Through the doorways, as the executor would plan it.
+    path = route_planner(sim).plan(sim.base_pose(), pose)
+    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose, path=path)), timeout=120.0)
     assert motion.state is GoalState.SUCCEEDED, motion.message
 
 

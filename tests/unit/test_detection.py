@@ -13,6 +13,7 @@ from services.sim.detection import (
     camera_pose,
     detect,
     estimate_centre,
+    estimate_yaw,
     linear_depth,
     unproject,
     view_matrix,
@@ -106,7 +107,8 @@ def test_a_box_is_found_at_its_centre_not_on_its_near_face() -> None:
     found = detect(labels, buffer, CAMERA, POSE, {7: Target("cup", 0.1)}, min_pixels=10, max_range=4.0)
     assert set(found) == {"cup"}
     pixel = 1.2 * CAMERA.tan_half_h * 2 / CAMERA.width  # a pixel's width at that distance, roughly
-    assert found["cup"] == pytest.approx([1.2, 0.1, 0.05], abs=pixel)
+    assert found["cup"].centre == pytest.approx([1.2, 0.1, 0.05], abs=pixel)
+    assert found["cup"].yaw is None, "no heading asked for a round object"
 
 
 def test_centre_from_points_uses_the_extent_and_the_top() -> None:
@@ -143,3 +145,15 @@ def test_a_box_hidden_behind_another_is_not_seen() -> None:
     assert set(detect(labels, buffer, CAMERA, POSE, targets, min_pixels=1, max_range=4.0)) == {"wall"}
     labels, buffer = render([cup])
     assert set(detect(labels, buffer, CAMERA, POSE, targets, min_pixels=1, max_range=4.0)) == {"cup"}
+
+
+@pytest.mark.parametrize("degrees", [0.0, 30.0, 89.0, -60.0])
+def test_a_books_heading_comes_from_the_outline_of_its_points(degrees: float) -> None:
+    # The top of a 6 x 20 cm book, sampled on a grid, turned by `degrees`.
+    yaw = math.radians(degrees)
+    xs, ys = np.meshgrid(np.linspace(-0.03, 0.03, 7), np.linspace(-0.1, 0.1, 21))
+    c, s = math.cos(yaw), math.sin(yaw)
+    points = np.stack([2.0 + c * xs - s * ys, 1.0 + s * xs + c * ys, np.full_like(xs, 0.5)], axis=-1).reshape(-1, 3)
+    assert estimate_yaw(points, (0.06, 0.2)) == pytest.approx(yaw, abs=1e-6)
+    # Points on a line (seen edge on) tell nothing.
+    assert estimate_yaw(points[:7], (0.06, 0.2)) is None

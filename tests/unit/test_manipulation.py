@@ -15,9 +15,10 @@ from schemas.common import Pose2D, Vec3
 from schemas.plan import NavigateStep, PickStep, PlaceStep, Plan, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import PerceivedObject
+from services.executor.armplanning import ArmPlanner
 from services.executor.config import ExecutorConfig
-from services.executor.kinematics import ArmKinematics
 from services.executor.manipulation import Manipulator
+from services.executor.navigation import BasePlanner
 from services.resolver.resolver import Resolver
 from services.sim.physics import Motion, Simulation
 from services.worldmodel import WorldModel, load_world
@@ -51,18 +52,35 @@ class SimRobot:
     def arm_positions(self) -> list[float] | None:
         return self.sim.arm_positions()
 
-    def object_position(self, object_id: str) -> Vec3 | None:
-        return self.sim.object_position(object_id)
-
     def held_object(self) -> str | None:
         return self.sim.ground_truth().holding
 
-    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
+    def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
         self.sim.settle(0.2)
-        return next((o for o in self.sim.perceived_objects(0.0).objects if o.id == object_id), None)
+        return self.sim.perceived_objects(0.0).objects
 
     def safety_stop(self) -> str | None:
         return None
+
+    def speed_scale(self) -> float:
+        return 1.0
+
+    def people(self) -> list[Pose2D]:
+        return [h.pose for h in self.sim.perceived_humans(0.0).humans]
+
+    def remembered(self, object_id: str) -> PerceivedObject | None:
+        return None
+
+
+@pytest.fixture(scope="module")
+def planners() -> tuple[ArmPlanner, BasePlanner]:
+    world = WorldModel(load_world())
+    return ArmPlanner(world), BasePlanner(world)
+
+
+def manipulator_for(robot: SimRobot, planners: tuple[ArmPlanner, BasePlanner]) -> Manipulator:
+    arm, base = planners
+    return Manipulator(robot, arm, base, WorldModel(robot.sim.world), ExecutorConfig())
 
 
 @pytest.fixture
@@ -72,7 +90,9 @@ def sim() -> Iterator[Simulation]:
     simulation.close()
 
 
-def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_table(sim: Simulation) -> None:
+def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_table(
+    sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]
+) -> None:
     world = WorldModel(sim.world)
     plan = Plan(
         steps=[
@@ -83,8 +103,7 @@ def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_tabl
         ]
     )
     grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
-    robot = SimRobot(sim)
-    manipulator = Manipulator(robot, ArmKinematics(), world, ExecutorConfig())
+    manipulator = manipulator_for(SimRobot(sim), planners)
     cancel = threading.Event()
     go, pick, go2, place = grounded.steps
     manipulator.drive_to(go.goal, cancel)  # type: ignore[union-attr]
@@ -100,11 +119,13 @@ def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_tabl
 
 
 @pytest.mark.parametrize(("surface_id", "shift"), [("coffee_table", 0.0), ("kitchen_table", -0.1)])
-def test_a_placed_cup_stands_upright_on_the_surface(sim: Simulation, surface_id: str, shift: float) -> None:
+def test_a_placed_cup_stands_upright_on_the_surface(
+    sim: Simulation, planners: tuple[ArmPlanner, BasePlanner], surface_id: str, shift: float
+) -> None:
     """Grasped at its centre, the palm pressed on the cup's rim and it turned in the fingers: it was
     put down at 45 degrees and fell on its side, or stayed wedged in the opened hand."""
     world = WorldModel(sim.world)
-    manipulator = Manipulator(SimRobot(sim), ArmKinematics(), world, ExecutorConfig())
+    manipulator = manipulator_for(SimRobot(sim), planners)
     cancel = threading.Event()
     cup = world.objects["red_cup"]
     counter = world.furniture["kitchen_counter"]
@@ -149,7 +170,9 @@ class TracingSimRobot(SimRobot):
         return ResultResponse(goal_id="x", state=motion.state, result=motion.result, message=motion.message)
 
 
-def test_relative_moves_end_where_the_resolver_predicted(sim: Simulation) -> None:
+def test_relative_moves_end_where_the_resolver_predicted(
+    sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]
+) -> None:
     """drive, turn (split past 120 degrees), a long backward drive and look_at, as the sim drives them."""
     world = WorldModel(sim.world)
     steps = [
@@ -162,7 +185,7 @@ def test_relative_moves_end_where_the_resolver_predicted(sim: Simulation) -> Non
     plan = Plan(steps=[msgspec.convert(s, Step) for s in steps])
     grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
     robot = TracingSimRobot(sim)
-    manipulator = Manipulator(robot, ArmKinematics(), world, ExecutorConfig())
+    manipulator = manipulator_for(robot, planners)
     start = sim.base_pose()
     for step, label in zip(grounded.steps, grounded.labels, strict=True):
         assert isinstance(step, NavigateStep)
@@ -179,8 +202,8 @@ def test_relative_moves_end_where_the_resolver_predicted(sim: Simulation) -> Non
     assert end.yaw == pytest.approx(math.atan2(1.5 - end.y, 9.5 - end.x), abs=0.05)
 
 
-def test_open_and_close_gripper_on_nothing(sim: Simulation) -> None:
-    manipulator = Manipulator(SimRobot(sim), ArmKinematics(), WorldModel(sim.world), ExecutorConfig())
+def test_open_and_close_gripper_on_nothing(sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]) -> None:
+    manipulator = manipulator_for(SimRobot(sim), planners)
     cancel = threading.Event()
     assert manipulator.operate_gripper(False, cancel) == "gripper closed, holding nothing"
     assert sim.gripper_gap() < 0.005

@@ -16,7 +16,7 @@ import pytest
 from schemas.common import Pose2D
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
 from schemas.safety import Rule
-from schemas.world import RobotSpec
+from schemas.world import RobotSpec, World
 from services.robotmodel import ArmModel
 from services.safety.errors import Vetoed
 from services.safety.policy import JOINT_LIMIT_MARGIN, SafetyPolicy
@@ -309,8 +309,14 @@ def test_a_missing_file_a_json_file_or_bad_syntax_is_refused(tmp_path: Path, arm
 # Applied
 
 
-def checks(limits: Limits, arm: ArmModel) -> SafetyPolicy:
-    return SafetyPolicy(WorldModel(WORLD), limits, arm)
+# The coffee table's approach pose: from START the base drives there in a straight line.
+COFFEE_TABLE = Pose2D(x=8.0, y=1.75, yaw=math.pi / 2)
+# The flat with its walls and furniture taken away: keep-out zones alone decide where the base may go.
+OPEN_FLOOR = msgspec.structs.replace(WORLD, walls=[], furniture=[], objects=[])
+
+
+def checks(limits: Limits, arm: ArmModel, world: World = WORLD) -> SafetyPolicy:
+    return SafetyPolicy(WorldModel(world), limits, arm)
 
 
 def test_a_tightened_joint_range_is_enforced_between_the_new_and_the_old_limit(tmp_path: Path, arm: ArmModel) -> None:
@@ -363,7 +369,7 @@ def test_tightened_base_and_gripper_limits_are_enforced(tmp_path: Path, arm: Arm
         ),
     )
     tight = checks(load(path, arm), arm)
-    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=0.3)
+    goal = NavigateToPoseGoal(pose=COFFEE_TABLE, max_speed=0.3)
     assert tight.check_navigation(goal, START).command.max_speed == 0.3
     # Not asked for, the tightened limits are filled in.
     filled = tight.check_navigation(NavigateToPoseGoal(pose=goal.pose), START).command
@@ -398,7 +404,7 @@ def test_a_policys_own_keep_out_zone_is_enforced_like_the_worlds(tmp_path: Path,
     )
     limits = load(path, arm)
     assert [zone.id for zone in limits.keep_out] == ["stairs", "nursery"]
-    with_nursery, without = checks(limits, arm), checks(load(None, arm), arm)
+    with_nursery, without = checks(limits, arm, OPEN_FLOOR), checks(load(None, arm), arm, OPEN_FLOOR)
     # Approaching the nursery's east edge from the east: a footprint (half-diagonal) away or closer.
     start = Pose2D(x=3.8, y=5.5)
     clear = NavigateToPoseGoal(pose=Pose2D(x=3.0 + RADIUS + EPS, y=7.0, yaw=math.pi))

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 import re
 import threading
-from typing import Any, cast
+import time
+from typing import Any
 
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
-from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
+from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, FailureKind, PlanStatus, StepStatus
 from schemas.plan import (
     Fallback,
     GripperStep,
@@ -30,9 +32,10 @@ from schemas.robot import (
 )
 from schemas.world import PerceivedObject
 from services.actionlib import GoalRejected
-from services.executor.config import ExecutorConfig
-from services.executor.kinematics import ArmKinematics
+from services.executor.armplanning import ArmPlanner
+from services.executor.config import ExecutorConfig, StepRetries, StepTimeouts
 from services.executor.manipulation import Manipulator
+from services.executor.navigation import BasePlanner
 from services.executor.runner import PlanRunner
 from services.runtime import CallError
 from services.worldmodel import WorldModel, load_world
@@ -86,6 +89,7 @@ class ScriptedRobot:
         self.goals: list[NavigateToPoseGoal] = []
         self.grips: list[GripperCommandGoal] = []
         self.started = threading.Event()
+        self.scale = 1.0
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         self.goals.append(goal)
@@ -95,7 +99,7 @@ class ScriptedRobot:
             return ResultResponse(goal_id="g", state=GoalState.CANCELED, message="canceled")
         state = self.outcomes.get(goal.pose, self.state)
         if not isinstance(state, GoalState):
-            raise GoalRejected(state)
+            raise GoalRejected(state, ErrorKind.VETOED)
         return ResultResponse(goal_id="g", state=state, message="stalled" if state is not GoalState.SUCCEEDED else "")
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
@@ -113,31 +117,55 @@ class ScriptedRobot:
         return Pose2D(x=6.0, y=1.2)
 
     def arm_positions(self) -> list[float] | None:
-        return None
-
-    def object_position(self, object_id: str) -> Vec3 | None:
-        return None
+        return list(WORLD.world.robot.home_joints)  # stowed: driving needs no arm motion first
 
     def held_object(self) -> str | None:
         return self.holding
 
-    def next_perception(self, object_id: str, timeout: float) -> PerceivedObject | None:
-        return None
+    def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
+        return []
 
     def safety_stop(self) -> str | None:
         return self.stop_reason
 
+    def speed_scale(self) -> float:
+        return self.scale
 
-def runner(planner: ScriptedPlanner, robot: ScriptedRobot) -> PlanRunner:
-    world = WorldModel(load_world())
-    # These plans never move the arm, so the kinematics are never asked.
-    manipulator = Manipulator(robot, cast(ArmKinematics, None), world, ExecutorConfig())
-    return PlanRunner(planner, robot, manipulator)
+    def people(self) -> list[Pose2D]:
+        return []
+
+    def remembered(self, object_id: str) -> PerceivedObject | None:
+        return None
 
 
-def run(planner: ScriptedPlanner, robot: ScriptedRobot, cancel: threading.Event | None = None) -> Any:
+WORLD = WorldModel(load_world())
+# The plans here test the runner's order of things: a failed step is not tried again unless a test says so.
+NO_RETRIES = ExecutorConfig(
+    retries=StepRetries(navigate_to=0, pick=0, place=0, detect=0, gripper=0, say=0, wait=0, stop=0)
+)
+
+
+@functools.cache
+def planners() -> tuple[ArmPlanner, BasePlanner]:
+    """Real planners, built once: the base's routes are planned for real; these plans move no arm."""
+    return ArmPlanner(WORLD), BasePlanner(WORLD)
+
+
+def runner(planner: ScriptedPlanner, robot: ScriptedRobot, config: ExecutorConfig = NO_RETRIES) -> PlanRunner:
+    arm, base = planners()
+    return PlanRunner(planner, robot, Manipulator(robot, arm, base, WORLD, config), config)
+
+
+def run(
+    planner: ScriptedPlanner,
+    robot: ScriptedRobot,
+    cancel: threading.Event | None = None,
+    config: ExecutorConfig = NO_RETRIES,
+) -> Any:
     feedback: list[ExecutePlanFeedback] = []
-    result = runner(planner, robot).run(ExecutePlanGoal(text="..."), cancel or threading.Event(), feedback.append)
+    result = runner(planner, robot, config).run(
+        ExecutePlanGoal(text="..."), cancel or threading.Event(), feedback.append
+    )
     return result, feedback
 
 
@@ -298,7 +326,7 @@ def test_a_failed_step_runs_its_on_failure_and_the_plan_goes_on_after_it() -> No
         ("2", StepStatus.SUCCEEDED),
     ]
     assert [g.pose for g in robot.goals] == [KITCHEN, DOCK, HALLWAY]
-    assert "step 1.1 (navigate_to) failed: navigation aborted: stalled" in result.reason
+    assert "step 1.1 (navigate_to) failed (execution): navigation aborted: stalled" in result.reason
     assert "on_failure ran instead" in result.reason
 
 
@@ -311,8 +339,8 @@ def test_when_the_on_failure_fails_too_the_plan_fails_with_both_reasons() -> Non
     result = outcome(plan, robot)
     assert result.status is PlanStatus.FAILED
     assert result.reason == (
-        "step 1 (navigate_to) failed: navigation aborted: stalled; "
-        "then step 1 on_failure 1 (navigate_to) failed: navigation aborted: stalled"
+        "step 1 (navigate_to) failed (execution): navigation aborted: stalled; "
+        "then step 1 on_failure 1 (navigate_to) failed (execution): navigation aborted: stalled"
     )
     assert table(result) == [
         ("1", StepStatus.FAILED),
@@ -388,3 +416,91 @@ def test_a_dry_run_lists_the_alternatives_after_the_steps_they_cover() -> None:
     )
     assert [s.label for s in result.steps] == ["1.1", "1.2", "1 on_failure 1", "2"]
     assert robot.goals == []
+
+
+# Retries, the step's clock and failure kinds
+
+
+class FlakyRobot(ScriptedRobot):
+    """Navigation aborts the first `failures` times, then arrives."""
+
+    def __init__(self, failures: int) -> None:
+        super().__init__()
+        self.failures = failures
+
+    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        self.goals.append(goal)
+        state = GoalState.ABORTED if len(self.goals) <= self.failures else GoalState.SUCCEEDED
+        return ResultResponse(goal_id="g", state=state, message="stalled: is the way blocked?")
+
+
+def retrying(navigate_to: int) -> ExecutorConfig:
+    return ExecutorConfig(retries=StepRetries(navigate_to=navigate_to))
+
+
+def test_a_failed_motion_is_planned_anew_and_tried_again_up_to_the_configured_retries() -> None:
+    robot = FlakyRobot(failures=2)
+    result, feedback = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
+    assert result.status is PlanStatus.SUCCEEDED
+    assert (result.steps[0].status, result.steps[0].attempts) == (StepStatus.SUCCEEDED, 3)
+    assert len(robot.goals) == 3, "each try a new navigation goal, each with a freshly planned route"
+    retries = [f for f in feedback if f.attempt > 1 and f.status is StepStatus.RUNNING and f.failure]
+    assert [f.attempt for f in retries] == [2, 3]
+    assert retries[0].failure is FailureKind.EXECUTION
+    assert "attempt 1 failed (execution): navigation aborted: stalled" in retries[0].message
+    # One retry too few: the step fails, saying how often it was tried and what kind of failure it was.
+    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), FlakyRobot(failures=2), config=retrying(1))
+    assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.EXECUTION)
+    assert (result.steps[0].failure, result.steps[0].attempts) == (FailureKind.EXECUTION, 2)
+    assert result.reason.startswith("step 1 (navigate_to) failed after 2 attempts (execution): navigation aborted")
+
+
+def test_a_veto_is_never_retried_and_says_so() -> None:
+    robot = ScriptedRobot(outcomes={KITCHEN: "inside keep-out zone 'stairs'"})
+    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
+    assert (result.status, result.failure, result.steps[0].attempts) == (PlanStatus.FAILED, FailureKind.VETOED, 1)
+    assert len(robot.goals) == 1
+
+
+def test_failure_kinds_name_what_went_wrong() -> None:
+    inside_the_table = Pose2D(x=8.0, y=2.5)  # the coffee table's centre: no route can end there
+    result, _ = run(ScriptedPlanner(resolve=grounded([go(inside_the_table)])), ScriptedRobot())
+    assert result.failure is FailureKind.PLANNING and "coffee table" in result.reason
+    result, _ = run(ScriptedPlanner(resolve=grounded([GripperStep(open=True)])), ScriptedRobot(holding="red_cup"))
+    assert result.failure is FailureKind.PRECONDITION
+    robot = ScriptedRobot(block=True)
+    cancel = threading.Event()
+    cancel.set()
+    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, cancel)
+    assert (result.status, result.steps[0].failure) == (PlanStatus.CANCELED, FailureKind.CANCELED)
+
+
+def timed(navigate_to: float) -> ExecutorConfig:
+    return ExecutorConfig(timeouts=StepTimeouts(navigate_to=navigate_to), retries=NO_RETRIES.retries)
+
+
+def test_a_step_over_its_time_is_canceled_and_fails() -> None:
+    robot = ScriptedRobot(block=True)
+    started = time.monotonic()
+    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=timed(0.3))
+    assert time.monotonic() - started < 3.0
+    assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.EXECUTION)
+    assert "timed out after 0.3 s of motion" in result.reason
+
+
+def test_time_paused_for_a_person_does_not_count() -> None:
+    robot = ScriptedRobot(block=True)
+    robot.scale = 0.0  # safety holds the robot still: a person is too close
+    cancel = threading.Event()
+    box: list[Any] = []
+    worker = threading.Thread(
+        target=lambda: box.append(run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, cancel, timed(0.3)))
+    )
+    worker.start()
+    assert robot.started.wait(5.0)
+    worker.join(1.0)
+    assert worker.is_alive(), "paused, the step is still waiting after three times its time"
+    robot.scale = 1.0
+    worker.join(5.0)
+    result, _ = box[0]
+    assert result.failure is FailureKind.EXECUTION and "timed out" in result.reason

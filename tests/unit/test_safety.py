@@ -69,10 +69,10 @@ def test_the_footprint_not_just_the_centre_stays_out_of_zones(policy: SafetyPoli
 
 
 def test_a_clear_goal_passes_but_a_speed_over_the_limit_is_refused_not_clamped(policy: SafetyPolicy) -> None:
-    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=0.6)
+    goal = NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.75, yaw=math.pi / 2), max_speed=0.6)  # at the coffee table
     # The turn rate, not asked for, is filled in with the limit: the robot gets numbers safety approved.
     assert policy.check_navigation(goal, Pose2D(x=6.0, y=1.2)).command == msgspec.structs.replace(
-        goal, max_turn_rate=1.2
+        goal, max_turn_rate=1.2, start=Pose2D(x=6.0, y=1.2)
     )
     with pytest.raises(Vetoed, match=r"2 m/s exceeds the base's limit of 0\.6 m/s") as refused:
         policy.check_navigation(NavigateToPoseGoal(pose=goal.pose, max_speed=2.0), Pose2D(x=6.0, y=1.2))
@@ -212,9 +212,6 @@ def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_p
 
 SOURCE = Plan(steps=[Step(action="stop")])  # type: ignore[arg-type]
 CLEAR = Pose2D(x=9.0, y=6.0)
-# From CLEAR the way to EAST runs south of the stairs; from NORTH it cuts through them.
-NORTH = Pose2D(x=9.8, y=8.5)
-EAST = Pose2D(x=11.5, y=6.0)
 
 
 def nav(pose: Pose2D, name: str = "there") -> NavigateStep:
@@ -230,42 +227,50 @@ def test_an_unsafe_alternative_refuses_the_plan_naming_it(policy: SafetyPolicy) 
 
 
 def test_an_alternative_is_checked_from_wherever_the_steps_it_covers_start(policy: SafetyPolicy) -> None:
-    # Step 2 can fail when the base stands at NORTH: the alternative would drive from there.
-    to_east = Fallback(first=0, last=1, steps=[nav(EAST)], labels=["1 on_failure 1"])
-    plan = GroundedPlan(steps=[nav(NORTH), nav(CLEAR)], source=SOURCE, labels=["1.1", "1.2"], fallbacks=[to_east])
-    with pytest.raises(
-        Vetoed, match=r"^step 1 on_failure 1 \(navigate_to\).*takes the base's footprint into keep-out zone 'stairs'"
-    ):
-        policy.check_plan(plan, CLEAR)
-    # Covering only the first step, it only starts from CLEAR.
-    covering_first = msgspec.structs.replace(to_east, last=0)
-    assert policy.check_plan(msgspec.structs.replace(plan, fallbacks=[covering_first]), CLEAR)
+    # Step 2 can fail with the cup in the hand: an alternative opening the gripper would drop it there.
+    cup = pick_red_cup()
+    put = PlaceStep(
+        surface_id="kitchen_counter", surface_name="kitchen counter", position=cup.position, approach=cup.approach
+    )
+    release = Fallback(first=0, last=1, steps=[GripperStep(open=True)], labels=["1 on_failure 1"])
+    plan = GroundedPlan(steps=[cup, put], source=SOURCE, labels=["1.1", "1.2"], fallbacks=[release])
+    with pytest.raises(Vetoed, match=r"^step 1 on_failure 1 \(gripper\): opening the gripper would drop red cup"):
+        policy.check_plan(plan, COUNTER_SIDE)
+    # Covering only the pick, it only starts with an empty hand.
+    covering_first = msgspec.structs.replace(release, last=0)
+    assert policy.check_plan(msgspec.structs.replace(plan, fallbacks=[covering_first]), COUNTER_SIDE)
 
 
 def test_the_steps_after_an_alternative_are_checked_from_where_it_ends(policy: SafetyPolicy) -> None:
-    plan = GroundedPlan(steps=[nav(CLEAR), nav(EAST)], source=SOURCE)
-    assert policy.check_plan(plan, Pose2D(x=9.0, y=5.5))
-    north = Fallback(first=0, last=0, steps=[nav(NORTH)])
-    with pytest.raises(
-        Vetoed, match=r"^step 2 \(navigate_to\).*takes the base's footprint into keep-out zone 'stairs'"
-    ):
-        policy.check_plan(msgspec.structs.replace(plan, fallbacks=[north]), Pose2D(x=9.0, y=5.5))
+    plan = GroundedPlan(steps=[SayStep(text="hi"), GripperStep(open=True)], source=SOURCE)
+    assert policy.check_plan(plan, COUNTER_SIDE)
+    # If saying hi fails, the alternative picks the cup: step 2 would then open the hand holding it.
+    picking = Fallback(first=0, last=0, steps=[pick_red_cup()])
+    with pytest.raises(Vetoed, match=r"^step 2 \(gripper\): opening the gripper would drop red cup"):
+        policy.check_plan(msgspec.structs.replace(plan, fallbacks=[picking]), COUNTER_SIDE)
 
 
-def test_the_gripper_may_not_drop_what_it_holds(policy: SafetyPolicy) -> None:
-    counter = Pose2D(x=2.5, y=1.05, yaw=-1.57)
-    cup = PickStep(
+COUNTER = Pose2D(x=2.5, y=1.05, yaw=-1.57)
+COUNTER_SIDE = Pose2D(x=2.5, y=2.0)
+
+
+def pick_red_cup() -> PickStep:
+    return PickStep(
         object_id="red_cup",
         object_name="red cup",
         position=Vec3(x=2.2, y=0.55, z=0.95),
         mass=0.25,
         support_id="kitchen_counter",
-        approach=counter,
+        approach=COUNTER,
     )
+
+
+def test_the_gripper_may_not_drop_what_it_holds(policy: SafetyPolicy) -> None:
+    cup = pick_red_cup()
     place = PlaceStep(
-        surface_id="kitchen_counter", surface_name="kitchen counter", position=cup.position, approach=counter
+        surface_id="kitchen_counter", surface_name="kitchen counter", position=cup.position, approach=COUNTER
     )
-    start = Pose2D(x=2.5, y=2.0)
+    start = COUNTER_SIDE
     with pytest.raises(Vetoed, match=r"^step 3 \(gripper\): opening the gripper would drop red cup"):
         policy.check_plan(
             GroundedPlan(steps=[cup, GripperStep(open=False), GripperStep(open=True)], source=SOURCE), start

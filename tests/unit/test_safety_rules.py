@@ -31,6 +31,7 @@ from schemas.plan import (
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, TrajectoryPoint, Twist
 from schemas.safety import Rule
 from schemas.world import World
+from services.footprint import MAX_REVERSE, TRACKING_TOLERANCE
 from services.robotmodel import ArmModel
 from services.safety.errors import Vetoed
 from services.safety.policy import JOINT_LIMIT_MARGIN, START_TOLERANCE, SafetyPolicy
@@ -53,6 +54,10 @@ ARM = [f"panda_joint{i}" for i in range(1, 8)]
 HOME = [0.0, -1.2, 0.0, -2.7, 0.0, 1.5, 0.785]
 NOW = dict(zip(ARM, HOME, strict=True))
 START = Pose2D(x=6.0, y=1.2)  # the living room, facing east, nothing near
+# The coffee table's approach pose: from START the base drives there in a straight line.
+COFFEE_TABLE = Pose2D(x=8.0, y=1.75, yaw=math.pi / 2)
+# The flat with its walls and furniture taken away, for the map's own edge.
+OPEN_FLOOR = msgspec.structs.replace(WORLD, walls=[], furniture=[], objects=[])
 SOURCE = Plan(steps=[Step(action="stop")])  # type: ignore[arg-type]
 
 # The rules this file tests at their boundaries, and those tested elsewhere or not by pure checks.
@@ -60,6 +65,7 @@ PURE = {
     Rule.POSE_KNOWN,
     Rule.MAP,
     Rule.KEEP_OUT,
+    Rule.OBSTACLE,
     Rule.BASE_SPEED,
     Rule.BASE_ACCELERATION,
     Rule.CMD_VEL_HORIZON,
@@ -158,7 +164,7 @@ def test_every_rule_is_covered_here_or_elsewhere() -> None:
 
 
 def test_without_odometry_or_joint_states_motion_is_refused(policy: SafetyPolicy) -> None:
-    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05))
+    goal = NavigateToPoseGoal(pose=COFFEE_TABLE)
     assert policy.check_navigation(goal, START).command.pose == goal.pose
     refused(lambda: policy.check_navigation(goal, None), Rule.POSE_KNOWN)
     refused(lambda: policy.check_cmd_vel(Twist(linear_x=0.01), None), Rule.POSE_KNOWN)
@@ -178,7 +184,9 @@ def test_without_odometry_or_joint_states_motion_is_refused(policy: SafetyPolicy
 # map
 
 
-def test_a_goal_just_inside_the_outer_wall_passes_and_just_outside_is_off_the_map(policy: SafetyPolicy) -> None:
+def test_a_goal_just_inside_the_map_passes_and_just_outside_is_off_the_map(limits: Limits, arm: ArmModel) -> None:
+    # Without the outer wall in the way, which would stop the base first (obstacle, below).
+    policy = tightened(limits, arm, OPEN_FLOOR)
     start = Pose2D(x=2.5, y=2.5)
     facing_west = math.pi  # the base drives in from 0.4 m east of the goal: inside the kitchen
     inside = NavigateToPoseGoal(pose=Pose2D(x=MAP_WEST + 0.01, y=2.5, yaw=facing_west))
@@ -273,7 +281,9 @@ def test_a_hand_within_the_footprint_changes_nothing(policy: SafetyPolicy, reach
     assert "the base's footprint would be in keep-out zone 'stairs'" in str(exc)
 
 
-def test_a_leg_that_takes_the_hand_into_the_stairs_is_refused_naming_the_hand(policy: SafetyPolicy) -> None:
+def test_a_leg_that_takes_the_hand_into_the_stairs_is_refused_naming_the_hand(limits: Limits, arm: ArmModel) -> None:
+    # Without walls: turning by the hallway's north wall, the hand out would reach it (obstacle, below).
+    policy = tightened(limits, arm, OPEN_FLOOR)
     reach = (RADIUS + CORNER_GAP) / 2  # beyond the footprint, short of every point's gap
     around = msgspec.structs.replace(CORNER_GOAL, path=[Pose2D(x=9.5, y=8.5), Pose2D(x=9.5, y=6.5)])
     assert policy.check_navigation(around, CORNER_START, reach)
@@ -299,12 +309,78 @@ def test_the_footprint_margin_grows_the_zones_further(limits: Limits, arm: ArmMo
         assert info.value.rule is Rule.KEEP_OUT
 
 
+# obstacle: the footprint, driving the route as the sim does, touches no wall or furniture
+
+COUNTER = next(f for f in WORLD.furniture if f.id == "kitchen_counter")
+COUNTER_FRONT = COUNTER.center[1] + COUNTER.size.y / 2  # 0.7: the counter's edge facing the kitchen
+HALF_LENGTH = ROBOT.base_size.x / 2
+FACING_COUNTER = -math.pi / 2
+
+
+def test_a_goal_parked_a_tracking_tolerance_from_the_counter_passes_and_closer_is_refused(
+    policy: SafetyPolicy,
+) -> None:
+    start = Pose2D(x=2.5, y=2.5, yaw=FACING_COUNTER)  # drives straight in, no turning
+    keep = TRACKING_TOLERANCE  # the sim keeps within it of the route: safety keeps the route that far clear
+    clear = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=COUNTER_FRONT + HALF_LENGTH + keep + EPS, yaw=FACING_COUNTER))
+    assert policy.check_navigation(clear, start).command.pose == clear.pose
+    close = Pose2D(x=2.5, y=COUNTER_FRONT + HALF_LENGTH + keep - EPS, yaw=FACING_COUNTER)
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=close), start), Rule.OBSTACLE)
+    assert str(exc) == (
+        f"driving from (2.50, {close.y + 0.4:.2f}) to (2.50, {close.y:.2f}) the base would come 2.9 cm from the "
+        "kitchen counter (it keeps 3 cm); plan a path around it"
+    )
+    assert exc.values == {"x": 2.5, "y": pytest.approx(close.y)}
+    inside = Pose2D(x=2.5, y=COUNTER_FRONT + HALF_LENGTH - EPS, yaw=FACING_COUNTER)
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=inside), start), Rule.OBSTACLE)
+    assert "the base would hit the kitchen counter" in str(exc)
+    # A plan may not send the base there either.
+    plan = GroundedPlan(steps=[NavigateStep(target="counter", goal=close)], source=SOURCE)
+    exc = refused(lambda: policy.check_plan(plan, start), Rule.OBSTACLE)
+    assert str(exc) == (
+        f"step 1 (navigate_to): at the goal (2.50, {close.y:.2f}) the base would stand 3 cm from the kitchen counter "
+        "(it keeps 3 cm)"
+    )
+    assert policy.check_plan(
+        GroundedPlan(steps=[NavigateStep(target="counter", goal=clear.pose)], source=SOURCE), start
+    )
+
+
+def test_a_base_parked_closer_than_that_may_still_leave_but_never_get_closer(policy: SafetyPolicy) -> None:
+    parked = Pose2D(x=2.5, y=COUNTER_FRONT + HALF_LENGTH + 0.01, yaw=FACING_COUNTER)  # 1 cm from the counter
+    away = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=parked.y + 0.3, yaw=FACING_COUNTER))  # backs straight out
+    assert policy.check_navigation(away, parked).command.pose == away.pose
+    nearer = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=parked.y - 0.005, yaw=FACING_COUNTER))  # 5 mm in
+    exc = refused(lambda: policy.check_navigation(nearer, parked), Rule.OBSTACLE)
+    assert str(exc) == (
+        "driving from (2.50, 1.01) to (2.50, 1.01) the base would come 0.5 cm from the kitchen counter, closer than "
+        "it starts; plan a path around it"
+    )
+
+
+def test_parked_at_the_counter_the_base_backs_away_before_turning_round(policy: SafetyPolicy) -> None:
+    parked = COUNTER.approach  # 5 cm from the counter: the corners, 0.39 m out, would hit it turning
+    goal = Pose2D(x=2.5, y=2.5, yaw=math.pi / 2)
+    backing = NavigateToPoseGoal(pose=goal, path=[Pose2D(x=2.5, y=parked.y + MAX_REVERSE)])
+    assert policy.check_navigation(backing, parked).command.path == backing.path
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=goal), parked), Rule.OBSTACLE)
+    assert str(exc) == "turning at (2.50, 1.05) the base would hit the kitchen counter; plan a path around it"
+
+
+def test_a_leg_through_a_wall_is_refused_and_through_the_doorway_passes(policy: SafetyPolicy) -> None:
+    kitchen = Pose2D(x=4.0, y=2.1, yaw=math.pi)
+    exc = refused(lambda: policy.check_navigation(NavigateToPoseGoal(pose=kitchen), START), Rule.OBSTACLE)
+    assert str(exc).startswith("driving from (6.00, 1.20) to (4.40, 2.10) the base would hit the wall between")
+    doorway = NavigateToPoseGoal(pose=kitchen, path=[Pose2D(x=5.8, y=2.1)])
+    assert policy.check_navigation(doorway, START).command.path == doorway.path
+
+
 # base_speed
 
 
 def test_a_navigation_speed_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
     limit = policy.max_linear
-    at = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_speed=limit)
+    at = NavigateToPoseGoal(pose=COFFEE_TABLE, max_speed=limit)
     assert policy.check_navigation(at, START).command.max_speed == limit
     over = msgspec.structs.replace(at, max_speed=limit + EPS)
     exc = refused(lambda: policy.check_navigation(over, START), Rule.BASE_SPEED)
@@ -314,7 +390,7 @@ def test_a_navigation_speed_at_the_limit_passes_and_just_over_is_refused(policy:
 
 def test_a_navigation_turn_rate_at_the_limit_passes_and_just_over_is_refused(policy: SafetyPolicy) -> None:
     limit = policy.max_angular
-    at = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05), max_turn_rate=limit)
+    at = NavigateToPoseGoal(pose=COFFEE_TABLE, max_turn_rate=limit)
     verdict = policy.check_navigation(at, START)
     assert verdict.command.max_turn_rate == limit
     assert verdict.values["turn_rps"] == limit
@@ -326,15 +402,16 @@ def test_a_navigation_turn_rate_at_the_limit_passes_and_just_over_is_refused(pol
 
 
 def test_navigation_gets_the_limits_filled_in_when_it_asks_for_no_speed_or_turn_rate(policy: SafetyPolicy) -> None:
-    goal = NavigateToPoseGoal(pose=Pose2D(x=2.5, y=1.05))
+    goal = NavigateToPoseGoal(pose=COFFEE_TABLE)
     verdict = policy.check_navigation(goal, START)
+    # Filled in, with the start the route was checked from: the robot drives the legs that start gives.
     assert verdict.command == msgspec.structs.replace(
-        goal, max_speed=policy.max_linear, max_turn_rate=policy.max_angular
+        goal, max_speed=policy.max_linear, max_turn_rate=policy.max_angular, start=START
     )
-    assert verdict.checks == (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.BASE_SPEED)
+    assert verdict.checks == (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.OBSTACLE, Rule.BASE_SPEED)
     assert verdict.values == {
-        "x": 2.5,
-        "y": 1.05,
+        "x": COFFEE_TABLE.x,
+        "y": COFFEE_TABLE.y,
         "speed_mps": policy.max_linear,
         "limit_mps": policy.max_linear,
         "limit_rps": policy.max_angular,
@@ -343,7 +420,7 @@ def test_navigation_gets_the_limits_filled_in_when_it_asks_for_no_speed_or_turn_
     }
     # What was asked for, within the limits, is kept: one filled in leaves the other alone.
     slower = msgspec.structs.replace(goal, max_speed=0.1, max_turn_rate=0.2)
-    assert policy.check_navigation(slower, START).command == slower
+    assert policy.check_navigation(slower, START).command == msgspec.structs.replace(slower, start=START)
     only_speed = policy.check_navigation(msgspec.structs.replace(goal, max_speed=0.1), START).command
     assert (only_speed.max_speed, only_speed.max_turn_rate) == (0.1, policy.max_angular)
     only_turn = policy.check_navigation(msgspec.structs.replace(goal, max_turn_rate=0.2), START).command
@@ -385,7 +462,7 @@ def test_a_cmd_vel_near_a_person_passes_with_a_note_of_the_speed_the_robot_keeps
 
 def test_a_plan_asking_for_a_speed_just_over_the_limit_is_refused(policy: SafetyPolicy) -> None:
     limit = policy.max_linear
-    step = NavigateStep(target="kitchen counter", goal=Pose2D(x=2.5, y=1.05), max_speed=limit)
+    step = NavigateStep(target="coffee table", goal=COFFEE_TABLE, max_speed=limit)
     assert policy.check_plan(GroundedPlan(steps=[step], source=SOURCE), START)
     faster = msgspec.structs.replace(step, max_speed=limit + EPS)
     exc = refused(lambda: policy.check_plan(GroundedPlan(steps=[faster], source=SOURCE), START), Rule.BASE_SPEED)
@@ -877,7 +954,7 @@ def test_opening_the_gripper_is_refused_only_while_it_holds_something(policy: Sa
 
 def test_an_on_failure_range_within_the_plan_passes_and_one_past_its_end_is_refused(policy: SafetyPolicy) -> None:
     steps: list[GroundedStep] = [
-        NavigateStep(target="a", goal=Pose2D(x=5.0, y=1.2)),
+        NavigateStep(target="a", goal=Pose2D(x=7.0, y=1.2)),
         NavigateStep(target="b", goal=START),
     ]
     back: list[GroundedStep] = [NavigateStep(target="back", goal=START)]

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 import msgspec
 import numpy as np
+import pybullet
 import pytest
+import shapely
 
 from schemas.actions import GoalState
 from schemas.common import Pose2D, Vec3
@@ -24,10 +28,12 @@ from schemas.robot import (
 )
 from schemas.world import World
 from services.executor.kinematics import ArmKinematics, joint_trajectory, world_to_arm
+from services.executor.navigation import BasePlanner
+from services.footprint import TRACKING_TOLERANCE, footprint, route_sweeps
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
 from services.sim.physics import STALL_TIME, Simulation
-from services.worldmodel import load_world
+from services.worldmodel import WorldModel, drive_route, load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
 # household.yaml is to adopt these as home_joints; until then the tests put them in.
@@ -60,8 +66,19 @@ def approach(world: World, furniture_id: str) -> Pose2D:
     return next(f.approach for f in world.furniture if f.id == furniture_id)
 
 
+@functools.cache
+def _planner(world_name: str) -> BasePlanner:
+    return BasePlanner(WorldModel(load_world(world_name)))
+
+
+def route_planner(sim: Simulation) -> BasePlanner:
+    return _planner(sim.world.name)
+
+
 def drive(sim: Simulation, pose: Pose2D) -> None:
-    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose)), timeout=60.0)
+    # Through the doorways, as the executor would plan it.
+    path = route_planner(sim).plan(sim.base_pose(), pose)
+    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose, path=path)), timeout=120.0)
     assert motion.state is GoalState.SUCCEEDED, motion.message
     here = sim.base_pose()
     assert math.hypot(here.x - pose.x, here.y - pose.y) < 0.05
@@ -270,11 +287,69 @@ def test_the_gripper_is_not_slowed_but_pauses_with_the_robot(sim: Simulation) ->
 
 
 def test_navigation_into_furniture_aborts_with_a_reason(sim: Simulation, world: World) -> None:
-    inside_counter = Pose2D(x=4.0, y=0.35, yaw=0.0)
-    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=inside_counter)), timeout=60.0)
+    # Head on into the coffee table: the base stops against it and makes no more progress.
+    inside_the_table = Pose2D(x=8.0, y=2.5, yaw=math.pi / 2)
+    path = [Pose2D(x=8.0, y=1.2)]
+    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=inside_the_table, path=path)), timeout=60.0)
     assert motion.state is GoalState.ABORTED
-    assert "stalled" in motion.message
+    assert "stalled" in motion.message and "is the way blocked?" in motion.message
     assert sim.base_speed() < 0.05
+
+
+@pytest.mark.parametrize("furniture_id", ["kitchen_counter", "shelf", "bed"])
+def test_the_base_as_driven_stays_within_the_sweeps_safety_checked(sim: Simulation, furniture_id: str) -> None:
+    # Out of the living room, through doorways, and straight in to park by the furniture.
+    goal = approach(sim.world, furniture_id)
+    start = sim.base_pose()
+    path = route_planner(sim).plan(start, goal)
+    size = sim.world.robot.base_size
+    checked = shapely.union_all(
+        [s.shape for s in route_sweeps(start, drive_route(start, path, goal), goal.yaw, size.x, size.y)]
+    ).buffer(TRACKING_TOLERANCE + 1e-6)
+    motion = sim.navigate(NavigateToPoseGoal(pose=goal, path=path, start=start))
+    worst = 0.0
+    while motion.running:
+        sim.step()
+        here = sim.base_pose()
+        driven = footprint(here.x, here.y, here.yaw, size.x, size.y)
+        worst = max(worst, driven.difference(checked).area)
+    assert motion.state is GoalState.SUCCEEDED, motion.message
+    assert worst == 0.0, f"the footprint left the checked sweeps (grown by the tracking tolerance) by {worst} m^2"
+
+
+def test_a_base_pushed_off_its_route_aborts_the_goal(sim: Simulation) -> None:
+    start = sim.base_pose()
+    motion = sim.navigate(NavigateToPoseGoal(pose=Pose2D(x=start.x + 2.0, y=start.y)))
+    sim.step(round(1.5 / sim.dt))
+    assert motion.running
+    # Shoved 0.2 m sideways: no longer on the route safety checked.
+    y_joint = sim.joint_index["base_y"]
+    sim.bullet.resetJointState(sim.robot, y_joint, start.y + 0.2)
+    sim.run(motion, timeout=5.0)
+    assert motion.state is GoalState.ABORTED
+    assert "cm off its route (tolerance 3 cm): pushed or blocked?" in motion.message
+
+
+def test_an_arm_blocked_on_its_way_aborts_the_trajectory_and_holds_there(sim: Simulation) -> None:
+    # A box in front of the robot, in the way of the arm reaching forward and down.
+    base = sim.base_pose()
+    box = sim.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[0.15, 0.4, 0.15])
+    sim.bullet.createMultiBody(0.0, box, -1, [base.x + 0.75, base.y, 0.75])
+    start = sim.arm_positions()
+    forward = [start[0], 1.7, start[2], -0.3, *start[4:]]
+    points = [
+        TrajectoryPoint(positions=start, time_from_start=0.0),
+        TrajectoryPoint(positions=forward, time_from_start=3.0),
+    ]
+    goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points, path_tolerance=0.1)
+    motion = sim.run(sim.follow_trajectory(goal), timeout=10.0)
+    assert motion.state is GoalState.ABORTED
+    assert re.search(r"panda_joint\d was 0\.1\d\d rad from the trajectory at \d", motion.message), motion.message
+    assert motion.message.endswith("(path tolerance 0.1 rad): blocked or pushed")
+    stopped = sim.arm_positions()
+    assert stopped[1] < 1.0, "stopped at the box, far short of the goal"
+    sim.settle(0.5)
+    assert np.max(np.abs(np.array(sim.arm_positions()) - stopped)) < 0.02, "and it holds there"
 
 
 def test_trajectory_goals_are_checked(sim: Simulation) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 import uuid
@@ -23,13 +22,8 @@ from services.sim.config import SimConfig
 from services.sim.node import SimNode
 from services.sim.physics import STALL_TIME, Simulation
 from services.worldmodel import load_world
+from tests.sessions import free_port
 from tests.watch import Watch
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass

@@ -1,0 +1,184 @@
+"""The base on the floor plan: the rectangle it covers at a pose, and what it sweeps driving a route.
+
+The sim drives a route leg by leg (`route_legs`): it turns in place to face the next point and
+drives straight to it; a short leg behind it (at most MAX_REVERSE) it drives backwards instead of
+turning round. At the last point it turns to the goal's heading. It keeps its footprint within
+TRACKING_TOLERANCE of what those legs sweep, and aborts the goal otherwise. The sim, the executor's
+base planner and safety all take the legs, the sweeps and the clearance rule from here, so the
+route the planner found clear is the one safety checks and the one the sim drives. Pure logic.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import shapely
+from shapely.geometry import Polygon
+from shapely.geometry.base import BaseGeometry
+
+from schemas.common import Pose2D
+
+# A turn in place is drawn as the footprint every this many radians; between two samples the
+# corners of a 0.6 x 0.5 m base cut inside the arc by under half a millimetre.
+TURN_STEP = math.radians(5.0)
+# Turns and legs shorter than these are not drawn (the sim does not move for them either).
+MIN_TURN = 1e-3
+MIN_LEG = 1e-4
+# A leg at most this long that starts more than a quarter turn from the base's heading is driven
+# backwards: how the base leaves a spot it parked at close to furniture, too close to turn round.
+# Shorter than worldmodel.PRE_GOAL_DISTANCE, so the last straight-in leg is always driven forwards.
+MAX_REVERSE = 0.35
+# How far (metres) the sim lets its footprint stray from the route's sweeps before it aborts the
+# goal: the centre off the leg plus the corners turned off the leg's heading. Safety keeps every
+# sweep this far from walls and furniture, so the footprint as driven never touches them.
+TRACKING_TOLERANCE = 0.03
+# Distances equal up to this count as equal (a leg straight away from furniture keeps its distance).
+EPSILON = 1e-9
+
+
+def footprint(x: float, y: float, yaw: float, length: float, width: float, margin: float = 0.0) -> Polygon:
+    """The rectangle the base covers at (x, y, yaw): `length` along its heading, `width` across,
+    grown by `margin` on every side."""
+    half_l, half_w = length / 2 + margin, width / 2 + margin
+    c, s = math.cos(yaw), math.sin(yaw)
+    corners = [(half_l, half_w), (-half_l, half_w), (-half_l, -half_w), (half_l, -half_w)]
+    return Polygon([(x + c * a - s * b, y + s * a + c * b) for a, b in corners])
+
+
+def turn_angle(yaw_from: float, yaw_to: float) -> float:
+    """The signed shortest turn from one heading to another, as the sim turns."""
+    return math.remainder(yaw_to - yaw_from, math.tau)
+
+
+def leg_heading(yaw: float, here: tuple[float, float], point: tuple[float, float]) -> tuple[float, bool]:
+    """The heading the base holds driving from `here` to `point` when it now faces `yaw`, and
+    whether it drives that leg backwards."""
+    heading = math.atan2(point[1] - here[1], point[0] - here[0])
+    if math.dist(here, point) <= MAX_REVERSE and abs(turn_angle(yaw, heading)) > math.pi / 2:
+        return math.remainder(heading + math.pi, math.tau), True
+    return heading, False
+
+
+@dataclass(frozen=True)
+class Leg:
+    """One straight leg of a route: the base turns at `start` to `heading`, then drives to `end`
+    holding it (backwards when `backwards`: `heading` then points away from `end`)."""
+
+    start: tuple[float, float]
+    end: tuple[float, float]
+    heading: float
+    backwards: bool
+
+    @property
+    def length(self) -> float:
+        return math.dist(self.start, self.end)
+
+
+def route_legs(start: Pose2D, points: Sequence[tuple[float, float]]) -> list[Leg]:
+    """The legs of driving from `start` through `points` (see worldmodel.drive_route), in order."""
+    legs: list[Leg] = []
+    here, yaw = (start.x, start.y), start.yaw
+    for point in points:
+        if math.dist(here, point) < MIN_LEG:
+            continue
+        heading, backwards = leg_heading(yaw, here, point)
+        legs.append(Leg(here, (float(point[0]), float(point[1])), heading, backwards))
+        here, yaw = legs[-1].end, heading
+    return legs
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """One piece of a route: the floor the base covers while doing `what`, ending at (x, y)."""
+
+    what: str
+    shape: Polygon
+    x: float
+    y: float
+
+
+def turn_sweep(
+    x: float, y: float, yaw_from: float, yaw_to: float, length: float, width: float, margin: float
+) -> Polygon:
+    """The floor covered turning in place at (x, y) from `yaw_from` to `yaw_to` the short way."""
+    angle = turn_angle(yaw_from, yaw_to)
+    count = max(1, math.ceil(abs(angle) / TURN_STEP))
+    shapes = [footprint(x, y, yaw_from + angle * k / count, length, width, margin) for k in range(count + 1)]
+    return shapely.union_all(shapes) if len(shapes) > 1 else shapes[0]
+
+
+def drive_sweep(
+    a: tuple[float, float], b: tuple[float, float], yaw: float, length: float, width: float, margin: float
+) -> Polygon:
+    """The floor covered driving straight from `a` to `b` facing `yaw` (the leg's own heading)."""
+    start = footprint(a[0], a[1], yaw, length, width, margin)
+    end = footprint(b[0], b[1], yaw, length, width, margin)
+    return start.union(end).convex_hull
+
+
+def _at(point: tuple[float, float]) -> str:
+    return f"({point[0]:.2f}, {point[1]:.2f})"
+
+
+def route_sweeps(
+    start: Pose2D,
+    points: Sequence[tuple[float, float]],
+    final_yaw: float,
+    length: float,
+    width: float,
+    margin: float = 0.0,
+) -> list[Sweep]:
+    """The pieces of driving from `start` through `points` (see worldmodel.drive_route) and turning
+    to `final_yaw` at the last one, in the order the sim drives them (route_legs)."""
+    sweeps: list[Sweep] = []
+    yaw = start.yaw
+    here = (start.x, start.y)
+    for leg in route_legs(start, points):
+        if abs(turn_angle(yaw, leg.heading)) > MIN_TURN:
+            shape = turn_sweep(leg.start[0], leg.start[1], yaw, leg.heading, length, width, margin)
+            sweeps.append(Sweep(f"turning at {_at(leg.start)}", shape, leg.start[0], leg.start[1]))
+        shape = drive_sweep(leg.start, leg.end, leg.heading, length, width, margin)
+        verb = "backing" if leg.backwards else "driving"
+        sweeps.append(Sweep(f"{verb} from {_at(leg.start)} to {_at(leg.end)}", shape, leg.end[0], leg.end[1]))
+        here, yaw = leg.end, leg.heading
+    if abs(turn_angle(yaw, final_yaw)) > MIN_TURN:
+        shape = turn_sweep(here[0], here[1], yaw, final_yaw, length, width, margin)
+        sweeps.append(Sweep(f"turning at {_at(here)}", shape, here[0], here[1]))
+    return sweeps
+
+
+def _cm(metres: float) -> str:
+    return f"{round(max(metres, 0.0) * 100, 1):g} cm"
+
+
+def clearance_problem(
+    start: Pose2D,
+    sweeps: Sequence[Sweep],
+    obstacles: Sequence[tuple[str, BaseGeometry]],
+    margin: float,
+    length: float,
+    width: float,
+) -> tuple[Sweep, str] | None:
+    """The first of a route's `sweeps` (route_sweeps at margin 0) that comes within `margin` of one
+    of the named `obstacles` ("the kitchen counter", its outline), with why; None when every one
+    keeps clear. Leaving the start (until the base first stands somewhere else) the footprint may
+    stay as close as it already is there, never closer: a base parked near furniture can leave."""
+    if not obstacles:
+        return None
+    at_start = footprint(start.x, start.y, start.yaw, length, width)
+    start_distance = min(at_start.distance(shape) for _, shape in obstacles)
+    leaving = True
+    for sweep in sweeps:
+        name, distance = min(((n, sweep.shape.distance(s)) for n, s in obstacles), key=lambda item: item[1])
+        required = min(margin, start_distance) if leaving else margin
+        leaving = leaving and (sweep.x, sweep.y) == (start.x, start.y)
+        if distance >= required - EPSILON:
+            continue
+        if distance <= 0.0:
+            return sweep, f"{sweep.what} the base would hit {name}"
+        if required < margin:
+            return sweep, f"{sweep.what} the base would come {_cm(distance)} from {name}, closer than it starts"
+        return sweep, f"{sweep.what} the base would come {_cm(distance)} from {name} (it keeps {_cm(margin)})"
+    return None

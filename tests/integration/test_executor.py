@@ -1,0 +1,214 @@
+"""The executor over real processes: pick and place everywhere, navigation through every doorway,
+cancel, re-detection of a moved object, planning failures, preemption, each judged by the sim."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schemas import keys
+from schemas.actions import GoalState
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, FailureKind, PlanStatus
+from schemas.robot import JointState
+from schemas.world import Empty, GroundTruth, Moved, MoveEntity, WorldObject
+from services.actionlib import GoalRejected
+from services.footprint import footprint
+from services.runtime import SERVICES
+from services.worldmodel import WorldModel, load_world
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.watch import Watch
+from tether.client import PlanSender
+
+WORLD = WorldModel(load_world())
+ROBOT = WORLD.world.robot
+PLAN_TIMEOUT = 600.0
+# Graspable: everything within the arm's payload (the cast-iron pan is not).
+GRASPABLE = [o for o in WORLD.world.objects if o.mass <= ROBOT.payload]
+# One tour of the flat: kitchen and table, through the bedroom and office, to the living room.
+SURFACES = ["kitchen_counter", "kitchen_table", "bed", "shelf", "coffee_table", "chair"]
+
+
+@pytest.fixture
+def fast_stack(tmp_path: Path) -> Iterator[Stack]:
+    """Every service but the recorder (its tests are elsewhere), the sim up to ten times faster
+    than real time (as fast as the machine lets it)."""
+    s = start_stack(tmp_path, realtime_factor=10.0, services=tuple(s for s in SERVICES if s != "recorder"))
+    try:
+        yield s
+    finally:
+        stop_stack(s)
+
+
+def truth(stack: Stack) -> GroundTruth:
+    return stack.node.call(keys.GROUND_TRUTH, Empty(), timeout=5.0)
+
+
+def plan(*steps: dict[str, str]) -> str:
+    return json.dumps({"plan": list(steps)})
+
+
+def execute(stack: Stack, text: str, feedback: list[ExecutePlanFeedback] | None = None) -> ExecutePlanResult:
+    run = PlanSender(stack.node, feedback.append if feedback is not None else None).run(
+        ExecutePlanGoal(text=text), PLAN_TIMEOUT
+    )
+    assert run.result is not None
+    return run.result
+
+
+def chain(start: str) -> list[str]:
+    """Every surface once, along the tour, starting after `start` and ending on it."""
+    k = SURFACES.index(start)
+    return SURFACES[k + 1 :] + SURFACES[: k + 1]
+
+
+@pytest.mark.parametrize("obj", GRASPABLE, ids=[o.id for o in GRASPABLE])
+def test_every_graspable_object_is_picked_and_placed_on_every_surface(fast_stack: Stack, obj: WorldObject) -> None:
+    stack = fast_stack
+    for surface in chain(obj.support):
+        name = WORLD.furniture[surface].name
+        result = execute(stack, plan({"action": "pick", "target": obj.name}, {"action": "place", "target": name}))
+        assert result.status is PlanStatus.SUCCEEDED, f"{obj.name} onto the {name}: {result.reason}"
+        # Judged by the simulator, not by what the executor says.
+        now = truth(stack)
+        placed = next(o for o in now.objects if o.id == obj.id)
+        assert now.holding is None
+        assert placed.on == surface, f"{obj.name} is on {placed.on}, not on the {name}"
+        resting = WORLD.furniture[surface].size.z + obj.size.z / 2
+        assert placed.position.z == pytest.approx(resting, abs=0.01), f"{obj.name} on the {name} is not upright"
+
+
+def test_the_base_goes_between_every_pair_of_rooms_round_walls_and_furniture(fast_stack: Stack) -> None:
+    stack = fast_stack
+    rooms = [room.id for room in WORLD.world.rooms]
+    # A round trip through every pair of the five rooms once (each room has four others: even degree).
+    tour = ["kitchen", "living_room", "hallway", "office", "bedroom", "kitchen"]
+    tour += ["hallway", "bedroom", "living_room", "office", "kitchen"]
+    pairs = {frozenset(p) for p in itertools.pairwise(tour)}
+    assert pairs == {frozenset(p) for p in itertools.combinations(rooms, 2)}
+    odom = Watch(stack.node, keys.ODOM)
+    names = {room.id: room.name for room in WORLD.world.rooms}
+    result = execute(stack, plan(*({"action": "navigate_to", "target": names[room]} for room in tour)))
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert [s.status for s in result.steps] == ["succeeded"] * len(tour)
+    end = truth(stack).robot
+    goal = WORLD.room_pose("kitchen")
+    assert math.hypot(end.x - goal.x, end.y - goal.y) < 0.05
+    # Never touching a wall or a piece of furniture on the way: the base where odometry measured it.
+    size = ROBOT.base_size
+    poses = [m.pose for m in odom.messages]
+    assert len(poses) > 100
+    for pose in poses:
+        shape = footprint(pose.x, pose.y, pose.yaw, size.x, size.y)
+        hit = next((o for o in WORLD.obstacles if shape.intersects(o.shape)), None)
+        assert hit is None, f"at ({pose.x:.2f}, {pose.y:.2f}) the base touched the {hit.name}"
+    visited = {WORLD.room_of(p.x, p.y) for p in poses}
+    assert visited == set(rooms)
+
+
+def arm_speed(state: JointState) -> float:
+    return max(abs(v) for v in state.velocity[:7])
+
+
+def test_cancel_during_an_arm_motion_stops_the_arm(fast_stack: Stack) -> None:
+    stack = fast_stack
+    joints = Watch(stack.node, keys.JOINT_STATES)
+    trajectories = Watch(stack.node, keys.ROBOT_TRAJECTORY.status)
+    sender = PlanSender(stack.node)
+    handle = sender.send(ExecutePlanGoal(text=plan({"action": "pick", "target": "blue book"})))
+    moving = joints.wait_for(lambda j: arm_speed(j) > 0.3, 120.0)
+    assert moving is not None, "the arm never moved"
+    reply = handle.cancel()
+    assert reply.accepted, reply
+    run = sender.wait(handle, 60.0)
+    assert run.result is not None and run.result.status is PlanStatus.CANCELED, run.result
+    assert run.result.steps[0].failure is FailureKind.CANCELED
+    # The trajectory running then was canceled on the robot, not left to finish.
+    assert trajectories.wait_for(lambda s: s.state is GoalState.CANCELED, 10.0) is not None
+    # Stopped, and it stays stopped: no later motion of the plan.
+    after = len(joints)
+    assert joints.wait_for(lambda j: arm_speed(j) < 0.01, 5.0, after=after) is not None, "the arm did not stop"
+    settled = joints.latest(5.0)
+    assert settled is not None
+    later = joints.wait_for(lambda j: j.stamp > settled.stamp + 0.5, 5.0, after=len(joints))
+    assert later is not None
+    drift = max(abs(a - b) for a, b in zip(later.position[:7], settled.position[:7], strict=True))
+    assert drift < 0.01, f"the arm moved {drift:.3f} rad after the cancel"
+
+
+def test_an_object_moved_out_of_sight_is_found_again_and_picked(fast_stack: Stack) -> None:
+    stack = fast_stack
+    # Out of the robot's sight (it starts in the living room): the world file still has it on the counter.
+    moved = stack.node.call(keys.SIM_MOVE, MoveEntity(id="red_cup", x=2.9, y=3.65), timeout=10.0)
+    assert isinstance(moved, Moved) and WORLD.support_under(moved.position, 0.05) == "kitchen_table"
+    feedback: list[ExecutePlanFeedback] = []
+    result = execute(stack, plan({"action": "pick", "target": "red cup"}), feedback)
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert truth(stack).holding == "red_cup"
+    notes = [f.message for f in feedback if f.message]
+    assert any("red cup is not where it was expected (kitchen counter)" in n for n in notes), notes
+
+
+def test_an_object_out_of_the_arms_reach_fails_with_a_planning_reason(fast_stack: Stack) -> None:
+    stack = fast_stack
+    # On the bed, 1.1 m in front of where the base stands to use it: inside safety's workspace box,
+    # beyond what the arm reaches.
+    bed = WORLD.furniture["bed"]
+    moved = stack.node.call(keys.SIM_MOVE, MoveEntity(id="apple", x=bed.approach.x - 1.1, y=7.5), timeout=10.0)
+    assert isinstance(moved, Moved)
+    seen = execute(stack, plan({"action": "navigate_to", "target": "bed"}))
+    assert seen.status is PlanStatus.SUCCEEDED, seen.reason
+    result = execute(stack, plan({"action": "pick", "target": "apple"}))
+    assert (result.status, result.stage, result.failure) == (PlanStatus.FAILED, "execute", FailureKind.PLANNING)
+    assert "no grasp of apple works" in result.reason and "out of reach" in result.reason, result.reason
+    assert result.steps[0].attempts == 3, "retried, re-detecting it each time"
+    assert truth(stack).holding is None
+
+
+def test_a_plan_sent_while_another_runs_is_rejected_or_preempts_it(fast_stack: Stack) -> None:
+    stack = fast_stack
+    sender = PlanSender(stack.node)
+    started = threading.Event()
+    first_sender = PlanSender(stack.node, lambda fb: started.set() if fb.stage == "execute" else None)
+    first = first_sender.send(ExecutePlanGoal(text=plan({"action": "navigate_to", "target": "bedroom"})))
+    assert started.wait(60.0)
+    with pytest.raises(GoalRejected, match="busy"):
+        sender.send(ExecutePlanGoal(text=plan({"action": "navigate_to", "target": "coffee table"})))
+    second = sender.send(ExecutePlanGoal(text=plan({"action": "navigate_to", "target": "coffee table"}), preempt=True))
+    ended = first_sender.wait(first, 60.0)
+    assert ended.result is not None and ended.result.status is PlanStatus.CANCELED
+    assert ended.result.reason.startswith(f"preempted by goal {second.goal_id}"), ended.result.reason
+    done = sender.wait(second, PLAN_TIMEOUT)
+    assert done.result is not None and done.result.status is PlanStatus.SUCCEEDED, done.result
+    here = truth(stack).robot
+    goal = WORLD.furniture["coffee_table"].approach
+    assert math.hypot(here.x - goal.x, here.y - goal.y) < 0.05
+
+
+def test_an_agent_starts_follows_and_cancels_a_plan_in_three_calls(fast_stack: Stack) -> None:
+    stack = fast_stack
+    odom = Watch(stack.node, keys.ODOM)
+    started = tether_cli(stack, "send", plan({"action": "navigate_to", "target": "bedroom"}), "--json")
+    assert started.returncode == 0, started.stdout + started.stderr
+    goal_id = json.loads(started.stdout)["goal_id"]
+    assert odom.wait_for(lambda o: abs(o.linear_x) > 0.1, 60.0), "the base never moved"
+    status = tether_cli(stack, "goal", goal_id, "--json")
+    assert status.returncode == 0, status.stdout + status.stderr
+    progress = json.loads(status.stdout)
+    assert progress["state"] == "executing" and progress["feedback"]["action"] == "navigate_to", progress
+    statuses = Watch(stack.node, keys.EXECUTE_PLAN.status)
+    canceled = tether_cli(stack, "cancel", goal_id)
+    assert canceled.returncode == 0, canceled.stdout
+    assert statuses.wait_for(lambda s: s.goal_id == goal_id and s.state.terminal, 60.0), "the plan never ended"
+    ended = tether_cli(stack, "goal", goal_id, "--json")
+    final = json.loads(ended.stdout)
+    assert (ended.returncode, final["state"], final["result"]["status"]) == (1, "canceled", "canceled"), final
+    stopped = odom.wait_for(lambda o: abs(o.linear_x) < 0.01 and abs(o.angular_z) < 0.01, 10.0, after=len(odom))
+    assert stopped is not None
+    unknown = tether_cli(stack, "goal", "nosuchgoal", "--json")
+    assert unknown.returncode == 2 and json.loads(unknown.stdout)["state"] == "unknown"

@@ -1,0 +1,151 @@
+"""Actions over two real Zenoh sessions in one process: status without waiting, preemption, cancel grace."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+
+from schemas import keys
+from schemas.actions import GetResult, GoalState
+from schemas.common import Pose2D
+from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
+from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
+from services.runtime import CallError, Node, NodeSettings
+from tests.sessions import free_port
+
+WAIT = 5.0
+HERE = Pose2D(x=1.0, y=2.0)
+# This test's ways of saying a goal preempts (max_speed) and that it moves nothing (max_turn_rate).
+PREEMPTS = 0.5
+MOVES_NOTHING = 0.25
+
+
+@dataclass
+class Script:
+    """How the served goals behave: each blocks until released or canceled (unless it ignores cancel)."""
+
+    ignore_cancel: bool = False
+    release: threading.Event = field(default_factory=threading.Event)
+    started: list[str] = field(default_factory=list)
+    ended: list[str] = field(default_factory=list)
+    running: threading.Event = field(default_factory=threading.Event)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def execute(self, handle: GoalHandle[NavigateToPoseGoal, NavigateToPoseFeedback]) -> Outcome[NavigateToPoseResult]:
+        if handle.goal.max_turn_rate == MOVES_NOTHING:
+            return Outcome(GoalState.SUCCEEDED, NavigateToPoseResult(pose=HERE), "looked only")
+        with self.lock:
+            # Two goals never run at once: a preempting one starts only after the other ended.
+            assert len(self.started) == len(self.ended), "a goal started while another ran"
+            self.started.append(handle.goal_id)
+        self.running.set()
+        handle.feedback(NavigateToPoseFeedback(pose=HERE, distance_remaining=3.0))
+        try:
+            while not self.release.wait(0.01):
+                if handle.should_stop and not self.ignore_cancel:
+                    return Outcome(GoalState.CANCELED, None, "stopped")
+            return Outcome(GoalState.SUCCEEDED, NavigateToPoseResult(pose=HERE), "arrived")
+        finally:
+            self.running.clear()
+            with self.lock:
+                self.ended.append(handle.goal_id)
+
+
+@dataclass
+class Rig:
+    client: ActionClient[NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult]
+    node: Node
+    script: Script
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    script = Script()
+    with Node("sim", settings) as server_node, Node("test", settings) as client_node:
+        ActionServer(
+            server_node,
+            keys.ROBOT_NAVIGATE,
+            script.execute,
+            preempts=lambda goal: goal.max_speed == PREEMPTS,
+            preempt_timeout=1.0,
+            concurrent=lambda goal: goal.max_turn_rate == MOVES_NOTHING,
+        )
+        client = ActionClient(client_node, keys.ROBOT_NAVIGATE, cancel_grace=0.5)
+        server_node.declare_alive()
+        assert not client_node.wait_alive({"sim"}, WAIT), "the two sessions did not find each other"
+        yield Rig(client, client_node, script)
+        script.release.set()
+
+
+def test_status_answers_at_once_with_the_latest_feedback_and_then_the_result(rig: Rig) -> None:
+    goal = rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+    status = GetResult(goal_id=goal.goal_id)
+    progress = rig.node.call(keys.ROBOT_NAVIGATE.get_status, status, timeout=WAIT)
+    assert progress.state is GoalState.EXECUTING and progress.result is None
+    assert progress.feedback == NavigateToPoseFeedback(pose=HERE, distance_remaining=3.0)
+    rig.script.release.set()
+    assert goal.result(WAIT).state is GoalState.SUCCEEDED
+    done = rig.node.call(keys.ROBOT_NAVIGATE.get_status, status, timeout=WAIT)
+    assert (done.state, done.message, done.result) == (GoalState.SUCCEEDED, "arrived", NavigateToPoseResult(pose=HERE))
+    with pytest.raises(CallError, match="unknown goal"):
+        rig.node.call(keys.ROBOT_NAVIGATE.get_status, GetResult(goal_id="nosuchgoal"), timeout=WAIT)
+
+
+def test_a_second_goal_is_rejected_while_one_runs_unless_it_preempts(rig: Rig) -> None:
+    first = rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+    with pytest.raises(GoalRejected, match="busy"):
+        rig.client.send(NavigateToPoseGoal(pose=HERE))
+    second = rig.client.send(NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS))
+    # Accepted only once the first had ended: the script asserts no overlap.
+    ended = first.result(WAIT)
+    assert ended.state is GoalState.CANCELED
+    assert ended.message == f"preempted by goal {second.goal_id}; stopped"
+    assert rig.script.ended == [first.goal_id]
+    rig.script.release.set()
+    assert second.result(WAIT).state is GoalState.SUCCEEDED
+    assert rig.script.started == [first.goal_id, second.goal_id]
+
+
+def test_a_goal_that_will_not_stop_keeps_a_preempting_one_out(rig: Rig) -> None:
+    rig.script.ignore_cancel = True
+    first = rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+    with pytest.raises(GoalRejected, match=rf"goal {first.goal_id} did not stop within 1 s of being preempted"):
+        rig.client.send(NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS), timeout=WAIT)
+    assert rig.script.started == [first.goal_id]
+
+
+def test_a_client_gives_up_on_a_goal_that_ignores_its_cancel(rig: Rig) -> None:
+    rig.script.ignore_cancel = True
+    cancel = threading.Event()
+    canceling = threading.Thread(target=lambda: rig.script.running.wait(WAIT) and cancel.set())
+    canceling.start()
+    with pytest.raises(CallError, match=r"did not end within 0\.5 s of its cancel"):
+        rig.client.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT, cancel=cancel)
+    canceling.join()
+
+
+def test_a_goal_canceled_before_it_is_sent_is_never_sent(rig: Rig) -> None:
+    cancel = threading.Event()
+    cancel.set()
+    result = rig.client.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT, cancel=cancel)
+    assert (result.state, result.message) == (GoalState.CANCELED, "canceled before it was sent")
+    assert rig.script.started == [], "nothing started moving after the cancel"
+
+
+def test_a_goal_that_moves_nothing_runs_beside_the_running_one_and_preempts_nothing(rig: Rig) -> None:
+    first = rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+    # Moving nothing (a dry run), asking to preempt does not stop the running goal.
+    beside = rig.client.send(NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS, max_turn_rate=MOVES_NOTHING))
+    assert rig.script.ended == [], "the running goal was not preempted"
+    rig.script.release.set()
+    assert first.result(WAIT).state is GoalState.SUCCEEDED
+    assert beside.result(WAIT).state is GoalState.SUCCEEDED

@@ -1,0 +1,116 @@
+"""Safety's transport with two real Zenoh sessions in one process: a trajectory goal sent the moment
+the arm stopped is decided on a joint state measured since, never on the stale one alone."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from schemas import keys
+from schemas.actions import GoalState
+from schemas.common import Pose2D
+from schemas.robot import (
+    ARM_JOINTS,
+    FollowJointTrajectoryFeedback,
+    FollowJointTrajectoryGoal,
+    FollowJointTrajectoryResult,
+    JointState,
+    Odometry,
+    TrajectoryPoint,
+)
+from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
+from services.robotmodel import ArmModel
+from services.runtime import Node, NodeSettings
+from services.safety.config import SafetyConfig
+from services.safety.latch import EstopLatch
+from services.safety.node import SafetyNode
+from services.safety.policy import START_TOLERANCE, SafetyPolicy
+from services.safety.policyfile import load_policy
+from services.worldmodel import WorldModel, load_world
+from tests.sessions import free_port
+
+WORLD = load_world()
+HOME = list(WORLD.robot.home_joints)
+WAIT = 5.0
+
+
+@dataclass
+class Rig:
+    robot: Node
+    safety: SafetyNode
+    client: ActionClient[FollowJointTrajectoryGoal, FollowJointTrajectoryFeedback, FollowJointTrajectoryResult]
+
+    def measure(self, q: list[float]) -> None:
+        """The arm reports its joints at `q`, and safety has heard it."""
+        self.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
+        deadline = time.monotonic() + WAIT
+        while (self.safety.joints() or {}).get(ARM_JOINTS[1]) != q[1]:
+            assert time.monotonic() < deadline, "safety never heard the joint state"
+            time.sleep(0.005)
+
+
+def reached(
+    handle: GoalHandle[FollowJointTrajectoryGoal, FollowJointTrajectoryFeedback],
+) -> Outcome[FollowJointTrajectoryResult]:
+    return Outcome(GoalState.SUCCEEDED, FollowJointTrajectoryResult(error=0.0), "reached")
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    arm = ArmModel(WORLD.robot.arm_urdf)
+    policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
+    latch = EstopLatch("token", tmp_path / "estop.json")
+    with Node("safety", settings) as safety_session, Node("sim", settings) as robot:
+        safety = SafetyNode(safety_session, policy, latch, SafetyConfig())
+        ActionServer(robot, keys.ROBOT_TRAJECTORY, reached)  # the robot: takes any goal it gets
+        safety_session.declare_alive()
+        robot.declare_alive()
+        assert not robot.wait_alive({"safety"}, WAIT), "the two sessions did not find each other"
+        robot.publish(
+            keys.ODOM, Odometry(stamp=time.time(), sim_time=0.0, pose=Pose2D(x=6.0, y=1.2), linear_x=0.0, angular_z=0.0)
+        )
+        try:
+            yield Rig(robot, safety, ActionClient(robot, keys.CMD_TRAJECTORY))
+        finally:
+            safety.close()
+
+
+def from_here_to(q: list[float]) -> FollowJointTrajectoryGoal:
+    points = [TrajectoryPoint(positions=q, time_from_start=0.0), TrajectoryPoint(positions=HOME, time_from_start=2.0)]
+    return FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
+
+
+def measured_when_safety_asks(rig: Rig, q: list[float]) -> None:
+    """Publish the arm at `q` only once safety has found the goal's start off and waits for a
+    newer joint state: the race this guards against, made to happen every time."""
+    waiting = rig.safety._joints_since
+
+    def publish_then_wait(checked: tuple[float, JointState] | None, timeout: float) -> bool:
+        rig.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
+        return waiting(checked, timeout)
+
+    rig.safety._joints_since = publish_then_wait  # type: ignore[method-assign]
+
+
+def test_a_goal_starting_where_the_arm_just_stopped_waits_for_that_measurement(rig: Rig) -> None:
+    rig.measure(HOME)
+    stopped = [HOME[0], HOME[1] + 2 * START_TOLERANCE, *HOME[2:]]  # where the last motion took it
+    # Safety still has the state from before the arm got there; the next one is on its way.
+    measured_when_safety_asks(rig, stopped)
+    goal = rig.client.send(from_here_to(stopped))
+    assert goal.result(WAIT).state is GoalState.SUCCEEDED
+
+
+def test_a_goal_that_really_starts_away_from_the_arm_is_still_refused(rig: Rig) -> None:
+    rig.measure(HOME)
+    elsewhere = [HOME[0], HOME[1] + 2 * START_TOLERANCE, *HOME[2:]]
+    # A fresh state comes, and it still says the arm is at HOME.
+    measured_when_safety_asks(rig, HOME)
+    with pytest.raises(GoalRejected, match=r"point 0: panda_joint2 would jump 0\.100 rad at once"):
+        rig.client.send(from_here_to(elsewhere))
