@@ -86,6 +86,9 @@ ALIGNED = 0.01
 # Driving a leg, the base steers back onto its line at this distance ahead (metres): a lateral
 # error of 1 cm turns it 0.02 rad towards the line.
 LOOKAHEAD = 0.5
+# Close to a stop or a heading, speed is this many times the distance (per second) still to go: the
+# last centimetres take a fraction of a second, well within the braking the acceleration allows.
+SETTLE_GAIN = 4.0
 # Navigation's stall and deadline clocks run on scaled time (sim seconds times the speed scale),
 # so a pause or slowdown for people nearby never counts as being stuck.
 STALL_TIME = 4.0  # scaled sim seconds without progress
@@ -265,7 +268,9 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
                 self.turning = True
                 sim.command_base(0.0, 0.0)
             else:
-                speed = min(self.max_speed, math.sqrt(2.0 * self.accel * 0.8 * abs(left)), 2.0 * abs(left) + 0.01)
+                speed = min(
+                    self.max_speed, math.sqrt(2.0 * self.accel * 0.8 * abs(left)), SETTLE_GAIN * abs(left) + 0.01
+                )
                 direction = (-1.0 if leg.backwards else 1.0) * math.copysign(1.0, left)
                 # Back onto the line: aim at a point LOOKAHEAD further along it.
                 error = wrap_angle(leg.heading - math.atan2(e, LOOKAHEAD) - pose.yaw)
@@ -279,7 +284,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
             self._fail(sim, pose, f"timed out after {sim.sim_time - self.started:.1f} s with {remaining:.2f} m to go")
 
     def _turn_rate(self, error: float) -> float:
-        magnitude = min(self.max_turn, math.sqrt(2.0 * self.turn_accel * 0.8 * abs(error)), 3.0 * abs(error))
+        magnitude = min(self.max_turn, math.sqrt(2.0 * self.turn_accel * 0.8 * abs(error)), SETTLE_GAIN * abs(error))
         return math.copysign(magnitude, error)
 
     def _fail(self, sim: Simulation, pose: Pose2D, why: str) -> None:

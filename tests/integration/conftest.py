@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import uuid
@@ -13,32 +12,10 @@ from pathlib import Path
 import pytest
 
 from services.runtime import SERVICES, Node, NodeSettings
+from tests.sessions import free_ports
 from tether.supervisor import Supervisor
 
 STARTUP_TIMEOUT = 90.0
-
-
-def free_port_block(size: int = len(SERVICES)) -> int:
-    """A base port with `size` free ports after it, for one test's services."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + size > 65000:
-            continue
-        try:
-            socks = []
-            for port in range(base, base + size):
-                s = socket.socket()
-                socks.append(s)
-                s.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free block of ports")
 
 
 @dataclass
@@ -67,7 +44,7 @@ def write_config(path: Path, realtime_factor: float, policy: Path | None = None)
 def start_stack(
     tmp: Path, realtime_factor: float, services: tuple[str, ...] = SERVICES, policy: Path | None = None
 ) -> Stack:
-    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port_block())
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(SERVICES)))
     config = write_config(tmp / "tether.toml", realtime_factor, policy)
     token = tmp / "operator-token"
     supervisor = Supervisor(settings, tmp / "logs", config, extra_env={"TETHER_OPERATOR_TOKEN_FILE": str(token)})
