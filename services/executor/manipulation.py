@@ -373,7 +373,7 @@ class Manipulator:
         scene = self._scene(base, seen)
         yaw = target.yaw or 0.0
         failed = self._failed.setdefault(step.object_id, set())
-        candidates = [g for g in grasps(obj, target.position, yaw, base, self.mount, self.grasp_config)]
+        candidates = grasps(obj, target.position, yaw, base, self.mount, self.grasp_config)
         fresh = [g for g in candidates if g.description not in failed] or candidates
         plan = plan_pick(scene, q, fresh, obj, target.on, q_stow=self.home)
         grasp = plan.grasp
