@@ -153,6 +153,11 @@ def _cm(metres: float) -> str:
     return f"{round(max(metres, 0.0) * 100, 1):g} cm"
 
 
+def nearest(shape: BaseGeometry, obstacles: Sequence[tuple[str, BaseGeometry]]) -> tuple[str, float]:
+    """The name of the obstacle nearest `shape`, and how far it is (0 touching or inside)."""
+    return min(((name, shape.distance(outline)) for name, outline in obstacles), key=lambda item: item[1])
+
+
 def clearance_problem(
     start: Pose2D,
     sweeps: Sequence[Sweep],
@@ -171,7 +176,7 @@ def clearance_problem(
     start_distance = min(at_start.distance(shape) for _, shape in obstacles)
     leaving = True
     for sweep in sweeps:
-        name, distance = min(((n, sweep.shape.distance(s)) for n, s in obstacles), key=lambda item: item[1])
+        name, distance = nearest(sweep.shape, obstacles)
         required = min(margin, start_distance) if leaving else margin
         leaving = leaving and (sweep.x, sweep.y) == (start.x, start.y)
         if distance >= required - EPSILON:

@@ -152,11 +152,8 @@ class WorldModel:
         (kept within the furniture's length), at the same distance and heading."""
         item = self.furniture[furniture_id]
         approach = item.approach
-        cx, cy = item.center
         half = (item.size.x / 2, item.size.y / 2)
-        # The approach side: the axis along which the approach pose lies farther out, relative to size.
-        across = 0 if abs(approach.x - cx) / half[0] >= abs(approach.y - cy) / half[1] else 1
-        along = 1 - across
+        _, along = approach_axes(item)
         point = [approach.x, approach.y]
         wanted = (x, y)[along]
         centre = item.center[along]
@@ -199,6 +196,14 @@ class WorldModel:
         area = inside if not inside.is_empty else allowed
         nearest = area.boundary.interpolate(area.boundary.project(target))
         return float(nearest.x), float(nearest.y)
+
+
+def approach_axes(item: Furniture) -> tuple[int, int]:
+    """Which map axis (0: x, 1: y) runs across the edge the furniture's approach pose faces, and
+    which along it: the axis along which the approach pose lies farther out, relative to size."""
+    (cx, cy), approach = item.center, item.approach
+    across = 0 if abs(approach.x - cx) / (item.size.x / 2) >= abs(approach.y - cy) / (item.size.y / 2) else 1
+    return across, 1 - across
 
 
 def approach_towards(target_x: float, target_y: float, distance: float, from_x: float, from_y: float) -> Pose2D:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -13,7 +12,7 @@ import pinocchio as pin
 from schemas.common import Pose2D, Vec3
 from schemas.robot import TrajectoryPoint
 from services.executor.errors import IKFailed
-from services.robotmodel import ArmModel, arm_to_world, world_to_arm
+from services.robotmodel import ArmModel
 
 # Keep solutions a hair inside the limits so position control never pushes against a stop.
 LIMIT_MARGIN = 0.01
@@ -71,52 +70,6 @@ def hand_rotation(approach: Sequence[float] | np.ndarray, fingers: Sequence[floa
 
 class ArmKinematics(ArmModel):
     """The arm model with inverse kinematics for any hand pose and timed trajectories."""
-
-    # The module's frame and trajectory helpers, also reachable from an instance.
-
-    @staticmethod
-    def world_to_arm(base: Pose2D, mount: Vec3, point: Vec3) -> np.ndarray:
-        return world_to_arm(base, mount, point)
-
-    @staticmethod
-    def arm_to_world(base: Pose2D, mount: Vec3, point: Sequence[float] | np.ndarray) -> Vec3:
-        return arm_to_world(base, mount, point)
-
-    @staticmethod
-    def joint_trajectory(
-        q_from: Sequence[float] | np.ndarray, q_to: Sequence[float] | np.ndarray, max_joint_speed: float
-    ) -> list[TrajectoryPoint]:
-        return joint_trajectory(q_from, q_to, max_joint_speed)
-
-    def straight_line(
-        self,
-        q_start: Sequence[float] | np.ndarray,
-        target: Sequence[float] | np.ndarray,
-        yaw: float = 0.0,
-        *,
-        step: float = 0.02,
-        max_joint_jump: float = 0.35,
-    ) -> list[np.ndarray]:
-        """Joint waypoints moving the grasp target in a straight line to `target`, hand down.
-
-        Near objects a joint-space interpolation would swing the fingers sideways; this keeps the
-        fingertips on the line. Raises IKFailed when a point is unreachable or the arm would have to
-        jump to another configuration on the way.
-        """
-        start = self.forward(q_start).translation
-        goal = np.asarray(target, dtype=float)
-        count = max(1, math.ceil(float(np.linalg.norm(goal - start)) / step))
-        path = [np.asarray(q_start, dtype=float)]
-        for k in range(1, count + 1):
-            q = self.solve_top_down(start + (goal - start) * k / count, path[-1], yaw)
-            jump = float(np.max(np.abs(q - path[-1])))
-            if jump > max_joint_jump:
-                raise IKFailed(
-                    f"no continuous straight path to {np.round(goal, 3).tolist()}: "
-                    f"a joint would jump {jump:.2f} rad at step {k} of {count}"
-                )
-            path.append(q)
-        return path
 
     def solve_top_down(
         self,
@@ -251,20 +204,4 @@ def joint_trajectory(
         tau = k / points
         blend = tau * tau * (3.0 - 2.0 * tau)
         trajectory.append(TrajectoryPoint(positions=(start + blend * delta).tolist(), time_from_start=duration * tau))
-    return trajectory
-
-
-def waypoint_trajectory(
-    waypoints: Sequence[Sequence[float] | np.ndarray], max_joint_speed: float, *, min_segment: float = 0.05
-) -> list[TrajectoryPoint]:
-    """Time a dense joint path so that no joint exceeds the speed on any segment."""
-    if max_joint_speed <= 0:
-        raise ValueError(f"max_joint_speed must be positive, got {max_joint_speed}")
-    qs = [np.asarray(q, dtype=float) for q in waypoints]
-    t = 0.0
-    trajectory = [TrajectoryPoint(positions=qs[0].tolist(), time_from_start=0.0)]
-    for q0, q1 in itertools.pairwise(qs):
-        # A margin over the bare minimum: the controller lags a little behind a fast ramp.
-        t += max(min_segment, 1.25 * float(np.max(np.abs(q1 - q0), initial=0.0)) / max_joint_speed)
-        trajectory.append(TrajectoryPoint(positions=q1.tolist(), time_from_start=t))
     return trajectory

@@ -51,7 +51,7 @@ from services.executor.errors import (
 from services.executor.grasps import GraspConfig, grasps, object_pose, placements
 from services.executor.navigation import BasePlanner
 from services.executor.ports import Robot
-from services.robotmodel import map_to_base
+from services.robotmodel import arm_to_world, map_to_base
 from services.worldmodel import WorldModel
 
 log = logging.getLogger(__name__)
@@ -405,7 +405,7 @@ class Manipulator:
         return f"holding {step.object_name} ({grasp.kind} grasp)"
 
     def _map_point(self, base: Pose2D, point: np.ndarray) -> Vec3:
-        return self.arm.kin.arm_to_world(base, self.mount, point)
+        return arm_to_world(base, self.mount, point)
 
     def _held_now(self, held_id: str, base: Pose2D, q: np.ndarray) -> HeldObject:
         """How the hand holds `held_id` now: the grasp's orientation remembered from the pick, the

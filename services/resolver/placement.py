@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 from schemas.common import Vec3
 from schemas.world import Furniture
+from services.worldmodel import approach_axes
 
 # How far apart the candidate spots along an edge are tried.
 SEARCH_STEP = 0.05
@@ -42,9 +43,7 @@ def place_position(
     cx, cy = surface.center
     half = (surface.size.x / 2, surface.size.y / 2)
     ax, ay = surface.approach.x, surface.approach.y
-    # The approach side: the axis along which the approach pose lies farther out, relative to size.
-    across = 0 if abs(ax - cx) / half[0] >= abs(ay - cy) / half[1] else 1
-    along = 1 - across
+    across, along = approach_axes(surface)
     centre = (cx, cy)
     approach = (ax, ay)
     sign = 1.0 if approach[across] >= centre[across] else -1.0

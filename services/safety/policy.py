@@ -33,7 +33,7 @@ from schemas.plan import (
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.safety import Rule
 from schemas.world import KeepOut
-from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, route_sweeps
+from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, nearest, route_sweeps
 from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
 from services.safety.policyfile import Limits
@@ -110,7 +110,7 @@ class SafetyPolicy:
         self.max_angular = base.max_angular_speed
         self.mount = robot.arm_mount
         # Zones grown by the base's half-diagonal (plus the margin): the base centre stays that far out.
-        self.radius = math.hypot(robot.base_size.x, robot.base_size.y) / 2 + base.footprint_margin
+        self.radius = world.base_radius + base.footprint_margin
         self.zone_shapes: dict[str, BaseGeometry] = {zone.id: Polygon(zone.polygon) for zone in limits.keep_out}
         self.zones = {zone_id: shape.buffer(self.radius) for zone_id, shape in self.zone_shapes.items()}
         self.payload = self.policy.payload.max_mass
@@ -156,7 +156,7 @@ class SafetyPolicy:
             )
         size = self.base_size
         there = footprint(pose.x, pose.y, pose.yaw, size.x, size.y)
-        name, distance = min(((n, there.distance(shape)) for n, shape in self.obstacles), key=lambda item: item[1])
+        name, distance = nearest(there, self.obstacles)
         if distance < TRACKING_TOLERANCE:
             where = "in" if distance <= 0.0 else f"{distance * 100:.0f} cm from"
             raise Vetoed(

@@ -188,7 +188,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         self.legs = route_legs(start, drive_route(start, goal.path, goal.pose))
         self.index = 0
         self.turning = True  # turning at the current leg's start (or, past the last leg, at the goal)
-        self.half_diagonal = math.hypot(robot.base_size.x, robot.base_size.y) / 2
+        self.base_radius = sim.model.base_radius
         self.max_speed = min(goal.max_speed or robot.max_linear_speed, robot.max_linear_speed)
         self.max_turn = min(goal.max_turn_rate or robot.max_angular_speed, robot.max_angular_speed)
         self.accel, self.turn_accel = robot.max_linear_acceleration, robot.max_angular_acceleration
@@ -222,7 +222,7 @@ class Navigation(Motion[NavigateToPoseFeedback, NavigateToPoseResult]):
         leg = self.legs[self.index]
         s, e = self._along(pose)
         beyond = max(0.0, -s, s - leg.length)
-        return math.hypot(e, beyond) + self.half_diagonal * abs(wrap_angle(pose.yaw - leg.heading))
+        return math.hypot(e, beyond) + self.base_radius * abs(wrap_angle(pose.yaw - leg.heading))
 
     def _remaining(self, pose: Pose2D) -> float:
         if self.index >= len(self.legs):
@@ -628,8 +628,9 @@ class Simulation:
 
     def _away_from(self, start: Pose2D) -> str | None:
         here = self.base_pose()
-        half_diagonal = math.hypot(self.world.robot.base_size.x, self.world.robot.base_size.y) / 2
-        off = math.dist((here.x, here.y), (start.x, start.y)) + half_diagonal * abs(wrap_angle(here.yaw - start.yaw))
+        off = math.dist((here.x, here.y), (start.x, start.y)) + self.model.base_radius * abs(
+            wrap_angle(here.yaw - start.yaw)
+        )
         if off <= TRACKING_TOLERANCE:
             return None
         return (

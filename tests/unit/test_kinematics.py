@@ -11,7 +11,8 @@ import pytest
 from schemas.common import Pose2D, Vec3
 from schemas.robot import ARM_JOINTS
 from services.executor.errors import IKFailed
-from services.executor.kinematics import ArmKinematics, arm_to_world, joint_trajectory, world_to_arm
+from services.executor.kinematics import ArmKinematics, joint_trajectory
+from services.robotmodel import arm_to_world, world_to_arm
 
 HOME = [0.0, -1.3, 0.0, -2.35, 0.0, 1.05, 0.785]
 

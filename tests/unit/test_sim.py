@@ -27,9 +27,10 @@ from schemas.robot import (
     Twist,
 )
 from schemas.world import World
-from services.executor.kinematics import ArmKinematics, joint_trajectory, world_to_arm
+from services.executor.kinematics import ArmKinematics, joint_trajectory
 from services.executor.navigation import BasePlanner
 from services.footprint import TRACKING_TOLERANCE, footprint, route_sweeps
+from services.robotmodel import world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
 from services.sim.physics import STALL_TIME, Simulation
