@@ -30,14 +30,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
-from bench.transport import bare_echo, free_base_port, interleaved, machine, percentile
+from bench.transport import bare_echo, interleaved, machine, percentile
 from schemas import keys
 from schemas.keys import Topic
 from schemas.robot import ARM_JOINTS, JointState, Odometry, Twist
 from schemas.safety import SafetyStatus
 from services import runtime
 from services.runtime import Node, NodeSettings
-from tether.supervisor import Supervisor
+from tether.supervisor import Supervisor, free_base_port
 
 T = TypeVar("T")
 N = TypeVar("N", int, float)

@@ -15,9 +15,7 @@ import importlib.metadata
 import json
 import os
 import platform
-import random
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -31,6 +29,7 @@ from schemas.keys import Service
 from schemas.plan import PlanText
 from services import runtime
 from services.runtime import Node, NodeSettings
+from tether.supervisor import free_base_port
 
 # A bench-only echo service shaped like plan/parse: a real PlanText in, the same PlanText back.
 ECHO: Service[PlanText, PlanText] = Service("bench/echo", PlanText, PlanText)
@@ -39,22 +38,6 @@ REQUEST = PlanText(text="pick up the red cup from the kitchen counter and bring 
 MAX_SAMPLES = 20_000
 READY_TIMEOUT = 20.0
 CALL_TIMEOUT = 2.0
-
-
-def free_base_port(count: int = len(runtime.SERVICES)) -> int:
-    """A base port whose `count` consecutive loopback ports are free right now."""
-    rng = random.Random()
-    for _ in range(100):
-        base = rng.randrange(20_000, 60_000)
-        try:
-            with contextlib.ExitStack() as stack:
-                for port in range(base, base + count):
-                    sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
-                    sock.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-    raise RuntimeError("no block of free loopback ports found")
 
 
 def serve(settings: NodeSettings) -> None:

@@ -80,6 +80,16 @@ def bench_stream_out_key(robot: str) -> str:
     return f"{prefix(robot)}/bench/raw_stream_out"
 
 
+def bench_load_key(robot: str) -> str:
+    """Where bench.recorder puts its 1 KB messages: under the prefix, so the recorder takes them."""
+    return f"{prefix(robot)}/bench/recorder_load"
+
+
+def bench_count_key(robot: str) -> str:
+    """bench.recorder's bare counting subscriber answers its count so far here (its baseline)."""
+    return f"{prefix(robot)}/bench/recorder_count"
+
+
 @dataclass(frozen=True)
 class Topic(Generic[T]):
     path: str

@@ -19,6 +19,10 @@ class TraceRecord(Frozen):
 
 
 class RecorderStatus(Frozen):
+    """The file being written, and totals over every file of this run (one per rotation)."""
+
     path: str
     messages: int
     started: float
+    dropped: int = 0
+    files: list[str] = []

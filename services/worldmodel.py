@@ -14,7 +14,7 @@ from shapely.ops import unary_union
 
 from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, Wall, World, WorldObject
-from services.datafile import read_struct
+from services.datafile import decode_struct, read_struct
 
 DEFAULT_WORLD = "household"
 # The base drives the last leg straight in from this far behind the goal, along the goal's
@@ -46,6 +46,13 @@ def world_path(name_or_path: str | Path = DEFAULT_WORLD) -> Path:
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:
     path = world_path(name_or_path)
     world = read_struct(path, World, "world", WorldFileError)
+    _check_references(world, path)
+    return world
+
+
+def parse_world(data: bytes, path: Path) -> World:
+    """The world from the bytes of a file named `path` (a file kept in a recording, say)."""
+    world = decode_struct(data, path, World, "world", WorldFileError)
     _check_references(world, path)
     return world
 

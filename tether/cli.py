@@ -27,8 +27,9 @@ from schemas.robot import Odometry
 from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
 from services.actionlib import CANCEL_ALL, RESULT_RETENTION, GoalRejected
-from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode
+from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode, stop_event
 from services.worldmodel import WorldFileError
+from tether import recordings
 from tether.client import (
     EXIT_CODES,
     EXIT_UNREACHABLE,
@@ -39,6 +40,7 @@ from tether.client import (
     reset_estop,
     trigger_estop,
 )
+from tether.inspect import inspect
 from tether.supervisor import Supervisor
 
 app = typer.Typer(help="tether: LLM plans to safe robot actions over Zenoh.", no_args_is_help=True)
@@ -145,14 +147,13 @@ def up(
 ) -> None:
     """Start every service, wait until all are alive, and stop them all cleanly on Ctrl-C."""
     supervisor, node = start_services(ctx, config, log_dir, timeout)
-    console.print(f"all services up; logs in {log_dir}/. Ctrl-C stops them.")
-    stop = threading.Event()
+    console.print(f"all services up; logs in {log_dir}/. Ctrl-C (or SIGTERM) stops them.")
+    stop = stop_event()
     try:
         while not stop.wait(0.5):
             for name, code in supervisor.exited().items():
                 console.print(f"[yellow]{name} exited with {code}; restarting it[/]")
                 supervisor.start(name)
-    except KeyboardInterrupt:
         console.print("stopping services...")
     finally:
         node.close()
@@ -603,3 +604,8 @@ def verify_demo(node: Node) -> bool:
     where = f"({cup.position.x:.2f}, {cup.position.y:.2f}, {cup.position.z:.2f})"
     console.print(f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding}")
     return cup.on == "coffee_table" and truth.holding is None
+
+
+# Recordings
+app.command()(inspect)
+recordings.register(app)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import random
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +20,33 @@ log = logging.getLogger(__name__)
 # Stopped first to last: nothing new is planned; safety goes before the robot so its watchdog never
 # sees a robot vanish mid-motion (the robot stops on the missing heartbeat); the recorder hears it all.
 STOP_ORDER = ("executor", "parser", "resolver", "safety", "sim", "recorder")
+# Stacks for tests and benchmarks listen on ports from here up to the kernel's range for outgoing
+# connections. Not inside that range: there one of the sessions' own outgoing sockets could take a
+# port between the check and the listen, and a service would fail to start.
+LOWEST_PORT = 20000
+
+
+def _outgoing_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def free_base_port(count: int = len(SERVICES)) -> int:
+    """The first of `count` consecutive loopback ports that are free now: a base port for a stack of
+    its own (tests, benchmarks), below the range the kernel hands out to outgoing connections."""
+    highest = max(LOWEST_PORT + 1, _outgoing_low() - count)
+    for _ in range(200):
+        base = random.randrange(LOWEST_PORT, highest)
+        try:
+            with contextlib.ExitStack() as stack:
+                for port in range(base, base + count):
+                    stack.enter_context(socket.socket()).bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError(f"no {count} free consecutive loopback ports between {LOWEST_PORT} and {highest}")
 
 
 class Supervisor:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -15,7 +18,6 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from schemas import keys
-from schemas.trace import RecorderStatus
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +28,55 @@ PERMISSIVE_SCHEMA_NAME = "any"
 PERMISSIVE_SCHEMA = b"{}"
 
 COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+# The metadata record every file carries, and the attachment names of the files it was recorded with.
+METADATA_NAME = "tether"
+WORLD_ATTACHMENT = "world"
+POLICY_ATTACHMENT = "policy"
+MEDIA_TYPES = {".yaml": "application/yaml", ".yml": "application/yaml", ".toml": "application/toml"}
+
+
+def version() -> str:
+    try:
+        return metadata.version("tether")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+@dataclass(frozen=True)
+class SourceFile:
+    """A file the robot ran with (world, policy), kept in the recording byte for byte."""
+
+    path: Path
+    data: bytes
+
+    @classmethod
+    def read(cls, path: Path) -> SourceFile:
+        return cls(path, path.read_bytes())
+
+    @property
+    def hash(self) -> str:
+        # The same digest safety puts in every heartbeat and decision (policy_hash).
+        return "sha256:" + hashlib.sha256(self.data).hexdigest()
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """What a recording was made with: written as a metadata record and attachments in every file."""
+
+    robot: str
+    world: SourceFile | None = None
+    policy: SourceFile | None = None
+
+    def metadata(self, started_ns: int, part: int) -> dict[str, str]:
+        data = {"robot": self.robot, "started_ns": str(started_ns), "part": str(part), "version": version()}
+        for name, source in ((WORLD_ATTACHMENT, self.world), (POLICY_ATTACHMENT, self.policy)):
+            if source is not None:
+                data[name] = str(source.path)
+                data[f"{name}_hash"] = source.hash
+        return data
+
+    def attachments(self) -> list[tuple[str, SourceFile]]:
+        return [(n, s) for n, s in ((WORLD_ATTACHMENT, self.world), (POLICY_ATTACHMENT, self.policy)) if s is not None]
 
 
 def json_schema(type_: Any) -> tuple[str, bytes]:
@@ -57,6 +108,8 @@ class Recording:
         compression: str = "zstd",
         chunk_size: int = 1024 * 1024,
         clock: Callable[[], int] = time.time_ns,
+        provenance: Provenance | None = None,
+        part: int = 0,
     ) -> None:
         self.robot = robot
         self.path = str(output) if isinstance(output, str | Path) else getattr(output, "name", "<stream>")
@@ -73,15 +126,25 @@ class Recording:
         self.messages = 0
         self.dropped = 0
         self.finished = False
+        self._size_at_finish = 0
         self._writer.start(profile=PROFILE, library=LIBRARY)
-        self._writer.add_metadata("tether", {"robot": robot, "started_ns": str(self.started_ns)})
+        provenance = provenance or Provenance(robot)
+        self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part))
+        for name, source in provenance.attachments():
+            self._writer.add_attachment(
+                log_time=self.started_ns,
+                create_time=self.started_ns,
+                name=f"{name}/{source.path.name}",
+                media_type=MEDIA_TYPES.get(source.path.suffix, "application/octet-stream"),
+                data=source.data,
+            )
 
     def record(self, key: str, payload: bytes, *, log_time: int | None = None, publish_time: int | None = None) -> bool:
         """Write one message; False if it was dropped (not JSON, or the recording is finished)."""
-        now = self._clock() if log_time is None else log_time
         try:
             msgspec.json.decode(payload)
-        except msgspec.DecodeError as exc:
+        # Invalid UTF-8 inside a JSON string raises UnicodeDecodeError, not DecodeError.
+        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
             self._drop(key, f"payload of {len(payload)} bytes is not JSON ({exc})")
             return False
         with self._lock:
@@ -92,6 +155,8 @@ class Recording:
             channel = self._channels.get(key)
             if channel is None:
                 channel = self._channels[key] = self._register(key)
+            # Taken under the lock, so receive times rise with the sequence.
+            now = self._clock() if log_time is None else log_time
             self._writer.add_message(
                 channel_id=channel,
                 log_time=now,
@@ -137,12 +202,15 @@ class Recording:
             self.finished = True
             self._writer.finish()
             self._stream.flush()
+            self._size_at_finish = self._stream.tell()
             if self._owns_stream:
                 self._stream.close()
 
-    def status(self) -> RecorderStatus:
+    @property
+    def size(self) -> int:
+        """Bytes written to the file so far (the chunk in progress not counted)."""
         with self._lock:
-            return RecorderStatus(path=self.path, messages=self.messages, started=self.started_ns / 1e9)
+            return self._stream.tell() if not self.finished else self._size_at_finish
 
     @property
     def channels(self) -> dict[str, int]:

@@ -5,18 +5,19 @@ from __future__ import annotations
 from schemas import keys
 from schemas.trace import RecorderStatus
 from schemas.world import Empty
-from services.recorder.mcapfile import Recording
+from services.recorder.recorder import Recorder
 from services.runtime import Node
 
 
-def bind(node: Node, recording: Recording) -> None:
-    """Record every publication under the robot's prefix, `_trace/**` included, and serve the status."""
-
-    def on_sample(key: str, payload: bytes) -> None:
-        recording.record(key, payload)
+def bind(node: Node, recording: Recorder, key_expr: str | None = None) -> None:
+    """Record every publication under `key_expr` (default: the robot's prefix, `_trace/**` included),
+    and serve the status."""
 
     def status(_request: Empty) -> RecorderStatus:
         return recording.status()
 
-    node.subscribe_raw(keys.all_keys(node.robot), on_sample)
+    def on_sample(key: str, payload: bytes) -> None:
+        recording.record(key, payload)
+
+    node.subscribe_raw(key_expr or keys.all_keys(node.robot), on_sample)
     node.serve(keys.RECORDER_STATUS, status)

@@ -5,15 +5,14 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from services.robotmodel import ArmModel
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
 from services.safety.latch import EstopLatch
 from services.safety.node import SafetyNode
 from services.safety.operator import ensure_token, token_path
-from services.safety.policy import SafetyPolicy
-from services.safety.policyfile import PolicyError, load_policy
-from services.worldmodel import WorldModel, load_world
+from services.safety.policy import load_safety_policy
+from services.safety.policyfile import PolicyError
+from services.worldmodel import load_world
 
 log = logging.getLogger(__name__)
 
@@ -23,15 +22,10 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     config = load_config(SafetyConfig, config_file, "safety")
     world = load_world(config.world)
     try:
-        arm = ArmModel(world.robot.arm_urdf)
-    except (OSError, ValueError, RuntimeError) as exc:
-        urdf = world.robot.arm_urdf
-        raise ConfigError(f"world {config.world}: robot.arm_urdf {urdf!r} cannot be loaded: {exc}") from None
-    try:
-        limits = load_policy(Path(config.policy) if config.policy else None, world.robot, arm, world.keep_out)
+        policy = load_safety_policy(world, Path(config.policy) if config.policy else None, f"world {config.world}")
     except PolicyError as exc:
         raise ConfigError(str(exc)) from None
-    policy = SafetyPolicy(WorldModel(world), limits, arm)
+    limits = policy.limits
     token_file = token_path(config.operator_token_file)
     state_file = Path(config.estop_state_file) if config.estop_state_file else None
     latch = EstopLatch(ensure_token(token_file), state_file or token_file.parent / f"estop-{settings.robot}.json")

@@ -44,24 +44,18 @@ from services.safety.monitor import (
     nearest_person,
     separation,
 )
-from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict
+from services.safety.policy import FRESH_JOINTS_WAIT, PLAN_RULES, SafetyPolicy, Verdict, base_moving
 
 log = logging.getLogger(__name__)
 
 # Faster than this (m/s, rad/s) counts as moving, for the watchdog.
 MOVING = 0.05
-# The arm may start moving while the base is slower than this (m/s, rad/s): a base that just
-# arrived is still settling.
-STILL_BELOW = 0.1
 # A teleop stream silent this long has stopped the base (the robot holds a cmd_vel for 0.5 s); the
 # first message after it may speed up by at most TELEOP_MAX_STEP seconds of acceleration.
 TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
 # Repeated vetoes of a stream for one rule are one event per this many seconds.
 REPEAT_WINDOW = 1.0
-# How long a trajectory whose start seems to jump waits for a fresher joint state (joint states
-# come at 50 Hz).
-FRESH_JOINTS_WAIT = 0.1
 
 
 class SafetyNode:
@@ -226,29 +220,18 @@ class SafetyNode:
             log.info("speed limit: %s", reason)
             self._event(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, Rule.HUMAN_SEPARATION, (), values)
 
-    def _hand_in_base(self) -> tuple[float, float] | None:
-        """The end effector over the floor in the base frame, from the latest joint states."""
-        joints = self.joints()
-        names = self.policy.arm.joint_names
-        if joints is None or not all(n in joints for n in names):
-            return None
-        point = self.policy.arm.grasp_point([joints[n] for n in names])
-        mount = self.policy.mount
-        return float(point[0]) + mount.x, float(point[1]) + mount.y
-
     def hand(self, pose: Pose2D) -> tuple[float, float] | None:
         """The end effector on the floor plan (map frame)."""
-        local = self._hand_in_base()
+        local = self.policy.hand_in_base(self.joints())
         return None if local is None else base_to_map(pose, *local)
 
     def reach(self) -> float:
         """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
-        local = self._hand_in_base()
-        return math.hypot(*local) if local is not None else self.policy.world.world.robot.reach + 0.3
+        return self.policy.reach(self.joints())
 
     def base_moving(self) -> bool:
         odom = self._odom
-        return odom is not None and (abs(odom[1].linear_x) > STILL_BELOW or abs(odom[1].angular_z) > STILL_BELOW)
+        return odom is not None and base_moving(odom[1])
 
     def _watchdog(self) -> None:
         """The robot's state stopped arriving while it moved: nothing can be monitored, so stop."""

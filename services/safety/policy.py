@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Generic, TypeVar
 
 import msgspec
@@ -30,13 +31,13 @@ from schemas.plan import (
     step_kind,
     step_labels,
 )
-from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import Rule
-from schemas.world import KeepOut
+from schemas.world import KeepOut, World
 from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, nearest, route_sweeps
 from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
-from services.safety.policyfile import Limits
+from services.safety.policyfile import Limits, PolicyError, load_policy, parse_policy
 from services.worldmodel import WorldModel, drive_route
 
 T = TypeVar("T")
@@ -50,6 +51,12 @@ INTERPOLATION_STEP = 0.05
 # Slower than this counts as standing still.
 STILL = 1e-6
 
+# The arm may start moving while the base is slower than this (m/s, rad/s): a base that just
+# arrived is still settling.
+STILL_BELOW = 0.1
+# How long a trajectory whose start seems to jump waits for a fresher joint state (joint states
+# come at 50 Hz).
+FRESH_JOINTS_WAIT = 0.1
 ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.OBSTACLE)
 # What the whole-plan check (check_plan, with the e-stop in the node) applies.
 PLAN_RULES = (
@@ -95,6 +102,11 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+def base_moving(odom: Odometry) -> bool:
+    """Whether the base moves too fast for the arm to start (it may still be settling)."""
+    return abs(odom.linear_x) > STILL_BELOW or abs(odom.angular_z) > STILL_BELOW
+
+
 class SafetyPolicy:
     """Pure checks against the effective limits (policy tightened within the robot's own)."""
 
@@ -117,6 +129,21 @@ class SafetyPolicy:
         self._floor = unary_union(list(world.room_shapes.values()))
         self.base_size = robot.base_size
         self.obstacles = [(f"the {o.name}", o.shape) for o in world.obstacles]
+
+    # Where the hand is
+
+    def hand_in_base(self, joints: dict[str, float] | None) -> tuple[float, float] | None:
+        """The end effector over the floor in the base frame; None when a joint position is unknown."""
+        names = self.arm.joint_names
+        if joints is None or not all(n in joints for n in names):
+            return None
+        point = self.arm.grasp_point([joints[n] for n in names])
+        return float(point[0]) + self.mount.x, float(point[1]) + self.mount.y
+
+    def reach(self, joints: dict[str, float] | None) -> float:
+        """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
+        local = self.hand_in_base(joints)
+        return math.hypot(*local) if local is not None else self.world.world.robot.reach + 0.3
 
     # Navigation
 
@@ -699,3 +726,18 @@ def _ramp(previous: float, wanted: float, step: float) -> tuple[float, bool]:
     if abs(wanted) <= abs(previous) + step + STILL:
         return wanted, False
     return math.copysign(abs(previous) + step, wanted), True
+
+
+def load_safety_policy(world: World, policy: Path | None, world_label: str, data: bytes | None = None) -> SafetyPolicy:
+    """The checks safety runs in `world` under the policy file `policy` (None: the default policy).
+    `data` is the policy file's content when it comes from somewhere else (a recording); `policy`
+    then only names it. Raises PolicyError naming what is wrong."""
+    try:
+        arm = ArmModel(world.robot.arm_urdf)
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise PolicyError(f"{world_label}: robot.arm_urdf {world.robot.arm_urdf!r} cannot be loaded: {exc}") from None
+    if data is None:
+        limits = load_policy(policy, world.robot, arm, world.keep_out)
+    else:
+        limits = parse_policy(data, policy or Path("policy.toml"), world.robot, arm, world.keep_out)
+    return SafetyPolicy(WorldModel(world), limits, arm)

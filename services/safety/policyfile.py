@@ -182,6 +182,13 @@ def load_policy(path: Path | None, robot: RobotSpec, arm: ArmModel, world_zones:
         data = path.read_bytes()
     except OSError as exc:
         raise PolicyError(f"cannot read policy file {path}: {exc.strerror}") from None
+    return parse_policy(data, path, robot, arm, world_zones)
+
+
+def parse_policy(data: bytes, path: Path, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut]) -> Limits:
+    """The policy from the bytes of a file named `path` (a file kept in a recording, say)."""
+    if path.suffix not in (".toml", ".yaml", ".yml"):
+        raise PolicyError(f"policy file {path}: use .toml, .yaml or .yml")
     policy = decode_struct(data, path, Policy, "policy", PolicyError)
     digest = "sha256:" + hashlib.sha256(data).hexdigest()
     return resolve(policy, path, digest, robot, arm, world_zones)

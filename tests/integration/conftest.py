@@ -71,9 +71,14 @@ def stop_stack(stack: Stack) -> None:
 
 def tether_cli(stack: Stack, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
     """The `tether` command line against this stack's services, as a user runs it."""
+    return run_tether(stack.supervisor, *args, stdin=stdin)
+
+
+def run_tether(supervisor: Supervisor, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    """The `tether` command line with the robot name and ports of `supervisor`'s services."""
     return subprocess.run(
         [sys.executable, "-m", "tether", *args],
-        env=stack.supervisor.env(),
+        env=supervisor.env(),
         input=stdin,
         capture_output=True,
         text=True,

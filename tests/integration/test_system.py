@@ -43,6 +43,9 @@ def run_plan(stack: Stack, text: str, timeout: float = 300.0) -> tuple[PlanStatu
     return run.result.status, str(run.result.stage), run.result.reason
 
 
+ACTIONS = ("navigate_to_pose", "follow_joint_trajectory", "gripper_command")
+
+
 def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: Stack) -> None:
     before = truth(stack)
     cup = next(o for o in before.objects if o.id == "red_cup")
@@ -77,13 +80,21 @@ def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: 
     assert topics.get("_trace/parser/plan/parse")
     assert topics.get("_trace/resolver/plan/resolve")
     assert topics.get("_trace/safety/safety/check_plan")
-    for action in ("navigate_to_pose", "follow_joint_trajectory", "gripper_command"):
+    for action in ACTIONS:
         assert topics.get(f"_trace/safety/cmd/{action}/_action/send_goal"), action
         assert topics.get(f"_trace/sim/robot/{action}/_action/send_goal"), action
     assert topics.get("robot/odom") and topics.get("robot/joint_states") and topics.get("safety/heartbeat")
     decided = {(d["key"], d["decision"]) for d in safety_decisions}
     assert ("safety/check_plan", "approved") in decided
     assert ("cmd/gripper_command/_action/send_goal", "approved") in decided
+
+    # Offline, under the policy kept in the file, every recorded decision comes out the same: the
+    # plan check, each base route, arm trajectory and gripper goal, from the state recorded then.
+    rechecked = tether_cli(stack, "recheck", status_reply.path, "--json")
+    assert rechecked.returncode == 0, rechecked.stdout + rechecked.stderr
+    report = json.loads(rechecked.stdout)
+    assert report["differ"] == 0 and not report["warnings"]
+    assert report["checked"] >= sum(topics[f"_trace/safety/cmd/{a}/_action/send_goal"] for a in ACTIONS) + 1
 
 
 def test_a_plan_into_the_stairs_is_rejected_by_safety_and_nothing_moves(stack: Stack) -> None:

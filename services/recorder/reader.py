@@ -1,0 +1,214 @@
+"""Reading recordings back, also files cut short by a crash, and recovering those into complete files."""
+
+from __future__ import annotations
+
+import logging
+import struct
+import zlib
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import Writer
+
+from schemas import keys
+from services.recorder.mcapfile import COMPRESSION, LIBRARY, METADATA_NAME, POLICY_ATTACHMENT, PROFILE, WORLD_ATTACHMENT
+
+log = logging.getLogger(__name__)
+
+# What a file cut mid-record raises while being read: the mcap library's own errors, a short read
+# inside a record, a chunk whose compressed bytes end early.
+TRUNCATION_ERRORS: tuple[type[Exception], ...] = (McapError, struct.error, zlib.error, ValueError, EOFError)
+try:  # the decompressors mcap uses for chunks
+    import zstandard
+
+    TRUNCATION_ERRORS += (zstandard.ZstdError,)
+except ImportError:  # pragma: no cover - mcap needs it for zstd files
+    pass
+
+
+class RecordingError(Exception):
+    """A file that is not a tether recording at all (missing, empty, not MCAP)."""
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """One message as it was received: nanosecond receive time, full key, JSON payload."""
+
+    log_time: int
+    key: str
+    data: bytes
+
+    def decode(self, type_: Any) -> Any:
+        return msgspec.json.decode(self.data, type=type_)
+
+
+@dataclass
+class RecordingFile:
+    """Everything in one recording: messages in the order they were received, metadata, attachments.
+
+    `complete` is False for a file without its summary (the recorder was killed): it is read up to
+    the last chunk that was flushed whole, and `problem` says where reading stopped.
+    """
+
+    path: Path
+    messages: list[Recorded] = field(default_factory=list)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    attachments: dict[str, Attachment] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    complete: bool = False
+    problem: str = ""
+
+    @property
+    def robot(self) -> str:
+        """The robot the file was recorded for: from its metadata, else from its first key."""
+        robot = self.metadata.get(METADATA_NAME, {}).get("robot")
+        if robot:
+            return robot
+        for message in self.messages:
+            parts = message.key.split("/")
+            if len(parts) > 2 and parts[0] == keys.ROOT:
+                return parts[1]
+        return ""
+
+    def attachment(self, kind: str) -> Attachment | None:
+        """The world or policy file recorded with this run (`kind` is "world" or "policy")."""
+        for name, attachment in self.attachments.items():
+            if name.split("/", 1)[0] == kind:
+                return attachment
+        return None
+
+    @property
+    def world(self) -> Attachment | None:
+        return self.attachment(WORLD_ATTACHMENT)
+
+    @property
+    def policy(self) -> Attachment | None:
+        return self.attachment(POLICY_ATTACHMENT)
+
+    def counts(self) -> dict[str, int]:
+        counts: dict[str, int] = {}
+        for message in self.messages:
+            counts[message.key] = counts.get(message.key, 0) + 1
+        return counts
+
+    @property
+    def duration(self) -> float:
+        if not self.messages:
+            return 0.0
+        return (self.messages[-1].log_time - self.messages[0].log_time) / 1e9
+
+
+def _records(path: Path) -> Generator[Any, None, None]:
+    with path.open("rb") as stream:
+        yield from StreamReader(stream, record_size_limit=1 << 30).records
+
+
+def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> RecordingFile:
+    """Read `path` front to back, keeping the messages whose key `keep` accepts (default: all).
+
+    Reads a file cut short as far as it is whole; raises RecordingError for a file that is missing or
+    not MCAP at all.
+    """
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise RecordingError(f"cannot read recording {path}: {exc.strerror}") from None
+    if path.is_dir():
+        raise RecordingError(f"{path} is a directory, not a recording")
+    if size == 0:
+        raise RecordingError(f"{path} is empty: the recorder never wrote to it")
+    recording = RecordingFile(path)
+    kept: dict[int, bool] = {}
+    records = _records(path)
+    try:
+        for record in records:
+            if isinstance(record, Message):
+                channel = recording.channels.get(record.channel_id)
+                if channel is None:
+                    continue
+                if kept.setdefault(record.channel_id, keep is None or keep(channel.topic)):
+                    recording.messages.append(Recorded(record.log_time, channel.topic, record.data))
+            elif isinstance(record, Channel):
+                recording.channels[record.id] = record
+            elif isinstance(record, Schema):
+                recording.schemas[record.id] = record
+            elif isinstance(record, Metadata):
+                recording.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Attachment):
+                recording.attachments[record.name] = record
+            elif isinstance(record, DataEnd | Footer):
+                recording.complete = True
+                break
+    except TRUNCATION_ERRORS as exc:
+        if not recording.channels and not recording.metadata:
+            why = str(exc) or type(exc).__name__
+            raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {why}") from None
+        recording.problem = "the file ends early (a crash?): read up to the last whole chunk"
+        log.debug("%s: reading stopped at %s: %s", path, type(exc).__name__, exc)
+    finally:
+        records.close()
+    if not recording.complete and not recording.problem:
+        recording.problem = "the file ends without its summary (a crash?)"
+    return recording
+
+
+@dataclass(frozen=True)
+class Recovered:
+    source: Path
+    output: Path
+    messages: int
+    channels: int
+    complete: bool
+    problem: str
+
+
+def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
+    """Write every whole record of `source` into a new, complete file at `output` (with summary and
+    index), as `mcap recover` does. Works on complete files too (it then copies them)."""
+    if output.resolve() == source.resolve():
+        raise RecordingError(f"recover writes a new file; {output} is the file being recovered")
+    recording = read_recording(source)
+    with output.open("wb") as stream:
+        writer = Writer(stream, compression=COMPRESSION[compression])
+        writer.start(profile=PROFILE, library=LIBRARY)
+        schema_ids = {
+            sid: writer.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+            for sid, s in recording.schemas.items()
+        }
+        channel_ids: dict[str, int] = {}
+        for channel in recording.channels.values():
+            channel_ids[channel.topic] = writer.register_channel(
+                topic=channel.topic,
+                message_encoding=channel.message_encoding,
+                schema_id=schema_ids.get(channel.schema_id, 0),
+                metadata=channel.metadata,
+            )
+        for name, values in recording.metadata.items():
+            writer.add_metadata(name, values)
+        for attachment in recording.attachments.values():
+            writer.add_attachment(
+                create_time=attachment.create_time,
+                log_time=attachment.log_time,
+                name=attachment.name,
+                media_type=attachment.media_type,
+                data=attachment.data,
+            )
+        for sequence, message in enumerate(recording.messages):
+            writer.add_message(
+                channel_id=channel_ids[message.key],
+                log_time=message.log_time,
+                publish_time=message.log_time,
+                data=message.data,
+                sequence=sequence,
+            )
+        writer.finish()
+    return Recovered(
+        source, output, len(recording.messages), len(recording.channels), recording.complete, recording.problem
+    )

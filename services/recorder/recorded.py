@@ -1,0 +1,35 @@
+"""The world and the safety policy a recording was made with, rebuilt from the files it carries."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from schemas.world import World
+from services.recorder.reader import RecordingError, RecordingFile
+from services.safety.policy import SafetyPolicy, load_safety_policy
+from services.safety.policyfile import PolicyError
+from services.worldmodel import WorldFileError, parse_world
+
+
+def recorded_world(recording: RecordingFile) -> World:
+    """The world file kept in the recording; RecordingError if there is none or it does not load."""
+    attachment = recording.world
+    if attachment is None:
+        raise RecordingError(f"{recording.path} carries no world file (recorded without one)")
+    try:
+        return parse_world(attachment.data, Path(attachment.name))
+    except WorldFileError as exc:
+        raise RecordingError(f"{recording.path}: the recorded world does not load: {exc}") from None
+
+
+def recorded_policy(recording: RecordingFile, world: World, policy: Path | None = None) -> SafetyPolicy:
+    """Safety's checks under the policy file kept in the recording, or under `policy` when given."""
+    try:
+        if policy is not None:
+            return load_safety_policy(world, policy, "the recorded world")
+        attachment = recording.policy
+        if attachment is None:
+            raise RecordingError(f"{recording.path} carries no policy file; give one with --policy")
+        return load_safety_policy(world, Path(attachment.name), "the recorded world", data=attachment.data)
+    except PolicyError as exc:
+        raise RecordingError(str(exc)) from None

@@ -1,0 +1,319 @@
+"""Recorded commands through the safety checks again, offline: which decisions a policy would change.
+
+A recording holds every command safety decided on, with the decision, and the robot's state at the
+time (odometry, joint states, the heartbeat's speed scale). Each command is checked again with a
+policy (the recorded one, or a new one) from the state recorded just before it, as safety would have
+seen it, and the new decision is compared with the recorded one.
+
+Rechecked: plan checks (`safety/check_plan`), navigation, trajectory and gripper goals (their
+`send_goal` queries as safety received them, from `_trace/safety/**`) and program velocity
+commands (`cmd/cmd_vel`). Not rechecked, and counted: commands refused for the e-stop or the
+command rate (the operator's and the clock's doing, not the policy's), teleop (clamped, not
+refused, from a state that depends on the stream's timing), and commands without a recorded
+decision (a file cut short).
+"""
+
+from __future__ import annotations
+
+import bisect
+import enum
+import json
+import math
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import msgspec
+
+from schemas import keys
+from schemas.actions import GoalResponse, SendGoal
+from schemas.common import ErrorKind, Pose2D
+from schemas.plan import GroundedPlan
+from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, JointState, NavigateToPoseGoal, Odometry, Twist
+from schemas.safety import Decision, Rule, SafetyEvent, SafetyStatus
+from schemas.trace import TraceRecord
+from services.safety.errors import Vetoed
+from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy, Verdict, base_moving
+
+T = TypeVar("T")
+
+# Refusals that are not the policy's: kept as recorded.
+NOT_POLICY = {Rule.ESTOP: "refused for the e-stop", Rule.COMMAND_RATE: "refused for the command rate"}
+GOALS = {
+    keys.CMD_NAVIGATE.send_goal.path: NavigateToPoseGoal,
+    keys.CMD_TRAJECTORY.send_goal.path: FollowJointTrajectoryGoal,
+    keys.CMD_GRIPPER.send_goal.path: GripperCommandGoal,
+}
+
+# Where safety's runtime traces each goal query it answered.
+GOAL_TRACES = frozenset(f"_trace/safety/{path}" for path in GOALS)
+
+
+class Outcome(enum.StrEnum):
+    APPROVED = "approved"
+    VETOED = "vetoed"
+
+
+@dataclass(frozen=True)
+class Message:
+    """A recorded message, as recheck needs it: receive time in seconds, key under the robot's prefix, JSON."""
+
+    time: float
+    path: str
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Rechecked:
+    stamp: float  # when safety decided (wall clock, seconds)
+    key: str  # the command's key under the robot's prefix
+    command: str  # what was asked, in a few words
+    recorded: Outcome
+    recorded_reason: str
+    now: Outcome
+    now_reason: str
+    now_rule: Rule | None
+
+    @property
+    def differs(self) -> bool:
+        return self.recorded is not self.now
+
+
+@dataclass
+class RecheckReport:
+    policy_hash: str
+    checked: list[Rechecked] = field(default_factory=list)
+    skipped: Counter[str] = field(default_factory=Counter)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def differences(self) -> list[Rechecked]:
+        return [c for c in self.checked if c.differs]
+
+
+class History(Generic[T]):
+    """One state topic's messages by receive time: the latest at or before a moment, or the next after it."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self.values: list[T] = []
+
+    def add(self, time: float, value: T) -> None:
+        # Arrival order is receive order; a message out of order by a hair goes where it belongs.
+        at = bisect.bisect_right(self.times, time)
+        self.times.insert(at, time)
+        self.values.insert(at, value)
+
+    def at(self, time: float, max_age: float) -> tuple[float, T] | None:
+        i = bisect.bisect_right(self.times, time) - 1
+        if i < 0 or time - self.times[i] > max_age:
+            return None
+        return self.times[i], self.values[i]
+
+    def after(self, time: float, within: float) -> tuple[float, T] | None:
+        i = bisect.bisect_right(self.times, time)
+        if i >= len(self.times) or self.times[i] - time > within:
+            return None
+        return self.times[i], self.values[i]
+
+
+@dataclass
+class RobotState:
+    """What safety knew of the robot over the recording."""
+
+    odom: History[Odometry] = field(default_factory=History)
+    joints: History[JointState] = field(default_factory=History)
+    heartbeat: History[SafetyStatus] = field(default_factory=History)
+
+
+def _short(value: float) -> str:
+    return f"{value:.2f}"
+
+
+def describe(path: str, command: Any) -> str:
+    """A command in a few words, for a person reading the list."""
+    if isinstance(command, GroundedPlan):
+        return "plan: " + ", ".join(str(type(step).__struct_config__.tag) for step in command.steps)
+    if isinstance(command, NavigateToPoseGoal):
+        pose = command.pose
+        return f"navigate to ({_short(pose.x)}, {_short(pose.y)}, {_short(pose.yaw)} rad)"
+    if isinstance(command, FollowJointTrajectoryGoal):
+        end = command.points[-1].time_from_start if command.points else 0.0
+        return f"arm trajectory: {len(command.points)} points over {end:.2f} s"
+    if isinstance(command, GripperCommandGoal):
+        return f"gripper to {command.position:.3f} m at {command.max_effort:g} N"
+    if isinstance(command, Twist):
+        return f"cmd_vel {command.linear_x:.2f} m/s, {command.angular_z:.2f} rad/s"
+    return path
+
+
+class Rechecker:
+    """Replays the decisions of one recording against `policy`."""
+
+    def __init__(self, policy: SafetyPolicy) -> None:
+        self.policy = policy
+        self.max_age = policy.policy.monitor.state_max_age
+        self.state = RobotState()
+
+    def pose(self, time: float) -> Pose2D | None:
+        found = self.state.odom.at(time, self.max_age)
+        return None if found is None else found[1].pose
+
+    def joints(self, time: float) -> tuple[float, dict[str, float]] | None:
+        found = self.state.joints.at(time, self.max_age)
+        return None if found is None else (found[0], dict(zip(found[1].name, found[1].position, strict=False)))
+
+    def moving(self, time: float) -> bool:
+        found = self.state.odom.at(time, self.max_age)
+        return found is not None and base_moving(found[1])
+
+    def scale(self, time: float) -> float:
+        found = self.state.heartbeat.at(time, math.inf)
+        return 1.0 if found is None else found[1].speed_scale
+
+    def check(self, path: str, command: Any, time: float) -> Verdict[Any] | list[str]:
+        """The check safety runs for `command` on `path`, from the state at `time`; raises Vetoed."""
+        policy = self.policy
+        if isinstance(command, GroundedPlan):
+            return policy.check_plan(command, self.pose(time))
+        if isinstance(command, NavigateToPoseGoal):
+            joints = self.joints(time)
+            return policy.check_navigation(command, self.pose(time), policy.reach(joints[1] if joints else None))
+        if isinstance(command, FollowJointTrajectoryGoal):
+            return self._check_trajectory(command, time)
+        if isinstance(command, GripperCommandGoal):
+            return policy.check_gripper(command)
+        if isinstance(command, Twist):
+            return policy.check_cmd_vel(command, self.pose(time), self.scale(time))
+        raise TypeError(f"no check for {type(command).__name__} on {path}")
+
+    def _check_trajectory(self, goal: FollowJointTrajectoryGoal, time: float) -> Verdict[Any]:
+        # As safety does: a first point that seems to jump is checked again with the next joint state.
+        joints = self.joints(time)
+        try:
+            return self.policy.check_trajectory(goal, joints[1] if joints else None, self.pose(time), self.moving(time))
+        except Vetoed as exc:
+            fresher = self.state.joints.after(time, FRESH_JOINTS_WAIT)
+            if "jump_rad" not in exc.values or fresher is None:
+                raise
+            later = fresher[0]
+        joints = self.joints(later)
+        return self.policy.check_trajectory(goal, joints[1] if joints else None, self.pose(later), self.moving(later))
+
+    def recheck(self, path: str, command: Any, time: float, recorded: Outcome, reason: str) -> Rechecked:
+        try:
+            self.check(path, command, time)
+        except Vetoed as exc:
+            return Rechecked(time, path, describe(path, command), recorded, reason, Outcome.VETOED, str(exc), exc.rule)
+        return Rechecked(time, path, describe(path, command), recorded, reason, Outcome.APPROVED, "", None)
+
+
+def _decode(data: bytes | msgspec.Raw, type_: type[T]) -> T | None:
+    try:
+        return msgspec.json.decode(data, type=type_)
+    except (msgspec.DecodeError, UnicodeDecodeError):
+        return None
+
+
+def _goal_id(raw: msgspec.Raw) -> str | None:
+    try:
+        value = json.loads(bytes(raw)) if raw else None
+    except ValueError:
+        return None
+    return value.get("goal_id") if isinstance(value, dict) else None
+
+
+def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash: str = "") -> RecheckReport:
+    """Every rechecked command in `messages` (in arrival order) under `policy`, with what differs.
+
+    `robot_policy_hash` is the hash of the policy file kept with the recording, checked against the
+    hash safety put in its events, so a recording whose file does not match what safety ran with
+    says so.
+    """
+    messages = list(messages)
+    rechecker = Rechecker(policy)
+    report = RecheckReport(policy.limits.hash)
+    state_topics: dict[str, tuple[type[Any], Callable[[float, Any], None]]] = {
+        keys.ODOM.path: (Odometry, rechecker.state.odom.add),
+        keys.JOINT_STATES.path: (JointState, rechecker.state.joints.add),
+        keys.HEARTBEAT.path: (SafetyStatus, rechecker.state.heartbeat.add),
+    }
+    # The state first, all of it: a command is checked from the state just before it, and a
+    # trajectory from the one just after too.
+    events: list[tuple[float, SafetyEvent]] = []
+    traces: list[tuple[float, TraceRecord]] = []
+    for message in messages:
+        if (topic := state_topics.get(message.path)) is not None:
+            if (value := _decode(message.data, topic[0])) is not None:
+                topic[1](message.time, value)
+        elif message.path == keys.SAFETY_EVENTS.path:
+            if (event := _decode(message.data, SafetyEvent)) is not None:
+                events.append((message.time, event))
+        elif message.path in GOAL_TRACES and (trace := _decode(message.data, TraceRecord)) is not None:
+            traces.append((message.time, trace))
+    hashes = {e.policy_hash for _, e in events if e.policy_hash}
+    if robot_policy_hash and hashes and hashes != {robot_policy_hash}:
+        report.warnings.append(
+            f"safety's events name policy {', '.join(sorted(hashes))}, but the policy file kept in the "
+            f"recording is {robot_policy_hash}: the recorder was not given the policy safety ran with"
+        )
+    # A goal's rule, when it was refused, is in safety's event for it.
+    goal_rules: dict[tuple[str, str], SafetyEvent] = {}
+    for _, event in events:
+        if event.key in GOALS and (goal_id := _goal_id(event.command)) is not None:
+            goal_rules[(event.key, goal_id)] = event
+    checks: list[Rechecked] = []
+    for _, event in events:
+        if event.key == keys.PLAN_CHECK.path:
+            _recheck_event(rechecker, report, event, GroundedPlan, checks)
+        elif event.key == keys.CMD_VEL.path:
+            _recheck_event(rechecker, report, event, Twist, checks)
+        elif event.key == keys.TELEOP_CMD_VEL.path and event.decision in (Decision.APPROVED, Decision.CLAMPED):
+            report.skipped["teleop (clamped rather than refused)"] += 1
+    for _, trace in traces:
+        _recheck_goal(rechecker, report, trace, goal_rules, checks)
+    report.checked = sorted(checks, key=lambda c: c.stamp)
+    return report
+
+
+def _recheck_event(
+    rechecker: Rechecker, report: RecheckReport, event: SafetyEvent, type_: type[Any], out: list[Rechecked]
+) -> None:
+    if event.decision not in (Decision.APPROVED, Decision.VETOED):
+        return
+    if event.rule in NOT_POLICY:
+        report.skipped[NOT_POLICY[event.rule]] += 1
+        return
+    command = _decode(event.command, type_)
+    if command is None:
+        report.skipped["a decision without its command"] += 1
+        return
+    recorded = Outcome.APPROVED if event.decision is Decision.APPROVED else Outcome.VETOED
+    out.append(rechecker.recheck(event.key, command, event.stamp, recorded, event.reason))
+
+
+def _recheck_goal(
+    rechecker: Rechecker,
+    report: RecheckReport,
+    trace: TraceRecord,
+    rules: dict[tuple[str, str], SafetyEvent],
+    out: list[Rechecked],
+) -> None:
+    goal_type: Any = GOALS[trace.key]
+    request = _decode(trace.query, SendGoal[goal_type])
+    response = _decode(trace.reply, GoalResponse)
+    if request is None or response is None:
+        # Not decided: the request did not decode, or safety failed to answer (forwarding failed).
+        report.skipped["a goal without a recorded decision"] += 1
+        return
+    event = rules.get((trace.key, request.goal_id))
+    if event is not None and event.rule in NOT_POLICY and event.decision is Decision.VETOED:
+        report.skipped[NOT_POLICY[event.rule]] += 1
+        return
+    refused = not response.accepted and response.kind in (ErrorKind.VETOED, ErrorKind.ESTOP)
+    if refused and response.kind is ErrorKind.ESTOP:
+        report.skipped[NOT_POLICY[Rule.ESTOP]] += 1
+        return
+    recorded = Outcome.VETOED if refused else Outcome.APPROVED
+    out.append(rechecker.recheck(trace.key, request.goal, trace.stamp, recorded, response.reason if refused else ""))

@@ -1,0 +1,345 @@
+"""Recordings offline: rotation, reading files cut short, recovery, what a replay sends, and recheck."""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import msgspec
+import pytest
+from mcap.reader import make_reader
+
+from schemas import keys
+from schemas.actions import CancelGoal, GoalResponse, SendGoal
+from schemas.common import ErrorKind, Pose2D
+from schemas.robot import NavigateToPoseGoal, Odometry, Twist
+from schemas.safety import Decision, EstopState, Rule, SafetyEvent, SafetyStatus
+from schemas.trace import TraceRecord
+from services.recorder.config import RecorderConfig
+from services.recorder.mcapfile import Provenance, Recording, SourceFile
+from services.recorder.reader import Recorded, RecordingError, read_recording, recover
+from services.recorder.recorder import Recorder
+from services.recorder.replay import Kind, default_target, plan_replay
+from services.runtime import encode
+from services.safety.policy import SafetyPolicy, load_safety_policy
+from services.safety.policyfile import DEFAULT_POLICY
+from services.safety.recheck import Message, Outcome, recheck
+from services.worldmodel import load_world, world_path
+
+ROBOT = "r1"
+PREFIX = keys.prefix(ROBOT)
+SECOND = 1_000_000_000
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_800_000_000 * SECOND
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def provenance() -> Provenance:
+    return Provenance(ROBOT, world=SourceFile.read(world_path("household")), policy=SourceFile.read(DEFAULT_POLICY))
+
+
+def payload(i: int, size: int = 100) -> bytes:
+    # Random padding: it must not compress away.
+    return encode({"i": i, "pad": random.Random(i).randbytes(size // 2).hex()})
+
+
+# Rotation
+
+
+def test_a_file_is_rotated_by_age_and_each_part_carries_metadata_and_files(tmp_path: Path) -> None:
+    clock = Clock()
+    config = RecorderConfig(output_dir=str(tmp_path), max_file_seconds=10.0)
+    recorder = Recorder(config, provenance(), clock=clock)
+    recorder.record(f"{PREFIX}/a", payload(0))
+    clock.now += 5 * SECOND
+    recorder.tick()
+    recorder.record(f"{PREFIX}/a", payload(1))
+    clock.now += 6 * SECOND
+    recorder.tick()  # 11 s old: a new file
+    recorder.record(f"{PREFIX}/a", payload(2))
+    recorder.finish()
+
+    assert len(recorder.files) == 2 and recorder.messages == 3
+    assert recorder.status().files == [str(p) for p in recorder.files]
+    parts = [read_recording(p) for p in recorder.files]
+    assert [len(p.messages) for p in parts] == [2, 1]
+    for n, part in enumerate(parts):
+        assert part.complete
+        assert part.metadata["tether"]["part"] == str(n)
+        assert part.policy is not None and part.policy.data == DEFAULT_POLICY.read_bytes()
+        assert part.world is not None and part.world.name == "world/household.yaml"
+
+
+def test_a_file_is_rotated_by_size_and_names_never_collide(tmp_path: Path) -> None:
+    clock = Clock()  # the clock stands still: every file starts in the same second
+    config = RecorderConfig(output_dir=str(tmp_path), max_file_bytes=64 * 1024, chunk_size=4096)
+    recorder = Recorder(config, provenance(), clock=clock)
+    for i in range(3000):
+        recorder.record(f"{PREFIX}/a", payload(i, 200))
+        if i % 500 == 499:
+            recorder.tick()
+    recorder.finish()
+
+    assert len(recorder.files) > 2
+    assert len(set(recorder.files)) == len(recorder.files)
+    assert recorder.files[1].name == recorder.files[0].stem + "_1.mcap"
+    numbers = [json.loads(m.data)["i"] for p in recorder.files for m in read_recording(p).messages]
+    assert numbers == list(range(3000))
+
+
+def test_status_names_the_file_and_counts_messages(tmp_path: Path) -> None:
+    recorder = Recorder(RecorderConfig(output_dir=str(tmp_path)), provenance())
+    recorder.record(f"{PREFIX}/a", payload(0))
+    assert not recorder.record(f"{PREFIX}/a", b"not json")
+    status = recorder.status()
+    recorder.finish()
+    assert status.path == str(recorder.files[0]) and status.files == [status.path]
+    assert (status.messages, status.dropped) == (1, 1)
+    assert status.started > 0
+
+
+def test_a_chosen_file_name_is_used_for_the_first_file(tmp_path: Path) -> None:
+    recorder = Recorder(RecorderConfig(), provenance(), first_path=tmp_path / "incident.mcap")
+    recorder.finish()
+    assert recorder.files == [tmp_path / "incident.mcap"]
+
+
+# Files cut short
+
+
+def write_flushed(path: Path, count: int) -> list[int]:
+    """A recording of `count` messages flushed every 100; the file sizes after each flush."""
+    recording = Recording(path, ROBOT, chunk_size=1 << 20, provenance=provenance())
+    sizes = []
+    for i in range(count):
+        recording.record(f"{PREFIX}/k{i % 3}", payload(i))
+        if i % 100 == 99:
+            recording.flush()
+            sizes.append(path.stat().st_size)
+    recording.finish()
+    return sizes
+
+
+def test_a_file_cut_anywhere_reads_back_every_message_flushed_before_the_cut(tmp_path: Path) -> None:
+    full = tmp_path / "full.mcap"
+    sizes = write_flushed(full, 500)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    for end in range(sizes[0] - 1, sizes[-1], 997):
+        cut.write_bytes(data[:end])
+        recording = read_recording(cut)
+        assert not recording.complete and recording.problem
+        flushed = 100 * sum(1 for s in sizes if s <= end)
+        numbers = [json.loads(m.data)["i"] for m in recording.messages]
+        assert numbers == list(range(len(numbers))), f"cut at {end}: not a prefix"
+        assert len(numbers) >= flushed, f"cut at {end}: {len(numbers)} read, {flushed} were flushed"
+
+
+def test_recover_writes_a_complete_file_with_everything_that_was_whole(tmp_path: Path) -> None:
+    full = tmp_path / "full.mcap"
+    sizes = write_flushed(full, 300)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full.read_bytes()[: sizes[1] + 50])
+    out = tmp_path / "recovered.mcap"
+
+    done = recover(cut, out)
+
+    assert not done.complete and done.messages == 200
+    with out.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == 200
+        assert summary.statistics.channel_count == 3
+        messages = list(reader.iter_messages(log_time_order=False))
+        assert [json.loads(m.data)["i"] for _, _, m in messages] == list(range(200))
+        assert [a.name for a in reader.iter_attachments()] == ["world/household.yaml", "policy/policy.toml"]
+        assert {m.name for m in reader.iter_metadata()} == {"tether"}
+    with pytest.raises(RecordingError, match="new file"):
+        recover(out, out)
+
+
+@pytest.mark.parametrize("content", [b"", b"not an mcap file at all", b"\x89MCAP0\r\n" + b"\xff" * 40])
+def test_a_file_that_is_not_a_recording_is_refused_naming_it(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "junk.mcap"
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match=r"junk\.mcap"):
+        read_recording(path)
+    with pytest.raises(RecordingError, match=r"missing\.mcap"):
+        read_recording(tmp_path / "missing.mcap")
+
+
+# Replay
+
+
+def trace(service: str, path: str, query: object, reply: object) -> Recorded:
+    record = TraceRecord(
+        stamp=0.0,
+        service=service,
+        key=path,
+        duration=0.001,
+        query=msgspec.Raw(encode(query)),
+        reply=msgspec.Raw(encode(reply)),
+    )
+    return Recorded(0, keys.trace_key(ROBOT, service, path), encode(record))
+
+
+def at(seconds: float, message: Recorded) -> Recorded:
+    return Recorded(int(seconds * SECOND), message.key, message.data)
+
+
+GOAL = SendGoal(goal_id="g1", goal=NavigateToPoseGoal(pose=Pose2D(x=1.0, y=2.0)))
+RECORDED = [
+    at(10.0, Recorded(0, keys.ODOM.key(ROBOT), b"{}")),
+    at(10.5, Recorded(0, keys.CMD_VEL.key(ROBOT), encode(Twist(linear_x=0.1)))),
+    at(11.0, trace("safety", keys.CMD_NAVIGATE.send_goal.path, GOAL, GoalResponse(goal_id="g1", accepted=True))),
+    at(11.1, trace("sim", keys.ROBOT_NAVIGATE.send_goal.path, GOAL, GoalResponse(goal_id="g1", accepted=True))),
+    at(11.2, Recorded(0, keys.ROBOT_CMD_VEL.key(ROBOT), encode(Twist(linear_x=0.1)))),
+    at(11.3, Recorded(0, keys.ESTOP.key(ROBOT), b'{"source":"operator"}')),
+    at(12.0, trace("safety", keys.CMD_NAVIGATE.cancel_goal.path, CancelGoal(goal_id="g1"), {"accepted": True})),
+    at(12.5, Recorded(0, "tether/other/robot/odom", b"{}")),
+]
+
+
+def test_a_replay_moves_every_message_to_the_other_robot_at_its_recorded_offset() -> None:
+    target = default_target(ROBOT)
+    plan = plan_replay(RECORDED, ROBOT, target)
+
+    assert [i.kind for i in plan.items] == [Kind.PUT] * 7
+    assert [i.at for i in plan.items] == pytest.approx([0.0, 0.5, 1.0, 1.1, 1.2, 1.3, 2.0])
+    assert [i.key for i in plan.items] == [m.key.replace(f"/{ROBOT}/", f"/{target}/", 1) for m in RECORDED[:7]]
+    assert [i.payload for i in plan.items] == [m.data for m in RECORDED[:7]]
+    assert plan.skipped == {"not under tether/r1/": 1}
+
+
+def test_a_live_replay_sends_only_commands_and_only_through_safety() -> None:
+    plan = plan_replay(RECORDED, ROBOT, ROBOT, live=True)
+
+    assert [(i.kind, i.key) for i in plan.items] == [
+        (Kind.PUT, keys.CMD_VEL.key(ROBOT)),
+        (Kind.QUERY, keys.CMD_NAVIGATE.send_goal.key(ROBOT)),
+        (Kind.QUERY, keys.CMD_NAVIGATE.cancel_goal.key(ROBOT)),
+    ]
+    assert [i.at for i in plan.items] == pytest.approx([0.0, 0.5, 1.5])
+    sent, canceled = (json.loads(i.payload) for i in plan.items[1:])
+    # A new goal id, the same for the goal's send and its cancel; the goal itself as recorded.
+    assert sent["goal_id"] != "g1" and sent["goal_id"] == canceled["goal_id"]
+    assert msgspec.convert(sent["goal"], NavigateToPoseGoal) == GOAL.goal
+    assert not any("/robot/" in i.key or "estop" in i.key for i in plan.items)
+
+
+# Recheck
+
+
+@pytest.fixture(scope="module")
+def world_policy() -> SafetyPolicy:
+    return load_safety_policy(load_world(), None, "household")
+
+
+def tightened(speed: float) -> SafetyPolicy:
+    text = DEFAULT_POLICY.read_text().replace("max_linear_speed = 0.6", f"max_linear_speed = {speed}")
+    return load_safety_policy(load_world(), Path("tight.toml"), "household", data=text.encode())
+
+
+def msg(time: float, path: str, value: object) -> Message:
+    return Message(time, path, encode(value))
+
+
+def event(time: float, path: str, decision: Decision, command: object, rule: Rule | None = None) -> Message:
+    return msg(
+        time,
+        keys.SAFETY_EVENTS.path,
+        SafetyEvent(stamp=time, key=path, decision=decision, rule=rule, command=msgspec.Raw(encode(command))),
+    )
+
+
+def goal_trace(time: float, goal: NavigateToPoseGoal, response: GoalResponse) -> Message:
+    record = TraceRecord(
+        stamp=time,
+        service="safety",
+        key=keys.CMD_NAVIGATE.send_goal.path,
+        duration=0.001,
+        query=msgspec.Raw(encode(SendGoal(goal_id=response.goal_id, goal=goal))),
+        reply=msgspec.Raw(encode(response)),
+    )
+    return msg(time + 0.002, f"_trace/safety/{keys.CMD_NAVIGATE.send_goal.path}", record)
+
+
+def incident() -> list[Message]:
+    start = Pose2D(x=6.0, y=1.2)
+    out = [
+        msg(t / 50, keys.ODOM.path, Odometry(stamp=t / 50, sim_time=t / 50, pose=start, linear_x=0.0, angular_z=0.0))
+        for t in range(200)
+    ]
+    out += [
+        msg(t / 50, keys.HEARTBEAT.path, SafetyStatus(seq=t, stamp=t / 50, estop=EstopState(latched=False)))
+        for t in range(200)
+    ]
+    out += [
+        event(1.0, keys.CMD_VEL.path, Decision.APPROVED, Twist(linear_x=0.45)),
+        event(1.1, keys.CMD_VEL.path, Decision.VETOED, Twist(linear_x=5.0), Rule.BASE_SPEED),
+        event(1.2, keys.CMD_VEL.path, Decision.VETOED, Twist(linear_x=0.1), Rule.ESTOP),
+        goal_trace(
+            2.0, NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2), max_speed=0.45), GoalResponse(goal_id="a", accepted=True)
+        ),
+        goal_trace(
+            2.5,
+            NavigateToPoseGoal(pose=Pose2D(x=11.2, y=8.0)),
+            GoalResponse(goal_id="b", accepted=False, reason="vetoed by safety: stairs", kind=ErrorKind.VETOED),
+        ),
+        goal_trace(
+            3.0,
+            NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2)),
+            GoalResponse(goal_id="c", accepted=False, reason="vetoed by safety: e-stop", kind=ErrorKind.ESTOP),
+        ),
+    ]
+    return sorted(out, key=lambda m: m.time)
+
+
+def test_recheck_with_the_same_policy_decides_as_recorded(world_policy: SafetyPolicy) -> None:
+    report = recheck(incident(), world_policy)
+
+    assert [(c.key, c.recorded, c.now) for c in report.checked] == [
+        (keys.CMD_VEL.path, Outcome.APPROVED, Outcome.APPROVED),
+        (keys.CMD_VEL.path, Outcome.VETOED, Outcome.VETOED),
+        (keys.CMD_NAVIGATE.send_goal.path, Outcome.APPROVED, Outcome.APPROVED),
+        (keys.CMD_NAVIGATE.send_goal.path, Outcome.VETOED, Outcome.VETOED),
+    ]
+    assert report.differences == []
+    assert report.skipped == {"refused for the e-stop": 2}
+    assert report.checked[3].now_rule is Rule.KEEP_OUT
+
+
+def test_recheck_with_a_tightened_policy_lists_the_commands_it_would_refuse() -> None:
+    report = recheck(incident(), tightened(0.3))
+
+    assert [(c.key, c.command, c.now_rule) for c in report.differences] == [
+        (keys.CMD_VEL.path, "cmd_vel 0.45 m/s, 0.00 rad/s", Rule.BASE_SPEED),
+        (keys.CMD_NAVIGATE.send_goal.path, "navigate to (6.40, 1.20, 0.00 rad)", Rule.BASE_SPEED),
+    ]
+    assert all(c.recorded is Outcome.APPROVED and c.now is Outcome.VETOED for c in report.differences)
+    assert report.policy_hash != load_safety_policy(load_world(), None, "household").limits.hash
+
+
+def test_recheck_checks_a_command_from_the_state_recorded_before_it(world_policy: SafetyPolicy) -> None:
+    # Odometry stops a second before the goal: safety would have found the pose unknown, and so does recheck.
+    messages = [m for m in incident() if not (m.path == keys.ODOM.path and m.time > 1.0)]
+    report = recheck(messages, world_policy)
+    goal = next(c for c in report.checked if c.command.startswith("navigate to (6.40"))
+    assert goal.now is Outcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
+
+
+def test_recheck_warns_when_the_kept_policy_is_not_the_one_safety_ran_with(world_policy: SafetyPolicy) -> None:
+    ran_with = msg(
+        0.5,
+        keys.SAFETY_EVENTS.path,
+        SafetyEvent(stamp=0.5, key="x", decision=Decision.APPROVED, policy_hash="sha256:aa"),
+    )
+    report = recheck([*incident(), ran_with], world_policy, robot_policy_hash="sha256:bb")
+    assert len(report.warnings) == 1 and "sha256:aa" in report.warnings[0]

@@ -1,0 +1,226 @@
+"""`tether inspect FILE`: an incident's timeline as a table, and a top-down map with --png."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+import zenoh
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+from schemas import keys
+from schemas.world import KeepOut, World
+from services.recorder.mapview import draw_map, estop_points, track_of, vetoed_goals
+from services.recorder.reader import RecordingError, RecordingFile, read_recording
+from services.recorder.recorded import recorded_policy, recorded_world
+from services.recorder.timeline import Level, RobotState, Row, Timeline, build_timeline
+from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
+
+console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
+out = Console()
+
+# The key column is shown from this width on; output that is not a terminal gets PIPE_WIDTH.
+WIDE = 140
+PIPE_WIDTH = 180
+LEVEL_STYLES = {Level.INFO: "", Level.GOOD: "green", Level.WARN: "yellow", Level.BAD: "red"}
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    console.print(f"[red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code)
+
+
+def inspect(
+    file: Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)],
+    png: Annotated[
+        Path | None, typer.Option("--png", help="Also draw a top-down map of the run into this PNG file.")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the rows as one JSON object.")] = False,
+    key_expr: Annotated[
+        str | None,
+        typer.Option(
+            "--keys",
+            help="Only rows about keys this Zenoh key expression matches (the key a command went to, or the key "
+            "it was recorded on); relative ones (cmd/**) are under the robot's prefix.",
+        ),
+    ] = None,
+    everything: Annotated[
+        bool,
+        typer.Option(
+            "--all", help="List every message, also odometry, joint states, heartbeats, perception and feedback."
+        ),
+    ] = False,
+    world: Annotated[
+        str | None,
+        typer.Option("--world", help="The world to draw when the recording carries none (a file or a bundled name)."),
+    ] = None,
+) -> None:
+    """Show what happened in a recording: plan, steps, commands, safety decisions, e-stops, robot state.
+
+    Odometry, heartbeats and other fast streams only set each row's robot state, unless they change something.
+
+    Exit 0; 2 for a missing or non-MCAP file. A file cut short is inspected as far as it is whole.
+    """
+    recording = open_recording(file)
+    timeline = build_timeline(recording, everything)
+    rows = timeline.rows
+    if key_expr is not None:
+        rows = select(rows, recording.robot, key_expr)
+    if png is not None:
+        write_map(png, recording, timeline, world)
+    if as_json:
+        print(json.dumps(as_document(recording, timeline, rows)))
+        return
+    # A file or a pager gets room for every column; a terminal its own width.
+    screen = out if out.is_terminal or "COLUMNS" in os.environ else Console(width=PIPE_WIDTH)
+    screen.print(table(recording, timeline, rows, screen.width))
+
+
+def open_recording(file: Path) -> RecordingFile:
+    if not file.exists():
+        fail(f"no such file: {file}")
+    if not file.is_file():
+        fail(f"{file} is not a file (an MCAP recording is)")
+    if file.stat().st_size == 0:
+        fail(f"{file} is empty (0 bytes): not an MCAP recording")
+    try:
+        recording = read_recording(file)
+    except (RecordingError, OSError) as exc:
+        fail(str(exc))
+    if not recording.complete:
+        console.print(
+            f"[yellow]{file} was cut short: {recording.problem}; inspected as far as it is whole[/]",
+            highlight=False,
+        )
+    return recording
+
+
+def select(rows: list[Row], robot: str, expr: str) -> list[Row]:
+    """The rows about keys `expr` matches: the key they are about or the one they were recorded on."""
+    text = expr if expr.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{expr}"
+    try:
+        selected = zenoh.KeyExpr(text)
+    except zenoh.ZError as exc:
+        fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}")
+    matches: dict[str, bool] = {}
+
+    def match(key: str) -> bool:
+        full = key if key.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{key}"
+        if full not in matches:
+            try:
+                matches[full] = selected.intersects(zenoh.KeyExpr(full))
+            except zenoh.ZError:  # a key recorded outside the prefix that is not a valid key expression
+                matches[full] = False
+        return matches[full]
+
+    return [row for row in rows if match(row.key) or match(row.source)]
+
+
+def write_map(png: Path, recording: RecordingFile, timeline: Timeline, world_name: str | None) -> None:
+    world, keep_out = map_world(recording, world_name)
+    robot = recording.robot or "unknown"
+    title = f"{recording.path.name} — robot {robot}" + ("" if world is not None else " (no world file)")
+    try:
+        draw_map(
+            png,
+            title,
+            world,
+            keep_out,
+            track_of(recording),
+            vetoed_goals(timeline.rows),
+            estop_points(timeline.rows),
+        )
+    except OSError as exc:
+        fail(f"cannot write the map to {png}: {exc.strerror or exc}")
+    console.print(f"map written to {png}", highlight=False)
+
+
+def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World | None, list[KeepOut]]:
+    """The world to draw and the keep-out zones in force: the recorded world and policy, else `--world`,
+    else the bundled default, each with a note saying which."""
+    try:
+        world = recorded_world(recording)
+    except RecordingError as exc:
+        name = world_name or DEFAULT_WORLD
+        try:
+            world = load_world(name)
+        except WorldFileError as error:
+            console.print(f"[yellow]{exc}; and --world {name}: {error}; the map shows no world[/]", highlight=False)
+            return None, []
+        console.print(f"[yellow]{exc}; the map shows the world {name!r} instead[/]", highlight=False)
+        return world, list(world.keep_out)
+    try:
+        return world, list(recorded_policy(recording, world).limits.keep_out)
+    except RecordingError as exc:
+        console.print(f"[yellow]{exc}; the map shows the world file's keep-out zones only[/]", highlight=False)
+        return world, list(world.keep_out)
+
+
+def as_document(recording: RecordingFile, timeline: Timeline, rows: list[Row]) -> dict[str, Any]:
+    return {
+        "file": str(recording.path),
+        "robot": recording.robot,
+        "complete": recording.complete,
+        "problem": recording.problem,
+        "start_ns": timeline.start_ns,
+        "duration": timeline.duration,
+        "messages": timeline.messages,
+        "rows": [row.as_json() for row in rows],
+    }
+
+
+def _num(value: float | None, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    text = f"{value:.{digits}f}"
+    return text[1:] if text.startswith("-") and not text.strip("-0.") else text  # no "-0.00"
+
+
+def _pose(state: RobotState) -> str:
+    if state.x is None or state.y is None:
+        return "-"
+    heading = f" {_num(math.degrees(state.yaw), 0)}°" if state.yaw is not None else ""
+    return f"{_num(state.x)}, {_num(state.y)}{heading}"
+
+
+def _safety(state: RobotState) -> Text:
+    scale = f", {_num(state.speed_scale, 1)}" if state.speed_scale is not None else ""
+    if state.estop is None:
+        return Text("?" + scale, style="dim")
+    return Text("LATCHED" + scale, style="bold red") if state.estop else Text("ok" + scale)
+
+
+def table(recording: RecordingFile, timeline: Timeline, rows: list[Row], width: int) -> Table:
+    """The rows with the robot's state at each; the key column only when there is room for it."""
+    where = f"{recording.path.name}: robot {recording.robot or '?'}, {timeline.duration:.1f} s, "
+    where += f"{timeline.messages} messages, {len(rows)} rows"
+    result = Table(title=where, title_justify="left")
+    result.add_column("t (s)", justify="right", no_wrap=True)
+    result.add_column("kind", no_wrap=True)
+    wide = width >= WIDE
+    if wide:
+        result.add_column("key", overflow="fold", max_width=28)
+    result.add_column("what happened", overflow="fold", ratio=1)
+    result.add_column("x, y, heading", overflow="fold")
+    result.add_column("m/s", justify="right", overflow="fold")
+    result.add_column("e-stop, scale", overflow="fold")
+    for row in rows:
+        style = LEVEL_STYLES[row.level]
+        state = row.state
+        key = [Text(row.key, style="dim")] if wide else []
+        result.add_row(
+            f"{row.t:.2f}",
+            Text(str(row.kind), style=style),
+            *key,
+            Text(row.text, style=style),
+            _pose(state),
+            _num(state.speed),
+            _safety(state),
+        )
+    return result

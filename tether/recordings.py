@@ -1,0 +1,335 @@
+"""`tether record`, `replay`, `recheck` and `recover`: making recordings and going back over them."""
+
+from __future__ import annotations
+
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+import zenoh
+from rich.console import Console
+from rich.table import Table
+
+from schemas import keys
+from services.recorder.config import RecorderConfig
+from services.recorder.main import provenance
+from services.recorder.node import bind
+from services.recorder.reader import RecordingError, RecordingFile, read_recording, recover
+from services.recorder.recorded import recorded_policy, recorded_world
+from services.recorder.recorder import Recorder
+from services.recorder.replay import Kind, ReplayPlan, default_target, plan_replay
+from services.runtime import ConfigError, Node, NodeSettings, load_config, stop_event
+from services.safety.recheck import Message, RecheckReport, recheck
+
+console = Console(stderr=True)
+QUERY_TIMEOUT = 5.0
+
+FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
+KeysOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--keys",
+        help="A Zenoh key expression; relative ones (safety/**) are under the robot's prefix. Default: every key.",
+    ),
+]
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    console.print(f"[red]error:[/] {message}")
+    raise typer.Exit(code)
+
+
+def key_filter(robot: str, expr: str | None) -> zenoh.KeyExpr:
+    """`expr` as a key expression: absolute (tether/...) as it is, relative under the robot's prefix."""
+    text = expr or "**"
+    if not text.startswith(f"{keys.ROOT}/"):
+        text = f"{keys.prefix(robot)}/{text}"
+    try:
+        return zenoh.KeyExpr(text)
+    except zenoh.ZError as exc:
+        fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}")
+
+
+def open_recording(file: Path, expr: str | None = None, robot: str | None = None) -> RecordingFile:
+    """The recording, with the messages `expr` selects; errors exit 2; a cut file is noted."""
+    try:
+        recording = read_recording(file)
+    except RecordingError as exc:
+        fail(str(exc))
+    if expr is not None:
+        selected = key_filter(robot or recording.robot, expr)
+        matches: dict[str, bool] = {}
+        recording.messages = [
+            m for m in recording.messages if matches.setdefault(m.key, selected.intersects(zenoh.KeyExpr(m.key)))
+        ]
+    if not recording.complete:
+        console.print(f"[yellow]{file}: {recording.problem}[/]; `tether recover` writes a complete copy")
+    return recording
+
+
+def settings(ctx: typer.Context) -> NodeSettings:
+    value: NodeSettings = ctx.obj
+    return value
+
+
+# Record
+
+
+def record(
+    ctx: typer.Context,
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="The file to write. Default: recordings/<robot>_<time>.mcap.")
+    ] = None,
+    key_expr: KeysOpt = None,
+    duration: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", help="TOML config: [recorder] for files, [safety] for the world and policy kept."),
+    ] = None,
+) -> None:
+    """Record the robot's traffic to MCAP until Ctrl-C, as the recorder service does (flushed every second)."""
+    node_settings = settings(ctx)
+    if output is not None and output.exists():
+        fail(f"{output} exists; choose another name or remove it")
+    if duration is not None and duration <= 0:
+        fail(f"--duration must be positive, not {duration:g}")
+    selected = key_filter(node_settings.robot, key_expr)
+    try:
+        recorder_config = load_config(RecorderConfig, config, "recorder")
+        recorder = Recorder(recorder_config, provenance(node_settings.robot, config), first_path=output)
+    except (ConfigError, OSError) as exc:
+        fail(str(exc))
+    stop = stop_event()  # Ctrl-C or SIGTERM: finish the file
+    started = time.monotonic()
+    try:
+        with Node("record", node_settings) as node:
+            bind(node, recorder, str(selected))
+            if not node.alive_services(timeout=1.0):
+                console.print(f"[yellow]no services of robot {node_settings.robot} are up yet; recording anyway[/]")
+            with console.status("") as status:
+                while not stop.wait(min(recorder_config.flush_interval, _left(duration, started))):
+                    recorder.tick()
+                    status.update(
+                        f"recording {selected} to {recorder.status().path}: {recorder.messages} messages, "
+                        f"{time.monotonic() - started:.0f} s (Ctrl-C stops)"
+                    )
+                    if duration is not None and time.monotonic() - started >= duration:
+                        break
+    finally:
+        recorder.finish()
+    files = ", ".join(map(str, recorder.files))
+    console.print(f"recorded {recorder.messages} messages ({recorder.dropped} dropped) to {files}")
+
+
+def _left(duration: float | None, started: float) -> float:
+    return 1.0 if duration is None else max(0.0, duration - (time.monotonic() - started))
+
+
+# Replay
+
+
+def replay(
+    ctx: typer.Context,
+    file: FileArg,
+    speed: Annotated[float, typer.Option(help="Playback speed: 2 is twice as fast.")] = 1.0,
+    key_expr: KeysOpt = None,
+    to: Annotated[
+        str | None, typer.Option("--to", help="The robot name to replay under. Default: <recorded robot>_replay.")
+    ] = None,
+    live_commands: Annotated[
+        bool,
+        typer.Option(
+            "--live-commands",
+            help="Replay onto a robot whose services are up: only its commands, through its safety, which checks them.",
+        ),
+    ] = False,
+) -> None:
+    """Publish a recording again with its original timing, under a separate robot name by default."""
+    if not 0.01 <= speed <= 1000:
+        fail(f"--speed must be between 0.01 and 1000, not {speed:g}")
+    recording = open_recording(file, key_expr)
+    robot = recording.robot
+    target = to or default_target(robot)
+    try:
+        NodeSettings(robot=target)
+    except ValueError as exc:
+        fail(f"--to: {exc}")
+    plan = plan_replay(recording.messages, robot, target, live=live_commands)
+    node_settings = NodeSettings(
+        robot=target,
+        base_port=settings(ctx).base_port,
+        host=settings(ctx).host,
+        zenoh_config=settings(ctx).zenoh_config,
+    )
+    with Node("replay", node_settings) as node:
+        # A recorder there is someone watching the replay; anything else acts on what it hears.
+        alive = node.alive_services(timeout=1.0) - {"recorder"}
+        if alive and not live_commands:
+            fail(
+                f"robot {target} has live services ({', '.join(sorted(alive))}): a replay there would command it. "
+                "Replay under another name (--to), or pass --live-commands to send only its commands, through safety"
+            )
+        if live_commands and "safety" not in alive:
+            fail(f"--live-commands needs robot {target}'s safety up to check the commands; it is not reachable")
+        for why, count in plan.skipped.items():
+            console.print(f"[dim]not replayed: {count} messages {why}[/]")
+        console.print(
+            f"replaying {len(plan.items)} messages of {robot} from {file} as {target} at {speed:g}x "
+            f"({plan.duration / speed:.1f} s)"
+        )
+        sent = _play(node, plan, speed)
+    console.print(f"replayed {sent} messages")
+
+
+def _play(node: Node, plan: ReplayPlan, speed: float) -> int:
+    publishers: dict[str, zenoh.Publisher] = {}
+    pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="replay-query")
+    sent = 0
+    start = time.monotonic()
+    try:
+        with console.status("") as status:
+            for i, item in enumerate(plan.items):
+                delay = start + item.at / speed - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)  # the recorded clock: this is the replay's pacing
+                if item.kind is Kind.PUT:
+                    publisher = publishers.get(item.key)
+                    if publisher is None:
+                        publisher = publishers[item.key] = node.session.declare_publisher(item.key)
+                    publisher.put(item.payload)
+                else:
+                    pool.submit(_ask, node, item.key, item.payload)
+                sent += 1
+                if i % 200 == 0:
+                    status.update(f"{i + 1}/{len(plan.items)} messages, {item.at:.1f}/{plan.duration:.1f} s")
+    except KeyboardInterrupt:
+        console.print("replay stopped")
+    finally:
+        pool.shutdown(wait=True)
+        for publisher in publishers.values():
+            publisher.undeclare()
+    return sent
+
+
+def _ask(node: Node, key: str, payload: bytes) -> None:
+    """A replayed goal query, asked of the live robot's safety; its answer is shown."""
+    for reply in node.session.get(key, payload=payload, timeout=QUERY_TIMEOUT):
+        answer = reply.ok if reply.ok is not None else reply.err
+        data = answer.payload.to_bytes() if answer is not None else b""
+        console.print(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}", markup=False)
+        return
+    console.print(f"[yellow]{key}: no reply within {QUERY_TIMEOUT:g} s[/]")
+
+
+# Recheck
+
+
+def recheck_command(
+    file: FileArg,
+    policy: Annotated[
+        Path | None, typer.Option("--policy", help="The policy to check with. Default: the one kept in the recording.")
+    ] = None,
+    show_all: Annotated[bool, typer.Option("--all", help="List every rechecked command, not only changes.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """Check the recorded commands again, offline, and list every decision that differs from the recorded one.
+
+    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), 2 on bad input.
+    """
+    recording = open_recording(file)
+    if policy is not None and not policy.is_file():
+        fail(f"policy file {policy} does not exist")
+    try:
+        world = recorded_world(recording)
+        safety = recorded_policy(recording, world, policy)
+    except RecordingError as exc:
+        fail(str(exc))
+    robot = recording.robot
+    root = keys.prefix(robot) + "/"
+    messages = (
+        Message(m.log_time / 1e9, m.key[len(root) :], m.data) for m in recording.messages if m.key.startswith(root)
+    )
+    kept = recording.policy
+    kept_hash = recording.metadata.get("tether", {}).get("policy_hash", "")
+    report = recheck(messages, safety, kept_hash if kept is not None else "")
+    start = recording.messages[0].log_time / 1e9 if recording.messages else 0.0
+    if as_json:
+        print(json.dumps(_report_json(report, file, start, show_all)))
+    else:
+        _print_report(report, file, start, show_all, policy)
+    raise typer.Exit(1 if report.differences else 0)
+
+
+def _report_json(report: RecheckReport, file: Path, start: float, show_all: bool) -> dict[str, Any]:
+    rows = report.checked if show_all else report.differences
+    return {
+        "file": str(file),
+        "policy_hash": report.policy_hash,
+        "checked": len(report.checked),
+        "differ": len(report.differences),
+        "skipped": dict(report.skipped),
+        "warnings": report.warnings,
+        "decisions": [
+            {
+                "t": round(c.stamp - start, 3),
+                "key": c.key,
+                "command": c.command,
+                "recorded": str(c.recorded),
+                "recorded_reason": c.recorded_reason,
+                "now": str(c.now),
+                "now_reason": c.now_reason,
+                "now_rule": str(c.now_rule) if c.now_rule else None,
+            }
+            for c in rows
+        ],
+    }
+
+
+def _print_report(report: RecheckReport, file: Path, start: float, show_all: bool, policy: Path | None) -> None:
+    for warning in report.warnings:
+        console.print(f"[yellow]warning:[/] {warning}")
+    rows = report.checked if show_all else report.differences
+    if rows:
+        table = Table("t (s)", "command", "recorded", "now", "why")
+        for c in rows:
+            colour = "red" if c.differs else "dim"
+            why = c.now_reason if c.now_reason else c.recorded_reason
+            table.add_row(f"{c.stamp - start:.2f}", c.command, str(c.recorded), f"[{colour}]{c.now}[/]", why)
+        Console().print(table)
+    skipped = ", ".join(f"{n} {why}" for why, n in report.skipped.items())
+    against = f"policy {policy}" if policy else "the recorded policy"
+    console.print(
+        f"{file}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
+        f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else "")
+    )
+
+
+# Recover
+
+
+def recover_command(
+    file: FileArg,
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="Where the complete copy goes. Default: FILE.recovered.mcap.")
+    ] = None,
+) -> None:
+    """Write a complete copy of a recording cut short (the recorder was killed): every chunk flushed before the cut."""
+    output = output or file.with_suffix(".recovered.mcap")
+    if output.exists():
+        fail(f"{output} exists; choose another name with -o or remove it")
+    try:
+        done = recover(file, output)
+    except RecordingError as exc:
+        fail(str(exc))
+    state = "was complete; copied" if done.complete else f"recovered ({done.problem})"
+    console.print(f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command()(record)
+    app.command()(replay)
+    app.command("recheck")(recheck_command)
+    app.command("recover")(recover_command)
