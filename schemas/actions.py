@@ -47,6 +47,10 @@ class GoalResponse(Frozen):
     kind: ErrorKind | None = None
 
 
+# A CancelGoal with this goal id cancels every goal of the action.
+CANCEL_ALL = "all"
+
+
 class CancelGoal(Frozen):
     goal_id: GoalId
 

@@ -8,6 +8,10 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
+# What decoding untrusted JSON into these types can raise: malformed or mistyped JSON, invalid UTF-8
+# inside a string, and nesting too deep (msgspec raises RecursionError).
+DECODE_ERRORS = (msgspec.DecodeError, UnicodeDecodeError, RecursionError)
+
 # Bounded scalars. SI units throughout: metres, radians, seconds, kilograms.
 Metres = Annotated[float, Meta(ge=-1000.0, le=1000.0)]
 Radians = Annotated[float, Meta(ge=-100.0, le=100.0)]

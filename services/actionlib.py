@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from schemas.actions import (
+    CANCEL_ALL,
     CancelGoal,
     CancelResponse,
     Feedback,
@@ -37,8 +38,6 @@ R = TypeVar("R")
 # How long a finished goal's result stays available to get_result.
 RESULT_RETENTION = 300.0
 MAX_RESULT_WAIT = 3600.0
-# A cancel request with this goal id cancels every running goal, as ROS 2's zero UUID does.
-CANCEL_ALL = "all"
 CANCEL_POLL = 0.05
 # After a client cancels a goal, it waits this long for the server to report it ended.
 CANCEL_GRACE = 10.0

@@ -19,7 +19,7 @@ import msgspec
 import zenoh
 
 from schemas import keys
-from schemas.common import ErrorKind, ServiceError
+from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.trace import TraceRecord
 
@@ -167,7 +167,7 @@ class Node:
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 message = dec.decode(sample.payload.to_bytes())
-            except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+            except DECODE_ERRORS as exc:
                 log.warning("dropped undecodable sample on %s: %s", sample.key_expr, exc)
                 return
             try:
@@ -220,7 +220,7 @@ class Node:
                 else:
                     try:
                         request = dec.decode(raw)
-                    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+                    except DECODE_ERRORS as exc:
                         error = ServiceError(
                             kind=ErrorKind.INVALID_REQUEST, message=f"invalid request for {service.path}: {exc}"
                         )
@@ -256,13 +256,13 @@ class Node:
             if reply.ok is not None:
                 try:
                     return decoder(service.reply).decode(reply.ok.payload.to_bytes())  # type: ignore[no-any-return]
-                except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+                except DECODE_ERRORS as exc:
                     message = f"undecodable reply from {service.path}: {exc}"
                     raise CallError(ServiceError(kind=ErrorKind.INTERNAL, message=message)) from None
             payload = reply.err.payload.to_bytes() if reply.err is not None else b""
             try:
                 error = decoder(ServiceError).decode(payload)
-            except (msgspec.DecodeError, UnicodeDecodeError):
+            except DECODE_ERRORS:
                 error = ServiceError(kind=ErrorKind.INTERNAL, message=payload[:500].decode(errors="replace"))
             raise CallError(error)
         raise CallError(

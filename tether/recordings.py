@@ -14,14 +14,16 @@ from rich.console import Console
 from rich.table import Table
 
 from schemas import keys
+from schemas.actions import CancelGoal
+from schemas.robot import Twist
 from services.recorder.config import RecorderConfig
 from services.recorder.main import provenance
 from services.recorder.node import bind
 from services.recorder.reader import RecordingError, RecordingFile, read_recording, recover
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.recorder import Recorder
-from services.recorder.replay import Kind, ReplayPlan, default_target, plan_replay
-from services.runtime import ConfigError, Node, NodeSettings, load_config, stop_event
+from services.recorder.replay import REPLAY_SUFFIX, Item, Kind, ReplayPlan, default_target, is_replay_name, plan_replay
+from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 
 console = Console(stderr=True)
@@ -62,9 +64,12 @@ def open_recording(file: Path, expr: str | None = None, robot: str | None = None
     if expr is not None:
         selected = key_filter(robot or recording.robot, expr)
         matches: dict[str, bool] = {}
-        recording.messages = [
-            m for m in recording.messages if matches.setdefault(m.key, selected.intersects(zenoh.KeyExpr(m.key)))
-        ]
+        for key in {m.key for m in recording.messages}:
+            try:
+                matches[key] = selected.intersects(zenoh.KeyExpr(key))
+            except zenoh.ZError:  # a key no Zenoh session could have published: never selected
+                matches[key] = False
+        recording.messages = [m for m in recording.messages if matches[m.key]]
     if not recording.complete:
         console.print(f"[yellow]{file}: {recording.problem}[/]; `tether recover` writes a complete copy")
     return recording
@@ -106,7 +111,7 @@ def record(
     started = time.monotonic()
     try:
         with Node("record", node_settings) as node:
-            bind(node, recorder, str(selected))
+            bind(node, recorder, str(selected), serve_status=False)
             if not node.alive_services(timeout=1.0):
                 console.print(f"[yellow]no services of robot {node_settings.robot} are up yet; recording anyway[/]")
             with console.status("") as status:
@@ -164,6 +169,12 @@ def replay(
         host=settings(ctx).host,
         zenoh_config=settings(ctx).zenoh_config,
     )
+    if not live_commands and not is_replay_name(target):
+        fail(
+            f"a replay of every key goes under a robot name ending in {REPLAY_SUFFIX} (default "
+            f"{default_target(robot)}), where nothing acts on it; to send the recorded commands to robot "
+            f"{target}, through its safety, pass --live-commands"
+        )
     with Node("replay", node_settings) as node:
         # A recorder there is someone watching the replay; anything else acts on what it hears.
         alive = node.alive_services(timeout=1.0) - {"recorder"}
@@ -180,48 +191,71 @@ def replay(
             f"replaying {len(plan.items)} messages of {robot} from {file} as {target} at {speed:g}x "
             f"({plan.duration / speed:.1f} s)"
         )
-        sent = _play(node, plan, speed)
+        sent = Player(node).play(plan, speed)
     console.print(f"replayed {sent} messages")
 
 
-def _play(node: Node, plan: ReplayPlan, speed: float) -> int:
-    publishers: dict[str, zenoh.Publisher] = {}
-    pool = ThreadPoolExecutor(max_workers=4, thread_name_prefix="replay-query")
-    sent = 0
-    start = time.monotonic()
-    try:
-        with console.status("") as status:
-            for i, item in enumerate(plan.items):
-                delay = start + item.at / speed - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)  # the recorded clock: this is the replay's pacing
-                if item.kind is Kind.PUT:
-                    publisher = publishers.get(item.key)
-                    if publisher is None:
-                        publisher = publishers[item.key] = node.session.declare_publisher(item.key)
-                    publisher.put(item.payload)
-                else:
-                    pool.submit(_ask, node, item.key, item.payload)
-                sent += 1
-                if i % 200 == 0:
-                    status.update(f"{i + 1}/{len(plan.items)} messages, {item.at:.1f}/{plan.duration:.1f} s")
-    except KeyboardInterrupt:
-        console.print("replay stopped")
-    finally:
-        pool.shutdown(wait=True)
-        for publisher in publishers.values():
-            publisher.undeclare()
-    return sent
+class Player:
+    """Puts and asks a replay's items on time. Goal queries go one after the other, in order, on a
+    worker (so a goal's cancel never overtakes it, and the clock does not wait for replies); a
+    replay stopped with Ctrl-C cancels the goals it started and stops the base."""
 
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.publishers: dict[str, zenoh.Publisher] = {}
+        self.asker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="replay-query")
+        self.started: list[Item] = []  # the goals sent, to cancel if the replay is stopped
 
-def _ask(node: Node, key: str, payload: bytes) -> None:
-    """A replayed goal query, asked of the live robot's safety; its answer is shown."""
-    for reply in node.session.get(key, payload=payload, timeout=QUERY_TIMEOUT):
-        answer = reply.ok if reply.ok is not None else reply.err
-        data = answer.payload.to_bytes() if answer is not None else b""
-        console.print(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}", markup=False)
-        return
-    console.print(f"[yellow]{key}: no reply within {QUERY_TIMEOUT:g} s[/]")
+    def play(self, plan: ReplayPlan, speed: float) -> int:
+        sent = 0
+        start = time.monotonic()
+        try:
+            with console.status("") as status:
+                for i, item in enumerate(plan.items):
+                    delay = start + item.at / speed - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)  # the recorded clock: this is the replay's pacing
+                    self._send(item)
+                    sent += 1
+                    if i % 200 == 0:
+                        status.update(f"{i + 1}/{len(plan.items)} messages, {item.at:.1f}/{plan.duration:.1f} s")
+        except KeyboardInterrupt:
+            console.print("replay stopped: canceling the goals it sent")
+            self.asker.shutdown(wait=True, cancel_futures=True)
+            self._stop_what_was_started()
+        finally:
+            self.asker.shutdown(wait=True)
+            for publisher in self.publishers.values():
+                publisher.undeclare()
+        return sent
+
+    def _send(self, item: Item) -> None:
+        if item.kind is Kind.PUT:
+            publisher = self.publishers.get(item.key)
+            if publisher is None:
+                publisher = self.publishers[item.key] = self.node.session.declare_publisher(item.key)
+            publisher.put(item.payload)
+            return
+        if item.goal_id is not None:
+            self.started.append(item)
+        self.asker.submit(self._ask, item.key, item.payload)
+
+    def _stop_what_was_started(self) -> None:
+        for item in self.started:
+            cancel = item.key.removesuffix("send_goal") + "cancel_goal"
+            self._ask(cancel, encode(CancelGoal(goal_id=str(item.goal_id))))
+        if any(key.endswith(f"/{keys.CMD_VEL.path}") for key in self.publishers):
+            robot = next(iter(self.publishers)).split("/")[1]
+            self.node.session.put(keys.CMD_VEL.key(robot), encode(Twist()))
+
+    def _ask(self, key: str, payload: bytes) -> None:
+        """A replayed goal query, asked of the live robot's safety; its answer is shown."""
+        for reply in self.node.session.get(key, payload=payload, timeout=QUERY_TIMEOUT):
+            answer = reply.ok if reply.ok is not None else reply.err
+            data = answer.payload.to_bytes() if answer is not None else b""
+            console.print(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}", markup=False)
+            return
+        console.print(f"[yellow]{key}: no reply within {QUERY_TIMEOUT:g} s[/]")
 
 
 # Recheck
@@ -237,7 +271,8 @@ def recheck_command(
 ) -> None:
     """Check the recorded commands again, offline, and list every decision that differs from the recorded one.
 
-    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), 2 on bad input.
+    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), 2 on bad
+    input or when nothing could be rechecked.
     """
     recording = open_recording(file)
     if policy is not None and not policy.is_file():
@@ -260,6 +295,9 @@ def recheck_command(
         print(json.dumps(_report_json(report, file, start, show_all)))
     else:
         _print_report(report, file, start, show_all, policy)
+    if not report.checked:
+        # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing.
+        fail(f"nothing in {file} could be rechecked: it holds no safety decision with the robot's state before it")
     raise typer.Exit(1 if report.differences else 0)
 
 
@@ -324,6 +362,8 @@ def recover_command(
         done = recover(file, output)
     except RecordingError as exc:
         fail(str(exc))
+    except OSError as exc:
+        fail(f"cannot write {output}: {exc.strerror}")
     state = "was complete; copied" if done.complete else f"recovered ({done.problem})"
     console.print(f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}")
 

@@ -26,7 +26,7 @@ class RecorderConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     chunk_size: Annotated[int, Meta(ge=1024, le=64 * 1024 * 1024)] = 1024 * 1024
     # At most this much is lost if the recorder is killed without a chance to finish the file.
     flush_interval: Annotated[float, Meta(gt=0.0, le=3600.0)] = 1.0
-    # A new file is started when the current one reaches this size or age; None: no limit.
+    # A new file is started when the current one reaches this size or age (None, from code only: never).
     max_file_bytes: Annotated[int, Meta(ge=64 * 1024)] | None = 1024 * 1024 * 1024
     max_file_seconds: Annotated[float, Meta(ge=1.0)] | None = 3600.0
 

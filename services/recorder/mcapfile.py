@@ -18,6 +18,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from schemas import keys
+from schemas.common import DECODE_ERRORS
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +117,8 @@ class Recording:
         self._clock = clock
         self._stream: BinaryIO
         self._owns_stream = isinstance(output, str | Path)
-        self._stream = open(output, "wb") if isinstance(output, str | Path) else output  # noqa: SIM115
+        # "x": never over a file that exists (two recorders starting in the same second).
+        self._stream = open(output, "xb") if isinstance(output, str | Path) else output  # noqa: SIM115
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._lock = threading.Lock()
         self._schemas: dict[tuple[str, bytes], int] = {}  # (name, document) -> schema id
@@ -143,8 +145,7 @@ class Recording:
         """Write one message; False if it was dropped (not JSON, or the recording is finished)."""
         try:
             msgspec.json.decode(payload)
-        # Invalid UTF-8 inside a JSON string raises UnicodeDecodeError, not DecodeError.
-        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+        except DECODE_ERRORS as exc:
             self._drop(key, f"payload of {len(payload)} bytes is not JSON ({exc})")
             return False
         with self._lock:

@@ -9,9 +9,9 @@ from services.recorder.recorder import Recorder
 from services.runtime import Node
 
 
-def bind(node: Node, recording: Recorder, key_expr: str | None = None) -> None:
+def bind(node: Node, recording: Recorder, key_expr: str | None = None, serve_status: bool = True) -> None:
     """Record every publication under `key_expr` (default: the robot's prefix, `_trace/**` included),
-    and serve the status."""
+    and serve the status (the recorder service; `tether record` does not, so there is one answer)."""
 
     def status(_request: Empty) -> RecorderStatus:
         return recording.status()
@@ -20,4 +20,5 @@ def bind(node: Node, recording: Recorder, key_expr: str | None = None) -> None:
         recording.record(key, payload)
 
     node.subscribe_raw(key_expr or keys.all_keys(node.robot), on_sample)
-    node.serve(keys.RECORDER_STATUS, status)
+    if serve_status:
+        node.serve(keys.RECORDER_STATUS, status)

@@ -3,15 +3,11 @@
 from __future__ import annotations
 
 import logging
-import struct
-import zlib
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgspec
-from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
@@ -21,15 +17,9 @@ from services.recorder.mcapfile import COMPRESSION, LIBRARY, METADATA_NAME, POLI
 
 log = logging.getLogger(__name__)
 
-# What a file cut mid-record raises while being read: the mcap library's own errors, a short read
-# inside a record, a chunk whose compressed bytes end early.
-TRUNCATION_ERRORS: tuple[type[Exception], ...] = (McapError, struct.error, zlib.error, ValueError, EOFError)
-try:  # the decompressors mcap uses for chunks
-    import zstandard
-
-    TRUNCATION_ERRORS += (zstandard.ZstdError,)
-except ImportError:  # pragma: no cover - mcap needs it for zstd files
-    pass
+# A record longer than this is not one the recorder writes (its chunks are at most 64 MiB): a
+# corrupt or hostile length, refused before it is read into memory.
+RECORD_SIZE_LIMIT = 128 * 1024 * 1024
 
 
 class RecordingError(Exception):
@@ -43,9 +33,6 @@ class Recorded:
     log_time: int
     key: str
     data: bytes
-
-    def decode(self, type_: Any) -> Any:
-        return msgspec.json.decode(self.data, type=type_)
 
 
 @dataclass
@@ -107,7 +94,8 @@ class RecordingFile:
 
 def _records(path: Path) -> Generator[Any, None, None]:
     with path.open("rb") as stream:
-        yield from StreamReader(stream, record_size_limit=1 << 30).records
+        # CRCs checked: a chunk damaged on disk ends the reading rather than passing as whole.
+        yield from StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT).records
 
 
 def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> RecordingFile:
@@ -133,7 +121,9 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                 channel = recording.channels.get(record.channel_id)
                 if channel is None:
                     continue
-                if kept.setdefault(record.channel_id, keep is None or keep(channel.topic)):
+                if record.channel_id not in kept:
+                    kept[record.channel_id] = keep is None or keep(channel.topic)
+                if kept[record.channel_id]:
                     recording.messages.append(Recorded(record.log_time, channel.topic, record.data))
             elif isinstance(record, Channel):
                 recording.channels[record.id] = record
@@ -146,7 +136,9 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
             elif isinstance(record, DataEnd | Footer):
                 recording.complete = True
                 break
-    except TRUNCATION_ERRORS as exc:
+    # Whatever a cut or damaged file raises inside the mcap library (short reads, bad lengths,
+    # decompression errors, CRC mismatches, absurd sizes) ends the reading there.
+    except Exception as exc:
         if not recording.channels and not recording.metadata:
             why = str(exc) or type(exc).__name__
             raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {why}") from None

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from schemas.world import World
 from services.recorder.reader import RecordingError, RecordingFile
@@ -17,9 +17,18 @@ def recorded_world(recording: RecordingFile) -> World:
     if attachment is None:
         raise RecordingError(f"{recording.path} carries no world file (recorded without one)")
     try:
-        return parse_world(attachment.data, Path(attachment.name))
+        world = parse_world(attachment.data, Path(attachment.name))
     except WorldFileError as exc:
         raise RecordingError(f"{recording.path}: the recorded world does not load: {exc}") from None
+    # The world names the arm's URDF, which is then read: a file's world may only name one that
+    # ships with pybullet, never a path anywhere on this machine.
+    urdf = PurePosixPath(world.robot.arm_urdf)
+    if urdf.is_absolute() or ".." in urdf.parts or "\\" in world.robot.arm_urdf:
+        raise RecordingError(
+            f"{recording.path}: the recorded world's robot.arm_urdf {world.robot.arm_urdf!r} is not a "
+            "path inside pybullet_data; a recording may only name the URDFs that ship with it"
+        )
+    return world
 
 
 def recorded_policy(recording: RecordingFile, world: World, policy: Path | None = None) -> SafetyPolicy:

@@ -82,9 +82,10 @@ class Recorder:
             if why is None:
                 return
             log.info("rotating %s: %s", current.path, why)
+            following = self._open()  # if this fails (disk full), the current file goes on
             self._messages_before += current.messages
             self._dropped_before += current.dropped
-            self._current = self._open()
+            self._current = following
         # The summary of the full file is written outside the lock; nothing writes to it any more.
         current.finish()
 

@@ -1,11 +1,11 @@
 """What a replay sends, and when: recorded messages moved to another robot's keys, on the recorded clock.
 
-By default everything is replayed under a separate robot name (`<robot>_replay`), where no service
-listens: viewers and `tether record` see the incident again, the robot does not. Onto a live robot
+By default everything is replayed under a robot name ending in `_replay` (`<robot>_replay`), where
+no service acts: viewers and recorders see the incident again, no robot does. Onto any other robot
 only commands are replayed, and only through safety's doors: velocity commands on `cmd/**`, and
 the `send_goal` / `cancel_goal` queries safety answered (from its `_trace/**`), asked again of
-safety, which checks them as it checks anything. Nothing is ever replayed onto `robot/**` (what only
-safety writes), onto sensors, or onto the e-stop.
+safety, which checks them as it checks anything. Nothing is then replayed onto `robot/**` (what
+only safety writes), onto sensors, or onto the e-stop.
 """
 
 from __future__ import annotations
@@ -17,7 +17,11 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from schemas import keys
+from schemas.actions import CANCEL_ALL
 from services.recorder.reader import Recorded
+
+# Replays of everything go under robot names ending so; nothing real is named like that.
+REPLAY_SUFFIX = "_replay"
 
 # The commands safety accepts from programs and people: the only topics put onto a live robot.
 LIVE_TOPICS = frozenset({keys.CMD_VEL.path, keys.TELEOP_CMD_VEL.path})
@@ -41,6 +45,7 @@ class Item:
     kind: Kind
     key: str  # the full key to put or ask on
     payload: bytes
+    goal_id: str | None = None  # the new id of a goal a live replay sends
 
 
 @dataclass(frozen=True)
@@ -54,7 +59,11 @@ class ReplayPlan:
 
 
 def default_target(robot: str) -> str:
-    return f"{robot}_replay"
+    return f"{robot}{REPLAY_SUFFIX}"
+
+
+def is_replay_name(robot: str) -> bool:
+    return robot.endswith(REPLAY_SUFFIX)
 
 
 def _relative(robot: str, key: str) -> str | None:
@@ -87,17 +96,18 @@ def plan_replay(messages: Iterable[Recorded], robot: str, target: str, live: boo
             if item is None:
                 skip("not a command (a live robot only gets commands, through safety)")
                 continue
-            kind, path, payload = item
+            kind, path, payload, goal_id = item
         else:
-            kind, payload = Kind.PUT, message.data
+            kind, payload, goal_id = Kind.PUT, message.data, None
         start = message.log_time if start is None else start
-        items.append(Item((message.log_time - start) / 1e9, kind, f"{keys.prefix(target)}/{path}", payload))
+        at = (message.log_time - start) / 1e9
+        items.append(Item(at, kind, f"{keys.prefix(target)}/{path}", payload, goal_id))
     return ReplayPlan(items, skipped)
 
 
-def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[Kind, str, bytes] | None:
+def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[Kind, str, bytes, str | None] | None:
     if path in LIVE_TOPICS:
-        return Kind.PUT, path, data
+        return Kind.PUT, path, data, None
     if not path.startswith(SAFETY_TRACE):
         return None
     query_path = path[len(SAFETY_TRACE) :]
@@ -107,13 +117,16 @@ def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[Kind, 
         trace = json.loads(data)
         query = trace["query"]
         old = query["goal_id"]
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, RecursionError):
         return None
     if not isinstance(old, str):
         return None
+    goal_id = None
     if query_path.endswith("/send_goal"):
-        goal_ids[old] = f"replay-{uuid.uuid4().hex[:12]}"
-    elif old not in goal_ids:
-        return None  # a cancel of a goal this replay did not send
-    query["goal_id"] = goal_ids[old]
-    return Kind.QUERY, query_path, json.dumps(query, separators=(",", ":")).encode()
+        goal_id = goal_ids[old] = f"replay-{uuid.uuid4().hex[:12]}"
+    elif old != CANCEL_ALL:  # cancelling everything is the safe direction: passed on as it is
+        if old not in goal_ids:
+            return None  # a cancel of a goal this replay did not send
+        old = goal_ids[old]
+    query["goal_id"] = goal_id or old
+    return Kind.QUERY, query_path, json.dumps(query, separators=(",", ":")).encode(), goal_id

@@ -13,7 +13,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal
-from schemas.common import Pose2D, ServiceError
+from schemas.common import DECODE_ERRORS, Pose2D, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.plan import (
     DetectStep,
@@ -300,14 +300,14 @@ def decode(data: bytes | msgspec.Raw, type_: Any) -> Any:
     """`data` as a `type_`, or Undecodable saying why not."""
     try:
         return _decoder(type_).decode(data)
-    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+    except DECODE_ERRORS as exc:
         raise Undecodable(f"not a {getattr(type_, '__name__', type_)}: {exc}") from None
 
 
 def _goal_id(raw: msgspec.Raw) -> str | None:
     try:
         value = msgspec.json.decode(raw)
-    except msgspec.DecodeError:
+    except DECODE_ERRORS:
         return None
     goal_id = value.get("goal_id") if isinstance(value, dict) else None
     return goal_id if isinstance(goal_id, str) else None

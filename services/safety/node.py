@@ -13,7 +13,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, SendGoal
-from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
+from schemas.common import DECODE_ERRORS, ErrorKind, Pose2D, ServiceError, Stage
 from schemas.keys import Action, Topic
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
 from schemas.robot import ARM_JOINTS, FollowJointTrajectoryGoal, JointState, Odometry, Twist
@@ -269,7 +269,7 @@ class SafetyNode:
     def _on_estop_raw(self, _key: str, payload: bytes) -> None:
         try:
             msg: EStop = self._estop_decoder.decode(payload)
-        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+        except DECODE_ERRORS as exc:
             # Fail closed: someone meant to stop the robot.
             reason = f"an e-stop message that could not be read ({len(payload)} bytes): {exc}"[:1000]
             self._latch("unknown", reason, None, Rule.ESTOP, {})

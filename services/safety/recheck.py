@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import bisect
 import enum
-import json
 import math
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -28,7 +27,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import GoalResponse, SendGoal
-from schemas.common import ErrorKind, Pose2D
+from schemas.common import DECODE_ERRORS, ErrorKind, Pose2D
 from schemas.plan import GroundedPlan
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, JointState, NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import Decision, Rule, SafetyEvent, SafetyStatus
@@ -156,6 +155,10 @@ class Rechecker:
         self.max_age = policy.policy.monitor.state_max_age
         self.state = RobotState()
 
+    def has_state_before(self, time: float) -> bool:
+        """Whether the recording holds odometry from before `time` (a stale one counts: safety saw that too)."""
+        return self.state.odom.at(time, math.inf) is not None
+
     def pose(self, time: float) -> Pose2D | None:
         found = self.state.odom.at(time, self.max_age)
         return None if found is None else found[1].pose
@@ -212,26 +215,25 @@ class Rechecker:
 def _decode(data: bytes | msgspec.Raw, type_: type[T]) -> T | None:
     try:
         return msgspec.json.decode(data, type=type_)
-    except (msgspec.DecodeError, UnicodeDecodeError):
+    except DECODE_ERRORS:
+        # RecursionError: JSON nested too deep to be a command (a hostile file).
         return None
 
 
 def _goal_id(raw: msgspec.Raw) -> str | None:
-    try:
-        value = json.loads(bytes(raw)) if raw else None
-    except ValueError:
-        return None
-    return value.get("goal_id") if isinstance(value, dict) else None
+    value = _decode(raw, dict)
+    goal_id = value.get("goal_id") if value is not None else None
+    return goal_id if isinstance(goal_id, str) else None
 
 
 def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash: str = "") -> RecheckReport:
     """Every rechecked command in `messages` (in arrival order) under `policy`, with what differs.
 
-    `robot_policy_hash` is the hash of the policy file kept with the recording, checked against the
-    hash safety put in its events, so a recording whose file does not match what safety ran with
-    says so.
+    Times are the recorder's receive times (one clock for the state and the commands, whichever
+    machines published them). `robot_policy_hash` is the hash of the policy file kept with the
+    recording, checked against the hash safety put in its events, so a recording whose file does not
+    match what safety ran with says so.
     """
-    messages = list(messages)
     rechecker = Rechecker(policy)
     report = RecheckReport(policy.limits.hash)
     state_topics: dict[str, tuple[type[Any], Callable[[float, Any], None]]] = {
@@ -250,54 +252,94 @@ def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash
         elif message.path == keys.SAFETY_EVENTS.path:
             if (event := _decode(message.data, SafetyEvent)) is not None:
                 events.append((message.time, event))
-        elif message.path in GOAL_TRACES and (trace := _decode(message.data, TraceRecord)) is not None:
-            traces.append((message.time, trace))
+            else:
+                report.skipped["a safety event that does not decode"] += 1
+        elif message.path in GOAL_TRACES:
+            trace = _decode(message.data, TraceRecord)
+            if trace is not None and trace.key in GOALS:
+                # The trace is published once the query is answered: the check came `duration` before.
+                traces.append((message.time - max(0.0, trace.duration), trace))
+            else:
+                report.skipped["a goal query trace that does not decode"] += 1
     hashes = {e.policy_hash for _, e in events if e.policy_hash}
     if robot_policy_hash and hashes and hashes != {robot_policy_hash}:
         report.warnings.append(
             f"safety's events name policy {', '.join(sorted(hashes))}, but the policy file kept in the "
             f"recording is {robot_policy_hash}: the recorder was not given the policy safety ran with"
         )
-    # A goal's rule, when it was refused, is in safety's event for it.
-    goal_rules: dict[tuple[str, str], SafetyEvent] = {}
-    for _, event in events:
+    if not rechecker.state.odom.times:
+        report.warnings.append("no odometry in the recording: every check that needs the robot's pose is skipped")
+    # Safety's event about each goal: its rule, when the goal was refused.
+    goal_events: dict[tuple[str, str], list[tuple[float, SafetyEvent]]] = {}
+    for time, event in events:
         if event.key in GOALS and (goal_id := _goal_id(event.command)) is not None:
-            goal_rules[(event.key, goal_id)] = event
+            goal_events.setdefault((event.key, goal_id), []).append((time, event))
     checks: list[Rechecked] = []
-    for _, event in events:
+    for time, event in events:
         if event.key == keys.PLAN_CHECK.path:
-            _recheck_event(rechecker, report, event, GroundedPlan, checks)
+            _recheck_event(rechecker, report, time, event, GroundedPlan, checks)
         elif event.key == keys.CMD_VEL.path:
-            _recheck_event(rechecker, report, event, Twist, checks)
-        elif event.key == keys.TELEOP_CMD_VEL.path and event.decision in (Decision.APPROVED, Decision.CLAMPED):
-            report.skipped["teleop (clamped rather than refused)"] += 1
-    for _, trace in traces:
-        _recheck_goal(rechecker, report, trace, goal_rules, checks)
+            _recheck_event(rechecker, report, time, event, Twist, checks)
+        elif event.key == keys.TELEOP_CMD_VEL.path and event.decision is not Decision.STOPPED:
+            report.skipped["teleop (clamped rather than refused)"] += _count(event)
+    for time, trace in traces:
+        _recheck_goal(rechecker, report, time, trace, goal_events, checks)
     report.checked = sorted(checks, key=lambda c: c.stamp)
     return report
 
 
+def _count(event: SafetyEvent) -> int:
+    """How many commands an event decided on: one, or a count of repeats (safety sums up a stream
+    vetoed over and over in one event a second)."""
+    if bytes(event.command) == b"null" and "count" in event.values:
+        return max(1, int(event.values["count"]))
+    return 1
+
+
 def _recheck_event(
-    rechecker: Rechecker, report: RecheckReport, event: SafetyEvent, type_: type[Any], out: list[Rechecked]
+    rechecker: Rechecker,
+    report: RecheckReport,
+    time: float,
+    event: SafetyEvent,
+    type_: type[Any],
+    out: list[Rechecked],
 ) -> None:
     if event.decision not in (Decision.APPROVED, Decision.VETOED):
         return
     if event.rule in NOT_POLICY:
-        report.skipped[NOT_POLICY[event.rule]] += 1
+        report.skipped[NOT_POLICY[event.rule]] += _count(event)
         return
     command = _decode(event.command, type_)
     if command is None:
         report.skipped["a decision without its command"] += 1
         return
     recorded = Outcome.APPROVED if event.decision is Decision.APPROVED else Outcome.VETOED
-    out.append(rechecker.recheck(event.key, command, event.stamp, recorded, event.reason))
+    _add(rechecker, report, out, event.key, command, time, recorded, event.reason)
+
+
+def _add(
+    rechecker: Rechecker,
+    report: RecheckReport,
+    out: list[Rechecked],
+    key: str,
+    command: Any,
+    time: float,
+    recorded: Outcome,
+    reason: str,
+) -> None:
+    if not isinstance(command, GripperCommandGoal) and not rechecker.has_state_before(time):
+        # The file starts after it (a rotation, a recorder started late): safety saw a state it does not hold.
+        report.skipped["no robot state recorded before it"] += 1
+        return
+    out.append(rechecker.recheck(key, command, time, recorded, reason))
 
 
 def _recheck_goal(
     rechecker: Rechecker,
     report: RecheckReport,
+    time: float,
     trace: TraceRecord,
-    rules: dict[tuple[str, str], SafetyEvent],
+    events: dict[tuple[str, str], list[tuple[float, SafetyEvent]]],
     out: list[Rechecked],
 ) -> None:
     goal_type: Any = GOALS[trace.key]
@@ -307,13 +349,15 @@ def _recheck_goal(
         # Not decided: the request did not decode, or safety failed to answer (forwarding failed).
         report.skipped["a goal without a recorded decision"] += 1
         return
-    event = rules.get((trace.key, request.goal_id))
-    if event is not None and event.rule in NOT_POLICY and event.decision is Decision.VETOED:
-        report.skipped[NOT_POLICY[event.rule]] += 1
-        return
+    # The event about this goal nearest the query (a goal id may come again later).
+    candidates = events.get((trace.key, request.goal_id), [])
+    event = min(candidates, key=lambda c: abs(c[0] - time))[1] if candidates else None
     refused = not response.accepted and response.kind in (ErrorKind.VETOED, ErrorKind.ESTOP)
     if refused and response.kind is ErrorKind.ESTOP:
         report.skipped[NOT_POLICY[Rule.ESTOP]] += 1
         return
+    if refused and event is not None and event.rule in NOT_POLICY:
+        report.skipped[NOT_POLICY[event.rule]] += 1
+        return
     recorded = Outcome.VETOED if refused else Outcome.APPROVED
-    out.append(rechecker.recheck(trace.key, request.goal, trace.stamp, recorded, response.reason if refused else ""))
+    _add(rechecker, report, out, trace.key, request.goal, time, recorded, response.reason if refused else "")

@@ -208,7 +208,9 @@ def test_a_plan_sent_while_another_runs_is_rejected_or_preempts_it(fast_stack: S
 def test_an_agent_starts_follows_and_cancels_a_plan_in_three_calls(fast_stack: Stack) -> None:
     stack = fast_stack
     odom = Watch(stack.node, keys.ODOM)
-    started = tether_cli(stack, "send", plan({"action": "navigate_to", "target": "bedroom"}), "--json")
+    # Three drives: still under way however quickly the sim drives while the CLI calls start.
+    rooms = ("bedroom", "kitchen", "hallway")
+    started = tether_cli(stack, "send", plan(*({"action": "navigate_to", "target": r} for r in rooms)), "--json")
     assert started.returncode == 0, started.stdout + started.stderr
     goal_id = json.loads(started.stdout)["goal_id"]
     assert odom.wait_for(lambda o: abs(o.linear_x) > 0.1, 60.0), "the base never moved"

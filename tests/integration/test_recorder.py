@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from schemas import keys
@@ -241,27 +242,33 @@ def test_replaying_onto_the_live_robot_needs_a_flag_and_goes_through_safety(inci
     stack = incident.stack
     robot = stack.settings.robot
     refused = tether_cli(stack, "replay", str(incident.file), "--to", robot)
-    assert refused.returncode == 2 and "live services" in refused.stderr
+    assert refused.returncode == 2 and "--live-commands" in refused.stderr
+    allowed = tether_cli(stack, "replay", str(incident.file), "--to", f"{robot}_x_replay", "--keys", "robot/**")
+    assert allowed.returncode == 0, allowed.stderr  # a _replay name: nothing there acts on it
 
     events = Watch(stack.node, keys.SAFETY_EVENTS)
     odom = Watch(stack.node, keys.ODOM)
-    before = odom.latest(timeout=5.0)
-    assert before is not None
-    # With the e-stop latched every replayed command must be refused by safety, and nothing moves.
-    assert trigger_estop(stack.node, EstopSource.OPERATOR, "replay test") is not None
-    try:
+    recorded = read_recording(incident.file).messages
+    goals = len([m for m in recorded if m.key.endswith("/send_goal") and "/_trace/safety/" in m.key])
+    assert goals == 4
+
+    def replayed(after: int) -> list[SafetyEvent]:
+        return [e for e in events.messages[after:] if b"replay-" in bytes(e.command)]
+
+    def live_replay() -> list[SafetyEvent]:
+        after = len(events)
         done = tether_cli(stack, "replay", str(incident.file), "--to", robot, "--live-commands", "--speed", "10")
         assert done.returncode == 0, done.stderr
-        recorded = read_recording(incident.file).messages
-        goals = [m for m in recorded if m.key.endswith("/send_goal") and "/_trace/safety/" in m.key]
+        assert events.wait_for(lambda _: len(replayed(after)) >= goals, timeout=10.0), done.stderr
+        return replayed(after)
 
-        def replayed() -> list[SafetyEvent]:
-            return [e for e in events.messages if b"replay-" in bytes(e.command)]
-
-        assert events.wait_for(lambda _: len(replayed()) >= len(goals), timeout=10.0), done.stderr
-        ours = replayed()
-        assert len(ours) == len(goals) == 4
-        assert ours and all(e.decision is Decision.VETOED and e.rule is Rule.ESTOP for e in ours)
+    # With the e-stop latched every replayed command is refused by safety, and nothing moves.
+    before = odom.latest(timeout=5.0)
+    assert before is not None
+    assert trigger_estop(stack.node, EstopSource.OPERATOR, "replay test") is not None
+    try:
+        ours = live_replay()
+        assert all(e.decision is Decision.VETOED and e.rule is Rule.ESTOP for e in ours)
         assert {e.key for e in ours} == {keys.CMD_NAVIGATE.send_goal.path, keys.CMD_GRIPPER.send_goal.path}
         assert any(e.key == keys.CMD_VEL.path and e.rule is Rule.ESTOP for e in events.messages)
         after = odom.latest(timeout=5.0)
@@ -269,6 +276,41 @@ def test_replaying_onto_the_live_robot_needs_a_flag_and_goes_through_safety(inci
         assert abs(after.pose.x - before.pose.x) < 0.01 and abs(after.pose.y - before.pose.y) < 0.01
     finally:
         assert reset_estop(stack.node, str(stack.token_file)).ok
+    # Cleared, the same commands get safety's own decisions again: the stairs still refused.
+    ours = live_replay()
+    decided = [(e.key, e.decision, e.rule) for e in ours]
+    assert (keys.CMD_NAVIGATE.send_goal.path, Decision.APPROVED, None) in decided
+    assert (keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, Rule.KEEP_OUT) in decided
+    assert (keys.CMD_GRIPPER.send_goal.path, Decision.APPROVED, None) in decided
+
+
+def test_a_recorder_stopped_cleanly_holds_exactly_what_was_published(tmp_path: Path) -> None:
+    settings = NodeSettings(robot="counted", base_port=free_ports(6))
+    supervisor = Supervisor(settings, tmp_path / "logs", write_config(tmp_path / "tether.toml", 1.0))
+    key = f"{keys.prefix(settings.robot)}/load/counter"
+    published = 5000
+    try:
+        supervisor.start("recorder")
+        with Node("cli", settings) as node:
+            assert not node.wait_alive(["recorder"], 30.0), supervisor.log_tail("recorder")
+            # BLOCK: the publisher waits rather than drop, so all are on their way.
+            publisher = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(published):
+                publisher.put(encode({"i": i, "pad": "x" * 900}))
+            asked = 0
+            deadline = time.monotonic() + 20.0
+            # Each status query adds its own trace to the file.
+            while node.call(keys.RECORDER_STATUS, Empty()).messages < published + asked:
+                asked += 1
+                assert time.monotonic() < deadline, "the recorder never caught up"
+        assert supervisor.stop("recorder") == 0
+    finally:
+        supervisor.stop_all()
+    [file] = (tmp_path / "recordings").glob("*.mcap")
+    recording = read_recording(file)
+    assert recording.complete
+    numbers = [json.loads(m.data)["i"] for m in recording.messages if m.key == key]
+    assert numbers == list(range(published))
 
 
 def test_a_recorder_killed_with_sigkill_leaves_a_file_that_recovers(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import random
+import threading
 from pathlib import Path
 
 import msgspec
@@ -11,7 +12,7 @@ import pytest
 from mcap.reader import make_reader
 
 from schemas import keys
-from schemas.actions import CancelGoal, GoalResponse, SendGoal
+from schemas.actions import CANCEL_ALL, CancelGoal, GoalResponse, SendGoal
 from schemas.common import ErrorKind, Pose2D
 from schemas.robot import NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import Decision, EstopState, Rule, SafetyEvent, SafetyStatus
@@ -343,3 +344,94 @@ def test_recheck_warns_when_the_kept_policy_is_not_the_one_safety_ran_with(world
     )
     report = recheck([*incident(), ran_with], world_policy, robot_policy_hash="sha256:bb")
     assert len(report.warnings) == 1 and "sha256:aa" in report.warnings[0]
+
+
+def test_rotation_while_threads_write_loses_and_repeats_nothing(tmp_path: Path) -> None:
+    config = RecorderConfig(output_dir=str(tmp_path), max_file_bytes=64 * 1024, chunk_size=4096)
+    recorder = Recorder(config, provenance())
+    per_thread, writers = 1500, 3
+
+    def write(n: int) -> None:
+        for i in range(per_thread):
+            assert recorder.record(f"{PREFIX}/w{n}", payload(i, 200))
+
+    threads = [threading.Thread(target=write, args=(n,)) for n in range(writers)]
+    for t in threads:
+        t.start()
+    while any(t.is_alive() for t in threads):
+        recorder.tick()
+    for t in threads:
+        t.join()
+    recorder.finish()
+
+    assert len(recorder.files) > 2
+    assert recorder.messages == per_thread * writers
+    parts = [read_recording(p) for p in recorder.files]
+    assert all(p.complete for p in parts)
+    for n in range(writers):
+        numbers = [json.loads(m.data)["i"] for p in parts for m in p.messages if m.key == f"{PREFIX}/w{n}"]
+        assert numbers == list(range(per_thread))
+
+
+def test_a_chunk_damaged_on_disk_ends_the_reading_there(tmp_path: Path) -> None:
+    full = tmp_path / "full.mcap"
+    sizes = write_flushed(full, 300)
+    data = bytearray(full.read_bytes())
+    data[sizes[1] + 200] ^= 0xFF  # inside the third chunk
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+
+    recording = read_recording(damaged)
+
+    assert not recording.complete and recording.problem
+    assert [json.loads(m.data)["i"] for m in recording.messages] == list(range(200))
+
+
+def test_a_live_replay_passes_a_cancel_of_everything_on() -> None:
+    cancel_all = trace("safety", keys.CMD_NAVIGATE.cancel_goal.path, CancelGoal(goal_id=CANCEL_ALL), {})
+    plan = plan_replay([at(1.0, cancel_all)], ROBOT, ROBOT, live=True)
+    [item] = plan.items
+    assert item.kind is Kind.QUERY and json.loads(item.payload)["goal_id"] == CANCEL_ALL
+
+
+def test_recheck_lists_a_veto_a_loosened_policy_would_approve(world_policy: SafetyPolicy) -> None:
+    # Recorded under a policy of 0.3 m/s; the default allows 0.6.
+    messages = [*incident(), event(1.5, keys.CMD_VEL.path, Decision.VETOED, Twist(linear_x=0.45), Rule.BASE_SPEED)]
+    report = recheck(sorted(messages, key=lambda m: m.time), world_policy)
+    [changed] = report.differences
+    assert (changed.recorded, changed.now, changed.command) == (
+        Outcome.VETOED,
+        Outcome.APPROVED,
+        "cmd_vel 0.45 m/s, 0.00 rad/s",
+    )
+
+
+def test_recheck_skips_a_command_from_before_any_recorded_state(world_policy: SafetyPolicy) -> None:
+    # A file that starts (after a rotation) just before a command: safety saw a pose it does not hold.
+    messages = [m for m in incident() if m.path not in (keys.ODOM.path,) or m.time > 1.5]
+    report = recheck(messages, world_policy)
+    assert report.skipped["no robot state recorded before it"] == 2  # the two cmd_vel at 1.0 and 1.1 s
+    assert report.differences == []
+
+
+def test_recheck_of_a_hostile_file_counts_what_it_cannot_read_and_goes_on(world_policy: SafetyPolicy) -> None:
+    deep = b"[" * 5000 + b"]" * 5000
+    hostile = [
+        Message(
+            0.5,
+            keys.SAFETY_EVENTS.path,
+            b'{"stamp": 1, "key": "cmd/cmd_vel", "decision": "approved", "command": ' + deep + b"}",
+        ),
+        Message(0.6, keys.SAFETY_EVENTS.path, b"\xff\xfe not json"),
+        # A goal query trace whose payload names a key that is not a goal.
+        msg(
+            0.7,
+            f"_trace/safety/{keys.CMD_NAVIGATE.send_goal.path}",
+            TraceRecord(stamp=0.7, service="safety", key="safety/reset", duration=0.0),
+        ),
+        Message(0.8, keys.ODOM.path, deep),
+    ]
+    report = recheck(sorted([*incident(), *hostile], key=lambda m: m.time), world_policy)
+    assert report.differences == []
+    assert report.skipped["a safety event that does not decode"] == 2
+    assert report.skipped["a goal query trace that does not decode"] == 1
