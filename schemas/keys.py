@@ -22,6 +22,7 @@ from schemas.actions import (
 )
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
+from schemas.planner import AskReply, AskRequest, PlannerAttempt
 from schemas.robot import (
     FollowJointTrajectoryFeedback,
     FollowJointTrajectoryGoal,
@@ -39,6 +40,7 @@ from schemas.robot import (
 from schemas.safety import EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
 from schemas.trace import RecorderStatus, TraceRecord
 from schemas.world import (
+    CameraImage,
     Empty,
     GroundTruth,
     MoveEntity,
@@ -144,6 +146,10 @@ class Action(Generic[G, F, R]):
 PLAN_PARSE: Service[PlanText, ParseReply] = Service("plan/parse", PlanText, ParseReply)
 PLAN_RESOLVE: Service[Plan, ResolveReply] = Service("plan/resolve", Plan, ResolveReply)
 EXECUTE_PLAN = Action("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, ExecutePlanResult)
+# Words to a checked plan: the planner asks an LLM, dry-runs each answer, feeds refusals back.
+PLAN_ASK: Service[AskRequest, AskReply] = Service("plan/ask", AskRequest, AskReply)
+# Each model call and the dry run of its plan.
+PLANNER_ATTEMPTS = Topic("planner/attempts", PlannerAttempt)
 
 # Commands to safety: the only doors towards the robot.
 PLAN_CHECK: Service[GroundedPlan, PlanCheckReply] = Service("safety/check_plan", GroundedPlan, PlanCheckReply)
@@ -178,6 +184,8 @@ ODOM = Topic("robot/odom", Odometry)
 
 # What the robot perceives.
 OBJECTS = Topic("world/objects", PerceivedObjects)
+# A picture from the robot's camera, on request (for people and models to look at).
+CAMERA_IMAGE: Service[Empty, CameraImage] = Service("robot/camera/image", Empty, CameraImage)
 HUMANS = Topic("world/humans", PerceivedHumans)
 # The resolver's view of the world: objects where last seen, relations, a description for prompts.
 SCENE: Service[Empty, SceneDescription] = Service("world/scene", Empty, SceneDescription)
@@ -208,6 +216,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     ODOM,
     OBJECTS,
     HUMANS,
+    PLANNER_ATTEMPTS,
     *(a.feedback for a in ACTIONS),
     *(a.status for a in ACTIONS),
 )
@@ -220,6 +229,7 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     GROUND_TRUTH,
     SIM_MOVE,
     RECORDER_STATUS,
+    CAMERA_IMAGE,
     *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result, a.get_status)),
 )
 

@@ -144,6 +144,18 @@ class PerceivedObject(Frozen):
     yaw: Radians | None = None
 
 
+class CameraImage(Frozen):
+    """What the robot's camera sees now, for people and for models to look at: a PNG, base64-encoded.
+
+    Not what perception works from (that is depth and segmentation): a picture of the scene."""
+
+    stamp: float
+    width: Annotated[int, Meta(ge=1, le=4096)]
+    height: Annotated[int, Meta(ge=1, le=4096)]
+    data: Annotated[str, Meta(max_length=16 * 1024 * 1024)]  # base64
+    mime_type: Literal["image/png"] = "image/png"
+
+
 class PerceivedObjects(Frozen):
     stamp: float
     objects: list[PerceivedObject]

@@ -39,7 +39,7 @@ A = TypeVar("A")
 
 # Every service listens on its own loopback port, base port + offset, and connects to the others,
 # so any one of them can restart and find the rest without a router or multicast.
-SERVICES = ("sim", "safety", "parser", "resolver", "executor", "recorder")
+SERVICES = ("sim", "safety", "parser", "resolver", "executor", "recorder", "planner")
 DEFAULT_BASE_PORT = 7447
 DEFAULT_ROBOT = "robot1"
 # Bigger queries are refused before decoding; a service may raise its own limit.

@@ -30,6 +30,7 @@ from services.actionlib import CANCEL_ALL, RESULT_RETENTION, GoalRejected
 from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode, stop_event
 from services.worldmodel import WorldFileError
 from tether import recordings
+from tether.ask import ask
 from tether.client import (
     EXIT_CODES,
     EXIT_UNREACHABLE,
@@ -41,6 +42,8 @@ from tether.client import (
     trigger_estop,
 )
 from tether.inspect import inspect
+from tether.mcpserver import mcp_command
+from tether.schema import schema
 from tether.supervisor import Supervisor
 
 app = typer.Typer(help="tether: LLM plans to safe robot actions over Zenoh.", no_args_is_help=True)
@@ -609,3 +612,8 @@ def verify_demo(node: Node) -> bool:
 # Recordings
 app.command()(inspect)
 recordings.register(app)
+
+# Agents
+app.command("schema")(schema)
+app.command("ask")(ask)
+app.command("mcp")(mcp_command)

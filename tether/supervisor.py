@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 
 # Stopped first to last: nothing new is planned; safety goes before the robot so its watchdog never
 # sees a robot vanish mid-motion (the robot stops on the missing heartbeat); the recorder hears it all.
-STOP_ORDER = ("executor", "parser", "resolver", "safety", "sim", "recorder")
+STOP_ORDER = ("planner", "executor", "parser", "resolver", "safety", "sim", "recorder")
 # Stacks for tests and benchmarks listen on ports from here up to the kernel's range for outgoing
 # connections. Not inside that range: there one of the sessions' own outgoing sockets could take a
 # port between the check and the listen, and a service would fail to start.

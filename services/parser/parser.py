@@ -602,6 +602,8 @@ class Parser:
         known = self.params[action]
         given = [(k, v, True) for k, v in raw.parameters.items()] + [(k, v, False) for k, v in raw.extra.items()]
         for key, value, in_parameters in given:
+            if value is None:  # not given: a model in strict mode sends null for each argument it leaves out
+                continue
             word = normalise_word(key) if isinstance(key, str) else ""
             field_name = self.fields.get(word)
             if in_parameters and word not in known and field_name in _NAME_FIELDS and isinstance(value, str):

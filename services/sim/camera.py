@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+import io
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -9,10 +11,18 @@ from typing import Any
 
 import numpy as np
 import pybullet
+from PIL import Image
 
 from schemas.common import Pose2D
 from services.sim.config import CameraConfig
 from services.sim.detection import Detection, Intrinsics, Target, camera_pose, detect, view_matrix
+
+
+def png_base64(pixels: np.ndarray) -> str:
+    """An RGB image (height x width x 3, uint8) as a base64 PNG, as MCP image content carries it."""
+    out = io.BytesIO()
+    Image.fromarray(pixels, mode="RGB").save(out, format="PNG", optimize=False)
+    return base64.b64encode(out.getvalue()).decode()
 
 
 @dataclass(frozen=True)
@@ -56,6 +66,21 @@ class Camera:
             renderer=pybullet.ER_TINY_RENDERER,
         )
         return Frame(pose=pose, segmentation=np.reshape(segmentation, shape), depth_buffer=np.reshape(depth, shape))
+
+    def picture(self, base: Pose2D, scale: int = 2) -> np.ndarray:
+        """A colour image (height x width x 3, uint8) from a base at `base`, `scale` times the
+        detector's resolution: what a person or a model looks at, not what perception uses."""
+        pose = self.pose(base)
+        width, height = self.intrinsics.width * scale, self.intrinsics.height * scale
+        _, _, rgba, _, _ = self.bullet.getCameraImage(
+            width,
+            height,
+            viewMatrix=view_matrix(pose),
+            projectionMatrix=self._projection,
+            shadow=1,
+            renderer=pybullet.ER_TINY_RENDERER,
+        )
+        return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[:, :, :3].copy()
 
     def look(self, base: Pose2D, targets: Mapping[int, Target]) -> dict[str, Detection]:
         """Where the camera, from a base at `base`, sees each of `targets` (by name): map-frame centres

@@ -14,9 +14,10 @@ from schemas.actions import GoalState
 from schemas.common import ErrorKind, ServiceError
 from schemas.robot import FollowJointTrajectoryGoal, Twist
 from schemas.safety import SafetyStatus
-from schemas.world import Empty, GroundTruth, MoveEntity, MoveReply
+from schemas.world import CameraImage, Empty, GroundTruth, MoveEntity, MoveReply
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import CallError, Node
+from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.physics import SETTLE_TIMEOUT, Drop, Motion, Simulation
 
@@ -68,6 +69,7 @@ class SimNode:
         node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
         node.serve(keys.GROUND_TRUTH, self._on_ground_truth)
         node.serve(keys.SIM_MOVE, self._on_move)
+        node.serve(keys.CAMERA_IMAGE, self._on_camera_image)
 
     # Safety: fail closed
 
@@ -192,6 +194,11 @@ class SimNode:
 
     def _on_ground_truth(self, _request: Empty) -> GroundTruth:
         return self._answer(Simulation.ground_truth)
+
+    def _on_camera_image(self, _request: Empty) -> CameraImage:
+        # Rendered on the sim thread (pybullet is not thread-safe); encoded here, off it.
+        pixels = self._answer(Simulation.camera_picture)
+        return CameraImage(stamp=time.time(), width=pixels.shape[1], height=pixels.shape[0], data=png_base64(pixels))
 
     def _on_move(self, request: MoveEntity) -> MoveReply:
         moved = self._answer(lambda sim: sim.move(request))

@@ -918,6 +918,10 @@ class Simulation:
                 objects.append(self._report(obj, position, on, stamp, seen[obj.id].yaw))
         return PerceivedObjects(stamp=stamp, objects=objects)
 
+    def camera_picture(self) -> np.ndarray:
+        """What the robot's camera sees now, in colour (see Camera.picture)."""
+        return self.camera.picture(self.base_pose())
+
     def perceived_humans(self, stamp: float) -> PerceivedHumans:
         """Every person where they stand: a people tracker, not the camera."""
         humans = []

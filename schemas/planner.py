@@ -1,0 +1,81 @@
+"""The natural-language planner: a request in words, its outcome, and each attempt the model made."""
+
+from __future__ import annotations
+
+import enum
+from typing import Annotated
+
+from msgspec import Meta
+
+from schemas.common import Frozen, Stage, Text
+
+# What a person asks for, in words ("bring me the red cup").
+MAX_REQUEST_CHARS = 2000
+# The most attempts a request may ask for; each is one model call and one dry run.
+MAX_ATTEMPTS = 10
+# A model's reply and the plan text are kept up to this many characters in attempt records.
+MAX_RECORDED_CHARS = 8000
+
+RecordedText = Annotated[str, Meta(max_length=MAX_RECORDED_CHARS)]
+RequestId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+
+
+class AskStatus(enum.StrEnum):
+    """approved: a dry run passed (nothing sent); accepted: the approved plan was sent and the executor
+    took it; rejected: every attempt was refused, or the executor refused the approved plan;
+    llm_error: the model's endpoint failed or misbehaved; unconfigured: no endpoint is configured;
+    unreachable: no executor answered."""
+
+    APPROVED = "approved"
+    ACCEPTED = "accepted"
+    REJECTED = "rejected"
+    LLM_ERROR = "llm_error"
+    UNCONFIGURED = "unconfigured"
+    UNREACHABLE = "unreachable"
+
+
+class AttemptOutcome(enum.StrEnum):
+    APPROVED = "approved"
+    REJECTED = "rejected"
+    LLM_ERROR = "llm_error"
+
+
+class AskRequest(Frozen):
+    """A request in words. `max_attempts` 0 means the planner's configured number."""
+
+    text: Annotated[str, Meta(min_length=1, max_length=MAX_REQUEST_CHARS)]
+    dry_run: bool = False
+    max_attempts: Annotated[int, Meta(ge=0, le=MAX_ATTEMPTS)] = 0
+    preempt: bool = False
+
+
+class AskReply(Frozen):
+    """The outcome. `plan` is the last plan text the model gave (the approved one when approved);
+    `stage` and `reason` say why it was refused; `goal_id` names the goal sent, when one was."""
+
+    status: AskStatus
+    request_id: RequestId
+    attempts: Annotated[int, Meta(ge=0, le=MAX_ATTEMPTS)] = 0
+    stage: Stage | None = None
+    reason: Text = ""
+    plan: RecordedText = ""
+    goal_id: Annotated[str, Meta(max_length=64)] = ""
+
+
+class PlannerAttempt(Frozen):
+    """One model call and the dry run of its plan, published on planner/attempts for the recorder.
+    `reply` is what the model answered (text and tool calls, cut to a bound), `plan` the plan text
+    derived from it."""
+
+    request_id: RequestId
+    attempt: Annotated[int, Meta(ge=1, le=MAX_ATTEMPTS)]
+    max_attempts: Annotated[int, Meta(ge=1, le=MAX_ATTEMPTS)]
+    stamp: float
+    outcome: AttemptOutcome
+    stage: Stage | None = None
+    reason: Text = ""
+    request: Annotated[str, Meta(max_length=MAX_REQUEST_CHARS)] = ""
+    model: Annotated[str, Meta(max_length=200)] = ""
+    reply: RecordedText = ""
+    plan: RecordedText = ""
+    duration: Annotated[float, Meta(ge=0.0)] = 0.0

@@ -1,0 +1,1 @@
+"""How LLM agents reach the robot: generated tool schemas, the MCP server, feedback text for models."""

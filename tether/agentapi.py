@@ -1,0 +1,155 @@
+"""What an agent may ask of the robot, over Zenoh, each answer as text a model can act on.
+
+Every motion is a plan sent to the executor, so it is parsed, resolved and checked by safety like
+any other; an agent can stop the robot (cancel, e-stop) but never reset the e-stop, lift a limit or
+change the policy: nothing here names those keys.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+from schemas import keys
+from schemas.actions import CancelGoal, GetResult
+from schemas.executor import ExecutePlanGoal
+from schemas.planner import AskReply, AskRequest
+from schemas.safety import EstopSource
+from schemas.world import CameraImage, Empty
+from services.actionlib import GoalRejected
+from services.agent import feedback
+from services.runtime import CallError, Node
+from tether.client import PlanSender, next_message, trigger_estop
+
+# How long an action tool waits for its plan to be parsed, resolved and approved before it returns
+# the goal id (the plan goes on after that; a model polls get_goal_status).
+START_WAIT = 10.0
+CALL_TIMEOUT = 5.0
+# plan_and_execute asks the model up to a few times; each answer is dry-run through the pipeline.
+ASK_TIMEOUT = 300.0
+
+
+class AgentError(Exception):
+    """A call that could not be made (a service down, a bad argument): the text says which and why."""
+
+
+@dataclass(frozen=True)
+class Picture:
+    data: str  # base64
+    mime_type: str
+    caption: str
+
+
+class AgentAPI:
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.sender = PlanSender(node)
+        self._lock = threading.Lock()
+
+    # Actions: each one a plan for the executor
+
+    def action(self, name: str, arguments: dict[str, Any]) -> str:
+        """One action as a one-step plan (the parser checks names, types, units and bounds)."""
+        step = {"action": name, **arguments}
+        return self.execute_plan({"plan": [step]})
+
+    def execute_plan(self, plan: Any) -> str:
+        text = plan if isinstance(plan, str) else json.dumps(plan)
+        goal = ExecutePlanGoal(text=text, format="auto")
+        try:
+            handle = self.sender.send(goal)
+        except GoalRejected as exc:
+            return f"rejected: {exc.reason}"
+        except CallError as exc:
+            raise AgentError(f"the executor is not reachable: {exc}") from None
+        run = self.sender.wait(handle, START_WAIT, until_started=True)
+        latest = run.feedback[-1] if run.feedback else None
+        return feedback.started_text(handle.goal_id, run.result, latest)
+
+    def plan_and_execute(self, request: str, dry_run: bool) -> str:
+        try:
+            reply: AskReply = self.node.call(
+                keys.PLAN_ASK, AskRequest(text=request, dry_run=dry_run), timeout=ASK_TIMEOUT
+            )
+        except CallError as exc:
+            raise AgentError(f"the planner did not answer: {exc.error.message}") from None
+        return feedback.ask_text(reply)
+
+    # Following and stopping
+
+    def goal_status(self, goal_id: str) -> str:
+        try:
+            progress = self.node.call(keys.EXECUTE_PLAN.get_status, GetResult(goal_id=goal_id), timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            return f"unknown goal {goal_id}: {exc.error.message}"
+        return feedback.progress_text(progress)
+
+    def cancel(self, goal_id: str) -> str:
+        try:
+            reply = self.node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            raise AgentError(f"cancel of {goal_id} failed: {exc.error.message}") from None
+        if not reply.accepted:
+            return f"not canceled: {reply.reason or 'no such running goal'}"
+        return f"canceling {goal_id}: the robot stops; get_goal_status shows when it has ended"
+
+    def emergency_stop(self, reason: str) -> str:
+        status = trigger_estop(self.node, EstopSource.AGENT, reason)
+        if status is None:
+            return "e-stop sent, but safety did not confirm it within 2 s: assume the robot may still move"
+        return "e-stop latched: nothing moves until a human operator resets it"
+
+    # Reading
+
+    def robot_state(self) -> str:
+        beat = next_message(self.node, keys.HEARTBEAT, 1.0)
+        odom = next_message(self.node, keys.ODOM, 1.0)
+        state: dict[str, Any] = {
+            "estop": (
+                {"latched": beat.estop.latched, "reason": beat.estop.reason}
+                if beat is not None
+                else "unknown: no heartbeat from safety (the robot will not move)"
+            ),
+            "speed_scale": beat.speed_scale if beat is not None else None,
+            "speed_note": beat.speed_reason if beat is not None else "",
+            "pose": (
+                {"x": round(odom.pose.x, 3), "y": round(odom.pose.y, 3), "yaw_rad": round(odom.pose.yaw, 3)}
+                if odom is not None
+                else None
+            ),
+            "moving": odom is not None and (abs(odom.linear_x) > 0.01 or abs(odom.angular_z) > 0.01),
+        }
+        return feedback.data_json("robot state", state)
+
+    def scene(self) -> str:
+        return feedback.as_data("world model", self._scene().text)
+
+    def objects(self) -> str:
+        scene = self._scene()
+        listed = [
+            {
+                "name": o.name,
+                "id": o.id,
+                "room": o.room,
+                "on": o.on,
+                "position_m": [round(o.position.x, 2), round(o.position.y, 2), round(o.position.z, 2)],
+            }
+            for o in scene.objects
+        ]
+        return feedback.data_json("world model", listed)
+
+    def picture(self) -> Picture:
+        try:
+            image: CameraImage = self.node.call(keys.CAMERA_IMAGE, Empty(), timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            raise AgentError(f"no camera image: {exc.error.message}") from None
+        caption = f"the robot's camera, {image.width} x {image.height} pixels"
+        return Picture(image.data, image.mime_type, caption)
+
+    def _scene(self) -> Any:
+        try:
+            return self.node.call(keys.SCENE, Empty(), timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            raise AgentError(f"the world model is not reachable: {exc.error.message}") from None
