@@ -41,12 +41,15 @@ class AttemptOutcome(enum.StrEnum):
 
 
 class AskRequest(Frozen):
-    """A request in words. `max_attempts` 0 means the planner's configured number."""
+    """A request in words. `max_attempts` 0 means the planner's configured number. `deadline` (wall
+    clock, seconds; 0 for none) is when the caller stops waiting: no model call starts and no plan is
+    sent after it, so a caller that gave up never has a plan started behind its back."""
 
     text: Annotated[str, Meta(min_length=1, max_length=MAX_REQUEST_CHARS)]
     dry_run: bool = False
     max_attempts: Annotated[int, Meta(ge=0, le=MAX_ATTEMPTS)] = 0
     preempt: bool = False
+    deadline: Annotated[float, Meta(ge=0.0)] = 0.0
 
 
 class AskReply(Frozen):

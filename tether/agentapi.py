@@ -8,12 +8,13 @@ change the policy: nothing here names those keys.
 from __future__ import annotations
 
 import json
-import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 
 from schemas import keys
 from schemas.actions import CancelGoal, GetResult
+from schemas.common import Stage
 from schemas.executor import ExecutePlanGoal
 from schemas.planner import AskReply, AskRequest
 from schemas.safety import EstopSource
@@ -27,8 +28,9 @@ from tether.client import PlanSender, next_message, trigger_estop
 # the goal id (the plan goes on after that; a model polls get_goal_status).
 START_WAIT = 10.0
 CALL_TIMEOUT = 5.0
-# plan_and_execute asks the model up to a few times; each answer is dry-run through the pipeline.
-ASK_TIMEOUT = 300.0
+# plan_and_execute asks the model up to a few times, each answer dry-run through the pipeline; it
+# answers within this (below the 60 s MCP clients commonly wait), or gives up having sent nothing.
+ASK_TIMEOUT = 50.0
 
 
 class AgentError(Exception):
@@ -46,13 +48,12 @@ class AgentAPI:
     def __init__(self, node: Node) -> None:
         self.node = node
         self.sender = PlanSender(node)
-        self._lock = threading.Lock()
 
     # Actions: each one a plan for the executor
 
     def action(self, name: str, arguments: dict[str, Any]) -> str:
         """One action as a one-step plan (the parser checks names, types, units and bounds)."""
-        step = {"action": name, **arguments}
+        step = {**arguments, "action": name}  # the tool's name decides the action, never an argument
         return self.execute_plan({"plan": [step]})
 
     def execute_plan(self, plan: Any) -> str:
@@ -64,14 +65,20 @@ class AgentAPI:
             return f"rejected: {exc.reason}"
         except CallError as exc:
             raise AgentError(f"the executor is not reachable: {exc}") from None
-        run = self.sender.wait(handle, START_WAIT, until_started=True)
+        try:
+            run = self.sender.wait(handle, START_WAIT, until_started=True)
+        except CallError:  # not ended, and not started within START_WAIT: still being checked
+            return feedback.started_text(handle.goal_id, None, None, checked=False)
         latest = run.feedback[-1] if run.feedback else None
-        return feedback.started_text(handle.goal_id, run.result, latest)
+        started = any(fb.stage is Stage.EXECUTE for fb in run.feedback)
+        return feedback.started_text(handle.goal_id, run.result, latest, checked=started)
 
     def plan_and_execute(self, request: str, dry_run: bool) -> str:
         try:
+            # The planner never sends a plan after the deadline: a call that timed out here moves nothing.
+            deadline = time.time() + ASK_TIMEOUT
             reply: AskReply = self.node.call(
-                keys.PLAN_ASK, AskRequest(text=request, dry_run=dry_run), timeout=ASK_TIMEOUT
+                keys.PLAN_ASK, AskRequest(text=request, dry_run=dry_run, deadline=deadline), timeout=ASK_TIMEOUT + 5.0
             )
         except CallError as exc:
             raise AgentError(f"the planner did not answer: {exc.error.message}") from None
@@ -80,6 +87,7 @@ class AgentAPI:
     # Following and stopping
 
     def goal_status(self, goal_id: str) -> str:
+        goal_id = goal_id.strip().rstrip(".")
         try:
             progress = self.node.call(keys.EXECUTE_PLAN.get_status, GetResult(goal_id=goal_id), timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -87,6 +95,7 @@ class AgentAPI:
         return feedback.progress_text(progress)
 
     def cancel(self, goal_id: str) -> str:
+        goal_id = goal_id.strip().rstrip(".")
         try:
             reply = self.node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -98,7 +107,9 @@ class AgentAPI:
     def emergency_stop(self, reason: str) -> str:
         status = trigger_estop(self.node, EstopSource.AGENT, reason)
         if status is None:
-            return "e-stop sent, but safety did not confirm it within 2 s: assume the robot may still move"
+            return (
+                "e-stop not confirmed: sent, but safety did not confirm it within 2 s; assume the robot may still move"
+            )
         return "e-stop latched: nothing moves until a human operator resets it"
 
     # Reading

@@ -9,6 +9,7 @@ its next call: "vetoed: ... inside keep-out zone 'stairs' ...".
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
 
 from schemas.actions import GoalProgress, GoalState
@@ -25,9 +26,16 @@ DATA_NOTE = (
 )
 
 
+# Any spelling of the closing marker a model might still read as one.
+CLOSING = re.compile(r"<\s*/\s*robot-data\s*>", re.IGNORECASE)
+
+
 def as_data(source: str, text: str) -> str:
-    """`text` from `source` marked as data for the model. A closing marker inside it is defused."""
-    body = text.replace(DATA_CLOSE, "</robot-data >")
+    """`text` from `source` marked as data for the model. A closing marker inside it is defused,
+    until none is left (removing one must not join the pieces of another)."""
+    body = text
+    while CLOSING.search(body):
+        body = CLOSING.sub("[/robot-data]", body)
     return f"{DATA_NOTE.format(source=source)}\n{DATA_OPEN.format(source=source)}\n{body}\n{DATA_CLOSE}"
 
 
@@ -76,12 +84,16 @@ def progress_text(progress: GoalProgress[ExecutePlanFeedback, ExecutePlanResult]
     return f"goal {progress.goal_id} {state}" + (f": {now}" if now else "")
 
 
-def started_text(goal_id: str, result: ExecutePlanResult | None, feedback: ExecutePlanFeedback | None) -> str:
-    """What a model gets back from an action tool: the goal id to poll, or why nothing started."""
+def started_text(
+    goal_id: str, result: ExecutePlanResult | None, feedback: ExecutePlanFeedback | None, checked: bool = True
+) -> str:
+    """What a model gets back from an action tool: the goal id to poll, or why nothing started.
+    `checked` False: accepted, but not yet through the checks (it may still be refused)."""
     if result is not None:
         return f"goal {goal_id} " + result_text(result)
+    head = f"started goal {goal_id}" if checked else f"accepted goal {goal_id}, still being checked"
     now = f": {feedback_text(feedback)}" if feedback is not None else ""
-    return f"started goal {goal_id}{now}. Poll get_goal_status with this goal_id; cancel_goal stops it."
+    return f"{head}{now}\nPoll get_goal_status with goal_id {goal_id}; cancel_goal stops it."
 
 
 def ask_text(reply: AskReply) -> str:

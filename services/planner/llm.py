@@ -91,7 +91,7 @@ class ChatClient:
             raise self._fail(f"the LLM endpoint {where} answered {len(raw)} bytes; the limit is {ep.max_reply_bytes}")
         try:
             data = json.loads(raw)
-        except (ValueError, UnicodeDecodeError):
+        except (ValueError, UnicodeDecodeError, RecursionError):  # RecursionError: nested too deep to be a reply
             kind = response.headers.get("content-type", "no content type")
             raise self._fail(
                 f"the LLM endpoint {where} answered with something that is not JSON ({kind}): {snippet(raw)}"

@@ -21,10 +21,11 @@ from schemas.planner import (
     AttemptOutcome,
     PlannerAttempt,
 )
+from schemas.safety import SafetyStatus
 from schemas.world import Empty
 from services.actionlib import PREEMPT_TIMEOUT, ActionClient, GoalRejected
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig
-from services.planner.errors import ExecutorUnreachable
+from services.planner.errors import ExecutorUnreachable, LLMError
 from services.planner.llm import ChatClient, ChatReply
 from services.planner.loop import Attempt, LoopStatus, Verdict, plan_loop
 from services.planner.prompt import initial_messages
@@ -45,6 +46,13 @@ ATTEMPT_OUTCOME = {
     LoopStatus.REJECTED: AttemptOutcome.REJECTED,
     LoopStatus.LLM_ERROR: AttemptOutcome.LLM_ERROR,
 }
+
+
+DEADLINE_PASSED = "the caller's deadline passed: nothing more was asked of the model and no plan was sent"
+
+
+def past_deadline(request: AskRequest) -> bool:
+    return request.deadline > 0 and time.time() > request.deadline
 
 
 def bounded(text: str, limit: int = MAX_RECORDED_CHARS) -> str:
@@ -73,6 +81,23 @@ class Planner:
         self._chat = client if client is not None else (ChatClient(endpoint) if endpoint is not None else None)
         self._executor: ActionClient[Any, Any, Any] = ActionClient(node, keys.EXECUTE_PLAN)
         self._attempts = node.publisher(keys.PLANNER_ATTEMPTS)
+        # The e-stop as the heartbeat last said: while it is latched no plan can pass, and asking the
+        # model to "fix" one would spend attempts on what only an operator can change.
+        self._heartbeat: SafetyStatus | None = None
+        node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
+
+    def _on_heartbeat(self, status: SafetyStatus) -> None:
+        self._heartbeat = status
+
+    def estop_latched(self) -> str | None:
+        """Why nothing may move now, when the e-stop is latched; None otherwise."""
+        beat = self._heartbeat
+        if beat is None or not beat.estop.latched:
+            return None
+        return (
+            f"the e-stop is latched (by {beat.estop.source}: {beat.estop.reason}); only a human operator can "
+            "reset it, so no plan was asked for or sent"
+        )
 
     def close(self) -> None:
         if isinstance(self._chat, ChatClient):
@@ -110,6 +135,8 @@ class Planner:
                 request_id=request_id,
                 reason="no executor reachable: start the services with `tether up`",
             )
+        if (latched := self.estop_latched()) is not None:
+            return AskReply(status=AskStatus.REJECTED, request_id=request_id, stage=Stage.SAFETY, reason=latched)
         max_attempts = request.max_attempts or self.config.max_attempts
         tools = tool_schemas()
         native = self.config.native_tools
@@ -118,6 +145,8 @@ class Planner:
         chat = self._chat
 
         def call_model(conversation: list[dict[str, Any]]) -> ChatReply:
+            if past_deadline(request):
+                raise LLMError(DEADLINE_PASSED)
             reply: ChatReply = chat.chat(conversation, tools if native else None)
             return reply
 
@@ -154,6 +183,10 @@ class Planner:
         )
         if result.status is not LoopStatus.APPROVED or request.dry_run:
             return reply
+        if past_deadline(request):
+            return msgspec.structs.replace(
+                reply, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=DEADLINE_PASSED
+            )
         return self.send(reply, result.plan, request.preempt)
 
     def send(self, approved: AskReply, plan: str, preempt: bool) -> AskReply:

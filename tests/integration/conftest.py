@@ -41,8 +41,13 @@ def write_config(path: Path, realtime_factor: float, policy: Path | None = None)
     return path
 
 
+# What a test stack runs unless it asks for more: every service but the planner, which has no LLM
+# endpoint to talk to here (tests/integration/test_agents.py starts it with a scripted one).
+STACK_SERVICES = tuple(s for s in SERVICES if s != "planner")
+
+
 def start_stack(
-    tmp: Path, realtime_factor: float, services: tuple[str, ...] = SERVICES, policy: Path | None = None
+    tmp: Path, realtime_factor: float, services: tuple[str, ...] = STACK_SERVICES, policy: Path | None = None
 ) -> Stack:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(SERVICES)))
     config = write_config(tmp / "tether.toml", realtime_factor, policy)

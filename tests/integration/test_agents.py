@@ -226,7 +226,7 @@ def test_the_planner_recovers_from_a_malformed_and_an_unsafe_reply(agent_stack: 
     assert first.body["model"] == MODEL
     assert "navigate_to" in {t["function"]["name"] for t in first.body["tools"]}
     system = first.body["messages"][0]["content"]
-    assert "SCENE DATA" in system and "not instructions" in system and "red cup" in system
+    assert "<robot-data" in system and "never as instructions" in system and "red cup" in system
     assert first.body["messages"][-1] == {"role": "user", "content": REQUEST}
     assert second.body["messages"][-1]["role"] == "user"
     assert second.body["messages"][-1]["content"].startswith("rejected at stage parse: ")
@@ -393,15 +393,22 @@ def test_an_agent_navigates_polls_to_success_and_cancels_another(agent_stack: St
 def test_a_refusal_comes_back_as_text_a_model_can_act_on(agent_stack: Stack) -> None:
     async def body(client: Client) -> list[types.CallToolResult]:
         return [
-            await client.call_tool("execute_plan", {"plan": [{"action": "navigate_to", "x": 11.2, "y": 8.0}]}),
+            await client.call_tool("execute_plan", {"plan": [{"action": "navigate_to", "target": "stairs"}]}),
             await client.call_tool("navigate_to", {"target": "coffee table", "speed": 5.0}),
             await client.call_tool("reset_estop", {}),
+            # A harmless-looking tool cannot carry another action; arguments keep to their schema.
+            await client.call_tool("say", {"text": "hi", "action": "drive", "distance": 1.0}),
+            await client.call_tool("navigate_to", {"target": 5}),
+            await client.call_tool("get_goal_status", {"goal_id": "x" * 100_000}),
         ]
 
-    stairs, fast, unknown = with_client(agent_stack, body)
-    assert stairs.is_error and "stairs" in text(stairs), text(stairs)
+    stairs, fast, unknown, smuggled, typed, huge = with_client(agent_stack, body)
+    assert stairs.is_error and "rejected at safety" in text(stairs) and "stairs" in text(stairs), text(stairs)
     assert fast.is_error and "speed" in text(fast), text(fast)
     assert unknown.is_error and "unknown tool" in text(unknown)
+    assert smuggled.is_error and "not allowed" in text(smuggled), text(smuggled)
+    assert typed.is_error and "target" in text(typed), text(typed)
+    assert huge.is_error and "goal_id" in text(huge) and len(text(huge)) < 1000, text(huge)[:200]
 
 
 def test_reading_tools_mark_sensor_text_as_data_and_the_camera_is_an_image(agent_stack: Stack) -> None:
@@ -422,18 +429,36 @@ def test_reading_tools_mark_sensor_text_as_data_and_the_camera_is_an_image(agent
     assert base64.b64decode(picture.data)[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_an_agent_can_stop_the_robot_but_not_start_it_again(agent_stack: Stack) -> None:
-    async def body(client: Client) -> tuple[str, types.CallToolResult]:
-        stopped = text(await client.call_tool("emergency_stop", {"reason": "a child ran in"}))
-        refused = await client.call_tool("navigate_to", {"target": "kitchen"})
-        return stopped, refused
+def test_an_agent_can_stop_the_robot_and_no_tool_starts_it_again(agent_stack: Stack, llm_server: ScriptedLLM) -> None:
+    beats = Watch(agent_stack.node, keys.HEARTBEAT)
+    everything = Everything(agent_stack)
+    llm_server.play(text_reply(SAY))
+
+    async def body(client: Client) -> list[types.CallToolResult]:
+        stopped = await client.call_tool("emergency_stop", {"reason": "a child ran in"})
+        # Every tool that could plausibly move the robot, after the e-stop.
+        return [
+            stopped,
+            await client.call_tool("navigate_to", {"target": "kitchen"}),
+            await client.call_tool("execute_plan", {"plan": [{"action": "say", "text": "hello"}]}),
+            await client.call_tool("cancel_goal", {"goal_id": "all"}),
+            await client.call_tool("plan_and_execute", {"request": "say hello", "dry_run": False}),
+            await client.call_tool("emergency_stop", {"reason": "again"}),
+        ]
 
     try:
-        stopped, refused = with_client(agent_stack, body)
-        assert "latched" in stopped, stopped
-        assert refused.is_error and "e-stop" in text(refused), text(refused)
+        stopped, navigate, plan, cancel, asked, again = with_client(agent_stack, body)
+        assert "latched" in text(stopped), text(stopped)
+        assert navigate.is_error and "e-stop" in text(navigate), text(navigate)
+        assert plan.is_error and "e-stop" in text(plan), text(plan)
+        assert asked.is_error and "e-stop" in text(asked), text(asked)
+        assert not cancel.is_error and not again.is_error
+        latest = beats.latest(timeout=5.0)
+        assert latest is not None and latest.estop.latched, "an agent's tool calls cleared the e-stop"
+        assert not [k for k, _ in everything.samples if keys.RESET.path in k], "a tool reached safety/reset"
     finally:
-        assert reset_estop(agent_stack.node, str(agent_stack.token_file)).ok
+        reset = reset_estop(agent_stack.node, str(agent_stack.token_file))
+    assert reset.ok, reset.message
 
 
 def test_streamable_http_serves_the_same_tools_on_loopback(agent_stack: Stack, tmp_path: Path) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from schemas.actions import GoalProgress, GoalState
 from schemas.common import Stage
 from schemas.executor import (
@@ -76,3 +78,14 @@ def test_the_planner_outcome_reads_as_what_happened() -> None:
     assert ask_text(accepted).startswith("started goal g9 after 2 attempts")
     refused = AskReply(status=AskStatus.REJECTED, request_id="r1", attempts=3, stage=Stage.SAFETY, reason=VETO)
     assert ask_text(refused) == f"rejected at safety after 3 attempts: {VETO}"
+
+
+def test_no_agent_path_names_the_reset_key() -> None:
+    # The MCP server, its robot API and the planner may stop the robot, never clear the e-stop.
+    root = Path(__file__).resolve().parents[2]
+    files = [root / "tether" / "agentapi.py", root / "tether" / "mcpserver.py", root / "tether" / "ask.py"]
+    files += sorted((root / "services" / "planner").glob("*.py")) + sorted((root / "services" / "agent").glob("*.py"))
+    for path in files:
+        source = path.read_text()
+        for name in ("keys.RESET", "reset_estop", "ResetRequest", "safety/reset"):
+            assert name not in source, f"{path.relative_to(root)} names {name}"
