@@ -54,6 +54,7 @@ from bench.service import (
     STOP_TIMEOUT,
     BenchError,
     bench_main,
+    bench_settings,
     bounded,
     last_line,
     measured,
@@ -70,7 +71,6 @@ from schemas.world import Empty
 from services import runtime
 from services.recorder.reader import read_recording
 from services.runtime import CallError, Node, NodeSettings
-from tether.supervisor import free_base_port
 
 PROG = "bench.recorder"
 GOALS = {"goal_rate_hz": 10_000.0, "goal_lost": 0}
@@ -90,12 +90,6 @@ def payload(seq: int, size: int = PAYLOAD_BYTES) -> bytes:
     head = b'{"seq":%d,"pad":"' % seq
     pad = size - len(head) - 2
     return head + base64.b64encode(os.urandom(pad * 3 // 4 + 3))[:pad] + b'"}'
-
-
-def phase_settings(phase: str) -> NodeSettings:
-    """A robot name and ports of this phase's own, so it never talks to a running stack or the other phase."""
-    os.environ.pop("TETHER_ZENOH_CONFIG", None)
-    return NodeSettings(robot=f"bench-recorder-{phase}-{os.getpid()}", base_port=free_base_port())
 
 
 # The stream
@@ -216,7 +210,7 @@ def running_counter(settings: NodeSettings, log: IO[bytes]) -> Iterator[tuple[No
 
 
 def baseline(rate_hz: float, seconds: float, congestion: str) -> dict[str, Any]:
-    settings = phase_settings("baseline")
+    settings = bench_settings("recorder-baseline")
     progress(
         f"baseline: {rate_hz:g} msg/s for {seconds:g} s to a bare counting subscriber (base port {settings.base_port})"
     )
@@ -249,7 +243,7 @@ def cpu_seconds(pid: int) -> float | None:
 
 
 def recorder(rate_hz: float, seconds: float, congestion: str) -> dict[str, Any]:
-    settings = phase_settings("recorder")
+    settings = bench_settings("recorder-recorder")
     with tempfile.TemporaryDirectory(prefix="bench-recorder-") as tmp:
         output = Path(tmp) / "recordings"
         config = {"recorder": {"output_dir": str(output)}}

@@ -5,9 +5,10 @@ from __future__ import annotations
 import enum
 from typing import Annotated, Generic, TypeVar
 
+import msgspec
 from msgspec import Meta
 
-from schemas.common import ErrorKind, Frozen, Text
+from schemas.common import DECODE_ERRORS, ErrorKind, Frozen, Text
 
 G = TypeVar("G")
 F = TypeVar("F")
@@ -49,6 +50,17 @@ class GoalResponse(Frozen):
 
 # A CancelGoal with this goal id cancels every goal of the action.
 CANCEL_ALL = "all"
+
+
+def goal_id_in(raw: bytes | msgspec.Raw) -> str | None:
+    """The `goal_id` of a recorded goal request (SendGoal, CancelGoal, GetResult: raw JSON, untrusted);
+    None when there is none."""
+    try:
+        value = msgspec.json.decode(raw)
+    except DECODE_ERRORS:
+        return None
+    goal_id = value.get("goal_id") if isinstance(value, dict) else None
+    return goal_id if isinstance(goal_id, str) else None
 
 
 class CancelGoal(Frozen):

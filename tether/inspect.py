@@ -6,34 +6,27 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import Annotated, Any
 
 import typer
-import zenoh
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
-from schemas import keys
 from schemas.world import KeepOut, World
 from services.recorder.mapview import draw_map, estop_points, track_of, vetoed_goals
-from services.recorder.reader import RecordingError, RecordingFile, read_recording
+from services.recorder.reader import RecordingError, RecordingFile
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.timeline import Level, RobotState, Row, Timeline, build_timeline
 from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
+from tether.recordings import console, fail, key_matcher, open_recording
 
-console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
 out = Console()
 
 # The key column is shown from this width on; output that is not a terminal gets PIPE_WIDTH.
 WIDE = 140
 PIPE_WIDTH = 180
 LEVEL_STYLES = {Level.INFO: "", Level.GOOD: "green", Level.WARN: "yellow", Level.BAD: "red"}
-
-
-def fail(message: str, code: int = 2) -> NoReturn:
-    console.print(f"[red]error:[/] {message}", highlight=False)
-    raise typer.Exit(code)
 
 
 def inspect(
@@ -82,43 +75,9 @@ def inspect(
     screen.print(table(recording, timeline, rows, screen.width))
 
 
-def open_recording(file: Path) -> RecordingFile:
-    if not file.exists():
-        fail(f"no such file: {file}")
-    if not file.is_file():
-        fail(f"{file} is not a file (an MCAP recording is)")
-    if file.stat().st_size == 0:
-        fail(f"{file} is empty (0 bytes): not an MCAP recording")
-    try:
-        recording = read_recording(file)
-    except (RecordingError, OSError) as exc:
-        fail(str(exc))
-    if not recording.complete:
-        console.print(
-            f"[yellow]{file} was cut short: {recording.problem}; inspected as far as it is whole[/]",
-            highlight=False,
-        )
-    return recording
-
-
 def select(rows: list[Row], robot: str, expr: str) -> list[Row]:
     """The rows about keys `expr` matches: the key they are about or the one they were recorded on."""
-    text = expr if expr.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{expr}"
-    try:
-        selected = zenoh.KeyExpr(text)
-    except zenoh.ZError as exc:
-        fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}")
-    matches: dict[str, bool] = {}
-
-    def match(key: str) -> bool:
-        full = key if key.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{key}"
-        if full not in matches:
-            try:
-                matches[full] = selected.intersects(zenoh.KeyExpr(full))
-            except zenoh.ZError:  # a key recorded outside the prefix that is not a valid key expression
-                matches[full] = False
-        return matches[full]
-
+    match = key_matcher(robot, expr)
     return [row for row in rows if match(row.key) or match(row.source)]
 
 

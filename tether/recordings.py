@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -26,7 +27,7 @@ from services.recorder.replay import REPLAY_SUFFIX, Item, Kind, ReplayPlan, defa
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 
-console = Console(stderr=True)
+console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
 QUERY_TIMEOUT = 5.0
 
 FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
@@ -40,19 +41,37 @@ KeysOpt = Annotated[
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
-    console.print(f"[red]error:[/] {message}")
+    console.print(f"[red]error:[/] {message}", highlight=False)
     raise typer.Exit(code)
 
 
 def key_filter(robot: str, expr: str | None) -> zenoh.KeyExpr:
     """`expr` as a key expression: absolute (tether/...) as it is, relative under the robot's prefix."""
-    text = expr or "**"
-    if not text.startswith(f"{keys.ROOT}/"):
-        text = f"{keys.prefix(robot)}/{text}"
     try:
-        return zenoh.KeyExpr(text)
+        return zenoh.KeyExpr(_absolute(robot, expr or "**"))
     except zenoh.ZError as exc:
         fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}")
+
+
+def _absolute(robot: str, key: str) -> str:
+    return key if key.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{key}"
+
+
+def key_matcher(robot: str, expr: str) -> Callable[[str], bool]:
+    """Whether a key (absolute, or relative to the robot's prefix) is one `expr` selects; each key is
+    looked at once. A recorded key no Zenoh session could have published is never selected."""
+    selected = key_filter(robot, expr)
+    matches: dict[str, bool] = {}
+
+    def match(key: str) -> bool:
+        if key not in matches:
+            try:
+                matches[key] = selected.intersects(zenoh.KeyExpr(_absolute(robot, key)))
+            except zenoh.ZError:
+                matches[key] = False
+        return matches[key]
+
+    return match
 
 
 def open_recording(file: Path, expr: str | None = None, robot: str | None = None) -> RecordingFile:
@@ -62,16 +81,14 @@ def open_recording(file: Path, expr: str | None = None, robot: str | None = None
     except RecordingError as exc:
         fail(str(exc))
     if expr is not None:
-        selected = key_filter(robot or recording.robot, expr)
-        matches: dict[str, bool] = {}
-        for key in {m.key for m in recording.messages}:
-            try:
-                matches[key] = selected.intersects(zenoh.KeyExpr(key))
-            except zenoh.ZError:  # a key no Zenoh session could have published: never selected
-                matches[key] = False
-        recording.messages = [m for m in recording.messages if matches[m.key]]
+        match = key_matcher(robot or recording.robot, expr)
+        recording.messages = [m for m in recording.messages if match(m.key)]
     if not recording.complete:
-        console.print(f"[yellow]{file}: {recording.problem}[/]; `tether recover` writes a complete copy")
+        console.print(
+            f"[yellow]{file} was cut short: {recording.problem}; read as far as it is whole "
+            "(`tether recover` writes a complete copy)[/]",
+            highlight=False,
+        )
     return recording
 
 

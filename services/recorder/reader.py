@@ -106,6 +106,8 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
     """
     try:
         size = path.stat().st_size
+    except FileNotFoundError:
+        raise RecordingError(f"no such file: {path}") from None
     except OSError as exc:
         raise RecordingError(f"cannot read recording {path}: {exc.strerror}") from None
     if path.is_dir():

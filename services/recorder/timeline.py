@@ -12,7 +12,7 @@ from typing import Any
 import msgspec
 
 from schemas import keys
-from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal
+from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal, goal_id_in
 from schemas.common import DECODE_ERRORS, Pose2D, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.plan import (
@@ -304,15 +304,6 @@ def decode(data: bytes | msgspec.Raw, type_: Any) -> Any:
         raise Undecodable(f"not a {getattr(type_, '__name__', type_)}: {exc}") from None
 
 
-def _goal_id(raw: msgspec.Raw) -> str | None:
-    try:
-        value = msgspec.json.decode(raw)
-    except DECODE_ERRORS:
-        return None
-    goal_id = value.get("goal_id") if isinstance(value, dict) else None
-    return goal_id if isinstance(goal_id, str) else None
-
-
 # The builder
 
 
@@ -349,7 +340,7 @@ def _first_pass(messages: Iterable[Recorded], prefix: str) -> _Known:
             except Undecodable:
                 continue
             known.event_times.setdefault(event.key, []).append(message.log_time)
-            if event.key in CMD_GOALS and (goal_id := _goal_id(event.command)):
+            if event.key in CMD_GOALS and (goal_id := goal_id_in(event.command)):
                 known.decided[goal_id] = event.decision
         elif message.key.startswith(traces) and message.key.endswith("/_action/get_result"):
             try:
@@ -357,7 +348,7 @@ def _first_pass(messages: Iterable[Recorded], prefix: str) -> _Known:
             except Undecodable:
                 continue
             held = bytes(record.reply) != b"null" or record.error
-            if record.key in RESULT_TYPES and held and (goal_id := _goal_id(record.query)):
+            if record.key in RESULT_TYPES and held and (goal_id := goal_id_in(record.query)):
                 known.with_result.add(goal_id)
     return known
 
@@ -712,7 +703,7 @@ class _Builder:
 
     def _result(self, record: TraceRecord) -> None:
         path = record.key
-        goal_id = _goal_id(record.query) or "?"
+        goal_id = goal_id_in(record.query) or "?"
         if goal_id in self.results_shown:
             return
         reply = self._reply(record, RESULT_TYPES[path])
@@ -770,7 +761,7 @@ class _Builder:
         path = record.key
         base = path.split("/_action/")[0]
         plan = base == keys.EXECUTE_PLAN.path
-        goal_id = _goal_id(record.query) or "?"
+        goal_id = goal_id_in(record.query) or "?"
         if plan:
             what = "every plan" if goal_id == "all" else f"plan {short_id(goal_id)}"
         else:
@@ -790,7 +781,7 @@ class _Builder:
         """A goal safety answered; a row only when its event did not already say it all."""
         path = record.key
         action = CMD_GOALS[path]
-        goal_id = _goal_id(record.query)
+        goal_id = goal_id_in(record.query)
         decided = self.known.decided.get(goal_id or "")
         if record.error:
             self.row(Kind.COMMAND, path, f"{_action_name(path)} goal refused: {record.error}", Level.BAD)

@@ -26,7 +26,7 @@ from typing import Any, Generic, TypeVar
 import msgspec
 
 from schemas import keys
-from schemas.actions import GoalResponse, SendGoal
+from schemas.actions import GoalResponse, SendGoal, goal_id_in
 from schemas.common import DECODE_ERRORS, ErrorKind, Pose2D
 from schemas.plan import GroundedPlan
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, JointState, NavigateToPoseGoal, Odometry, Twist
@@ -220,12 +220,6 @@ def _decode(data: bytes | msgspec.Raw, type_: type[T]) -> T | None:
         return None
 
 
-def _goal_id(raw: msgspec.Raw) -> str | None:
-    value = _decode(raw, dict)
-    goal_id = value.get("goal_id") if value is not None else None
-    return goal_id if isinstance(goal_id, str) else None
-
-
 def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash: str = "") -> RecheckReport:
     """Every rechecked command in `messages` (in arrival order) under `policy`, with what differs.
 
@@ -272,7 +266,7 @@ def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash
     # Safety's event about each goal: its rule, when the goal was refused.
     goal_events: dict[tuple[str, str], list[tuple[float, SafetyEvent]]] = {}
     for time, event in events:
-        if event.key in GOALS and (goal_id := _goal_id(event.command)) is not None:
+        if event.key in GOALS and (goal_id := goal_id_in(event.command)) is not None:
             goal_events.setdefault((event.key, goal_id), []).append((time, event))
     checks: list[Rechecked] = []
     for time, event in events:
