@@ -304,8 +304,9 @@ class ActionClient(Generic[G, F, R]):
             callback = on_feedback
             node.subscribe(action.feedback, lambda fb: callback(fb.goal_id, fb.feedback))
 
-    def send(self, goal: G, *, timeout: float = 5.0) -> ClientGoal[G, F, R]:
-        goal_id = uuid.uuid4().hex
+    def send(self, goal: G, *, timeout: float = 5.0, goal_id: str | None = None) -> ClientGoal[G, F, R]:
+        """`goal_id` lets the caller know the id before the goal's first feedback (default: a new uuid)."""
+        goal_id = goal_id or uuid.uuid4().hex
         response = self._node.call(self._action.send_goal, SendGoal(goal_id=goal_id, goal=goal), timeout=timeout)
         if not response.accepted:
             raise GoalRejected(response.reason, response.kind)

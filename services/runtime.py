@@ -94,6 +94,12 @@ class NodeSettings:
         connect = [self.endpoint(s) for s in SERVICES if s != service]
         conf.insert_json5("listen/endpoints", msgspec.json.encode(listen).decode())
         conf.insert_json5("connect/endpoints", msgspec.json.encode(connect).decode())
+        # A peer not up yet (still starting, or not run at all, as the planner often is) is tried
+        # again after 0.2 s, then at most every second; Zenoh's default backoff (1, 2, 4 s) left a
+        # client started with the services blind to them for up to 7 s. Refused connects on
+        # loopback cost nothing.
+        retry = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+        conf.insert_json5("connect/retry", msgspec.json.encode(retry).decode())
         return conf
 
 

@@ -69,6 +69,8 @@ class AgentAPI:
             run = self.sender.wait(handle, START_WAIT, until_started=True)
         except CallError:  # not ended, and not started within START_WAIT: still being checked
             return feedback.started_text(handle.goal_id, None, None, checked=False)
+        finally:
+            self.sender.forget(handle.goal_id)  # the agent follows it with get_goal_status from here
         latest = run.feedback[-1] if run.feedback else None
         started = any(fb.stage is Stage.EXECUTE for fb in run.feedback)
         return feedback.started_text(handle.goal_id, run.result, latest, checked=started)

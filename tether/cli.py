@@ -42,7 +42,6 @@ from tether.client import (
     trigger_estop,
 )
 from tether.inspect import inspect
-from tether.mcpserver import mcp_command
 from tether.schema import schema
 from tether.supervisor import Supervisor
 
@@ -616,4 +615,35 @@ recordings.register(app)
 # Agents
 app.command("schema")(schema)
 app.command("ask")(ask)
-app.command("mcp")(mcp_command)
+
+
+# Only loopback: the MCP server has no authentication, and whoever reaches it can move the robot.
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+@app.command("mcp")
+def mcp_command(
+    ctx: typer.Context,
+    http: Annotated[bool, typer.Option("--http", help="Serve streamable HTTP instead of stdio.")] = False,
+    host: Annotated[str, typer.Option(help="With --http: the loopback address to bind.")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="With --http: the port.")] = 8765,
+) -> None:
+    """Serve the robot's tools over MCP: stdio for an MCP client that starts this command, or --http.
+
+    Action tools return a goal id at once (get_goal_status, cancel_goal follow it); read tools give
+    the robot's state, the scene, objects and a camera image; emergency_stop stops everything. No
+    tool resets the e-stop, lifts a limit or changes the safety policy.
+    """
+    if http and host not in LOOPBACK:
+        # No authentication here: a remote agent goes through a proxy that authenticates it.
+        print(
+            f"error: --host {host}: the MCP server binds to loopback only (it has no authentication and "
+            "whoever reaches it can move the robot); put an authenticating reverse proxy in front of it",
+            file=sys.stderr,
+        )
+        raise typer.Exit(2)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr)  # stdout is the protocol's
+    # The MCP SDK and its web server take half a second to import: only for this command.
+    from tether.mcpserver import serve
+
+    serve(ctx.obj, http, host, port)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import getpass
 import threading
+import uuid
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -15,7 +16,7 @@ from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanRe
 from schemas.keys import Topic
 from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
 from services.actionlib import PREEMPT_TIMEOUT, ActionClient, ClientGoal
-from services.runtime import Node
+from services.runtime import CallError, Node
 from services.safety.operator import read_token, token_path
 
 T = TypeVar("T")
@@ -98,7 +99,8 @@ class PlanRun:
 
 
 class PlanSender:
-    """Sends plans to the executor and follows them; `on_feedback` hears progress."""
+    """Sends plans to the executor and follows them; `on_feedback` hears the progress of the plans
+    this sender sent (not other clients'). A run is forgotten once its result is in, or by `forget`."""
 
     def __init__(self, node: Node, on_feedback: Any = None) -> None:
         self.node = node
@@ -110,25 +112,48 @@ class PlanSender:
 
     def _feedback(self, goal_id: str, fb: ExecutePlanFeedback) -> None:
         with self._lock:
-            run = self._runs.setdefault(goal_id, PlanRun(goal_id=goal_id))
+            run = self._runs.get(goal_id)
+            if run is None:  # another client's plan, or one this sender is done with
+                return
             run.feedback.append(fb)
-            started = self._started.setdefault(goal_id, threading.Event())
+            started = self._started[goal_id]
         if fb.stage is Stage.EXECUTE:
             started.set()
         if self._on_feedback is not None:
             self._on_feedback(fb)
 
+    def _follow(self, goal_id: str) -> tuple[PlanRun, threading.Event]:
+        with self._lock:
+            run = self._runs.setdefault(goal_id, PlanRun(goal_id=goal_id))
+            return run, self._started.setdefault(goal_id, threading.Event())
+
+    def following(self) -> list[str]:
+        """The goals this sender still keeps feedback for."""
+        with self._lock:
+            return list(self._runs)
+
+    def forget(self, goal_id: str) -> None:
+        """Stop keeping `goal_id`'s feedback (a caller that will not wait for its result)."""
+        with self._lock:
+            self._runs.pop(goal_id, None)
+            self._started.pop(goal_id, None)
+
     def send(self, goal: ExecutePlanGoal) -> ClientGoal[Any, Any, Any]:
         """Raises GoalRejected when the executor is busy, CallError when it is unreachable. A goal
         that preempts (its own `preempt`, or the executor's `when_busy`) is answered only once the
         plan it preempts has stopped: the wait allows for that."""
-        return self._client.send(goal, timeout=SEND_TIMEOUT + PREEMPT_TIMEOUT)
+        goal_id = uuid.uuid4().hex
+        self._follow(goal_id)  # before it is sent: its first feedback may come before the reply
+        try:
+            return self._client.send(goal, timeout=SEND_TIMEOUT + PREEMPT_TIMEOUT, goal_id=goal_id)
+        except BaseException:
+            self.forget(goal_id)
+            raise
 
     def wait(self, handle: ClientGoal[Any, Any, Any], timeout: float, until_started: bool = False) -> PlanRun:
-        """Wait for the result, or with `until_started` only until execution begins."""
-        with self._lock:
-            run = self._runs.setdefault(handle.goal_id, PlanRun(goal_id=handle.goal_id))
-            started = self._started.setdefault(handle.goal_id, threading.Event())
+        """Wait for the result, or with `until_started` only until execution begins (the run is then
+        kept, to wait on again or to `forget`)."""
+        run, started = self._follow(handle.goal_id)
         future = handle.result_future(timeout)
         future.add_done_callback(lambda _: started.set())
         if until_started:
@@ -136,7 +161,12 @@ class PlanSender:
             if not future.done():
                 return run
         # The fetch gives up after `timeout` itself, failing the future with CallError.
-        run.result = future.result().result
+        try:
+            run.result = future.result().result
+        except CallError:
+            self.forget(handle.goal_id)  # given up on: its feedback is not kept any longer
+            raise
+        self.forget(handle.goal_id)
         return run
 
     def run(self, goal: ExecutePlanGoal, timeout: float) -> PlanRun:

@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import IO
 
@@ -17,9 +18,10 @@ from services.runtime import SERVICES, NodeSettings
 
 log = logging.getLogger(__name__)
 
-# Stopped first to last: nothing new is planned; safety goes before the robot so its watchdog never
-# sees a robot vanish mid-motion (the robot stops on the missing heartbeat); the recorder hears it all.
-STOP_ORDER = ("planner", "executor", "parser", "resolver", "safety", "sim", "recorder")
+# Stopped stage by stage, each stage's services together: nothing new is planned; safety goes before
+# the robot so its watchdog never sees a robot vanish mid-motion (the robot stops on the missing
+# heartbeat); the recorder hears it all.
+STOP_STAGES = (("planner",), ("executor", "parser", "resolver"), ("safety",), ("sim",), ("recorder",))
 # Stacks for tests and benchmarks listen on ports from here up to the kernel's range for outgoing
 # connections. Not inside that range: there one of the sessions' own outgoing sockets could take a
 # port between the check and the listen, and a service would fail to start.
@@ -107,24 +109,32 @@ class Supervisor:
         proc.wait(timeout=10)
 
     def stop(self, service: str, timeout: float = 10.0) -> int | None:
-        proc = self.procs.get(service)
-        if proc is None:
-            return None
-        if proc.poll() is None:
+        return self._stop_together((service,), timeout).get(service)
+
+    def _stop_together(self, services: tuple[str, ...], timeout: float) -> dict[str, int | None]:
+        """SIGTERM to each, then wait for each (killing one that outlives `timeout`)."""
+        procs = {s: self.procs[s] for s in services if s in self.procs}
+        for proc in procs.values():
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for service, proc in procs.items():
             try:
-                os.killpg(proc.pid, signal.SIGTERM)
-                proc.wait(timeout=timeout)
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 log.warning("%s did not stop within %.0f s; killing it", service, timeout)
-                os.killpg(proc.pid, signal.SIGKILL)
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
-            except ProcessLookupError:
-                pass
-        return proc.returncode
+        return {service: proc.returncode for service, proc in procs.items()}
 
     def stop_all(self, timeout: float = 10.0) -> dict[str, int | None]:
-        order = [s for s in STOP_ORDER if s in self.procs] + [s for s in self.procs if s not in STOP_ORDER]
-        codes = {service: self.stop(service, timeout) for service in order}
+        staged = {s for stage in STOP_STAGES for s in stage}
+        stages = [*STOP_STAGES, tuple(s for s in self.procs if s not in staged)]
+        codes: dict[str, int | None] = {}
+        for stage in stages:
+            codes.update(self._stop_together(stage, timeout))
         for out in self._logs.values():
             out.close()
         return codes

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,34 +70,53 @@ class ChatClient:
             body["tools"] = tools
         where = ep.shown_url
         try:
-            response = self._http.post(ep.chat_url, json=body)
+            status, content_type, raw = self._post(body)
         except httpx.TimeoutException:
             raise self._fail(f"the LLM endpoint {where} did not answer within {ep.timeout:g} s") from None
         except httpx.ConnectError as exc:
             raise self._fail(f"cannot connect to the LLM endpoint {where}: {exc}") from None
         except httpx.HTTPError as exc:
             raise self._fail(f"the request to the LLM endpoint {where} failed: {type(exc).__name__}: {exc}") from None
-        raw = response.content
-        if response.status_code >= 400:
+        if status >= 400:
             detail = error_detail(raw)
             hint = ""
-            if response.status_code in (401, 403):
+            if status in (401, 403):
                 hint = (
                     f" (check the API key in ${ep.key_source})"
                     if ep.key_source
                     else " (no API key was sent: set TETHER_LLM_API_KEY or [planner] api_key_env)"
                 )
-            raise self._fail(f"the LLM endpoint {where} answered HTTP {response.status_code}{hint}: {detail}")
-        if len(raw) > ep.max_reply_bytes:
-            raise self._fail(f"the LLM endpoint {where} answered {len(raw)} bytes; the limit is {ep.max_reply_bytes}")
+            raise self._fail(f"the LLM endpoint {where} answered HTTP {status}{hint}: {detail}")
         try:
             data = json.loads(raw)
         except (ValueError, UnicodeDecodeError, RecursionError):  # RecursionError: nested too deep to be a reply
-            kind = response.headers.get("content-type", "no content type")
             raise self._fail(
-                f"the LLM endpoint {where} answered with something that is not JSON ({kind}): {snippet(raw)}"
+                f"the LLM endpoint {where} answered with something that is not JSON ({content_type}): {snippet(raw)}"
             ) from None
         return self._scrubbed_reply(parse_completion(data, where))
+
+    def _post(self, body: dict[str, Any]) -> tuple[int, str, bytes]:
+        """Status, content type and body. The body is read as it comes and refused once it passes
+        max_reply_bytes, or once the whole answer has taken longer than the timeout, checked as bytes
+        arrive (httpx's timeout is per read: an endpoint sending a byte at a time would never reach
+        it). A silent endpoint fails on httpx's read timeout, so a call ends within twice the timeout."""
+        ep = self.endpoint
+        deadline = time.monotonic() + ep.timeout
+        with self._http.stream("POST", ep.chat_url, json=body) as response:
+            chunks: list[bytes] = []
+            size = 0
+            for chunk in response.iter_bytes():
+                size += len(chunk)
+                if size > ep.max_reply_bytes:
+                    raise self._fail(
+                        f"the LLM endpoint {ep.shown_url} answered more than {ep.max_reply_bytes} bytes (the limit)"
+                    )
+                if time.monotonic() > deadline:
+                    raise httpx.ReadTimeout("the answer did not end within the timeout")
+                chunks.append(chunk)
+            if time.monotonic() > deadline:
+                raise httpx.ReadTimeout("the answer did not end within the timeout")
+            return response.status_code, response.headers.get("content-type", "no content type"), b"".join(chunks)
 
     def _scrubbed_reply(self, reply: ChatReply) -> ChatReply:
         # A model that echoes its own Authorization header must not get the key into a recording.

@@ -5,11 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.patches import Polygon as PolygonPatch
 from shapely.geometry import Point, Polygon
 
 from schemas import keys
@@ -19,6 +16,10 @@ from schemas.world import KeepOut, PerceivedHumans, World
 from services.recorder.reader import RecordingFile
 from services.recorder.timeline import Row, Undecodable, decode
 from services.worldmodel import WorldModel, wall_shape
+
+if TYPE_CHECKING:  # matplotlib is imported when a map is drawn: the CLI starts without it
+    from matplotlib.axes import Axes
+    from matplotlib.patches import Polygon as PolygonPatch
 
 # Positions closer than this are one point on the map (metres): a person standing still, two vetoes
 # of the same goal.
@@ -142,6 +143,9 @@ def draw_map(
     people = [p for seen in track.people.values() for p in seen]
     x0, x1, y0, y1 = _bounds(world, keep_out, track.path + marks + people)
     height = min(max(WIDTH * (y1 - y0) / max(x1 - x0, 1e-6), HEIGHT_RANGE[0]), HEIGHT_RANGE[1])
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     figure = Figure(figsize=(WIDTH, height), dpi=DPI)
     FigureCanvasAgg(figure)
     ax = figure.add_subplot()
@@ -215,6 +219,8 @@ def _draw_people(ax: Axes, people: dict[str, list[tuple[float, float]]]) -> None
 def _patch(
     shape: Polygon, face: object, edge: str = "none", alpha: float | None = None, **kwargs: object
 ) -> PolygonPatch:
+    from matplotlib.patches import Polygon as PolygonPatch
+
     return PolygonPatch(list(shape.exterior.coords), closed=True, facecolor=face, edgecolor=edge, alpha=alpha, **kwargs)
 
 

@@ -80,8 +80,18 @@ class Provenance:
         return [(n, s) for n, s in ((WORLD_ATTACHMENT, self.world), (POLICY_ATTACHMENT, self.policy)) if s is not None]
 
 
+_SCHEMAS: dict[Any, tuple[str, bytes]] = {}
+
+
 def json_schema(type_: Any) -> tuple[str, bytes]:
     """The schema name and JSON Schema document for a message type, its root inlined for viewers."""
+    known = _SCHEMAS.get(type_)
+    if known is None:
+        known = _SCHEMAS[type_] = _make_json_schema(type_)
+    return known
+
+
+def _make_json_schema(type_: Any) -> tuple[str, bytes]:
     document: dict[str, Any] = msgspec.json.schema(type_)
     defs: dict[str, Any] = document.get("$defs", {})
     ref = document.get("$ref", "")
@@ -130,6 +140,10 @@ class Recording:
         self.finished = False
         self._size_at_finish = 0
         self._writer.start(profile=PROFILE, library=LIBRARY)
+        # Every known schema made now, not on a key's first message: a burst of work on the
+        # receiving thread there would delay that message and the ones queued behind it.
+        for topic in keys.TOPICS:
+            json_schema(topic.type)
         provenance = provenance or Provenance(robot)
         self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part))
         for name, source in provenance.attachments():

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Generator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+import lz4.frame
+import zstandard
+from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
 from schemas import keys
@@ -92,10 +94,51 @@ class RecordingFile:
         return (self.messages[-1].log_time - self.messages[0].log_time) / 1e9
 
 
+class ChunkError(Exception):
+    """A chunk whose contents are not what its header declares."""
+
+
+def _unpack(chunk: Chunk) -> bytes:
+    """A chunk's records, decompressed into at most the size its header declares (itself at most
+    RECORD_SIZE_LIMIT), with a zstd window no bigger than a frame of that size needs: a hostile chunk
+    cannot make the reader allocate much more than that."""
+    size = chunk.uncompressed_size
+    if size > RECORD_SIZE_LIMIT:
+        raise ChunkError(f"a chunk declares {size} bytes uncompressed, more than {RECORD_SIZE_LIMIT}")
+    if chunk.compression == "zstd":
+        window = 1 << max(20, (size - 1).bit_length())  # a frame never needs a window beyond its size
+        parts: list[bytes] = []
+        wanted = size + 1  # one byte more than declared tells a chunk that holds more
+        try:
+            with zstandard.ZstdDecompressor(max_window_size=window).stream_reader(chunk.data) as reader:
+                while wanted > 0 and (part := reader.read(wanted)):
+                    parts.append(part)
+                    wanted -= len(part)
+        except zstandard.ZstdError as exc:
+            raise ChunkError(f"a chunk declares {size} bytes uncompressed and its data does not fit: {exc}") from None
+        data = b"".join(parts)
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ChunkError(f"a chunk is compressed with {chunk.compression!r}, which tether does not write")
+    if len(data) > size:
+        raise ChunkError(f"a chunk declares {size} bytes uncompressed and holds more")
+    if len(data) < size:
+        raise ChunkError(f"a chunk declares {size} bytes uncompressed and holds {len(data)}")
+    return data
+
+
 def _records(path: Path) -> Generator[Any, None, None]:
     with path.open("rb") as stream:
         # CRCs checked: a chunk damaged on disk ends the reading rather than passing as whole.
-        yield from StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT).records
+        reader = StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT, emit_chunks=True)
+        for record in reader.records:
+            if isinstance(record, Chunk):
+                yield from breakup_chunk(replace(record, compression="", data=_unpack(record)), validate_crc=True)
+            else:
+                yield record
 
 
 def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> RecordingFile:
@@ -144,7 +187,10 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
         if not recording.channels and not recording.metadata:
             why = str(exc) or type(exc).__name__
             raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {why}") from None
-        recording.problem = "the file ends early (a crash?): read up to the last whole chunk"
+        if isinstance(exc, ChunkError):
+            recording.problem = f"reading stopped at a chunk that cannot be trusted: {exc}"
+        else:
+            recording.problem = "the file ends early (a crash?): read up to the last whole chunk"
         log.debug("%s: reading stopped at %s: %s", path, type(exc).__name__, exc)
     finally:
         records.close()

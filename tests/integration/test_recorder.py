@@ -232,10 +232,14 @@ def test_replay_reproduces_order_and_timing_under_another_robot_name(incident: I
     assert [(m.key.replace(f"/{target}/", f"/{stack.settings.robot}/", 1), m.data) for m in replayed] == [
         (m.key, m.data) for m in original
     ]
+    # Each message's offset from its place on the recorded clock at 5x, measured from the median offset (so
+    # a late first message does not shift every other one). A stall on either side shows as a run of late
+    # messages catching up: the recorder once stalled ~100 ms making a new key's schema on its first message.
     t0, r0 = original[0].log_time, replayed[0].log_time
-    errors = [abs((r.log_time - r0) - (o.log_time - t0) / 5) / 1e6 for o, r in zip(original, replayed, strict=True)]
+    offsets = [((r.log_time - r0) - (o.log_time - t0) / 5) / 1e6 for o, r in zip(original, replayed, strict=True)]
+    errors = sorted(abs(offset - statistics.median(offsets)) for offset in offsets)
     assert statistics.median(errors) < 20.0, f"median timing error {statistics.median(errors):.1f} ms"
-    assert sorted(errors)[int(len(errors) * 0.99)] < 100.0, f"p99 timing error {max(errors):.1f} ms"
+    assert errors[int(len(errors) * 0.99)] < 100.0, f"p99 timing error {errors[int(len(errors) * 0.99)]:.1f} ms"
 
 
 def test_replaying_onto_the_live_robot_needs_a_flag_and_goes_through_safety(incident: Incident) -> None:

@@ -11,11 +11,13 @@ import pytest
 
 from schemas import keys
 from schemas.actions import GetResult, GoalState
-from schemas.common import Pose2D
+from schemas.common import Pose2D, Stage
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
 from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
 from services.runtime import CallError, Node, NodeSettings
 from tests.sessions import free_port
+from tether.client import PlanSender
 
 WAIT = 5.0
 HERE = Pose2D(x=1.0, y=2.0)
@@ -149,3 +151,31 @@ def test_a_goal_that_moves_nothing_runs_beside_the_running_one_and_preempts_noth
     rig.script.release.set()
     assert first.result(WAIT).state is GoalState.SUCCEEDED
     assert beside.result(WAIT).state is GoalState.SUCCEEDED
+
+
+def test_a_plan_sender_hears_only_its_own_plans_and_keeps_nothing_once_they_end() -> None:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    release = threading.Event()
+
+    def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
+        handle.feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, message=handle.goal.text))
+        release.wait(WAIT)
+        return Outcome(GoalState.SUCCEEDED, ExecutePlanResult(status=PlanStatus.SUCCEEDED, stage=Stage.EXECUTE))
+
+    with Node("executor", settings) as server_node, Node("test", settings) as client_node:
+        ActionServer(server_node, keys.EXECUTE_PLAN, execute, concurrent=lambda goal: True)
+        server_node.declare_alive()
+        assert not client_node.wait_alive({"executor"}, WAIT), "the two sessions did not find each other"
+        heard: dict[str, list[ExecutePlanFeedback]] = {"a": [], "b": []}
+        senders = {name: PlanSender(client_node, heard[name].append) for name in heard}
+        handles = {name: sender.send(ExecutePlanGoal(text=name)) for name, sender in senders.items()}
+        for name, sender in senders.items():
+            started = sender.wait(handles[name], WAIT, until_started=True)
+            assert started.result is None and [fb.message for fb in started.feedback] == [name]
+            assert sender.following() == [handles[name].goal_id]
+        release.set()
+        for name, sender in senders.items():
+            ended = sender.wait(handles[name], WAIT)
+            assert ended.result is not None and ended.result.status is PlanStatus.SUCCEEDED
+            assert sender.following() == [], "a sender kept a plan that ended"
+        assert {name: [fb.message for fb in fbs] for name, fbs in heard.items()} == {"a": ["a"], "b": ["b"]}

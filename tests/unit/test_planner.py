@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Iterator
 from typing import Any
 
 import httpx2 as httpx
@@ -272,3 +274,38 @@ def test_timeouts_and_unreachable_endpoints_are_named(error: Exception, message:
     with pytest.raises(LLMError, match=message) as caught:
         ChatClient(ep, transport=httpx.MockTransport(handler)).chat([])
     assert KEY not in str(caught.value)
+
+
+def streaming_client(chunks: Any, timeout: float = 60.0) -> ChatClient:
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(200, content=chunks, headers={"content-type": "application/json"})
+
+    ep = resolve_endpoint(PlannerConfig(url="http://llm.test/v1", model="m", timeout=timeout), {})
+    assert ep is not None
+    return ChatClient(ep, transport=httpx.MockTransport(handler))
+
+
+def test_an_answer_past_the_size_limit_is_refused_before_the_rest_is_read() -> None:
+    sent: list[int] = []
+
+    def endless() -> Iterator[bytes]:
+        block = b" " * 65536
+        for _ in range(1000):  # 64 MiB, the limit is 1 MiB
+            sent.append(len(block))
+            yield block
+
+    with pytest.raises(LLMError, match=r"more than 1048576 bytes"):
+        streaming_client(endless()).chat([])
+    assert sum(sent) <= 1024 * 1024 + 65536, f"{sum(sent)} bytes were read"
+
+
+def test_an_answer_that_trickles_in_ends_at_the_timeout() -> None:
+    def trickle() -> Iterator[bytes]:
+        for _ in range(200):  # 10 s at one byte every 50 ms; each read is well within the timeout
+            time.sleep(0.05)
+            yield b" "
+
+    begun = time.monotonic()
+    with pytest.raises(LLMError, match=r"did not answer within 0.5 s"):
+        streaming_client(trickle(), timeout=0.5).chat([])
+    assert time.monotonic() - begun < 3.0

@@ -5,11 +5,16 @@ from __future__ import annotations
 import json
 import random
 import threading
+import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
 import pytest
+import zstandard
+from mcap.data_stream import RecordBuilder
 from mcap.reader import make_reader
+from mcap.records import Chunk
 
 from schemas import keys
 from schemas.actions import CANCEL_ALL, CancelGoal, GoalResponse, SendGoal
@@ -19,7 +24,7 @@ from schemas.safety import Decision, EstopState, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from services.recorder.config import RecorderConfig
 from services.recorder.mcapfile import Provenance, Recording, SourceFile
-from services.recorder.reader import Recorded, RecordingError, read_recording, recover
+from services.recorder.reader import RECORD_SIZE_LIMIT, Recorded, RecordingError, read_recording, recover
 from services.recorder.recorder import Recorder
 from services.recorder.replay import Kind, default_target, plan_replay
 from services.runtime import encode
@@ -385,6 +390,50 @@ def test_a_chunk_damaged_on_disk_ends_the_reading_there(tmp_path: Path) -> None:
 
     assert not recording.complete and recording.problem
     assert [json.loads(m.data)["i"] for m in recording.messages] == list(range(200))
+
+
+def zeros_frame(size: int) -> bytes:
+    """A zstd frame of `size` zero bytes that does not say its size: tens of kilobytes on disk."""
+    compressor = zstandard.ZstdCompressor().compressobj()
+    block = bytes(1 << 20)
+    return b"".join(compressor.compress(block) for _ in range(size >> 20)) + compressor.flush()
+
+
+def zeros_frame_saying_its_size(size: int) -> bytes:
+    """A zstd frame of `size` zero bytes whose header says so, as the mcap writer makes them."""
+    return zstandard.ZstdCompressor().compress(bytes(size))
+
+
+@pytest.mark.parametrize(
+    ("frame", "declared"),
+    [
+        (zeros_frame, 1 << 20),
+        (zeros_frame_saying_its_size, 1 << 20),
+        (zeros_frame, RECORD_SIZE_LIMIT + 1),
+    ],
+    ids=["understated", "understated_sized_frame", "too_large"],
+)
+def test_a_chunk_that_would_decompress_into_too_much_memory_ends_the_reading(
+    tmp_path: Path, frame: Callable[[int], bytes], declared: int
+) -> None:
+    full = tmp_path / "full.mcap"
+    sizes = write_flushed(full, 200)
+    bomb = RecordBuilder()
+    data = frame(64 << 20)
+    Chunk("zstd", data, 0, 0, 0, declared).write(bomb)
+    hostile = tmp_path / "hostile.mcap"
+    hostile.write_bytes(full.read_bytes()[: sizes[0]] + bomb.end())
+
+    tracemalloc.start()
+    try:
+        recording = read_recording(hostile)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+
+    assert not recording.complete and "declares" in recording.problem
+    assert [json.loads(m.data)["i"] for m in recording.messages] == list(range(100))
+    assert peak < 16 << 20, f"reading held {peak >> 20} MiB for a {len(data)}-byte chunk"
 
 
 def test_a_live_replay_passes_a_cancel_of_everything_on() -> None:
