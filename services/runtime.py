@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import functools
 import logging
 import os
@@ -401,6 +402,11 @@ class Node:
         self.close()
 
 
+# Sent by the supervisor to a service that did not stop in time, just before SIGKILL: every thread's
+# stack goes to stderr (the service's log), which says where it was stuck.
+DUMP_STACKS = signal.SIGUSR1
+
+
 def stop_event() -> threading.Event:
     """An event set by SIGINT or SIGTERM, for a service's main loop to wait on."""
     stop = threading.Event()
@@ -411,6 +417,7 @@ def stop_event() -> threading.Event:
 
     signal.signal(signal.SIGINT, handle)
     signal.signal(signal.SIGTERM, handle)
+    faulthandler.register(DUMP_STACKS, all_threads=True)
     return stop
 
 

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import IO
 
-from services.runtime import SERVICES, NodeSettings
+from services.runtime import DUMP_STACKS, SERVICES, NodeSettings
 
 log = logging.getLogger(__name__)
 
@@ -22,6 +22,8 @@ log = logging.getLogger(__name__)
 # the robot so its watchdog never sees a robot vanish mid-motion (the robot stops on the missing
 # heartbeat); the recorder hears it all.
 STOP_STAGES = (("planner",), ("executor", "parser", "resolver"), ("safety",), ("sim",), ("recorder",))
+# How long a service that did not stop gets to write its stacks before it is killed.
+STACK_DUMP_WAIT = 0.5
 # Stacks for tests and benchmarks listen on ports from here up to the kernel's range for outgoing
 # connections. Not inside that range: there one of the sessions' own outgoing sockets could take a
 # port between the check and the listen, and a service would fail to start.
@@ -123,8 +125,11 @@ class Supervisor:
             try:
                 proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.0f s; killing it", service, timeout)
+                log.warning("%s did not stop within %.0f s; killing it (its stacks are in its log)", service, timeout)
                 with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, DUMP_STACKS)
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        proc.wait(timeout=STACK_DUMP_WAIT)
                     os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait(timeout=10)
         return {service: proc.returncode for service, proc in procs.items()}
