@@ -26,6 +26,7 @@ from services.recorder.recorder import Recorder
 from services.recorder.replay import REPLAY_SUFFIX, Item, Kind, ReplayPlan, default_target, is_replay_name, plan_replay
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
+from services.worldmodel import WorldFileError, load_world
 
 console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
 QUERY_TIMEOUT = 5.0
@@ -283,6 +284,10 @@ def recheck_command(
     policy: Annotated[
         Path | None, typer.Option("--policy", help="The policy to check with. Default: the one kept in the recording.")
     ] = None,
+    world_name: Annotated[
+        str | None,
+        typer.Option("--world", help="The world to check in when the recording has none (a file or a bundled name)."),
+    ] = None,
     show_all: Annotated[bool, typer.Option("--all", help="List every rechecked command, not only changes.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
@@ -295,10 +300,18 @@ def recheck_command(
     if policy is not None and not policy.is_file():
         fail(f"policy file {policy} does not exist")
     try:
-        world = recorded_world(recording)
+        if recording.world is None and world_name is not None:
+            console.print(f"{file} carries no world file: checking in {world_name}")
+            world = load_world(world_name)
+        elif recording.world is None:
+            fail(f"{file} carries no world file (recorded without one); give one with --world")
+        else:
+            world = recorded_world(recording)
         safety = recorded_policy(recording, world, policy)
     except RecordingError as exc:
         fail(str(exc))
+    except WorldFileError as exc:
+        fail(f"--world {world_name}: {exc}")
     robot = recording.robot
     root = keys.prefix(robot) + "/"
     messages = (

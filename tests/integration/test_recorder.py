@@ -29,6 +29,7 @@ from schemas.safety import Decision, EstopSource, Rule, SafetyEvent
 from schemas.trace import RecorderStatus
 from schemas.world import Empty
 from services.actionlib import ActionClient, GoalRejected
+from services.recorder.mcapfile import Provenance, Recording, SourceFile
 from services.recorder.reader import read_recording
 from services.runtime import Node, NodeSettings, encode
 from services.safety.policyfile import DEFAULT_POLICY
@@ -159,6 +160,24 @@ def test_recheck_with_the_recorded_policy_reports_no_difference(incident: Incide
     vetoed = [d for d in decisions if d["recorded"] == "vetoed"]
     assert len(vetoed) == 2 and {d["now_rule"] for d in vetoed} == {Rule.KEEP_OUT, Rule.BASE_SPEED}
     assert report["skipped"] == {"refused for the e-stop": 1}
+
+
+def test_recheck_of_a_file_without_a_world_asks_for_one_and_checks_in_the_world_given(
+    incident: Incident, tmp_path: Path
+) -> None:
+    recorded = read_recording(incident.file)
+    bare = tmp_path / "no_world.mcap"
+    policy_only = Provenance(recorded.robot, policy=SourceFile.read(DEFAULT_POLICY))
+    copy = Recording(bare, recorded.robot, provenance=policy_only)
+    for message in recorded.messages:
+        copy.record(message.key, message.data, log_time=message.log_time)
+    copy.finish()
+    asked = tether_cli(incident.stack, "recheck", str(bare), "--json")
+    assert asked.returncode == 2 and "carries no world file" in asked.stderr and "--world" in asked.stderr
+    done = tether_cli(incident.stack, "recheck", str(bare), "--json", "--world", "household")
+    assert done.returncode == 0, done.stderr
+    _, with_recorded_world = recheck(incident)
+    assert json.loads(done.stdout)["checked"] == with_recorded_world["checked"] > 0
 
 
 def test_recheck_with_a_tightened_policy_lists_what_would_now_be_vetoed(incident: Incident, tmp_path: Path) -> None:
