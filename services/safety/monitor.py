@@ -113,19 +113,27 @@ class PeopleReports:
             return [person for _, people in self._reports for person in people]
 
 
-def separation(nearest: tuple[float, Person] | None, seen: bool, policy: HumanPolicy) -> Separation:
+def separation(
+    nearest: tuple[float, Person] | None, seen: bool, policy: HumanPolicy, current: float = 1.0
+) -> Separation:
     """Speed and separation: full speed beyond D, reduced inside, paused inside d. People not
-    reported recently (`seen` False) may be anywhere: reduced speed."""
+    reported recently (`seen` False) may be anywhere: reduced speed.
+
+    A stricter scale applies at once; a looser one only once the person is `release_margin` beyond
+    the boundary (`current` is the scale in force), so a person standing at D does not flip the
+    robot between two speeds with every report."""
     if not seen:
         return Separation(policy.reduced_speed_scale, "no recent report of where people are: reduced speed")
     if nearest is None:
         return Separation(1.0, "")
     distance, person = nearest
-    if distance <= policy.stop_distance:
-        why = f"{person.name} is {distance:.2f} m away, within {policy.stop_distance:g} m: paused"
+    stop_at = policy.stop_distance + (policy.release_margin if current <= 0.0 else 0.0)
+    slow_at = policy.slow_distance + (policy.release_margin if current < 1.0 else 0.0)
+    if distance <= stop_at:
+        why = f"{person.name} is {distance:.2f} m away, within {stop_at:g} m: paused"
         return Separation(0.0, why, distance, person.name)
-    if distance <= policy.slow_distance:
-        why = f"{person.name} is {distance:.2f} m away, within {policy.slow_distance:g} m: reduced speed"
+    if distance <= slow_at:
+        why = f"{person.name} is {distance:.2f} m away, within {slow_at:g} m: reduced speed"
         return Separation(policy.reduced_speed_scale, why, distance, person.name)
     return Separation(1.0, "", distance, person.name)
 

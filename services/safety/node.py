@@ -206,7 +206,7 @@ class SafetyNode:
         else:
             size = self.policy.world.world.robot.base_size
             nearest = nearest_person(pose, (size.x, size.y), self.hand(pose), people, humans.person_radius)
-            found = separation(nearest, True, humans)
+            found = separation(nearest, True, humans, self._separation.scale)
         self._set_separation(found)
 
     def _set_separation(self, found: Separation) -> None:

@@ -90,7 +90,8 @@ class GripperPolicy(Section):
 class HumanPolicy(Section):
     """Speed and separation: full speed beyond `slow_distance` (D), `reduced_speed_scale` of it inside,
     stopped inside `stop_distance` (d). Distances from the base's footprint or the end effector,
-    whichever is nearer, to the person's body (`person_radius` around where they stand)."""
+    whichever is nearer, to the person's body (`person_radius` around where they stand). A tighter
+    scale applies at once, a looser one only `release_margin` beyond the boundary."""
 
     slow_distance: Annotated[float, Meta(gt=0.0, le=20.0)]  # m
     stop_distance: Annotated[float, Meta(ge=0.0, le=20.0)]  # m
@@ -99,6 +100,8 @@ class HumanPolicy(Section):
     person_radius: Annotated[float, Meta(ge=0.0, le=2.0)] = 0.2  # m
     # With no report of people for this long, someone may be near: reduced speed.
     unseen_after: Annotated[float, Meta(gt=0.0, le=60.0)] = 1.0  # s
+    # Back to a looser scale only this far beyond the boundary that tightened it.
+    release_margin: Annotated[float, Meta(ge=0.0, le=2.0)] = 0.1  # m
 
 
 class RatePolicy(Section):

@@ -161,6 +161,30 @@ def test_the_speed_scale_at_each_separation_boundary(distance: float, scale: flo
         assert ("paused" if scale == 0.0 else "reduced speed") in verdict.reason
 
 
+def test_a_looser_scale_waits_for_the_release_margin_and_a_stricter_one_does_not() -> None:
+    person = Person("operator", 0.0, 0.0)
+    margin = HUMANS.release_margin
+    assert margin > 2 * EPS
+    reduced, full = HUMANS.reduced_speed_scale, 1.0
+    steps = [
+        # (distance, scale in force, scale now)
+        (HUMANS.slow_distance - EPS, full, reduced),  # tighter at once
+        (HUMANS.slow_distance + EPS, reduced, reduced),  # stepped back past D: not yet
+        (HUMANS.slow_distance + margin - EPS, reduced, reduced),
+        (HUMANS.slow_distance + margin + EPS, reduced, full),  # past the margin
+        (HUMANS.slow_distance + EPS, full, full),  # from full speed, D itself counts again
+        (HUMANS.stop_distance - EPS, reduced, 0.0),
+        (HUMANS.stop_distance + EPS, 0.0, 0.0),  # paused until the margin beyond d
+        (HUMANS.stop_distance + margin + EPS, 0.0, reduced),
+        (HUMANS.stop_distance - EPS, full, 0.0),  # from full speed straight to paused
+    ]
+    for distance, current, expected in steps:
+        verdict = separation((distance, person), True, HUMANS, current)
+        assert verdict.scale == expected, f"{distance:.3f} m from {current}: {verdict}"
+    held = separation((HUMANS.slow_distance + EPS, person), True, HUMANS, reduced)
+    assert f"within {HUMANS.slow_distance + margin:g} m" in held.reason
+
+
 def test_with_no_recent_report_of_people_the_speed_is_reduced_wherever_they_were() -> None:
     far = (HUMANS.slow_distance + 10.0, Person("operator", 20.0, 0.0))
     for nearest in (far, None):

@@ -23,11 +23,13 @@ from schemas.robot import (
     Odometry,
     TrajectoryPoint,
 )
+from schemas.world import PerceivedHuman, PerceivedHumans
 from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
 from services.robotmodel import ArmModel
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
 from services.safety.latch import EstopLatch
+from services.safety.monitor import Separation
 from services.safety.node import SafetyNode
 from services.safety.policy import START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import load_policy
@@ -114,3 +116,31 @@ def test_a_goal_that_really_starts_away_from_the_arm_is_still_refused(rig: Rig) 
     measured_when_safety_asks(rig, HOME)
     with pytest.raises(GoalRejected, match=r"point 0: panda_joint2 would jump 0\.100 rad at once"):
         rig.client.send(from_here_to(elsewhere))
+
+
+def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_d(rig: Rig) -> None:
+    humans = rig.safety.policy.policy.humans
+    here = Pose2D(x=6.0, y=1.2)
+    front = WORLD.robot.base_size.x / 2
+
+    def stand(gap: float) -> Separation:
+        """The operator `gap` from the base's front edge, reported (with fresh odometry) until every
+        report safety still counts puts them there."""
+        body = here.x + front + humans.person_radius + gap
+        operator = PerceivedHuman(id="operator", name="operator", pose=Pose2D(x=body, y=here.y))
+        deadline = time.monotonic() + WAIT
+        while True:
+            rig.robot.publish(
+                keys.ODOM, Odometry(stamp=time.time(), sim_time=0.0, pose=here, linear_x=0.0, angular_z=0.0)
+            )
+            rig.robot.publish(keys.HUMANS, PerceivedHumans(stamp=time.time(), humans=[operator]))
+            found = rig.safety._separation
+            if found.distance is not None and abs(found.distance - gap) < 1e-6:
+                return found
+            assert time.monotonic() < deadline, f"safety never saw the operator {gap} m away: {found}"
+            time.sleep(0.02)
+
+    reduced = humans.reduced_speed_scale
+    assert stand(humans.slow_distance - 0.05).scale == reduced
+    assert stand(humans.slow_distance + humans.release_margin / 2).scale == reduced, "the speed went up too soon"
+    assert stand(humans.slow_distance + humans.release_margin + 0.05).scale == 1.0
