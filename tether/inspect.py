@@ -19,7 +19,7 @@ from services.recorder.reader import RecordingError, RecordingFile
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.timeline import Level, RobotState, Row, Timeline, build_timeline
 from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
-from tether.recordings import console, fail, key_matcher, open_recording
+from tether.recordings import FilesArg, console, fail, key_matcher, open_recording
 
 out = Console()
 
@@ -30,7 +30,7 @@ LEVEL_STYLES = {Level.INFO: "", Level.GOOD: "green", Level.WARN: "yellow", Level
 
 
 def inspect(
-    file: Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)],
+    files: FilesArg,
     png: Annotated[
         Path | None, typer.Option("--png", help="Also draw a top-down map of the run into this PNG file.")
     ] = None,
@@ -60,7 +60,7 @@ def inspect(
 
     Exit 0; 2 for a missing or non-MCAP file. A file cut short is inspected as far as it is whole.
     """
-    recording = open_recording(file)
+    recording = open_recording(files)
     timeline = build_timeline(recording, everything)
     rows = timeline.rows
     if key_expr is not None:
@@ -84,7 +84,7 @@ def select(rows: list[Row], robot: str, expr: str) -> list[Row]:
 def write_map(png: Path, recording: RecordingFile, timeline: Timeline, world_name: str | None) -> None:
     world, keep_out = map_world(recording, world_name)
     robot = recording.robot or "unknown"
-    title = f"{recording.path.name} — robot {robot}" + ("" if world is not None else " (no world file)")
+    title = f"{recording.name} — robot {robot}" + ("" if world is not None else " (no world file)")
     try:
         draw_map(
             png,
@@ -124,6 +124,7 @@ def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World |
 def as_document(recording: RecordingFile, timeline: Timeline, rows: list[Row]) -> dict[str, Any]:
     return {
         "file": str(recording.path),
+        "parts": [str(part) for part in recording.parts or [recording.path]],
         "robot": recording.robot,
         "complete": recording.complete,
         "problem": recording.problem,
@@ -157,7 +158,7 @@ def _safety(state: RobotState) -> Text:
 
 def table(recording: RecordingFile, timeline: Timeline, rows: list[Row], width: int) -> Table:
     """The rows with the robot's state at each; the key column only when there is room for it."""
-    where = f"{recording.path.name}: robot {recording.robot or '?'}, {timeline.duration:.1f} s, "
+    where = f"{recording.name}: robot {recording.robot or '?'}, {timeline.duration:.1f} s, "
     where += f"{timeline.messages} messages, {len(rows)} rows"
     result = Table(title=where, title_justify="left")
     result.add_column("t (s)", justify="right", no_wrap=True)

@@ -20,7 +20,7 @@ from schemas.robot import Twist
 from services.recorder.config import RecorderConfig
 from services.recorder.main import provenance
 from services.recorder.node import bind
-from services.recorder.reader import RecordingError, RecordingFile, read_recording, recover
+from services.recorder.reader import RecordingError, RecordingFile, join_recordings, read_recording, recover
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.recorder import Recorder
 from services.recorder.replay import REPLAY_SUFFIX, Item, Kind, ReplayPlan, default_target, is_replay_name, plan_replay
@@ -32,6 +32,10 @@ console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay w
 QUERY_TIMEOUT = 5.0
 
 FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
+FilesArg = Annotated[
+    list[Path],
+    typer.Argument(help="An MCAP recording, or the parts of a rotated one (in any order).", show_default=False),
+]
 KeysOpt = Annotated[
     str | None,
     typer.Option(
@@ -75,21 +79,24 @@ def key_matcher(robot: str, expr: str) -> Callable[[str], bool]:
     return match
 
 
-def open_recording(file: Path, expr: str | None = None, robot: str | None = None) -> RecordingFile:
-    """The recording, with the messages `expr` selects; errors exit 2; a cut file is noted."""
+def open_recording(files: list[Path], expr: str | None = None, robot: str | None = None) -> RecordingFile:
+    """The recording (the parts of a rotated one, joined), with the messages `expr` selects; errors
+    exit 2; a cut file is noted."""
     try:
-        recording = read_recording(file)
+        parts = [read_recording(file) for file in files]
+        recording = join_recordings(parts)
     except RecordingError as exc:
         fail(str(exc))
     if expr is not None:
         match = key_matcher(robot or recording.robot, expr)
         recording.messages = [m for m in recording.messages if match(m.key)]
-    if not recording.complete:
-        console.print(
-            f"[yellow]{file} was cut short: {recording.problem}; read as far as it is whole "
-            "(`tether recover` writes a complete copy)[/]",
-            highlight=False,
-        )
+    for part in parts:
+        if not part.complete:
+            console.print(
+                f"[yellow]{part.path} was cut short: {part.problem}; read as far as it is whole "
+                "(`tether recover` writes a complete copy)[/]",
+                highlight=False,
+            )
     return recording
 
 
@@ -156,7 +163,7 @@ def _left(duration: float | None, started: float) -> float:
 
 def replay(
     ctx: typer.Context,
-    file: FileArg,
+    files: FilesArg,
     speed: Annotated[float, typer.Option(help="Playback speed: 2 is twice as fast.")] = 1.0,
     key_expr: KeysOpt = None,
     to: Annotated[
@@ -173,7 +180,7 @@ def replay(
     """Publish a recording again with its original timing, under a separate robot name by default."""
     if not 0.01 <= speed <= 1000:
         fail(f"--speed must be between 0.01 and 1000, not {speed:g}")
-    recording = open_recording(file, key_expr)
+    recording = open_recording(files, key_expr)
     robot = recording.robot
     target = to or default_target(robot)
     try:
@@ -206,7 +213,7 @@ def replay(
         for why, count in plan.skipped.items():
             console.print(f"[dim]not replayed: {count} messages {why}[/]")
         console.print(
-            f"replaying {len(plan.items)} messages of {robot} from {file} as {target} at {speed:g}x "
+            f"replaying {len(plan.items)} messages of {robot} from {recording.name} as {target} at {speed:g}x "
             f"({plan.duration / speed:.1f} s)"
         )
         sent = Player(node).play(plan, speed)
@@ -280,7 +287,7 @@ class Player:
 
 
 def recheck_command(
-    file: FileArg,
+    files: FilesArg,
     policy: Annotated[
         Path | None, typer.Option("--policy", help="The policy to check with. Default: the one kept in the recording.")
     ] = None,
@@ -296,15 +303,16 @@ def recheck_command(
     Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), 2 on bad
     input or when nothing could be rechecked.
     """
-    recording = open_recording(file)
+    recording = open_recording(files)
+    name = recording.name
     if policy is not None and not policy.is_file():
         fail(f"policy file {policy} does not exist")
     try:
         if recording.world is None and world_name is not None:
-            console.print(f"{file} carries no world file: checking in {world_name}")
+            console.print(f"{name} carries no world file: checking in {world_name}")
             world = load_world(world_name)
         elif recording.world is None:
-            fail(f"{file} carries no world file (recorded without one); give one with --world")
+            fail(f"{name} carries no world file (recorded without one); give one with --world")
         else:
             world = recorded_world(recording)
         safety = recorded_policy(recording, world, policy)
@@ -322,19 +330,20 @@ def recheck_command(
     report = recheck(messages, safety, kept_hash if kept is not None else "")
     start = recording.messages[0].log_time / 1e9 if recording.messages else 0.0
     if as_json:
-        print(json.dumps(_report_json(report, file, start, show_all)))
+        print(json.dumps(_report_json(report, recording, start, show_all)))
     else:
-        _print_report(report, file, start, show_all, policy)
+        _print_report(report, name, start, show_all, policy)
     if not report.checked:
         # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing.
-        fail(f"nothing in {file} could be rechecked: it holds no safety decision with the robot's state before it")
+        fail(f"nothing in {name} could be rechecked: it holds no safety decision with the robot's state before it")
     raise typer.Exit(1 if report.differences else 0)
 
 
-def _report_json(report: RecheckReport, file: Path, start: float, show_all: bool) -> dict[str, Any]:
+def _report_json(report: RecheckReport, recording: RecordingFile, start: float, show_all: bool) -> dict[str, Any]:
     rows = report.checked if show_all else report.differences
     return {
-        "file": str(file),
+        "file": str(recording.path),
+        "parts": [str(part) for part in recording.parts or [recording.path]],
         "policy_hash": report.policy_hash,
         "checked": len(report.checked),
         "differ": len(report.differences),
@@ -356,7 +365,7 @@ def _report_json(report: RecheckReport, file: Path, start: float, show_all: bool
     }
 
 
-def _print_report(report: RecheckReport, file: Path, start: float, show_all: bool, policy: Path | None) -> None:
+def _print_report(report: RecheckReport, name: str, start: float, show_all: bool, policy: Path | None) -> None:
     for warning in report.warnings:
         console.print(f"[yellow]warning:[/] {warning}")
     rows = report.checked if show_all else report.differences
@@ -370,7 +379,7 @@ def _print_report(report: RecheckReport, file: Path, start: float, show_all: boo
     skipped = ", ".join(f"{n} {why}" for why, n in report.skipped.items())
     against = f"policy {policy}" if policy else "the recorded policy"
     console.print(
-        f"{file}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
+        f"{name}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
         f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else "")
     )
 

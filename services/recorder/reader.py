@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field, replace
@@ -53,6 +54,14 @@ class RecordingFile:
     channels: dict[int, Channel] = field(default_factory=dict)
     complete: bool = False
     problem: str = ""
+    # For parts of a rotated recording read as one (join_recordings): every file, in order.
+    parts: list[Path] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        """The file's name, or the first part's and how many follow."""
+        more = len(self.parts) - 1
+        return self.path.name + (f" (+{more} part{'s' if more > 1 else ''})" if more > 0 else "")
 
     @property
     def robot(self) -> str:
@@ -197,6 +206,58 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
     if not recording.complete and not recording.problem:
         recording.problem = "the file ends without its summary (a crash?)"
     return recording
+
+
+def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
+    """The parts of one rotated recording as one, in the order they were recorded (whatever order they
+    are given in). RecordingError if they are not parts of one run: other robots, other world or
+    policy files, or times that overlap. Metadata and files are the first part's (every part carries
+    them); `complete` only if every part is, and `problem` names the parts that are not."""
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        raise RecordingError("no recording given")
+
+    def began(part: RecordingFile) -> tuple[int, int]:
+        meta = part.metadata.get(METADATA_NAME, {})
+        first = part.messages[0].log_time if part.messages else 0
+        return int(meta.get("started_ns", first) or first), int(meta.get("part", 0) or 0)
+
+    try:
+        ordered = sorted(parts, key=began)
+    except ValueError:
+        raise RecordingError("a part's metadata has a start time or part number that is not a number") from None
+    first = ordered[0]
+    for later in ordered[1:]:
+        if later.robot != first.robot:
+            raise RecordingError(
+                f"{first.path.name} is of robot {first.robot!r} and {later.path.name} of {later.robot!r}: "
+                "not parts of one recording"
+            )
+        for kind in (WORLD_ATTACHMENT, POLICY_ATTACHMENT):
+            ours = first.metadata.get(METADATA_NAME, {}).get(f"{kind}_hash")
+            theirs = later.metadata.get(METADATA_NAME, {}).get(f"{kind}_hash")
+            if ours != theirs:
+                raise RecordingError(
+                    f"{first.path.name} and {later.path.name} were recorded with different {kind} files: "
+                    "not parts of one run; look at them one at a time"
+                )
+    for before, after in itertools.pairwise(ordered):
+        if before.messages and after.messages and after.messages[0].log_time < before.messages[-1].log_time:
+            raise RecordingError(
+                f"{before.path.name} and {after.path.name} overlap in time: parts of one recording follow one another"
+            )
+    return RecordingFile(
+        first.path,
+        messages=[m for part in ordered for m in part.messages],
+        metadata=first.metadata,
+        attachments=first.attachments,
+        schemas=first.schemas,
+        channels=first.channels,
+        complete=all(part.complete for part in ordered),
+        problem="; ".join(f"{part.path.name}: {part.problem}" for part in ordered if part.problem),
+        parts=[part.path for part in ordered],
+    )
 
 
 @dataclass(frozen=True)

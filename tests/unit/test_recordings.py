@@ -24,7 +24,15 @@ from schemas.safety import Decision, EstopState, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from services.recorder.config import RecorderConfig
 from services.recorder.mcapfile import Provenance, Recording, SourceFile
-from services.recorder.reader import RECORD_SIZE_LIMIT, Recorded, RecordingError, read_recording, recover
+from services.recorder.reader import (
+    RECORD_SIZE_LIMIT,
+    Recorded,
+    RecordingError,
+    RecordingFile,
+    join_recordings,
+    read_recording,
+    recover,
+)
 from services.recorder.recorder import Recorder
 from services.recorder.replay import Kind, default_target, plan_replay
 from services.runtime import encode
@@ -169,6 +177,26 @@ def test_recover_writes_a_complete_file_with_everything_that_was_whole(tmp_path:
         assert {m.name for m in reader.iter_metadata()} == {"tether"}
     with pytest.raises(RecordingError, match="new file"):
         recover(out, out)
+
+
+def test_parts_of_different_runs_are_not_joined_as_one(tmp_path: Path) -> None:
+    tighter = tmp_path / "tighter.toml"
+    tighter.write_text(DEFAULT_POLICY.read_text().replace("max_linear_speed = 0.6", "max_linear_speed = 0.3"))
+
+    def part(name: str, robot: str, policy: Path, at: int) -> RecordingFile:
+        recording = Recording(
+            tmp_path / name, robot, provenance=Provenance(robot, policy=SourceFile.read(policy)), clock=lambda: at
+        )
+        recording.record(f"{keys.prefix(robot)}/a", payload(0), log_time=at)
+        recording.finish()
+        return read_recording(tmp_path / name)
+
+    first = part("first.mcap", ROBOT, DEFAULT_POLICY, 1 * SECOND)
+    assert join_recordings([part("next.mcap", ROBOT, DEFAULT_POLICY, 2 * SECOND), first]).name == "first.mcap (+1 part)"
+    with pytest.raises(RecordingError, match="not parts of one recording"):
+        join_recordings([first, part("other.mcap", "r2", DEFAULT_POLICY, 2 * SECOND)])
+    with pytest.raises(RecordingError, match="different policy files"):
+        join_recordings([first, part("tighter.mcap", ROBOT, tighter, 2 * SECOND)])
 
 
 @pytest.mark.parametrize("content", [b"", b"not an mcap file at all", b"\x89MCAP0\r\n" + b"\xff" * 40])

@@ -440,3 +440,33 @@ def test_inspect_refuses_a_missing_or_non_mcap_file(
     result = CliRunner().invoke(cli, [str(path)])
     assert result.exit_code == 2
     assert said in flat(result.stderr)
+
+
+def split_in_two(source: Path, directory: Path) -> tuple[Path, Path]:
+    """The recording at `source` as the two parts a rotation would have written."""
+    messages = read_recording(source).messages
+    half = len(messages) // 2
+    paths = []
+    for n, chunk in enumerate((messages[:half], messages[half:])):
+        path = directory / f"part{n}.mcap"
+        began = chunk[0].log_time
+        part = Recording(path, ROBOT, provenance=household(), part=n, clock=lambda began=began: began)
+        for message in chunk:
+            part.record(message.key, message.data, log_time=message.log_time)
+        part.finish()
+        paths.append(path)
+    return paths[0], paths[1]
+
+
+def test_inspect_reads_the_parts_of_a_rotated_recording_as_one(
+    cli: typer.Typer, incident: Path, tmp_path: Path
+) -> None:
+    first, second = split_in_two(incident, tmp_path)
+    whole = CliRunner().invoke(cli, [str(incident), "--json"])
+    joined = CliRunner().invoke(cli, [str(second), str(first), "--json"])  # in any order
+    assert joined.exit_code == 0, joined.output
+    document = json.loads(joined.stdout)
+    assert document["parts"] == [str(first), str(second)]
+    assert document["rows"] == json.loads(whole.stdout)["rows"]
+    twice = CliRunner().invoke(cli, [str(first), str(first)])
+    assert twice.exit_code == 2 and "overlap in time" in flat(twice.stderr)
