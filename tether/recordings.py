@@ -34,7 +34,9 @@ QUERY_TIMEOUT = 5.0
 FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
 FilesArg = Annotated[
     list[Path],
-    typer.Argument(help="An MCAP recording, or the parts of a rotated one (in any order).", show_default=False),
+    typer.Argument(
+        help="An MCAP recording, or the parts of a rotated one (in any order).", show_default=False, metavar="FILE"
+    ),
 ]
 KeysOpt = Annotated[
     str | None,
