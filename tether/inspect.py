@@ -58,7 +58,8 @@ def inspect(
 
     Odometry, heartbeats and other fast streams only set each row's robot state, unless they change something.
 
-    Exit 0; 2 for a missing or non-MCAP file. A file cut short is inspected as far as it is whole.
+    Exit 0; 2 for a missing or non-MCAP file, or files that are not consecutive parts of one recording.
+    A file cut short is inspected as far as it is whole.
     """
     recording = open_recording(files)
     timeline = build_timeline(recording, everything)

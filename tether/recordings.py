@@ -310,14 +310,17 @@ def recheck_command(
     if policy is not None and not policy.is_file():
         fail(f"policy file {policy} does not exist")
     try:
+        label = "the recorded world"
         if recording.world is None and world_name is not None:
             console.print(f"{name} carries no world file: checking in {world_name}")
-            world = load_world(world_name)
+            world, label = load_world(world_name), f"the world {world_name}"
         elif recording.world is None:
             fail(f"{name} carries no world file (recorded without one); give one with --world")
         else:
+            if world_name is not None:
+                console.print(f"[yellow]--world {world_name} not used: {name} carries its own world file[/]")
             world = recorded_world(recording)
-        safety = recorded_policy(recording, world, policy)
+        safety = recorded_policy(recording, world, policy, label)
     except RecordingError as exc:
         fail(str(exc))
     except WorldFileError as exc:

@@ -125,7 +125,7 @@ class Supervisor:
             try:
                 proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.0f s; killing it (its stacks are in its log)", service, timeout)
+                log.warning("%s did not stop within %.0f s; its stacks to its log, then SIGKILL", service, timeout)
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(proc.pid, DUMP_STACKS)
                     with contextlib.suppress(subprocess.TimeoutExpired):

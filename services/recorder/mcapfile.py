@@ -7,6 +7,7 @@ import json
 import logging
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
@@ -68,8 +69,14 @@ class Provenance:
     world: SourceFile | None = None
     policy: SourceFile | None = None
 
-    def metadata(self, started_ns: int, part: int) -> dict[str, str]:
-        data = {"robot": self.robot, "started_ns": str(started_ns), "part": str(part), "version": version()}
+    def metadata(self, started_ns: int, part: int, run: str) -> dict[str, str]:
+        data = {
+            "robot": self.robot,
+            "run": run,
+            "started_ns": str(started_ns),
+            "part": str(part),
+            "version": version(),
+        }
         for name, source in ((WORLD_ATTACHMENT, self.world), (POLICY_ATTACHMENT, self.policy)):
             if source is not None:
                 data[name] = str(source.path)
@@ -121,6 +128,7 @@ class Recording:
         clock: Callable[[], int] = time.time_ns,
         provenance: Provenance | None = None,
         part: int = 0,
+        run: str | None = None,
     ) -> None:
         self.robot = robot
         self.path = str(output) if isinstance(output, str | Path) else getattr(output, "name", "<stream>")
@@ -145,7 +153,9 @@ class Recording:
         for topic in keys.TOPICS:
             json_schema(topic.type)
         provenance = provenance or Provenance(robot)
-        self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part))
+        # The parts one recorder writes share a run id: only those are read back as one.
+        self.run = run or uuid.uuid4().hex
+        self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part, self.run))
         for name, source in provenance.attachments():
             self._writer.add_attachment(
                 log_time=self.started_ns,

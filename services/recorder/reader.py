@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import logging
 from collections.abc import Callable, Generator
@@ -210,43 +211,53 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
 
 def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
     """The parts of one rotated recording as one, in the order they were recorded (whatever order they
-    are given in). RecordingError if they are not parts of one run: other robots, other world or
-    policy files, or times that overlap. Metadata and files are the first part's (every part carries
-    them); `complete` only if every part is, and `problem` names the parts that are not."""
-    if len(parts) == 1:
-        return parts[0]
+    are given in). RecordingError unless they are consecutive parts of one recorder's run (the same
+    run id, part numbers without a gap) with the same robot, world and policy files (compared by
+    content), and their times follow one another. Metadata and files are the first part's; `complete`
+    only if every part is, and `problem` names the parts that are not."""
     if not parts:
         raise RecordingError("no recording given")
+    if len(parts) == 1:
+        return parts[0]
+    seen: dict[Path, Path] = {}
+    for part in parts:
+        resolved = part.path.resolve()
+        if resolved in seen:
+            raise RecordingError(f"{part.path} is given twice")
+        seen[resolved] = part.path
 
-    def began(part: RecordingFile) -> tuple[int, int]:
-        meta = part.metadata.get(METADATA_NAME, {})
-        first = part.messages[0].log_time if part.messages else 0
-        return int(meta.get("started_ns", first) or first), int(meta.get("part", 0) or 0)
+    def meta(part: RecordingFile) -> dict[str, str]:
+        return part.metadata.get(METADATA_NAME, {})
 
     try:
-        ordered = sorted(parts, key=began)
+        numbered = sorted(((int(meta(part).get("part", "")), part) for part in parts), key=lambda pair: pair[0])
     except ValueError:
-        raise RecordingError("a part's metadata has a start time or part number that is not a number") from None
+        raise RecordingError("to be read as one, every part must carry its part number in its metadata") from None
+    ordered = [part for _, part in numbered]
     first = ordered[0]
+    for (number, before), (next_number, after) in itertools.pairwise(numbered):
+        if meta(after).get("run") != meta(first).get("run"):
+            raise RecordingError(f"{first.path} and {after.path} are from different recorder runs: not parts of one")
+        if next_number != number + 1:
+            raise RecordingError(
+                f"{before.path} is part {number} and {after.path} part {next_number}: "
+                + ("given twice" if next_number == number else "the parts between them are missing")
+            )
     for later in ordered[1:]:
         if later.robot != first.robot:
-            raise RecordingError(
-                f"{first.path.name} is of robot {first.robot!r} and {later.path.name} of {later.robot!r}: "
-                "not parts of one recording"
-            )
+            raise RecordingError(f"{first.path} is of robot {first.robot!r} and {later.path} of {later.robot!r}")
         for kind in (WORLD_ATTACHMENT, POLICY_ATTACHMENT):
-            ours = first.metadata.get(METADATA_NAME, {}).get(f"{kind}_hash")
-            theirs = later.metadata.get(METADATA_NAME, {}).get(f"{kind}_hash")
-            if ours != theirs:
-                raise RecordingError(
-                    f"{first.path.name} and {later.path.name} were recorded with different {kind} files: "
-                    "not parts of one run; look at them one at a time"
-                )
-    for before, after in itertools.pairwise(ordered):
-        if before.messages and after.messages and after.messages[0].log_time < before.messages[-1].log_time:
+            if _content(first.attachment(kind)) != _content(later.attachment(kind)):
+                raise RecordingError(f"{first.path} and {later.path} carry different {kind} files")
+    latest: tuple[int, Path] | None = None
+    for part in ordered:
+        if not part.messages:
+            continue
+        if latest is not None and min(m.log_time for m in part.messages) < latest[0]:
             raise RecordingError(
-                f"{before.path.name} and {after.path.name} overlap in time: parts of one recording follow one another"
+                f"{latest[1]} and {part.path} overlap in time: parts of one recording follow one another"
             )
+        latest = (max(m.log_time for m in part.messages), part.path)
     return RecordingFile(
         first.path,
         messages=[m for part in ordered for m in part.messages],
@@ -258,6 +269,10 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
         problem="; ".join(f"{part.path.name}: {part.problem}" for part in ordered if part.problem),
         parts=[part.path for part in ordered],
     )
+
+
+def _content(attachment: Attachment | None) -> str | None:
+    return None if attachment is None else hashlib.sha256(attachment.data).hexdigest()
 
 
 @dataclass(frozen=True)

@@ -31,14 +31,17 @@ def recorded_world(recording: RecordingFile) -> World:
     return world
 
 
-def recorded_policy(recording: RecordingFile, world: World, policy: Path | None = None) -> SafetyPolicy:
-    """Safety's checks under the policy file kept in the recording, or under `policy` when given."""
+def recorded_policy(
+    recording: RecordingFile, world: World, policy: Path | None = None, world_label: str = "the recorded world"
+) -> SafetyPolicy:
+    """Safety's checks under the policy file kept in the recording, or under `policy` when given;
+    `world_label` names `world` in errors."""
     try:
         if policy is not None:
-            return load_safety_policy(world, policy, "the recorded world")
+            return load_safety_policy(world, policy, world_label)
         attachment = recording.policy
         if attachment is None:
             raise RecordingError(f"{recording.path} carries no policy file; give one with --policy")
-        return load_safety_policy(world, Path(attachment.name), "the recorded world", data=attachment.data)
+        return load_safety_policy(world, Path(attachment.name), world_label, data=attachment.data)
     except PolicyError as exc:
         raise RecordingError(str(exc)) from None

@@ -6,6 +6,7 @@ import datetime as dt
 import logging
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,6 +48,7 @@ class Recorder:
         self._messages_before = 0  # in the files already closed
         self._dropped_before = 0
         self.started_ns = clock()
+        self.run = uuid.uuid4().hex  # in every part's metadata
         self._current = self._open()
 
     def _open(self) -> Recording:
@@ -64,6 +66,7 @@ class Recorder:
             clock=self._clock,
             provenance=self.provenance,
             part=len(self.files),
+            run=self.run,
         )
         self.files.append(path)
         log.info("recording to %s", path)

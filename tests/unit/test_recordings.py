@@ -88,6 +88,8 @@ def test_a_file_is_rotated_by_age_and_each_part_carries_metadata_and_files(tmp_p
         assert part.metadata["tether"]["part"] == str(n)
         assert part.policy is not None and part.policy.data == DEFAULT_POLICY.read_bytes()
         assert part.world is not None and part.world.name == "world/household.yaml"
+    assert parts[0].metadata["tether"]["run"] == parts[1].metadata["tether"]["run"] == recorder.run
+    assert len(join_recordings(parts[::-1]).messages) == 3
 
 
 def test_a_file_is_rotated_by_size_and_names_never_collide(tmp_path: Path) -> None:
@@ -179,24 +181,36 @@ def test_recover_writes_a_complete_file_with_everything_that_was_whole(tmp_path:
         recover(out, out)
 
 
-def test_parts_of_different_runs_are_not_joined_as_one(tmp_path: Path) -> None:
+def test_only_consecutive_parts_of_one_run_are_joined_as_one(tmp_path: Path) -> None:
     tighter = tmp_path / "tighter.toml"
     tighter.write_text(DEFAULT_POLICY.read_text().replace("max_linear_speed = 0.6", "max_linear_speed = 0.3"))
 
-    def part(name: str, robot: str, policy: Path, at: int) -> RecordingFile:
-        recording = Recording(
-            tmp_path / name, robot, provenance=Provenance(robot, policy=SourceFile.read(policy)), clock=lambda: at
-        )
-        recording.record(f"{keys.prefix(robot)}/a", payload(0), log_time=at)
+    def part(
+        name: str, number: int, times: list[int], run: str = "run1", robot: str = ROBOT, policy: Path = DEFAULT_POLICY
+    ) -> RecordingFile:
+        provenance = Provenance(robot, policy=SourceFile.read(policy))
+        recording = Recording(tmp_path / name, robot, provenance=provenance, part=number, run=run, clock=lambda: 0)
+        for i, at in enumerate(times):
+            recording.record(f"{keys.prefix(robot)}/a", payload(i), log_time=at * SECOND)
         recording.finish()
         return read_recording(tmp_path / name)
 
-    first = part("first.mcap", ROBOT, DEFAULT_POLICY, 1 * SECOND)
-    assert join_recordings([part("next.mcap", ROBOT, DEFAULT_POLICY, 2 * SECOND), first]).name == "first.mcap (+1 part)"
-    with pytest.raises(RecordingError, match="not parts of one recording"):
-        join_recordings([first, part("other.mcap", "r2", DEFAULT_POLICY, 2 * SECOND)])
-    with pytest.raises(RecordingError, match="different policy files"):
-        join_recordings([first, part("tighter.mcap", ROBOT, tighter, 2 * SECOND)])
+    zero, one, two = part("p0.mcap", 0, [1, 2]), part("p1.mcap", 1, []), part("p2.mcap", 2, [3, 4])
+    joined = join_recordings([two, zero, one])
+    assert joined.name == "p0.mcap (+2 parts)" and [m.log_time // SECOND for m in joined.messages] == [1, 2, 3, 4]
+    refusals = {
+        "is given twice": [zero, zero],
+        "different recorder runs": [zero, part("other_run.mcap", 1, [3], run="run2")],
+        "parts between them are missing": [zero, two],
+        "given twice": [zero, part("copy.mcap", 0, [1, 2])],
+        "of robot": [zero, part("r2.mcap", 1, [3], robot="r2")],
+        "different policy files": [zero, part("tighter.mcap", 1, [3], policy=tighter)],
+        # Part 1 is empty: part 2 is still checked against part 0.
+        "overlap in time": [zero, one, part("early.mcap", 2, [1])],
+    }
+    for why, parts in refusals.items():
+        with pytest.raises(RecordingError, match=why):
+            join_recordings(parts)
 
 
 @pytest.mark.parametrize("content", [b"", b"not an mcap file at all", b"\x89MCAP0\r\n" + b"\xff" * 40])
