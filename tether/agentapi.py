@@ -89,7 +89,7 @@ class AgentAPI:
     # Following and stopping
 
     def goal_status(self, goal_id: str) -> str:
-        goal_id = goal_id.strip().rstrip(".")
+        goal_id = _goal_id(goal_id)
         try:
             progress = self.node.call(keys.EXECUTE_PLAN.get_status, GetResult(goal_id=goal_id), timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -97,7 +97,7 @@ class AgentAPI:
         return feedback.progress_text(progress)
 
     def cancel(self, goal_id: str) -> str:
-        goal_id = goal_id.strip().rstrip(".")
+        goal_id = _goal_id(goal_id)
         try:
             reply = self.node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -166,3 +166,8 @@ class AgentAPI:
             return self.node.call(keys.SCENE, Empty(), timeout=CALL_TIMEOUT)
         except CallError as exc:
             raise AgentError(f"the world model is not reachable: {exc.error.message}") from None
+
+
+def _goal_id(text: str) -> str:
+    """A goal id as a model passes it back: stray spaces and a closing full stop dropped."""
+    return text.strip().rstrip(".")

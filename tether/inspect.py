@@ -125,7 +125,7 @@ def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World |
 def as_document(recording: RecordingFile, timeline: Timeline, rows: list[Row]) -> dict[str, Any]:
     return {
         "file": str(recording.path),
-        "parts": [str(part) for part in recording.parts or [recording.path]],
+        "parts": [str(part) for part in recording.files],
         "robot": recording.robot,
         "complete": recording.complete,
         "problem": recording.problem,

@@ -310,16 +310,15 @@ def recheck_command(
     if policy is not None and not policy.is_file():
         fail(f"policy file {policy} does not exist")
     try:
-        label = "the recorded world"
-        if recording.world is None and world_name is not None:
+        if recording.world is None:
+            if world_name is None:
+                fail(f"{name} carries no world file (recorded without one); give one with --world")
             console.print(f"{name} carries no world file: checking in {world_name}")
             world, label = load_world(world_name), f"the world {world_name}"
-        elif recording.world is None:
-            fail(f"{name} carries no world file (recorded without one); give one with --world")
         else:
             if world_name is not None:
                 console.print(f"[yellow]--world {world_name} not used: {name} carries its own world file[/]")
-            world = recorded_world(recording)
+            world, label = recorded_world(recording), "the recorded world"
         safety = recorded_policy(recording, world, policy, label)
     except RecordingError as exc:
         fail(str(exc))
@@ -348,7 +347,7 @@ def _report_json(report: RecheckReport, recording: RecordingFile, start: float, 
     rows = report.checked if show_all else report.differences
     return {
         "file": str(recording.path),
-        "parts": [str(part) for part in recording.parts or [recording.path]],
+        "parts": [str(part) for part in recording.files],
         "policy_hash": report.policy_hash,
         "checked": len(report.checked),
         "differ": len(report.differences),

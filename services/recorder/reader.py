@@ -59,9 +59,14 @@ class RecordingFile:
     parts: list[Path] = field(default_factory=list)
 
     @property
+    def files(self) -> list[Path]:
+        """Every file read: the parts in order, or the one file."""
+        return self.parts or [self.path]
+
+    @property
     def name(self) -> str:
         """The file's name, or the first part's and how many follow."""
-        more = len(self.parts) - 1
+        more = len(self.files) - 1
         return self.path.name + (f" (+{more} part{'s' if more > 1 else ''})" if more > 0 else "")
 
     @property
@@ -219,12 +224,12 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
         raise RecordingError("no recording given")
     if len(parts) == 1:
         return parts[0]
-    seen: dict[Path, Path] = {}
+    seen: set[Path] = set()
     for part in parts:
         resolved = part.path.resolve()
         if resolved in seen:
             raise RecordingError(f"{part.path} is given twice")
-        seen[resolved] = part.path
+        seen.add(resolved)
 
     def meta(part: RecordingFile) -> dict[str, str]:
         return part.metadata.get(METADATA_NAME, {})
@@ -243,12 +248,11 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
                 f"{before.path} is part {number} and {after.path} part {next_number}: "
                 + ("given twice" if next_number == number else "the parts between them are missing")
             )
-    for later in ordered[1:]:
-        if later.robot != first.robot:
-            raise RecordingError(f"{first.path} is of robot {first.robot!r} and {later.path} of {later.robot!r}")
+        if after.robot != first.robot:
+            raise RecordingError(f"{first.path} is of robot {first.robot!r} and {after.path} of {after.robot!r}")
         for kind in (WORLD_ATTACHMENT, POLICY_ATTACHMENT):
-            if _content(first.attachment(kind)) != _content(later.attachment(kind)):
-                raise RecordingError(f"{first.path} and {later.path} carry different {kind} files")
+            if _content(first.attachment(kind)) != _content(after.attachment(kind)):
+                raise RecordingError(f"{first.path} and {after.path} carry different {kind} files")
     latest: tuple[int, Path] | None = None
     for part in ordered:
         if not part.messages:
