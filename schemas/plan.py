@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import enum
-from typing import Annotated, Literal
+from dataclasses import dataclass
+from typing import Annotated, ClassVar, Literal, get_args
 
 from msgspec import Meta
 
@@ -113,11 +114,28 @@ ParseReply = Plan | ServiceError
 # Grounded steps: every name replaced by an id and a pose from the world model or perception.
 
 
+@dataclass(frozen=True)
+class StepSpec:
+    """What one kind of grounded step declares once, as its class's `spec`.
+
+    `moves_base`: running it may drive the base (pick and place drive to their approach first), so
+    safety refuses it while the robot's pose is unknown and the resolver forgets the base's pose
+    across its on_failure. `timeout` (seconds of motion time) and `retries` are the defaults of
+    its key in the executor's `[executor.timeouts]` and `[executor.retries]` tables.
+    """
+
+    moves_base: bool
+    timeout: float
+    retries: int
+
+
 class NavigateStep(Frozen, tag="navigate_to"):
     """Drive the base to `goal`. Also drive, turn and look_at: relative moves grounded as a goal pose.
 
     `max_speed` (m/s) is the plan's own speed limit, when it gave one; safety clamps it further.
     """
+
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=300.0, retries=2)
 
     target: Name
     goal: Pose2D
@@ -125,6 +143,8 @@ class NavigateStep(Frozen, tag="navigate_to"):
 
 
 class PickStep(Frozen, tag="pick"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
+
     object_id: Id
     object_name: Name
     position: Vec3
@@ -134,6 +154,8 @@ class PickStep(Frozen, tag="pick"):
 
 
 class PlaceStep(Frozen, tag="place"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
+
     surface_id: Id
     surface_name: Name
     position: Vec3
@@ -141,29 +163,39 @@ class PlaceStep(Frozen, tag="place"):
 
 
 class DetectStep(Frozen, tag="detect"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=60.0, retries=1)
+
     object_id: Id
     object_name: Name
 
 
 class SayStep(Frozen, tag="say"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
+
     text: Text
 
 
 class WaitStep(Frozen, tag="wait"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=120.0, retries=0)  # lasts 60 s at most
+
     duration: Annotated[float, Meta(ge=0.0, le=60.0)]
 
 
 class StopStep(Frozen, tag="stop"):
-    pass
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
 
 
 class GripperStep(Frozen, tag="gripper"):
     """open_gripper / close_gripper."""
 
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=30.0, retries=0)
+
     open: bool
 
 
 GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep | GripperStep
+# Every kind of grounded step, in the union's order.
+STEP_TYPES: tuple[type[GroundedStep], ...] = get_args(GroundedStep)
 
 
 class Fallback(Frozen):
@@ -176,9 +208,9 @@ class Fallback(Frozen):
     labels: list[Annotated[str, Meta(max_length=64)]] = []
 
 
-def step_kind(step: GroundedStep) -> str:
-    """The action a grounded step performs: its tag."""
-    return str(type(step).__struct_config__.tag)
+def step_kind(step: GroundedStep | type[GroundedStep]) -> str:
+    """The action a grounded step (or a kind of step) performs: its tag."""
+    return str(step.__struct_config__.tag)
 
 
 ResolvedVia = Literal["name", "fuzzy", "attribute", "relation", "context", "pronoun", "coordinates"]

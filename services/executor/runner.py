@@ -203,8 +203,8 @@ class PlanRunner:
         """Run one step, retrying as configured, and report it; the failure, if any, says whether
         an on_failure may follow."""
         action = step_kind(step)
-        timeout = getattr(self.config.timeouts, action)
-        tries = 1 + getattr(self.config.retries, action)
+        timeout = self.config.timeouts.of(step)
+        tries = 1 + self.config.retries.of(step)
 
         def report(status: StepStatus, message: str, attempt: int, kind: FailureKind | None = None) -> None:
             feedback(
