@@ -11,14 +11,24 @@ import logging
 import math
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, assert_never
 
 import numpy as np
 import pinocchio as pin
 
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import ErrorKind, Pose2D, Vec3
-from schemas.plan import DetectStep, GroundedStep, NavigateStep, PickStep, PlaceStep
+from schemas.plan import (
+    DetectStep,
+    GripperStep,
+    GroundedStep,
+    NavigateStep,
+    PickStep,
+    PlaceStep,
+    SayStep,
+    StopStep,
+    WaitStep,
+)
 from schemas.robot import (
     ARM_JOINTS,
     GRIPPER_MAX_GAP,
@@ -474,12 +484,14 @@ class Manipulator:
         return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
 
     def recover(self, step: GroundedStep, cancel: threading.Event) -> None:
-        """Before a retry: the hand open (unless it holds what a place is to put down) and the arm
-        stowed, so the next try starts as a first one would."""
-        if isinstance(step, NavigateStep | DetectStep):
-            self._stow_if_out(cancel)
-            return
-        holding = self.robot.held_object()
-        if holding is None and isinstance(step, PickStep):
-            self.gripper(GRIPPER_OPEN, cancel)
+        """Before a retry: the hand open for a pick (unless it holds something) and the arm stowed,
+        so the next try starts as a first one would."""
+        match step:
+            case PickStep():
+                if self.robot.held_object() is None:
+                    self.gripper(GRIPPER_OPEN, cancel)
+            case NavigateStep() | PlaceStep() | DetectStep() | GripperStep() | SayStep() | WaitStep() | StopStep():
+                pass
+            case _:
+                assert_never(step)
         self._stow_if_out(cancel)

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import assert_never
 
 import msgspec
 
@@ -363,29 +364,31 @@ class PlanRunner:
 
     def _run_step(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
         m = self.manipulator
-        if isinstance(step, NavigateStep):
-            m.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
-            return f"reached {step.target}"
-        if isinstance(step, GripperStep):
-            return m.operate_gripper(step.open, cancel)
-        if isinstance(step, PickStep):
-            return m.pick(step, cancel, attempt, note)
-        if isinstance(step, PlaceStep):
-            return m.place(step, cancel, attempt, note)
-        if isinstance(step, DetectStep):
-            return m.detect(step, cancel, attempt)
-        if isinstance(step, SayStep):
-            # This robot has no speaker; the text is carried in feedback and the recording.
-            log.info("say: %s", step.text)
-            return f"said: {step.text}"
-        if isinstance(step, WaitStep):
-            if cancel.wait(step.duration):
-                raise Canceled("canceled while waiting")
-            return f"waited {step.duration:g} s"
-        if isinstance(step, StopStep):
-            self.robot.cmd_vel(Twist())
-            return "base stopped"
-        raise ExecutionError(f"no way to execute {step_kind(step)}")
+        match step:
+            case NavigateStep():
+                m.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
+                return f"reached {step.target}"
+            case GripperStep():
+                return m.operate_gripper(step.open, cancel)
+            case PickStep():
+                return m.pick(step, cancel, attempt, note)
+            case PlaceStep():
+                return m.place(step, cancel, attempt, note)
+            case DetectStep():
+                return m.detect(step, cancel, attempt)
+            case SayStep():
+                # This robot has no speaker; the text is carried in feedback and the recording.
+                log.info("say: %s", step.text)
+                return f"said: {step.text}"
+            case WaitStep():
+                if cancel.wait(step.duration):
+                    raise Canceled("canceled while waiting")
+                return f"waited {step.duration:g} s"
+            case StopStep():
+                self.robot.cmd_vel(Twist())
+                return "base stopped"
+            case _:
+                assert_never(step)
 
 
 def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> ExecutePlanResult:
@@ -423,19 +426,22 @@ def dry_run_steps(plan: GroundedPlan) -> list[StepResult]:
 
 
 def describe(step: GroundedStep) -> str:
-    if isinstance(step, NavigateStep):
-        goal = step.goal
-        return f"moving the base: {step.target} -> ({goal.x:.2f}, {goal.y:.2f}, {math.degrees(goal.yaw):.0f}°)"
-    if isinstance(step, GripperStep):
-        return "opening the gripper" if step.open else "closing the gripper"
-    if isinstance(step, PickStep):
-        return f"picking {step.object_name}"
-    if isinstance(step, PlaceStep):
-        return f"placing on {step.surface_name}"
-    if isinstance(step, DetectStep):
-        return f"looking for {step.object_name}"
-    if isinstance(step, SayStep):
-        return f"saying: {step.text}"
-    if isinstance(step, WaitStep):
-        return f"waiting {step.duration:g} s"
-    return step_kind(step)
+    match step:
+        case NavigateStep(target=target, goal=goal):
+            return f"moving the base: {target} -> ({goal.x:.2f}, {goal.y:.2f}, {math.degrees(goal.yaw):.0f}°)"
+        case GripperStep():
+            return "opening the gripper" if step.open else "closing the gripper"
+        case PickStep():
+            return f"picking {step.object_name}"
+        case PlaceStep():
+            return f"placing on {step.surface_name}"
+        case DetectStep():
+            return f"looking for {step.object_name}"
+        case SayStep():
+            return f"saying: {step.text}"
+        case WaitStep():
+            return f"waiting {step.duration:g} s"
+        case StopStep():
+            return step_kind(step)
+        case _:
+            assert_never(step)

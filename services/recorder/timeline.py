@@ -7,7 +7,7 @@ import functools
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, assert_never
 
 import msgspec
 
@@ -25,6 +25,7 @@ from schemas.plan import (
     PlaceStep,
     Plan,
     SayStep,
+    StopStep,
     WaitStep,
     step_kind,
     walk,
@@ -215,21 +216,25 @@ def _goal_text(goal: Any) -> str:
 
 def _step_text(step: GroundedStep) -> str:
     kind = step_kind(step)
-    if isinstance(step, NavigateStep):
-        return f"{kind} {step.target} {fmt_pose(step.goal)}"
-    if isinstance(step, PickStep):
-        return f"{kind} {step.object_name}"
-    if isinstance(step, PlaceStep):
-        return f"{kind} on {step.surface_name}"
-    if isinstance(step, DetectStep):
-        return f"{kind} {step.object_name}"
-    if isinstance(step, SayStep):
-        return f"{kind} {preview(step.text, 30)!r}"
-    if isinstance(step, WaitStep):
-        return f"{kind} {step.duration:g} s"
-    if isinstance(step, GripperStep):
-        return "open_gripper" if step.open else "close_gripper"
-    return kind
+    match step:
+        case NavigateStep():
+            return f"{kind} {step.target} {fmt_pose(step.goal)}"
+        case PickStep():
+            return f"{kind} {step.object_name}"
+        case PlaceStep():
+            return f"{kind} on {step.surface_name}"
+        case DetectStep():
+            return f"{kind} {step.object_name}"
+        case SayStep():
+            return f"{kind} {preview(step.text, 30)!r}"
+        case WaitStep():
+            return f"{kind} {step.duration:g} s"
+        case GripperStep():
+            return "open_gripper" if step.open else "close_gripper"
+        case StopStep():
+            return kind
+        case _:
+            assert_never(step)
 
 
 def _listed(items: list[str]) -> str:
