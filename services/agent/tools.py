@@ -6,7 +6,7 @@ import copy
 import json
 import re
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, assert_never
 
 import msgspec
 
@@ -37,33 +37,51 @@ REFUSED: dict[Action, str] = {
     Action.MOVE_ARM: "the arm moves only within pick and place, and stows itself after each",
 }
 
-# What each action does, for a model choosing among the tools. An action missing here still gets a
-# tool (from its vocabulary entry), with a plainer description.
-SUMMARIES: dict[Action, str] = {
-    Action.NAVIGATE_TO: (
-        "Drive the robot's base to a named place: a room, a piece of furniture, an object, the charging "
-        "dock or the person ('me'). The route goes through doorways and around keep-out zones."
-    ),
-    Action.PICK: (
-        "Pick up a named object with the gripper. The robot drives to the object if it is not next to "
-        "it, grasps it and checks with its camera that it holds it. The hand must be empty."
-    ),
-    Action.PLACE: (
-        "Put the object the robot holds on a named piece of furniture. The robot drives there if it is "
-        "not next to it and checks with its camera that the object stands on it."
-    ),
-    Action.DETECT: "Look for a named object with the camera now; succeeds when the camera sees it.",
-    Action.LOOK_AT: "Turn the robot to face a named object, piece of furniture, room or the person ('me').",
-    Action.DRIVE: "Drive the base straight ahead or backward by a distance.",
-    Action.TURN: "Turn the base in place by an angle.",
-    Action.STOP: "Bring the base to a standstill.",
-    Action.SAY: (
-        "Say a sentence. This robot has no speaker: the words go to the goal's feedback, the log and the recording."
-    ),
-    Action.WAIT: "Wait for a time, doing nothing.",
-    Action.OPEN_GRIPPER: "Open the gripper. Fails while it holds an object (that would drop it): use place.",
-    Action.CLOSE_GRIPPER: "Close the gripper.",
-}
+
+def summary(action: Action) -> str:
+    """What an action does, for a model choosing among the tools."""
+    match action:
+        case Action.NAVIGATE_TO:
+            return (
+                "Drive the robot's base to a named place: a room, a piece of furniture, an object, the charging "
+                "dock or the person ('me'). The route goes through doorways and around keep-out zones."
+            )
+        case Action.PICK:
+            return (
+                "Pick up a named object with the gripper. The robot drives to the object if it is not next to "
+                "it, grasps it and checks with its camera that it holds it. The hand must be empty."
+            )
+        case Action.PLACE:
+            return (
+                "Put the object the robot holds on a named piece of furniture. The robot drives there if it is "
+                "not next to it and checks with its camera that the object stands on it."
+            )
+        case Action.DETECT:
+            return "Look for a named object with the camera now; succeeds when the camera sees it."
+        case Action.LOOK_AT:
+            return "Turn the robot to face a named object, piece of furniture, room or the person ('me')."
+        case Action.DRIVE:
+            return "Drive the base straight ahead or backward by a distance."
+        case Action.TURN:
+            return "Turn the base in place by an angle."
+        case Action.STOP:
+            return "Bring the base to a standstill."
+        case Action.SAY:
+            return (
+                "Say a sentence. This robot has no speaker: the words go to the goal's feedback, the log and "
+                "the recording."
+            )
+        case Action.WAIT:
+            return "Wait for a time, doing nothing."
+        case Action.OPEN_GRIPPER:
+            return "Open the gripper. Fails while it holds an object (that would drop it): use place."
+        case Action.CLOSE_GRIPPER:
+            return "Close the gripper."
+        case Action.GESTURE | Action.MOVE_ARM:
+            raise ValueError(f"{action.value} is not offered as a tool: {REFUSED[action]}")
+        case _:
+            assert_never(action)
+
 
 # What a parameter means, beyond its type, unit and bounds: by (action, name), then by name.
 PARAM_HINTS: dict[tuple[Action, str] | str, str] = {
@@ -214,12 +232,8 @@ def robot_actions(vocabulary: Vocabulary) -> list[Action]:
     return [a for a in vocabulary.actions if a not in REFUSED]
 
 
-def action_description(action: Action, spec: ActionSpec) -> str:
-    summary = SUMMARIES.get(action)
-    if summary is None:
-        also = f" (also called {', '.join(spec.synonyms[:4])})" if spec.synonyms else ""
-        summary = f"Run the robot's {action.value} action{also}."
-    return f"{summary} {_RETURNS}"
+def action_description(action: Action) -> str:
+    return f"{summary(action)} {_RETURNS}"
 
 
 STEP_REF = "#/$defs/step"
@@ -237,8 +251,8 @@ def _step_schema(action: Action, spec: ActionSpec) -> dict[str, Any]:
             "description": "Optional: steps to run instead when this step fails; the plan then goes on after it.",
         },
     }
-    summary = SUMMARIES.get(action, f"the {action.value} action").split(". ")[0].rstrip(".")
-    return _object(step_properties, ["action", *required], f"{action.value}: {summary}.")
+    first = summary(action).split(". ")[0].rstrip(".")
+    return _object(step_properties, ["action", *required], f"{action.value}: {first}.")
 
 
 def _plan_tool(vocabulary: Vocabulary, actions: list[Action]) -> ToolSpec:
@@ -380,7 +394,7 @@ def all_tools(vocabulary: Vocabulary | None = None) -> list[ToolSpec]:
         tools.append(
             ToolSpec(
                 name=action.value,
-                description=action_description(action, spec),
+                description=action_description(action),
                 parameters=_object(properties, required),
                 kind="action",
             )
