@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 from typing import Annotated, ClassVar, Literal, get_args
 
@@ -114,9 +115,19 @@ ParseReply = Plan | ServiceError
 # Grounded steps: every name replaced by an id and a pose from the world model or perception.
 
 
+def _pose(pose: Pose2D) -> str:
+    return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
+
+
+def _clip(text: str, limit: int) -> str:
+    flat = " ".join(text.split())
+    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
+
+
 @dataclass(frozen=True)
 class StepSpec:
-    """What one kind of grounded step declares once, as its class's `spec`.
+    """What one kind of grounded step declares once, as its class's `spec`; the class also says
+    what it is doing, in words, with `describe()` (progress feedback) and `brief()` (the timeline).
 
     `moves_base`: running it may drive the base (pick and place drive to their approach first), so
     safety refuses it while the robot's pose is unknown and the resolver forgets the base's pose
@@ -141,6 +152,12 @@ class NavigateStep(Frozen, tag="navigate_to"):
     goal: Pose2D
     max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
 
+    def describe(self) -> str:
+        return f"moving the base: {self.target} -> {_pose(self.goal)}"
+
+    def brief(self) -> str:
+        return f"navigate_to {self.target} {_pose(self.goal)}"
+
 
 class PickStep(Frozen, tag="pick"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
@@ -152,6 +169,12 @@ class PickStep(Frozen, tag="pick"):
     support_id: Id
     approach: Pose2D
 
+    def describe(self) -> str:
+        return f"picking {self.object_name}"
+
+    def brief(self) -> str:
+        return f"pick {self.object_name}"
+
 
 class PlaceStep(Frozen, tag="place"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
@@ -161,6 +184,12 @@ class PlaceStep(Frozen, tag="place"):
     position: Vec3
     approach: Pose2D
 
+    def describe(self) -> str:
+        return f"placing on {self.surface_name}"
+
+    def brief(self) -> str:
+        return f"place on {self.surface_name}"
+
 
 class DetectStep(Frozen, tag="detect"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=60.0, retries=1)
@@ -168,11 +197,23 @@ class DetectStep(Frozen, tag="detect"):
     object_id: Id
     object_name: Name
 
+    def describe(self) -> str:
+        return f"looking for {self.object_name}"
+
+    def brief(self) -> str:
+        return f"detect {self.object_name}"
+
 
 class SayStep(Frozen, tag="say"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
 
     text: Text
+
+    def describe(self) -> str:
+        return f"saying: {self.text}"
+
+    def brief(self) -> str:
+        return f"say {_clip(self.text, 30)!r}"
 
 
 class WaitStep(Frozen, tag="wait"):
@@ -180,9 +221,21 @@ class WaitStep(Frozen, tag="wait"):
 
     duration: Annotated[float, Meta(ge=0.0, le=60.0)]
 
+    def describe(self) -> str:
+        return f"waiting {self.duration:g} s"
+
+    def brief(self) -> str:
+        return f"wait {self.duration:g} s"
+
 
 class StopStep(Frozen, tag="stop"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
+
+    def describe(self) -> str:
+        return "stop"
+
+    def brief(self) -> str:
+        return "stop"
 
 
 class GripperStep(Frozen, tag="gripper"):
@@ -191,6 +244,12 @@ class GripperStep(Frozen, tag="gripper"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=30.0, retries=0)
 
     open: bool
+
+    def describe(self) -> str:
+        return "opening the gripper" if self.open else "closing the gripper"
+
+    def brief(self) -> str:
+        return "open_gripper" if self.open else "close_gripper"
 
 
 GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep | GripperStep

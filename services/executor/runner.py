@@ -4,7 +4,6 @@ within its time, retried after a failure a retry can mend."""
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -232,7 +231,7 @@ class PlanRunner:
                 attempts=attempt,
             )
 
-        report(StepStatus.RUNNING, describe(step), 1)
+        report(StepStatus.RUNNING, step.describe(), 1)
         attempt = 1
 
         def note(message: str) -> None:
@@ -287,7 +286,7 @@ class PlanRunner:
         except Canceled as exc:
             if clock.expired and not cancel.is_set():
                 raise StepTimedOut(
-                    f"{describe(step)}: timed out after {timeout:g} s of motion (pauses for people not counted), "
+                    f"{step.describe()}: timed out after {timeout:g} s of motion (pauses for people not counted), "
                     f"during {str(exc).removesuffix(' canceled')}"
                 ) from None
             raise
@@ -423,25 +422,3 @@ def dry_run_steps(plan: GroundedPlan) -> list[StepResult]:
                 for k, (s, label) in enumerate(zip(fallback.steps, fallback_labels(fallback, labels), strict=True))
             )
     return steps
-
-
-def describe(step: GroundedStep) -> str:
-    match step:
-        case NavigateStep(target=target, goal=goal):
-            return f"moving the base: {target} -> ({goal.x:.2f}, {goal.y:.2f}, {math.degrees(goal.yaw):.0f}°)"
-        case GripperStep():
-            return "opening the gripper" if step.open else "closing the gripper"
-        case PickStep():
-            return f"picking {step.object_name}"
-        case PlaceStep():
-            return f"placing on {step.surface_name}"
-        case DetectStep():
-            return f"looking for {step.object_name}"
-        case SayStep():
-            return f"saying: {step.text}"
-        case WaitStep():
-            return f"waiting {step.duration:g} s"
-        case StopStep():
-            return step_kind(step)
-        case _:
-            assert_never(step)

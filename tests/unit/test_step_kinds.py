@@ -30,8 +30,7 @@ from schemas.plan import (
 from services.agent.tools import REFUSED, summary
 from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
-from services.executor.runner import PlanRunner, describe
-from services.recorder.timeline import _step_text
+from services.executor.runner import PlanRunner
 from services.resolver.errors import ResolveError
 from services.resolver.resolver import Resolver
 from services.robotmodel import ArmModel
@@ -181,9 +180,9 @@ def test_the_step_tables_keep_their_keys_and_defaults_and_refuse_unknown_keys() 
 
 
 @pytest.mark.parametrize("step", KINDS)
-def test_every_kind_is_described_for_feedback_and_the_timeline(step: GroundedStep) -> None:
-    assert describe(step)
-    assert _step_text(step)
+def test_every_kind_says_what_it_does_for_feedback_and_the_timeline(step: GroundedStep) -> None:
+    assert step.describe()
+    assert step.brief().startswith(step_kind(step)) or isinstance(step, GripperStep)
 
 
 @pytest.mark.parametrize("step", KINDS)
@@ -221,8 +220,6 @@ def test_safety_never_approves_a_kind_it_has_no_case_for(policy: SafetyPolicy) -
 def test_no_dispatcher_passes_over_a_kind_it_has_no_case_for(manipulator: Manipulator) -> None:
     runner = PlanRunner(ScriptedPlanner(), ScriptedRobot(), RecordingManipulator(), ExecutorConfig())  # type: ignore[arg-type]
     for dispatch in (
-        describe,
-        _step_text,
         lambda s: runner._run_step(s, threading.Event(), 1, lambda _: None),
         lambda s: manipulator.recover(s, threading.Event()),
     ):
