@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import threading
+from pathlib import Path
 from typing import Any, ClassVar, get_args
 
 import msgspec
@@ -27,10 +29,12 @@ from schemas.plan import (
     WaitStep,
     step_kind,
 )
-from services.agent.tools import REFUSED, summary
+from services.agent.tools import REFUSED, all_tools
 from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.runner import PlanRunner
+from services.parser.errors import VocabularyError
+from services.parser.vocabulary import load_vocabulary
 from services.resolver.errors import ResolveError
 from services.resolver.resolver import Resolver
 from services.robotmodel import ArmModel
@@ -237,10 +241,20 @@ def test_the_resolver_grounds_or_refuses_every_action(action: Action, resolver: 
         assert grounded.steps
 
 
-@pytest.mark.parametrize("action", list(Action), ids=str)
-def test_every_action_a_tool_offers_has_a_summary(action: Action) -> None:
-    if action in REFUSED:
-        with pytest.raises(ValueError, match="not offered"):
-            summary(action)
-    else:
-        assert summary(action).endswith(".")
+def test_every_action_is_offered_as_a_tool_with_its_summary_or_refused() -> None:
+    vocabulary = load_vocabulary()
+    tools = {t.name: t for t in all_tools(vocabulary)}
+    for action in Action:
+        if action in REFUSED:
+            assert action.value not in tools
+        else:
+            assert tools[action.value].description.startswith(vocabulary.actions[action].summary)
+
+
+def test_an_action_without_a_summary_is_refused_when_the_vocabulary_loads(tmp_path: Path) -> None:
+    vocabulary = msgspec.to_builtins(load_vocabulary())
+    del vocabulary["actions"]["stop"]["summary"]
+    path = tmp_path / "vocabulary.yaml"
+    path.write_text(json.dumps(vocabulary))
+    with pytest.raises(VocabularyError, match=r"no summary for actions \['stop'\]"):
+        load_vocabulary(path)
