@@ -34,6 +34,7 @@ from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.runner import PlanRunner
 from services.parser.errors import VocabularyError
+from services.parser.parser import parse
 from services.parser.vocabulary import load_vocabulary
 from services.resolver.errors import ResolveError
 from services.resolver.resolver import Resolver
@@ -258,3 +259,15 @@ def test_an_action_without_a_summary_is_refused_when_the_vocabulary_loads(tmp_pa
     path.write_text(json.dumps(vocabulary))
     with pytest.raises(VocabularyError, match=r"no summary for actions \['stop'\]"):
         load_vocabulary(path)
+
+
+NAMED = [a for a, spec in load_vocabulary().actions.items() if spec.names and a not in REFUSED]
+
+
+@pytest.mark.parametrize("action", NAMED, ids=str)
+def test_the_parser_reads_every_name_an_action_tool_offers(action: Action) -> None:
+    names = load_vocabulary().actions[action].names
+    arguments = {name: f"the {name}" for name in names}
+    plan = parse(json.dumps([{"action": action.value, **arguments}]), "json")
+    assert not [w for w in plan.warnings if "does not use it" in w]
+    assert set(arguments.values()) <= {plan.steps[0].target, plan.steps[0].location}
