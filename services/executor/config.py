@@ -12,8 +12,6 @@ from schemas.plan import STEP_TYPES, GroundedStep, StepSpec, step_kind
 
 Timeout = Annotated[float, Meta(gt=0.0, le=3600.0)]
 Retries = Annotated[int, Meta(ge=0, le=10)]
-
-
 T = TypeVar("T")
 
 
@@ -30,6 +28,7 @@ def _per_step(name: str, type_: Any, default: Callable[[StepSpec], Any], doc: st
     return msgspec.defstruct(name, fields, bases=(_PerStep,), module=__name__, namespace={"__doc__": doc})
 
 
+# Built at import with one field per step kind; mypy, which cannot follow defstruct, sees the base.
 if TYPE_CHECKING:
     StepTimeouts = _PerStep[float]
     StepRetries = _PerStep[int]

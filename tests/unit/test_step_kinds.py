@@ -1,4 +1,4 @@
-"""Every kind of grounded step is handled at every place that dispatches on a step's kind."""
+"""Every kind of grounded step and every action is handled wherever code dispatches on them."""
 
 from __future__ import annotations
 
