@@ -35,6 +35,7 @@ from schemas.robot import (
     FollowJointTrajectoryGoal,
     GripperCommandGoal,
     NavigateToPoseGoal,
+    Twist,
 )
 from schemas.world import PerceivedObject
 from services.actionlib import GoalRejected
@@ -482,6 +483,34 @@ class Manipulator:
         p = seen.position
         where = f"on the {self._surface_name(seen.on)}" if seen.on != "gripper" else "in the gripper"
         return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
+
+    def run(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
+        """One try at a step; what it did, in a few words."""
+        match step:
+            case NavigateStep():
+                self.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
+                return f"reached {step.target}"
+            case GripperStep():
+                return self.operate_gripper(step.open, cancel)
+            case PickStep():
+                return self.pick(step, cancel, attempt, note)
+            case PlaceStep():
+                return self.place(step, cancel, attempt, note)
+            case DetectStep():
+                return self.detect(step, cancel, attempt)
+            case SayStep():
+                # This robot has no speaker; the text is carried in feedback and the recording.
+                log.info("say: %s", step.text)
+                return f"said: {step.text}"
+            case WaitStep():
+                if cancel.wait(step.duration):
+                    raise Canceled("canceled while waiting")
+                return f"waited {step.duration:g} s"
+            case StopStep():
+                self.robot.cmd_vel(Twist())
+                return "base stopped"
+            case _:
+                assert_never(step)
 
     def recover(self, step: GroundedStep, cancel: threading.Event) -> None:
         """Before a retry: the hand open for a pick (unless it holds something) and the arm stowed,

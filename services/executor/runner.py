@@ -9,7 +9,6 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import assert_never
 
 import msgspec
 
@@ -24,22 +23,13 @@ from schemas.executor import (
     StepStatus,
 )
 from schemas.plan import (
-    DetectStep,
-    GripperStep,
     GroundedPlan,
     GroundedStep,
-    NavigateStep,
-    PickStep,
-    PlaceStep,
     Plan,
-    SayStep,
-    StopStep,
-    WaitStep,
     fallback_labels,
     step_kind,
     step_labels,
 )
-from schemas.robot import Twist
 from services.executor.config import ExecutorConfig
 from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
 from services.executor.manipulation import Manipulator, Note
@@ -282,7 +272,7 @@ class PlanRunner:
             with clock.running() as step_cancel:
                 if attempt > 1:
                     self.manipulator.recover(step, step_cancel)
-                return self._run_step(step, step_cancel, attempt, note)
+                return self.manipulator.run(step, step_cancel, attempt, note)
         except Canceled as exc:
             if clock.expired and not cancel.is_set():
                 raise StepTimedOut(
@@ -360,34 +350,6 @@ class PlanRunner:
             steps=results + skipped,
             failure=failure.kind,
         )
-
-    def _run_step(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
-        m = self.manipulator
-        match step:
-            case NavigateStep():
-                m.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
-                return f"reached {step.target}"
-            case GripperStep():
-                return m.operate_gripper(step.open, cancel)
-            case PickStep():
-                return m.pick(step, cancel, attempt, note)
-            case PlaceStep():
-                return m.place(step, cancel, attempt, note)
-            case DetectStep():
-                return m.detect(step, cancel, attempt)
-            case SayStep():
-                # This robot has no speaker; the text is carried in feedback and the recording.
-                log.info("say: %s", step.text)
-                return f"said: {step.text}"
-            case WaitStep():
-                if cancel.wait(step.duration):
-                    raise Canceled("canceled while waiting")
-                return f"waited {step.duration:g} s"
-            case StopStep():
-                self.robot.cmd_vel(Twist())
-                return "base stopped"
-            case _:
-                assert_never(step)
 
 
 def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> ExecutePlanResult:

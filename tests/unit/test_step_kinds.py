@@ -32,7 +32,6 @@ from schemas.plan import (
 from services.agent.tools import REFUSED, all_tools
 from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
-from services.executor.runner import PlanRunner
 from services.parser.errors import VocabularyError
 from services.parser.parser import parse
 from services.parser.vocabulary import load_vocabulary
@@ -43,7 +42,7 @@ from services.safety.errors import Vetoed
 from services.safety.policy import SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
-from tests.unit.test_runner import WORLD, ScriptedPlanner, ScriptedRobot, planners
+from tests.unit.test_runner import WORLD, ScriptedRobot, planners
 
 COUNTER = Pose2D(x=2.5, y=1.05, yaw=-1.57)
 START = Pose2D(x=6.0, y=1.2)
@@ -86,10 +85,11 @@ class TeleportStep(Frozen, tag="teleport"):
 FOREIGN: Any = TeleportStep(goal=Pose2D(x=11.2, y=8.0))
 
 
-class RecordingManipulator:
-    """The motions the runner asks for, by name; each succeeds at once."""
+class RecordingManipulator(Manipulator):
+    """Manipulator.run's dispatch over motions that each succeed at once, recorded by name."""
 
     def __init__(self) -> None:
+        self.robot = ScriptedRobot()
         self.calls: list[str] = []
 
     def _did(self, name: str) -> str:
@@ -191,10 +191,8 @@ def test_every_kind_says_what_it_does_for_feedback_and_the_timeline(step: Ground
 
 
 @pytest.mark.parametrize("step", KINDS)
-def test_every_kind_is_run_by_the_runner(step: GroundedStep) -> None:
-    manipulator = RecordingManipulator()
-    runner = PlanRunner(ScriptedPlanner(), ScriptedRobot(), manipulator, ExecutorConfig())  # type: ignore[arg-type]
-    assert runner._run_step(step, threading.Event(), 1, lambda _: None)
+def test_every_kind_is_run_by_the_manipulator(step: GroundedStep) -> None:
+    assert RecordingManipulator().run(step, threading.Event(), 1, lambda _: None)
 
 
 @pytest.mark.parametrize("step", KINDS)
@@ -223,9 +221,8 @@ def test_safety_never_approves_a_kind_it_has_no_case_for(policy: SafetyPolicy) -
 
 
 def test_no_dispatcher_passes_over_a_kind_it_has_no_case_for(manipulator: Manipulator) -> None:
-    runner = PlanRunner(ScriptedPlanner(), ScriptedRobot(), RecordingManipulator(), ExecutorConfig())  # type: ignore[arg-type]
     for dispatch in (
-        lambda s: runner._run_step(s, threading.Event(), 1, lambda _: None),
+        lambda s: RecordingManipulator().run(s, threading.Event(), 1, lambda _: None),
         lambda s: manipulator.recover(s, threading.Event()),
     ):
         with pytest.raises(AssertionError, match="TeleportStep"):
