@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import enum
-from typing import Annotated, Literal
+import math
+from dataclasses import dataclass
+from typing import Annotated, ClassVar, Literal, get_args
 
 from msgspec import Meta
 
@@ -113,18 +115,53 @@ ParseReply = Plan | ServiceError
 # Grounded steps: every name replaced by an id and a pose from the world model or perception.
 
 
+def _pose(pose: Pose2D) -> str:
+    return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
+
+
+def _clip(text: str, limit: int) -> str:
+    flat = " ".join(text.split())
+    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
+
+
+@dataclass(frozen=True)
+class StepSpec:
+    """What one kind of grounded step declares once, as its class's `spec`; the class also says
+    what it is doing, in words, with `describe()` (progress feedback) and `brief()` (the timeline).
+
+    `moves_base`: running it may drive the base (pick and place drive to their approach first), so
+    safety refuses it while the robot's pose is unknown and the resolver forgets the base's pose
+    across its on_failure. `timeout` (seconds of motion time) and `retries` are the defaults of
+    its key in the executor's `[executor.timeouts]` and `[executor.retries]` tables.
+    """
+
+    moves_base: bool
+    timeout: float
+    retries: int
+
+
 class NavigateStep(Frozen, tag="navigate_to"):
     """Drive the base to `goal`. Also drive, turn and look_at: relative moves grounded as a goal pose.
 
     `max_speed` (m/s) is the plan's own speed limit, when it gave one; safety clamps it further.
     """
 
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=300.0, retries=2)
+
     target: Name
     goal: Pose2D
     max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
 
+    def describe(self) -> str:
+        return f"moving the base: {self.target} -> {_pose(self.goal)}"
+
+    def brief(self) -> str:
+        return f"navigate_to {self.target} {_pose(self.goal)}"
+
 
 class PickStep(Frozen, tag="pick"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
+
     object_id: Id
     object_name: Name
     position: Vec3
@@ -132,38 +169,92 @@ class PickStep(Frozen, tag="pick"):
     support_id: Id
     approach: Pose2D
 
+    def describe(self) -> str:
+        return f"picking {self.object_name}"
+
+    def brief(self) -> str:
+        return f"pick {self.object_name}"
+
 
 class PlaceStep(Frozen, tag="place"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
+
     surface_id: Id
     surface_name: Name
     position: Vec3
     approach: Pose2D
 
+    def describe(self) -> str:
+        return f"placing on {self.surface_name}"
+
+    def brief(self) -> str:
+        return f"place on {self.surface_name}"
+
 
 class DetectStep(Frozen, tag="detect"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=60.0, retries=1)
+
     object_id: Id
     object_name: Name
 
+    def describe(self) -> str:
+        return f"looking for {self.object_name}"
+
+    def brief(self) -> str:
+        return f"detect {self.object_name}"
+
 
 class SayStep(Frozen, tag="say"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
+
     text: Text
+
+    def describe(self) -> str:
+        return f"saying: {self.text}"
+
+    def brief(self) -> str:
+        return f"say {_clip(self.text, 30)!r}"
 
 
 class WaitStep(Frozen, tag="wait"):
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=120.0, retries=0)  # lasts 60 s at most
+
     duration: Annotated[float, Meta(ge=0.0, le=60.0)]
+
+    def describe(self) -> str:
+        return f"waiting {self.duration:g} s"
+
+    def brief(self) -> str:
+        return f"wait {self.duration:g} s"
 
 
 class StopStep(Frozen, tag="stop"):
-    pass
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=10.0, retries=0)
+
+    def describe(self) -> str:
+        return "stop"
+
+    def brief(self) -> str:
+        return "stop"
 
 
 class GripperStep(Frozen, tag="gripper"):
     """open_gripper / close_gripper."""
 
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=30.0, retries=0)
+
     open: bool
+
+    def describe(self) -> str:
+        return "opening the gripper" if self.open else "closing the gripper"
+
+    def brief(self) -> str:
+        return "open_gripper" if self.open else "close_gripper"
 
 
 GroundedStep = NavigateStep | PickStep | PlaceStep | DetectStep | SayStep | WaitStep | StopStep | GripperStep
+# Every kind of grounded step, in the union's order.
+STEP_TYPES: tuple[type[GroundedStep], ...] = get_args(GroundedStep)
 
 
 class Fallback(Frozen):
@@ -176,9 +267,9 @@ class Fallback(Frozen):
     labels: list[Annotated[str, Meta(max_length=64)]] = []
 
 
-def step_kind(step: GroundedStep) -> str:
-    """The action a grounded step performs: its tag."""
-    return str(type(step).__struct_config__.tag)
+def step_kind(step: GroundedStep | type[GroundedStep]) -> str:
+    """The action a grounded step (or a kind of step) performs: its tag."""
+    return str(step.__struct_config__.tag)
 
 
 ResolvedVia = Literal["name", "fuzzy", "attribute", "relation", "context", "pronoun", "coordinates"]

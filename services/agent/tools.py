@@ -37,33 +37,6 @@ REFUSED: dict[Action, str] = {
     Action.MOVE_ARM: "the arm moves only within pick and place, and stows itself after each",
 }
 
-# What each action does, for a model choosing among the tools. An action missing here still gets a
-# tool (from its vocabulary entry), with a plainer description.
-SUMMARIES: dict[Action, str] = {
-    Action.NAVIGATE_TO: (
-        "Drive the robot's base to a named place: a room, a piece of furniture, an object, the charging "
-        "dock or the person ('me'). The route goes through doorways and around keep-out zones."
-    ),
-    Action.PICK: (
-        "Pick up a named object with the gripper. The robot drives to the object if it is not next to "
-        "it, grasps it and checks with its camera that it holds it. The hand must be empty."
-    ),
-    Action.PLACE: (
-        "Put the object the robot holds on a named piece of furniture. The robot drives there if it is "
-        "not next to it and checks with its camera that the object stands on it."
-    ),
-    Action.DETECT: "Look for a named object with the camera now; succeeds when the camera sees it.",
-    Action.LOOK_AT: "Turn the robot to face a named object, piece of furniture, room or the person ('me').",
-    Action.DRIVE: "Drive the base straight ahead or backward by a distance.",
-    Action.TURN: "Turn the base in place by an angle.",
-    Action.STOP: "Bring the base to a standstill.",
-    Action.SAY: (
-        "Say a sentence. This robot has no speaker: the words go to the goal's feedback, the log and the recording."
-    ),
-    Action.WAIT: "Wait for a time, doing nothing.",
-    Action.OPEN_GRIPPER: "Open the gripper. Fails while it holds an object (that would drop it): use place.",
-    Action.CLOSE_GRIPPER: "Close the gripper.",
-}
 
 # What a parameter means, beyond its type, unit and bounds: by (action, name), then by name.
 PARAM_HINTS: dict[tuple[Action, str] | str, str] = {
@@ -86,34 +59,6 @@ UNIT_WORDS: dict[str, str] = {
     "N": "newtons",
 }
 
-
-@dataclass(frozen=True)
-class NameArg:
-    """A name argument of an action tool: a step field the parser reads (services/parser/parser.py, _names)."""
-
-    name: str
-    description: str
-    required: bool
-
-
-# The names each action takes. `target` is the step field every action reads first; `location` is
-# one of the parser's `target_location` words (vocabulary `fields`), for the furniture an object is on.
-_WHERE = "the furniture it is on, to tell two alike apart ('kitchen table'); leave it out otherwise"
-NAME_ARGS: dict[Action, tuple[NameArg, ...]] = {
-    Action.NAVIGATE_TO: (
-        NameArg("target", "Where to go: a room, a piece of furniture, an object, 'charging dock' or 'me'.", True),
-    ),
-    Action.LOOK_AT: (NameArg("target", "What to face: an object, a piece of furniture, a room or 'me'.", True),),
-    Action.PICK: (
-        NameArg("target", "The object to pick up, as named in the scene ('red cup', 'the nearest cup').", True),
-        NameArg("location", f"Optional: {_WHERE}.", False),
-    ),
-    Action.PLACE: (NameArg("target", "The furniture to put the held object on ('coffee table').", True),),
-    Action.DETECT: (
-        NameArg("target", "The object to look for ('blue book').", True),
-        NameArg("location", f"Optional: {_WHERE}.", False),
-    ),
-}
 
 # Parameters the parser needs although the vocabulary does not mark them required: say needs its
 # words, which the vocabulary lets come from the step's target too (services/parser/parser.py, _names).
@@ -190,10 +135,10 @@ def _action_arguments(action: Action, spec: ActionSpec) -> tuple[dict[str, Any],
     """The properties and required names of one action's arguments (also one plan step's fields)."""
     properties: dict[str, Any] = {}
     required: list[str] = []
-    for arg in NAME_ARGS.get(action, ()):
-        properties[arg.name] = {**_type_schema(Name), "description": arg.description}
+    for field, arg in spec.names.items():
+        properties[field] = {**_type_schema(Name), "description": arg.description}
         if arg.required:
-            required.append(arg.name)
+            required.append(field)
     for name, pspec in spec.params.items():
         properties[name] = _param_schema(action, name, pspec, spec)
         if pspec.required or name in EXTRA_REQUIRED.get(action, ()):
@@ -214,12 +159,8 @@ def robot_actions(vocabulary: Vocabulary) -> list[Action]:
     return [a for a in vocabulary.actions if a not in REFUSED]
 
 
-def action_description(action: Action, spec: ActionSpec) -> str:
-    summary = SUMMARIES.get(action)
-    if summary is None:
-        also = f" (also called {', '.join(spec.synonyms[:4])})" if spec.synonyms else ""
-        summary = f"Run the robot's {action.value} action{also}."
-    return f"{summary} {_RETURNS}"
+def action_description(spec: ActionSpec) -> str:
+    return f"{spec.summary} {_RETURNS}"
 
 
 STEP_REF = "#/$defs/step"
@@ -237,8 +178,8 @@ def _step_schema(action: Action, spec: ActionSpec) -> dict[str, Any]:
             "description": "Optional: steps to run instead when this step fails; the plan then goes on after it.",
         },
     }
-    summary = SUMMARIES.get(action, f"the {action.value} action").split(". ")[0].rstrip(".")
-    return _object(step_properties, ["action", *required], f"{action.value}: {summary}.")
+    first = spec.summary.split(". ")[0].rstrip(".")
+    return _object(step_properties, ["action", *required], f"{action.value}: {first}.")
 
 
 def _plan_tool(vocabulary: Vocabulary, actions: list[Action]) -> ToolSpec:
@@ -380,7 +321,7 @@ def all_tools(vocabulary: Vocabulary | None = None) -> list[ToolSpec]:
         tools.append(
             ToolSpec(
                 name=action.value,
-                description=action_description(action, spec),
+                description=action_description(spec),
                 parameters=_object(properties, required),
                 kind="action",
             )

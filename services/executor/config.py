@@ -2,47 +2,54 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar
 
 import msgspec
 from msgspec import Meta
 
+from schemas.plan import STEP_TYPES, GroundedStep, StepSpec, step_kind
+
 Timeout = Annotated[float, Meta(gt=0.0, le=3600.0)]
 Retries = Annotated[int, Meta(ge=0, le=10)]
+T = TypeVar("T")
 
 
-class _Table(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    pass
+class _PerStep(msgspec.Struct, Generic[T], frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A table with one key per kind of grounded step (its tag), defaults from the kind's spec."""
+
+    def of(self, step: GroundedStep) -> T:
+        value: T = getattr(self, step_kind(step))
+        return value
 
 
-class StepTimeouts(_Table):
-    """`[executor.timeouts]`: seconds one step may take, counted in motion time: while safety
+def _per_step(name: str, type_: Any, default: Callable[[StepSpec], Any], doc: str) -> Any:
+    fields = [(step_kind(cls), type_, default(cls.spec)) for cls in STEP_TYPES]
+    return msgspec.defstruct(name, fields, bases=(_PerStep,), module=__name__, namespace={"__doc__": doc})
+
+
+# Built at import with one field per step kind; mypy, which cannot follow defstruct, sees the base.
+if TYPE_CHECKING:
+    StepTimeouts = _PerStep[float]
+    StepRetries = _PerStep[int]
+else:
+    StepTimeouts = _per_step(
+        "StepTimeouts",
+        Timeout,
+        lambda spec: spec.timeout,
+        """`[executor.timeouts]`: seconds one step may take, counted in motion time: while safety
     pauses the robot for a person nearby the clock stands still, and while it slows the robot the
-    clock runs as much slower. A step over its time is canceled and fails (execution)."""
-
-    navigate_to: Timeout = 300.0
-    pick: Timeout = 240.0
-    place: Timeout = 240.0
-    detect: Timeout = 60.0
-    gripper: Timeout = 30.0
-    say: Timeout = 10.0
-    wait: Timeout = 120.0  # a wait step itself lasts at most 60 s
-    stop: Timeout = 10.0
-
-
-class StepRetries(_Table):
-    """`[executor.retries]`: how often a step is tried again after a planning, execution or
+    clock runs as much slower. A step over its time is canceled and fails (execution). One key per
+    kind of step; defaults from its `spec` (schemas/plan.py).""",
+    )
+    StepRetries = _per_step(
+        "StepRetries",
+        Retries,
+        lambda spec: spec.retries,
+        """`[executor.retries]`: how often a step is tried again after a planning, execution or
     postcondition failure, each time after re-detecting what it acts on and planning anew. Never
-    after a cancel, a veto or an e-stop."""
-
-    navigate_to: Retries = 2
-    pick: Retries = 2
-    place: Retries = 2
-    detect: Retries = 1
-    gripper: Retries = 0
-    say: Retries = 0
-    wait: Retries = 0
-    stop: Retries = 0
+    after a cancel, a veto or an e-stop. One key per kind of step; defaults from its `spec`.""",
+    )
 
 
 class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

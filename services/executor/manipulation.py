@@ -11,20 +11,31 @@ import logging
 import math
 import threading
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, assert_never
 
 import numpy as np
 import pinocchio as pin
 
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import ErrorKind, Pose2D, Vec3
-from schemas.plan import DetectStep, GroundedStep, NavigateStep, PickStep, PlaceStep
+from schemas.plan import (
+    DetectStep,
+    GripperStep,
+    GroundedStep,
+    NavigateStep,
+    PickStep,
+    PlaceStep,
+    SayStep,
+    StopStep,
+    WaitStep,
+)
 from schemas.robot import (
     ARM_JOINTS,
     GRIPPER_MAX_GAP,
     FollowJointTrajectoryGoal,
     GripperCommandGoal,
     NavigateToPoseGoal,
+    Twist,
 )
 from schemas.world import PerceivedObject
 from services.actionlib import GoalRejected
@@ -473,13 +484,43 @@ class Manipulator:
         where = f"on the {self._surface_name(seen.on)}" if seen.on != "gripper" else "in the gripper"
         return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
 
+    def run(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
+        """One try at a step; what it did, in a few words."""
+        match step:
+            case NavigateStep():
+                self.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
+                return f"reached {step.target}"
+            case GripperStep():
+                return self.operate_gripper(step.open, cancel)
+            case PickStep():
+                return self.pick(step, cancel, attempt, note)
+            case PlaceStep():
+                return self.place(step, cancel, attempt, note)
+            case DetectStep():
+                return self.detect(step, cancel, attempt)
+            case SayStep():
+                # This robot has no speaker; the text is carried in feedback and the recording.
+                log.info("say: %s", step.text)
+                return f"said: {step.text}"
+            case WaitStep():
+                if cancel.wait(step.duration):
+                    raise Canceled("canceled while waiting")
+                return f"waited {step.duration:g} s"
+            case StopStep():
+                self.robot.cmd_vel(Twist())
+                return "base stopped"
+            case _:
+                assert_never(step)
+
     def recover(self, step: GroundedStep, cancel: threading.Event) -> None:
-        """Before a retry: the hand open (unless it holds what a place is to put down) and the arm
-        stowed, so the next try starts as a first one would."""
-        if isinstance(step, NavigateStep | DetectStep):
-            self._stow_if_out(cancel)
-            return
-        holding = self.robot.held_object()
-        if holding is None and isinstance(step, PickStep):
-            self.gripper(GRIPPER_OPEN, cancel)
+        """Before a retry: the hand open for a pick (unless it holds something) and the arm stowed,
+        so the next try starts as a first one would."""
+        match step:
+            case PickStep():
+                if self.robot.held_object() is None:
+                    self.gripper(GRIPPER_OPEN, cancel)
+            case NavigateStep() | PlaceStep() | DetectStep() | GripperStep() | SayStep() | WaitStep() | StopStep():
+                pass
+            case _:
+                assert_never(step)
         self._stow_if_out(cancel)

@@ -4,7 +4,6 @@ within its time, retried after a failure a retry can mend."""
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -24,22 +23,13 @@ from schemas.executor import (
     StepStatus,
 )
 from schemas.plan import (
-    DetectStep,
-    GripperStep,
     GroundedPlan,
     GroundedStep,
-    NavigateStep,
-    PickStep,
-    PlaceStep,
     Plan,
-    SayStep,
-    StopStep,
-    WaitStep,
     fallback_labels,
     step_kind,
     step_labels,
 )
-from schemas.robot import Twist
 from services.executor.config import ExecutorConfig
 from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
 from services.executor.manipulation import Manipulator, Note
@@ -203,8 +193,8 @@ class PlanRunner:
         """Run one step, retrying as configured, and report it; the failure, if any, says whether
         an on_failure may follow."""
         action = step_kind(step)
-        timeout = getattr(self.config.timeouts, action)
-        tries = 1 + getattr(self.config.retries, action)
+        timeout = self.config.timeouts.of(step)
+        tries = 1 + self.config.retries.of(step)
 
         def report(status: StepStatus, message: str, attempt: int, kind: FailureKind | None = None) -> None:
             feedback(
@@ -231,7 +221,7 @@ class PlanRunner:
                 attempts=attempt,
             )
 
-        report(StepStatus.RUNNING, describe(step), 1)
+        report(StepStatus.RUNNING, step.describe(), 1)
         attempt = 1
 
         def note(message: str) -> None:
@@ -282,11 +272,11 @@ class PlanRunner:
             with clock.running() as step_cancel:
                 if attempt > 1:
                     self.manipulator.recover(step, step_cancel)
-                return self._run_step(step, step_cancel, attempt, note)
+                return self.manipulator.run(step, step_cancel, attempt, note)
         except Canceled as exc:
             if clock.expired and not cancel.is_set():
                 raise StepTimedOut(
-                    f"{describe(step)}: timed out after {timeout:g} s of motion (pauses for people not counted), "
+                    f"{step.describe()}: timed out after {timeout:g} s of motion (pauses for people not counted), "
                     f"during {str(exc).removesuffix(' canceled')}"
                 ) from None
             raise
@@ -361,32 +351,6 @@ class PlanRunner:
             failure=failure.kind,
         )
 
-    def _run_step(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
-        m = self.manipulator
-        if isinstance(step, NavigateStep):
-            m.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
-            return f"reached {step.target}"
-        if isinstance(step, GripperStep):
-            return m.operate_gripper(step.open, cancel)
-        if isinstance(step, PickStep):
-            return m.pick(step, cancel, attempt, note)
-        if isinstance(step, PlaceStep):
-            return m.place(step, cancel, attempt, note)
-        if isinstance(step, DetectStep):
-            return m.detect(step, cancel, attempt)
-        if isinstance(step, SayStep):
-            # This robot has no speaker; the text is carried in feedback and the recording.
-            log.info("say: %s", step.text)
-            return f"said: {step.text}"
-        if isinstance(step, WaitStep):
-            if cancel.wait(step.duration):
-                raise Canceled("canceled while waiting")
-            return f"waited {step.duration:g} s"
-        if isinstance(step, StopStep):
-            self.robot.cmd_vel(Twist())
-            return "base stopped"
-        raise ExecutionError(f"no way to execute {step_kind(step)}")
-
 
 def rejected(stage: Stage, error: ServiceError, plan: Plan | None = None) -> ExecutePlanResult:
     steps = []
@@ -420,22 +384,3 @@ def dry_run_steps(plan: GroundedPlan) -> list[StepResult]:
                 for k, (s, label) in enumerate(zip(fallback.steps, fallback_labels(fallback, labels), strict=True))
             )
     return steps
-
-
-def describe(step: GroundedStep) -> str:
-    if isinstance(step, NavigateStep):
-        goal = step.goal
-        return f"moving the base: {step.target} -> ({goal.x:.2f}, {goal.y:.2f}, {math.degrees(goal.yaw):.0f}°)"
-    if isinstance(step, GripperStep):
-        return "opening the gripper" if step.open else "closing the gripper"
-    if isinstance(step, PickStep):
-        return f"picking {step.object_name}"
-    if isinstance(step, PlaceStep):
-        return f"placing on {step.surface_name}"
-    if isinstance(step, DetectStep):
-        return f"looking for {step.object_name}"
-    if isinstance(step, SayStep):
-        return f"saying: {step.text}"
-    if isinstance(step, WaitStep):
-        return f"waiting {step.duration:g} s"
-    return step_kind(step)

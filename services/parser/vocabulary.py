@@ -52,11 +52,22 @@ class ParamSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     negative: list[Word] = []
 
 
+class NameSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A name an action's tool takes (target, location): what it means, for a model writing it."""
+
+    description: str
+    required: bool = False
+
+
 class ActionSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     synonyms: list[Word] = []
     # Synonyms that also set str parameters: {turn_right: {direction: right}}.
     variants: dict[Word, dict[Word, Word]] = {}
     params: dict[Word, ParamSpec] = {}
+    # What the action does, for a model choosing among the agent's tools (services/agent/tools.py).
+    summary: str = ""
+    # The names its tool takes, in this order; an action without them takes parameters only.
+    names: dict[Literal["target", "location"], NameSpec] = {}
 
 
 class CoordinateSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -114,6 +125,9 @@ def _check(vocabulary: Vocabulary, path: Path) -> None:
     missing = [a.value for a in Action if a not in vocabulary.actions]
     if missing:
         raise VocabularyError(f"vocabulary file {path}: no entry for actions {missing}")
+    unsummed = [a.value for a, spec in vocabulary.actions.items() if not spec.summary.strip()]
+    if unsummed:
+        raise VocabularyError(f"vocabulary file {path}: no summary for actions {unsummed}")
     seen: dict[str, str] = {}
     for action, spec in vocabulary.actions.items():
         for name in (action.value, *spec.synonyms, *spec.variants):

@@ -16,17 +16,8 @@ from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, Sen
 from schemas.common import DECODE_ERRORS, Pose2D, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.plan import (
-    DetectStep,
-    GripperStep,
     GroundedPlan,
-    GroundedStep,
-    NavigateStep,
-    PickStep,
-    PlaceStep,
     Plan,
-    SayStep,
-    WaitStep,
-    step_kind,
     walk,
 )
 from schemas.robot import (
@@ -211,25 +202,6 @@ def _goal_text(goal: Any) -> str:
     if isinstance(goal, Twist):
         return f"{goal.linear_x:.2f} m/s, {goal.angular_z:.2f} rad/s"
     return ""
-
-
-def _step_text(step: GroundedStep) -> str:
-    kind = step_kind(step)
-    if isinstance(step, NavigateStep):
-        return f"{kind} {step.target} {fmt_pose(step.goal)}"
-    if isinstance(step, PickStep):
-        return f"{kind} {step.object_name}"
-    if isinstance(step, PlaceStep):
-        return f"{kind} on {step.surface_name}"
-    if isinstance(step, DetectStep):
-        return f"{kind} {step.object_name}"
-    if isinstance(step, SayStep):
-        return f"{kind} {preview(step.text, 30)!r}"
-    if isinstance(step, WaitStep):
-        return f"{kind} {step.duration:g} s"
-    if isinstance(step, GripperStep):
-        return "open_gripper" if step.open else "close_gripper"
-    return kind
 
 
 def _listed(items: list[str]) -> str:
@@ -695,7 +667,7 @@ class _Builder:
         elif reply is None:
             self.row(Kind.PLAN, key, "resolved (the plan was too large for the trace to keep)")
         elif isinstance(reply, GroundedPlan):
-            steps = [_step_text(step) for step in reply.steps]
+            steps = [step.brief() for step in reply.steps]
             fallbacks = f"; {len(reply.fallbacks)} on_failure" if reply.fallbacks else ""
             warned = f"; {len(reply.warnings)} warning(s): {'; '.join(reply.warnings)}" if reply.warnings else ""
             summary = f"resolved {len(steps)} steps: {_listed(steps)}{fallbacks}{warned}"

@@ -6,6 +6,7 @@ import dataclasses
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import assert_never
 
 import msgspec
 from shapely.geometry import Point
@@ -56,8 +57,6 @@ SAME_YAW = 1e-3
 ECHO_CHARS = 60
 # A spot a plan gives for place must be this far in from the edge of the top.
 PLACE_EDGE_MARGIN = 0.05
-# Steps whose grounding drives the base (pick and place drive to their approach pose first).
-MOVES_BASE = (NavigateStep, PickStep, PlaceStep)
 
 
 def _echo(name: str) -> str:
@@ -262,7 +261,7 @@ class Resolver:
         else:
             if step.substeps:
                 raise at.error(f"{step.action} cannot also have sub-steps: put the action in the group as a sub-step")
-            for grounded in self._step(at, step, state):
+            for grounded in self._step(at, step.action, step, state):
                 out.steps.append(grounded)
                 out.labels.append(at.label)
         if before is not None:
@@ -275,7 +274,7 @@ class Resolver:
         range drives the base, where it stands when a step fails is not known in advance, so moves
         relative to the base (drive, turn, look_at) are refused there until an absolute one."""
         last = len(out.steps) - 1
-        if any(isinstance(s, MOVES_BASE) for s in out.steps[first:]):
+        if any(s.spec.moves_base for s in out.steps[first:]):
             before.robot = None
             before.pose_note = f"where the robot stands when step {at.label} fails is not known in advance"
         alternative = _Grounded()
@@ -291,8 +290,8 @@ class Resolver:
 
     # One step
 
-    def _step(self, at: _At, step: Step, state: _State) -> list[GroundedStep]:
-        match step.action:
+    def _step(self, at: _At, action: Action, step: Step, state: _State) -> list[GroundedStep]:
+        match action:
             case Action.NAVIGATE_TO:
                 return [self._navigate(at, step, state)]
             case Action.PICK:
@@ -322,7 +321,7 @@ class Resolver:
             case Action.STOP:
                 return [StopStep()]
             case Action.OPEN_GRIPPER | Action.CLOSE_GRIPPER:
-                return [self._gripper(step.action is Action.OPEN_GRIPPER, state)]
+                return [self._gripper(action is Action.OPEN_GRIPPER, state)]
             case Action.GESTURE:
                 raise at.error(
                     "gesture: this robot cannot gesture yet (it has no gestures); remove the step, "
@@ -333,7 +332,8 @@ class Resolver:
                     "move_arm: this robot cannot move its arm on its own yet (the arm moves only within pick "
                     "and place, and stows itself after each); remove the step, or use pick and place"
                 )
-        raise at.error(f"action {step.action!r} has no grounding")  # pragma: no cover
+            case _:
+                assert_never(action)
 
     # Names
 
