@@ -27,7 +27,7 @@ from schemas.robot import (
     NavigateToPoseGoal,
 )
 from schemas.world import PerceivedObject
-from services.actionlib import GoalRejected
+from services.errors import GoalRejected
 from services.executor.armplanning import (
     GRIPPER,
     ArmPlanner,

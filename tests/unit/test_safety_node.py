@@ -24,7 +24,8 @@ from schemas.robot import (
     TrajectoryPoint,
 )
 from schemas.world import PerceivedHuman, PerceivedHumans
-from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
+from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from services.errors import GoalRejected
 from services.robotmodel import ArmModel
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
