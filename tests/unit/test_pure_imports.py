@@ -16,6 +16,7 @@ PURE = [
     "services.resolver.resolver",
     "services.safety.policy",
     "services.safety.monitor",
+    "services.safety.gate",
     "services.executor.runner",
 ]
 

@@ -52,7 +52,7 @@ class Rig:
         """The arm reports its joints at `q`, and safety has heard it."""
         self.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
         deadline = time.monotonic() + WAIT
-        while (self.safety.joints() or {}).get(ARM_JOINTS[1]) != q[1]:
+        while (self.safety.gate.joint_positions(self.safety.clock()) or {}).get(ARM_JOINTS[1]) != q[1]:
             assert time.monotonic() < deadline, "safety never heard the joint state"
             time.sleep(0.005)
 
@@ -94,9 +94,9 @@ def measured_when_safety_asks(rig: Rig, q: list[float]) -> None:
     newer joint state: the race this guards against, made to happen every time."""
     waiting = rig.safety._joints_since
 
-    def publish_then_wait(checked: tuple[float, JointState] | None, timeout: float) -> bool:
+    def publish_then_wait(seen: int, timeout: float) -> bool:
         rig.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
-        return waiting(checked, timeout)
+        return waiting(seen, timeout)
 
     rig.safety._joints_since = publish_then_wait  # type: ignore[method-assign]
 
@@ -120,7 +120,7 @@ def test_a_goal_that_really_starts_away_from_the_arm_is_still_refused(rig: Rig) 
 
 
 def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_d(rig: Rig) -> None:
-    humans = rig.safety.policy.policy.humans
+    humans = rig.safety.gate.policy.policy.humans
     here = Pose2D(x=6.0, y=1.2)
     front = WORLD.robot.base_size.x / 2
 
@@ -135,7 +135,7 @@ def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_
                 keys.ODOM, Odometry(stamp=time.time(), sim_time=0.0, pose=here, linear_x=0.0, angular_z=0.0)
             )
             rig.robot.publish(keys.HUMANS, PerceivedHumans(stamp=time.time(), humans=[operator]))
-            found = rig.safety._separation
+            found = rig.safety.gate.separation
             if found.distance is not None and abs(found.distance - gap) < 1e-6:
                 return found
             assert time.monotonic() < deadline, f"safety never saw the operator {gap} m away: {found}"
