@@ -153,6 +153,8 @@ class SafetyGate:
         return self._now
 
     def _time(self, now: float) -> float:
+        """The gate's time at the clock's `now`. Public methods take the clock's `now` and turn it into
+        the gate's `t` once; the private ones take `t`."""
         with self._lock:
             return self._advance(now)
 
@@ -166,28 +168,34 @@ class SafetyGate:
 
     def pose(self, now: float) -> Pose2D | None:
         """The base pose, or None when odometry is missing or stale."""
-        with self._lock:
-            now, odom = self._advance(now), self._odom
-        if odom is None or now - odom[0] > self.policy.policy.monitor.state_max_age:
-            return None
-        return odom[1].pose
+        return self._pose(self._time(now))
 
     def joint_positions(self, now: float) -> dict[str, float] | None:
         """The arm's joint positions, or None when joint states are missing or stale."""
+        return self._joint_positions(self._time(now))
+
+    def _pose(self, t: float) -> Pose2D | None:
         with self._lock:
-            now, joints = self._advance(now), self._joints
-        if joints is None or now - joints[0] > self.policy.policy.monitor.state_max_age:
+            odom = self._odom
+        if odom is None or t - odom[0] > self.policy.policy.monitor.state_max_age:
+            return None
+        return odom[1].pose
+
+    def _joint_positions(self, t: float) -> dict[str, float] | None:
+        with self._lock:
+            joints = self._joints
+        if joints is None or t - joints[0] > self.policy.policy.monitor.state_max_age:
             return None
         return dict(zip(joints[1].name, joints[1].position, strict=False))
 
-    def _hand(self, pose: Pose2D, now: float) -> tuple[float, float] | None:
+    def _hand(self, pose: Pose2D, t: float) -> tuple[float, float] | None:
         """The end effector on the floor plan (map frame)."""
-        local = self.policy.hand_in_base(self.joint_positions(now))
+        local = self.policy.hand_in_base(self._joint_positions(t))
         return None if local is None else base_to_map(pose, *local)
 
-    def _reach(self, now: float) -> float:
+    def _reach(self, t: float) -> float:
         """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
-        return self.policy.reach(self.joint_positions(now))
+        return self.policy.reach(self._joint_positions(t))
 
     def _base_moving(self) -> bool:
         with self._lock:
@@ -198,28 +206,28 @@ class SafetyGate:
 
     def odometry(self, msg: Odometry, now: float) -> Ruling[None]:
         with self._lock:
-            now = self._advance(now)
-            self._odom = (now, msg)
+            t = self._advance(now)
+            self._odom = (t, msg)
             if self.latch.state.latched:
                 return Ruling(None)
-            trip = self.monitor.base(now, msg.linear_x, msg.angular_z, self._separation.scale)
+            trip = self.monitor.base(t, msg.linear_x, msg.angular_z, self._separation.scale)
         if trip is None and (zone := self.policy.zone_at(msg.pose.x, msg.pose.y)) is not None:
             trip = Trip(
                 Rule.MONITOR_KEEP_OUT,
                 f"the base was measured inside keep-out zone '{zone.name}'",
                 {"x": msg.pose.x, "y": msg.pose.y},
             )
-        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, now)
+        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
 
     def joint_state(self, msg: JointState, now: float) -> Ruling[None]:
         with self._lock:
-            now = self._advance(now)
-            self._joints = (now, msg)
+            t = self._advance(now)
+            self._joints = (t, msg)
             if self.latch.state.latched or not msg.velocity:
                 return Ruling(None)
             velocities = dict(zip(msg.name, msg.velocity, strict=False))
-            trip = self.monitor.joints(now, velocities, self._separation.scale)
-        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, now)
+            trip = self.monitor.joints(t, velocities, self._separation.scale)
+        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
 
     def humans(self, msg: PerceivedHumans, now: float) -> None:
         self._people.add(self._time(now), [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans])
@@ -228,23 +236,23 @@ class SafetyGate:
 
     def tick(self, now: float) -> Ruling[None]:
         """Once a heartbeat: the speed allowed near people, the watchdog, the counts of repeated vetoes."""
-        now = self._time(now)
+        t = self._time(now)
         events: list[GateEvent] = []
         try:
-            found = self._find_separation(now)
+            found = self._find_separation(t)
         except Exception as exc:  # the heartbeat goes on, and what cannot be computed stops the robot
             log.exception("speed and separation failed")
             found = Separation(0.0, f"speed and separation could not be computed: {exc}")
         events.extend(self._set_separation(found))
         latched = False
         try:
-            for trip in self._watchdog(now):
-                ruling = self._trip(EstopSource.WATCHDOG, trip, now)
+            for trip in self._watchdog(t):
+                ruling = self._trip(EstopSource.WATCHDOG, trip, t)
                 latched = latched or ruling.latched
                 events.extend(ruling.events)
         except Exception:
             log.exception("the watchdog failed")
-        events.extend(self._flush_repeats(now))
+        events.extend(self._flush_repeats(t))
         return Ruling(None, tuple(events), latched=latched)
 
     def status(self, seq: int, stamp: float) -> SafetyStatus:
@@ -261,17 +269,17 @@ class SafetyGate:
             policy_hash=self.hash,
         )
 
-    def _find_separation(self, now: float) -> Separation:
+    def _find_separation(self, t: float) -> Separation:
         humans = self.policy.policy.humans
-        people = self._people.people(now)
+        people = self._people.people(t)
         if people is None:
             return separation(None, False, humans)
         if not people:
             return separation(None, True, humans)
-        if (pose := self.pose(now)) is None:
+        if (pose := self._pose(t)) is None:
             return Separation(humans.reduced_speed_scale, "the robot's pose is unknown: reduced speed")
         size = self.policy.world.world.robot.base_size
-        nearest = nearest_person(pose, (size.x, size.y), self._hand(pose, now), people, humans.person_radius)
+        nearest = nearest_person(pose, (size.x, size.y), self._hand(pose, t), people, humans.person_radius)
         return separation(nearest, True, humans, self.separation.scale)
 
     def _set_separation(self, found: Separation) -> list[GateEvent]:
@@ -286,82 +294,82 @@ class SafetyGate:
         log.info("speed limit: %s", reason)
         return [GateEvent(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, Rule.HUMAN_SEPARATION, (), values)]
 
-    def _watchdog(self, now: float) -> list[Trip]:
+    def _watchdog(self, t: float) -> list[Trip]:
         """The robot's state stopped arriving while it moved: nothing can be monitored, so stop.
         A state exactly `state_max_age` old still counts; a stale one is forgotten once reported."""
         max_age = self.policy.policy.monitor.state_max_age
         with self._lock:
             odom, joints = self._odom, self._joints
-            if odom is not None and now - odom[0] > max_age:
+            if odom is not None and t - odom[0] > max_age:
                 self._odom = None
             else:
                 odom = None
-            if joints is not None and now - joints[0] > max_age:
+            if joints is not None and t - joints[0] > max_age:
                 self._joints = None
             else:
                 joints = None
         trips = []
         if odom is not None and (abs(odom[1].linear_x) > MOVING or abs(odom[1].angular_z) > MOVING):
-            age = now - odom[0]
+            age = t - odom[0]
             why = f"no odometry for {age:.2f} s while the base was moving"
             values = {"age_s": age, "speed_mps": odom[1].linear_x, "turn_rps": odom[1].angular_z}
             trips.append(Trip(Rule.WATCHDOG, why, values))
         if joints is not None:
             fastest = max((abs(v) for v in joints[1].velocity[: len(ARM_JOINTS)]), default=0.0)
             if fastest > MOVING:
-                age = now - joints[0]
+                age = t - joints[0]
                 why = f"no joint states for {age:.2f} s while the arm was moving"
                 trips.append(Trip(Rule.WATCHDOG, why, {"age_s": age, "speed_rps": fastest}))
         return trips
 
-    def _veto_repeated(self, key: str, exc: Vetoed, command: object, now: float) -> list[GateEvent]:
+    def _veto_repeated(self, key: str, exc: Vetoed, command: object, t: float) -> list[GateEvent]:
         """A stream vetoed for the same rule over and over (e-stop latched, over the rate): the first
         veto is an event, the rest within REPEAT_WINDOW are counted into one event (see _flush_repeats)."""
         with self._lock:
             seen = self._repeats.get((key, exc.rule))
-            if seen is not None and now - seen[0] < REPEAT_WINDOW:
+            if seen is not None and t - seen[0] < REPEAT_WINDOW:
                 self._repeats[(key, exc.rule)] = (seen[0], seen[1] + 1, str(exc))
                 return []
-            self._repeats[(key, exc.rule)] = (now, 0, str(exc))
-        # A window that ended before a tick could count it is counted now, not lost.
-        counted = [] if seen is None else self._count_event(key, exc.rule, seen, now)
+            self._repeats[(key, exc.rule)] = (t, 0, str(exc))
+        # A window that ended before a tick could count it is counted t, not lost.
+        counted = [] if seen is None else self._count_event(key, exc.rule, seen, t)
         return [*counted, _veto_event(key, exc, command)]
 
-    def _flush_repeats(self, now: float) -> list[GateEvent]:
+    def _flush_repeats(self, t: float) -> list[GateEvent]:
         with self._lock:
-            due = [(k, v) for k, v in self._repeats.items() if now - v[0] >= REPEAT_WINDOW]
+            due = [(k, v) for k, v in self._repeats.items() if t - v[0] >= REPEAT_WINDOW]
             for k, _ in due:
                 del self._repeats[k]
-        return [event for (key, rule), seen in due for event in self._count_event(key, rule, seen, now)]
+        return [event for (key, rule), seen in due for event in self._count_event(key, rule, seen, t)]
 
     @staticmethod
-    def _count_event(key: str, rule: Rule, seen: tuple[float, int, str], now: float) -> list[GateEvent]:
+    def _count_event(key: str, rule: Rule, seen: tuple[float, int, str], t: float) -> list[GateEvent]:
         at, count, reason = seen
         if not count:
             return []
-        why = f"{count} more vetoed like this in the last {now - at:.1f} s: {reason}"
+        why = f"{count} more vetoed like this in the last {t - at:.1f} s: {reason}"
         return [GateEvent(key, Decision.VETOED, why, None, rule, (rule,), {"count": float(count)})]
 
     # The e-stop
 
     def estop(self, msg: EStop, now: float) -> Ruling[None]:
-        return self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {}, now)
+        return self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {}, self._time(now))
 
     def unreadable_estop(self, size: int, error: str, now: float) -> Ruling[None]:
         """Fail closed: someone meant to stop the robot."""
         reason = f"an e-stop message that could not be read ({size} bytes): {error}"[:1000]
-        return self._latch("unknown", reason, None, Rule.ESTOP, {}, now)
+        return self._latch("unknown", reason, None, Rule.ESTOP, {}, self._time(now))
 
-    def _trip(self, source: EstopSource, trip: Trip, now: float) -> Ruling[None]:
-        return self._latch(source, trip.reason, None, trip.rule, trip.values, now)
+    def _trip(self, source: EstopSource, trip: Trip, t: float) -> Ruling[None]:
+        return self._latch(source, trip.reason, None, trip.rule, trip.values, t)
 
     def _latch(
-        self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], now: float
+        self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
     ) -> Ruling[None]:
         if not self.latch.trigger(source, reason):
             return Ruling(None)
         with self._lock:
-            self._sent_twist = (self._advance(now), Twist())
+            self._sent_twist = (t, Twist())
         log.warning("E-STOP latched by %s: %s", source, reason)
         event = GateEvent(keys.ESTOP.path, Decision.LATCHED, f"by {source}: {reason}", command, rule, (), values)
         return Ruling(None, (event,), latched=True)
@@ -387,10 +395,10 @@ class SafetyGate:
             return None
         return Vetoed(f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it", Rule.ESTOP)
 
-    def _rate_veto(self, key: str, now: float) -> Vetoed | None:
+    def _rate_veto(self, key: str, t: float) -> Vetoed | None:
         """The command on `key` over its rate limit; None while within it."""
         limit = self._rates[key]
-        if limit.allow(now):
+        if limit.allow(t):
             return None
         return Vetoed(f"more than {limit.rate:g} commands a second on {key}", Rule.COMMAND_RATE, limit_hz=limit.rate)
 
@@ -399,57 +407,58 @@ class SafetyGate:
     def cmd_vel(self, twist: Twist, now: float) -> Ruling[Twist | None]:
         """A velocity from a program: over a limit it is refused and the base stopped."""
 
-        def check(now: float) -> Verdict[Twist]:
-            return self.policy.check_cmd_vel(twist, self.pose(now), self.separation.scale)
+        def check(t: float) -> Verdict[Twist]:
+            return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale)
 
-        return self._twist(keys.CMD_VEL.path, twist, check, now)
+        return self._twist(keys.CMD_VEL.path, twist, check, self._time(now))
 
     def teleop(self, twist: Twist, now: float) -> Ruling[Twist | None]:
         """A velocity from a person: clamped to the limits, and speeding up from what was last sent."""
 
-        def check(now: float) -> Verdict[Twist]:
+        def check(t: float) -> Verdict[Twist]:
             # Speed up from what the robot was last told by anyone (a program, a stop, a veto).
             with self._lock:
                 at, previous = self._sent_twist
             # After a pause the base has stopped (the robot drops cmd_vel after half a second).
-            if now - at > TELEOP_TIMEOUT:
+            if t - at > TELEOP_TIMEOUT:
                 previous = Twist()
-            step = min(now - at, TELEOP_MAX_STEP)
-            return self.policy.check_teleop(twist, self.pose(now), previous, step, self.separation.scale)
+            step = min(t - at, TELEOP_MAX_STEP)
+            return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale)
 
-        return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, now)
+        return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time(now))
 
     def _twist(
-        self, key: str, twist: Twist, check: Callable[[float], Verdict[Twist]], now: float
+        self, key: str, twist: Twist, check: Callable[[float], Verdict[Twist]], t: float
     ) -> Ruling[Twist | None]:
         """The twist to put on robot/cmd_vel, if any. The node puts it before the next twist is
         decided: the teleop ramp starts from what was sent last."""
-        now = self._time(now)
         if refused := self._estop_veto():
-            return Ruling(None, tuple(self._veto_repeated(key, refused, twist, now)))
-        if refused := self._rate_veto(key, now):
-            events = self._veto_repeated(key, refused, twist, now)
-            return Ruling(self._sent(Twist(), now), tuple(events))
+            return Ruling(None, tuple(self._veto_repeated(key, refused, twist, t)))
+        if refused := self._rate_veto(key, t):
+            events = self._veto_repeated(key, refused, twist, t)
+            return Ruling(self._sent(Twist(), t), tuple(events))
         try:
-            verdict = check(now)
+            verdict = check(t)
         except Vetoed as exc:
             # Dropping it is not enough: the last approved twist would carry on until it expires.
             event = GateEvent(key, Decision.VETOED, f"{exc}; base stopped", twist, exc.rule, (exc.rule,), exc.values)
-            return Ruling(self._sent(Twist(), now), (event,))
-        return Ruling(self._sent(verdict.command, now), (_approval(key, verdict, verdict.command),))
+            return Ruling(self._sent(Twist(), t), (event,))
+        return Ruling(self._sent(verdict.command, t), (_approval(key, verdict, verdict.command),))
 
-    def _sent(self, twist: Twist, now: float) -> Twist:
+    def _sent(self, twist: Twist, t: float) -> Twist:
         with self._lock:
-            self._sent_twist = (now, twist)
+            self._sent_twist = (t, twist)
         return twist
 
     # Commands: goals and plans
 
     def navigate(self, req: SendGoal[NavigateToPoseGoal], now: float) -> Ruling[GoalRuling]:
-        def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
-            return self.policy.check_navigation(goal, self.pose(now), self._reach(now))
+        t = self._time(now)
 
-        return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, now)
+        def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
+            return self.policy.check_navigation(goal, self._pose(t), self._reach(t))
+
+        return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, t)
 
     def trajectory(
         self, req: SendGoal[FollowJointTrajectoryGoal], now: float, again: bool = False
@@ -458,24 +467,24 @@ class SafetyGate:
         start where the arm has just stopped, while the latest state here is from a moment before: a
         first point that seems to jump is refused with `fresh_joints_may_pass`, and the node asks
         `again` once a joint state measured since came (the e-stop and the rate were checked already)."""
+        t = self._time(now)
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
-            return self.policy.check_trajectory(goal, self.joint_positions(now), self.pose(now), self._base_moving())
+            return self.policy.check_trajectory(goal, self._joint_positions(t), self._pose(t), self._base_moving())
 
-        ruling = self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, now, first=not again)
+        ruling = self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, first=not again)
         jumped = isinstance(ruling.forward, GoalResponse) and "jump_rad" in ruling.events[0].values
         return replace(ruling, fresh_joints_may_pass=jumped and not again)
 
     def gripper(self, req: SendGoal[GripperCommandGoal], now: float) -> Ruling[GoalRuling]:
-        return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, now)
+        return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, self._time(now))
 
     def _goal(
-        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], now: float, first: bool = True
+        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, first: bool = True
     ) -> Ruling[GoalRuling]:
         """The goal to send to the robot, or the refusal to reply with."""
-        now = self._time(now)
         try:
-            if first and (refused := self._estop_veto() or self._rate_veto(key, now)):
+            if first and (refused := self._estop_veto() or self._rate_veto(key, t)):
                 raise refused
             verdict = check(req.goal)
         except Vetoed as exc:
@@ -489,11 +498,11 @@ class SafetyGate:
     def check_plan(self, plan: GroundedPlan, now: float) -> Ruling[PlanCheckReply]:
         """The whole plan, before anything moves."""
         key = keys.PLAN_CHECK.path
-        now = self._time(now)
+        t = self._time(now)
         try:
             if refused := self._estop_veto():
                 raise refused
-            checks = self.policy.check_plan(plan, self.pose(now))
+            checks = self.policy.check_plan(plan, self._pose(t))
         except Vetoed as exc:
             error = ServiceError(kind=_refusal_kind(exc), message=str(exc), stage=Stage.SAFETY)
             return Ruling(error, (_veto_event(key, exc, plan),))

@@ -115,6 +115,21 @@ def test_a_clock_that_jumps_back_neither_trips_nor_blinds_the_watchdog(gate: Saf
     assert after.latched and after.events[0].values["age_s"] == pytest.approx(max_age + TICK)
 
 
+def test_after_a_clock_jump_back_the_gate_runs_on_from_where_it_was(gate: SafetyGate) -> None:
+    far = PerceivedHuman(id="operator", name="operator", pose=Pose2D(x=HERE.x, y=HERE.y + 4.0))
+    gate.humans(PerceivedHumans(stamp=0.0, humans=[far]), 100.0)
+    gate.odometry(odom(linear=0.2), 100.0)
+    gate.tick(100.0)
+    now = 40.0
+    for _ in range(10):  # every input and tick in step with the jumped clock
+        gate.humans(PerceivedHumans(stamp=0.0, humans=[far]), now)
+        gate.odometry(odom(linear=0.2), now)
+        assert not gate.tick(now).latched
+        assert gate.pose(now) == HERE
+        now += TICK
+    assert gate.separation.scale == 1.0
+
+
 def test_readings_a_moment_out_of_order_count_as_the_same_instant(gate: SafetyGate) -> None:
     max_age = gate.policy.policy.monitor.state_max_age
     gate.odometry(odom(linear=0.2), 100.0)
