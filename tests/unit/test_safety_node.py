@@ -55,14 +55,18 @@ class Recorder:
 
     robot = "r1"
 
-    def __init__(self) -> None:
+    def __init__(self, state_file: Path) -> None:
         self.sent: list[tuple[str, Any]] = []
+        # Whether the e-stop state file was there when each message went out.
+        self.written: list[bool] = []
+        self._state_file = state_file
         self.callbacks: dict[str, Callable[..., Any]] = {}
         self.changed = threading.Condition()
 
     def _record(self, path: str, message: Any) -> None:
         with self.changed:
             self.sent.append((path, message))
+            self.written.append(self._state_file.exists())
             self.changed.notify_all()
 
     def publisher(self, topic: keys.Topic[Any]) -> Any:
@@ -98,7 +102,7 @@ class Recorder:
 def recorded(tmp_path: Path) -> Iterator[Recorder]:
     arm = ArmModel(WORLD.robot.arm_urdf)
     policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
-    node = Recorder()
+    node = Recorder(tmp_path / "estop.json")
     safety = SafetyNode(node, policy, EstopLatch("token", tmp_path / "estop.json"), SafetyConfig())  # type: ignore[arg-type]
     try:
         yield node
@@ -107,7 +111,7 @@ def recorded(tmp_path: Path) -> Iterator[Recorder]:
 
 
 def test_a_latch_reaches_the_robot_first_then_is_written_down_and_cancels_forwarded_goals(
-    recorded: Recorder, tmp_path: Path
+    recorded: Recorder,
 ) -> None:
     node = recorded
     node.callbacks[keys.ODOM.path](
@@ -127,7 +131,7 @@ def test_a_latch_reaches_the_robot_first_then_is_written_down_and_cancels_forwar
     event = first(lambda path, m: isinstance(m, SafetyEvent) and m.decision is Decision.LATCHED)
     assert beat < stop < event < first(lambda path, m: path == cancel)
     assert node.sent[event][1].key == keys.ESTOP.path and "could not be read" in node.sent[event][1].reason
-    assert (tmp_path / "estop.json").exists(), "the latch was not written down"
+    assert not node.written[stop] and node.written[event], "written down after the robot was told, before the event"
 
 
 @dataclass
