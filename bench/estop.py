@@ -49,7 +49,7 @@ from schemas import keys
 from schemas.actions import GetResult, SendGoal
 from schemas.robot import FollowJointTrajectoryGoal, TrajectoryPoint
 from schemas.safety import EStop, EstopSource
-from services.runtime import CallError
+from services.errors import CallError
 
 PROG = "bench.estop"
 GOALS = {"goal_p99_ms": 50.0}

@@ -66,7 +66,7 @@ from schemas.robot import (
     TrajectoryPoint,
 )
 from services import runtime
-from services.runtime import CallError
+from services.errors import CallError
 
 PROG = "bench.gate"
 GOALS = {"goal_ratio_p50": 1.5, "goal_p99_ms": 5.0}

@@ -27,7 +27,8 @@ from bench.transport import machine
 from schemas import keys
 from schemas.plan import Plan, PlanText
 from services import runtime
-from services.runtime import CallError, Node
+from services.errors import CallError
+from services.runtime import Node
 
 SERVICE = "parser"
 GOALS = {"goal_json_plans_per_s": 5000.0, "goal_text_plans_per_s": 1000.0, "goal_ratio_p50": 1.5}

@@ -69,8 +69,9 @@ from schemas import keys
 from schemas.trace import RecorderStatus
 from schemas.world import Empty
 from services import runtime
+from services.errors import CallError
 from services.recorder.reader import read_recording
-from services.runtime import CallError, Node, NodeSettings
+from services.runtime import Node, NodeSettings
 
 PROG = "bench.recorder"
 GOALS = {"goal_rate_hz": 10_000.0, "goal_lost": 0}

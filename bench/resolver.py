@@ -29,7 +29,8 @@ from schemas import keys
 from schemas.common import ServiceError
 from schemas.plan import Action, GroundedPlan, Plan, Step
 from services import runtime
-from services.runtime import CallError, Node
+from services.errors import CallError
+from services.runtime import Node
 
 SERVICE = "resolver"
 CALL_TIMEOUT = 2.0

@@ -40,7 +40,8 @@ from schemas import keys
 from schemas.executor import ExecutePlanGoal, PlanStatus
 from schemas.robot import Odometry
 from schemas.world import Empty, GroundTruth
-from services.runtime import SERVICES, CallError, Node
+from services.errors import CallError
+from services.runtime import SERVICES, Node
 from services.worldmodel import WorldModel, load_world
 from tether.client import PlanSender
 

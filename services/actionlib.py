@@ -27,7 +27,8 @@ from schemas.actions import (
 )
 from schemas.common import ErrorKind, ServiceError
 from schemas.keys import Action
-from services.runtime import CallError, Node
+from services.errors import CallError, GoalRejected
+from services.runtime import Node
 
 log = logging.getLogger(__name__)
 
@@ -245,15 +246,6 @@ class ActionServer(Generic[G, F, R]):
         cutoff = time.monotonic() - RESULT_RETENTION
         for goal_id in [g for g, h in self._goals.items() if h.done.is_set() and h.finished_at < cutoff]:
             del self._goals[goal_id]
-
-
-class GoalRejected(Exception):
-    """The server refused the goal: `reason` in words, `kind` when it says what kind of refusal."""
-
-    def __init__(self, reason: str, kind: ErrorKind | None = None) -> None:
-        super().__init__(reason)
-        self.reason = reason
-        self.kind = kind
 
 
 class ClientGoal(Generic[G, F, R]):

@@ -23,6 +23,7 @@ from schemas import keys
 from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.trace import TraceRecord
+from services.errors import CallError
 
 log = logging.getLogger(__name__)
 
@@ -115,14 +116,6 @@ _encoder = msgspec.json.Encoder()
 
 def encode(message: Any) -> bytes:
     return _encoder.encode(message)
-
-
-class CallError(Exception):
-    """A query got an error value back, or no reply at all."""
-
-    def __init__(self, error: ServiceError) -> None:
-        super().__init__(error.message)
-        self.error = error
 
 
 class Publisher(Generic[T]):

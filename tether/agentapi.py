@@ -19,9 +19,9 @@ from schemas.executor import ExecutePlanGoal
 from schemas.planner import AskReply, AskRequest
 from schemas.safety import EstopSource
 from schemas.world import CameraImage, Empty
-from services.actionlib import GoalRejected
 from services.agent import feedback
-from services.runtime import CallError, Node
+from services.errors import CallError, GoalRejected
+from services.runtime import Node
 from tether.client import PlanSender, next_message, trigger_estop
 
 # How long an action tool waits for its plan to be parsed, resolved and approved before it returns

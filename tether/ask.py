@@ -19,10 +19,11 @@ from rich.console import Console
 
 from schemas import keys
 from schemas.planner import MAX_ATTEMPTS, MAX_REQUEST_CHARS, AskReply, AskRequest, AskStatus
+from services.errors import CallError
 from services.planner.config import HOW_TO_CONFIGURE, PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
-from services.runtime import CallError, ConfigError, Node, NodeSettings, load_config
+from services.runtime import ConfigError, Node, NodeSettings, load_config
 
 console = Console(stderr=True)
 

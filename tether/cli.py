@@ -26,8 +26,9 @@ from schemas.plan import MAX_PLAN_BYTES
 from schemas.robot import Odometry
 from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
-from services.actionlib import CANCEL_ALL, RESULT_RETENTION, GoalRejected
-from services.runtime import SERVICES, CallError, ConfigError, Node, NodeSettings, encode, stop_event
+from services.actionlib import CANCEL_ALL, RESULT_RETENTION
+from services.errors import CallError, GoalRejected
+from services.runtime import SERVICES, ConfigError, Node, NodeSettings, encode, stop_event
 from services.worldmodel import WorldFileError
 from tether import recordings
 from tether.ask import ask

@@ -16,7 +16,8 @@ from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanRe
 from schemas.keys import Topic
 from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
 from services.actionlib import PREEMPT_TIMEOUT, ActionClient, ClientGoal
-from services.runtime import CallError, Node
+from services.errors import CallError
+from services.runtime import Node
 from services.safety.operator import read_token, token_path
 
 T = TypeVar("T")

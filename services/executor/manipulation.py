@@ -38,7 +38,7 @@ from schemas.robot import (
     Twist,
 )
 from schemas.world import PerceivedObject
-from services.actionlib import GoalRejected
+from services.errors import GoalRejected
 from services.executor.armplanning import (
     GRIPPER,
     ArmPlanner,

@@ -26,9 +26,10 @@ from schemas.robot import (
 from schemas.safety import SafetyStatus
 from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
 from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, Outcome
+from services.errors import CallError
 from services.executor.config import ExecutorConfig
 from services.executor.runner import PlanRunner
-from services.runtime import CallError, Node
+from services.runtime import Node
 
 log = logging.getLogger(__name__)
 

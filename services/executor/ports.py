@@ -13,7 +13,7 @@ from schemas.world import PerceivedObject
 
 
 class Planner(Protocol):
-    """The planner-side services. Each may raise runtime.CallError when unreachable."""
+    """The planner-side services. Each may raise services.errors.CallError when unreachable."""
 
     def parse(self, text: str, fmt: str) -> ParseReply: ...
     def resolve(self, plan: Plan) -> ResolveReply: ...

@@ -30,11 +30,11 @@ from schemas.plan import (
     step_kind,
     step_labels,
 )
+from services.errors import CallError
 from services.executor.config import ExecutorConfig
 from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
 from services.executor.manipulation import Manipulator, Note
 from services.executor.ports import Planner, Robot
-from services.runtime import CallError
 
 log = logging.getLogger(__name__)
 

@@ -23,13 +23,14 @@ from schemas.planner import (
 )
 from schemas.safety import SafetyStatus
 from schemas.world import Empty
-from services.actionlib import PREEMPT_TIMEOUT, ActionClient, GoalRejected
+from services.actionlib import PREEMPT_TIMEOUT, ActionClient
+from services.errors import CallError, GoalRejected
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig
 from services.planner.errors import ExecutorUnreachable, LLMError
 from services.planner.llm import ChatClient, ChatReply
 from services.planner.loop import Attempt, LoopStatus, Verdict, plan_loop
 from services.planner.prompt import initial_messages
-from services.runtime import CallError, Node
+from services.runtime import Node
 
 log = logging.getLogger(__name__)
 

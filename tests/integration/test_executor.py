@@ -17,7 +17,7 @@ from schemas.actions import GoalState
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, FailureKind, PlanStatus
 from schemas.robot import JointState
 from schemas.world import Empty, GroundTruth, Moved, MoveEntity, WorldObject
-from services.actionlib import GoalRejected
+from services.errors import GoalRejected
 from services.footprint import footprint
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world

@@ -28,7 +28,8 @@ from schemas.robot import GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.safety import Decision, EstopSource, Rule, SafetyEvent
 from schemas.trace import RecorderStatus
 from schemas.world import Empty
-from services.actionlib import ActionClient, GoalRejected
+from services.actionlib import ActionClient
+from services.errors import GoalRejected
 from services.recorder.mcapfile import Provenance, Recording, SourceFile
 from services.recorder.reader import read_recording
 from services.runtime import Node, NodeSettings, encode

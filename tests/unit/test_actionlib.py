@@ -14,8 +14,9 @@ from schemas.actions import GetResult, GoalState
 from schemas.common import Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
-from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
-from services.runtime import CallError, Node, NodeSettings
+from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from services.errors import CallError, GoalRejected
+from services.runtime import Node, NodeSettings
 from tests.sessions import free_port
 from tether.client import PlanSender
 

@@ -31,13 +31,12 @@ from schemas.robot import (
     Twist,
 )
 from schemas.world import PerceivedObject
-from services.actionlib import GoalRejected
+from services.errors import CallError, GoalRejected
 from services.executor.armplanning import ArmPlanner
 from services.executor.config import ExecutorConfig, StepRetries, StepTimeouts
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
 from services.executor.runner import PlanRunner
-from services.runtime import CallError
 from services.worldmodel import WorldModel, load_world
 
 PLAN = Plan(steps=[Step(action="navigate_to", target="kitchen"), Step(action="say", target="hi")])  # type: ignore[arg-type]

@@ -1,18 +1,22 @@
-"""Safety's transport with two real Zenoh sessions in one process: a trajectory goal sent the moment
-the arm stopped is decided on a joint state measured since, never on the stale one alone."""
+"""Safety's transport. With a recording stand-in for the Zenoh node: a latch reaches the robot before
+anything else and cancels the goals forwarded. With two real Zenoh sessions in one process: a
+trajectory goal sent the moment the arm stopped is decided on a joint state measured since, never on
+the stale one alone."""
 
 from __future__ import annotations
 
+import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from schemas import keys
-from schemas.actions import GoalState
+from schemas.actions import CancelGoal, CancelResponse, GoalResponse, GoalState, SendGoal
 from schemas.common import Pose2D
 from schemas.robot import (
     ARM_JOINTS,
@@ -20,11 +24,15 @@ from schemas.robot import (
     FollowJointTrajectoryGoal,
     FollowJointTrajectoryResult,
     JointState,
+    NavigateToPoseGoal,
     Odometry,
     TrajectoryPoint,
+    Twist,
 )
+from schemas.safety import Decision, SafetyEvent, SafetyStatus
 from schemas.world import PerceivedHuman, PerceivedHumans
-from services.actionlib import ActionClient, ActionServer, GoalHandle, GoalRejected, Outcome
+from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from services.errors import GoalRejected
 from services.robotmodel import ArmModel
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
@@ -41,6 +49,91 @@ HOME = list(WORLD.robot.home_joints)
 WAIT = 5.0
 
 
+class Recorder:
+    """Stands in for the Zenoh node: every publication and query in one list, in order; inputs are
+    delivered by calling the callbacks safety registered."""
+
+    robot = "r1"
+
+    def __init__(self, state_file: Path) -> None:
+        self.sent: list[tuple[str, Any]] = []
+        # Whether the e-stop state file was there when each message went out.
+        self.written: list[bool] = []
+        self._state_file = state_file
+        self.callbacks: dict[str, Callable[..., Any]] = {}
+        self.changed = threading.Condition()
+
+    def _record(self, path: str, message: Any) -> None:
+        with self.changed:
+            self.sent.append((path, message))
+            self.written.append(self._state_file.exists())
+            self.changed.notify_all()
+
+    def publisher(self, topic: keys.Topic[Any]) -> Any:
+        recorder = self
+
+        class Publisher:
+            def put(self, message: Any) -> None:
+                recorder._record(topic.path, message)
+
+        return Publisher()
+
+    def subscribe(self, topic: keys.Topic[Any], callback: Callable[[Any], None]) -> None:
+        self.callbacks[topic.path] = callback
+
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> None:
+        self.callbacks[key] = callback
+
+    def serve(self, service: keys.Service[Any, Any], handler: Callable[[Any], Any]) -> None:
+        self.callbacks[service.path] = handler
+
+    def call(self, service: keys.Service[Any, Any], request: Any, timeout: float) -> Any:
+        self._record(service.path, request)
+        if service is keys.ROBOT_NAVIGATE.send_goal:
+            return GoalResponse(goal_id=request.goal_id, accepted=True)
+        return CancelResponse(goal_id=request.goal_id, accepted=True)
+
+    def wait_for(self, found: Callable[[list[tuple[str, Any]]], bool]) -> None:
+        with self.changed:
+            assert self.changed.wait_for(lambda: found(self.sent), WAIT), self.sent[-20:]
+
+
+@pytest.fixture
+def recorded(tmp_path: Path) -> Iterator[Recorder]:
+    arm = ArmModel(WORLD.robot.arm_urdf)
+    policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
+    node = Recorder(tmp_path / "estop.json")
+    safety = SafetyNode(node, policy, EstopLatch("token", tmp_path / "estop.json"), SafetyConfig())  # type: ignore[arg-type]
+    try:
+        yield node
+    finally:
+        safety.close()
+
+
+def test_a_latch_reaches_the_robot_first_then_is_written_down_and_cancels_forwarded_goals(
+    recorded: Recorder,
+) -> None:
+    node = recorded
+    node.callbacks[keys.ODOM.path](
+        Odometry(stamp=0.0, sim_time=0.0, pose=Pose2D(x=6.0, y=1.2), linear_x=0.0, angular_z=0.0)
+    )
+    goal = SendGoal(goal_id="g1", goal=NavigateToPoseGoal(pose=Pose2D(x=6.5, y=1.2)))
+    assert node.callbacks[keys.CMD_NAVIGATE.send_goal.path](goal).accepted
+    node.callbacks[keys.ESTOP.key(node.robot)](keys.ESTOP.key(node.robot), b'{"source": "big red')
+    cancel = keys.ROBOT_NAVIGATE.cancel_goal.path
+    node.wait_for(lambda sent: (cancel, CancelGoal(goal_id="g1")) in sent)
+
+    def first(found: Callable[[str, Any], bool]) -> int:
+        return next(i for i, (path, message) in enumerate(node.sent) if found(path, message))
+
+    beat = first(lambda path, m: isinstance(m, SafetyStatus) and m.estop.latched)
+    stop = first(lambda path, m: path == keys.ROBOT_CMD_VEL.path and m == Twist())
+    event = first(lambda path, m: isinstance(m, SafetyEvent) and m.decision is Decision.LATCHED)
+    assert beat < stop < event < first(lambda path, m: path == cancel)
+    assert node.sent[event][1].key == keys.ESTOP.path and "could not be read" in node.sent[event][1].reason
+    assert not node.written[stop] and node.written[event], "written down after the robot was told, before the event"
+
+
 @dataclass
 class Rig:
     robot: Node
@@ -51,7 +144,7 @@ class Rig:
         """The arm reports its joints at `q`, and safety has heard it."""
         self.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
         deadline = time.monotonic() + WAIT
-        while (self.safety.joints() or {}).get(ARM_JOINTS[1]) != q[1]:
+        while (self.safety.gate.joint_positions(self.safety.clock()) or {}).get(ARM_JOINTS[1]) != q[1]:
             assert time.monotonic() < deadline, "safety never heard the joint state"
             time.sleep(0.005)
 
@@ -93,9 +186,9 @@ def measured_when_safety_asks(rig: Rig, q: list[float]) -> None:
     newer joint state: the race this guards against, made to happen every time."""
     waiting = rig.safety._joints_since
 
-    def publish_then_wait(checked: tuple[float, JointState] | None, timeout: float) -> bool:
+    def publish_then_wait(seen: int, timeout: float) -> bool:
         rig.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
-        return waiting(checked, timeout)
+        return waiting(seen, timeout)
 
     rig.safety._joints_since = publish_then_wait  # type: ignore[method-assign]
 
@@ -119,7 +212,7 @@ def test_a_goal_that_really_starts_away_from_the_arm_is_still_refused(rig: Rig) 
 
 
 def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_d(rig: Rig) -> None:
-    humans = rig.safety.policy.policy.humans
+    humans = rig.safety.gate.policy.policy.humans
     here = Pose2D(x=6.0, y=1.2)
     front = WORLD.robot.base_size.x / 2
 
@@ -134,7 +227,7 @@ def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_
                 keys.ODOM, Odometry(stamp=time.time(), sim_time=0.0, pose=here, linear_x=0.0, angular_z=0.0)
             )
             rig.robot.publish(keys.HUMANS, PerceivedHumans(stamp=time.time(), humans=[operator]))
-            found = rig.safety._separation
+            found = rig.safety.gate.separation
             if found.distance is not None and abs(found.distance - gap) < 1e-6:
                 return found
             assert time.monotonic() < deadline, f"safety never saw the operator {gap} m away: {found}"

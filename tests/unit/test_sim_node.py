@@ -16,7 +16,8 @@ from schemas.common import ErrorKind, Pose2D, ServiceError
 from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import Empty, Moved, MoveEntity
-from services.actionlib import ActionClient, GoalRejected
+from services.actionlib import ActionClient
+from services.errors import GoalRejected
 from services.runtime import Node, NodeSettings
 from services.sim.config import SimConfig
 from services.sim.node import SimNode

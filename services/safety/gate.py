@@ -1,0 +1,510 @@
+"""Safety's decisions, pure: commands, state reports and ticks in; what to forward, publish and latch out."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any, Generic, TypeVar
+
+import msgspec
+
+from schemas import keys
+from schemas.actions import GoalResponse, SendGoal
+from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
+from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
+from schemas.robot import (
+    ARM_JOINTS,
+    FollowJointTrajectoryGoal,
+    GripperCommandGoal,
+    JointState,
+    NavigateToPoseGoal,
+    Odometry,
+    Twist,
+)
+from schemas.safety import Decision, EStop, EstopSource, ResetReply, ResetRequest, Rule, SafetyStatus
+from schemas.world import PerceivedHumans
+from services.robotmodel import base_to_map
+from services.safety.errors import Unauthorized, Vetoed
+from services.safety.latch import EstopLatch
+from services.safety.monitor import (
+    MotionMonitor,
+    PeopleReports,
+    Person,
+    RateLimit,
+    Separation,
+    Trip,
+    nearest_person,
+    separation,
+)
+from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict, base_moving
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+# Faster than this (m/s, rad/s) counts as moving, for the watchdog.
+MOVING = 0.05
+# A teleop stream silent this long has stopped the base (the robot holds a cmd_vel for 0.5 s); the
+# first message after it may speed up by at most TELEOP_MAX_STEP seconds of acceleration.
+TELEOP_TIMEOUT = 0.5
+TELEOP_MAX_STEP = 0.1
+# Repeated vetoes of a stream for one rule are one event per this many seconds.
+REPEAT_WINDOW = 1.0
+# A `now` up to this much earlier than one already seen is threads racing into the gate with their
+# readings: no time passed. Further back, the clock itself stepped back: a pause, after which the
+# gate's time carries on from where it was, so a watchdog is not blind until the clock catches up.
+CLOCK_STEP_BACK = 0.5
+
+GoalRuling = SendGoal[Any] | GoalResponse
+
+
+@dataclass(frozen=True)
+class GateEvent:
+    """An event for `safety/events` as the gate decided it; the node stamps and encodes it."""
+
+    key: str
+    decision: Decision
+    reason: str
+    command: object = None
+    rule: Rule | None = None
+    checks: tuple[Rule, ...] = ()
+    values: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Ruling(Generic[T]):
+    """What the node does after one input.
+
+    `forward`: what goes on: the twist for robot/cmd_vel (None: nothing), the goal for the robot or
+    the refusal for the caller, the reply to a query. `events`: to publish, in order. `latched`: the
+    e-stop latched just now: tell the robot at once (a heartbeat, a stop on robot/cmd_vel), write the
+    latch down, then cancel every goal forwarded to the robot. `reset`: it was cleared: a heartbeat,
+    and write it down. `fresh_joints_may_pass`: a trajectory refused because its first point seems to
+    jump from the arm's last known position; decided again on a joint state measured since, it may pass.
+    """
+
+    forward: T
+    events: tuple[GateEvent, ...] = ()
+    latched: bool = False
+    reset: bool = False
+    fresh_joints_may_pass: bool = False
+
+
+def _veto_event(key: str, exc: Vetoed, command: object) -> GateEvent:
+    return GateEvent(key, Decision.VETOED, str(exc), command, exc.rule, (exc.rule,), exc.values)
+
+
+def _approval(key: str, verdict: Verdict[Any], command: object) -> GateEvent:
+    decision = Decision.APPROVED if verdict.clamped_by is None else Decision.CLAMPED
+    return GateEvent(key, decision, verdict.note, command, verdict.clamped_by, verdict.checks, verdict.values)
+
+
+def _refusal_kind(exc: Vetoed) -> ErrorKind:
+    return ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
+
+
+class SafetyGate:
+    """Every decision safety takes, on inputs the node hands it. Each call takes `now`, seconds on
+    the one monotonic clock the node reads; time in here never runs back (see CLOCK_STEP_BACK), so
+    ages and ramps are never negative.
+
+    Thread-safe, as Zenoh calls back from several threads: the gate's state (robot state, speed
+    scale, last twist sent, repeated vetoes, monitors) is guarded by one lock held only briefly; the
+    policy's checks run outside it on a snapshot, so a long plan check never delays a heartbeat. The
+    latch, rate limits and people reports guard themselves."""
+
+    def __init__(self, policy: SafetyPolicy, latch: EstopLatch) -> None:
+        self.policy = policy
+        self.latch = latch
+        rules = policy.policy
+        self.hash = policy.limits.hash
+        self._lock = threading.Lock()
+        self._now = -math.inf
+        self._offset = 0.0
+        self._odom: tuple[float, Odometry] | None = None
+        self._joints: tuple[float, JointState] | None = None
+        self._people = PeopleReports(rules.humans.unseen_after)
+        self._separation = Separation(rules.humans.reduced_speed_scale, "no report of people yet")
+        # What was last put on robot/cmd_vel, from any path, and when: teleop speeds up from it.
+        # Never sent counts as sent long ago.
+        self._sent_twist: tuple[float, Twist] = (-math.inf, Twist())
+        self._repeats: dict[tuple[str, Rule], tuple[float, int, str]] = {}
+        self._rates: dict[str, RateLimit] = {}
+        for topic in (keys.CMD_VEL, keys.TELEOP_CMD_VEL):
+            self._rates[topic.path] = RateLimit(rules.rate.max_cmd_vel_per_second, rules.rate.burst_seconds)
+        for action in (keys.CMD_NAVIGATE, keys.CMD_TRAJECTORY, keys.CMD_GRIPPER):
+            self._rates[action.send_goal.path] = RateLimit(rules.rate.max_goals_per_second, rules.rate.burst_seconds)
+        self.monitor = MotionMonitor(
+            rules.monitor,
+            policy.max_linear,
+            policy.max_angular,
+            {name: limit.velocity for name, limit in policy.joint_limits.items()},
+            decay_per_second=rules.base.max_linear_acceleration / policy.max_linear,
+        )
+
+    def _advance(self, now: float) -> float:
+        """The gate's time at the clock's `now`; call with the lock held."""
+        if now + self._offset < self._now - CLOCK_STEP_BACK:
+            self._offset = self._now - now
+        self._now = max(self._now, now + self._offset)
+        return self._now
+
+    def _time(self, now: float) -> float:
+        """The gate's time at the clock's `now`. Public methods take the clock's `now` and turn it into
+        the gate's `t` once; the private ones take `t`."""
+        with self._lock:
+            return self._advance(now)
+
+    # What safety knows of the robot
+
+    @property
+    def separation(self) -> Separation:
+        """The speed allowed near people, as of the last tick."""
+        with self._lock:
+            return self._separation
+
+    def pose(self, now: float) -> Pose2D | None:
+        """The base pose, or None when odometry is missing or stale."""
+        return self._pose(self._time(now))
+
+    def joint_positions(self, now: float) -> dict[str, float] | None:
+        """The arm's joint positions, or None when joint states are missing or stale."""
+        return self._joint_positions(self._time(now))
+
+    def _pose(self, t: float) -> Pose2D | None:
+        with self._lock:
+            odom = self._odom
+        if odom is None or t - odom[0] > self.policy.policy.monitor.state_max_age:
+            return None
+        return odom[1].pose
+
+    def _joint_positions(self, t: float) -> dict[str, float] | None:
+        with self._lock:
+            joints = self._joints
+        if joints is None or t - joints[0] > self.policy.policy.monitor.state_max_age:
+            return None
+        return dict(zip(joints[1].name, joints[1].position, strict=False))
+
+    def _hand(self, pose: Pose2D, t: float) -> tuple[float, float] | None:
+        """The end effector on the floor plan (map frame)."""
+        local = self.policy.hand_in_base(self._joint_positions(t))
+        return None if local is None else base_to_map(pose, *local)
+
+    def _reach(self, t: float) -> float:
+        """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
+        return self.policy.reach(self._joint_positions(t))
+
+    def _base_moving(self) -> bool:
+        with self._lock:
+            odom = self._odom
+        return odom is not None and base_moving(odom[1])
+
+    # State reports, and the monitors on them
+
+    def odometry(self, msg: Odometry, now: float) -> Ruling[None]:
+        with self._lock:
+            t = self._advance(now)
+            self._odom = (t, msg)
+            if self.latch.state.latched:
+                return Ruling(None)
+            trip = self.monitor.base(t, msg.linear_x, msg.angular_z, self._separation.scale)
+        if trip is None and (zone := self.policy.zone_at(msg.pose.x, msg.pose.y)) is not None:
+            trip = Trip(
+                Rule.MONITOR_KEEP_OUT,
+                f"the base was measured inside keep-out zone '{zone.name}'",
+                {"x": msg.pose.x, "y": msg.pose.y},
+            )
+        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
+
+    def joint_state(self, msg: JointState, now: float) -> Ruling[None]:
+        with self._lock:
+            t = self._advance(now)
+            self._joints = (t, msg)
+            if self.latch.state.latched or not msg.velocity:
+                return Ruling(None)
+            velocities = dict(zip(msg.name, msg.velocity, strict=False))
+            trip = self.monitor.joints(t, velocities, self._separation.scale)
+        return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
+
+    def humans(self, msg: PerceivedHumans, now: float) -> None:
+        self._people.add(self._time(now), [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans])
+
+    # The clock's tick: separation, the watchdog, repeated vetoes
+
+    def tick(self, now: float) -> Ruling[None]:
+        """Once a heartbeat: the speed allowed near people, the watchdog, the counts of repeated vetoes."""
+        t = self._time(now)
+        events: list[GateEvent] = []
+        try:
+            found = self._find_separation(t)
+        except Exception as exc:  # the heartbeat goes on, and what cannot be computed stops the robot
+            log.exception("speed and separation failed")
+            found = Separation(0.0, f"speed and separation could not be computed: {exc}")
+        events.extend(self._set_separation(found))
+        latched = False
+        try:
+            for trip in self._watchdog(t):
+                ruling = self._trip(EstopSource.WATCHDOG, trip, t)
+                latched = latched or ruling.latched
+                events.extend(ruling.events)
+        except Exception:
+            log.exception("the watchdog failed")
+        events.extend(self._flush_repeats(t))
+        return Ruling(None, tuple(events), latched=latched)
+
+    def status(self, seq: int, stamp: float) -> SafetyStatus:
+        """The heartbeat's content: the latch, and the speed allowed now."""
+        sep = self.separation
+        return SafetyStatus(
+            seq=seq,
+            stamp=stamp,
+            estop=self.latch.state,
+            speed_scale=sep.scale,
+            speed_reason=sep.reason,
+            max_linear_speed=self.policy.max_linear * sep.scale,
+            max_angular_speed=self.policy.max_angular * sep.scale,
+            policy_hash=self.hash,
+        )
+
+    def _find_separation(self, t: float) -> Separation:
+        humans = self.policy.policy.humans
+        people = self._people.people(t)
+        if people is None:
+            return separation(None, False, humans)
+        if not people:
+            return separation(None, True, humans)
+        if (pose := self._pose(t)) is None:
+            return Separation(humans.reduced_speed_scale, "the robot's pose is unknown: reduced speed")
+        size = self.policy.world.world.robot.base_size
+        nearest = nearest_person(pose, (size.x, size.y), self._hand(pose, t), people, humans.person_radius)
+        return separation(nearest, True, humans, self.separation.scale)
+
+    def _set_separation(self, found: Separation) -> list[GateEvent]:
+        with self._lock:
+            previous, self._separation = self._separation, found
+        if found.scale == previous.scale:
+            return []
+        values = {"scale": found.scale}
+        if found.distance is not None:
+            values["distance_m"] = found.distance
+        reason = found.reason or "no one near: full speed"
+        log.info("speed limit: %s", reason)
+        return [GateEvent(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, Rule.HUMAN_SEPARATION, (), values)]
+
+    def _watchdog(self, t: float) -> list[Trip]:
+        """The robot's state stopped arriving while it moved: nothing can be monitored, so stop.
+        A state exactly `state_max_age` old still counts; a stale one is forgotten once reported."""
+        max_age = self.policy.policy.monitor.state_max_age
+        with self._lock:
+            odom, joints = self._odom, self._joints
+            if odom is not None and t - odom[0] > max_age:
+                self._odom = None
+            else:
+                odom = None
+            if joints is not None and t - joints[0] > max_age:
+                self._joints = None
+            else:
+                joints = None
+        trips = []
+        if odom is not None and (abs(odom[1].linear_x) > MOVING or abs(odom[1].angular_z) > MOVING):
+            age = t - odom[0]
+            why = f"no odometry for {age:.2f} s while the base was moving"
+            values = {"age_s": age, "speed_mps": odom[1].linear_x, "turn_rps": odom[1].angular_z}
+            trips.append(Trip(Rule.WATCHDOG, why, values))
+        if joints is not None:
+            fastest = max((abs(v) for v in joints[1].velocity[: len(ARM_JOINTS)]), default=0.0)
+            if fastest > MOVING:
+                age = t - joints[0]
+                why = f"no joint states for {age:.2f} s while the arm was moving"
+                trips.append(Trip(Rule.WATCHDOG, why, {"age_s": age, "speed_rps": fastest}))
+        return trips
+
+    def _veto_repeated(self, key: str, exc: Vetoed, command: object, t: float) -> list[GateEvent]:
+        """A stream vetoed for the same rule over and over (e-stop latched, over the rate): the first
+        veto is an event, the rest within REPEAT_WINDOW are counted into one event (see _flush_repeats)."""
+        with self._lock:
+            seen = self._repeats.get((key, exc.rule))
+            if seen is not None and t - seen[0] < REPEAT_WINDOW:
+                self._repeats[(key, exc.rule)] = (seen[0], seen[1] + 1, str(exc))
+                return []
+            self._repeats[(key, exc.rule)] = (t, 0, str(exc))
+        # A window that ended before a tick could count it is counted t, not lost.
+        counted = [] if seen is None else self._count_event(key, exc.rule, seen, t)
+        return [*counted, _veto_event(key, exc, command)]
+
+    def _flush_repeats(self, t: float) -> list[GateEvent]:
+        with self._lock:
+            due = [(k, v) for k, v in self._repeats.items() if t - v[0] >= REPEAT_WINDOW]
+            for k, _ in due:
+                del self._repeats[k]
+        return [event for (key, rule), seen in due for event in self._count_event(key, rule, seen, t)]
+
+    @staticmethod
+    def _count_event(key: str, rule: Rule, seen: tuple[float, int, str], t: float) -> list[GateEvent]:
+        at, count, reason = seen
+        if not count:
+            return []
+        why = f"{count} more vetoed like this in the last {t - at:.1f} s: {reason}"
+        return [GateEvent(key, Decision.VETOED, why, None, rule, (rule,), {"count": float(count)})]
+
+    # The e-stop
+
+    def estop(self, msg: EStop, now: float) -> Ruling[None]:
+        return self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {}, self._time(now))
+
+    def unreadable_estop(self, size: int, error: str, now: float) -> Ruling[None]:
+        """Fail closed: someone meant to stop the robot."""
+        reason = f"an e-stop message that could not be read ({size} bytes): {error}"[:1000]
+        return self._latch("unknown", reason, None, Rule.ESTOP, {}, self._time(now))
+
+    def _trip(self, source: EstopSource, trip: Trip, t: float) -> Ruling[None]:
+        return self._latch(source, trip.reason, None, trip.rule, trip.values, t)
+
+    def _latch(
+        self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
+    ) -> Ruling[None]:
+        if not self.latch.trigger(source, reason):
+            return Ruling(None)
+        with self._lock:
+            self._sent_twist = (t, Twist())
+        log.warning("E-STOP latched by %s: %s", source, reason)
+        event = GateEvent(keys.ESTOP.path, Decision.LATCHED, f"by {source}: {reason}", command, rule, (), values)
+        return Ruling(None, (event,), latched=True)
+
+    def reset(self, req: ResetRequest) -> Ruling[ResetReply]:
+        """Clear the latch with the operator's token; the token never leaves in an event."""
+        redacted = msgspec.structs.replace(req, token="***")
+        try:
+            self.latch.reset(req.operator, req.token)
+        except Unauthorized as exc:
+            event = GateEvent(keys.RESET.path, Decision.VETOED, str(exc), redacted, Rule.OPERATOR, (Rule.OPERATOR,))
+            return Ruling(ResetReply(ok=False, message=str(exc)), (event,))
+        log.warning("e-stop reset by operator %s", req.operator)
+        event = GateEvent(
+            keys.RESET.path, Decision.RESET, f"by operator {req.operator}", redacted, None, (Rule.OPERATOR,)
+        )
+        return Ruling(ResetReply(ok=True, message=f"e-stop reset by {req.operator}"), (event,), reset=True)
+
+    def _estop_veto(self) -> Vetoed | None:
+        """Why nothing may move while the e-stop is latched; None when it is not."""
+        estop = self.latch.state
+        if not estop.latched:
+            return None
+        return Vetoed(f"e-stop latched by {estop.source}: {estop.reason}; an operator must reset it", Rule.ESTOP)
+
+    def _rate_veto(self, key: str, t: float) -> Vetoed | None:
+        """The command on `key` over its rate limit; None while within it."""
+        limit = self._rates[key]
+        if limit.allow(t):
+            return None
+        return Vetoed(f"more than {limit.rate:g} commands a second on {key}", Rule.COMMAND_RATE, limit_hz=limit.rate)
+
+    # Commands: velocities
+
+    def cmd_vel(self, twist: Twist, now: float) -> Ruling[Twist | None]:
+        """A velocity from a program: over a limit it is refused and the base stopped."""
+
+        def check(t: float) -> Verdict[Twist]:
+            return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale)
+
+        return self._twist(keys.CMD_VEL.path, twist, check, self._time(now))
+
+    def teleop(self, twist: Twist, now: float) -> Ruling[Twist | None]:
+        """A velocity from a person: clamped to the limits, and speeding up from what was last sent."""
+
+        def check(t: float) -> Verdict[Twist]:
+            # Speed up from what the robot was last told by anyone (a program, a stop, a veto).
+            with self._lock:
+                at, previous = self._sent_twist
+            # After a pause the base has stopped (the robot drops cmd_vel after half a second).
+            if t - at > TELEOP_TIMEOUT:
+                previous = Twist()
+            step = min(t - at, TELEOP_MAX_STEP)
+            return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale)
+
+        return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time(now))
+
+    def _twist(
+        self, key: str, twist: Twist, check: Callable[[float], Verdict[Twist]], t: float
+    ) -> Ruling[Twist | None]:
+        """The twist to put on robot/cmd_vel, if any. The node puts it before the next twist is
+        decided: the teleop ramp starts from what was sent last."""
+        if refused := self._estop_veto():
+            return Ruling(None, tuple(self._veto_repeated(key, refused, twist, t)))
+        if refused := self._rate_veto(key, t):
+            events = self._veto_repeated(key, refused, twist, t)
+            return Ruling(self._sent(Twist(), t), tuple(events))
+        try:
+            verdict = check(t)
+        except Vetoed as exc:
+            # Dropping it is not enough: the last approved twist would carry on until it expires.
+            event = GateEvent(key, Decision.VETOED, f"{exc}; base stopped", twist, exc.rule, (exc.rule,), exc.values)
+            return Ruling(self._sent(Twist(), t), (event,))
+        return Ruling(self._sent(verdict.command, t), (_approval(key, verdict, verdict.command),))
+
+    def _sent(self, twist: Twist, t: float) -> Twist:
+        with self._lock:
+            self._sent_twist = (t, twist)
+        return twist
+
+    # Commands: goals and plans
+
+    def navigate(self, req: SendGoal[NavigateToPoseGoal], now: float) -> Ruling[GoalRuling]:
+        t = self._time(now)
+
+        def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
+            return self.policy.check_navigation(goal, self._pose(t), self._reach(t))
+
+        return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, t)
+
+    def trajectory(
+        self, req: SendGoal[FollowJointTrajectoryGoal], now: float, again: bool = False
+    ) -> Ruling[GoalRuling]:
+        """A trajectory from where the arm is. A goal sent the moment the previous motion ended may
+        start where the arm has just stopped, while the latest state here is from a moment before: a
+        first point that seems to jump is refused with `fresh_joints_may_pass`, and the node asks
+        `again` once a joint state measured since came (the e-stop and the rate were checked already)."""
+        t = self._time(now)
+
+        def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
+            return self.policy.check_trajectory(goal, self._joint_positions(t), self._pose(t), self._base_moving())
+
+        ruling = self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, first=not again)
+        jumped = isinstance(ruling.forward, GoalResponse) and "jump_rad" in ruling.events[0].values
+        return replace(ruling, fresh_joints_may_pass=jumped and not again)
+
+    def gripper(self, req: SendGoal[GripperCommandGoal], now: float) -> Ruling[GoalRuling]:
+        return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, self._time(now))
+
+    def _goal(
+        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, first: bool = True
+    ) -> Ruling[GoalRuling]:
+        """The goal to send to the robot, or the refusal to reply with."""
+        try:
+            if first and (refused := self._estop_veto() or self._rate_veto(key, t)):
+                raise refused
+            verdict = check(req.goal)
+        except Vetoed as exc:
+            refusal = GoalResponse(
+                goal_id=req.goal_id, accepted=False, reason=f"vetoed by safety: {exc}", kind=_refusal_kind(exc)
+            )
+            return Ruling(refusal, (_veto_event(key, exc, req),))
+        goal = SendGoal(goal_id=req.goal_id, goal=verdict.command)
+        return Ruling(goal, (_approval(key, verdict, goal),))
+
+    def check_plan(self, plan: GroundedPlan, now: float) -> Ruling[PlanCheckReply]:
+        """The whole plan, before anything moves."""
+        key = keys.PLAN_CHECK.path
+        t = self._time(now)
+        try:
+            if refused := self._estop_veto():
+                raise refused
+            checks = self.policy.check_plan(plan, self._pose(t))
+        except Vetoed as exc:
+            error = ServiceError(kind=_refusal_kind(exc), message=str(exc), stage=Stage.SAFETY)
+            return Ruling(error, (_veto_event(key, exc, plan),))
+        event = GateEvent(key, Decision.APPROVED, "; ".join(checks), plan, None, PLAN_RULES)
+        return Ruling(PlanApproved(checks=checks), (event,))
