@@ -233,12 +233,6 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result, a.get_status)),
 )
 
-# Command keys under robot/**: what only safety may write.
-ROBOT_COMMANDS = "robot/**"
-
-# Services write these; their paths take the service name.
-TRACE_TOPIC_TYPE = TraceRecord
-
 
 def alive_key(robot: str, service: str = "*") -> str:
     return f"{prefix(robot)}/alive/{service}"

@@ -17,10 +17,13 @@ class ParserConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     grammar: str = ""
     # Limits. Each may only be tightened below the schema's own bound.
     max_input_bytes: Annotated[int, Meta(ge=64, le=MAX_PLAN_BYTES)] = MAX_PLAN_BYTES
+    # All steps, sub-steps and on_failure alternatives included.
     max_steps: Annotated[int, Meta(ge=1, le=MAX_STEPS)] = MAX_STEPS
+    # Levels of sub-steps and on_failure below the plan's steps.
     max_nesting: Annotated[int, Meta(ge=0, le=MAX_NESTING)] = MAX_NESTING
     # JSON or YAML nested deeper than this is refused before decoding: a plan needs a few levels.
     max_depth: Annotated[int, Meta(ge=4, le=200)] = 32
+    # A said sentence or a description.
     max_string_chars: Annotated[int, Meta(ge=16, le=4000)] = 4000
     # YAML nodes with anchors and aliases expanded.
     max_yaml_nodes: Annotated[int, Meta(ge=100, le=1_000_000)] = 20_000

@@ -10,7 +10,7 @@ from schemas import keys
 from schemas.common import ServiceError
 from schemas.plan import MAX_PLAN_BYTES, ParseReply, PlanText
 from services.parser.config import ParserConfig
-from services.parser.parser import Limits, Parser, answer
+from services.parser.parser import Parser, answer
 from services.parser.text import load_grammar
 from services.parser.vocabulary import load_vocabulary
 from services.runtime import Node
@@ -21,21 +21,7 @@ log = logging.getLogger(__name__)
 def build_parser(config: ParserConfig) -> Parser:
     vocabulary = load_vocabulary(Path(config.vocabulary) if config.vocabulary else None)
     grammar = load_grammar(Path(config.grammar) if config.grammar else None)
-    limits = Limits(
-        max_input_bytes=config.max_input_bytes,
-        max_steps=config.max_steps,
-        max_nesting=config.max_nesting,
-        max_depth=config.max_depth,
-        max_string_chars=config.max_string_chars,
-        max_yaml_nodes=config.max_yaml_nodes,
-    )
-    return Parser(
-        vocabulary,
-        grammar,
-        limits=limits,
-        lenient_json=config.lenient_json,
-        max_repair_chars=config.max_repair_chars,
-    )
+    return Parser(vocabulary, grammar, config=config)
 
 
 def handler(parser: Parser) -> Callable[[PlanText], ParseReply]:

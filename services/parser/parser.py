@@ -13,9 +13,6 @@ from rapidfuzz import fuzz, process
 
 from schemas.common import ErrorKind, Metres, ServiceError, Stage
 from schemas.plan import (
-    MAX_NESTING,
-    MAX_PLAN_BYTES,
-    MAX_STEPS,
     Action,
     Coordinates,
     ParamValue,
@@ -25,6 +22,7 @@ from schemas.plan import (
     SourceFormat,
     Step,
 )
+from services.parser.config import ParserConfig
 from services.parser.errors import ParseError
 from services.parser.extract import JsonFinder, fenced_blocks
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
@@ -89,18 +87,6 @@ def _type_name(value: object) -> str:
 
 
 @dataclass(frozen=True)
-class Limits:
-    """What the parser accepts at most; over a limit is refused, as early as it can be seen."""
-
-    max_input_bytes: int = MAX_PLAN_BYTES
-    max_steps: int = MAX_STEPS  # all steps, sub-steps and on_failure alternatives included
-    max_nesting: int = MAX_NESTING  # levels of sub-steps / on_failure below the plan's steps
-    max_depth: int = 32  # JSON or YAML nesting
-    max_string_chars: int = MAX_TEXT_CHARS  # a said sentence or a description
-    max_yaml_nodes: int = 20_000  # YAML nodes with aliases expanded
-
-
-@dataclass(frozen=True)
 class _Where:
     """Where a step is, for messages: 'step 2.1' in structured plans, 'line 3, column 5' in text."""
 
@@ -123,15 +109,15 @@ class _Where:
 class _Context:
     """One parse: its warnings and how many steps it has seen."""
 
-    limits: Limits
+    config: ParserConfig
     warnings: list[str] = field(default_factory=list)
     steps: int = 0
 
     def count(self, where: _Where) -> None:
         self.steps += 1
-        if self.steps > self.limits.max_steps:
+        if self.steps > self.config.max_steps:
             raise where.refuse(
-                f"the plan has more than {self.limits.max_steps} steps (sub-steps and on_failure included); "
+                f"the plan has more than {self.config.max_steps} steps (sub-steps and on_failure included); "
                 "split it into smaller plans"
             )
 
@@ -160,15 +146,16 @@ class Parser:
         vocabulary: Vocabulary,
         grammar: TextGrammar | None = None,
         *,
-        limits: Limits | None = None,
-        lenient_json: bool = True,
-        max_repair_chars: int = 64 * 1024,
+        config: ParserConfig | None = None,
     ) -> None:
         self.vocabulary = vocabulary
         self.grammar = grammar if grammar is not None else load_grammar()
-        self.limits = limits or Limits()
+        # Its limits: over one is refused, as early as it can be seen.
+        self.config = config if config is not None else ParserConfig()
         self.finder = JsonFinder(
-            max_depth=self.limits.max_depth, lenient=lenient_json, max_repair_chars=max_repair_chars
+            max_depth=self.config.max_depth,
+            lenient=self.config.lenient_json,
+            max_repair_chars=self.config.max_repair_chars,
         )
         # Every name of an action, with the parameters its variant sets.
         self.actions: dict[str, tuple[Action, dict[str, str]]] = {}
@@ -219,7 +206,7 @@ class Parser:
         if fmt not in FORMATS:
             raise ParseError(f"unknown format {echo(fmt)}; expected one of {', '.join(FORMATS)}")
         self._check_text(text)
-        ctx = _Context(self.limits)
+        ctx = _Context(self.config)
         if fmt == "text":
             return self._from_text(text, ctx)
         if fmt == "yaml":
@@ -266,7 +253,7 @@ class Parser:
             raise ParseError(f"plan text must be a string, got {_type_name(text)}")
         if not text:
             raise ParseError("plan text is empty")
-        limit = self.limits.max_input_bytes
+        limit = self.config.max_input_bytes
         if len(text) > limit:  # every character is at least one byte: refuse without encoding
             raise ParseError(f"plan text is over {limit} bytes; at most {limit} are accepted")
         if not text.strip():
@@ -311,7 +298,7 @@ class Parser:
         for at, body in blocks:
             line = text.count("\n", 0, at) + 1
             try:
-                value = load_yaml(body, max_nodes=self.limits.max_yaml_nodes, max_depth=self.limits.max_depth)
+                value = load_yaml(body, max_nodes=self.config.max_yaml_nodes, max_depth=self.config.max_depth)
             except ParseError as exc:
                 # Alias bombs are refused even where other broken YAML would be skipped.
                 if strict or (len(blocks) == 1 and at > 0) or isinstance(exc, AliasBomb):
@@ -334,7 +321,7 @@ class Parser:
         plans: list[tuple[int, Plan]] = []
         failures: list[tuple[int, ParseError]] = []
         for value, warnings, line, fmt in sorted(candidates, key=lambda c: c[2]):
-            one = _Context(self.limits, list(warnings))
+            one = _Context(self.config, list(warnings))
             try:
                 plans.append((line, self._from_value(value, fmt, one)))
             except ParseError as exc:
@@ -351,7 +338,7 @@ class Parser:
                 )
         notes = [f"{len(plans)} identical plans found; read once"] if len(plans) > 1 else []
         notes += [f"the block at line {line} was not read as a plan: {exc}" for line, exc in failures]
-        return msgspec.structs.replace(plan, warnings=[*plan.warnings, *notes][: self.limits.max_steps * 4])
+        return msgspec.structs.replace(plan, warnings=[*plan.warnings, *notes][: self.config.max_steps * 4])
 
     def _from_value(self, value: Any, fmt: SourceFormat, ctx: _Context) -> Plan:
         calls = find_tool_calls(value)
@@ -366,7 +353,7 @@ class Parser:
 
     def _from_text(self, text: str, ctx: _Context) -> Plan:
         text_steps, warnings = read_text(
-            text, self.grammar, max_steps=self.limits.max_steps, max_depth=self.limits.max_nesting
+            text, self.grammar, max_steps=self.config.max_steps, max_depth=self.config.max_nesting
         )
         ctx.warnings.extend(warnings)
         if not text_steps:
@@ -378,7 +365,7 @@ class Parser:
         if not steps:
             raise ParseError("the plan has no steps")
         text = self._text(description, "the plan's description", ctx.warnings)
-        warnings = [w[:MAX_TEXT_CHARS] for w in ctx.warnings[: self.limits.max_steps * 4]]
+        warnings = [w[:MAX_TEXT_CHARS] for w in ctx.warnings[: self.config.max_steps * 4]]
         return _validated(Plan(steps=steps, description=text, warnings=warnings, source_format=fmt))
 
     def _steps_of(self, value: Any, warnings: list[str]) -> tuple[list[Any], Any]:
@@ -406,8 +393,8 @@ class Parser:
             raise ParseError(f"{NO_PLAN}; found {_type_name(value)}")
         if not value:
             raise ParseError("the plan has no steps")
-        if len(value) > self.limits.max_steps:
-            raise ParseError(f"the plan has {len(value)} steps; at most {self.limits.max_steps} are accepted")
+        if len(value) > self.config.max_steps:
+            raise ParseError(f"the plan has {len(value)} steps; at most {self.config.max_steps} are accepted")
         return value, description
 
     def _steps_of_calls(self, calls: ToolCalls, ctx: _Context) -> list[Any]:
@@ -431,8 +418,8 @@ class Parser:
                         f"{call.where}: field(s) {_listing(action_keys)} ignored: the tool name is the action"
                     )
                 steps.append({"action": call.name, **{k: v for k, v in arguments.items() if k not in action_keys}})
-            if len(steps) > self.limits.max_steps:
-                raise ParseError(f"the tool calls hold more than {self.limits.max_steps} steps")
+            if len(steps) > self.config.max_steps:
+                raise ParseError(f"the tool calls hold more than {self.config.max_steps} steps")
         return steps
 
     def _decode_arguments(self, text: str, where: str) -> tuple[Any, list[str]]:
@@ -447,8 +434,8 @@ class Parser:
 
     def _step(self, value: Any, where: _Where, depth: int, ctx: _Context) -> Step:
         ctx.count(where)
-        if depth > self.limits.max_nesting:
-            raise where.refuse(f"sub-steps are nested more than {self.limits.max_nesting} levels deep")
+        if depth > self.config.max_nesting:
+            raise where.refuse(f"sub-steps are nested more than {self.config.max_nesting} levels deep")
         if not isinstance(value, dict):
             raise where.refuse(f"is {_type_name(value)}, not an object with an 'action'")
         raw = self._fields(value, where, ctx.warnings)
@@ -464,8 +451,8 @@ class Parser:
     def _text_step(self, item: TextStep, top: int, depth: int, ctx: _Context) -> Step:
         where = _Where(f"line {item.line}, column {item.column}", top, item.line, item.column)
         ctx.count(where)
-        if depth > self.limits.max_nesting:
-            raise where.refuse(f"sub-steps are nested more than {self.limits.max_nesting} levels deep")
+        if depth > self.config.max_nesting:
+            raise where.refuse(f"sub-steps are nested more than {self.config.max_nesting} levels deep")
         raw = self._fields(item.fields, where, ctx.warnings)
         raw.description = raw.description or item.description
         step = self._build(raw, where, bool(item.substeps), ctx)
@@ -495,7 +482,7 @@ class Parser:
                     "or a group of sub-steps"
                 )
             if isinstance(raw.action, str) and raw.action.strip():
-                description = description or raw.action.strip()[: self.limits.max_string_chars]  # its name
+                description = description or raw.action.strip()[: self.config.max_string_chars]  # its name
             elif raw.action is not None:
                 ctx.warnings.append(f"{where.label}: 'action' of a group ignored: it is {_type_name(raw.action)}")
             ignored = [*raw.names, *(echo(k) for k in raw.parameters), *(echo(k) for k in raw.extra)]
@@ -830,7 +817,7 @@ class Parser:
             text = value.strip()
             if _CONTROL.search(text):
                 raise where.refuse(f"{what} contains control characters")
-            limit = min(spec.max_length, self.limits.max_string_chars)
+            limit = min(spec.max_length, self.config.max_string_chars)
             if len(text) > limit:
                 raise where.refuse(f"{what} is {len(text)} characters; at most {limit}")
             if spec.choices:
@@ -972,7 +959,7 @@ class Parser:
         if _CONTROL.search(value):
             warnings.append(f"{what}: control characters removed")
             value = _CONTROL.sub("", value)
-        limit = self.limits.max_string_chars
+        limit = self.config.max_string_chars
         if len(value) > limit:
             warnings.append(f"{what} cut to {limit} characters (was {len(value)})")
             return value[:limit]

@@ -64,17 +64,7 @@ class Latest:
 
 
 def build_resolver(config: ResolverConfig) -> Resolver:
-    return Resolver(
-        WorldModel(load_world(config.world)),
-        min_confidence=config.min_confidence,
-        confidence_margin=config.confidence_margin,
-        near_distance=config.near_distance,
-        coordinate_tolerance=config.coordinate_tolerance,
-        place_inset=config.place_inset,
-        place_clearance=config.place_clearance,
-        human_standoff=config.human_standoff,
-        object_standoff=config.object_standoff,
-    )
+    return Resolver(WorldModel(load_world(config.world)), config)
 
 
 def build_latest(config: ResolverConfig) -> Latest:

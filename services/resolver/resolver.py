@@ -33,6 +33,7 @@ from schemas.plan import (
     WaitStep,
 )
 from schemas.world import Furniture, PerceivedHumans, PerceivedObjects, SceneDescription
+from services.resolver.config import ResolverConfig
 from services.resolver.errors import ResolveError
 from services.resolver.match import Matcher, NoMatch
 from services.resolver.names import KIND_NOUNS, Entity, Kind, NameIndex
@@ -133,30 +134,18 @@ class _Grounded:
 class Resolver:
     """Grounds plans against one world. Pure: no transport, no clock, safe to share across threads."""
 
-    def __init__(
-        self,
-        world_model: WorldModel,
-        *,
-        min_confidence: float = 0.8,
-        confidence_margin: float = 0.05,
-        near_distance: float = 0.75,
-        coordinate_tolerance: float = 0.5,
-        place_inset: float = 0.15,
-        place_clearance: float = 0.15,
-        human_standoff: float = 0.8,
-        object_standoff: float = 0.6,
-    ) -> None:
+    def __init__(self, world_model: WorldModel, config: ResolverConfig | None = None) -> None:
         self.model = world_model
         self.world = world_model.world
+        self.config = config if config is not None else ResolverConfig()
         self.names = NameIndex(self.world)
         self.matcher = Matcher(
-            self.names, world_model, min_confidence=min_confidence, margin=confidence_margin, near=near_distance
+            self.names,
+            world_model,
+            min_confidence=self.config.min_confidence,
+            margin=self.config.confidence_margin,
+            near=self.config.near_distance,
         )
-        self.coordinate_tolerance = coordinate_tolerance
-        self.place_inset = place_inset
-        self.place_clearance = place_clearance
-        self.human_standoff = human_standoff
-        self.object_standoff = object_standoff
         self._places = {p.id: p for p in self.world.places}
         base = self.world.robot.base_size
         self._base_radius = math.hypot(base.x / 2, base.y / 2)
@@ -389,7 +378,7 @@ class Resolver:
     def _check_coordinates(self, at: _At, state: _State, scene: Scene, entity: Entity, point: Coordinates) -> None:
         """A named entity wins over coordinates the plan gave it; a disagreement is said back."""
         off = scene.gap(point.x, point.y, entity)
-        if off > self.coordinate_tolerance:
+        if off > self.config.coordinate_tolerance:
             x, y = scene.point(entity)
             at.warn(
                 state,
@@ -436,18 +425,18 @@ class Resolver:
         scene = state.scene(self.model)
         objects = [e for e in self.names.of_kind("object") if not scene.in_gripper(e)]
         ranked = sorted(objects, key=lambda e: math.dist(scene.point(e), (point.x, point.y)))
-        near = [e for e in ranked if math.dist(scene.point(e), (point.x, point.y)) <= self.coordinate_tolerance]
+        near = [e for e in ranked if math.dist(scene.point(e), (point.x, point.y)) <= self.config.coordinate_tolerance]
         where = f"({point.x:.2f}, {point.y:.2f})"
         if not near:
             closest = f"; the nearest is the {scene.describe(ranked[0])}" if ranked else ""
             raise at.error(
-                f"no object is within {self.coordinate_tolerance:g} m of {where}{closest}; name the object",
+                f"no object is within {self.config.coordinate_tolerance:g} m of {where}{closest}; name the object",
                 ErrorKind.UNKNOWN_NAME,
                 [e.name for e in ranked[:1]],
             )
         if len(near) > 1:
             first, second = (math.dist(scene.point(e), (point.x, point.y)) for e in near[:2])
-            if second - first < self.coordinate_tolerance / 2:
+            if second - first < self.config.coordinate_tolerance / 2:
                 described = [scene.describe(e) for e in near]
                 raise at.error(
                     f"more than one object is near {where}: the {', the '.join(described)}; name the object",
@@ -520,16 +509,16 @@ class Resolver:
 
     def _towards_human(self, human: Pose2D, robot: Pose2D | None) -> Pose2D:
         if robot is not None and math.dist((robot.x, robot.y), (human.x, human.y)) > 1e-6:
-            return approach_towards(human.x, human.y, self.human_standoff, robot.x, robot.y)
+            return approach_towards(human.x, human.y, self.config.human_standoff, robot.x, robot.y)
         # No robot pose: stand in front of the person, where they are facing.
         ahead = (human.x + math.cos(human.yaw), human.y + math.sin(human.yaw))
-        return approach_towards(human.x, human.y, self.human_standoff, *ahead)
+        return approach_towards(human.x, human.y, self.config.human_standoff, *ahead)
 
     def _object_approach(self, belief: Belief, robot: Pose2D | None) -> Pose2D:
         if belief.on is not None and belief.on in self.model.furniture:
             return self.model.furniture[belief.on].approach
         start = robot or self.world.robot.start
-        return approach_towards(belief.position.x, belief.position.y, self.object_standoff, start.x, start.y)
+        return approach_towards(belief.position.x, belief.position.y, self.config.object_standoff, start.x, start.y)
 
     def _base_pose(self, at: _At, verb: str, state: _State) -> Pose2D:
         """Where the base is predicted to stand now, for a move relative to it."""
@@ -722,11 +711,13 @@ class Resolver:
         surface = self.model.furniture[entity.id]
         occupied = self._occupied(state, surface.id, held)
         near = (beside.position.x, beside.position.y) if beside is not None else None
-        position = place_position(surface, occupied, inset=self.place_inset, clearance=self.place_clearance, near=near)
+        position = place_position(
+            surface, occupied, inset=self.config.place_inset, clearance=self.config.place_clearance, near=near
+        )
         if position is None:
             raise at.error(
                 f"no free spot on {entity.name}: every spot near its edge is within "
-                f"{self.place_clearance:g} m of another object",
+                f"{self.config.place_clearance:g} m of another object",
                 ErrorKind.PRECONDITION,
             )
         return surface, position
@@ -749,10 +740,10 @@ class Resolver:
                 f"cannot place at {where}: it is within {PLACE_EDGE_MARGIN:g} m of the edge of the {surface.name}"
             )
         for x, y in self._occupied(state, surface.id, held):
-            if math.dist((x, y), (point.x, point.y)) < self.place_clearance:
+            if math.dist((x, y), (point.x, point.y)) < self.config.place_clearance:
                 raise at.error(
                     f"cannot place at {where}: another object on the {surface.name} is within "
-                    f"{self.place_clearance:g} m of it",
+                    f"{self.config.place_clearance:g} m of it",
                     ErrorKind.PRECONDITION,
                 )
         self._point(at, state, point, "place at")

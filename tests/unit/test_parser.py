@@ -10,6 +10,7 @@ import pytest
 
 from schemas.common import ErrorKind, ServiceError, Stage
 from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS, Action, Coordinates, Plan, PlanText
+from services.parser.config import ParserConfig
 from services.parser.errors import ParseError, VocabularyError
 from services.parser.parser import Parser, answer, default_parser, parse
 from services.parser.vocabulary import load_vocabulary
@@ -212,7 +213,7 @@ def test_small_repairable_json_is_read_with_a_warning() -> None:
 
 
 def test_strict_parser_refuses_what_lenient_repairs() -> None:
-    strict = Parser(load_vocabulary(), lenient_json=False)
+    strict = Parser(load_vocabulary(), config=ParserConfig(lenient_json=False))
     with pytest.raises(ParseError) as caught:
         strict.parse('{"plan": [{"action": "stop",}]}')
     assert "malformed JSON: Expecting property name" in caught.value.error.message

@@ -10,8 +10,9 @@ import pytest
 
 from schemas.common import ServiceError
 from schemas.plan import Action, Plan, PlanText
+from services.parser.config import ParserConfig
 from services.parser.errors import ParseError
-from services.parser.parser import Limits, Parser, answer, default_parser, parse
+from services.parser.parser import Parser, answer, default_parser, parse
 from services.parser.vocabulary import load_vocabulary
 
 
@@ -185,7 +186,7 @@ def test_variants_fold_direction_into_the_sign_and_units_are_si() -> None:
 
 def test_configured_limits_are_enforced() -> None:
     tight = Parser(
-        load_vocabulary(), limits=Limits(max_steps=3, max_nesting=1, max_string_chars=20, max_input_bytes=2000)
+        load_vocabulary(), config=ParserConfig(max_steps=3, max_nesting=1, max_string_chars=20, max_input_bytes=2000)
     )
     nested = [{"name": "g", "steps": [{"name": "h", "steps": [{"action": "stop"}]}]}]
     assert "nested more than 1 levels" in refusal(json.dumps(nested), parser=tight).message

@@ -128,7 +128,7 @@ def test_next_to_a_thing_is_the_free_spot_on_its_surface_nearest_it(resolver: Re
     assert isinstance(place, PlaceStep) and place.surface_id == "kitchen_table"
     apple = (2.8, 3.65)
     gap = math.dist((place.position.x, place.position.y), apple)
-    assert resolver.place_clearance - 1e-6 <= gap <= resolver.place_clearance + 0.06
+    assert resolver.config.place_clearance - 1e-6 <= gap <= resolver.config.place_clearance + 0.06
 
 
 def test_it_follows_what_the_plan_handled_last(resolver: Resolver) -> None:
