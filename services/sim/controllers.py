@@ -23,7 +23,7 @@ from schemas.robot import (
     NavigateToPoseResult,
     Twist,
 )
-from services.footprint import TRACKING_TOLERANCE, route_legs
+from services.footprint import TRACKING_TOLERANCE, Leg, route_legs
 from services.sim.world import GRIPPER_OPEN, Motion, SimWorld, wrap_angle
 from services.worldmodel import drive_route
 
@@ -197,21 +197,31 @@ class Navigation(GoalMotion[NavigateToPoseFeedback, NavigateToPoseResult]):
         super().__init__(ctl)
         robot = ctl.world.spec.robot
         self.goal = goal
-        start = goal.start or ctl.world.robot.base_pose()
-        # The same legs safety checked: the path, maybe a pre-goal point, the goal.
-        self.legs = route_legs(start, drive_route(start, goal.path, goal.pose))
+        body = ctl.world.robot
+        # A goal that preempted another may find the base still rolling: it brakes to rest first and
+        # plans its legs from there (unless safety checked them from a given start).
+        linear, angular = body.base_velocity()
+        self.braking = goal.start is None and max(abs(linear), abs(angular)) >= SETTLED_SPEED
+        self.legs = self._legs(goal.start or body.base_pose())
         self.index = 0
         self.turning = True  # turning at the current leg's start (or, past the last leg, at the goal)
         self.base_radius = ctl.world.model.base_radius
         self.max_speed = min(goal.max_speed or robot.max_linear_speed, robot.max_linear_speed)
         self.max_turn = min(goal.max_turn_rate or robot.max_angular_speed, robot.max_angular_speed)
         self.accel, self.turn_accel = robot.max_linear_acceleration, robot.max_angular_acceleration
-        length = sum(leg.length for leg in self.legs)
-        turns = len(self.legs) + 1
         self.clock = 0.0
-        self.deadline = 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
+        self.deadline = self._deadline()
         self.best_progress = math.inf
         self.last_progress = self.clock
+
+    def _legs(self, start: Pose2D) -> list[Leg]:
+        # The same legs safety checked: the path, maybe a pre-goal point, the goal.
+        return route_legs(start, drive_route(start, self.goal.path, self.goal.pose))
+
+    def _deadline(self) -> float:
+        length = sum(leg.length for leg in self.legs)
+        turns = len(self.legs) + 1
+        return self.clock + 2.0 * length / self.max_speed + turns * 2.0 * math.pi / self.max_turn + 10.0
 
     def result_now(self, ctl: Controllers) -> NavigateToPoseResult:
         return NavigateToPoseResult(pose=ctl.world.robot.base_pose())
@@ -248,6 +258,9 @@ class Navigation(GoalMotion[NavigateToPoseFeedback, NavigateToPoseResult]):
         base, body = ctl.base, ctl.world.robot
         self.clock += ctl.world.dt * ctl.speed_scale
         pose = body.base_pose()
+        if self.braking:
+            self._brake(ctl, pose)
+            return
         remaining = self._remaining(pose)
         self.feedback = NavigateToPoseFeedback(pose=pose, distance_remaining=remaining)
         stray = self._stray(pose)
@@ -298,6 +311,17 @@ class Navigation(GoalMotion[NavigateToPoseFeedback, NavigateToPoseResult]):
         elif self.clock > self.deadline:
             elapsed = ctl.world.sim_time - self.started
             self._fail(ctl, pose, f"timed out after {elapsed:.1f} s with {remaining:.2f} m to go")
+
+    def _brake(self, ctl: Controllers, pose: Pose2D) -> None:
+        ctl.base.command(0.0, 0.0)
+        linear, angular = ctl.world.robot.base_velocity()
+        if abs(linear) < SETTLED_SPEED and abs(angular) < SETTLED_SPEED:
+            self.braking = False
+            self.legs = self._legs(pose)
+            self.deadline = self._deadline()
+            self.last_progress = self.clock
+        remaining = sum(leg.length for leg in self.legs)
+        self.feedback = NavigateToPoseFeedback(pose=pose, distance_remaining=remaining)
 
     def _turn_rate(self, error: float) -> float:
         magnitude = min(self.max_turn, math.sqrt(2.0 * self.turn_accel * 0.8 * abs(error)), SETTLE_GAIN * abs(error))

@@ -38,6 +38,10 @@ RESET_GRACE = 0.1
 MAX_LAG = 0.5
 
 
+def _always(_goal: object) -> bool:
+    return True
+
+
 class SimNode:
     """Binds a Simulation's controllers, sensors and world to the robot keys.
 
@@ -60,15 +64,22 @@ class SimNode:
         self._odom = node.publisher(keys.ODOM)
         self._objects = node.publisher(keys.OBJECTS)
         self._humans = node.publisher(keys.HUMANS)
+        # A new goal preempts the running one of its action, as Nav2's and ros2_control's servers do:
+        # the old goal ends (canceled) before the new one is accepted, so two never drive at once.
         self.servers: list[ActionServer[Any, Any, Any]] = [
-            ActionServer(node, keys.ROBOT_NAVIGATE, self._run_goal(Controllers.navigate), accept=self._accept),
+            ActionServer(
+                node, keys.ROBOT_NAVIGATE, self._run_goal(Controllers.navigate), accept=self._accept, preempts=_always
+            ),
             ActionServer(
                 node,
                 keys.ROBOT_TRAJECTORY,
                 self._run_goal(Controllers.follow_trajectory),
                 accept=self._accept_trajectory,
+                preempts=_always,
             ),
-            ActionServer(node, keys.ROBOT_GRIPPER, self._run_goal(Controllers.gripper), accept=self._accept),
+            ActionServer(
+                node, keys.ROBOT_GRIPPER, self._run_goal(Controllers.gripper), accept=self._accept, preempts=_always
+            ),
         ]
         node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
         node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)

@@ -147,6 +147,18 @@ def test_stop_brings_the_base_to_rest_within_100_ms(sim: Simulation, world: Worl
     assert sim.scene.ground_truth().linear_speed < 0.01
 
 
+def test_a_goal_preempting_a_moving_base_brakes_first_and_drives_from_where_it_stopped(sim: Simulation) -> None:
+    first = sim.controllers.navigate(NavigateToPoseGoal(pose=Pose2D(x=10.0, y=1.2, yaw=0.0), max_speed=0.6))
+    sim.settle(2.0)
+    assert sim.robot.base_speed() > 0.5
+    goal = Pose2D(x=sim.robot.base_pose().x + 1.0, y=1.2, yaw=0.0)
+    second = sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=goal)), timeout=30.0)
+    assert first.state is GoalState.ABORTED and "preempted" in first.message
+    assert second.state is GoalState.SUCCEEDED, second.message
+    here = sim.robot.base_pose()
+    assert math.hypot(here.x - goal.x, here.y - goal.y) < 0.05
+
+
 def test_cmd_vel_drives_and_expires(sim: Simulation) -> None:
     start = sim.robot.base_pose()
     assert sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=1.0)
