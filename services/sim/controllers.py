@@ -156,6 +156,10 @@ class GripperController:
         self.force = max_effort
         self.apply()
 
+    def hold(self) -> None:
+        self.target = self.body.gripper_gap() / 2
+        self.apply()
+
     def apply(self) -> None:
         self.body.drive_fingers(self.target, self.force)
 
@@ -582,10 +586,11 @@ class Controllers:
         self.base.limits = (limits[0], limits[1])
 
     def stop(self, reason: str) -> None:
-        """Base velocity to zero at once, arm held where it is, every running goal aborted."""
+        """Base velocity to zero at once, arm and fingers held where they are, every running goal aborted."""
         self._cmd_vel = None
         self.base.halt()
         self.arm.hold()
+        self.fingers.hold()
         for motion in list(self.motions.values()):
             motion.end(self, GoalState.ABORTED, reason)
         self.motions.clear()

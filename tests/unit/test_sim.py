@@ -159,6 +159,17 @@ def test_a_goal_preempting_a_moving_base_brakes_first_and_drives_from_where_it_s
     assert math.hypot(here.x - goal.x, here.y - goal.y) < 0.05
 
 
+def test_stop_holds_the_fingers_where_they_are(sim: Simulation) -> None:
+    closing = sim.controllers.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.1)
+    gap = sim.robot.gripper_gap()
+    assert 0.01 < gap < 0.07
+    sim.controllers.stop("e-stop latched by test: stop now")
+    assert closing.state is GoalState.ABORTED
+    sim.settle(0.5)
+    assert sim.robot.gripper_gap() == pytest.approx(gap, abs=0.003)
+
+
 def test_cmd_vel_drives_and_expires(sim: Simulation) -> None:
     start = sim.robot.base_pose()
     assert sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=1.0)
