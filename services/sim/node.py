@@ -293,6 +293,9 @@ class SimNode:
                     sim.step()
                     self._drain()
                     self._enforce_safety()
+                    # Also while catching up: on a busy machine physics runs behind, but odometry
+                    # and joint states must keep coming, or safety's watchdog sees a silent robot.
+                    self._publish(due, periods)
                 self._publish(due, periods)
                 next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
                 self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
@@ -318,7 +321,10 @@ class SimNode:
         for name, period in periods.items():
             if now < due[name]:
                 continue
-            due[name] = now + period
+            # On the schedule, so a late wake-up does not stretch every later period; after a
+            # stall longer than a period it starts afresh rather than publishing the backlog.
+            scheduled = due[name] + period
+            due[name] = scheduled if scheduled > now else now + period
             if name == "joint_states":
                 self._joint_states.put(self.sim.sensors.joint_state(stamp))
             elif name == "odom":

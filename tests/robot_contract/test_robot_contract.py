@@ -10,7 +10,7 @@ from typing import Any, TypeVar
 import pytest
 
 from schemas import keys
-from schemas.actions import GoalState, ResultResponse
+from schemas.actions import GetResult, GoalState, ResultResponse
 from schemas.common import Pose2D
 from schemas.keys import Action
 from schemas.robot import (
@@ -133,11 +133,11 @@ def stream(robot: Robot, twist: Twist, beats: int) -> None:
 # Reports
 
 
-@pytest.mark.parametrize("topic", ["odom", "joint_states"])
-def test_odometry_and_joint_states_come_at_their_configured_rates(robot: Robot, topic: str) -> None:
+@pytest.mark.parametrize("topic", ["odom", "joint_states", "objects", "humans"])
+def test_the_robots_reports_come_at_their_configured_rates(robot: Robot, topic: str) -> None:
     watch: Watch[Any] = getattr(robot, topic)
-    hz = robot.backend.odom_hz if topic == "odom" else robot.backend.joint_states_hz
-    count = max(10, int(hz))  # a second's worth
+    hz: float = getattr(robot.backend, f"{topic}_hz")
+    count = max(10, int(hz))  # a second's worth, or ten
     start = len(watch)
     assert watch.wait_for(lambda _: True, timeout=10.0, after=start + count - 1), f"fewer than {count} {topic}"
     samples = watch.messages[start : start + count]
@@ -145,9 +145,11 @@ def test_odometry_and_joint_states_come_at_their_configured_rates(robot: Robot, 
     gaps = [b - a for a, b in itertools.pairwise(stamps)]
     assert all(g > 0 for g in gaps), f"{topic} stamps must increase"
     rate = (count - 1) / (stamps[-1] - stamps[0])
-    # Tolerant below (a loaded machine), strict above: a backend over its rate floods the recorder.
-    assert 0.5 * hz <= rate <= 1.2 * hz, f"{topic} at {rate:.1f} Hz, configured {hz:g} Hz"
-    assert max(gaps) < STATE_MAX_AGE, f"{topic} fell silent for {max(gaps):.2f} s: safety's watchdog would latch"
+    # Tolerant below (a machine under load wakes the backend late), strict above: a backend over
+    # its rate floods the recorder. What safety needs is the bound on the gaps, below.
+    assert 0.3 * hz <= rate <= 1.2 * hz, f"{topic} at {rate:.1f} Hz, configured {hz:g} Hz"
+    if topic in ("odom", "joint_states"):
+        assert max(gaps) < STATE_MAX_AGE, f"{topic} fell silent for {max(gaps):.2f} s: safety's watchdog would latch"
     if topic == "joint_states":
         names = samples[-1].name
         assert set(ARM_JOINTS) | set(FINGER_JOINTS) <= set(names)
@@ -329,3 +331,15 @@ def test_the_base_keeps_to_the_heartbeats_speed_limit(robot: Robot) -> None:
     turning = [abs(o.angular_z) for o in robot.odom.messages[n:]]
     assert max(turning) > 0.5 * limit, "cmd_vel never turned the base"
     assert max(turning) < limit + 0.05, f"turned at {max(turning):.2f} rad/s under a {limit} rad/s limit"
+
+
+def test_speed_scale_zero_pauses_a_goal_and_it_resumes(robot: Robot) -> None:
+    drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
+    moving_base(robot)
+    robot.safety.set(speed_scale=0.0)
+    assert base_at_rest(robot, timeout=robot.backend.heartbeat_timeout + SLACK), "the base did not pause"
+    paused = robot.node.call(keys.ROBOT_NAVIGATE.get_status, GetResult(goal_id=drive.goal_id), timeout=5.0)
+    assert paused.state is GoalState.EXECUTING, paused.message
+    robot.safety.set()
+    moving_base(robot)  # and on to the goal: no need to wait for it
+    assert drive.cancel().accepted
