@@ -1,4 +1,4 @@
-"""The pybullet simulation without Zenoh: driving, stopping, arm and gripper, a full pick and place."""
+"""The sim's controllers without Zenoh: driving, stopping, arm and gripper, a full pick and place."""
 
 from __future__ import annotations
 
@@ -116,15 +116,6 @@ def test_config_defaults_and_unknown_fields_are_errors(tmp_path: Path) -> None:
     bad.write_text("[sim]\nrealtime_factor = 3\nphysic_hz = 100\n")
     with pytest.raises(ConfigError, match="physic_hz"):
         load_config(SimConfig, bad, "sim")
-
-
-def test_world_starts_as_the_file_says(sim: Simulation, world: World) -> None:
-    truth = sim.scene.ground_truth()
-    assert truth.holding is None
-    assert (truth.robot.x, truth.robot.y) == pytest.approx((world.robot.start.x, world.robot.start.y), abs=1e-6)
-    cup = next(o for o in truth.objects if o.id == "red_cup")
-    assert (cup.on, cup.room) == ("kitchen_counter", "kitchen")
-    assert sim.robot.arm_positions() == pytest.approx(CARRY_JOINTS, abs=1e-6)
 
 
 def test_base_drives_to_the_kitchen_counter_approach(sim: Simulation, world: World) -> None:
