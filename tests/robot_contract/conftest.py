@@ -140,7 +140,7 @@ class PlayedSafety:
 
 
 @dataclass
-class Robot:
+class RunningBackend:
     """One running backend, the test's node next to it, and what the robot has reported so far."""
 
     backend: Backend
@@ -161,7 +161,9 @@ class Robot:
 
 
 @pytest.fixture(scope="module", params=BACKENDS, ids=lambda b: b.name)
-def backend_process(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Robot]:
+def backend_process(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[RunningBackend]:
     """The backend started once for the module's tests, and always stopped, also on failure."""
     backend: Backend = request.param
     tmp = tmp_path_factory.mktemp(f"robot-{backend.name}")
@@ -180,7 +182,7 @@ def backend_process(request: pytest.FixtureRequest, tmp_path_factory: pytest.Tem
         missing = node.wait_alive([backend.service], STARTUP_TIMEOUT)
         assert not missing, f"{backend.service} not up:\n{supervisor.log_tail(backend.service)}"
         safety = PlayedSafety(node)
-        yield Robot(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
+        yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
     finally:
         if safety is not None:
             safety.close()
@@ -192,7 +194,7 @@ def backend_process(request: pytest.FixtureRequest, tmp_path_factory: pytest.Tem
 
 
 @pytest.fixture
-def robot(backend_process: Robot) -> Iterator[Robot]:
+def robot(backend_process: RunningBackend) -> Iterator[RunningBackend]:
     """The module's backend, with safety's heartbeat present and clear, and no goal running."""
     backend_process.safety.set()
     assert backend_process.safety.beats(3), "the played safety's heartbeat thread stopped"

@@ -25,7 +25,7 @@ from schemas.robot import (
     Twist,
 )
 from services.actionlib import ActionClient, ClientGoal, GoalRejected
-from tests.robot_contract.conftest import Robot
+from tests.robot_contract.conftest import RunningBackend
 from tests.watch import Watch
 
 G = TypeVar("G")
@@ -44,32 +44,32 @@ SLACK = 1.0
 RESULT_TIMEOUT = 60.0
 
 
-def here(robot: Robot) -> Odometry:
+def here(robot: RunningBackend) -> Odometry:
     latest = robot.odom.latest(timeout=5.0)
     assert latest is not None, "no odometry"
     return latest
 
 
-def arm(robot: Robot) -> list[float]:
+def arm(robot: RunningBackend) -> list[float]:
     latest = robot.joint_states.latest(timeout=5.0)
     assert latest is not None, "no joint states"
     return [latest.position[latest.name.index(name)] for name in ARM_JOINTS]
 
 
-def near_goal(robot: Robot) -> NavigateToPoseGoal:
+def near_goal(robot: RunningBackend) -> NavigateToPoseGoal:
     """Half a metre along the lane, facing east."""
     x = here(robot).pose.x
     return NavigateToPoseGoal(pose=Pose2D(x=x + 0.5 if x < 8.5 else x - 0.5, y=LANE_Y, yaw=0.0))
 
 
-def far_goal(robot: Robot) -> NavigateToPoseGoal:
+def far_goal(robot: RunningBackend) -> NavigateToPoseGoal:
     """The other end of the lane: a few seconds of driving, for goals to be canceled on the way."""
     if here(robot).pose.x < 8.0:
         return NavigateToPoseGoal(pose=Pose2D(x=LANE_EAST, y=LANE_Y, yaw=0.0))
     return NavigateToPoseGoal(pose=Pose2D(x=LANE_WEST, y=LANE_Y, yaw=math.pi))
 
 
-def swing(robot: Robot, seconds: float) -> FollowJointTrajectoryGoal:
+def swing(robot: RunningBackend, seconds: float) -> FollowJointTrajectoryGoal:
     """Every arm joint where it is, but the first swung by 0.6 rad, over `seconds` of trajectory time."""
     q = arm(robot)
     target = [0.6 if q[0] < 0.3 else 0.0, *q[1:]]
@@ -78,11 +78,13 @@ def swing(robot: Robot, seconds: float) -> FollowJointTrajectoryGoal:
     )
 
 
-def send(robot: Robot, action: Action[G, F, R], goal: G) -> ClientGoal[G, F, R]:
+def send(robot: RunningBackend, action: Action[G, F, R], goal: G) -> ClientGoal[G, F, R]:
     return ActionClient(robot.node, action).send(goal, timeout=15.0)
 
 
-def send_once_ready(robot: Robot, action: Action[G, F, R], goal: G, timeout: float = 5.0) -> ClientGoal[G, F, R]:
+def send_once_ready(
+    robot: RunningBackend, action: Action[G, F, R], goal: G, timeout: float = 5.0
+) -> ClientGoal[G, F, R]:
     """Send `goal`, again after each heartbeat while the robot still refuses it (it has yet to hear
     that it may move again)."""
     deadline = time.monotonic() + timeout
@@ -99,31 +101,31 @@ def result(handle: ClientGoal[Any, Any, R]) -> ResultResponse[R]:
     return handle.result(timeout=RESULT_TIMEOUT)
 
 
-def moving_base(robot: Robot) -> None:
+def moving_base(robot: RunningBackend) -> None:
     assert robot.odom.wait_for(lambda o: abs(o.linear_x) > 0.1, timeout=20.0, after=len(robot.odom)), "never drove"
 
 
-def moving_arm(robot: Robot) -> None:
+def moving_arm(robot: RunningBackend) -> None:
     moving = robot.joint_states.wait_for(
         lambda j: abs(j.velocity[0]) > 0.02, timeout=20.0, after=len(robot.joint_states)
     )
     assert moving, "the arm never moved"
 
 
-def base_at_rest(robot: Robot, timeout: float = SLACK) -> Odometry | None:
+def base_at_rest(robot: RunningBackend, timeout: float = SLACK) -> Odometry | None:
     return robot.odom.wait_for(
         lambda o: abs(o.linear_x) < STILL and abs(o.angular_z) < STILL, timeout=timeout, after=len(robot.odom)
     )
 
 
-def arm_at_rest(robot: Robot, timeout: float = SLACK) -> bool:
+def arm_at_rest(robot: RunningBackend, timeout: float = SLACK) -> bool:
     def still(j: Any) -> bool:
         return max(abs(v) for v in j.velocity[: len(ARM_JOINTS)]) < STILL
 
     return robot.joint_states.wait_for(still, timeout=timeout, after=len(robot.joint_states)) is not None
 
 
-def stream(robot: Robot, twist: Twist, beats: int) -> None:
+def stream(robot: RunningBackend, twist: Twist, beats: int) -> None:
     """cmd_vel once per heartbeat, as safety relays a stream it approved."""
     for _ in range(beats):
         robot.node.publish(keys.ROBOT_CMD_VEL, twist)
@@ -134,7 +136,7 @@ def stream(robot: Robot, twist: Twist, beats: int) -> None:
 
 
 @pytest.mark.parametrize("topic", ["odom", "joint_states", "objects", "humans"])
-def test_the_robots_reports_come_at_their_configured_rates(robot: Robot, topic: str) -> None:
+def test_the_robots_reports_come_at_their_configured_rates(robot: RunningBackend, topic: str) -> None:
     watch: Watch[Any] = getattr(robot, topic)
     hz: float = getattr(robot.backend, f"{topic}_hz")
     count = max(10, int(hz))  # a second's worth, or ten
@@ -159,7 +161,7 @@ def test_the_robots_reports_come_at_their_configured_rates(robot: Robot, topic: 
 # Goals: accepted, feedback, result
 
 
-def test_a_navigation_goal_reports_feedback_and_status_and_ends_at_the_pose(robot: Robot) -> None:
+def test_a_navigation_goal_reports_feedback_and_status_and_ends_at_the_pose(robot: RunningBackend) -> None:
     status, feedback = Watch(robot.node, keys.ROBOT_NAVIGATE.status), Watch(robot.node, keys.ROBOT_NAVIGATE.feedback)
     goal = near_goal(robot)
     handle = send(robot, keys.ROBOT_NAVIGATE, goal)
@@ -179,7 +181,7 @@ def test_a_navigation_goal_reports_feedback_and_status_and_ends_at_the_pose(robo
     assert math.hypot(odom.x - goal.pose.x, odom.y - goal.pose.y) < 0.05, "odometry disagrees with the result"
 
 
-def test_a_trajectory_goal_reports_feedback_and_ends_within_its_tolerance(robot: Robot) -> None:
+def test_a_trajectory_goal_reports_feedback_and_ends_within_its_tolerance(robot: RunningBackend) -> None:
     feedback = Watch(robot.node, keys.ROBOT_TRAJECTORY.feedback)
     goal = swing(robot, 1.0)
     handle = send(robot, keys.ROBOT_TRAJECTORY, goal)
@@ -196,7 +198,7 @@ def test_a_trajectory_goal_reports_feedback_and_ends_within_its_tolerance(robot:
     ), "joint states disagree with the result"
 
 
-def test_the_gripper_closes_and_opens_to_the_goal_gap(robot: Robot) -> None:
+def test_the_gripper_closes_and_opens_to_the_goal_gap(robot: RunningBackend) -> None:
     closed = result(send(robot, keys.ROBOT_GRIPPER, GripperCommandGoal(position=0.0)))
     assert closed.state is GoalState.SUCCEEDED, closed.message
     assert closed.result is not None and closed.result.position < 0.005 and closed.result.holding is None
@@ -209,7 +211,7 @@ def test_the_gripper_closes_and_opens_to_the_goal_gap(robot: Robot) -> None:
 # Goals: rejected, canceled, preempted
 
 
-def test_a_trajectory_the_arm_cannot_follow_is_rejected_with_the_reason(robot: Robot) -> None:
+def test_a_trajectory_the_arm_cannot_follow_is_rejected_with_the_reason(robot: RunningBackend) -> None:
     q = arm(robot)
     unknown = FollowJointTrajectoryGoal(
         joint_names=["panda_joint9"], points=[TrajectoryPoint(positions=[0.0], time_from_start=1.0)]
@@ -223,7 +225,7 @@ def test_a_trajectory_the_arm_cannot_follow_is_rejected_with_the_reason(robot: R
         send(robot, keys.ROBOT_TRAJECTORY, beyond)
 
 
-def test_a_navigation_checked_from_elsewhere_ends_at_once_and_the_base_stays(robot: Robot) -> None:
+def test_a_navigation_checked_from_elsewhere_ends_at_once_and_the_base_stays(robot: RunningBackend) -> None:
     start = here(robot).pose
     elsewhere = Pose2D(x=start.x + 1.0, y=start.y, yaw=start.yaw)
     done = result(send(robot, keys.ROBOT_NAVIGATE, NavigateToPoseGoal(pose=elsewhere, start=elsewhere)))
@@ -232,7 +234,7 @@ def test_a_navigation_checked_from_elsewhere_ends_at_once_and_the_base_stays(rob
     assert math.hypot(now.x - start.x, now.y - start.y) < 0.01
 
 
-def test_a_canceled_goal_ends_canceled_and_the_robot_comes_to_rest(robot: Robot) -> None:
+def test_a_canceled_goal_ends_canceled_and_the_robot_comes_to_rest(robot: RunningBackend) -> None:
     drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
     moving_base(robot)
     assert drive.cancel().accepted
@@ -249,7 +251,7 @@ def test_a_canceled_goal_ends_canceled_and_the_robot_comes_to_rest(robot: Robot)
 
 
 @pytest.mark.parametrize("action", ["navigate", "trajectory"])
-def test_a_new_goal_preempts_the_running_one(robot: Robot, action: str) -> None:
+def test_a_new_goal_preempts_the_running_one(robot: RunningBackend, action: str) -> None:
     if action == "navigate":
         first = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
         moving_base(robot)
@@ -269,7 +271,7 @@ def test_a_new_goal_preempts_the_running_one(robot: Robot, action: str) -> None:
 # Safety: e-stop, heartbeat, cmd_vel, speed limits
 
 
-def test_an_estop_in_the_heartbeat_halts_base_and_arm_and_refuses_everything(robot: Robot) -> None:
+def test_an_estop_in_the_heartbeat_halts_base_and_arm_and_refuses_everything(robot: RunningBackend) -> None:
     drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
     swinging = send(robot, keys.ROBOT_TRAJECTORY, swing(robot, 12.0))
     moving_base(robot)
@@ -293,7 +295,7 @@ def test_an_estop_in_the_heartbeat_halts_base_and_arm_and_refuses_everything(rob
     assert result(again).state is GoalState.SUCCEEDED
 
 
-def test_losing_the_heartbeat_halts_the_robot_within_the_timeout(robot: Robot) -> None:
+def test_losing_the_heartbeat_halts_the_robot_within_the_timeout(robot: RunningBackend) -> None:
     drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
     moving_base(robot)
     last_beat = robot.safety.silence()
@@ -310,7 +312,7 @@ def test_losing_the_heartbeat_halts_the_robot_within_the_timeout(robot: Robot) -
     assert result(again).state is GoalState.SUCCEEDED
 
 
-def test_cmd_vel_drives_the_base_and_holds_only_until_its_timeout(robot: Robot) -> None:
+def test_cmd_vel_drives_the_base_and_holds_only_until_its_timeout(robot: RunningBackend) -> None:
     stream(robot, Twist(angular_z=0.6), beats=10)
     assert robot.odom.wait_for(lambda o: o.angular_z > 0.3, timeout=5.0, after=len(robot.odom)), (
         "cmd_vel never turned it"
@@ -322,7 +324,7 @@ def test_cmd_vel_drives_the_base_and_holds_only_until_its_timeout(robot: Robot) 
     assert held > 0.5 * robot.backend.cmd_vel_timeout, f"stopped {held:.2f} s after the last cmd_vel: too soon"
 
 
-def test_the_base_keeps_to_the_heartbeats_speed_limit(robot: Robot) -> None:
+def test_the_base_keeps_to_the_heartbeats_speed_limit(robot: RunningBackend) -> None:
     limit = 0.3
     robot.safety.set(max_angular_speed=limit)
     assert robot.safety.beats(3)
@@ -333,7 +335,7 @@ def test_the_base_keeps_to_the_heartbeats_speed_limit(robot: Robot) -> None:
     assert max(turning) < limit + 0.05, f"turned at {max(turning):.2f} rad/s under a {limit} rad/s limit"
 
 
-def test_speed_scale_zero_pauses_a_goal_and_it_resumes(robot: Robot) -> None:
+def test_speed_scale_zero_pauses_a_goal_and_it_resumes(robot: RunningBackend) -> None:
     drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
     moving_base(robot)
     robot.safety.set(speed_scale=0.0)
