@@ -8,6 +8,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -38,6 +39,7 @@ class Backend:
     service: str  # what `tether run` starts; also its liveliness token
     config: str  # its config file (TOML)
     heartbeat_timeout: float  # wall seconds without safety's heartbeat before the robot stops
+    first_heartbeat_wait: float  # how long a goal before the first heartbeat waits for one
     cmd_vel_timeout: float  # wall seconds a cmd_vel holds without a newer one
     odom_hz: float
     joint_states_hz: float
@@ -49,6 +51,7 @@ class Backend:
 def sim_backend(config: SimConfig) -> Backend:
     toml = (
         f"[sim]\nrealtime_factor = {config.realtime_factor}\nheartbeat_timeout = {config.heartbeat_timeout}\n"
+        f"first_heartbeat_wait = {config.first_heartbeat_wait}\n"
         f"cmd_vel_timeout = {config.cmd_vel_timeout}\nodom_hz = {config.odom_hz}\n"
         f"joint_states_hz = {config.joint_states_hz}\nobjects_hz = {config.objects_hz}\n"
         f"humans_hz = {config.humans_hz}\n"
@@ -58,6 +61,7 @@ def sim_backend(config: SimConfig) -> Backend:
         service="sim",
         config=toml,
         heartbeat_timeout=config.heartbeat_timeout,
+        first_heartbeat_wait=config.first_heartbeat_wait,
         cmd_vel_timeout=config.cmd_vel_timeout,
         odom_hz=config.odom_hz,
         joint_states_hz=config.joint_states_hz,
@@ -68,7 +72,8 @@ def sim_backend(config: SimConfig) -> Backend:
 
 # The sim at real time: faster, on two loaded cores it falls behind the wall clock and its reports
 # sag below their rates; the suite's goals are short, so it is no slower for it.
-BACKENDS = [sim_backend(SimConfig(realtime_factor=1.0))]
+# A goal before the first heartbeat waits 1 s for it rather than the default 3 s: the same path, sooner.
+BACKENDS = [sim_backend(SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0))]
 
 
 class PlayedSafety:
@@ -78,10 +83,10 @@ class PlayedSafety:
     stops it as a crashed safety would.
     """
 
-    def __init__(self, node: Node) -> None:
+    def __init__(self, node: Node, *, beating: bool = True) -> None:
         self._node = node
         self._changed = threading.Condition()
-        self._state: dict[str, Any] = {"beating": True, "latched": False, "speed_scale": 1.0}
+        self._state: dict[str, Any] = {"beating": beating, "latched": False, "speed_scale": 1.0}
         self._limits: dict[str, float | None] = {"max_linear_speed": None, "max_angular_speed": None}
         self.sent = 0
         self.last_sent = 0.0
@@ -160,13 +165,10 @@ class RunningBackend:
                 self.node.call(action.cancel_goal, CancelGoal(goal_id=CANCEL_ALL), timeout=5.0)
 
 
-@pytest.fixture(scope="module", params=BACKENDS, ids=lambda b: b.name)
-def backend_process(
-    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
-) -> Iterator[RunningBackend]:
-    """The backend started once for the module's tests, and always stopped, also on failure."""
-    backend: Backend = request.param
-    tmp = tmp_path_factory.mktemp(f"robot-{backend.name}")
+@contextlib.contextmanager
+def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBackend]:
+    """`backend` as a real process next to the test's node, always stopped, also on failure; the
+    played safety's heartbeat from the start when `beating`."""
     robot = backend.robot or f"t{uuid.uuid4().hex[:8]}"
     settings = NodeSettings(robot=robot, base_port=free_ports(len(SERVICES)))
     config = tmp / "tether.toml"
@@ -181,7 +183,7 @@ def backend_process(
         objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
         missing = node.wait_alive([backend.service], STARTUP_TIMEOUT)
         assert not missing, f"{backend.service} not up:\n{supervisor.log_tail(backend.service)}"
-        safety = PlayedSafety(node)
+        safety = PlayedSafety(node, beating=beating)
         yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
     finally:
         if safety is not None:
@@ -191,6 +193,23 @@ def backend_process(
         supervisor.stop_all()
         # Shown by pytest only when a test failed.
         print(f"----- {backend.service} log -----\n{supervisor.log_tail(backend.service, 60)}")
+
+
+@pytest.fixture(scope="module", params=BACKENDS, ids=lambda b: b.name)
+def backend_process(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[RunningBackend]:
+    """The backend started once for the module's tests."""
+    backend: Backend = request.param
+    with running(backend, tmp_path_factory.mktemp(f"robot-{backend.name}"), beating=True) as started:
+        yield started
+
+
+@pytest.fixture(params=BACKENDS, ids=lambda b: b.name)
+def unheard_robot(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[RunningBackend]:
+    """A backend of its own that has not yet heard a heartbeat (safety not started)."""
+    with running(request.param, tmp_path, beating=False) as started:
+        yield started
 
 
 @pytest.fixture

@@ -271,6 +271,26 @@ def test_a_new_goal_preempts_the_running_one(robot: RunningBackend, action: str)
 # Safety: e-stop, heartbeat, cmd_vel, speed limits
 
 
+def test_until_the_first_heartbeat_the_robot_refuses_goals_and_ignores_cmd_vel(unheard_robot: RunningBackend) -> None:
+    robot = unheard_robot
+    asked = time.monotonic()
+    with pytest.raises(GoalRejected, match="heartbeat"):
+        send(robot, keys.ROBOT_TRAJECTORY, swing(robot, 1.0))
+    waited = time.monotonic() - asked
+    # It waits for a heartbeat a while, as after start-up the peers may still be connecting.
+    assert waited > 0.5 * robot.backend.first_heartbeat_wait, f"refused after {waited:.2f} s"
+    n = len(robot.odom)
+    for _ in range(10):
+        robot.node.publish(keys.ROBOT_CMD_VEL, Twist(angular_z=0.6))
+        assert robot.odom.wait_for(lambda _: True, timeout=2.0, after=len(robot.odom)), "no odometry"
+    assert robot.odom.wait_for(lambda _: True, timeout=2.0, after=n + 20)
+    assert all(abs(o.angular_z) < STILL for o in robot.odom.messages[n:]), "cmd_vel moved an unheard robot"
+
+    robot.safety.set()
+    started = send_once_ready(robot, keys.ROBOT_TRAJECTORY, swing(robot, 1.0))
+    assert result(started).state is GoalState.SUCCEEDED
+
+
 def test_an_estop_in_the_heartbeat_halts_base_and_arm_and_refuses_everything(robot: RunningBackend) -> None:
     drive = send(robot, keys.ROBOT_NAVIGATE, far_goal(robot))
     swinging = send(robot, keys.ROBOT_TRAJECTORY, swing(robot, 12.0))
