@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck unit integration bench clean
+.PHONY: demo test lint typecheck unit integration contract bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -30,6 +30,10 @@ unit: $(STAMP)
 
 integration: $(STAMP)
 	$(BIN)/python -m pytest -q tests/integration
+
+# docs/robot.md against every robot backend (tests/robot_contract/conftest.py: BACKENDS).
+contract: $(STAMP)
+	$(BIN)/python -m pytest -q tests/robot_contract
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.transport --json

@@ -19,7 +19,9 @@ from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import CallError, Node
 from services.sim.camera import png_base64
 from services.sim.config import SimConfig
-from services.sim.physics import SETTLE_TIMEOUT, Drop, Motion, Simulation
+from services.sim.controllers import Controllers
+from services.sim.physics import Simulation
+from services.sim.world import SETTLE_TIMEOUT, Drop, Motion
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +38,15 @@ RESET_GRACE = 0.1
 MAX_LAG = 0.5
 
 
+def _always(_goal: object) -> bool:
+    return True
+
+
 class SimNode:
-    """Binds a Simulation to the robot keys. Call run() on the thread that should own pybullet."""
+    """Binds a Simulation's controllers, sensors and world to the robot keys.
+
+    Call run() on the thread that should own pybullet.
+    """
 
     def __init__(self, node: Node, sim: Simulation, config: SimConfig) -> None:
         self.node = node
@@ -55,15 +64,22 @@ class SimNode:
         self._odom = node.publisher(keys.ODOM)
         self._objects = node.publisher(keys.OBJECTS)
         self._humans = node.publisher(keys.HUMANS)
+        # A new goal preempts the running one of its action, as Nav2's and ros2_control's servers do:
+        # the old goal ends (canceled) before the new one is accepted, so two never drive at once.
         self.servers: list[ActionServer[Any, Any, Any]] = [
-            ActionServer(node, keys.ROBOT_NAVIGATE, self._run_goal(Simulation.navigate), accept=self._accept),
+            ActionServer(
+                node, keys.ROBOT_NAVIGATE, self._run_goal(Controllers.navigate), accept=self._accept, preempts=_always
+            ),
             ActionServer(
                 node,
                 keys.ROBOT_TRAJECTORY,
-                self._run_goal(Simulation.follow_trajectory),
+                self._run_goal(Controllers.follow_trajectory),
                 accept=self._accept_trajectory,
+                preempts=_always,
             ),
-            ActionServer(node, keys.ROBOT_GRIPPER, self._run_goal(Simulation.gripper), accept=self._accept),
+            ActionServer(
+                node, keys.ROBOT_GRIPPER, self._run_goal(Controllers.gripper), accept=self._accept, preempts=_always
+            ),
         ]
         node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
         node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
@@ -112,7 +128,7 @@ class SimNode:
         return reason
 
     def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
-        return self._accept(goal) or self.sim.check_trajectory(goal)
+        return self._accept(goal) or self.sim.controllers.arm.check_trajectory(goal)
 
     def _enforce_safety(self) -> None:
         """On the sim thread: stop everything when safety goes quiet or latches; otherwise move at
@@ -125,15 +141,17 @@ class SimNode:
         if reason is None and status is not None:
             scale = status.speed_scale
             if not was_blocked:
-                self._log_speed_change(self.sim.speed_scale, scale, status.speed_reason or "no reason given")
-            self.sim.set_speed_scale(scale, status.max_linear_speed, status.max_angular_speed)
+                self._log_speed_change(
+                    self.sim.controllers.speed_scale, scale, status.speed_reason or "no reason given"
+                )
+            self.sim.controllers.set_speed_scale(scale, status.max_linear_speed, status.max_angular_speed)
         else:
             # While blocked the scale is 0 too, so nothing moves until a heartbeat says how fast it may.
             scale = 0.0
-            self.sim.set_speed_scale(scale)
+            self.sim.controllers.set_speed_scale(scale)
         if reason is not None and not was_blocked:
             log.warning("stopping the robot: %s", reason)
-            self.sim.stop(reason)
+            self.sim.controllers.stop(reason)
             for server in self.servers:
                 server.abort_all(reason)
         elif reason is None and was_blocked:
@@ -161,7 +179,7 @@ class SimNode:
         self.submit(lambda sim: self._apply_cmd_vel(sim, twist, hold_for))
 
     def _apply_cmd_vel(self, sim: Simulation, twist: Twist, hold_for: float) -> None:
-        if self._blocked_reason is None and not sim.set_cmd_vel(twist, hold_for):
+        if self._blocked_reason is None and not sim.controllers.set_cmd_vel(twist, hold_for):
             log.info("ignored cmd_vel while a navigate_to_pose goal runs")
 
     def submit(self, command: Command) -> None:
@@ -193,15 +211,15 @@ class SimNode:
         return value
 
     def _on_ground_truth(self, _request: Empty) -> GroundTruth:
-        return self._answer(Simulation.ground_truth)
+        return self._answer(lambda sim: sim.scene.ground_truth())
 
     def _on_camera_image(self, _request: Empty) -> CameraImage:
         # Rendered on the sim thread (pybullet is not thread-safe); encoded here, off it.
-        pixels = self._answer(Simulation.camera_picture)
+        pixels = self._answer(lambda sim: sim.sensors.camera_picture())
         return CameraImage(stamp=time.time(), width=pixels.shape[1], height=pixels.shape[0], data=png_base64(pixels))
 
     def _on_move(self, request: MoveEntity) -> MoveReply:
-        moved = self._answer(lambda sim: sim.move(request))
+        moved = self._answer(lambda sim: sim.scene.move(request))
         if not isinstance(moved, Drop):
             return moved
         # The object falls and comes to rest while the sim thread keeps stepping (and obeying safety).
@@ -213,13 +231,13 @@ class SimNode:
 
     # Goals
 
-    def _run_goal(self, start: Callable[[Simulation, Any], Motion[Any, Any]]) -> Execute:
+    def _run_goal(self, start: Callable[[Controllers, Any], Motion[Any, Any]]) -> Execute:
         """An ActionServer execute callback: start the motion on the sim thread, relay feedback, wait."""
 
         def execute(handle: GoalHandle[Any, Any]) -> Outcome[Any]:
             def begin(sim: Simulation) -> Motion[Any, Any] | str:
                 self._enforce_safety()  # as of the latest heartbeat, not the last step's
-                return self._blocked_reason or start(sim, handle.goal)
+                return self._blocked_reason or start(sim.controllers, handle.goal)
 
             started = self._ask(begin, START_TIMEOUT)
             if started is None:
@@ -242,8 +260,8 @@ class SimNode:
     def _canceller(motion: Motion[Any, Any], abort_reason: str) -> Command:
         """Ends `motion` as aborted (safety, shutdown) when there is a reason, else as canceled."""
         if abort_reason:
-            return lambda sim: sim.cancel(motion, GoalState.ABORTED, abort_reason)
-        return lambda sim: sim.cancel(motion, GoalState.CANCELED, "canceled")
+            return lambda sim: sim.controllers.cancel(motion, GoalState.ABORTED, abort_reason)
+        return lambda sim: sim.controllers.cancel(motion, GoalState.CANCELED, "canceled")
 
     # The sim thread
 
@@ -275,12 +293,15 @@ class SimNode:
                     sim.step()
                     self._drain()
                     self._enforce_safety()
+                    # Also while catching up: on a busy machine physics runs behind, but odometry
+                    # and joint states must keep coming, or safety's watchdog sees a silent robot.
+                    self._publish(due, periods)
                 self._publish(due, periods)
                 next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
                 self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
                 self._wake.clear()
         finally:
-            sim.stop("the simulator is shutting down")
+            sim.controllers.stop("the simulator is shutting down")
             self._drain()
 
     def _drain(self) -> None:
@@ -300,15 +321,18 @@ class SimNode:
         for name, period in periods.items():
             if now < due[name]:
                 continue
-            due[name] = now + period
+            # On the schedule, so a late wake-up does not stretch every later period; after a
+            # stall longer than a period it starts afresh rather than publishing the backlog.
+            scheduled = due[name] + period
+            due[name] = scheduled if scheduled > now else now + period
             if name == "joint_states":
-                self._joint_states.put(self.sim.joint_state(stamp))
+                self._joint_states.put(self.sim.sensors.joint_state(stamp))
             elif name == "odom":
-                self._odom.put(self.sim.odometry(stamp))
+                self._odom.put(self.sim.sensors.odometry(stamp))
             elif name == "objects":
-                self._objects.put(self.sim.perceived_objects(stamp))
+                self._objects.put(self.sim.sensors.perceived_objects(stamp))
             else:
-                self._humans.put(self.sim.perceived_humans(stamp))
+                self._humans.put(self.sim.sensors.perceived_humans(stamp))
 
     def close(self) -> None:
         for server in self.servers:

@@ -44,7 +44,8 @@ from services.executor.navigation import BasePlanner
 from services.robotmodel import ArmModel, arm_to_world
 from services.safety.policy import SafetyPolicy
 from services.safety.policyfile import load_policy
-from services.sim.physics import FINGER_LINKS, Simulation
+from services.sim.physics import Simulation
+from services.sim.world import FINGER_LINKS
 from services.worldmodel import WorldModel, load_world
 
 WORLD = WorldModel(load_world())
@@ -338,18 +339,21 @@ def test_the_sim_follows_a_planned_side_grasp_of_the_red_cup(planner: ArmPlanner
     sim = Simulation(WORLD.world)
     try:
         route = [Pose2D(x=5.7, y=2.1), Pose2D(x=4.3, y=2.1)]
-        assert sim.run(sim.navigate(NavigateToPoseGoal(pose=COUNTER.approach, path=route)), 60.0).state == "succeeded"
-        base = sim.base_pose()
-        objects = [SceneObject(o, sim.object_position(o.id)) for o in WORLD.world.objects]
+        assert (
+            sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=COUNTER.approach, path=route)), 60.0).state
+            == "succeeded"
+        )
+        base = sim.robot.base_pose()
+        objects = [SceneObject(o, sim.scene.object_position(o.id)) for o in WORLD.world.objects]
         scene = planner.scene(base, objects)
-        side = [g for g in grasps(CUP, sim.object_position(CUP.id), 0.0, base, MOUNT) if g.kind == "side"]
-        pick = plan_pick(scene, np.array(sim.arm_positions()), side, CUP, COUNTER.id)
+        side = [g for g in grasps(CUP, sim.scene.object_position(CUP.id), 0.0, base, MOUNT) if g.kind == "side"]
+        pick = plan_pick(scene, np.array(sim.robot.arm_positions()), side, CUP, COUNTER.id)
 
         def follow(path: list[np.ndarray]) -> float:
             goal = FollowJointTrajectoryGoal(
                 joint_names=list(ARM_JOINTS), points=time_parameterize(path, SPEED, ACCELERATION)
             )
-            motion = sim.follow_trajectory(goal)
+            motion = sim.controllers.follow_trajectory(goal)
             worst = 0.0
             while motion.running:
                 sim.step()
@@ -362,13 +366,13 @@ def test_the_sim_follows_a_planned_side_grasp_of_the_red_cup(planner: ArmPlanner
 
         assert follow(pick.to_pregrasp) < 0.02
         assert follow(pick.approach) < 0.02
-        closed = sim.run(sim.gripper(GripperCommandGoal(position=0.0, object_id=CUP.id)), 5.0)
+        closed = sim.run(sim.controllers.gripper(GripperCommandGoal(position=0.0, object_id=CUP.id)), 5.0)
         assert closed.result is not None and closed.result.holding == CUP.id
-        body = sim.object_bodies[CUP.id]
-        fingers = [sim.link_index[name] for name in FINGER_LINKS]
-        assert all(sim.bullet.getContactPoints(sim.robot, body, link, -1) for link in fingers)
+        body = sim.scene.object_bodies[CUP.id]
+        fingers = [sim.robot.link_index[name] for name in FINGER_LINKS]
+        assert all(sim.scene.bullet.getContactPoints(sim.robot.id, body, link, -1) for link in fingers)
         assert follow(pick.lift) < 0.02
-        assert sim.object_position(CUP.id).z > COUNTER.size.z + CUP.size.z / 2 + 0.1
+        assert sim.scene.object_position(CUP.id).z > COUNTER.size.z + CUP.size.z / 2 + 0.1
     finally:
         sim.close()
 

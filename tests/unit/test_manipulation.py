@@ -20,7 +20,8 @@ from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
 from services.resolver.resolver import Resolver
-from services.sim.physics import Motion, Simulation
+from services.sim.physics import Simulation
+from services.sim.world import Motion
 from services.worldmodel import WorldModel, load_world
 
 
@@ -35,29 +36,29 @@ class SimRobot:
         return ResultResponse(goal_id="x", state=done.state, result=done.result, message=done.message)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._run(self.sim.navigate(goal))
+        return self._run(self.sim.controllers.navigate(goal))
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._run(self.sim.follow_trajectory(goal))
+        return self._run(self.sim.controllers.follow_trajectory(goal))
 
     def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        return self._run(self.sim.gripper(goal))
+        return self._run(self.sim.controllers.gripper(goal))
 
     def cmd_vel(self, twist: Twist) -> None:
-        self.sim.set_cmd_vel(twist, 0.5)
+        self.sim.controllers.set_cmd_vel(twist, 0.5)
 
     def base_pose(self) -> Pose2D | None:
-        return self.sim.base_pose()
+        return self.sim.robot.base_pose()
 
     def arm_positions(self) -> list[float] | None:
-        return self.sim.arm_positions()
+        return self.sim.robot.arm_positions()
 
     def held_object(self) -> str | None:
-        return self.sim.ground_truth().holding
+        return self.sim.scene.ground_truth().holding
 
     def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
         self.sim.settle(0.2)
-        return self.sim.perceived_objects(0.0).objects
+        return self.sim.sensors.perceived_objects(0.0).objects
 
     def safety_stop(self) -> str | None:
         return None
@@ -66,7 +67,7 @@ class SimRobot:
         return 1.0
 
     def people(self) -> list[Pose2D]:
-        return [h.pose for h in self.sim.perceived_humans(0.0).humans]
+        return [h.pose for h in self.sim.sensors.perceived_humans(0.0).humans]
 
     def remembered(self, object_id: str) -> PerceivedObject | None:
         return None
@@ -102,17 +103,17 @@ def test_the_demo_plan_through_resolver_and_manipulator_puts_the_cup_on_the_tabl
             Step(action="place", location="coffee table"),  # type: ignore[arg-type]
         ]
     )
-    grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
+    grounded = Resolver(world).resolve(plan, sim.sensors.perceived_objects(0.0), sim.robot.base_pose())
     manipulator = manipulator_for(SimRobot(sim), planners)
     cancel = threading.Event()
     go, pick, go2, place = grounded.steps
     manipulator.drive_to(go.goal, cancel)  # type: ignore[union-attr]
     manipulator.pick(pick, cancel)  # type: ignore[arg-type]
-    assert sim.ground_truth().holding == "red_cup"
+    assert sim.scene.ground_truth().holding == "red_cup"
     manipulator.drive_to(go2.goal, cancel)  # type: ignore[union-attr]
     manipulator.place(place, cancel)  # type: ignore[arg-type]
     sim.settle(0.5)
-    truth = sim.ground_truth()
+    truth = sim.scene.ground_truth()
     cup = next(o for o in truth.objects if o.id == "red_cup")
     assert truth.holding is None
     assert (cup.on, cup.room) == ("coffee_table", "living_room"), cup
@@ -132,22 +133,22 @@ def test_a_placed_cup_stands_upright_on_the_surface(
     pick = PickStep(
         object_id=cup.id,
         object_name=cup.name,
-        position=sim.object_position(cup.id),
+        position=sim.scene.object_position(cup.id),
         mass=cup.mass,
         support_id=counter.id,
         approach=counter.approach,
     )
     manipulator.pick(pick, cancel)
-    assert sim.ground_truth().holding == cup.id
+    assert sim.scene.ground_truth().holding == cup.id
     surface = world.furniture[surface_id]
     spot = Vec3(x=surface.center[0] + shift, y=surface.center[1] - surface.size.y / 2 + 0.15, z=surface.size.z)
     place = PlaceStep(surface_id=surface.id, surface_name=surface.name, position=spot, approach=surface.approach)
     manipulator.place(place, cancel)
     sim.settle(1.0)
 
-    truth = next(o for o in sim.ground_truth().objects if o.id == cup.id)
-    _, orientation = sim.bullet.getBasePositionAndOrientation(sim.object_bodies[cup.id])
-    up = sim.bullet.getMatrixFromQuaternion(orientation)[8]  # the cup's axis, z component in the map frame
+    truth = next(o for o in sim.scene.ground_truth().objects if o.id == cup.id)
+    _, orientation = sim.scene.bullet.getBasePositionAndOrientation(sim.scene.object_bodies[cup.id])
+    up = sim.scene.bullet.getMatrixFromQuaternion(orientation)[8]  # the cup's axis, z component in the map frame
     assert math.degrees(math.acos(min(1.0, up))) < 10.0
     assert truth.on == surface_id
     assert truth.position.z == pytest.approx(surface.size.z + cup.size.z / 2, abs=0.005)
@@ -163,10 +164,10 @@ class TracingSimRobot(SimRobot):
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         self.trace = []
-        motion = self.sim.navigate(goal)
+        motion = self.sim.controllers.navigate(goal)
         while motion.running:
             self.sim.step(24)
-            self.trace.append(self.sim.base_pose())
+            self.trace.append(self.sim.robot.base_pose())
         return ResultResponse(goal_id="x", state=motion.state, result=motion.result, message=motion.message)
 
 
@@ -183,20 +184,20 @@ def test_relative_moves_end_where_the_resolver_predicted(
         {"action": "look_at", "target": "me"},
     ]
     plan = Plan(steps=[msgspec.convert(s, Step) for s in steps])
-    grounded = Resolver(world).resolve(plan, sim.perceived_objects(0.0), sim.base_pose())
+    grounded = Resolver(world).resolve(plan, sim.sensors.perceived_objects(0.0), sim.robot.base_pose())
     robot = TracingSimRobot(sim)
     manipulator = manipulator_for(robot, planners)
-    start = sim.base_pose()
+    start = sim.robot.base_pose()
     for step, label in zip(grounded.steps, grounded.labels, strict=True):
         assert isinstance(step, NavigateStep)
         manipulator.drive_to(step.goal, threading.Event(), step.max_speed)
-        here = sim.base_pose()
+        here = sim.robot.base_pose()
         assert math.dist((here.x, here.y), (step.goal.x, step.goal.y)) < 0.05, (label, step, here)
         assert abs(math.remainder(here.yaw - step.goal.yaw, math.tau)) < 0.05, (label, step, here)
         if label == "3":
             # Backing up 0.8 m northward never overshoots the goal to come back to it.
             assert max(p.y for p in robot.trace) < step.goal.y + 0.05
-    end = sim.base_pose()
+    end = sim.robot.base_pose()
     # 0.8 m east, then backing 0.8 m north while facing south; facing the operator at the end.
     assert (end.x, end.y) == pytest.approx((start.x + 0.8, start.y + 0.8), abs=0.05)
     assert end.yaw == pytest.approx(math.atan2(1.5 - end.y, 9.5 - end.x), abs=0.05)
@@ -206,6 +207,6 @@ def test_open_and_close_gripper_on_nothing(sim: Simulation, planners: tuple[ArmP
     manipulator = manipulator_for(SimRobot(sim), planners)
     cancel = threading.Event()
     assert manipulator.operate_gripper(False, cancel) == "gripper closed, holding nothing"
-    assert sim.gripper_gap() < 0.005
+    assert sim.robot.gripper_gap() < 0.005
     assert manipulator.operate_gripper(True, cancel) == "gripper open"
-    assert sim.gripper_gap() > 0.07
+    assert sim.robot.gripper_gap() > 0.07

@@ -1,4 +1,4 @@
-"""The pybullet simulation without Zenoh: driving, stopping, arm and gripper, a full pick and place."""
+"""The sim's controllers without Zenoh: driving, stopping, arm and gripper, a full pick and place."""
 
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ from services.footprint import TRACKING_TOLERANCE, footprint, route_sweeps
 from services.robotmodel import world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
-from services.sim.physics import STALL_TIME, Simulation
+from services.sim.controllers import STALL_TIME
+from services.sim.physics import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
@@ -78,28 +79,28 @@ def route_planner(sim: Simulation) -> BasePlanner:
 
 def drive(sim: Simulation, pose: Pose2D) -> None:
     # Through the doorways, as the executor would plan it.
-    path = route_planner(sim).plan(sim.base_pose(), pose)
-    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=pose, path=path)), timeout=120.0)
+    path = route_planner(sim).plan(sim.robot.base_pose(), pose)
+    motion = sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=pose, path=path)), timeout=120.0)
     assert motion.state is GoalState.SUCCEEDED, motion.message
-    here = sim.base_pose()
+    here = sim.robot.base_pose()
     assert math.hypot(here.x - pose.x, here.y - pose.y) < 0.05
     assert abs(math.remainder(here.yaw - pose.yaw, math.tau)) < 0.05
 
 
 def move_arm(sim: Simulation, q: list[float] | np.ndarray) -> None:
-    points = joint_trajectory(sim.arm_positions(), q, JOINT_SPEED)
+    points = joint_trajectory(sim.robot.arm_positions(), q, JOINT_SPEED)
     goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
-    motion = sim.run(sim.follow_trajectory(goal), timeout=20.0)
+    motion = sim.run(sim.controllers.follow_trajectory(goal), timeout=20.0)
     assert motion.state is GoalState.SUCCEEDED, motion.message
 
 
 def reach(sim: Simulation, kin: ArmKinematics, point: Vec3) -> None:
-    target = world_to_arm(sim.base_pose(), sim.world.robot.arm_mount, point)
-    move_arm(sim, kin.solve_top_down(target, sim.arm_positions()))
+    target = world_to_arm(sim.robot.base_pose(), sim.world.robot.arm_mount, point)
+    move_arm(sim, kin.solve_top_down(target, sim.robot.arm_positions()))
 
 
 def gripper(sim: Simulation, position: float) -> GripperCommandResult:
-    motion = sim.run(sim.gripper(GripperCommandGoal(position=position)), timeout=5.0)
+    motion = sim.run(sim.controllers.gripper(GripperCommandGoal(position=position)), timeout=5.0)
     assert motion.state is GoalState.SUCCEEDED, motion.message
     assert motion.result is not None
     return motion.result
@@ -117,52 +118,68 @@ def test_config_defaults_and_unknown_fields_are_errors(tmp_path: Path) -> None:
         load_config(SimConfig, bad, "sim")
 
 
-def test_world_starts_as_the_file_says(sim: Simulation, world: World) -> None:
-    truth = sim.ground_truth()
-    assert truth.holding is None
-    assert (truth.robot.x, truth.robot.y) == pytest.approx((world.robot.start.x, world.robot.start.y), abs=1e-6)
-    cup = next(o for o in truth.objects if o.id == "red_cup")
-    assert (cup.on, cup.room) == ("kitchen_counter", "kitchen")
-    assert sim.arm_positions() == pytest.approx(CARRY_JOINTS, abs=1e-6)
-
-
 def test_base_drives_to_the_kitchen_counter_approach(sim: Simulation, world: World) -> None:
     goal = approach(world, "kitchen_counter")
-    motion = sim.navigate(NavigateToPoseGoal(pose=goal, max_speed=0.6))
+    motion = sim.controllers.navigate(NavigateToPoseGoal(pose=goal, max_speed=0.6))
     sim.step(24)
     assert motion.feedback is not None and motion.feedback.distance_remaining > 3.0
     drive(sim, goal)
-    assert sim.base_speed() < 0.05
+    assert sim.robot.base_speed() < 0.05
 
 
 def test_stop_brings_the_base_to_rest_within_100_ms(sim: Simulation, world: World) -> None:
-    motion = sim.navigate(NavigateToPoseGoal(pose=Pose2D(x=10.0, y=1.2, yaw=0.0), max_speed=0.6))
+    motion = sim.controllers.navigate(NavigateToPoseGoal(pose=Pose2D(x=10.0, y=1.2, yaw=0.0), max_speed=0.6))
     sim.settle(2.0)
-    assert sim.base_speed() > 0.5
-    sim.stop("e-stop latched by test: stop now")
+    assert sim.robot.base_speed() > 0.5
+    sim.controllers.stop("e-stop latched by test: stop now")
     assert motion.state is GoalState.ABORTED and "e-stop" in motion.message
     sim.settle(0.1)
-    assert sim.base_speed() < 0.01
-    assert sim.ground_truth().linear_speed < 0.01
+    assert sim.robot.base_speed() < 0.01
+    assert sim.scene.ground_truth().linear_speed < 0.01
+
+
+def test_a_goal_preempting_a_moving_base_brakes_first_and_drives_from_where_it_stopped(sim: Simulation) -> None:
+    first = sim.controllers.navigate(NavigateToPoseGoal(pose=Pose2D(x=10.0, y=1.2, yaw=0.0), max_speed=0.6))
+    sim.settle(2.0)
+    assert sim.robot.base_speed() > 0.5
+    goal = Pose2D(x=sim.robot.base_pose().x + 1.0, y=1.2, yaw=0.0)
+    second = sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=goal)), timeout=30.0)
+    assert first.state is GoalState.ABORTED and "preempted" in first.message
+    assert second.state is GoalState.SUCCEEDED, second.message
+    here = sim.robot.base_pose()
+    assert math.hypot(here.x - goal.x, here.y - goal.y) < 0.05
+
+
+def test_stop_holds_the_fingers_where_they_are(sim: Simulation) -> None:
+    closing = sim.controllers.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.1)
+    gap = sim.robot.gripper_gap()
+    assert 0.01 < gap < 0.07
+    sim.controllers.stop("e-stop latched by test: stop now")
+    assert closing.state is GoalState.ABORTED
+    sim.settle(0.5)
+    assert sim.robot.gripper_gap() == pytest.approx(gap, abs=0.003)
 
 
 def test_cmd_vel_drives_and_expires(sim: Simulation) -> None:
-    start = sim.base_pose()
-    assert sim.set_cmd_vel(Twist(linear_x=0.4), hold_for=1.0)
+    start = sim.robot.base_pose()
+    assert sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=1.0)
     sim.settle(0.8)
-    linear, _ = sim.base_velocity()
+    linear, _ = sim.robot.base_velocity()
     assert linear == pytest.approx(0.4, abs=0.02)
     sim.settle(0.6)
-    assert sim.base_speed() < 0.01
-    assert sim.base_pose().x > start.x + 0.2
+    assert sim.robot.base_speed() < 0.01
+    assert sim.robot.base_pose().x > start.x + 0.2
 
 
 def test_cmd_vel_is_limited_by_the_speed_scale(sim: Simulation) -> None:
     robot = sim.world.robot
-    sim.set_speed_scale(0.5)
-    assert sim.set_cmd_vel(Twist(linear_x=robot.max_linear_speed, angular_z=robot.max_angular_speed), hold_for=1.0)
+    sim.controllers.set_speed_scale(0.5)
+    assert sim.controllers.set_cmd_vel(
+        Twist(linear_x=robot.max_linear_speed, angular_z=robot.max_angular_speed), hold_for=1.0
+    )
     sim.settle(0.8)
-    linear, angular = sim.base_velocity()
+    linear, angular = sim.robot.base_velocity()
     assert linear == pytest.approx(0.5 * robot.max_linear_speed, abs=0.01)
     assert angular == pytest.approx(0.5 * robot.max_angular_speed, abs=0.02)
 
@@ -179,17 +196,17 @@ def speeds_over(sim: Simulation, seconds: float) -> list[float]:
     speeds = []
     for _ in range(round(seconds / sim.dt)):
         sim.step()
-        speeds.append(sim.base_speed())
+        speeds.append(sim.robot.base_speed())
     return speeds
 
 
 def test_navigation_slows_to_the_speed_scale_and_still_arrives(sim: Simulation) -> None:
     limit = 0.5 * sim.world.robot.max_linear_speed
-    motion = sim.navigate(AHEAD)
+    motion = sim.controllers.navigate(AHEAD)
     sim.settle(1.5)
-    before = sim.base_speed()
+    before = sim.robot.base_speed()
     assert before > 0.55
-    sim.set_speed_scale(0.5)
+    sim.controllers.set_speed_scale(0.5)
     ramp = (before - limit) / sim.world.robot.max_linear_acceleration
     speeds = [before, *speeds_over(sim, 2.0)]
     # Slowed down at the normal deceleration, not at once, then held to the limit.
@@ -199,28 +216,28 @@ def test_navigation_slows_to_the_speed_scale_and_still_arrives(sim: Simulation) 
     assert speeds[settled] > limit - 0.02, "slowed down further than asked"
     while motion.running:
         sim.step()
-        assert sim.base_speed() < limit + 0.01
+        assert sim.robot.base_speed() < limit + 0.01
     assert motion.state is GoalState.SUCCEEDED, motion.message
-    assert sim.base_pose().x == pytest.approx(AHEAD.pose.x, abs=0.05)
+    assert sim.robot.base_pose().x == pytest.approx(AHEAD.pose.x, abs=0.05)
 
 
 def test_a_pause_stops_the_base_gently_and_keeps_the_goal_running(sim: Simulation) -> None:
-    motion = sim.navigate(AHEAD)
+    motion = sim.controllers.navigate(AHEAD)
     sim.settle(1.2)
-    assert sim.base_speed() > 0.3
-    sim.set_speed_scale(0.0)
-    speeds = [sim.base_speed(), *speeds_over(sim, 1.0)]
+    assert sim.robot.base_speed() > 0.3
+    sim.controllers.set_speed_scale(0.0)
+    speeds = [sim.robot.base_speed(), *speeds_over(sim, 1.0)]
     assert largest_drop(speeds) < 1.2 * sim.world.robot.max_linear_acceleration * sim.dt
     stopped_after = next(k for k, v in enumerate(speeds) if v < 0.01) * sim.dt
     assert stopped_after > 0.8 * 0.3 / sim.world.robot.max_linear_acceleration
     assert speeds[-1] < 0.001
     # Long past the stall time, the paused goal runs on: the stall and deadline clocks stand still.
-    clock, here = motion.clock, sim.base_pose()
+    clock, here = motion.clock, sim.robot.base_pose()
     sim.settle(3.0 * STALL_TIME)
     assert motion.running
     assert motion.clock == clock
-    assert math.dist((here.x, here.y), (sim.base_pose().x, sim.base_pose().y)) < 0.005
-    sim.set_speed_scale(1.0)
+    assert math.dist((here.x, here.y), (sim.robot.base_pose().x, sim.robot.base_pose().y)) < 0.005
+    sim.controllers.set_speed_scale(1.0)
     drive(sim, AHEAD.pose)
 
 
@@ -235,31 +252,31 @@ ELSEWHERE_JOINTS = [0.3, -1.0, 0.2, -2.0, 0.1, 1.3, 0.5]
 
 def test_trajectories_at_half_speed_take_twice_as_long(sim: Simulation) -> None:
     full = trajectory_time(sim, ELSEWHERE_JOINTS)
-    sim.set_speed_scale(0.5)
+    sim.controllers.set_speed_scale(0.5)
     # The way back: the same joint distances, so the same trajectory timing.
     half = trajectory_time(sim, CARRY_JOINTS)
     assert half == pytest.approx(2.0 * full, rel=0.05)
 
 
 def test_a_paused_trajectory_holds_the_arm_and_keeps_the_goal_running(sim: Simulation) -> None:
-    points = joint_trajectory(sim.arm_positions(), ELSEWHERE_JOINTS, JOINT_SPEED)
+    points = joint_trajectory(sim.robot.arm_positions(), ELSEWHERE_JOINTS, JOINT_SPEED)
     goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points)
-    motion = sim.follow_trajectory(goal)
+    motion = sim.controllers.follow_trajectory(goal)
     sim.settle(0.2)
-    sim.set_speed_scale(0.0)
+    sim.controllers.set_speed_scale(0.0)
     sim.settle(0.2)
-    held = sim.arm_positions()
+    held = sim.robot.arm_positions()
     # Paused for longer than the trajectory and its settle time together.
     for _ in range(round(2.0 / sim.dt)):
         sim.step()
-        arm = sim.joint_state(0.0).velocity[: len(ARM_JOINTS)]
+        arm = sim.sensors.joint_state(0.0).velocity[: len(ARM_JOINTS)]
         assert max(abs(v) for v in arm) < 1e-3
     assert motion.running
-    assert sim.arm_positions() == pytest.approx(held, abs=1e-3)
-    assert sim.arm_positions() != pytest.approx(ELSEWHERE_JOINTS, abs=0.05)
-    sim.set_speed_scale(1.0)
+    assert sim.robot.arm_positions() == pytest.approx(held, abs=1e-3)
+    assert sim.robot.arm_positions() != pytest.approx(ELSEWHERE_JOINTS, abs=0.05)
+    sim.controllers.set_speed_scale(1.0)
     assert sim.run(motion, timeout=5.0).state is GoalState.SUCCEEDED, motion.message
-    assert sim.arm_positions() == pytest.approx(ELSEWHERE_JOINTS, abs=0.01)
+    assert sim.robot.arm_positions() == pytest.approx(ELSEWHERE_JOINTS, abs=0.01)
 
 
 def gripper_time(sim: Simulation, position: float) -> float:
@@ -270,48 +287,48 @@ def gripper_time(sim: Simulation, position: float) -> float:
 
 def test_the_gripper_is_not_slowed_but_pauses_with_the_robot(sim: Simulation) -> None:
     closing = gripper_time(sim, 0.0)
-    sim.set_speed_scale(0.2)
+    sim.controllers.set_speed_scale(0.2)
     assert gripper_time(sim, 0.08) == pytest.approx(closing, rel=0.1)
     # Paused (a person too close): the fingers hold where they are, and the goal waits.
-    motion = sim.gripper(GripperCommandGoal(position=0.0))
+    motion = sim.controllers.gripper(GripperCommandGoal(position=0.0))
     sim.settle(0.1)
-    sim.set_speed_scale(0.0)
+    sim.controllers.set_speed_scale(0.0)
     sim.settle(0.05)
-    held = sim.gripper_gap()
+    held = sim.robot.gripper_gap()
     assert 0.01 < held < 0.075, held
     sim.settle(3.0)  # longer than the gripper's own timeout
     assert motion.running
-    assert sim.gripper_gap() == pytest.approx(held, abs=0.002)
-    sim.set_speed_scale(1.0)
+    assert sim.robot.gripper_gap() == pytest.approx(held, abs=0.002)
+    sim.controllers.set_speed_scale(1.0)
     sim.run(motion, timeout=5.0)
-    assert motion.state is GoalState.SUCCEEDED and sim.gripper_gap() < 0.002
+    assert motion.state is GoalState.SUCCEEDED and sim.robot.gripper_gap() < 0.002
 
 
 def test_navigation_into_furniture_aborts_with_a_reason(sim: Simulation, world: World) -> None:
     # Head on into the coffee table: the base stops against it and makes no more progress.
     inside_the_table = Pose2D(x=8.0, y=2.5, yaw=math.pi / 2)
     path = [Pose2D(x=8.0, y=1.2)]
-    motion = sim.run(sim.navigate(NavigateToPoseGoal(pose=inside_the_table, path=path)), timeout=60.0)
+    motion = sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=inside_the_table, path=path)), timeout=60.0)
     assert motion.state is GoalState.ABORTED
     assert "stalled" in motion.message and "is the way blocked?" in motion.message
-    assert sim.base_speed() < 0.05
+    assert sim.robot.base_speed() < 0.05
 
 
 @pytest.mark.parametrize("furniture_id", ["kitchen_counter", "shelf", "bed"])
 def test_the_base_as_driven_stays_within_the_sweeps_safety_checked(sim: Simulation, furniture_id: str) -> None:
     # Out of the living room, through doorways, and straight in to park by the furniture.
     goal = approach(sim.world, furniture_id)
-    start = sim.base_pose()
+    start = sim.robot.base_pose()
     path = route_planner(sim).plan(start, goal)
     size = sim.world.robot.base_size
     checked = shapely.union_all(
         [s.shape for s in route_sweeps(start, drive_route(start, path, goal), goal.yaw, size.x, size.y)]
     ).buffer(TRACKING_TOLERANCE + 1e-6)
-    motion = sim.navigate(NavigateToPoseGoal(pose=goal, path=path, start=start))
+    motion = sim.controllers.navigate(NavigateToPoseGoal(pose=goal, path=path, start=start))
     worst = 0.0
     while motion.running:
         sim.step()
-        here = sim.base_pose()
+        here = sim.robot.base_pose()
         driven = footprint(here.x, here.y, here.yaw, size.x, size.y)
         worst = max(worst, driven.difference(checked).area)
     assert motion.state is GoalState.SUCCEEDED, motion.message
@@ -319,13 +336,13 @@ def test_the_base_as_driven_stays_within_the_sweeps_safety_checked(sim: Simulati
 
 
 def test_a_base_pushed_off_its_route_aborts_the_goal(sim: Simulation) -> None:
-    start = sim.base_pose()
-    motion = sim.navigate(NavigateToPoseGoal(pose=Pose2D(x=start.x + 2.0, y=start.y)))
+    start = sim.robot.base_pose()
+    motion = sim.controllers.navigate(NavigateToPoseGoal(pose=Pose2D(x=start.x + 2.0, y=start.y)))
     sim.step(round(1.5 / sim.dt))
     assert motion.running
     # Shoved 0.2 m sideways: no longer on the route safety checked.
-    y_joint = sim.joint_index["base_y"]
-    sim.bullet.resetJointState(sim.robot, y_joint, start.y + 0.2)
+    y_joint = sim.robot.joint_index["base_y"]
+    sim.scene.bullet.resetJointState(sim.robot.id, y_joint, start.y + 0.2)
     sim.run(motion, timeout=5.0)
     assert motion.state is GoalState.ABORTED
     assert "cm off its route (tolerance 3 cm): pushed or blocked?" in motion.message
@@ -333,40 +350,40 @@ def test_a_base_pushed_off_its_route_aborts_the_goal(sim: Simulation) -> None:
 
 def test_an_arm_blocked_on_its_way_aborts_the_trajectory_and_holds_there(sim: Simulation) -> None:
     # A box in front of the robot, in the way of the arm reaching forward and down.
-    base = sim.base_pose()
-    box = sim.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[0.15, 0.4, 0.15])
-    sim.bullet.createMultiBody(0.0, box, -1, [base.x + 0.75, base.y, 0.75])
-    start = sim.arm_positions()
+    base = sim.robot.base_pose()
+    box = sim.scene.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[0.15, 0.4, 0.15])
+    sim.scene.bullet.createMultiBody(0.0, box, -1, [base.x + 0.75, base.y, 0.75])
+    start = sim.robot.arm_positions()
     forward = [start[0], 1.7, start[2], -0.3, *start[4:]]
     points = [
         TrajectoryPoint(positions=start, time_from_start=0.0),
         TrajectoryPoint(positions=forward, time_from_start=3.0),
     ]
     goal = FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points, path_tolerance=0.1)
-    motion = sim.run(sim.follow_trajectory(goal), timeout=10.0)
+    motion = sim.run(sim.controllers.follow_trajectory(goal), timeout=10.0)
     assert motion.state is GoalState.ABORTED
     assert re.search(r"panda_joint\d was 0\.1\d\d rad from the trajectory at \d", motion.message), motion.message
     assert motion.message.endswith("(path tolerance 0.1 rad): blocked or pushed")
-    stopped = sim.arm_positions()
+    stopped = sim.robot.arm_positions()
     assert stopped[1] < 1.0, "stopped at the box, far short of the goal"
     sim.settle(0.5)
-    assert np.max(np.abs(np.array(sim.arm_positions()) - stopped)) < 0.02, "and it holds there"
+    assert np.max(np.abs(np.array(sim.robot.arm_positions()) - stopped)) < 0.02, "and it holds there"
 
 
 def test_trajectory_goals_are_checked(sim: Simulation) -> None:
     unknown = FollowJointTrajectoryGoal(
         joint_names=["panda_joint1", "elbow"], points=[TrajectoryPoint(positions=[0.0, 0.0], time_from_start=1.0)]
     )
-    assert "unknown joints ['elbow']" in (sim.check_trajectory(unknown) or "")
+    assert "unknown joints ['elbow']" in (sim.controllers.arm.check_trajectory(unknown) or "")
     short = FollowJointTrajectoryGoal(
         joint_names=list(ARM_JOINTS), points=[TrajectoryPoint(positions=[0.0] * 6, time_from_start=1.0)]
     )
-    assert "6 positions for 7 joints" in (sim.check_trajectory(short) or "")
+    assert "6 positions for 7 joints" in (sim.controllers.arm.check_trajectory(short) or "")
     beyond = FollowJointTrajectoryGoal(
         joint_names=["panda_joint4"], points=[TrajectoryPoint(positions=[0.5], time_from_start=1.0)]
     )
-    assert "outside" in (sim.check_trajectory(beyond) or "")
-    motion = sim.follow_trajectory(short)
+    assert "outside" in (sim.controllers.arm.check_trajectory(beyond) or "")
+    motion = sim.controllers.follow_trajectory(short)
     assert motion.state is GoalState.ABORTED
 
 
@@ -379,14 +396,14 @@ def test_pick_red_cup_from_counter_and_place_it_on_the_coffee_table(
     sim: Simulation, world: World, kin: ArmKinematics
 ) -> None:
     drive(sim, approach(world, "kitchen_counter"))
-    cup = sim.object_position("red_cup")
+    cup = sim.scene.object_position("red_cup")
     reach(sim, kin, above(cup, PREGRASP_HEIGHT))
     reach(sim, kin, cup)
     grasp = gripper(sim, 0.0)
     assert grasp.holding == "red_cup" and grasp.stalled
     reach(sim, kin, above(cup, PREGRASP_HEIGHT))
     move_arm(sim, world.robot.home_joints)
-    assert sim.ground_truth().holding == "red_cup"
+    assert sim.scene.ground_truth().holding == "red_cup"
 
     table = next(f for f in world.furniture if f.id == "coffee_table")
     drive(sim, table.approach)
@@ -400,7 +417,7 @@ def test_pick_red_cup_from_counter_and_place_it_on_the_coffee_table(
     move_arm(sim, world.robot.home_joints)
     sim.settle(0.5)
 
-    truth = sim.ground_truth()
+    truth = sim.scene.ground_truth()
     cup_now = next(o for o in truth.objects if o.id == "red_cup")
     assert truth.holding is None
     assert (cup_now.on, cup_now.room) == ("coffee_table", "living_room")

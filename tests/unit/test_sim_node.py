@@ -20,8 +20,9 @@ from services.actionlib import ActionClient
 from services.errors import GoalRejected
 from services.runtime import Node, NodeSettings
 from services.sim.config import SimConfig
+from services.sim.controllers import STALL_TIME
 from services.sim.node import SimNode
-from services.sim.physics import STALL_TIME, Simulation
+from services.sim.physics import Simulation
 from services.worldmodel import load_world
 from tests.sessions import free_port
 from tests.watch import Watch

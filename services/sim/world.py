@@ -1,0 +1,455 @@
+"""The simulated world in pybullet: the bodies, the robot's joints, time, ground truth, and things moved for tests."""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+import pybullet
+import pybullet_data
+from pybullet_utils import bullet_client
+from shapely.geometry import Point
+
+from schemas.actions import GoalState
+from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
+from schemas.robot import ARM_JOINTS, FINGER_JOINTS, GRIPPER_MAX_GAP
+from schemas.world import Furniture, GroundTruth, Moved, MoveEntity, PerceivedObject, Wall, World, WorldObject
+from services.sim.robot_urdf import BASE_LINK, BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT, mobile_manipulator_urdf
+from services.worldmodel import WorldModel
+
+log = logging.getLogger(__name__)
+
+F = TypeVar("F")
+R = TypeVar("R")
+
+HAND_LINK = "panda_hand"
+FINGER_LINKS: tuple[str, str] = ("panda_leftfinger", "panda_rightfinger")
+GRIPPER_OPEN = GRIPPER_MAX_GAP
+GRAVITY = -9.81
+
+# The base: wheels are abstracted as velocity motors on planar joints. The force is large so a
+# stop takes a few milliseconds, yet finite so furniture still blocks the base.
+BASE_FORCE = 4000.0
+BASE_TORQUE = 2000.0
+# Arm joint torques: the URDF's effort limits, raised so the arm stays stiff while the base brakes.
+ARM_FORCES = (300.0, 300.0, 300.0, 300.0, 100.0, 100.0, 100.0)
+ARM_POSITION_GAIN = 0.3
+FINGER_SPEED = 0.1  # m/s per finger
+
+WALL_RGBA = [0.92, 0.9, 0.86, 1.0]
+HUMAN_RADIUS = 0.2
+HUMAN_HEIGHT = 1.7
+
+# sim/move: an object is let go this far above where it is to rest, so it never starts inside
+# anything, and counts as settled once slower than SETTLED_OBJECT_SPEED for SETTLED_OBJECT_TIME.
+DROP_HEIGHT = 0.002
+SETTLED_OBJECT_SPEED = 0.01
+SETTLED_OBJECT_TIME = 0.1
+SETTLE_TIMEOUT = 3.0
+
+
+def wrap_angle(angle: float) -> float:
+    return math.atan2(math.sin(angle), math.cos(angle))
+
+
+def has_heading(obj: WorldObject) -> bool:
+    """Whether the object's yaw can be told: a box with unequal sides (the book)."""
+    return obj.shape == "box" and abs(obj.size.x - obj.size.y) > 1e-3
+
+
+class Motion(Generic[F, R]):
+    """Something carried out over time: the sim thread ticks it; other threads read `feedback` and wait on `done`."""
+
+    kind = "motion"
+
+    def __init__(self, started: float) -> None:
+        self.started = started
+        self.feedback: F | None = None
+        self.state = GoalState.EXECUTING
+        self.result: R | None = None
+        self.message = ""
+        self.done = threading.Event()
+
+    @property
+    def running(self) -> bool:
+        return not self.done.is_set()
+
+    def finish(self, state: GoalState, result: R, message: str = "") -> None:
+        if self.done.is_set():
+            return
+        self.state, self.result, self.message = state, result, message
+        log.info("%s %s: %s", self.kind, state.value, message or "done")
+        self.done.set()
+
+
+class RobotBody:
+    """The robot's joints in pybullet: its motors take targets, its encoders are read here."""
+
+    def __init__(self, bullet: Any, world: World) -> None:
+        self.bullet = bullet
+        spec = world.robot
+        with tempfile.TemporaryDirectory(prefix="tether-sim-") as tmp:
+            path = Path(tmp) / "mobile_panda.urdf"
+            path.write_text(mobile_manipulator_urdf(spec))
+            self.id: int = bullet.loadURDF(str(path), useFixedBase=True)
+        self.joint_index: dict[str, int] = {}
+        self.link_index: dict[str, int] = {}
+        for i in range(bullet.getNumJoints(self.id)):
+            info = bullet.getJointInfo(self.id, i)
+            self.joint_index[info[1].decode()] = i
+            self.link_index[info[12].decode()] = i
+        self.base_joints = [self.joint_index[n] for n in (BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT)]
+        self.arm_joints = [self.joint_index[n] for n in ARM_JOINTS]
+        self.finger_joints = [self.joint_index[n] for n in FINGER_JOINTS]
+        self.hand = self.link_index[HAND_LINK]
+        self.fingers = [self.link_index[n] for n in FINGER_LINKS]
+        self.base_link = self.link_index[BASE_LINK]
+        infos = [bullet.getJointInfo(self.id, j) for j in self.arm_joints]
+        # Plain lists, so a trajectory can be checked on any thread without touching pybullet.
+        self.arm_limits = ([float(i[8]) for i in infos], [float(i[9]) for i in infos])
+        start = spec.start
+        for joint, value in zip(self.base_joints, (start.x, start.y, start.yaw), strict=True):
+            bullet.resetJointState(self.id, joint, value)
+        for joint, value in zip(self.arm_joints, spec.home_joints, strict=True):
+            bullet.resetJointState(self.id, joint, value)
+        for joint in self.finger_joints:
+            bullet.resetJointState(self.id, joint, GRIPPER_OPEN / 2)
+            bullet.changeDynamics(self.id, joint, lateralFriction=1.0)
+
+    # Motors
+
+    def drive_base(self, linear_x: float, angular_z: float) -> None:
+        """Velocity in the base frame, applied to the planar joints in the map frame."""
+        yaw = self.base_pose().yaw
+        self.bullet.setJointMotorControlArray(
+            self.id,
+            self.base_joints,
+            pybullet.VELOCITY_CONTROL,
+            targetVelocities=[linear_x * math.cos(yaw), linear_x * math.sin(yaw), angular_z],
+            forces=[BASE_FORCE, BASE_FORCE, BASE_TORQUE],
+        )
+
+    def drive_arm(self, positions: np.ndarray, velocities: np.ndarray) -> None:
+        self.bullet.setJointMotorControlArray(
+            self.id,
+            self.arm_joints,
+            pybullet.POSITION_CONTROL,
+            targetPositions=positions.tolist(),
+            targetVelocities=velocities.tolist(),
+            forces=list(ARM_FORCES),
+            positionGains=[ARM_POSITION_GAIN] * 7,
+        )
+
+    def drive_fingers(self, each: float, force: float) -> None:
+        """Each finger to `each` metres from the middle, pushing with at most `force`."""
+        for joint in self.finger_joints:
+            self.bullet.setJointMotorControl2(
+                self.id, joint, pybullet.POSITION_CONTROL, targetPosition=each, force=force, maxVelocity=FINGER_SPEED
+            )
+
+    # Encoders
+
+    def base_pose(self) -> Pose2D:
+        x, y, yaw = (s[0] for s in self.bullet.getJointStates(self.id, self.base_joints))
+        return Pose2D(x=x, y=y, yaw=wrap_angle(yaw))
+
+    def base_velocity(self) -> tuple[float, float]:
+        """Measured linear_x and angular_z in the base frame."""
+        states = self.bullet.getJointStates(self.id, self.base_joints)
+        yaw = states[2][0]
+        vx, vy, w = (s[1] for s in states)
+        return vx * math.cos(yaw) + vy * math.sin(yaw), w
+
+    def base_speed(self) -> float:
+        vx, vy = (s[1] for s in self.bullet.getJointStates(self.id, self.base_joints[:2]))
+        return math.hypot(vx, vy)
+
+    def arm_positions(self) -> list[float]:
+        return [s[0] for s in self.bullet.getJointStates(self.id, self.arm_joints)]
+
+    def gripper_gap(self) -> float:
+        return float(sum(s[0] for s in self.bullet.getJointStates(self.id, self.finger_joints)))
+
+    def finger_speed(self) -> float:
+        return float(max(abs(s[1]) for s in self.bullet.getJointStates(self.id, self.finger_joints)))
+
+    def joints(self) -> tuple[list[float], list[float]]:
+        """Positions and velocities of the arm's seven joints, then the two fingers'."""
+        states = self.bullet.getJointStates(self.id, [*self.arm_joints, *self.finger_joints])
+        return [s[0] for s in states], [s[1] for s in states]
+
+
+class Drop(Motion[None, Moved]):
+    """An object teleported by sim/move and let go: done once it lies still (or has rolled for too long)."""
+
+    kind = "move"
+
+    def __init__(self, world: SimWorld, object_id: str) -> None:
+        super().__init__(world.sim_time)
+        self.object_id = object_id
+        self.still_since = world.sim_time
+
+    def result_now(self, world: SimWorld) -> Moved:
+        return Moved(id=self.object_id, position=world.object_position(self.object_id))
+
+    def tick(self, world: SimWorld) -> None:
+        if world.object_speed(self.object_id) > SETTLED_OBJECT_SPEED:
+            self.still_since = world.sim_time
+        if world.sim_time - self.still_since >= SETTLED_OBJECT_TIME:
+            self.finish(GoalState.SUCCEEDED, self.result_now(world), f"{self.object_id} at rest")
+        elif world.sim_time - self.started > SETTLE_TIMEOUT:
+            self.finish(GoalState.SUCCEEDED, self.result_now(world), f"{self.object_id} still moving")
+
+
+class SimWorld:
+    """The household and the robot's body in one pybullet client, stepped by whoever owns it (one thread)."""
+
+    def __init__(self, world: World, *, physics_hz: float = 240.0) -> None:
+        self.spec = world
+        self.model = WorldModel(world)
+        self.dt = 1.0 / physics_hz
+        self.sim_time = 0.0
+        # What the hand holds: a fixed constraint stands in for the grip (see grasp).
+        self.holding: str | None = None
+        self._grasp_constraint: int | None = None
+        self._drops: list[Drop] = []
+        self.bullet: Any = bullet_client.BulletClient(connection_mode=pybullet.DIRECT)
+        self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
+        self.bullet.setGravity(0.0, 0.0, GRAVITY)
+        self.bullet.setTimeStep(self.dt)
+        self.bullet.loadURDF("plane.urdf")
+        self.wall_bodies = {w.id: self._add_wall(w) for w in world.walls}
+        self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
+        self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
+        self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
+        # Where people stand now: they move (sim/move), the world file only says where they start.
+        self.human_poses = {h.id: h.pose for h in world.humans}
+        self.robot = RobotBody(self.bullet, world)
+        log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
+
+    # Building
+
+    def _add_furniture(self, center: list[float], size: Any, rgba: list[float]) -> int:
+        half = [size.x / 2, size.y / 2, size.z / 2]
+        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+        visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=rgba)
+        body: int = self.bullet.createMultiBody(0.0, shape, visual, [center[0], center[1], size.z / 2])
+        self.bullet.changeDynamics(body, -1, lateralFriction=1.0)
+        return body
+
+    def _add_wall(self, wall: Wall) -> int:
+        (x0, y0), (x1, y1) = wall.start, wall.end
+        half = [math.dist((x0, y0), (x1, y1)) / 2, wall.thickness / 2, wall.height / 2]
+        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+        visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=WALL_RGBA)
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, math.atan2(y1 - y0, x1 - x0)])
+        centre = [(x0 + x1) / 2, (y0 + y1) / 2, wall.height / 2]
+        body: int = self.bullet.createMultiBody(0.0, shape, visual, centre, orientation)
+        return body
+
+    def _add_object(self, obj: WorldObject) -> int:
+        size = obj.size
+        if obj.shape == "cylinder":
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_CYLINDER, radius=size.x / 2, height=size.z)
+            visual = self.bullet.createVisualShape(
+                pybullet.GEOM_CYLINDER, radius=size.x / 2, length=size.z, rgbaColor=obj.rgba
+            )
+        elif obj.shape == "sphere":
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_SPHERE, radius=size.x / 2)
+            visual = self.bullet.createVisualShape(pybullet.GEOM_SPHERE, radius=size.x / 2, rgbaColor=obj.rgba)
+        else:
+            half = [size.x / 2, size.y / 2, size.z / 2]
+            shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
+            visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=obj.rgba)
+        where = self.model.initial_position(obj)
+        body: int = self.bullet.createMultiBody(obj.mass, shape, visual, [where.x, where.y, where.z])
+        self.bullet.changeDynamics(body, -1, lateralFriction=1.0, spinningFriction=0.01, rollingFriction=0.001)
+        return body
+
+    def _add_human(self, pose: Pose2D) -> int:
+        visual = self.bullet.createVisualShape(
+            pybullet.GEOM_CYLINDER, radius=HUMAN_RADIUS, length=HUMAN_HEIGHT, rgbaColor=[0.9, 0.7, 0.5, 1.0]
+        )
+        body: int = self.bullet.createMultiBody(0.0, -1, visual, [pose.x, pose.y, HUMAN_HEIGHT / 2])
+        return body
+
+    def close(self) -> None:
+        self.bullet.disconnect()
+
+    def step(self) -> None:
+        """One physics tick, after the controllers have set the motors; objects let go settle meanwhile."""
+        for drop in self._drops:
+            drop.tick(self)
+        self._drops = [d for d in self._drops if d.running]
+        self.bullet.stepSimulation()
+        self.sim_time += self.dt
+
+    # Grasping
+
+    def object_between_fingers(self) -> str | None:
+        """The object both fingers touch: only that one is held."""
+        robot = self.robot
+        for object_id, body in self.object_bodies.items():
+            if all(self.bullet.getContactPoints(robot.id, body, link, -1) for link in robot.fingers):
+                return object_id
+        return None
+
+    def grasp(self, object_id: str, payload_limit: float | None = None) -> str | None:
+        """Fix the object to the hand; the reason when it cannot be held (too heavy), else None."""
+        obj = self.model.objects[object_id]
+        payload = min(self.spec.robot.payload, payload_limit or self.spec.robot.payload)
+        if obj.mass > payload:
+            return f"{object_id} weighs {obj.mass:g} kg, over the {payload:g} kg payload; it slips out"
+        body, robot = self.object_bodies[object_id], self.robot
+        hand_com = self.bullet.getLinkState(robot.id, robot.hand)[0:2]
+        object_pose = self.bullet.getBasePositionAndOrientation(body)
+        inverse = self.bullet.invertTransform(*hand_com)
+        relative = self.bullet.multiplyTransforms(inverse[0], inverse[1], *object_pose)
+        # A real friction grasp in pybullet is flaky; a fixed constraint stands in for the grip.
+        self._grasp_constraint = self.bullet.createConstraint(
+            robot.id,
+            robot.hand,
+            body,
+            -1,
+            pybullet.JOINT_FIXED,
+            [0, 0, 0],
+            relative[0],
+            [0, 0, 0],
+            relative[1],
+            [0, 0, 0, 1],
+        )
+        self.bullet.changeConstraint(self._grasp_constraint, maxForce=200.0)
+        self.holding = object_id
+        return None
+
+    def release(self) -> None:
+        if self._grasp_constraint is not None:
+            self.bullet.removeConstraint(self._grasp_constraint)
+        self._grasp_constraint = None
+        self.holding = None
+
+    # Ground truth
+
+    def object_position(self, object_id: str) -> Vec3:
+        (x, y, z), _ = self.bullet.getBasePositionAndOrientation(self.object_bodies[object_id])
+        return Vec3(x=x, y=y, z=z)
+
+    def object_speed(self, object_id: str) -> float:
+        linear, _ = self.bullet.getBaseVelocity(self.object_bodies[object_id])
+        return float(np.linalg.norm(linear))
+
+    def report(
+        self, obj: WorldObject, position: Vec3, on: str | None, stamp: float, yaw: float | None = None
+    ) -> PerceivedObject:
+        """An object as perception reports it, `position` from wherever it was found."""
+        room = self.model.room_of(position.x, position.y)
+        return PerceivedObject(
+            id=obj.id,
+            name=obj.name,
+            cls=obj.cls,
+            color=obj.color,
+            position=position,
+            room=room,
+            on=on,
+            stamp=stamp,
+            yaw=yaw,
+        )
+
+    def exact(self, obj: WorldObject, stamp: float) -> PerceivedObject:
+        """The object exactly where it is, `on` the gripper when held."""
+        position = self.object_position(obj.id)
+        on = "gripper" if obj.id == self.holding else self.model.support_under(position, obj.size.z / 2)
+        yaw = None
+        if has_heading(obj):
+            _, orientation = self.bullet.getBasePositionAndOrientation(self.object_bodies[obj.id])
+            heading = self.bullet.getEulerFromQuaternion(orientation)[2]
+            yaw = math.atan(math.tan(heading)) if abs(math.cos(heading)) > 1e-9 else math.pi / 2
+        return self.report(obj, position, on, stamp, yaw)
+
+    def ground_truth(self) -> GroundTruth:
+        """The simulator's own state: every object exactly where it is, seen or not."""
+        return GroundTruth(
+            sim_time=self.sim_time,
+            robot=self.robot.base_pose(),
+            linear_speed=self.robot.base_speed(),
+            holding=self.holding,
+            objects=[self.exact(o, self.sim_time) for o in self.spec.objects],
+        )
+
+    # The world changing under the robot's feet (sim/move)
+
+    def move(self, request: MoveEntity) -> Drop | Moved | ServiceError:
+        """Teleport a person (done at once) or an object (let go to settle: wait for the Drop), or say
+        why not."""
+        refusal = self._move_refusal(request)
+        if refusal is not None:
+            return refusal
+        if request.id in self.human_bodies:
+            return self._move_human(request)
+        return self._drop_object(request)
+
+    def _move_refusal(self, request: MoveEntity) -> ServiceError | None:
+        entities = [*self.object_bodies, *self.human_bodies]
+        if request.id not in entities:
+            message = f"no object or person {request.id!r} in the world {self.spec.name!r}"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message, candidates=sorted(entities))
+        if self.model.room_of(request.x, request.y) is None:
+            message = f"({request.x:g}, {request.y:g}) is outside every room of the world {self.spec.name!r}"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        if request.id == self.holding:
+            message = f"{request.id} is in the robot's gripper; the robot has to put it down first"
+            return ServiceError(kind=ErrorKind.PRECONDITION, message=message)
+        if self._under_the_robot(request.x, request.y):
+            message = f"({request.x:g}, {request.y:g}) is where the robot stands"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        furniture = self._furniture_at(request.x, request.y)
+        if furniture is not None and request.z is not None and request.z < furniture.size.z:
+            message = f"z = {request.z:g} m is inside the {furniture.name}, whose top is at {furniture.size.z:g} m"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        return None
+
+    def _under_the_robot(self, x: float, y: float) -> bool:
+        base, size = self.robot.base_pose(), self.spec.robot.base_size
+        dx, dy = x - base.x, y - base.y
+        ahead = dx * math.cos(base.yaw) + dy * math.sin(base.yaw)
+        left = -dx * math.sin(base.yaw) + dy * math.cos(base.yaw)
+        return abs(ahead) <= size.x / 2 and abs(left) <= size.y / 2
+
+    def _furniture_at(self, x: float, y: float) -> Furniture | None:
+        point = Point(x, y)
+        return next((f for f in self.spec.furniture if self.model.footprint(f).covers(point)), None)
+
+    def _move_human(self, request: MoveEntity) -> Moved:
+        current = self.human_poses[request.id]
+        yaw = current.yaw if request.yaw is None else request.yaw
+        self.human_poses[request.id] = Pose2D(x=request.x, y=request.y, yaw=yaw)
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+        self.bullet.resetBasePositionAndOrientation(
+            self.human_bodies[request.id], [request.x, request.y, HUMAN_HEIGHT / 2], orientation
+        )
+        log.info("moved %s to (%.2f, %.2f)", request.id, request.x, request.y)
+        return Moved(id=request.id, position=Vec3(x=request.x, y=request.y, z=0.0))
+
+    def _drop_object(self, request: MoveEntity) -> Drop:
+        """Upright at (x, y) with its bottom at z, or on whatever furniture is there, else the floor."""
+        obj = self.model.objects[request.id]
+        body = self.object_bodies[request.id]
+        if request.z is not None:
+            bottom = request.z
+        else:
+            furniture = self._furniture_at(request.x, request.y)
+            bottom = furniture.size.z if furniture is not None else 0.0
+        _, orientation = self.bullet.getBasePositionAndOrientation(body)
+        yaw = self.bullet.getEulerFromQuaternion(orientation)[2] if request.yaw is None else request.yaw
+        centre = [request.x, request.y, bottom + obj.size.z / 2 + DROP_HEIGHT]
+        self.bullet.resetBasePositionAndOrientation(body, centre, self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw]))
+        self.bullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        log.info("moved %s to (%.2f, %.2f, %.2f); letting it settle", request.id, *centre)
+        drop = Drop(self, request.id)
+        self._drops.append(drop)
+        return drop

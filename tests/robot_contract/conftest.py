@@ -1,0 +1,222 @@
+"""The robot backends the contract suite runs against, each as a real process, with the test in safety's place."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from schemas import keys
+from schemas.actions import CANCEL_ALL, CancelGoal
+from schemas.robot import JointState, Odometry
+from schemas.safety import EstopState, SafetyStatus
+from schemas.world import PerceivedHumans, PerceivedObjects
+from services.runtime import SERVICES, CallError, Node, NodeSettings
+from services.sim.config import SimConfig
+from tests.sessions import free_ports
+from tests.watch import Watch
+from tether.supervisor import Supervisor
+
+HEARTBEAT_PERIOD = 0.02  # safety's 50 Hz
+STARTUP_TIMEOUT = 90.0
+
+
+@dataclass(frozen=True)
+class Backend:
+    """How to start one robot backend and the timing it was configured with, which the suite checks.
+
+    Adding a backend to the suite is adding one entry to BACKENDS.
+    """
+
+    name: str  # the test id
+    service: str  # what `tether run` starts; also its liveliness token
+    config: str  # its config file (TOML)
+    heartbeat_timeout: float  # wall seconds without safety's heartbeat before the robot stops
+    first_heartbeat_wait: float  # how long a goal before the first heartbeat waits for one
+    cmd_vel_timeout: float  # wall seconds a cmd_vel holds without a newer one
+    odom_hz: float
+    joint_states_hz: float
+    objects_hz: float
+    humans_hz: float
+    robot: str | None = None  # the robot's name; None: a fresh one per run, so runs never share keys
+
+
+def sim_backend(config: SimConfig) -> Backend:
+    toml = (
+        f"[sim]\nrealtime_factor = {config.realtime_factor}\nheartbeat_timeout = {config.heartbeat_timeout}\n"
+        f"first_heartbeat_wait = {config.first_heartbeat_wait}\n"
+        f"cmd_vel_timeout = {config.cmd_vel_timeout}\nodom_hz = {config.odom_hz}\n"
+        f"joint_states_hz = {config.joint_states_hz}\nobjects_hz = {config.objects_hz}\n"
+        f"humans_hz = {config.humans_hz}\n"
+    )
+    return Backend(
+        name="sim",
+        service="sim",
+        config=toml,
+        heartbeat_timeout=config.heartbeat_timeout,
+        first_heartbeat_wait=config.first_heartbeat_wait,
+        cmd_vel_timeout=config.cmd_vel_timeout,
+        odom_hz=config.odom_hz,
+        joint_states_hz=config.joint_states_hz,
+        objects_hz=config.objects_hz,
+        humans_hz=config.humans_hz,
+    )
+
+
+# The sim at real time: faster, on two loaded cores it falls behind the wall clock and its reports
+# sag below their rates; the suite's goals are short, so it is no slower for it.
+# A goal before the first heartbeat waits 1 s for it rather than the default 3 s: the same path, sooner.
+BACKENDS = [sim_backend(SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0))]
+
+
+class PlayedSafety:
+    """The test in safety's place: the only writer of the heartbeat and of robot/**.
+
+    The heartbeat goes out every HEARTBEAT_PERIOD, carrying whatever `set` last said; `silence`
+    stops it as a crashed safety would.
+    """
+
+    def __init__(self, node: Node, *, beating: bool = True) -> None:
+        self._node = node
+        self._changed = threading.Condition()
+        self._state: dict[str, Any] = {"beating": beating, "latched": False, "speed_scale": 1.0}
+        self._limits: dict[str, float | None] = {"max_linear_speed": None, "max_angular_speed": None}
+        self.sent = 0
+        self.last_sent = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="played-safety", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(HEARTBEAT_PERIOD):
+            with self._changed:
+                if not self._state["beating"]:
+                    continue
+                estop = EstopState(latched=self._state["latched"], source="operator", reason="contract test")
+                status = SafetyStatus(
+                    seq=self.sent,
+                    stamp=time.time(),
+                    estop=estop,
+                    speed_scale=self._state["speed_scale"],
+                    speed_reason="contract test",
+                    **self._limits,
+                )
+                self._node.publish(keys.HEARTBEAT, status)
+                self.sent += 1
+                self.last_sent = time.monotonic()
+                self._changed.notify_all()
+
+    def set(
+        self,
+        *,
+        beating: bool = True,
+        latched: bool = False,
+        speed_scale: float = 1.0,
+        max_linear_speed: float | None = None,
+        max_angular_speed: float | None = None,
+    ) -> None:
+        """From the next heartbeat on (none at all when not `beating`)."""
+        with self._changed:
+            self._state = {"beating": beating, "latched": latched, "speed_scale": speed_scale}
+            self._limits = {"max_linear_speed": max_linear_speed, "max_angular_speed": max_angular_speed}
+
+    def silence(self) -> float:
+        """Stop the heartbeat; when the last one went out (monotonic seconds)."""
+        with self._changed:
+            self._state = {**self._state, "beating": False}
+            return self.last_sent
+
+    def beats(self, count: int, timeout: float = 5.0) -> bool:
+        """Wait until `count` more heartbeats have gone out with the state as now set."""
+        with self._changed:
+            target = self.sent + count
+            return self._changed.wait_for(lambda: self.sent >= target, timeout)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+
+@dataclass
+class RunningBackend:
+    """One running backend, the test's node next to it, and what the robot has reported so far."""
+
+    backend: Backend
+    settings: NodeSettings
+    supervisor: Supervisor
+    node: Node
+    safety: PlayedSafety
+    odom: Watch[Odometry]
+    joint_states: Watch[JointState]
+    objects: Watch[PerceivedObjects]
+    humans: Watch[PerceivedHumans]
+
+    def cancel_everything(self) -> None:
+        for action in (keys.ROBOT_NAVIGATE, keys.ROBOT_TRAJECTORY, keys.ROBOT_GRIPPER):
+            # No answer in time is no reason to fail a test that passed: the next goal preempts anyway.
+            with contextlib.suppress(CallError):
+                self.node.call(action.cancel_goal, CancelGoal(goal_id=CANCEL_ALL), timeout=5.0)
+
+
+@contextlib.contextmanager
+def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBackend]:
+    """`backend` as a real process next to the test's node, always stopped, also on failure; the
+    played safety's heartbeat from the start when `beating`."""
+    robot = backend.robot or f"t{uuid.uuid4().hex[:8]}"
+    settings = NodeSettings(robot=robot, base_port=free_ports(len(SERVICES)))
+    config = tmp / "tether.toml"
+    config.write_text(backend.config)
+    supervisor = Supervisor(settings, tmp / "logs", config)
+    node: Node | None = None
+    safety: PlayedSafety | None = None
+    try:
+        supervisor.start(backend.service)
+        node = Node("cli", settings)
+        odom, joint_states = Watch(node, keys.ODOM), Watch(node, keys.JOINT_STATES)
+        objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
+        missing = node.wait_alive([backend.service], STARTUP_TIMEOUT)
+        assert not missing, f"{backend.service} not up:\n{supervisor.log_tail(backend.service)}"
+        safety = PlayedSafety(node, beating=beating)
+        yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
+    finally:
+        if safety is not None:
+            safety.close()
+        if node is not None:
+            node.close()
+        supervisor.stop_all()
+        # Shown by pytest only when a test failed.
+        print(f"----- {backend.service} log -----\n{supervisor.log_tail(backend.service, 60)}")
+
+
+@pytest.fixture(scope="module", params=BACKENDS, ids=lambda b: b.name)
+def backend_process(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[RunningBackend]:
+    """The backend started once for the module's tests."""
+    backend: Backend = request.param
+    with running(backend, tmp_path_factory.mktemp(f"robot-{backend.name}"), beating=True) as started:
+        yield started
+
+
+@pytest.fixture(params=BACKENDS, ids=lambda b: b.name)
+def unheard_robot(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[RunningBackend]:
+    """A backend of its own that has not yet heard a heartbeat (safety not started)."""
+    with running(request.param, tmp_path, beating=False) as started:
+        yield started
+
+
+@pytest.fixture
+def robot(backend_process: RunningBackend) -> Iterator[RunningBackend]:
+    """The module's backend, with safety's heartbeat present and clear, and no goal running."""
+    backend_process.safety.set()
+    assert backend_process.safety.beats(3), "the played safety's heartbeat thread stopped"
+    yield backend_process
+    backend_process.safety.set()
+    backend_process.cancel_everything()
