@@ -16,7 +16,8 @@ from schemas.robot import FollowJointTrajectoryGoal, Twist
 from schemas.safety import SafetyStatus
 from schemas.world import CameraImage, Empty, GroundTruth, MoveEntity, MoveReply
 from services.actionlib import ActionServer, GoalHandle, Outcome
-from services.runtime import CallError, Node
+from services.errors import CallError
+from services.runtime import Node
 from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers

@@ -18,7 +18,8 @@ from schemas.actions import CANCEL_ALL, CancelGoal
 from schemas.robot import JointState, Odometry
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import PerceivedHumans, PerceivedObjects
-from services.runtime import SERVICES, CallError, Node, NodeSettings
+from services.errors import CallError
+from services.runtime import SERVICES, Node, NodeSettings
 from services.sim.config import SimConfig
 from tests.sessions import free_ports
 from tests.watch import Watch

@@ -24,7 +24,8 @@ from schemas.robot import (
     TrajectoryPoint,
     Twist,
 )
-from services.actionlib import ActionClient, ClientGoal, GoalRejected
+from services.actionlib import ActionClient, ClientGoal
+from services.errors import GoalRejected
 from tests.robot_contract.conftest import RunningBackend
 from tests.watch import Watch
 
