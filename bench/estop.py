@@ -9,7 +9,7 @@ moving panda_joint1 by 0.8 rad over 2 s (the other way in the next trial). Once 
 |linear_x| > 0.1 m/s and joint states an arm joint faster than 0.1 rad/s, t0 = time.time() and
 `EStop(source=operator)` is published. The halt is the first sample, by the `stamp` the sim puts on
 odometry and joint states (its wall clock), from which the base's |linear_x| and |angular_z| and
-every arm joint's |velocity| are all below 0.01 (see `bench.service.RobotState`). The cmd_vel stream
+every arm joint's |velocity| are all below 0.01 (see `bench.service.RobotMotion`). The cmd_vel stream
 goes on until then, as a joystick's would. Then the operator resets the e-stop with the token, as
 `tether reset` does, and the next trial waits for a heartbeat showing the latch clear.
 
@@ -29,7 +29,7 @@ from typing import Any
 from bench.service import (
     BenchError,
     Heartbeats,
-    RobotState,
+    RobotMotion,
     Stack,
     bench_main,
     bounded,
@@ -62,7 +62,7 @@ HALT_TIMEOUT = 2.0
 progress = reporter(PROG)
 
 
-def swing_arm(stack: Stack, state: RobotState, direction: float) -> str:
+def swing_arm(stack: Stack, state: RobotMotion, direction: float) -> str:
     """Start panda_joint1 moving by `direction` * SWING rad over SWING_TIME; the goal's id."""
     joints = state.joints.message
     assert joints is not None
@@ -80,7 +80,7 @@ def swing_arm(stack: Stack, state: RobotState, direction: float) -> str:
     return request.goal_id
 
 
-def trial(stack: Stack, state: RobotState, beats: Heartbeats, i: int, heard: list[float]) -> float:
+def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: list[float]) -> float:
     """One e-stop of the moving robot; ms to the halt. Appends to `heard` the ms to the latched beat."""
     direction = 1.0 if i % 2 == 0 else -1.0
     estop = EStop(source=EstopSource.OPERATOR, reason=f"{PROG} trial {i + 1}")

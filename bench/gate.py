@@ -41,7 +41,7 @@ from typing import Any
 from bench.service import (
     MAX_N,
     BenchError,
-    RobotState,
+    RobotMotion,
     Stack,
     bench_main,
     bounded,
@@ -56,7 +56,7 @@ from bench.service import (
 from bench.transport import raw_echo, timed_pair
 from schemas import keys
 from schemas.actions import GetResult, GoalResponse, GoalState, SendGoal
-from schemas.keys import Action
+from schemas.keys import ActionKeys
 from schemas.robot import (
     ARM_JOINTS,
     GRIPPER_MAX_GAP,
@@ -79,15 +79,15 @@ progress = reporter(PROG)
 
 
 @dataclass(frozen=True)
-class Kind:
+class GoalKind:
     """A kind of goal that leaves the robot where it is, built from its current state."""
 
     name: str
-    action: Action[Any, Any, Any]
-    goal: Callable[[RobotState], Any]
+    action: ActionKeys[Any, Any, Any]
+    goal: Callable[[RobotMotion], Any]
 
 
-def hold_arm(state: RobotState) -> FollowJointTrajectoryGoal:
+def hold_arm(state: RobotMotion) -> FollowJointTrajectoryGoal:
     joints = state.joints.message
     assert joints is not None
     now = dict(zip(joints.name, joints.position, strict=False))
@@ -95,16 +95,16 @@ def hold_arm(state: RobotState) -> FollowJointTrajectoryGoal:
     return FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=[point])
 
 
-def stay(state: RobotState) -> NavigateToPoseGoal:
+def stay(state: RobotMotion) -> NavigateToPoseGoal:
     odom = state.odom.message
     assert odom is not None
     return NavigateToPoseGoal(pose=odom.pose)
 
 
 KINDS = (
-    Kind("gripper", keys.CMD_GRIPPER, lambda _: GripperCommandGoal(position=GRIPPER_MAX_GAP)),
-    Kind("trajectory", keys.CMD_TRAJECTORY, hold_arm),
-    Kind("navigate", keys.CMD_NAVIGATE, stay),
+    GoalKind("gripper", keys.CMD_GRIPPER, lambda _: GripperCommandGoal(position=GRIPPER_MAX_GAP)),
+    GoalKind("trajectory", keys.CMD_TRAJECTORY, hold_arm),
+    GoalKind("navigate", keys.CMD_NAVIGATE, stay),
 )
 
 
@@ -124,7 +124,7 @@ class Samples:
             progress(what)
 
 
-def one_goal(stack: Stack, state: RobotState, kind: Kind, i: int) -> tuple[float, float, GoalResponse]:
+def one_goal(stack: Stack, state: RobotMotion, kind: GoalKind, i: int) -> tuple[float, float, GoalResponse]:
     """(relay ms, gate ms, the reply) for one send_goal of `kind`, interleaved with the relay."""
     node = stack.node
     request = SendGoal(goal_id=uuid.uuid4().hex, goal=kind.goal(state))
@@ -143,7 +143,7 @@ def one_goal(stack: Stack, state: RobotState, kind: Kind, i: int) -> tuple[float
     return relay_ms, gate_ms, replies[0]
 
 
-def finish(stack: Stack, kind: Kind, goal_id: str, samples: Samples) -> None:
+def finish(stack: Stack, kind: GoalKind, goal_id: str, samples: Samples) -> None:
     """Wait for the goal's result (not timed), so the next goal finds the robot idle."""
     try:
         result = stack.node.call(kind.action.get_result, GetResult(goal_id=goal_id), timeout=RESULT_TIMEOUT)
@@ -154,7 +154,7 @@ def finish(stack: Stack, kind: Kind, goal_id: str, samples: Samples) -> None:
         samples.note(samples.failed, f"a {kind.name} goal ended {result.state}: {result.message}")
 
 
-def measure(stack: Stack, state: RobotState, n: int, warmup: int, max_seconds: float, rate: float) -> Samples:
+def measure(stack: Stack, state: RobotMotion, n: int, warmup: int, max_seconds: float, rate: float) -> Samples:
     samples = Samples({kind.name: ([], []) for kind in KINDS})
     deadline = time.monotonic() + max_seconds
     last_sent = dict.fromkeys(samples.times, -math.inf)

@@ -34,7 +34,7 @@ import numpy as np
 from bench.service import bench_main, bounded, ms_summary, notes, print_rows, reporter, show
 from schemas.common import Vec3
 from schemas.world import Furniture, WorldObject
-from services.executor.armplanning import ArmPlanner, PlannerConfig, SceneObject, plan_pick, time_parameterize
+from services.executor.armplanning import ArmPlanner, ArmPlannerConfig, SceneObject, plan_pick, time_parameterize
 from services.executor.config import ExecutorConfig
 from services.executor.errors import PlanningFailed
 from services.executor.grasps import GraspConfig, fits, grasps
@@ -90,7 +90,7 @@ def random_pose(
 def run(trials: int, seed: int) -> dict[str, Any]:
     world = WorldModel(load_world())
     started = time.perf_counter()
-    planner = ArmPlanner(world, PlannerConfig(planning_time=CONFIG.planning_time, seed=seed))
+    planner = ArmPlanner(world, ArmPlannerConfig(planning_time=CONFIG.planning_time, seed=seed))
     build_ms = (time.perf_counter() - started) * 1000
     progress(f"collision model built in {build_ms:.0f} ms; {trials} trials, seed {seed}")
     rng = np.random.default_rng(seed)

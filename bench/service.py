@@ -7,7 +7,7 @@ queries (to the sim's echo) and of a raw topic, the baseline for commands passin
 
 Also here, shared by the benches of the robot path (gate, estop, watchdog, stream): the sim and
 safety started with a config file and an operator token of their own (`running_robot`), the robot's
-state as the sim reports it with the moment it comes to a halt (`RobotState`), safety's heartbeat
+state as the sim reports it with the moment it comes to a halt (`RobotMotion`), safety's heartbeat
 (`Heartbeats`), a slow cmd_vel stream that keeps the base moving (`drive`), the operator's reset,
 and the command line every bench shares.
 """
@@ -300,7 +300,7 @@ class _Halt:
     done: threading.Event = field(default_factory=threading.Event)
 
 
-class RobotState:
+class RobotMotion:
     """Odometry (and joint states with `arm`) as the sim publishes them, and halts measured on them.
 
     A halt is the first sample, by the sim's own `stamp` (wall time), after which the base's
@@ -377,10 +377,10 @@ def drive(node: Node, linear_x: float, hz: float = 20.0) -> Iterator[None]:
 @contextlib.contextmanager
 def robot_ready(
     bench: str, progress: Progress, sim: dict[str, Any], *, arm: bool
-) -> Iterator[tuple[Stack, RobotState, Heartbeats]]:
+) -> Iterator[tuple[Stack, RobotMotion, Heartbeats]]:
     """`running_robot`, once the sim reports its state and safety beats with the e-stop clear."""
     with running_robot(bench, progress, sim) as stack:
-        state = RobotState(stack.node, arm=arm)
+        state = RobotMotion(stack.node, arm=arm)
         beats = Heartbeats(stack.node)
         state.wait_ready(10.0)
         beats.wait_clear(10.0)

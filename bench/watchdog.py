@@ -28,7 +28,7 @@ from typing import Any
 from bench.service import (
     READY_TIMEOUT,
     Heartbeats,
-    RobotState,
+    RobotMotion,
     Stack,
     bench_main,
     bounded,
@@ -55,7 +55,7 @@ HALT_TIMEOUT = 3.0
 progress = reporter(PROG)
 
 
-def trial(stack: Stack, state: RobotState, beats: Heartbeats, i: int) -> float:
+def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int) -> float:
     """One SIGKILL of safety while the base moves; ms to the halt. Safety is running again after."""
     with drive(stack.node, SPEED if i % 2 == 0 else -SPEED):
         wait_until(state.moving, MOVE_TIMEOUT, "the base moving")

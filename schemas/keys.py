@@ -114,7 +114,7 @@ class Service(Generic[Q, A]):
 
 
 @dataclass(frozen=True)
-class Action(Generic[G, F, R]):
+class ActionKeys(Generic[G, F, R]):
     path: str
     goal: type[G]
     feedback_type: type[F]
@@ -145,7 +145,7 @@ class Action(Generic[G, F, R]):
 # The planner side.
 PLAN_PARSE: Service[PlanText, ParseReply] = Service("plan/parse", PlanText, ParseReply)
 PLAN_RESOLVE: Service[Plan, ResolveReply] = Service("plan/resolve", Plan, ResolveReply)
-EXECUTE_PLAN = Action("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, ExecutePlanResult)
+EXECUTE_PLAN = ActionKeys("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, ExecutePlanResult)
 # Words to a checked plan: the planner asks an LLM, dry-runs each answer, feeds refusals back.
 PLAN_ASK: Service[AskRequest, AskReply] = Service("plan/ask", AskRequest, AskReply)
 # Each model call and the dry run of its plan.
@@ -153,11 +153,11 @@ PLANNER_ATTEMPTS = Topic("planner/attempts", PlannerAttempt)
 
 # Commands to safety: the only doors towards the robot.
 PLAN_CHECK: Service[GroundedPlan, PlanCheckReply] = Service("safety/check_plan", GroundedPlan, PlanCheckReply)
-CMD_NAVIGATE = Action("cmd/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
-CMD_TRAJECTORY = Action(
+CMD_NAVIGATE = ActionKeys("cmd/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
+CMD_TRAJECTORY = ActionKeys(
     "cmd/follow_joint_trajectory", FollowJointTrajectoryGoal, FollowJointTrajectoryFeedback, FollowJointTrajectoryResult
 )
-CMD_GRIPPER = Action("cmd/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
+CMD_GRIPPER = ActionKeys("cmd/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
 # From programs (plans, agents): a value over a limit is refused, never silently clamped.
 CMD_VEL = Topic("cmd/cmd_vel", Twist)
 # From a person at a joystick or keyboard: clamped to the limits, and the clamping reported.
@@ -170,14 +170,14 @@ SAFETY_EVENTS = Topic("safety/events", SafetyEvent)
 RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply, redact=("token",))
 
 # The robot interface: only safety writes the command keys here.
-ROBOT_NAVIGATE = Action("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
-ROBOT_TRAJECTORY = Action(
+ROBOT_NAVIGATE = ActionKeys("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
+ROBOT_TRAJECTORY = ActionKeys(
     "robot/follow_joint_trajectory",
     FollowJointTrajectoryGoal,
     FollowJointTrajectoryFeedback,
     FollowJointTrajectoryResult,
 )
-ROBOT_GRIPPER = Action("robot/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
+ROBOT_GRIPPER = ActionKeys("robot/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
 ROBOT_CMD_VEL = Topic("robot/cmd_vel", Twist)
 JOINT_STATES = Topic("robot/joint_states", JointState)
 ODOM = Topic("robot/odom", Odometry)
@@ -196,7 +196,7 @@ GROUND_TRUTH: Service[Empty, GroundTruth] = Service("sim/ground_truth", Empty, G
 SIM_MOVE: Service[MoveEntity, MoveReply] = Service("sim/move", MoveEntity, MoveReply)
 RECORDER_STATUS: Service[Empty, RecorderStatus] = Service("recorder/status", Empty, RecorderStatus)
 
-ACTIONS: tuple[Action[Any, Any, Any], ...] = (
+ACTIONS: tuple[ActionKeys[Any, Any, Any], ...] = (
     EXECUTE_PLAN,
     CMD_NAVIGATE,
     CMD_TRAJECTORY,

@@ -26,7 +26,7 @@ from schemas.actions import (
     SendGoal,
 )
 from schemas.common import ErrorKind, ServiceError
-from schemas.keys import Action
+from schemas.keys import ActionKeys
 from services.errors import CallError, GoalRejected
 from services.runtime import Node
 
@@ -95,7 +95,7 @@ class ActionServer(Generic[G, F, R]):
     def __init__(
         self,
         node: Node,
-        action: Action[G, F, R],
+        action: ActionKeys[G, F, R],
         execute: Callable[[GoalHandle[G, F]], Outcome[R]],
         *,
         accept: Callable[[G], str | None] | None = None,
@@ -284,7 +284,7 @@ class ActionClient(Generic[G, F, R]):
     def __init__(
         self,
         node: Node,
-        action: Action[G, F, R],
+        action: ActionKeys[G, F, R],
         on_feedback: Callable[[str, F], None] | None = None,
         *,
         cancel_grace: float = CANCEL_GRACE,

@@ -23,7 +23,15 @@ from services.recorder.node import bind
 from services.recorder.reader import RecordingError, RecordingFile, join_recordings, read_recording, recover
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.recorder import Recorder
-from services.recorder.replay import REPLAY_SUFFIX, Item, Kind, ReplayPlan, default_target, is_replay_name, plan_replay
+from services.recorder.replay import (
+    REPLAY_SUFFIX,
+    Item,
+    ReplayKind,
+    ReplayPlan,
+    default_target,
+    is_replay_name,
+    plan_replay,
+)
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 from services.worldmodel import WorldFileError, load_world
@@ -257,7 +265,7 @@ class Player:
         return sent
 
     def _send(self, item: Item) -> None:
-        if item.kind is Kind.PUT:
+        if item.kind is ReplayKind.PUT:
             publisher = self.publishers.get(item.key)
             if publisher is None:
                 publisher = self.publishers[item.key] = self.node.session.declare_publisher(item.key)

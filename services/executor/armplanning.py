@@ -84,7 +84,7 @@ Contact = tuple[str, str]
 
 
 @dataclass(frozen=True)
-class PlannerConfig:
+class ArmPlannerConfig:
     """The arm planner's tunables. Lengths in metres, angles in radians, times in seconds."""
 
     planning_time: float = 1.0  # RRTConnect's budget for one path
@@ -110,17 +110,17 @@ class PlannerConfig:
         ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"PlannerConfig.{name} must be a positive number, got {value!r}")
+                raise ValueError(f"ArmPlannerConfig.{name} must be a positive number, got {value!r}")
         for name in ("padding", "limit_margin", "endpoint_radius"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"PlannerConfig.{name} must be zero or positive, got {value!r}")
+                raise ValueError(f"ArmPlannerConfig.{name} must be zero or positive, got {value!r}")
         if self.resolution > 0.2:
-            raise ValueError(f"PlannerConfig.resolution {self.resolution} rad is too coarse to check collisions")
+            raise ValueError(f"ArmPlannerConfig.resolution {self.resolution} rad is too coarse to check collisions")
         if self.ik_random_seeds < 0:
-            raise ValueError(f"PlannerConfig.ik_random_seeds must be >= 0, got {self.ik_random_seeds}")
+            raise ValueError(f"ArmPlannerConfig.ik_random_seeds must be >= 0, got {self.ik_random_seeds}")
         if self.seed <= 0:
-            raise ValueError(f"PlannerConfig.seed must be positive (OMPL takes 0 as 'random'), got {self.seed}")
+            raise ValueError(f"ArmPlannerConfig.seed must be positive (OMPL takes 0 as 'random'), got {self.seed}")
 
 
 @dataclass(frozen=True)
@@ -275,10 +275,10 @@ class ArmPlanner:
     """The robot's collision model, built once (about 0.1 s); `scene()` gives a planning scene."""
 
     def __init__(
-        self, world: WorldModel, config: PlannerConfig | None = None, kinematics: ArmKinematics | None = None
+        self, world: WorldModel, config: ArmPlannerConfig | None = None, kinematics: ArmKinematics | None = None
     ) -> None:
         self.world = world
-        self.config = config or PlannerConfig()
+        self.config = config or ArmPlannerConfig()
         self.robot = RobotGeometry(world.world.robot.arm_urdf)
         self.kin = kinematics or ArmKinematics(world.world.robot.arm_urdf)
         self.mount = world.world.robot.arm_mount
@@ -290,7 +290,7 @@ class ArmPlanner:
         return ArmScene(self, base, tuple(objects), held)
 
 
-class _Checker:
+class _PairChecker:
     """The pair checks with some pairs off and some without their padding, with scratch space."""
 
     def __init__(self, scene: ArmScene, off: frozenset[int], unpadded: frozenset[int]) -> None:
@@ -330,7 +330,7 @@ class ArmScene:
             item = pin.GeometryObject(held.obj.id, self.robot.grasp_joint, placement, shape_of(held.obj))
             self.held_index = self._add(held.obj.id, item)
         self.pairs, self.margins = self._pairs()
-        self._checkers: dict[tuple[frozenset[int], frozenset[int]], _Checker] = {}
+        self._checkers: dict[tuple[frozenset[int], frozenset[int]], _PairChecker] = {}
 
     def holding(self, held: HeldObject) -> ArmScene:
         """This scene with `held` in the hand instead of where it stood."""
@@ -429,17 +429,17 @@ class ArmScene:
             )
         return frozenset(off)
 
-    def _checker(self, off: frozenset[int], unpadded: frozenset[int] = frozenset()) -> _Checker:
+    def _checker(self, off: frozenset[int], unpadded: frozenset[int] = frozenset()) -> _PairChecker:
         checker = self._checkers.get((off, unpadded))
         if checker is None:
-            checker = self._checkers[(off, unpadded)] = _Checker(self, off, unpadded)
+            checker = self._checkers[(off, unpadded)] = _PairChecker(self, off, unpadded)
         return checker
 
-    def _hits(self, checker: _Checker, q: np.ndarray) -> list[int]:
+    def _hits(self, checker: _PairChecker, q: np.ndarray) -> list[int]:
         pin.computeCollisions(self.model, checker.kinematics, self.geometry, checker.data, q, False)
         return [k for k, result in enumerate(checker.data.collisionResults) if result.isCollision()]
 
-    def _free(self, checker: _Checker, q: np.ndarray) -> bool:
+    def _free(self, checker: _PairChecker, q: np.ndarray) -> bool:
         return not pin.computeCollisions(self.model, checker.kinematics, self.geometry, checker.data, q, True)
 
     def _contact(self, pair: int) -> str:
@@ -589,7 +589,7 @@ class ArmScene:
         """The state check of a motion from q0 to q1: pairs within the padding at an end are checked
         without it near that end; a real contact at either end is refused."""
         plain = self._checker(off)
-        near: list[tuple[np.ndarray, _Checker]] = []
+        near: list[tuple[np.ndarray, _PairChecker]] = []
         for name, q in (("start", q0), ("goal", q1)):
             padded = frozenset(self._hits(plain, q))
             if not padded:
@@ -660,14 +660,14 @@ class _Validity:
     ends in, that end's check without that padding; elsewhere the plain one."""
 
     def __init__(
-        self, scene: ArmScene, plain: _Checker, near: list[tuple[np.ndarray, _Checker]], radius: float
+        self, scene: ArmScene, plain: _PairChecker, near: list[tuple[np.ndarray, _PairChecker]], radius: float
     ) -> None:
         self.scene = scene
         self.plain = plain
         self.near = near
         self.radius = radius
 
-    def _checker(self, q: np.ndarray) -> _Checker:
+    def _checker(self, q: np.ndarray) -> _PairChecker:
         for end, checker in self.near:
             if float(np.max(np.abs(q - end))) <= self.radius:
                 return checker

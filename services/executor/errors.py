@@ -38,7 +38,7 @@ class Canceled(ExecutionError):
     kind = FailureKind.CANCELED
 
 
-class Vetoed(ExecutionError):
+class CommandVetoed(ExecutionError):
     """Safety, or the robot behind it, refused a goal. No on_failure alternative runs after this."""
 
     kind = FailureKind.VETOED

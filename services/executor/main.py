@@ -5,11 +5,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from services.executor.armplanning import ArmPlanner, PlannerConfig
+from services.executor.armplanning import ArmPlanner, ArmPlannerConfig
 from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
-from services.executor.node import NodePlanner, NodeRobot, serve_execute_plan
+from services.executor.node import NodePlanServices, NodeRobot, serve_execute_plan
 from services.executor.runner import PlanRunner
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
 from services.worldmodel import WorldModel, load_world
@@ -22,13 +22,13 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     config = load_config(ExecutorConfig, config_file, "executor")
     world = WorldModel(load_world(config.world))
     # Both planners build their models once, here, before the executor says it is alive.
-    arm = ArmPlanner(world, PlannerConfig(planning_time=config.planning_time))
+    arm = ArmPlanner(world, ArmPlannerConfig(planning_time=config.planning_time))
     base = BasePlanner(world, clearance=config.base_clearance, time_limit=config.planning_time)
     stop = stop_event()
     with Node("executor", settings) as node:
         robot = NodeRobot(node, config)
         manipulator = Manipulator(robot, arm, base, world, config)
-        runner = PlanRunner(NodePlanner(node, config), robot, manipulator, config)
+        runner = PlanRunner(NodePlanServices(node, config), robot, manipulator, config)
         server = serve_execute_plan(node, runner, config)
         node.declare_alive()
         log.info("executor up for robot %s", settings.robot)

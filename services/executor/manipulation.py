@@ -52,12 +52,12 @@ from services.executor.armplanning import (
 from services.executor.config import ExecutorConfig
 from services.executor.errors import (
     Canceled,
+    CommandVetoed,
     ExecutionError,
     Interrupted,
     PlanningFailed,
     PostconditionFailed,
     PreconditionFailed,
-    Vetoed,
 )
 from services.executor.grasps import GraspConfig, grasps, object_pose, placements
 from services.executor.navigation import BasePlanner
@@ -106,7 +106,7 @@ def refused(what: str, exc: GoalRejected) -> ExecutionError:
     """A goal the robot side would not take: safety's veto (or its e-stop) is final; a robot that
     was busy or unreachable may be asked again."""
     if exc.kind in (ErrorKind.VETOED, ErrorKind.ESTOP):
-        return Vetoed(f"{what}: {exc.reason}")
+        return CommandVetoed(f"{what}: {exc.reason}")
     return ExecutionError(f"{what}: the robot did not take it: {exc.reason}")
 
 

@@ -306,7 +306,7 @@ def route_clearance_problem(
     return _Floorplan(world, margin, people).route_problem(start, path, goal)
 
 
-class _Checker:
+class _RouteChecker:
     """The motion model the planner validates against, exactly as footprint.route_sweeps drives.
 
     A state's yaw is the base's heading only at the start; at any other waypoint the base turns
@@ -382,9 +382,9 @@ def _values(state: ob.State) -> State:
 
 
 class _MotionValidator(ob.MotionValidator):
-    """OMPL's hook for _Checker.motion_ok (called from C++ for every motion it considers)."""
+    """OMPL's hook for _RouteChecker.motion_ok (called from C++ for every motion it considers)."""
 
-    def __init__(self, si: ob.SpaceInformation, checker: _Checker) -> None:
+    def __init__(self, si: ob.SpaceInformation, checker: _RouteChecker) -> None:
         super().__init__(si)
         self.checker = checker
 
@@ -393,7 +393,9 @@ class _MotionValidator(ob.MotionValidator):
         return checker.guard.check(lambda: checker.motion_ok(_values(a), _values(b)))
 
 
-def _solve(checker: _Checker, bounds: tuple[float, float, float, float], seed: int, time_limit: float) -> list[State]:
+def _solve(
+    checker: _RouteChecker, bounds: tuple[float, float, float, float], seed: int, time_limit: float
+) -> list[State]:
     """RRTConnect from checker.start to one of checker.goals, fewest vertices; [] when none was
     found in time. OMPL's objects live only in _rrt_connect, so they are gone when the solve ends
     and none is left for nanobind to report at exit."""
@@ -403,7 +405,7 @@ def _solve(checker: _Checker, bounds: tuple[float, float, float, float], seed: i
     return states
 
 
-def _rrt_connect(checker: _Checker, bounds: tuple[float, float, float, float], time_limit: float) -> list[State]:
+def _rrt_connect(checker: _RouteChecker, bounds: tuple[float, float, float, float], time_limit: float) -> list[State]:
     space = ob.SE2StateSpace()
     limits = ob.RealVectorBounds(2)
     limits.setLow(0, bounds[0])
@@ -449,7 +451,7 @@ def _rrt_connect(checker: _Checker, bounds: tuple[float, float, float, float], t
     return states
 
 
-def _fewest(checker: _Checker, states: list[State]) -> list[State]:
+def _fewest(checker: _RouteChecker, states: list[State]) -> list[State]:
     """The path with every waypoint dropped that a straight motion past it makes unnecessary,
     greedily from the start."""
     if not states:
@@ -515,10 +517,10 @@ class BasePlanner:
         self._check_connected(plan, start, origin, goal)
         # With ends to fall back on, the first search gives up sooner: the misses are shared.
         misses = 1 if fallback else MISSES
-        checker = _Checker(plan, origin, ends)
+        checker = _RouteChecker(plan, origin, ends)
         path, tries, problem = self._search(plan, start, goal, exit_point, checker, seed, misses)
         if path is None and fallback:
-            checker = _Checker(plan, origin, fallback)
+            checker = _RouteChecker(plan, origin, fallback)
             path, more, problem = self._search(plan, start, goal, exit_point, checker, seed + tries, MISSES - misses)
             tries += more
         if path is not None:
@@ -545,7 +547,7 @@ class BasePlanner:
         start: Pose2D,
         goal: Pose2D,
         exit_point: list[tuple[float, float]],
-        checker: _Checker,
+        checker: _RouteChecker,
         seed: int,
         misses: int,
     ) -> tuple[list[Pose2D] | None, int, str]:

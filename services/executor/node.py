@@ -41,7 +41,7 @@ HEARTBEAT_STALE = 0.5
 SCENE_TIMEOUT = 2.0
 
 
-class NodePlanner:
+class NodePlanServices:
     """Parser, resolver and safety's plan check, reached by queries."""
 
     def __init__(self, node: Node, config: ExecutorConfig) -> None:

@@ -12,7 +12,7 @@ from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, Navigat
 from schemas.world import PerceivedObject
 
 
-class Planner(Protocol):
+class PlanServices(Protocol):
     """The planner-side services. Each may raise services.errors.CallError when unreachable."""
 
     def parse(self, text: str, fmt: str) -> ParseReply: ...

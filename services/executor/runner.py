@@ -32,9 +32,9 @@ from schemas.plan import (
 )
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
-from services.executor.errors import Canceled, ExecutionError, Interrupted, Vetoed
+from services.executor.errors import Canceled, CommandVetoed, ExecutionError, Interrupted
 from services.executor.manipulation import Manipulator, Note
-from services.executor.ports import Planner, Robot
+from services.executor.ports import PlanServices, Robot
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class StepClock:
 
 
 class PlanRunner:
-    def __init__(self, planner: Planner, robot: Robot, manipulator: Manipulator, config: ExecutorConfig) -> None:
+    def __init__(self, planner: PlanServices, robot: Robot, manipulator: Manipulator, config: ExecutorConfig) -> None:
         self.planner = planner
         self.robot = robot
         self.manipulator = manipulator
@@ -283,7 +283,7 @@ class PlanRunner:
 
     def _final(self, exc: Exception) -> str | None:
         """Why no retry and no on_failure may follow `exc`, or None when they may."""
-        if isinstance(exc, Vetoed):
+        if isinstance(exc, CommandVetoed):
             return "safety refused the motion"
         if isinstance(exc, Interrupted):
             return "the robot side ended the motion"

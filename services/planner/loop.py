@@ -16,7 +16,7 @@ from services.planner.prompt import feedback_messages, normalize_calls, plan_tex
 
 
 @dataclass(frozen=True)
-class Verdict:
+class DryRunVerdict:
     """A dry run's answer: approved, or refused at a stage with a reason."""
 
     approved: bool
@@ -53,7 +53,7 @@ class LoopResult:
 
 
 Chat = Callable[[list[dict[str, Any]]], ChatReply]
-Check = Callable[[str], Verdict]
+Check = Callable[[str], DryRunVerdict]
 Record = Callable[[Attempt], None]
 
 NO_PLAN = "the answer held no plan (no text and no tool calls)"
@@ -97,10 +97,10 @@ def plan_loop(
         reply = ChatReply(reply.content, calls)
         text = plan_text(reply.content, calls)
         if not text:
-            verdict = Verdict(False, Stage.PARSE, NO_PLAN)
+            verdict = DryRunVerdict(False, Stage.PARSE, NO_PLAN)
         elif len(text.encode()) > MAX_PLAN_BYTES:
             size = len(text.encode())
-            verdict = Verdict(False, Stage.PARSE, f"the plan is {size} bytes; the limit is {MAX_PLAN_BYTES}")
+            verdict = DryRunVerdict(False, Stage.PARSE, f"the plan is {size} bytes; the limit is {MAX_PLAN_BYTES}")
         else:
             verdict = check(text)
         status = LoopStatus.APPROVED if verdict.approved else LoopStatus.REJECTED

@@ -28,7 +28,7 @@ from services.errors import CallError, GoalRejected
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig
 from services.planner.errors import ExecutorUnreachable, LLMError
 from services.planner.llm import ChatClient, ChatReply
-from services.planner.loop import Attempt, LoopStatus, Verdict, plan_loop
+from services.planner.loop import Attempt, DryRunVerdict, LoopStatus, plan_loop
 from services.planner.prompt import initial_messages
 from services.runtime import Node
 
@@ -111,20 +111,20 @@ class Planner:
             log.warning("no scene for the prompt: %s", exc)
             return f"(the scene is not available: {exc.error.message})"
 
-    def check(self, text: str) -> Verdict:
+    def check(self, text: str) -> DryRunVerdict:
         """A dry run through the executor: parse, resolve, safety check; nothing moves."""
         try:
             response = self._executor.run(ExecutePlanGoal(text=text, dry_run=True), timeout=self.config.check_timeout)
         except GoalRejected as exc:
-            return Verdict(False, Stage.EXECUTE, exc.reason)
+            return DryRunVerdict(False, Stage.EXECUTE, exc.reason)
         except CallError as exc:
             raise ExecutorUnreachable(f"executor unreachable: {exc}") from None
         result = response.result
         if result is None:
-            return Verdict(False, Stage.EXECUTE, response.message or f"the dry run ended {response.state}")
+            return DryRunVerdict(False, Stage.EXECUTE, response.message or f"the dry run ended {response.state}")
         if result.status is PlanStatus.SUCCEEDED:
-            return Verdict(True, result.stage, result.reason)
-        return Verdict(False, result.stage, result.reason)
+            return DryRunVerdict(True, result.stage, result.reason)
+        return DryRunVerdict(False, result.stage, result.reason)
 
     def ask(self, request: AskRequest) -> AskReply:
         request_id = uuid.uuid4().hex[:16]

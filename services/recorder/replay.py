@@ -34,7 +34,7 @@ LIVE_QUERIES = frozenset(
 SAFETY_TRACE = "_trace/safety/"
 
 
-class Kind(enum.StrEnum):
+class ReplayKind(enum.StrEnum):
     PUT = "put"  # a publication, put again
     QUERY = "query"  # a recorded query, asked again (live commands only)
 
@@ -42,7 +42,7 @@ class Kind(enum.StrEnum):
 @dataclass(frozen=True)
 class Item:
     at: float  # seconds after the first replayed message, at speed 1
-    kind: Kind
+    kind: ReplayKind
     key: str  # the full key to put or ask on
     payload: bytes
     goal_id: str | None = None  # the new id of a goal a live replay sends
@@ -98,16 +98,16 @@ def plan_replay(messages: Iterable[Recorded], robot: str, target: str, live: boo
                 continue
             kind, path, payload, goal_id = item
         else:
-            kind, payload, goal_id = Kind.PUT, message.data, None
+            kind, payload, goal_id = ReplayKind.PUT, message.data, None
         start = message.log_time if start is None else start
         at = (message.log_time - start) / 1e9
         items.append(Item(at, kind, f"{keys.prefix(target)}/{path}", payload, goal_id))
     return ReplayPlan(items, skipped)
 
 
-def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[Kind, str, bytes, str | None] | None:
+def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[ReplayKind, str, bytes, str | None] | None:
     if path in LIVE_TOPICS:
-        return Kind.PUT, path, data, None
+        return ReplayKind.PUT, path, data, None
     if not path.startswith(SAFETY_TRACE):
         return None
     query_path = path[len(SAFETY_TRACE) :]
@@ -129,4 +129,4 @@ def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[Kind, 
             return None  # a cancel of a goal this replay did not send
         old = goal_ids[old]
     query["goal_id"] = goal_id or old
-    return Kind.QUERY, query_path, json.dumps(query, separators=(",", ":")).encode(), goal_id
+    return ReplayKind.QUERY, query_path, json.dumps(query, separators=(",", ":")).encode(), goal_id

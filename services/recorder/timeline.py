@@ -48,7 +48,7 @@ GRIPPER_OPEN = 0.079  # metres: at least this wide counts as open
 GRIPPER_CLOSED = 0.001
 
 
-class Kind(enum.StrEnum):
+class EventKind(enum.StrEnum):
     PLAN = "plan"  # a plan submitted, parsed, resolved, ended; a cancel of it
     STEP = "step"  # a step of the plan starting, progressing, ending
     COMMAND = "command"  # a goal towards the robot (approved), its result, its cancel; cmd_vel
@@ -99,7 +99,7 @@ class Row:
 
     t: float
     log_time: int
-    kind: Kind
+    kind: EventKind
     key: str
     summary: str
     state: RobotState
@@ -280,7 +280,7 @@ def decode(data: bytes | msgspec.Raw, type_: Any) -> Any:
 
 
 @dataclass
-class _State:
+class _MutableRobotState:
     x: float | None = None
     y: float | None = None
     yaw: float | None = None
@@ -333,7 +333,7 @@ class _Builder:
         self.start = recording.messages[0].log_time if recording.messages else 0
         self.end = recording.messages[-1].log_time if recording.messages else 0
         self.known = _first_pass(recording.messages, self.prefix)
-        self.state = _State()
+        self.state = _MutableRobotState()
         self.rows: list[Row] = []
         self.now = 0
         self.source = ""
@@ -359,7 +359,7 @@ class _Builder:
 
     def row(
         self,
-        kind: Kind,
+        kind: EventKind,
         key: str,
         summary: str,
         level: Level = Level.INFO,
@@ -408,20 +408,20 @@ class _Builder:
             self._raw(key, message)
 
     def _raw(self, key: str, message: Recorded) -> None:
-        self.row(Kind.MESSAGE, key, preview(message.data.decode(errors="replace"), 2 * PREVIEW))
+        self.row(EventKind.MESSAGE, key, preview(message.data.decode(errors="replace"), 2 * PREVIEW))
 
     def _bad(self, key: str, why: str) -> None:
         if key in self.bad:
             self.bad[key].repeats += 1
             return
-        self.bad[key] = self.row(Kind.BAD, key, f"a message on {key} does not decode: {why}", Level.BAD)
+        self.bad[key] = self.row(EventKind.BAD, key, f"a message on {key} does not decode: {why}", Level.BAD)
 
     def finish(self) -> list[Row]:
         if self.last_heartbeat is not None and (self.end - self.last_heartbeat) / 1e9 > HEARTBEAT_GAP:
             self.now, self.source = self.end, keys.HEARTBEAT.path
             silent = (self.end - self.last_heartbeat) / 1e9
             self.row(
-                Kind.HEARTBEAT,
+                EventKind.HEARTBEAT,
                 keys.HEARTBEAT.path,
                 f"no heartbeat from safety in the last {silent:.2f} s of the recording: the robot stops without one",
                 Level.BAD,
@@ -454,7 +454,7 @@ class _Builder:
                 why = f"no heartbeat from safety for {gap:.2f} s before this one: the robot stops without one"
             else:
                 why = f"nothing at all was recorded for {gap:.2f} s, heartbeats included (recorder or network stalled?)"
-            self.row(Kind.HEARTBEAT, key, why, Level.BAD)
+            self.row(EventKind.HEARTBEAT, key, why, Level.BAD)
         self.last_heartbeat, self.since_heartbeat = self.now, 0
         state = self.state
         latched, scale = state.estop, state.speed_scale
@@ -463,19 +463,19 @@ class _Builder:
         if latched is None:
             if estop.latched:
                 why = f"e-stop latched when the recording starts: by {estop.source}: {estop.reason}"
-                self.row(Kind.ESTOP, key, why, Level.BAD, Decision.LATCHED, implied=True)
+                self.row(EventKind.ESTOP, key, why, Level.BAD, Decision.LATCHED, implied=True)
             return
         if estop.latched and not latched:
             why = f"e-stop latched (seen in the heartbeat): by {estop.source}: {estop.reason}"
-            self.row(Kind.ESTOP, key, why, Level.BAD, Decision.LATCHED, implied=True)
+            self.row(EventKind.ESTOP, key, why, Level.BAD, Decision.LATCHED, implied=True)
         elif latched and not estop.latched:
             self.row(
-                Kind.RESET, key, "e-stop cleared (seen in the heartbeat)", Level.GOOD, Decision.RESET, implied=True
+                EventKind.RESET, key, "e-stop cleared (seen in the heartbeat)", Level.GOOD, Decision.RESET, implied=True
             )
         if scale is not None and status.speed_scale != scale:
             why = f"speed scale {scale:g} -> {status.speed_scale:g}: {status.speed_reason or 'full speed'}"
             level = Level.WARN if status.speed_scale < 1.0 else Level.INFO
-            self.row(Kind.SPEED, key, why, level, Decision.LIMITED, implied=True)
+            self.row(EventKind.SPEED, key, why, level, Decision.LIMITED, implied=True)
 
     # Safety
 
@@ -485,9 +485,9 @@ class _Builder:
             estop: EStop = decode(data, EStop)
         except Undecodable:
             # Safety latches on these too (fail closed): say so rather than call it bad.
-            self.row(Kind.ESTOP, key, f"an e-stop message that does not decode ({len(data)} bytes)", Level.BAD)
+            self.row(EventKind.ESTOP, key, f"an e-stop message that does not decode ({len(data)} bytes)", Level.BAD)
             return
-        self.row(Kind.ESTOP, key, f"e-stop requested by {estop.source}: {estop.reason}", Level.BAD)
+        self.row(EventKind.ESTOP, key, f"e-stop requested by {estop.source}: {estop.reason}", Level.BAD)
 
     def _event(self, data: bytes) -> None:
         event: SafetyEvent = decode(data, SafetyEvent)
@@ -504,48 +504,59 @@ class _Builder:
         if decision is Decision.LATCHED:
             self.state.estop = True
             said = _rule(rule) if event.rule is not Rule.ESTOP else ""
-            self.row(Kind.ESTOP, key, f"e-stop latched {event.reason}{said}", Level.BAD, decision, rule)
+            self.row(EventKind.ESTOP, key, f"e-stop latched {event.reason}{said}", Level.BAD, decision, rule)
         elif decision is Decision.RESET:
             self.state.estop = False
-            self.row(Kind.RESET, key, f"e-stop reset {event.reason}", Level.GOOD, decision, rule)
+            self.row(EventKind.RESET, key, f"e-stop reset {event.reason}", Level.GOOD, decision, rule)
         elif decision is Decision.LIMITED:
             scale = event.values.get("scale")
             if scale is not None:
                 self.state.speed_scale = scale
             level = Level.WARN if scale is not None and scale < 1.0 else Level.INFO
             said = f"speed scale {scale:g}: " if scale is not None else ""
-            self.row(Kind.SPEED, key, f"{said}{event.reason}", level, decision, rule)
+            self.row(EventKind.SPEED, key, f"{said}{event.reason}", level, decision, rule)
         elif decision is Decision.VETOED and key in CMD_VEL_KEYS:
             summary = f"vetoed {key}{_rule(rule)}: {_goal_text(goal) + ': ' if goal else ''}{event.reason}"
-            self._twist_row(key, goal, Kind.DECISION, summary, Level.BAD, decision, rule)
+            self._twist_row(key, goal, EventKind.DECISION, summary, Level.BAD, decision, rule)
         elif decision is Decision.VETOED:
             what = _goal_text(goal)
             target = _target(goal, event.values)
             summary = f"vetoed {_subject(key)}{_rule(rule)}: {what + ': ' if what else ''}{event.reason}"
-            self.row(Kind.DECISION, key, summary, Level.BAD, decision, rule, target)
+            self.row(EventKind.DECISION, key, summary, Level.BAD, decision, rule, target)
             if isinstance(command, SendGoal):
                 self.goals[command.goal_id] = f"{_action_name(key)} {what}"
         elif decision is Decision.CLAMPED:
             sent = _goal_text(goal)
             note = f": {event.reason}" if event.reason else ""
             summary = f"clamped {_subject(key)}{_rule(rule)}: sent {sent}{note}" if sent else f"clamped {key}{note}"
-            self._twist_row(key, goal, Kind.DECISION, summary, Level.WARN, decision, rule)
+            self._twist_row(key, goal, EventKind.DECISION, summary, Level.WARN, decision, rule)
         elif decision is Decision.APPROVED and isinstance(command, SendGoal):
             words = f"{_action_name(key)} {_goal_text(goal)}"
             self.goals[command.goal_id] = words
             self.goal_values[command.goal_id] = goal
-            self.row(Kind.COMMAND, key, f"{words}: approved", decision=decision)
+            self.row(EventKind.COMMAND, key, f"{words}: approved", decision=decision)
         elif decision is Decision.APPROVED and key in CMD_VEL_KEYS:
             note = f": {event.reason}" if event.reason else ""
-            self._twist_row(key, goal, Kind.COMMAND, f"{key} {_goal_text(goal)}: approved{note}", Level.INFO, decision)
+            self._twist_row(
+                key, goal, EventKind.COMMAND, f"{key} {_goal_text(goal)}: approved{note}", Level.INFO, decision
+            )
         elif decision is Decision.APPROVED and key == keys.PLAN_CHECK.path:
-            self.row(Kind.DECISION, key, f"plan approved by safety: {event.reason}", Level.GOOD, decision)
+            self.row(EventKind.DECISION, key, f"plan approved by safety: {event.reason}", Level.GOOD, decision)
         else:
             reason = f": {event.reason}" if event.reason else ""
-            self.row(Kind.DECISION, key, f"{decision} {_subject(key)}{_rule(rule)}{reason}", Level.INFO, decision, rule)
+            self.row(
+                EventKind.DECISION, key, f"{decision} {_subject(key)}{_rule(rule)}{reason}", Level.INFO, decision, rule
+            )
 
     def _twist_row(
-        self, key: str, twist: Any, kind: Kind, summary: str, level: Level, decision: Decision, rule: str | None = None
+        self,
+        key: str,
+        twist: Any,
+        kind: EventKind,
+        summary: str,
+        level: Level,
+        decision: Decision,
+        rule: str | None = None,
     ) -> None:
         """A cmd_vel stream is one row per change of what is sent, not one per message."""
         values = (round(twist.linear_x, 2), round(twist.angular_z, 2)) if isinstance(twist, Twist) else (math.nan, 0.0)
@@ -573,7 +584,7 @@ class _Builder:
         if fb.status is StepStatus.CANCELED:
             level = Level.WARN
         label = fb.label or str(fb.step + 1)
-        self.row(Kind.STEP, keys.EXECUTE_PLAN.path, f"step {label} {fb.action}: {status}{attempt}{said}", level)
+        self.row(EventKind.STEP, keys.EXECUTE_PLAN.path, f"step {label} {fb.action}: {status}{attempt}{said}", level)
 
     def _plan_status(self, data: bytes) -> None:
         status: GoalStatus = decode(data, GoalStatus)
@@ -581,7 +592,7 @@ class _Builder:
             return
         said = f": {status.message}" if status.message else ""
         level = Level.GOOD if status.state is GoalState.SUCCEEDED else Level.BAD
-        self.row(Kind.PLAN, keys.EXECUTE_PLAN.path, f"plan {short_id(status.goal_id)} {status.state}{said}", level)
+        self.row(EventKind.PLAN, keys.EXECUTE_PLAN.path, f"plan {short_id(status.goal_id)} {status.state}{said}", level)
 
     def _cmd_status(self, data: bytes) -> None:
         status: GoalStatus = decode(data, GoalStatus)
@@ -591,7 +602,7 @@ class _Builder:
         words = self.goals.get(status.goal_id, f"{_action_name(action.path)} goal {short_id(status.goal_id)}")
         said = f": {status.message}" if status.message else ""
         level = Level.INFO if status.state is GoalState.SUCCEEDED else Level.BAD
-        self.row(Kind.COMMAND, action.path, f"{words}: {status.state}{said}", level)
+        self.row(EventKind.COMMAND, action.path, f"{words}: {status.state}{said}", level)
 
     # Queries, from their traces
 
@@ -631,7 +642,7 @@ class _Builder:
     def _plan_goal(self, record: TraceRecord) -> None:
         key = keys.EXECUTE_PLAN.path
         if record.error:
-            self.row(Kind.PLAN, key, f"plan refused: {record.error}", Level.BAD)
+            self.row(EventKind.PLAN, key, f"plan refused: {record.error}", Level.BAD)
             return
         request = decode(record.query, keys.EXECUTE_PLAN.send_goal.request)
         goal: ExecutePlanGoal = request.goal
@@ -639,39 +650,39 @@ class _Builder:
         reply = self._reply(record, keys.EXECUTE_PLAN.send_goal.reply)
         head = f"plan {short_id(request.goal_id)} submitted{flags}: {preview(goal.text)!r}"
         if reply is None:
-            self.row(Kind.PLAN, key, head)
+            self.row(EventKind.PLAN, key, head)
         elif reply.accepted:
-            self.row(Kind.PLAN, key, f"{head}: accepted")
+            self.row(EventKind.PLAN, key, f"{head}: accepted")
         else:
-            self.row(Kind.PLAN, key, f"{head}: rejected: {reply.reason}", Level.BAD)
+            self.row(EventKind.PLAN, key, f"{head}: rejected: {reply.reason}", Level.BAD)
 
     def _parsed(self, record: TraceRecord) -> None:
         key = keys.PLAN_PARSE.path
         reply = self._reply(record, keys.PLAN_PARSE.reply)
         if (failed := _failure(reply)) is not None:
-            self.row(Kind.PLAN, key, f"parse failed: {failed}", Level.BAD)
+            self.row(EventKind.PLAN, key, f"parse failed: {failed}", Level.BAD)
         elif reply is None:
-            self.row(Kind.PLAN, key, "parsed (the plan was too large for the trace to keep)")
+            self.row(EventKind.PLAN, key, "parsed (the plan was too large for the trace to keep)")
         elif isinstance(reply, Plan):
             steps = [f"{s.action} {s.target or ''}".strip() for s in walk(reply.steps) if s.action]
             about = f"{preview(reply.description, 50)!r}: " if reply.description else ""
             warned = f"; {len(reply.warnings)} warning(s): {'; '.join(reply.warnings)}" if reply.warnings else ""
             summary = f"parsed {about}{len(steps)} steps ({reply.source_format}): {_listed(steps)}{warned}"
-            self.row(Kind.PLAN, key, summary, Level.WARN if reply.warnings else Level.INFO)
+            self.row(EventKind.PLAN, key, summary, Level.WARN if reply.warnings else Level.INFO)
 
     def _resolved(self, record: TraceRecord) -> None:
         key = keys.PLAN_RESOLVE.path
         reply = self._reply(record, keys.PLAN_RESOLVE.reply)
         if (failed := _failure(reply)) is not None:
-            self.row(Kind.PLAN, key, f"resolve failed: {failed}", Level.BAD)
+            self.row(EventKind.PLAN, key, f"resolve failed: {failed}", Level.BAD)
         elif reply is None:
-            self.row(Kind.PLAN, key, "resolved (the plan was too large for the trace to keep)")
+            self.row(EventKind.PLAN, key, "resolved (the plan was too large for the trace to keep)")
         elif isinstance(reply, GroundedPlan):
             steps = [step.brief() for step in reply.steps]
             fallbacks = f"; {len(reply.fallbacks)} on_failure" if reply.fallbacks else ""
             warned = f"; {len(reply.warnings)} warning(s): {'; '.join(reply.warnings)}" if reply.warnings else ""
             summary = f"resolved {len(steps)} steps: {_listed(steps)}{fallbacks}{warned}"
-            self.row(Kind.PLAN, key, summary, Level.WARN if reply.warnings else Level.INFO)
+            self.row(EventKind.PLAN, key, summary, Level.WARN if reply.warnings else Level.INFO)
 
     def _result(self, record: TraceRecord) -> None:
         path = record.key
@@ -686,7 +697,7 @@ class _Builder:
         base = path.split("/_action/")[0]
         if (failed := _failure(reply)) is not None:
             what = f"plan {short_id(goal_id)}" if plan else f"{_action_name(path)} goal {short_id(goal_id)}"
-            self.row(Kind.PLAN if plan else Kind.COMMAND, base, f"{what}: no result: {failed}", Level.BAD)
+            self.row(EventKind.PLAN if plan else EventKind.COMMAND, base, f"{what}: no result: {failed}", Level.BAD)
         elif plan:
             self._plan_result(goal_id, reply)
         else:
@@ -698,7 +709,7 @@ class _Builder:
         if result is None:
             said = f": {reply.message}" if reply.message else ""
             level = Level.GOOD if reply.state is GoalState.SUCCEEDED else Level.BAD
-            self.row(Kind.PLAN, key, f"plan {short_id(goal_id)} {reply.state}{said}", level)
+            self.row(EventKind.PLAN, key, f"plan {short_id(goal_id)} {reply.state}{said}", level)
             return
         counts: dict[str, int] = {}
         for step in result.steps:
@@ -708,7 +719,7 @@ class _Builder:
         reason = f": {result.reason}" if result.reason else ""
         steps = f"; steps: {tally}" if tally else ""
         summary = f"plan {short_id(goal_id)} {result.status} at stage {result.stage}{failure}{reason}{steps}"
-        self.row(Kind.PLAN, key, summary, Level.GOOD if result.status is PlanStatus.SUCCEEDED else Level.BAD)
+        self.row(EventKind.PLAN, key, summary, Level.GOOD if result.status is PlanStatus.SUCCEEDED else Level.BAD)
 
     def _cmd_result(self, base: str, goal_id: str, reply: ResultResponse[Any]) -> None:
         words = self.goals.get(goal_id, f"{_action_name(base)} goal {short_id(goal_id)}")
@@ -727,7 +738,7 @@ class _Builder:
                 notes.append(f"holding nothing, though it closed to hold {meant.object_id}")
                 level = Level.WARN if level is Level.INFO else level
         said = f": {'; '.join(notes)}" if notes else ""
-        self.row(Kind.COMMAND, base, f"{words}: {reply.state}{said}", level)
+        self.row(EventKind.COMMAND, base, f"{words}: {reply.state}{said}", level)
 
     def _cancel(self, record: TraceRecord) -> None:
         path = record.key
@@ -747,7 +758,7 @@ class _Builder:
             outcome, level = "accepted", Level.WARN
         else:
             outcome, level = f"nothing to cancel ({reply.reason})" if reply.reason else "refused", Level.INFO
-        self.row(Kind.PLAN if plan else Kind.COMMAND, base, f"cancel {what}: {outcome}", level)
+        self.row(EventKind.PLAN if plan else EventKind.COMMAND, base, f"cancel {what}: {outcome}", level)
 
     def _cmd_goal(self, record: TraceRecord) -> None:
         """A goal safety answered; a row only when its event did not already say it all."""
@@ -756,7 +767,7 @@ class _Builder:
         goal_id = goal_id_in(record.query)
         decided = self.known.decided.get(goal_id or "")
         if record.error:
-            self.row(Kind.COMMAND, path, f"{_action_name(path)} goal refused: {record.error}", Level.BAD)
+            self.row(EventKind.COMMAND, path, f"{_action_name(path)} goal refused: {record.error}", Level.BAD)
             return
         reply = self._reply(record, action.send_goal.reply)
         if decided is Decision.VETOED or (decided is not None and (reply is None or reply.accepted)):
@@ -764,12 +775,12 @@ class _Builder:
         request = decode(record.query, action.send_goal.request)
         words = self.goals.setdefault(request.goal_id, f"{_action_name(path)} {_goal_text(request.goal)}")
         if reply is None:
-            self.row(Kind.COMMAND, path, f"{words}: sent")
+            self.row(EventKind.COMMAND, path, f"{words}: sent")
         elif reply.accepted:
-            self.row(Kind.COMMAND, path, f"{words}: accepted")
+            self.row(EventKind.COMMAND, path, f"{words}: accepted")
         else:
             by = "approved by safety, refused by the robot" if decided is not None else "refused"
-            self.row(Kind.COMMAND, path, f"{words}: {by}: {reply.reason}", Level.BAD)
+            self.row(EventKind.COMMAND, path, f"{words}: {by}: {reply.reason}", Level.BAD)
 
     def _told_by_event(self, record: TraceRecord, reply_type: Any) -> None:
         """A plan check or reset: safety's event about it is the row; the trace only when that is missing."""
@@ -779,32 +790,32 @@ class _Builder:
             return
         reply = self._reply(record, reply_type)
         if (failed := _failure(reply)) is not None:
-            self.row(Kind.DECISION, path, f"{_subject(path)} refused: {failed}", Level.BAD)
+            self.row(EventKind.DECISION, path, f"{_subject(path)} refused: {failed}", Level.BAD)
         elif reply is not None:
             ok = getattr(reply, "ok", True)
             said = getattr(reply, "message", "") or "; ".join(getattr(reply, "checks", []))
-            kind = Kind.RESET if path == keys.RESET.path else Kind.DECISION
+            kind = EventKind.RESET if path == keys.RESET.path else EventKind.DECISION
             verb = "approved" if ok else "refused"
             self.row(kind, path, f"{_subject(path)} {verb}: {said}", Level.GOOD if ok else Level.BAD)
 
     def _moved(self, record: TraceRecord) -> None:
         reply = self._reply(record, keys.SIM_MOVE.reply)
         if isinstance(reply, _Failed):  # the request itself was refused, and is not in the trace
-            self.row(Kind.WORLD, record.key, f"a move in the simulation refused: {reply.message}", Level.WARN)
+            self.row(EventKind.WORLD, record.key, f"a move in the simulation refused: {reply.message}", Level.WARN)
             return
         request: MoveEntity = decode(record.query, MoveEntity)
         asked = f"move {request.id} to {fmt_point(request.x, request.y)} in the simulation"
         if isinstance(reply, Moved):
-            self.row(Kind.WORLD, record.key, f"{asked}: now at {fmt_point(reply.position.x, reply.position.y)}")
+            self.row(EventKind.WORLD, record.key, f"{asked}: now at {fmt_point(reply.position.x, reply.position.y)}")
         elif (failed := _failure(reply)) is not None:
-            self.row(Kind.WORLD, record.key, f"{asked}: refused: {failed}", Level.WARN)
+            self.row(EventKind.WORLD, record.key, f"{asked}: refused: {failed}", Level.WARN)
 
     def _ground_truth(self, record: TraceRecord) -> None:
         truth = self._reply(record, GroundTruth)
         if isinstance(truth, GroundTruth):
             holding = truth.holding or "nothing"
             summary = f"simulator ground truth: robot at {fmt_pose(truth.robot)}, gripper holding {holding}"
-            self.row(Kind.WORLD, record.key, summary)
+            self.row(EventKind.WORLD, record.key, summary)
 
 
 def _rule(rule: str | None) -> str:

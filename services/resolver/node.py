@@ -34,7 +34,7 @@ class Snapshot:
     key: WorldKey
 
 
-class Latest:
+class Perception:
     """Perception remembered, the newest odometry and people; written by subscribers, read per query."""
 
     def __init__(self, memory: ObjectMemory, clock: Callable[[], float] = time.monotonic) -> None:
@@ -67,11 +67,11 @@ def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(WorldModel(load_world(config.world)), config)
 
 
-def build_latest(config: ResolverConfig) -> Latest:
-    return Latest(ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance))
+def build_latest(config: ResolverConfig) -> Perception:
+    return Perception(ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance))
 
 
-def handler(resolver: Resolver, latest: Latest, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
+def handler(resolver: Resolver, latest: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
     """A handler that always answers: a GroundedPlan, or a ServiceError naming the step."""
 
     def handle(plan: Plan) -> ResolveReply:
@@ -92,7 +92,7 @@ def handler(resolver: Resolver, latest: Latest, cache: ResolutionCache) -> Calla
     return handle
 
 
-def scene_handler(resolver: Resolver, latest: Latest) -> Callable[[Empty], SceneDescription]:
+def scene_handler(resolver: Resolver, latest: Perception) -> Callable[[Empty], SceneDescription]:
     """world/scene: the scene as the next plan would be resolved in it."""
 
     def handle(_request: Empty) -> SceneDescription:
@@ -102,7 +102,7 @@ def scene_handler(resolver: Resolver, latest: Latest) -> Callable[[Empty], Scene
     return handle
 
 
-def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Latest:
+def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Perception:
     latest = build_latest(config)
     node.subscribe(keys.OBJECTS, latest.on_objects)
     node.subscribe(keys.ODOM, latest.on_odom)

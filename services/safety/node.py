@@ -14,7 +14,7 @@ import msgspec
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, SendGoal
 from schemas.common import DECODE_ERRORS
-from schemas.keys import Action
+from schemas.keys import ActionKeys
 from schemas.plan import GroundedPlan, PlanCheckReply
 from schemas.robot import FollowJointTrajectoryGoal, JointState, Odometry, Twist
 from schemas.safety import Decision, EStop, ResetReply, ResetRequest, SafetyEvent
@@ -52,7 +52,7 @@ class SafetyNode:
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
-        self._forwarded: dict[str, Action[Any, Any, Any]] = {}
+        self._forwarded: dict[str, ActionKeys[Any, Any, Any]] = {}
         self._forwarded_lock = threading.Lock()
         # Counts joint states heard, for a trajectory check that waits for one measured since.
         self._joint_reports = 0
@@ -213,7 +213,10 @@ class SafetyNode:
             return self._joints_arrived.wait_for(lambda: self._joint_reports != seen, timeout)
 
     def _proxy(
-        self, cmd: Action[Any, Any, Any], robot: Action[Any, Any, Any], decide: Callable[[Any], Ruling[GoalRuling]]
+        self,
+        cmd: ActionKeys[Any, Any, Any],
+        robot: ActionKeys[Any, Any, Any],
+        decide: Callable[[Any], Ruling[GoalRuling]],
     ) -> None:
         """Serve `cmd`'s keys: goals as the gate rules, forwarded to `robot`; its feedback and status relayed."""
 

@@ -49,7 +49,7 @@ GOALS = {
 GOAL_TRACES = frozenset(f"_trace/safety/{path}" for path in GOALS)
 
 
-class Outcome(enum.StrEnum):
+class RecheckOutcome(enum.StrEnum):
     APPROVED = "approved"
     VETOED = "vetoed"
 
@@ -68,9 +68,9 @@ class Rechecked:
     stamp: float  # when safety decided (wall clock, seconds)
     key: str  # the command's key under the robot's prefix
     command: str  # what was asked, in a few words
-    recorded: Outcome
+    recorded: RecheckOutcome
     recorded_reason: str
-    now: Outcome
+    now: RecheckOutcome
     now_reason: str
     now_rule: Rule | None
 
@@ -118,7 +118,7 @@ class History(Generic[T]):
 
 
 @dataclass
-class RobotState:
+class RobotHistory:
     """What safety knew of the robot over the recording."""
 
     odom: History[Odometry] = field(default_factory=History)
@@ -153,7 +153,7 @@ class Rechecker:
     def __init__(self, policy: SafetyPolicy) -> None:
         self.policy = policy
         self.max_age = policy.policy.monitor.state_max_age
-        self.state = RobotState()
+        self.state = RobotHistory()
 
     def has_state_before(self, time: float) -> bool:
         """Whether the recording holds odometry from before `time` (a stale one counts: safety saw that too)."""
@@ -204,12 +204,14 @@ class Rechecker:
         joints = self.joints(later)
         return self.policy.check_trajectory(goal, joints[1] if joints else None, self.pose(later), self.moving(later))
 
-    def recheck(self, path: str, command: Any, time: float, recorded: Outcome, reason: str) -> Rechecked:
+    def recheck(self, path: str, command: Any, time: float, recorded: RecheckOutcome, reason: str) -> Rechecked:
         try:
             self.check(path, command, time)
         except Vetoed as exc:
-            return Rechecked(time, path, describe(path, command), recorded, reason, Outcome.VETOED, str(exc), exc.rule)
-        return Rechecked(time, path, describe(path, command), recorded, reason, Outcome.APPROVED, "", None)
+            return Rechecked(
+                time, path, describe(path, command), recorded, reason, RecheckOutcome.VETOED, str(exc), exc.rule
+            )
+        return Rechecked(time, path, describe(path, command), recorded, reason, RecheckOutcome.APPROVED, "", None)
 
 
 def _decode(data: bytes | msgspec.Raw, type_: type[T]) -> T | None:
@@ -307,7 +309,7 @@ def _recheck_event(
     if command is None:
         report.skipped["a decision without its command"] += 1
         return
-    recorded = Outcome.APPROVED if event.decision is Decision.APPROVED else Outcome.VETOED
+    recorded = RecheckOutcome.APPROVED if event.decision is Decision.APPROVED else RecheckOutcome.VETOED
     _add(rechecker, report, out, event.key, command, time, recorded, event.reason)
 
 
@@ -318,7 +320,7 @@ def _add(
     key: str,
     command: Any,
     time: float,
-    recorded: Outcome,
+    recorded: RecheckOutcome,
     reason: str,
 ) -> None:
     if not isinstance(command, GripperCommandGoal) and not rechecker.has_state_before(time):
@@ -353,5 +355,5 @@ def _recheck_goal(
     if refused and event is not None and event.rule in NOT_POLICY:
         report.skipped[NOT_POLICY[event.rule]] += 1
         return
-    recorded = Outcome.VETOED if refused else Outcome.APPROVED
+    recorded = RecheckOutcome.VETOED if refused else RecheckOutcome.APPROVED
     _add(rechecker, report, out, trace.key, request.goal, time, recorded, response.reason if refused else "")

@@ -12,7 +12,7 @@ import pytest
 from schemas import keys
 from schemas.actions import GetResult, GoalState, ResultResponse
 from schemas.common import Pose2D
-from schemas.keys import Action
+from schemas.keys import ActionKeys
 from schemas.robot import (
     ARM_JOINTS,
     FINGER_JOINTS,
@@ -79,12 +79,12 @@ def swing(robot: RunningBackend, seconds: float) -> FollowJointTrajectoryGoal:
     )
 
 
-def send(robot: RunningBackend, action: Action[G, F, R], goal: G) -> ClientGoal[G, F, R]:
+def send(robot: RunningBackend, action: ActionKeys[G, F, R], goal: G) -> ClientGoal[G, F, R]:
     return ActionClient(robot.node, action).send(goal, timeout=15.0)
 
 
 def send_once_ready(
-    robot: RunningBackend, action: Action[G, F, R], goal: G, timeout: float = 5.0
+    robot: RunningBackend, action: ActionKeys[G, F, R], goal: G, timeout: float = 5.0
 ) -> ClientGoal[G, F, R]:
     """Send `goal`, again after each heartbeat while the robot still refuses it (it has yet to hear
     that it may move again)."""

@@ -29,9 +29,9 @@ from services.executor import armplanning
 from services.executor.armplanning import (
     GRIPPER,
     ArmPlanner,
+    ArmPlannerConfig,
     ArmScene,
     HeldObject,
-    PlannerConfig,
     SceneObject,
     interpolate,
     plan_pick,
@@ -211,7 +211,7 @@ def test_plans_around_a_board_between_start_and_goal(planner: ArmPlanner) -> Non
 
 def test_a_path_not_found_in_time_is_refused_naming_what_blocks() -> None:
     # A millisecond: RRTConnect gets no further than its first few configurations.
-    scene, left, right = board_scene(ArmPlanner(WORLD, PlannerConfig(planning_time=0.001)))
+    scene, left, right = board_scene(ArmPlanner(WORLD, ArmPlannerConfig(planning_time=0.001)))
     with pytest.raises(PlanningFailed) as failed:
         scene.plan(left, right, what="moving the hand across")
     message = str(failed.value)
@@ -402,7 +402,7 @@ def test_planning_leaves_ompl_silent_as_it_was_and_no_objects_alive_at_exit() ->
     # OMPL logs to stdout, and would log an error reseeding after its first solve.
     script = """
 from ompl import util as ou
-from services.executor.armplanning import ArmPlanner, PlannerConfig
+from services.executor.armplanning import ArmPlanner, ArmPlannerConfig
 from services.executor.errors import PlanningFailed
 from services.executor.navigation import BasePlanner
 from services.worldmodel import WorldModel, load_world
@@ -414,7 +414,7 @@ start, goal = world.world.robot.start, world.room_pose("kitchen")
 print(len(base.plan(start, goal)), len(base.plan(start, goal, seed=2)))
 scene, left, right = board_scene(ArmPlanner(world))
 print(len(scene.plan(left, right)))
-hurried, left, right = board_scene(ArmPlanner(world, PlannerConfig(planning_time=0.001)))
+hurried, left, right = board_scene(ArmPlanner(world, ArmPlannerConfig(planning_time=0.001)))
 try:
     hurried.plan(left, right)
 except PlanningFailed as exc:

@@ -17,7 +17,7 @@ from services.agent.feedback import DATA_CLOSE
 from services.planner.config import HOW_TO_CONFIGURE, PlannerConfig, Secret, resolve_endpoint
 from services.planner.errors import LLMError, NotConfigured
 from services.planner.llm import ChatClient, ChatReply, parse_completion
-from services.planner.loop import NO_PLAN, Attempt, LoopStatus, Verdict, plan_loop
+from services.planner.loop import NO_PLAN, Attempt, DryRunVerdict, LoopStatus, plan_loop
 from services.planner.prompt import initial_messages, refusal_text, scene_block
 
 GOOD = '{"plan": [{"action": "navigate_to", "target": "kitchen counter"}]}'
@@ -40,15 +40,15 @@ class FakeModel:
         return reply
 
 
-def fake_check(text: str) -> Verdict:
+def fake_check(text: str) -> DryRunVerdict:
     """A dry run that knows two plans: the stairs are refused by safety, anything not JSON by the parser."""
     if "stairs" in text:
-        return Verdict(False, Stage.SAFETY, "the goal is inside the keep-out zone stairs")
+        return DryRunVerdict(False, Stage.SAFETY, "the goal is inside the keep-out zone stairs")
     try:
         json.loads(text)
     except ValueError:
-        return Verdict(False, Stage.PARSE, "no plan found in the text")
-    return Verdict(True, Stage.SAFETY, "dry run: approved")
+        return DryRunVerdict(False, Stage.PARSE, "no plan found in the text")
+    return DryRunVerdict(True, Stage.SAFETY, "dry run: approved")
 
 
 def start() -> list[dict[str, Any]]:
@@ -93,7 +93,7 @@ def test_a_refused_tool_call_is_answered_with_a_tool_result_for_each_call() -> N
     model = FakeModel(ChatReply("", calls), ChatReply(GOOD))
     checked: list[str] = []
 
-    def check(text: str) -> Verdict:
+    def check(text: str) -> DryRunVerdict:
         checked.append(text)
         return fake_check(text)
 
@@ -110,9 +110,9 @@ def test_a_refused_tool_call_is_answered_with_a_tool_result_for_each_call() -> N
 def test_an_empty_answer_is_refused_without_a_dry_run() -> None:
     checked: list[str] = []
 
-    def check(text: str) -> Verdict:
+    def check(text: str) -> DryRunVerdict:
         checked.append(text)
-        return Verdict(True)
+        return DryRunVerdict(True)
 
     model = FakeModel(ChatReply(""), ChatReply("   "))
     result = plan_loop(start(), model, check, 2)

@@ -34,11 +34,11 @@ from services.recorder.reader import (
     recover,
 )
 from services.recorder.recorder import Recorder
-from services.recorder.replay import Kind, default_target, plan_replay
+from services.recorder.replay import ReplayKind, default_target, plan_replay
 from services.runtime import encode
 from services.safety.policy import SafetyPolicy, load_safety_policy
 from services.safety.policyfile import DEFAULT_POLICY
-from services.safety.recheck import Message, Outcome, recheck
+from services.safety.recheck import Message, RecheckOutcome, recheck
 from services.worldmodel import load_world, world_path
 
 ROBOT = "r1"
@@ -259,7 +259,7 @@ def test_a_replay_moves_every_message_to_the_other_robot_at_its_recorded_offset(
     target = default_target(ROBOT)
     plan = plan_replay(RECORDED, ROBOT, target)
 
-    assert [i.kind for i in plan.items] == [Kind.PUT] * 7
+    assert [i.kind for i in plan.items] == [ReplayKind.PUT] * 7
     assert [i.at for i in plan.items] == pytest.approx([0.0, 0.5, 1.0, 1.1, 1.2, 1.3, 2.0])
     assert [i.key for i in plan.items] == [m.key.replace(f"/{ROBOT}/", f"/{target}/", 1) for m in RECORDED[:7]]
     assert [i.payload for i in plan.items] == [m.data for m in RECORDED[:7]]
@@ -270,9 +270,9 @@ def test_a_live_replay_sends_only_commands_and_only_through_safety() -> None:
     plan = plan_replay(RECORDED, ROBOT, ROBOT, live=True)
 
     assert [(i.kind, i.key) for i in plan.items] == [
-        (Kind.PUT, keys.CMD_VEL.key(ROBOT)),
-        (Kind.QUERY, keys.CMD_NAVIGATE.send_goal.key(ROBOT)),
-        (Kind.QUERY, keys.CMD_NAVIGATE.cancel_goal.key(ROBOT)),
+        (ReplayKind.PUT, keys.CMD_VEL.key(ROBOT)),
+        (ReplayKind.QUERY, keys.CMD_NAVIGATE.send_goal.key(ROBOT)),
+        (ReplayKind.QUERY, keys.CMD_NAVIGATE.cancel_goal.key(ROBOT)),
     ]
     assert [i.at for i in plan.items] == pytest.approx([0.0, 0.5, 1.5])
     sent, canceled = (json.loads(i.payload) for i in plan.items[1:])
@@ -354,10 +354,10 @@ def test_recheck_with_the_same_policy_decides_as_recorded(world_policy: SafetyPo
     report = recheck(incident(), world_policy)
 
     assert [(c.key, c.recorded, c.now) for c in report.checked] == [
-        (keys.CMD_VEL.path, Outcome.APPROVED, Outcome.APPROVED),
-        (keys.CMD_VEL.path, Outcome.VETOED, Outcome.VETOED),
-        (keys.CMD_NAVIGATE.send_goal.path, Outcome.APPROVED, Outcome.APPROVED),
-        (keys.CMD_NAVIGATE.send_goal.path, Outcome.VETOED, Outcome.VETOED),
+        (keys.CMD_VEL.path, RecheckOutcome.APPROVED, RecheckOutcome.APPROVED),
+        (keys.CMD_VEL.path, RecheckOutcome.VETOED, RecheckOutcome.VETOED),
+        (keys.CMD_NAVIGATE.send_goal.path, RecheckOutcome.APPROVED, RecheckOutcome.APPROVED),
+        (keys.CMD_NAVIGATE.send_goal.path, RecheckOutcome.VETOED, RecheckOutcome.VETOED),
     ]
     assert report.differences == []
     assert report.skipped == {"refused for the e-stop": 2}
@@ -371,7 +371,7 @@ def test_recheck_with_a_tightened_policy_lists_the_commands_it_would_refuse() ->
         (keys.CMD_VEL.path, "cmd_vel 0.45 m/s, 0.00 rad/s", Rule.BASE_SPEED),
         (keys.CMD_NAVIGATE.send_goal.path, "navigate to (6.40, 1.20, 0.00 rad)", Rule.BASE_SPEED),
     ]
-    assert all(c.recorded is Outcome.APPROVED and c.now is Outcome.VETOED for c in report.differences)
+    assert all(c.recorded is RecheckOutcome.APPROVED and c.now is RecheckOutcome.VETOED for c in report.differences)
     assert report.policy_hash != load_safety_policy(load_world(), None, "household").limits.hash
 
 
@@ -380,7 +380,7 @@ def test_recheck_checks_a_command_from_the_state_recorded_before_it(world_policy
     messages = [m for m in incident() if not (m.path == keys.ODOM.path and m.time > 1.0)]
     report = recheck(messages, world_policy)
     goal = next(c for c in report.checked if c.command.startswith("navigate to (6.40"))
-    assert goal.now is Outcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
+    assert goal.now is RecheckOutcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
 
 
 def test_recheck_warns_when_the_kept_policy_is_not_the_one_safety_ran_with(world_policy: SafetyPolicy) -> None:
@@ -482,7 +482,7 @@ def test_a_live_replay_passes_a_cancel_of_everything_on() -> None:
     cancel_all = trace("safety", keys.CMD_NAVIGATE.cancel_goal.path, CancelGoal(goal_id=CANCEL_ALL), {})
     plan = plan_replay([at(1.0, cancel_all)], ROBOT, ROBOT, live=True)
     [item] = plan.items
-    assert item.kind is Kind.QUERY and json.loads(item.payload)["goal_id"] == CANCEL_ALL
+    assert item.kind is ReplayKind.QUERY and json.loads(item.payload)["goal_id"] == CANCEL_ALL
 
 
 def test_recheck_lists_a_veto_a_loosened_policy_would_approve(world_policy: SafetyPolicy) -> None:
@@ -491,8 +491,8 @@ def test_recheck_lists_a_veto_a_loosened_policy_would_approve(world_policy: Safe
     report = recheck(sorted(messages, key=lambda m: m.time), world_policy)
     [changed] = report.differences
     assert (changed.recorded, changed.now, changed.command) == (
-        Outcome.VETOED,
-        Outcome.APPROVED,
+        RecheckOutcome.VETOED,
+        RecheckOutcome.APPROVED,
         "cmd_vel 0.45 m/s, 0.00 rad/s",
     )
 

@@ -14,7 +14,7 @@ from schemas.world import PerceivedHuman, PerceivedHumans, PerceivedObject, Perc
 from services.resolver.cache import MAX_CACHED_PLAN_BYTES, ResolutionCache, world_key
 from services.resolver.errors import ResolveError
 from services.resolver.memory import ObjectMemory
-from services.resolver.node import Latest, handler
+from services.resolver.node import Perception, handler
 from services.resolver.resolver import Resolver
 from services.runtime import encode
 
@@ -177,7 +177,7 @@ def cup_at(x: float) -> PerceivedObjects:
 
 def test_the_handler_resolves_with_what_it_remembers() -> None:
     clock, fake = Clock(), FakeResolver()
-    latest = Latest(ObjectMemory(stale_after=60.0, move_tolerance=0.05), clock)
+    latest = Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05), clock)
     handle = handler(cast(Resolver, fake), latest, ResolutionCache(0))
     handle(pick("blue cup"))
     assert fake.calls[-1][1:] == (None, None, None)  # nothing perceived yet: the gripper is not known
@@ -194,7 +194,7 @@ def test_the_handler_resolves_with_what_it_remembers() -> None:
 
 def test_the_handler_answers_repeats_from_the_cache_until_the_world_changes(caplog: pytest.LogCaptureFixture) -> None:
     fake = FakeResolver()
-    latest = Latest(ObjectMemory(stale_after=60.0, move_tolerance=0.05), Clock())
+    latest = Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05), Clock())
     handle = handler(cast(Resolver, fake), latest, ResolutionCache(8))
     caplog.set_level(logging.DEBUG, logger="services.resolver.node")
     first = handle(pick("blue cup"))
@@ -211,7 +211,7 @@ def test_the_handler_answers_repeats_from_the_cache_until_the_world_changes(capl
 
 def test_the_handler_does_not_keep_refusals() -> None:
     fake, cache = FakeResolver(), ResolutionCache(8)
-    handle = handler(cast(Resolver, fake), Latest(ObjectMemory(stale_after=60.0, move_tolerance=0.05)), cache)
+    handle = handler(cast(Resolver, fake), Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05)), cache)
     for _ in range(2):
         reply = handle(pick("cup"))
         assert isinstance(reply, ServiceError) and reply.kind is ErrorKind.AMBIGUOUS_NAME

@@ -45,7 +45,7 @@ GROUNDED = GroundedPlan(
 )
 
 
-class ScriptedPlanner:
+class ScriptedPlanServices:
     def __init__(self, parse: Any = PLAN, resolve: Any = GROUNDED, check: Any = None) -> None:
         self.replies = {"parse": parse, "resolve": resolve, "check": check or PlanApproved()}
         self.asked: list[str] = []
@@ -150,13 +150,13 @@ def planners() -> tuple[ArmPlanner, BasePlanner]:
     return ArmPlanner(WORLD), BasePlanner(WORLD)
 
 
-def runner(planner: ScriptedPlanner, robot: ScriptedRobot, config: ExecutorConfig = NO_RETRIES) -> PlanRunner:
+def runner(planner: ScriptedPlanServices, robot: ScriptedRobot, config: ExecutorConfig = NO_RETRIES) -> PlanRunner:
     arm, base = planners()
     return PlanRunner(planner, robot, Manipulator(robot, arm, base, WORLD, config), config)
 
 
 def run(
-    planner: ScriptedPlanner,
+    planner: ScriptedPlanServices,
     robot: ScriptedRobot,
     cancel: threading.Event | None = None,
     config: ExecutorConfig = NO_RETRIES,
@@ -170,7 +170,7 @@ def run(
 
 def test_a_plan_runs_every_step_and_reports_each() -> None:
     robot = ScriptedRobot()
-    result, feedback = run(ScriptedPlanner(), robot)
+    result, feedback = run(ScriptedPlanServices(), robot)
     assert result.status is PlanStatus.SUCCEEDED
     assert [s.status for s in result.steps] == [StepStatus.SUCCEEDED, StepStatus.SUCCEEDED]
     assert robot.goals[0].pose == Pose2D(x=2.5, y=2.5)
@@ -180,22 +180,25 @@ def test_a_plan_runs_every_step_and_reports_each() -> None:
 def test_a_refusal_at_any_stage_is_a_rejection_there_and_nothing_moves() -> None:
     refusal = ServiceError(kind=ErrorKind.VETOED, message="inside keep-out zone 'stairs'", stage=Stage.SAFETY)
     for stage, planner in (
-        (Stage.PARSE, ScriptedPlanner(parse=ServiceError(kind=ErrorKind.UNKNOWN_ACTION, message="teleport"))),
-        (Stage.RESOLVE, ScriptedPlanner(resolve=ServiceError(kind=ErrorKind.AMBIGUOUS_NAME, message="cup", step=0))),
-        (Stage.SAFETY, ScriptedPlanner(check=refusal)),
+        (Stage.PARSE, ScriptedPlanServices(parse=ServiceError(kind=ErrorKind.UNKNOWN_ACTION, message="teleport"))),
+        (
+            Stage.RESOLVE,
+            ScriptedPlanServices(resolve=ServiceError(kind=ErrorKind.AMBIGUOUS_NAME, message="cup", step=0)),
+        ),
+        (Stage.SAFETY, ScriptedPlanServices(check=refusal)),
     ):
         robot = ScriptedRobot()
         result, _ = run(planner, robot)
         assert (result.status, result.stage) == (PlanStatus.REJECTED, stage)
         assert robot.goals == []
     unreachable = CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message="no reply", stage=Stage.SAFETY))
-    result, _ = run(ScriptedPlanner(check=unreachable), ScriptedRobot())
+    result, _ = run(ScriptedPlanServices(check=unreachable), ScriptedRobot())
     assert (result.status, result.stage, result.reason) == (PlanStatus.REJECTED, Stage.SAFETY, "no reply")
 
 
 def test_dry_run_checks_everything_and_moves_nothing() -> None:
     robot = ScriptedRobot()
-    result = runner(ScriptedPlanner(), robot).run(
+    result = runner(ScriptedPlanServices(), robot).run(
         ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list().append
     )
     assert result.status is PlanStatus.SUCCEEDED and result.stage is Stage.SAFETY
@@ -203,7 +206,7 @@ def test_dry_run_checks_everything_and_moves_nothing() -> None:
 
 
 def test_a_failed_step_fails_the_plan_and_skips_the_rest() -> None:
-    result, _ = run(ScriptedPlanner(), ScriptedRobot(state=GoalState.ABORTED))
+    result, _ = run(ScriptedPlanServices(), ScriptedRobot(state=GoalState.ABORTED))
     assert result.status is PlanStatus.FAILED
     assert [s.status for s in result.steps] == [StepStatus.FAILED, StepStatus.SKIPPED]
     assert "stalled" in result.reason
@@ -213,7 +216,7 @@ def test_cancel_stops_the_running_step() -> None:
     robot = ScriptedRobot(block=True)
     cancel = threading.Event()
     box: list[Any] = []
-    worker = threading.Thread(target=lambda: box.append(run(ScriptedPlanner(), robot, cancel)))
+    worker = threading.Thread(target=lambda: box.append(run(ScriptedPlanServices(), robot, cancel)))
     worker.start()
     assert robot.started.wait(5.0)
     cancel.set()
@@ -227,7 +230,7 @@ def test_a_wait_step_ends_early_on_cancel() -> None:
     plan = GroundedPlan(steps=[WaitStep(duration=30.0)], source=PLAN)
     cancel = threading.Event()
     cancel.set()
-    result, _ = run(ScriptedPlanner(resolve=plan), ScriptedRobot(), cancel)
+    result, _ = run(ScriptedPlanServices(resolve=plan), ScriptedRobot(), cancel)
     assert result.status is PlanStatus.CANCELED
 
 
@@ -268,7 +271,7 @@ def grounded(
 
 
 def outcome(plan: GroundedPlan, robot: ScriptedRobot, cancel: threading.Event | None = None) -> Any:
-    result, _ = run(ScriptedPlanner(resolve=plan), robot, cancel)
+    result, _ = run(ScriptedPlanServices(resolve=plan), robot, cancel)
     return result
 
 
@@ -278,7 +281,7 @@ def table(result: Any) -> list[tuple[str | None, StepStatus]]:
 
 def test_results_and_feedback_carry_the_label_of_each_step() -> None:
     plan = grounded([go(KITCHEN), SayStep(text="a"), SayStep(text="b")], labels=["1", "2.1", "2.2"])
-    result, feedback = run(ScriptedPlanner(resolve=plan), ScriptedRobot())
+    result, feedback = run(ScriptedPlanServices(resolve=plan), ScriptedRobot())
     assert table(result) == [("1", StepStatus.SUCCEEDED), ("2.1", StepStatus.SUCCEEDED), ("2.2", StepStatus.SUCCEEDED)]
     assert [f.label for f in feedback if f.status is StepStatus.SUCCEEDED] == ["1", "2.1", "2.2"]
 
@@ -410,7 +413,7 @@ def test_a_dry_run_lists_the_alternatives_after_the_steps_they_cover() -> None:
     alternative = Fallback(first=0, last=1, steps=[SayStep(text="sorry")], labels=["1 on_failure 1"])
     plan = grounded([go(KITCHEN), SayStep(text="x"), go(HALLWAY)], ["1.1", "1.2", "2"], [alternative])
     robot = ScriptedRobot()
-    result = runner(ScriptedPlanner(resolve=plan), robot).run(
+    result = runner(ScriptedPlanServices(resolve=plan), robot).run(
         ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list().append
     )
     assert [s.label for s in result.steps] == ["1.1", "1.2", "1 on_failure 1", "2"]
@@ -439,7 +442,7 @@ def retrying(navigate_to: int) -> ExecutorConfig:
 
 def test_a_failed_motion_is_planned_anew_and_tried_again_up_to_the_configured_retries() -> None:
     robot = FlakyRobot(failures=2)
-    result, feedback = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
+    result, feedback = run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
     assert result.status is PlanStatus.SUCCEEDED
     assert (result.steps[0].status, result.steps[0].attempts) == (StepStatus.SUCCEEDED, 3)
     assert len(robot.goals) == 3, "each try a new navigation goal, each with a freshly planned route"
@@ -448,7 +451,7 @@ def test_a_failed_motion_is_planned_anew_and_tried_again_up_to_the_configured_re
     assert retries[0].failure is FailureKind.EXECUTION
     assert "attempt 1 failed (execution): navigation aborted: stalled" in retries[0].message
     # One retry too few: the step fails, saying how often it was tried and what kind of failure it was.
-    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), FlakyRobot(failures=2), config=retrying(1))
+    result, _ = run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), FlakyRobot(failures=2), config=retrying(1))
     assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.EXECUTION)
     assert (result.steps[0].failure, result.steps[0].attempts) == (FailureKind.EXECUTION, 2)
     assert result.reason.startswith("step 1 (navigate_to) failed after 2 attempts (execution): navigation aborted")
@@ -456,21 +459,21 @@ def test_a_failed_motion_is_planned_anew_and_tried_again_up_to_the_configured_re
 
 def test_a_veto_is_never_retried_and_says_so() -> None:
     robot = ScriptedRobot(outcomes={KITCHEN: "inside keep-out zone 'stairs'"})
-    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
+    result, _ = run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), robot, config=retrying(2))
     assert (result.status, result.failure, result.steps[0].attempts) == (PlanStatus.FAILED, FailureKind.VETOED, 1)
     assert len(robot.goals) == 1
 
 
 def test_failure_kinds_name_what_went_wrong() -> None:
     inside_the_table = Pose2D(x=8.0, y=2.5)  # the coffee table's centre: no route can end there
-    result, _ = run(ScriptedPlanner(resolve=grounded([go(inside_the_table)])), ScriptedRobot())
+    result, _ = run(ScriptedPlanServices(resolve=grounded([go(inside_the_table)])), ScriptedRobot())
     assert result.failure is FailureKind.PLANNING and "coffee table" in result.reason
-    result, _ = run(ScriptedPlanner(resolve=grounded([GripperStep(open=True)])), ScriptedRobot(holding="red_cup"))
+    result, _ = run(ScriptedPlanServices(resolve=grounded([GripperStep(open=True)])), ScriptedRobot(holding="red_cup"))
     assert result.failure is FailureKind.PRECONDITION
     robot = ScriptedRobot(block=True)
     cancel = threading.Event()
     cancel.set()
-    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, cancel)
+    result, _ = run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), robot, cancel)
     assert (result.status, result.steps[0].failure) == (PlanStatus.CANCELED, FailureKind.CANCELED)
 
 
@@ -481,7 +484,7 @@ def timed(navigate_to: float) -> ExecutorConfig:
 def test_a_step_over_its_time_is_canceled_and_fails() -> None:
     robot = ScriptedRobot(block=True)
     started = time.monotonic()
-    result, _ = run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, config=timed(0.3))
+    result, _ = run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), robot, config=timed(0.3))
     assert time.monotonic() - started < 3.0
     assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.EXECUTION)
     assert "timed out after 0.3 s of motion" in result.reason
@@ -493,7 +496,7 @@ def test_time_paused_for_a_person_does_not_count() -> None:
     cancel = threading.Event()
     box: list[Any] = []
     worker = threading.Thread(
-        target=lambda: box.append(run(ScriptedPlanner(resolve=grounded([go(KITCHEN)])), robot, cancel, timed(0.3)))
+        target=lambda: box.append(run(ScriptedPlanServices(resolve=grounded([go(KITCHEN)])), robot, cancel, timed(0.3)))
     )
     worker.start()
     assert robot.started.wait(5.0)

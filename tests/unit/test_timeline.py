@@ -33,7 +33,7 @@ from services.recorder.mapview import draw_map, estop_points, track_of, vetoed_g
 from services.recorder.mcapfile import Provenance, Recording, SourceFile
 from services.recorder.reader import read_recording
 from services.recorder.recorded import recorded_world
-from services.recorder.timeline import Kind, Level, Row, Timeline, build_timeline
+from services.recorder.timeline import EventKind, Level, Row, Timeline, build_timeline
 from services.runtime import encode
 from services.worldmodel import world_path
 from tether.inspect import inspect
@@ -195,20 +195,20 @@ def incident(tmp_path: Path) -> Path:
 def test_the_incident_reads_as_one_row_per_thing_that_happened(incident: Path) -> None:
     rows = timeline_of(incident).rows
     assert [(row.kind, row.key) for row in rows] == [
-        (Kind.PLAN, "plan/parse"),
-        (Kind.PLAN, "plan/resolve"),
-        (Kind.DECISION, "safety/check_plan"),
-        (Kind.PLAN, "plan/execute"),
-        (Kind.STEP, "plan/execute"),
-        (Kind.COMMAND, "cmd/navigate_to_pose/_action/send_goal"),
-        (Kind.COMMAND, "cmd/navigate_to_pose"),
-        (Kind.STEP, "plan/execute"),
-        (Kind.PLAN, "plan/execute"),
-        (Kind.DECISION, "cmd/navigate_to_pose/_action/send_goal"),
-        (Kind.SPEED, "safety/heartbeat"),
-        (Kind.ESTOP, "safety/estop"),
-        (Kind.ESTOP, "safety/estop"),
-        (Kind.RESET, "safety/reset"),
+        (EventKind.PLAN, "plan/parse"),
+        (EventKind.PLAN, "plan/resolve"),
+        (EventKind.DECISION, "safety/check_plan"),
+        (EventKind.PLAN, "plan/execute"),
+        (EventKind.STEP, "plan/execute"),
+        (EventKind.COMMAND, "cmd/navigate_to_pose/_action/send_goal"),
+        (EventKind.COMMAND, "cmd/navigate_to_pose"),
+        (EventKind.STEP, "plan/execute"),
+        (EventKind.PLAN, "plan/execute"),
+        (EventKind.DECISION, "cmd/navigate_to_pose/_action/send_goal"),
+        (EventKind.SPEED, "safety/heartbeat"),
+        (EventKind.ESTOP, "safety/estop"),
+        (EventKind.ESTOP, "safety/estop"),
+        (EventKind.RESET, "safety/reset"),
     ], "\n".join(summaries(rows))
     text = summaries(rows)
     assert text[0] == "plan: parsed 'to the coffee table': 1 steps (json): navigate_to coffee table"
@@ -235,7 +235,7 @@ def test_a_veto_names_the_rule_the_target_and_the_reason(incident: Path) -> None
         "vetoed cmd/navigate_to_pose (keep_out): goal (11.20, 8.00, 90°): at the goal (11.20, 8.00) the base's "
         "footprint would be in keep-out zone 'stairs'"
     )
-    assert (veto.kind, veto.level, veto.rule, veto.target) == (Kind.DECISION, Level.BAD, "keep_out", (11.2, 8.0))
+    assert (veto.kind, veto.level, veto.rule, veto.target) == (EventKind.DECISION, Level.BAD, "keep_out", (11.2, 8.0))
 
 
 def test_each_row_carries_the_robot_state_of_its_moment(incident: Path) -> None:
@@ -243,9 +243,9 @@ def test_each_row_carries_the_robot_state_of_its_moment(incident: Path) -> None:
     by_text = {row.text: row.state for row in rows}
     approved = by_text["navigate_to_pose goal (8.00, 1.75, 90°) via 1 waypoint at ≤0.60 m/s: approved"]
     assert (approved.x, approved.y, approved.speed, approved.estop, approved.speed_scale) == (6.0, 1.2, 0.0, False, 1.0)
-    arrived = next(row.state for row in rows if row.kind is Kind.STEP and "succeeded" in row.text)
+    arrived = next(row.state for row in rows if row.kind is EventKind.STEP and "succeeded" in row.text)
     assert (arrived.x, arrived.y, arrived.yaw) == (8.0, 1.75, 1.5708)
-    requested, latched = (row.state for row in rows if row.kind is Kind.ESTOP)
+    requested, latched = (row.state for row in rows if row.kind is EventKind.ESTOP)
     assert (requested.estop, latched.estop, latched.speed_scale) == (False, True, 0.4)
     assert rows[-1].state.estop is False
     assert rows[0].t == pytest.approx(1.0) and rows[-1].t == pytest.approx(8.0)
@@ -255,7 +255,7 @@ def test_high_rate_streams_only_set_the_state_unless_everything_is_asked_for(inc
     recording = read_recording(incident)
     quiet = build_timeline(recording).rows
     assert not {row.source for row in quiet} & {keys.ODOM.path, keys.HUMANS.path}
-    assert sum(row.kind is Kind.STEP for row in quiet) == 2  # 40 identical feedbacks are one row
+    assert sum(row.kind is EventKind.STEP for row in quiet) == 2  # 40 identical feedbacks are one row
     every = build_timeline(recording, everything=True).rows
     assert sum(row.source == keys.ODOM.path for row in every) == 41
     assert sum(row.source == keys.HEARTBEAT.path for row in every) >= 40
@@ -316,7 +316,7 @@ def test_failures_and_bad_messages_are_rows_too(tmp_path: Path) -> None:
         "command: navigate_to_pose goal refused: invalid request: missing goal_id",
     ]
     bad, estop = rows[2], rows[3]
-    assert (bad.kind, bad.key, bad.repeats, bad.level) == (Kind.BAD, "robot/odom", 1, Level.BAD)
+    assert (bad.kind, bad.key, bad.repeats, bad.level) == (EventKind.BAD, "robot/odom", 1, Level.BAD)
     assert "does not decode" in bad.text and "Odometry" in bad.text
     assert estop.text == "an e-stop message that does not decode (6 bytes)"
 
