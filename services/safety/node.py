@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 
 
 class SafetyNode:
-    """Every input goes to the gate with `now` from `clock`; what it rules is published here.
+    """Every input goes to the gate, which reads `clock` (the time it decides on); what it rules is
+    published here.
 
     Locks, each for an order on the wire: `_beat_lock` so a heartbeat read before a latch is never
     sent after the latched one; `_twist_lock` so twists reach robot/cmd_vel in the order the gate
@@ -48,7 +49,7 @@ class SafetyNode:
         self.node = node
         self.config = config
         self.clock = clock
-        self.gate = SafetyGate(policy, latch)
+        self.gate = SafetyGate(policy, latch, clock)
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
@@ -72,9 +73,9 @@ class SafetyNode:
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
         node.serve(keys.RESET, self._on_reset)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda req: self.gate.navigate(req, self.clock()))
+        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda req: self.gate.navigate(req))
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
-        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, lambda req: self.gate.gripper(req, self.clock()))
+        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, lambda req: self.gate.gripper(req))
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
 
@@ -124,7 +125,7 @@ class SafetyNode:
         period = 1.0 / self.config.heartbeat_hz
         next_beat = self.clock()
         while not self._stop.is_set():
-            self._carry_out(self.gate.tick(self.clock()))
+            self._carry_out(self.gate.tick())
             self._publish_heartbeat()
             next_beat += period
             self._stop.wait(max(0.0, next_beat - self.clock()))
@@ -152,9 +153,9 @@ class SafetyNode:
         try:
             msg: EStop = self._estop_decoder.decode(payload)
         except DECODE_ERRORS as exc:
-            self._carry_out(self.gate.unreadable_estop(len(payload), str(exc), self.clock()))
+            self._carry_out(self.gate.unreadable_estop(len(payload), str(exc)))
             return
-        self._carry_out(self.gate.estop(msg, self.clock()))
+        self._carry_out(self.gate.estop(msg))
 
     def _on_reset(self, req: ResetRequest) -> ResetReply:
         ruling = self.gate.reset(req)
@@ -169,23 +170,23 @@ class SafetyNode:
         return msgspec.structs.replace(ruling.forward, message=ruling.forward.message + note)
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._carry_out(self.gate.odometry(msg, self.clock()))
+        self._carry_out(self.gate.odometry(msg))
 
     def _on_joints(self, msg: JointState) -> None:
-        ruling = self.gate.joint_state(msg, self.clock())
+        ruling = self.gate.joint_state(msg)
         with self._joints_arrived:
             self._joint_reports += 1
             self._joints_arrived.notify_all()
         self._carry_out(ruling)
 
     def _on_humans(self, msg: PerceivedHumans) -> None:
-        self.gate.humans(msg, self.clock())
+        self.gate.humans(msg)
 
     def _on_cmd_vel(self, twist: Twist) -> None:
-        self._forward_twist(lambda: self.gate.cmd_vel(twist, self.clock()))
+        self._forward_twist(lambda: self.gate.cmd_vel(twist))
 
     def _on_teleop(self, twist: Twist) -> None:
-        self._forward_twist(lambda: self.gate.teleop(twist, self.clock()))
+        self._forward_twist(lambda: self.gate.teleop(twist))
 
     def _forward_twist(self, decide: Callable[[], Ruling[Twist | None]]) -> None:
         with self._twist_lock:
@@ -195,16 +196,16 @@ class SafetyNode:
         self._carry_out(ruling)
 
     def _on_check_plan(self, plan: GroundedPlan) -> PlanCheckReply:
-        ruling = self.gate.check_plan(plan, self.clock())
+        ruling = self.gate.check_plan(plan)
         self._carry_out(ruling)
         return ruling.forward
 
     def _decide_trajectory(self, req: SendGoal[FollowJointTrajectoryGoal]) -> Ruling[GoalRuling]:
         with self._joints_arrived:
             seen = self._joint_reports
-        ruling = self.gate.trajectory(req, self.clock())
+        ruling = self.gate.trajectory(req)
         if ruling.fresh_joints_may_pass and self._joints_since(seen, FRESH_JOINTS_WAIT):
-            ruling = self.gate.trajectory(req, self.clock(), again=True)
+            ruling = self.gate.trajectory(req, again=True)
         return ruling
 
     def _joints_since(self, seen: int, timeout: float) -> bool:

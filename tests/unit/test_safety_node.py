@@ -144,7 +144,7 @@ class Rig:
         """The arm reports its joints at `q`, and safety has heard it."""
         self.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
         deadline = time.monotonic() + WAIT
-        while (self.safety.gate.joint_positions(self.safety.clock()) or {}).get(ARM_JOINTS[1]) != q[1]:
+        while (self.safety.gate.joint_positions() or {}).get(ARM_JOINTS[1]) != q[1]:
             assert time.monotonic() < deadline, "safety never heard the joint state"
             time.sleep(0.005)
 
