@@ -114,10 +114,18 @@ class SafetyGate:
     policy's checks run outside it on a snapshot, so a long plan check never delays a heartbeat. The
     latch, rate limits and people reports guard themselves."""
 
-    def __init__(self, policy: SafetyPolicy, latch: EstopLatch, clock: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        policy: SafetyPolicy,
+        latch: EstopLatch,
+        clock: Callable[[], float],
+        wall_clock: Callable[[], float],
+    ) -> None:
         self.policy = policy
         self.latch = latch
         self._clock = clock
+        # Only stamps the latch's state (when it latched, when it was reset), never a decision.
+        self._wall_clock = wall_clock
         rules = policy.policy
         self.hash = policy.limits.hash
         self._lock = threading.Lock()
@@ -367,7 +375,7 @@ class SafetyGate:
     def _latch(
         self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
     ) -> Ruling[None]:
-        if not self.latch.trigger(source, reason):
+        if not self.latch.trigger(source, reason, self._wall_clock()):
             return Ruling(None)
         with self._lock:
             self._sent_twist = (t, Twist())
@@ -379,7 +387,7 @@ class SafetyGate:
         """Clear the latch with the operator's token; the token never leaves in an event."""
         redacted = msgspec.structs.replace(req, token="***")
         try:
-            self.latch.reset(req.operator, req.token)
+            self.latch.reset(req.operator, req.token, self._wall_clock())
         except Unauthorized as exc:
             event = GateEvent(keys.RESET.path, Decision.VETOED, str(exc), redacted, Rule.OPERATOR, (Rule.OPERATOR,))
             return Ruling(ResetReply(ok=False, message=str(exc)), (event,))

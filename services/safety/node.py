@@ -45,11 +45,13 @@ class SafetyNode:
         latch: EstopLatch,
         config: SafetyConfig,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.node = node
         self.config = config
         self.clock = clock
-        self.gate = SafetyGate(policy, latch, clock)
+        self.wall_clock = wall_clock
+        self.gate = SafetyGate(policy, latch, clock, wall_clock)
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
@@ -102,7 +104,7 @@ class SafetyNode:
         command = msgspec.Raw(encode(event.command) if event.command is not None else b"null")
         self._events.put(
             SafetyEvent(
-                stamp=time.time(),
+                stamp=self.wall_clock(),
                 key=event.key,
                 decision=event.decision,
                 reason=event.reason,
@@ -119,7 +121,7 @@ class SafetyNode:
     def _publish_heartbeat(self) -> None:
         with self._beat_lock:
             self._seq += 1
-            self._heartbeat.put(self.gate.status(self._seq, time.time()))
+            self._heartbeat.put(self.gate.status(self._seq, self.wall_clock()))
 
     def _beat(self) -> None:
         period = 1.0 / self.config.heartbeat_hz

@@ -60,8 +60,13 @@ def clock() -> FakeClock:
 
 
 @pytest.fixture
-def gate(policy: SafetyPolicy, clock: FakeClock) -> SafetyGate:
-    return SafetyGate(policy, EstopLatch(TOKEN), clock)
+def wall_clock() -> FakeClock:
+    return FakeClock(1_700_000_000.0)
+
+
+@pytest.fixture
+def gate(policy: SafetyPolicy, clock: FakeClock, wall_clock: FakeClock) -> SafetyGate:
+    return SafetyGate(policy, EstopLatch(TOKEN), clock, wall_clock)
 
 
 def odom(linear: float = 0.0, angular: float = 0.0, pose: Pose2D = HERE) -> Odometry:
@@ -468,6 +473,14 @@ def test_the_latch_rules_once_and_only_the_operator_token_clears_it(gate: Safety
     right = gate.reset(ResetRequest(operator="alice", token=TOKEN))
     assert right.reset and right.forward.ok and not gate.latch.state.latched
     assert right.events[0].decision is Decision.RESET and TOKEN not in repr(right.events)
+
+
+def test_the_latch_is_stamped_with_the_gates_wall_clock(gate: SafetyGate, wall_clock: FakeClock) -> None:
+    gate.estop(EStop(source=EstopSource.OPERATOR, reason="test"))
+    assert gate.latch.state.stamp == 1_700_000_000.0
+    wall_clock.advance(60.0)
+    gate.reset(ResetRequest(operator="alice", token=TOKEN))
+    assert gate.latch.state.stamp == 1_700_000_060.0
 
 
 def test_an_estop_that_cannot_be_read_latches(gate: SafetyGate) -> None:
