@@ -6,7 +6,7 @@ import logging
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 import msgspec
@@ -473,32 +473,37 @@ class SafetyGate:
         """A trajectory from where the arm is. A goal sent the moment the previous motion ended may
         start where the arm has just stopped, while the latest state here is from a moment before: a
         first point that seems to jump is refused with `fresh_joints_may_pass`, and the node asks
-        `again` once a joint state measured since came (the e-stop and the rate were checked already)."""
+        `again` once a joint state measured since came. Asked again, the e-stop is checked once more
+        (it may have latched during the wait), the rate is not (the goal was counted the first time)."""
         t = self._time()
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
             return self.policy.check_trajectory(goal, self._joint_positions(t), self._pose(t), self._base_moving())
 
-        ruling = self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, first=not again)
-        jumped = isinstance(ruling.forward, GoalResponse) and "jump_rad" in ruling.events[0].values
-        return replace(ruling, fresh_joints_may_pass=jumped and not again)
+        return self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, again=again)
 
     def gripper(self, req: SendGoal[GripperCommandGoal]) -> Ruling[GoalRuling]:
         return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, self._time())
 
     def _goal(
-        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, first: bool = True
+        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, again: bool = False
     ) -> Ruling[GoalRuling]:
-        """The goal to send to the robot, or the refusal to reply with."""
+        """The goal to send to the robot, or the refusal to reply with. `again`: the same goal decided
+        once more (see trajectory): not counted against the rate twice, and not offered a third try."""
         try:
-            if first and (refused := self._estop_veto() or self._rate_veto(key, t)):
+            refused = self._estop_veto()
+            if refused is None and not again:
+                refused = self._rate_veto(key, t)
+            if refused is not None:
                 raise refused
             verdict = check(req.goal)
         except Vetoed as exc:
             refusal = GoalResponse(
                 goal_id=req.goal_id, accepted=False, reason=f"vetoed by safety: {exc}", kind=_refusal_kind(exc)
             )
-            return Ruling(refusal, (_veto_event(key, exc, req),))
+            # A first point that seems to jump (the check's `jump_rad`) may be a joint state that lags the arm.
+            jumped = "jump_rad" in exc.values and not again
+            return Ruling(refusal, (_veto_event(key, exc, req),), fresh_joints_may_pass=jumped)
         goal = SendGoal(goal_id=req.goal_id, goal=verdict.command)
         return Ruling(goal, (_approval(key, verdict, goal),))
 

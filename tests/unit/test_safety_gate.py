@@ -10,7 +10,15 @@ import pytest
 from schemas import keys
 from schemas.actions import GoalResponse, SendGoal
 from schemas.common import Pose2D
-from schemas.robot import ARM_JOINTS, JointState, NavigateToPoseGoal, Odometry, Twist
+from schemas.robot import (
+    ARM_JOINTS,
+    FollowJointTrajectoryGoal,
+    JointState,
+    NavigateToPoseGoal,
+    Odometry,
+    TrajectoryPoint,
+    Twist,
+)
 from schemas.safety import Decision, EStop, EstopSource, ResetRequest, Rule
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.robotmodel import ArmModel
@@ -22,7 +30,7 @@ from services.safety.gate import (
     SafetyGate,
 )
 from services.safety.latch import EstopLatch
-from services.safety.policy import SafetyPolicy
+from services.safety.policy import START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
 
@@ -517,3 +525,61 @@ def test_an_approved_goal_is_forwarded_as_checked(gate: SafetyGate) -> None:
     assert ruling.forward.goal.start == HERE, "the route was checked from here"
     assert ruling.events[0].decision is Decision.APPROVED
     assert ruling.forward.goal.max_speed == gate.policy.max_linear, "no speed given: the limit filled in"
+
+
+# A trajectory whose first point seems to jump
+
+HOME = list(WORLD.robot.home_joints)
+# Where the last motion took the arm, while the latest joint state here still says HOME.
+STOPPED = [HOME[0], HOME[1] + 2 * START_TOLERANCE, *HOME[2:]]
+
+
+def arm_at(q: list[float]) -> JointState:
+    return JointState(stamp=0.0, name=list(ARM_JOINTS), position=q)
+
+
+def from_stopped() -> SendGoal[FollowJointTrajectoryGoal]:
+    points = [
+        TrajectoryPoint(positions=STOPPED, time_from_start=0.0),
+        TrajectoryPoint(positions=HOME, time_from_start=2.0),
+    ]
+    return SendGoal(goal_id="t1", goal=FollowJointTrajectoryGoal(joint_names=list(ARM_JOINTS), points=points))
+
+
+def test_a_start_that_seems_to_jump_passes_on_fresh_joints_without_a_second_rate_token(gate: SafetyGate) -> None:
+    gate.odometry(odom())
+    gate.joint_state(arm_at(HOME))
+    first = gate.trajectory(from_stopped())
+    assert isinstance(first.forward, GoalResponse) and not first.forward.accepted
+    assert first.fresh_joints_may_pass and "jump_rad" in first.events[0].values
+    rate = gate.policy.policy.rate
+    for _ in range(int(max(1.0, rate.max_goals_per_second * rate.burst_seconds)) - 1):
+        gate.trajectory(from_stopped())  # the rest of the burst, on the same instant: no token left
+    gate.joint_state(arm_at(STOPPED))
+    again = gate.trajectory(from_stopped(), again=True)
+    assert isinstance(again.forward, SendGoal) and again.forward.goal_id == "t1"
+    assert again.events[0].decision is Decision.APPROVED and not again.fresh_joints_may_pass
+    over = gate.trajectory(from_stopped())
+    assert over.events[0].rule is Rule.COMMAND_RATE, "the bucket was empty: asking again took no token"
+
+
+def test_a_start_that_still_jumps_on_fresh_joints_is_refused_for_good(gate: SafetyGate) -> None:
+    gate.odometry(odom())
+    gate.joint_state(arm_at(HOME))
+    assert gate.trajectory(from_stopped()).fresh_joints_may_pass
+    gate.joint_state(arm_at(HOME))
+    again = gate.trajectory(from_stopped(), again=True)
+    assert isinstance(again.forward, GoalResponse) and not again.forward.accepted
+    assert "would jump" in again.forward.reason and not again.fresh_joints_may_pass
+
+
+def test_an_estop_latched_while_waiting_for_fresh_joints_refuses_the_goal_asked_again(gate: SafetyGate) -> None:
+    gate.odometry(odom())
+    gate.joint_state(arm_at(HOME))
+    assert gate.trajectory(from_stopped()).fresh_joints_may_pass
+    gate.estop(EStop(source=EstopSource.OPERATOR, reason="test"))
+    gate.joint_state(arm_at(STOPPED))
+    again = gate.trajectory(from_stopped(), again=True)
+    assert isinstance(again.forward, GoalResponse) and not again.forward.accepted
+    assert again.forward.kind is not None and again.forward.kind.value == "estop"
+    assert again.events[0].rule is Rule.ESTOP
