@@ -30,8 +30,9 @@ log = logging.getLogger(__name__)
 
 
 class SafetyNode:
-    """Every input goes to the gate, which reads `clock` (the time it decides on); what it rules is
-    published here.
+    """Every input goes to the gate, which reads `clock` (the time it decides on) and `wall_clock`
+    (the latch's stamps); what it rules is published here, stamped with `wall_clock`. The heartbeat is
+    paced by time.monotonic whatever `clock` is.
 
     Locks, each for an order on the wire: `_beat_lock` so a heartbeat read before a latch is never
     sent after the latched one; `_twist_lock` so twists reach robot/cmd_vel in the order the gate
@@ -49,7 +50,8 @@ class SafetyNode:
     ) -> None:
         self.node = node
         self.config = config
-        self.clock = clock
+        self.latch = latch
+        self.policy_hash = policy.limits.hash
         self.wall_clock = wall_clock
         self.gate = SafetyGate(policy, latch, clock, wall_clock)
         self._seq = 0
@@ -91,7 +93,9 @@ class SafetyNode:
         if ruling.latched:
             # Out of cycle, so the robot hears it now rather than at the next beat; then written down.
             self._publish_heartbeat()
-            self._robot_cmd_vel.put(Twist())
+            # In order with the twists the gate decided (taken after _forward_twist let go of it).
+            with self._twist_lock:
+                self._robot_cmd_vel.put(Twist())
             self._persist()
         for event in ruling.events:
             self._publish_event(event)
@@ -111,7 +115,7 @@ class SafetyNode:
                 rule=event.rule,
                 checks=list(event.checks),
                 values=finite,
-                policy_hash=self.gate.hash,
+                policy_hash=self.policy_hash,
                 command=command,
             )
         )
@@ -124,17 +128,25 @@ class SafetyNode:
             self._heartbeat.put(self.gate.status(self._seq, self.wall_clock()))
 
     def _beat(self) -> None:
+        # Paced by the monotonic clock, not the gate's: the beat must go on whatever the gate's time does.
         period = 1.0 / self.config.heartbeat_hz
-        next_beat = self.clock()
+        next_beat = time.monotonic()
         while not self._stop.is_set():
-            self._carry_out(self.gate.tick())
-            self._publish_heartbeat()
+            # Nothing may end this thread: without heartbeats the robot stops and takes no goal.
+            try:
+                self._carry_out(self.gate.tick())
+            except Exception:
+                log.exception("carrying out the heartbeat's tick failed")
+            try:
+                self._publish_heartbeat()
+            except Exception:
+                log.exception("the heartbeat could not be published")
             next_beat += period
-            self._stop.wait(max(0.0, next_beat - self.clock()))
+            self._stop.wait(max(0.0, next_beat - time.monotonic()))
 
     def _persist(self) -> bool:
         try:
-            self.gate.latch.save()
+            self.latch.save()
         except OSError as exc:
             log.error("the e-stop state could not be written (%s): a restart may not remember it", exc)
             return False
@@ -175,10 +187,13 @@ class SafetyNode:
         self._carry_out(self.gate.odometry(msg))
 
     def _on_joints(self, msg: JointState) -> None:
-        ruling = self.gate.joint_state(msg)
-        with self._joints_arrived:
-            self._joint_reports += 1
-            self._joints_arrived.notify_all()
+        try:
+            ruling = self.gate.joint_state(msg)
+        finally:
+            # Counted even if the gate failed on it: a trajectory waiting for a fresh one goes on.
+            with self._joints_arrived:
+                self._joint_reports += 1
+                self._joints_arrived.notify_all()
         self._carry_out(ruling)
 
     def _on_humans(self, msg: PerceivedHumans) -> None:
