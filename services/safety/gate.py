@@ -105,9 +105,9 @@ def _refusal_kind(exc: Vetoed) -> ErrorKind:
 class SafetyGate:
     """Every decision safety takes, on inputs the node hands it, at the time of its `clock` (seconds,
     monotonic; a fake one in tests). The gate reads it under its lock, so readings reach it in the
-    order they were taken. Its time never runs back: a clock that steps back is taken as a pause,
-    after which the gate's time carries on from where it was (a watchdog is not blind until the clock
-    catches up), so ages and ramps are never negative.
+    order they were taken. Its time never runs back: when the clock steps back, the gate's time
+    carries on from where it was at the clock's pace (a watchdog is not blind until the clock catches
+    up), so ages and ramps are never negative.
 
     Thread-safe, as Zenoh calls back from several threads: the gate's state (robot state, speed
     scale, last twist sent, repeated vetoes, monitors) is guarded by one lock held only briefly; the

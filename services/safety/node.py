@@ -77,9 +77,9 @@ class SafetyNode:
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
         node.serve(keys.RESET, self._on_reset)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda req: self.gate.navigate(req))
+        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate)
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
-        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, lambda req: self.gate.gripper(req))
+        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, self.gate.gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
 
