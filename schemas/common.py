@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 from typing import Annotated
 
 import msgspec
@@ -32,6 +33,17 @@ class Pose2D(Frozen):
     x: Metres
     y: Metres
     yaw: Radians = 0.0
+
+
+def fmt_pose(pose: Pose2D) -> str:
+    """A pose for people to read: `(x, y, yaw°)`, metres to the centimetre, degrees."""
+    return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
+
+
+def preview(text: str, limit: int) -> str:
+    """`text` on one line, cut to `limit` characters with an ellipsis."""
+    flat = " ".join(text.split())
+    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
 
 
 class Vec3(Frozen):

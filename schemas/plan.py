@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
 from typing import Annotated, ClassVar, Literal, get_args
 
 from msgspec import Meta
 
-from schemas.common import Frozen, Id, Kilograms, Metres, Name, Pose2D, ServiceError, Text, Vec3
+from schemas.common import (
+    Frozen,
+    Id,
+    Kilograms,
+    Metres,
+    Name,
+    Pose2D,
+    ServiceError,
+    Text,
+    Vec3,
+    fmt_pose,
+    preview,
+)
 
 # Requests larger than this are refused before any parsing is attempted.
 MAX_PLAN_BYTES = 256 * 1024
@@ -115,15 +126,6 @@ ParseReply = Plan | ServiceError
 # Grounded steps: every name replaced by an id and a pose from the world model or perception.
 
 
-def _pose(pose: Pose2D) -> str:
-    return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
-
-
-def _clip(text: str, limit: int) -> str:
-    flat = " ".join(text.split())
-    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
-
-
 @dataclass(frozen=True)
 class StepSpec:
     """What one kind of grounded step declares once, as its class's `spec`; the class also says
@@ -153,10 +155,10 @@ class NavigateStep(Frozen, tag="navigate_to"):
     max_speed: Annotated[float, Meta(gt=0.0, le=5.0)] | None = None
 
     def describe(self) -> str:
-        return f"moving the base: {self.target} -> {_pose(self.goal)}"
+        return f"moving the base: {self.target} -> {fmt_pose(self.goal)}"
 
     def brief(self) -> str:
-        return f"navigate_to {self.target} {_pose(self.goal)}"
+        return f"navigate_to {self.target} {fmt_pose(self.goal)}"
 
 
 class PickStep(Frozen, tag="pick"):
@@ -213,7 +215,7 @@ class SayStep(Frozen, tag="say"):
         return f"saying: {self.text}"
 
     def brief(self) -> str:
-        return f"say {_clip(self.text, 30)!r}"
+        return f"say {preview(self.text, 30)!r}"
 
 
 class WaitStep(Frozen, tag="wait"):

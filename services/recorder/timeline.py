@@ -13,7 +13,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal, goal_id_in
-from schemas.common import DECODE_ERRORS, Pose2D, ServiceError
+from schemas.common import DECODE_ERRORS, ServiceError, fmt_pose, preview
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.plan import (
     GroundedPlan,
@@ -159,17 +159,8 @@ def build_timeline(recording: RecordingFile, everything: bool = False) -> Timeli
 # Formatting
 
 
-def fmt_pose(pose: Pose2D) -> str:
-    return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
-
-
 def fmt_point(x: float, y: float) -> str:
     return f"({x:.2f}, {y:.2f})"
-
-
-def preview(text: str, limit: int = PREVIEW) -> str:
-    flat = " ".join(text.split())
-    return flat if len(flat) <= limit else flat[: limit - 1] + "…"
 
 
 def short_id(goal_id: str) -> str:
@@ -648,7 +639,7 @@ class _Builder:
         goal: ExecutePlanGoal = request.goal
         flags = "".join(f" ({flag})" for flag, on in (("dry run", goal.dry_run), ("preempt", goal.preempt)) if on)
         reply = self._reply(record, keys.EXECUTE_PLAN.send_goal.reply)
-        head = f"plan {short_id(request.goal_id)} submitted{flags}: {preview(goal.text)!r}"
+        head = f"plan {short_id(request.goal_id)} submitted{flags}: {preview(goal.text, PREVIEW)!r}"
         if reply is None:
             self.row(EventKind.PLAN, key, head)
         elif reply.accepted:

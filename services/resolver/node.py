@@ -67,15 +67,15 @@ def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(WorldModel(load_world(config.world)), config)
 
 
-def build_latest(config: ResolverConfig) -> Perception:
+def build_perception(config: ResolverConfig) -> Perception:
     return Perception(ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance))
 
 
-def handler(resolver: Resolver, latest: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
+def handler(resolver: Resolver, perception: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
     """A handler that always answers: a GroundedPlan, or a ServiceError naming the step."""
 
     def handle(plan: Plan) -> ResolveReply:
-        snap = latest.snapshot()
+        snap = perception.snapshot()
         request = encode(plan)
         cached = cache.get(snap.key, request)
         if cached is not None:
@@ -92,21 +92,21 @@ def handler(resolver: Resolver, latest: Perception, cache: ResolutionCache) -> C
     return handle
 
 
-def scene_handler(resolver: Resolver, latest: Perception) -> Callable[[Empty], SceneDescription]:
+def scene_handler(resolver: Resolver, perception: Perception) -> Callable[[Empty], SceneDescription]:
     """world/scene: the scene as the next plan would be resolved in it."""
 
     def handle(_request: Empty) -> SceneDescription:
-        snap = latest.snapshot()
+        snap = perception.snapshot()
         return resolver.describe(snap.objects, snap.robot, humans=snap.humans, stamp=time.time())
 
     return handle
 
 
 def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Perception:
-    latest = build_latest(config)
-    node.subscribe(keys.OBJECTS, latest.on_objects)
-    node.subscribe(keys.ODOM, latest.on_odom)
-    node.subscribe(keys.HUMANS, latest.on_humans)
-    node.serve(keys.PLAN_RESOLVE, handler(resolver, latest, ResolutionCache(config.cache_size)))
-    node.serve(keys.SCENE, scene_handler(resolver, latest))
-    return latest
+    perception = build_perception(config)
+    node.subscribe(keys.OBJECTS, perception.on_objects)
+    node.subscribe(keys.ODOM, perception.on_odom)
+    node.subscribe(keys.HUMANS, perception.on_humans)
+    node.serve(keys.PLAN_RESOLVE, handler(resolver, perception, ResolutionCache(config.cache_size)))
+    node.serve(keys.SCENE, scene_handler(resolver, perception))
+    return perception

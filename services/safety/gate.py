@@ -6,7 +6,7 @@ import logging
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 import msgspec
@@ -53,10 +53,6 @@ TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
 # Repeated vetoes of a stream for one rule are one event per this many seconds.
 REPEAT_WINDOW = 1.0
-# A `now` up to this much earlier than one already seen is threads racing into the gate with their
-# readings: no time passed. Further back, the clock itself stepped back: a pause, after which the
-# gate's time carries on from where it was, so a watchdog is not blind until the clock catches up.
-CLOCK_STEP_BACK = 0.5
 
 GoalRuling = SendGoal[Any] | GoalResponse
 
@@ -107,18 +103,29 @@ def _refusal_kind(exc: Vetoed) -> ErrorKind:
 
 
 class SafetyGate:
-    """Every decision safety takes, on inputs the node hands it. Each call takes `now`, seconds on
-    the one monotonic clock the node reads; time in here never runs back (see CLOCK_STEP_BACK), so
-    ages and ramps are never negative.
+    """Every decision safety takes, on inputs the node hands it, at the time of its `clock` (seconds,
+    monotonic; a fake one in tests). The gate reads it under its lock, so readings reach it in the
+    order they were taken. Its time never runs back: when the clock steps back, the gate's time
+    carries on from where it was at the clock's pace (a watchdog is not blind until the clock catches
+    up), so ages and ramps are never negative.
 
     Thread-safe, as Zenoh calls back from several threads: the gate's state (robot state, speed
     scale, last twist sent, repeated vetoes, monitors) is guarded by one lock held only briefly; the
     policy's checks run outside it on a snapshot, so a long plan check never delays a heartbeat. The
     latch, rate limits and people reports guard themselves."""
 
-    def __init__(self, policy: SafetyPolicy, latch: EstopLatch) -> None:
+    def __init__(
+        self,
+        policy: SafetyPolicy,
+        latch: EstopLatch,
+        clock: Callable[[], float],
+        wall_clock: Callable[[], float],
+    ) -> None:
         self.policy = policy
         self.latch = latch
+        self._clock = clock
+        # Only stamps the latch's state (when it latched, when it was reset), never a decision.
+        self._wall_clock = wall_clock
         rules = policy.policy
         self.hash = policy.limits.hash
         self._lock = threading.Lock()
@@ -145,18 +152,20 @@ class SafetyGate:
             decay_per_second=rules.base.max_linear_acceleration / policy.max_linear,
         )
 
-    def _advance(self, now: float) -> float:
-        """The gate's time at the clock's `now`; call with the lock held."""
-        if now + self._offset < self._now - CLOCK_STEP_BACK:
+    def _advance(self) -> float:
+        """The gate's time now; call with the lock held. The clock is read here, under the lock: a
+        reading taken before another thread's cannot reach the gate after it."""
+        now = self._clock()
+        if now + self._offset < self._now:
+            # Only a clock that stepped back reads earlier here: carry on from where the gate was.
             self._offset = self._now - now
         self._now = max(self._now, now + self._offset)
         return self._now
 
-    def _time(self, now: float) -> float:
-        """The gate's time at the clock's `now`. Public methods take the clock's `now` and turn it into
-        the gate's `t` once; the private ones take `t`."""
+    def _time(self) -> float:
+        """The gate's time now. Public methods read it once into `t`; the private ones take `t`."""
         with self._lock:
-            return self._advance(now)
+            return self._advance()
 
     # What safety knows of the robot
 
@@ -166,13 +175,13 @@ class SafetyGate:
         with self._lock:
             return self._separation
 
-    def pose(self, now: float) -> Pose2D | None:
+    def pose(self) -> Pose2D | None:
         """The base pose, or None when odometry is missing or stale."""
-        return self._pose(self._time(now))
+        return self._pose(self._time())
 
-    def joint_positions(self, now: float) -> dict[str, float] | None:
+    def joint_positions(self) -> dict[str, float] | None:
         """The arm's joint positions, or None when joint states are missing or stale."""
-        return self._joint_positions(self._time(now))
+        return self._joint_positions(self._time())
 
     def _pose(self, t: float) -> Pose2D | None:
         with self._lock:
@@ -204,9 +213,9 @@ class SafetyGate:
 
     # State reports, and the monitors on them
 
-    def odometry(self, msg: Odometry, now: float) -> Ruling[None]:
+    def odometry(self, msg: Odometry) -> Ruling[None]:
         with self._lock:
-            t = self._advance(now)
+            t = self._advance()
             self._odom = (t, msg)
             if self.latch.state.latched:
                 return Ruling(None)
@@ -219,9 +228,9 @@ class SafetyGate:
             )
         return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
 
-    def joint_state(self, msg: JointState, now: float) -> Ruling[None]:
+    def joint_state(self, msg: JointState) -> Ruling[None]:
         with self._lock:
-            t = self._advance(now)
+            t = self._advance()
             self._joints = (t, msg)
             if self.latch.state.latched or not msg.velocity:
                 return Ruling(None)
@@ -229,14 +238,14 @@ class SafetyGate:
             trip = self.monitor.joints(t, velocities, self._separation.scale)
         return Ruling(None) if trip is None else self._trip(EstopSource.MONITOR, trip, t)
 
-    def humans(self, msg: PerceivedHumans, now: float) -> None:
-        self._people.add(self._time(now), [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans])
+    def humans(self, msg: PerceivedHumans) -> None:
+        self._people.add(self._time(), [Person(h.name, h.pose.x, h.pose.y) for h in msg.humans])
 
     # The clock's tick: separation, the watchdog, repeated vetoes
 
-    def tick(self, now: float) -> Ruling[None]:
+    def tick(self) -> Ruling[None]:
         """Once a heartbeat: the speed allowed near people, the watchdog, the counts of repeated vetoes."""
-        t = self._time(now)
+        t = self._time()
         events: list[GateEvent] = []
         try:
             found = self._find_separation(t)
@@ -352,13 +361,13 @@ class SafetyGate:
 
     # The e-stop
 
-    def estop(self, msg: EStop, now: float) -> Ruling[None]:
-        return self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {}, self._time(now))
+    def estop(self, msg: EStop) -> Ruling[None]:
+        return self._latch(msg.source, msg.reason, msg, Rule.ESTOP, {}, self._time())
 
-    def unreadable_estop(self, size: int, error: str, now: float) -> Ruling[None]:
+    def unreadable_estop(self, size: int, error: str) -> Ruling[None]:
         """Fail closed: someone meant to stop the robot."""
         reason = f"an e-stop message that could not be read ({size} bytes): {error}"[:1000]
-        return self._latch("unknown", reason, None, Rule.ESTOP, {}, self._time(now))
+        return self._latch("unknown", reason, None, Rule.ESTOP, {}, self._time())
 
     def _trip(self, source: EstopSource, trip: Trip, t: float) -> Ruling[None]:
         return self._latch(source, trip.reason, None, trip.rule, trip.values, t)
@@ -366,7 +375,7 @@ class SafetyGate:
     def _latch(
         self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
     ) -> Ruling[None]:
-        if not self.latch.trigger(source, reason):
+        if not self.latch.trigger(source, reason, self._wall_clock()):
             return Ruling(None)
         with self._lock:
             self._sent_twist = (t, Twist())
@@ -378,7 +387,7 @@ class SafetyGate:
         """Clear the latch with the operator's token; the token never leaves in an event."""
         redacted = msgspec.structs.replace(req, token="***")
         try:
-            self.latch.reset(req.operator, req.token)
+            self.latch.reset(req.operator, req.token, self._wall_clock())
         except Unauthorized as exc:
             event = GateEvent(keys.RESET.path, Decision.VETOED, str(exc), redacted, Rule.OPERATOR, (Rule.OPERATOR,))
             return Ruling(ResetReply(ok=False, message=str(exc)), (event,))
@@ -404,15 +413,15 @@ class SafetyGate:
 
     # Commands: velocities
 
-    def cmd_vel(self, twist: Twist, now: float) -> Ruling[Twist | None]:
+    def cmd_vel(self, twist: Twist) -> Ruling[Twist | None]:
         """A velocity from a program: over a limit it is refused and the base stopped."""
 
         def check(t: float) -> Verdict[Twist]:
             return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale)
 
-        return self._twist(keys.CMD_VEL.path, twist, check, self._time(now))
+        return self._twist(keys.CMD_VEL.path, twist, check, self._time())
 
-    def teleop(self, twist: Twist, now: float) -> Ruling[Twist | None]:
+    def teleop(self, twist: Twist) -> Ruling[Twist | None]:
         """A velocity from a person: clamped to the limits, and speeding up from what was last sent."""
 
         def check(t: float) -> Verdict[Twist]:
@@ -425,7 +434,7 @@ class SafetyGate:
             step = min(t - at, TELEOP_MAX_STEP)
             return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale)
 
-        return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time(now))
+        return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time())
 
     def _twist(
         self, key: str, twist: Twist, check: Callable[[float], Verdict[Twist]], t: float
@@ -452,53 +461,56 @@ class SafetyGate:
 
     # Commands: goals and plans
 
-    def navigate(self, req: SendGoal[NavigateToPoseGoal], now: float) -> Ruling[GoalRuling]:
-        t = self._time(now)
+    def navigate(self, req: SendGoal[NavigateToPoseGoal]) -> Ruling[GoalRuling]:
+        t = self._time()
 
         def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
             return self.policy.check_navigation(goal, self._pose(t), self._reach(t))
 
         return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, t)
 
-    def trajectory(
-        self, req: SendGoal[FollowJointTrajectoryGoal], now: float, again: bool = False
-    ) -> Ruling[GoalRuling]:
+    def trajectory(self, req: SendGoal[FollowJointTrajectoryGoal], again: bool = False) -> Ruling[GoalRuling]:
         """A trajectory from where the arm is. A goal sent the moment the previous motion ended may
         start where the arm has just stopped, while the latest state here is from a moment before: a
         first point that seems to jump is refused with `fresh_joints_may_pass`, and the node asks
-        `again` once a joint state measured since came (the e-stop and the rate were checked already)."""
-        t = self._time(now)
+        `again` once a joint state measured since came. Asked again, the e-stop is checked once more
+        (it may have latched during the wait), the rate is not (the goal was counted the first time)."""
+        t = self._time()
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
             return self.policy.check_trajectory(goal, self._joint_positions(t), self._pose(t), self._base_moving())
 
-        ruling = self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, first=not again)
-        jumped = isinstance(ruling.forward, GoalResponse) and "jump_rad" in ruling.events[0].values
-        return replace(ruling, fresh_joints_may_pass=jumped and not again)
+        return self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, again=again)
 
-    def gripper(self, req: SendGoal[GripperCommandGoal], now: float) -> Ruling[GoalRuling]:
-        return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, self._time(now))
+    def gripper(self, req: SendGoal[GripperCommandGoal]) -> Ruling[GoalRuling]:
+        return self._goal(keys.CMD_GRIPPER.send_goal.path, req, self.policy.check_gripper, self._time())
 
     def _goal(
-        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, first: bool = True
+        self, key: str, req: SendGoal[Any], check: Callable[[Any], Verdict[Any]], t: float, again: bool = False
     ) -> Ruling[GoalRuling]:
-        """The goal to send to the robot, or the refusal to reply with."""
+        """The goal to send to the robot, or the refusal to reply with. `again`: the same goal decided
+        once more (see trajectory): not counted against the rate twice, and not offered a third try."""
         try:
-            if first and (refused := self._estop_veto() or self._rate_veto(key, t)):
+            refused = self._estop_veto()
+            if refused is None and not again:
+                refused = self._rate_veto(key, t)
+            if refused is not None:
                 raise refused
             verdict = check(req.goal)
         except Vetoed as exc:
             refusal = GoalResponse(
                 goal_id=req.goal_id, accepted=False, reason=f"vetoed by safety: {exc}", kind=_refusal_kind(exc)
             )
-            return Ruling(refusal, (_veto_event(key, exc, req),))
+            # A first point that seems to jump (the check's `jump_rad`) may be a joint state that lags the arm.
+            jumped = "jump_rad" in exc.values and not again
+            return Ruling(refusal, (_veto_event(key, exc, req),), fresh_joints_may_pass=jumped)
         goal = SendGoal(goal_id=req.goal_id, goal=verdict.command)
         return Ruling(goal, (_approval(key, verdict, goal),))
 
-    def check_plan(self, plan: GroundedPlan, now: float) -> Ruling[PlanCheckReply]:
+    def check_plan(self, plan: GroundedPlan) -> Ruling[PlanCheckReply]:
         """The whole plan, before anything moves."""
         key = keys.PLAN_CHECK.path
-        t = self._time(now)
+        t = self._time()
         try:
             if refused := self._estop_veto():
                 raise refused

@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import os
 import threading
-import time
 from pathlib import Path
 
 import msgspec
@@ -57,8 +56,9 @@ class EstopLatch:
         with self._lock:
             return self._state
 
-    def trigger(self, source: str, reason: str) -> bool:
-        """Latch in memory; returns True if this call latched it (False if it already was).
+    def trigger(self, source: str, reason: str, stamp: float) -> bool:
+        """Latch in memory at `stamp` (wall-clock seconds); returns True if this call latched it
+        (False if it already was).
 
         The caller tells the robot first and then calls save() (as after a reset): a slow disk must
         not delay a stop.
@@ -66,12 +66,13 @@ class EstopLatch:
         with self._lock:
             if self._state.latched:
                 return False
-            self._state = EstopState(latched=True, source=source, reason=reason, stamp=time.time())
+            self._state = EstopState(latched=True, source=source, reason=reason, stamp=stamp)
             return True
 
-    def reset(self, operator: str, token: str) -> EstopState:
+    def reset(self, operator: str, token: str, stamp: float) -> EstopState:
+        """Clear it at `stamp` (wall-clock seconds), with the operator's token."""
         with self._lock:
             if not token_matches(self._token, token):
                 raise Unauthorized(f"reset refused for '{operator}': not the operator's token")
-            self._state = EstopState(latched=False, source=operator, reason="reset by operator", stamp=time.time())
+            self._state = EstopState(latched=False, source=operator, reason="reset by operator", stamp=stamp)
             return self._state

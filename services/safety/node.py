@@ -30,7 +30,9 @@ log = logging.getLogger(__name__)
 
 
 class SafetyNode:
-    """Every input goes to the gate with `now` from `clock`; what it rules is published here.
+    """Every input goes to the gate, which reads `clock` (the time it decides on) and `wall_clock`
+    (the latch's stamps); what it rules is published here, stamped with `wall_clock`. The heartbeat is
+    paced by time.monotonic whatever `clock` is.
 
     Locks, each for an order on the wire: `_beat_lock` so a heartbeat read before a latch is never
     sent after the latched one; `_twist_lock` so twists reach robot/cmd_vel in the order the gate
@@ -44,11 +46,14 @@ class SafetyNode:
         latch: EstopLatch,
         config: SafetyConfig,
         clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.node = node
         self.config = config
-        self.clock = clock
-        self.gate = SafetyGate(policy, latch)
+        self.latch = latch
+        self.policy_hash = policy.limits.hash
+        self.wall_clock = wall_clock
+        self.gate = SafetyGate(policy, latch, clock, wall_clock)
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
@@ -72,9 +77,9 @@ class SafetyNode:
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
         node.serve(keys.RESET, self._on_reset)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, lambda req: self.gate.navigate(req, self.clock()))
+        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate)
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
-        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, lambda req: self.gate.gripper(req, self.clock()))
+        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, self.gate.gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
 
@@ -88,7 +93,9 @@ class SafetyNode:
         if ruling.latched:
             # Out of cycle, so the robot hears it now rather than at the next beat; then written down.
             self._publish_heartbeat()
-            self._robot_cmd_vel.put(Twist())
+            # In order with the twists the gate decided (taken after _forward_twist let go of it).
+            with self._twist_lock:
+                self._robot_cmd_vel.put(Twist())
             self._persist()
         for event in ruling.events:
             self._publish_event(event)
@@ -101,14 +108,14 @@ class SafetyNode:
         command = msgspec.Raw(encode(event.command) if event.command is not None else b"null")
         self._events.put(
             SafetyEvent(
-                stamp=time.time(),
+                stamp=self.wall_clock(),
                 key=event.key,
                 decision=event.decision,
                 reason=event.reason,
                 rule=event.rule,
                 checks=list(event.checks),
                 values=finite,
-                policy_hash=self.gate.hash,
+                policy_hash=self.policy_hash,
                 command=command,
             )
         )
@@ -118,20 +125,28 @@ class SafetyNode:
     def _publish_heartbeat(self) -> None:
         with self._beat_lock:
             self._seq += 1
-            self._heartbeat.put(self.gate.status(self._seq, time.time()))
+            self._heartbeat.put(self.gate.status(self._seq, self.wall_clock()))
 
     def _beat(self) -> None:
+        # Paced by the monotonic clock, not the gate's: the beat must go on whatever the gate's time does.
         period = 1.0 / self.config.heartbeat_hz
-        next_beat = self.clock()
+        next_beat = time.monotonic()
         while not self._stop.is_set():
-            self._carry_out(self.gate.tick(self.clock()))
-            self._publish_heartbeat()
+            # Nothing may end this thread: without heartbeats the robot stops and takes no goal.
+            try:
+                self._carry_out(self.gate.tick())
+            except Exception:
+                log.exception("carrying out the heartbeat's tick failed")
+            try:
+                self._publish_heartbeat()
+            except Exception:
+                log.exception("the heartbeat could not be published")
             next_beat += period
-            self._stop.wait(max(0.0, next_beat - self.clock()))
+            self._stop.wait(max(0.0, next_beat - time.monotonic()))
 
     def _persist(self) -> bool:
         try:
-            self.gate.latch.save()
+            self.latch.save()
         except OSError as exc:
             log.error("the e-stop state could not be written (%s): a restart may not remember it", exc)
             return False
@@ -152,9 +167,9 @@ class SafetyNode:
         try:
             msg: EStop = self._estop_decoder.decode(payload)
         except DECODE_ERRORS as exc:
-            self._carry_out(self.gate.unreadable_estop(len(payload), str(exc), self.clock()))
+            self._carry_out(self.gate.unreadable_estop(len(payload), str(exc)))
             return
-        self._carry_out(self.gate.estop(msg, self.clock()))
+        self._carry_out(self.gate.estop(msg))
 
     def _on_reset(self, req: ResetRequest) -> ResetReply:
         ruling = self.gate.reset(req)
@@ -169,23 +184,26 @@ class SafetyNode:
         return msgspec.structs.replace(ruling.forward, message=ruling.forward.message + note)
 
     def _on_odom(self, msg: Odometry) -> None:
-        self._carry_out(self.gate.odometry(msg, self.clock()))
+        self._carry_out(self.gate.odometry(msg))
 
     def _on_joints(self, msg: JointState) -> None:
-        ruling = self.gate.joint_state(msg, self.clock())
-        with self._joints_arrived:
-            self._joint_reports += 1
-            self._joints_arrived.notify_all()
+        try:
+            ruling = self.gate.joint_state(msg)
+        finally:
+            # Counted even if the gate failed on it: a trajectory waiting for a fresh one goes on.
+            with self._joints_arrived:
+                self._joint_reports += 1
+                self._joints_arrived.notify_all()
         self._carry_out(ruling)
 
     def _on_humans(self, msg: PerceivedHumans) -> None:
-        self.gate.humans(msg, self.clock())
+        self.gate.humans(msg)
 
     def _on_cmd_vel(self, twist: Twist) -> None:
-        self._forward_twist(lambda: self.gate.cmd_vel(twist, self.clock()))
+        self._forward_twist(lambda: self.gate.cmd_vel(twist))
 
     def _on_teleop(self, twist: Twist) -> None:
-        self._forward_twist(lambda: self.gate.teleop(twist, self.clock()))
+        self._forward_twist(lambda: self.gate.teleop(twist))
 
     def _forward_twist(self, decide: Callable[[], Ruling[Twist | None]]) -> None:
         with self._twist_lock:
@@ -195,16 +213,16 @@ class SafetyNode:
         self._carry_out(ruling)
 
     def _on_check_plan(self, plan: GroundedPlan) -> PlanCheckReply:
-        ruling = self.gate.check_plan(plan, self.clock())
+        ruling = self.gate.check_plan(plan)
         self._carry_out(ruling)
         return ruling.forward
 
     def _decide_trajectory(self, req: SendGoal[FollowJointTrajectoryGoal]) -> Ruling[GoalRuling]:
         with self._joints_arrived:
             seen = self._joint_reports
-        ruling = self.gate.trajectory(req, self.clock())
+        ruling = self.gate.trajectory(req)
         if ruling.fresh_joints_may_pass and self._joints_since(seen, FRESH_JOINTS_WAIT):
-            ruling = self.gate.trajectory(req, self.clock(), again=True)
+            ruling = self.gate.trajectory(req, again=True)
         return ruling
 
     def _joints_since(self, seen: int, timeout: float) -> bool:

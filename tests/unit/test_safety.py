@@ -180,27 +180,27 @@ def test_the_latch_holds_until_the_operator_token_resets_it(tmp_path: Path) -> N
     token = ensure_token(tmp_path / "token")
     assert (tmp_path / "token").stat().st_mode & 0o777 == 0o600
     latch = EstopLatch(token)
-    assert latch.trigger("executor", "test")
-    assert not latch.trigger("agent", "again"), "a second trigger does not overwrite the first"
-    assert latch.state.source == "executor"
+    assert latch.trigger("executor", "test", 100.0)
+    assert not latch.trigger("agent", "again", 101.0), "a second trigger does not overwrite the first"
+    assert (latch.state.source, latch.state.stamp) == ("executor", 100.0)
     with pytest.raises(Unauthorized):
-        latch.reset("agent", "guess")
+        latch.reset("agent", "guess", 102.0)
     with pytest.raises(Unauthorized):
-        latch.reset("agent", "")
+        latch.reset("agent", "", 102.0)
     assert latch.state.latched
-    latch.reset("operator", token)
-    assert not latch.state.latched
+    latch.reset("operator", token, 103.0)
+    assert not latch.state.latched and latch.state.stamp == 103.0
 
 
 def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_path: Path) -> None:
     state = tmp_path / "estop.json"
     first = EstopLatch("secret", state)
-    assert first.trigger("watchdog", "lost the arm")
+    assert first.trigger("watchdog", "lost the arm", 100.0)
     assert not EstopLatch("secret", state).state.latched, "trigger only latches in memory; save writes it"
     first.save()
     again = EstopLatch("secret", state)
     assert again.state.latched and again.state.source == "watchdog"
-    again.reset("operator", "secret")
+    again.reset("operator", "secret", 101.0)
     assert EstopLatch("secret", state).state.latched, "reset, like trigger, is written by save"
     again.save()
     assert not EstopLatch("secret", state).state.latched

@@ -1,5 +1,6 @@
 """Safety's transport. With a recording stand-in for the Zenoh node: a latch reaches the robot before
-anything else and cancels the goals forwarded. With two real Zenoh sessions in one process: a
+anything else and cancels the goals forwarded; the heartbeat outlives a failure and a gate clock that
+steps back; a reset still answers when the state file cannot be written. With two real Zenoh sessions in one process: a
 trajectory goal sent the moment the arm stopped is decided on a joint state measured since, never on
 the stale one alone."""
 
@@ -29,7 +30,7 @@ from schemas.robot import (
     TrajectoryPoint,
     Twist,
 )
-from schemas.safety import Decision, SafetyEvent, SafetyStatus
+from schemas.safety import Decision, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import GoalRejected
@@ -62,8 +63,11 @@ class Recorder:
         self._state_file = state_file
         self.callbacks: dict[str, Callable[..., Any]] = {}
         self.changed = threading.Condition()
+        # Called with each message before it is recorded; a test may look around, or raise.
+        self.on_put: Callable[[str, Any], None] = lambda path, message: None
 
     def _record(self, path: str, message: Any) -> None:
+        self.on_put(path, message)
         with self.changed:
             self.sent.append((path, message))
             self.written.append(self._state_file.exists())
@@ -97,17 +101,56 @@ class Recorder:
         with self.changed:
             assert self.changed.wait_for(lambda: found(self.sent), WAIT), self.sent[-20:]
 
+    def heartbeats(self, since: int = 0) -> int:
+        with self.changed:
+            return sum(isinstance(message, SafetyStatus) for _, message in self.sent[since:])
+
+
+class FakeClock:
+    """The gate's clock, moved only by the test."""
+
+    def __init__(self, now: float = 0.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+Start = Callable[..., tuple[Recorder, SafetyNode]]
+
 
 @pytest.fixture
-def recorded(tmp_path: Path) -> Iterator[Recorder]:
+def start(tmp_path: Path) -> Iterator[Start]:
+    """Start safety on a Recorder: `start(clock=..., state_file=...)`; closed after the test."""
     arm = ArmModel(WORLD.robot.arm_urdf)
     policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
-    node = Recorder(tmp_path / "estop.json")
-    safety = SafetyNode(node, policy, EstopLatch("token", tmp_path / "estop.json"), SafetyConfig())  # type: ignore[arg-type]
+    started: list[SafetyNode] = []
+
+    def start(
+        clock: Callable[[], float] = time.monotonic, state_file: Path = tmp_path / "estop.json"
+    ) -> tuple[Recorder, SafetyNode]:
+        node = Recorder(state_file)
+        safety = SafetyNode(node, policy, EstopLatch("token", state_file), SafetyConfig(), clock)  # type: ignore[arg-type]
+        started.append(safety)
+        return node, safety
+
     try:
-        yield node
+        yield start
     finally:
-        safety.close()
+        for safety in started:
+            safety.close()
+
+
+@pytest.fixture
+def recorded(start: Start) -> Recorder:
+    return start()[0]
+
+
+def odometry(linear: float = 0.0) -> Odometry:
+    return Odometry(stamp=0.0, sim_time=0.0, pose=Pose2D(x=6.0, y=1.2), linear_x=linear, angular_z=0.0)
+
+
+ESTOP = b'{"source": "operator", "reason": "test"}'
 
 
 def test_a_latch_reaches_the_robot_first_then_is_written_down_and_cancels_forwarded_goals(
@@ -134,6 +177,75 @@ def test_a_latch_reaches_the_robot_first_then_is_written_down_and_cancels_forwar
     assert not node.written[stop] and node.written[event], "written down after the robot was told, before the event"
 
 
+def test_the_latchs_stop_on_robot_cmd_vel_is_put_in_order_with_the_twists(start: Start) -> None:
+    node, safety = start()
+    held: list[bool] = []
+
+    def look(path: str, message: Any) -> None:
+        if path == keys.ROBOT_CMD_VEL.path:
+            held.append(safety._twist_lock.locked())
+
+    node.on_put = look
+    node.callbacks[keys.ESTOP.key(node.robot)](keys.ESTOP.key(node.robot), ESTOP)
+    assert held == [True], "the stop was put while _twist_lock was held"
+
+
+def test_a_joint_state_the_gate_fails_on_still_counts_as_heard(start: Start, monkeypatch: pytest.MonkeyPatch) -> None:
+    node, safety = start()
+
+    def broken(msg: JointState) -> None:
+        raise RuntimeError("gate failed")
+
+    monkeypatch.setattr(safety.gate, "joint_state", broken)
+    with pytest.raises(RuntimeError, match="gate failed"):
+        node.callbacks[keys.JOINT_STATES.path](JointState(stamp=0.0, name=list(ARM_JOINTS), position=HOME))
+    assert safety._joints_since(0, 0.0), "a trajectory waiting for a fresh joint state would time out"
+
+
+def test_the_heartbeat_goes_on_after_a_latch_from_the_beat_fails_to_publish(start: Start) -> None:
+    clock = FakeClock(0.0)
+    node, safety = start(clock=clock)
+    failed_at: list[int] = []
+
+    def fail_once(path: str, message: Any) -> None:
+        if isinstance(message, SafetyEvent) and message.decision is Decision.LATCHED and not failed_at:
+            failed_at.append(len(node.sent))
+            raise RuntimeError("the events publisher failed")
+
+    node.on_put = fail_once
+    node.callbacks[keys.ODOM.path](odometry(linear=0.2))
+    clock.now = 10.0  # no odometry for 10 s while moving: the watchdog latches at the next tick
+    node.wait_for(lambda sent: bool(failed_at) and node.heartbeats(failed_at[0]) >= 3)
+    assert safety.latch.state.latched and safety.latch.state.source == "watchdog"
+
+
+def test_a_gate_clock_that_steps_back_does_not_stall_the_heartbeat(start: Start) -> None:
+    clock = FakeClock(1000.0)
+    node, _ = start(clock=clock)
+    node.wait_for(lambda sent: node.heartbeats() >= 1)
+    clock.now = 0.0
+    since = len(node.sent)
+    node.wait_for(lambda sent: node.heartbeats(since) >= 10)
+
+
+def test_a_reset_whose_state_file_cannot_be_written_says_so_and_still_clears_the_latch(
+    start: Start, tmp_path: Path
+) -> None:
+    (tmp_path / "a_file").write_text("")
+    node, safety = start(state_file=tmp_path / "a_file" / "estop.json")  # its directory is a file
+    node.callbacks[keys.ESTOP.key(node.robot)](keys.ESTOP.key(node.robot), ESTOP)
+    assert safety.latch.state.latched
+    reply: ResetReply = node.callbacks[keys.RESET.path](ResetRequest(operator="alice", token="token"))
+    assert reply.ok and reply.message.startswith("e-stop reset by alice")
+    assert "the state file could not be written: a restart of safety may come up latched" in reply.message
+    assert not safety.latch.state.latched
+    with node.changed:
+        sent = [m for _, m in node.sent]
+    reset = [m for m in sent if isinstance(m, SafetyEvent) and m.decision is Decision.RESET]
+    assert len(reset) == 1 and b'"token":"***"' in bytes(reset[0].command)
+    assert any(isinstance(m, SafetyStatus) and not m.estop.latched for m in sent), "a heartbeat said so"
+
+
 @dataclass
 class Rig:
     robot: Node
@@ -144,7 +256,7 @@ class Rig:
         """The arm reports its joints at `q`, and safety has heard it."""
         self.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=q))
         deadline = time.monotonic() + WAIT
-        while (self.safety.gate.joint_positions(self.safety.clock()) or {}).get(ARM_JOINTS[1]) != q[1]:
+        while (self.safety.gate.joint_positions() or {}).get(ARM_JOINTS[1]) != q[1]:
             assert time.monotonic() < deadline, "safety never heard the joint state"
             time.sleep(0.005)
 

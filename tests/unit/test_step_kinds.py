@@ -29,9 +29,10 @@ from schemas.plan import (
     WaitStep,
     step_kind,
 )
+from schemas.robot import GripperCommandGoal, Twist
 from services.agent.tools import REFUSED, all_tools
 from services.executor.config import ExecutorConfig
-from services.executor.manipulation import Manipulator
+from services.executor.manipulation import GRIPPER_OPEN, Manipulator
 from services.parser.errors import VocabularyError
 from services.parser.parser import parse
 from services.parser.vocabulary import load_vocabulary
@@ -85,11 +86,23 @@ class TeleportStep(Frozen, tag="teleport"):
 FOREIGN: Any = TeleportStep(goal=Pose2D(x=11.2, y=8.0))
 
 
+class TwistRecordingRobot(ScriptedRobot):
+    """A ScriptedRobot that keeps every twist it is sent."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.twists: list[Twist] = []
+
+    def cmd_vel(self, twist: Twist) -> None:
+        self.twists.append(twist)
+
+
 class RecordingManipulator(Manipulator):
     """Manipulator.run's dispatch over motions that each succeed at once, recorded by name."""
 
     def __init__(self) -> None:
-        self.robot = ScriptedRobot()
+        self.recording_robot = TwistRecordingRobot()
+        self.robot = self.recording_robot
         self.calls: list[str] = []
 
     def _did(self, name: str) -> str:
@@ -190,14 +203,37 @@ def test_every_kind_says_what_it_does_for_feedback_and_the_timeline(step: Ground
     assert step.brief().startswith(step_kind(step)) or isinstance(step, GripperStep)
 
 
+# What Manipulator.run calls for each kind (say, wait and stop are done in run itself).
+RUN_CALLS: dict[type[Any], list[str]] = {
+    NavigateStep: ["drive_to"],
+    PickStep: ["pick"],
+    PlaceStep: ["place"],
+    DetectStep: ["detect"],
+    SayStep: [],
+    WaitStep: [],
+    StopStep: [],
+    GripperStep: ["operate_gripper"],
+}
+
+
 @pytest.mark.parametrize("step", KINDS)
 def test_every_kind_is_run_by_the_manipulator(step: GroundedStep) -> None:
-    assert RecordingManipulator().run(step, threading.Event(), 1, lambda _: None)
+    assert set(RUN_CALLS) == set(STEP_TYPES), "say what running the new kind calls in RUN_CALLS"
+    manipulator = RecordingManipulator()
+    assert manipulator.run(step, threading.Event(), 1, lambda _: None)
+    assert manipulator.calls == RUN_CALLS[type(step)]
+    stopped = [Twist()] if isinstance(step, StopStep) else []
+    assert manipulator.recording_robot.twists == stopped, "only a stop sends a twist: a zero one"
 
 
 @pytest.mark.parametrize("step", KINDS)
-def test_every_kind_has_a_way_back_before_a_retry(step: GroundedStep, manipulator: Manipulator) -> None:
-    manipulator.recover(step, threading.Event())
+def test_only_a_pick_opens_an_empty_hand_before_a_retry(step: GroundedStep) -> None:
+    robot = ScriptedRobot()  # a fresh one for each kind: its gripper goals are this kind's alone
+    arm, base = planners()
+    Manipulator(robot, arm, base, WORLD, ExecutorConfig()).recover(step, threading.Event())
+    opened = [GripperCommandGoal(position=GRIPPER_OPEN)] if isinstance(step, PickStep) else []
+    assert robot.grips == opened
+    assert robot.goals == [], "a way back drives nowhere"
 
 
 @pytest.mark.parametrize("step", KINDS)
