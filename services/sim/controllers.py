@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
@@ -504,11 +505,13 @@ class Controllers:
 
     # Goals
 
-    def _start(self, motion: M) -> M:
-        previous = self.motions.get(motion.kind)
+    def _start(self, kind: str, make: Callable[[], M]) -> M:
+        # The old goal is canceled (its controller holds) before the new one is made, which may
+        # command its controller at once (the gripper does).
+        previous = self.motions.get(kind)
         if previous is not None and previous.running:
-            self.cancel(previous, GoalState.CANCELED, f"preempted by a new {motion.kind} goal")
-        self.motions[motion.kind] = motion
+            self.cancel(previous, GoalState.CANCELED, f"preempted by a new {kind} goal")
+        motion = self.motions[kind] = make()
         return motion
 
     def navigate(self, goal: NavigateToPoseGoal) -> Motion[Any, Any]:
@@ -521,7 +524,7 @@ class Controllers:
             motion.finish(GoalState.ABORTED, NavigateToPoseResult(pose=pose, message=reason), reason)
             return motion
         self._cmd_vel = None
-        return self._start(Navigation(self, goal))
+        return self._start(Navigation.kind, lambda: Navigation(self, goal))
 
     def _away_from(self, start: Pose2D) -> str | None:
         here = self.world.robot.base_pose()
@@ -541,10 +544,10 @@ class Controllers:
             motion = Motion[FollowJointTrajectoryFeedback, FollowJointTrajectoryResult](self.world.sim_time)
             motion.finish(GoalState.ABORTED, FollowJointTrajectoryResult(error=0.0, message=reason), reason)
             return motion
-        return self._start(TrajectoryFollow(self, goal))
+        return self._start(TrajectoryFollow.kind, lambda: TrajectoryFollow(self, goal))
 
     def gripper(self, goal: GripperCommandGoal) -> GripperMotion:
-        return self._start(GripperMotion(self, goal))
+        return self._start(GripperMotion.kind, lambda: GripperMotion(self, goal))
 
     def cancel(
         self, motion: Motion[Any, Any], state: GoalState = GoalState.CANCELED, message: str = "canceled"

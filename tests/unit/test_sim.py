@@ -171,6 +171,15 @@ def test_canceling_a_gripper_goal_holds_the_fingers_where_they_are(sim: Simulati
     assert sim.robot.gripper_gap() == pytest.approx(gap, abs=0.003)
 
 
+def test_a_gripper_goal_preempting_a_closing_one_reaches_its_own_gap(sim: Simulation) -> None:
+    closing = sim.controllers.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.05)
+    opening = sim.run(sim.controllers.gripper(GripperCommandGoal(position=0.08)), timeout=5.0)
+    assert closing.state is GoalState.CANCELED and "preempted" in closing.message
+    assert opening.state is GoalState.SUCCEEDED and opening.result is not None
+    assert opening.result.reached_goal, opening.result
+
+
 def test_a_refused_navigation_leaves_cmd_vel_to_expire(sim: Simulation) -> None:
     # Safety fills `start` from odometry; while cmd_vel turns the base it is soon elsewhere.
     assert sim.controllers.set_cmd_vel(Twist(angular_z=0.8), hold_for=0.5)
