@@ -20,10 +20,11 @@ from schemas.world import Empty, Moved, MoveEntity
 from services.actionlib import ActionClient, GoalHandle, Outcome
 from services.errors import GoalRejected
 from services.runtime import Node, NodeSettings
+from services.safety.config import SafetyConfig
 from services.sim import node as sim_node_module
 from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME, Controllers
-from services.sim.node import SimNode
+from services.sim.node import PREEMPT_TIMEOUT, RESET_GRACE, SimNode
 from services.sim.physics import Simulation
 from services.worldmodel import load_world
 from tests.sessions import free_port
@@ -133,6 +134,14 @@ def test_losing_the_heartbeat_stops_the_base_and_aborts_the_goal(rig: Rig) -> No
         truth = rig.client.call(keys.GROUND_TRUTH, Empty())
     assert truth.linear_speed < 0.01
     assert truth.sim_time - aborted.sim_time <= 0.1
+
+
+def test_send_goal_answers_well_within_safetys_forward_timeout(rig: Rig) -> None:
+    # Else safety may report a forward failed that the sim then runs (docs/robot.md, Timing).
+    forward_timeout = SafetyConfig().forward_timeout
+    assert all(server._preempt_timeout == PREEMPT_TIMEOUT for server in rig.sim_node.servers)
+    assert 0.5 * forward_timeout > PREEMPT_TIMEOUT + 2 * RESET_GRACE
+    assert SimConfig().first_heartbeat_wait + RESET_GRACE < forward_timeout
 
 
 def hold_the_sim_thread(rig: Rig) -> threading.Event:
