@@ -21,7 +21,7 @@ from services.runtime import Node
 from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import SETTLE_TIMEOUT, Drop, Motion
 
 log = logging.getLogger(__name__)

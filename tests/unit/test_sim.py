@@ -34,7 +34,7 @@ from services.robotmodel import world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.

@@ -25,7 +25,7 @@ from services.sim import node as sim_node_module
 from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME, Controllers
 from services.sim.node import PREEMPT_TIMEOUT, RESET_GRACE, SimNode
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.worldmodel import load_world
 from tests.sessions import free_port
 from tests.watch import Watch
