@@ -88,8 +88,11 @@ class ActionServer(Generic[G, F, R]):
     `accept` returns None to accept a goal or the reason to reject it. With `exclusive`, a goal
     that arrives while another runs is rejected, unless `preempts(goal)` says it preempts: then the
     running goals are canceled and the new one is accepted only once they have ended, so two goals
-    never drive the robot at once. A goal `concurrent(goal)` says moves nothing (a dry run) is
-    neither kept out nor keeps others out. Besides the five ROS 2 keys it answers `get_status`.
+    never drive the robot at once; `accept` is asked again after that wait (an e-stop latched
+    meanwhile rejects it). Of two goals preempting at once, the later one to finish its wait finds
+    the other running and is rejected as busy: the sender retries. A goal `concurrent(goal)` says
+    moves nothing (a dry run) is neither kept out nor keeps others out. Besides the five ROS 2 keys
+    it answers `get_status`.
     """
 
     def __init__(
@@ -142,6 +145,8 @@ class ActionServer(Generic[G, F, R]):
         exclusive = self._exclusive and not self._concurrent(request.goal)
         if reason is None and exclusive and self._preempts is not None and self._preempts(request.goal):
             reason = self._preempt(request.goal_id)
+            if reason is None and self._accept:
+                reason = self._accept(request.goal)  # what may have changed while it waited
         with self._lock:
             self._forget_old()
             if reason is None and request.goal_id in self._goals:

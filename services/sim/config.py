@@ -43,7 +43,7 @@ class CameraConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
 
 
 class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """`[sim]` in the config file. Timeouts are wall-clock seconds; rates are per wall second."""
+    """`[sim]` in the config file. Timeouts are wall-clock seconds (cmd_vel's as below); rates are per wall second."""
 
     world: Annotated[str, Meta(min_length=1, max_length=1000)] = "household"
     # Sim seconds per wall second; tests run the sim a few times faster than real time.
@@ -53,6 +53,8 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     # A goal that arrives before safety's first heartbeat (right after start-up, while the peers are
     # still connecting) waits this long for it before it is refused.
     first_heartbeat_wait: WallSeconds = 3.0
+    # Held for this times realtime_factor sim seconds: wall time while the sim keeps pace (docs/robot.md).
+    # At most the policy's cmd_vel_horizon, the time safety checks a cmd_vel's path for.
     cmd_vel_timeout: WallSeconds = 0.5
     joint_states_hz: Hz = 50.0
     odom_hz: Hz = 50.0

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import logging
 import math
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
@@ -26,8 +26,6 @@ from schemas.robot import (
 from services.footprint import TRACKING_TOLERANCE, Leg, route_legs
 from services.sim.world import GRIPPER_OPEN, Motion, SimWorld, wrap_angle
 from services.worldmodel import drive_route
-
-log = logging.getLogger(__name__)
 
 F = TypeVar("F")
 R = TypeVar("R")
@@ -477,7 +475,8 @@ class GripperMotion(GoalMotion[GripperCommandFeedback, GripperCommandResult]):
 
 class Controllers:
     """The base, arm and gripper controllers and the goals they carry out, one goal per kind: a new
-    goal preempts the running one (aborted), as Nav2's and ros2_control's action servers do."""
+    goal preempts the running one, which ends canceled ("preempted by ...") through the same path as
+    a cancel (the base brakes, the arm and fingers hold), as the sim's action servers end it."""
 
     def __init__(self, world: SimWorld) -> None:
         self.world = world
@@ -506,23 +505,26 @@ class Controllers:
 
     # Goals
 
-    def _start(self, motion: M) -> M:
-        previous = self.motions.get(motion.kind)
+    def _start(self, kind: str, make: Callable[[], M]) -> M:
+        # The old goal is canceled (its controller holds) before the new one is made, which may
+        # command its controller at once (the gripper does).
+        previous = self.motions.get(kind)
         if previous is not None and previous.running:
-            previous.end(self, GoalState.ABORTED, f"preempted by a new {motion.kind} goal")
-        self.motions[motion.kind] = motion
+            self.cancel(previous, GoalState.CANCELED, f"preempted by a new {kind} goal")
+        motion = self.motions[kind] = make()
         return motion
 
     def navigate(self, goal: NavigateToPoseGoal) -> Motion[Any, Any]:
         """Drive the goal's route; refused (ended at once) when the base does not stand where the
-        route was checked from: it would drive other legs than those safety approved."""
-        self._cmd_vel = None
+        route was checked from: it would drive other legs than those safety approved. A refused goal
+        leaves cmd_vel as it was, expiring at its time; a started one ends it."""
         if goal.start is not None and (reason := self._away_from(goal.start)):
             motion = Motion[NavigateToPoseFeedback, NavigateToPoseResult](self.world.sim_time)
             pose = self.world.robot.base_pose()
             motion.finish(GoalState.ABORTED, NavigateToPoseResult(pose=pose, message=reason), reason)
             return motion
-        return self._start(Navigation(self, goal))
+        self._cmd_vel = None
+        return self._start(Navigation.kind, lambda: Navigation(self, goal))
 
     def _away_from(self, start: Pose2D) -> str | None:
         here = self.world.robot.base_pose()
@@ -542,21 +544,24 @@ class Controllers:
             motion = Motion[FollowJointTrajectoryFeedback, FollowJointTrajectoryResult](self.world.sim_time)
             motion.finish(GoalState.ABORTED, FollowJointTrajectoryResult(error=0.0, message=reason), reason)
             return motion
-        return self._start(TrajectoryFollow(self, goal))
+        return self._start(TrajectoryFollow.kind, lambda: TrajectoryFollow(self, goal))
 
     def gripper(self, goal: GripperCommandGoal) -> GripperMotion:
-        return self._start(GripperMotion(self, goal))
+        return self._start(GripperMotion.kind, lambda: GripperMotion(self, goal))
 
     def cancel(
         self, motion: Motion[Any, Any], state: GoalState = GoalState.CANCELED, message: str = "canceled"
     ) -> None:
-        """End one goal early; the base stops and the arm holds where it is."""
+        """End one goal early; the base brakes to rest, the arm holds where it is, and the fingers hold
+        where they are (as ros2_control's gripper controller does on a cancel)."""
         if not isinstance(motion, GoalMotion) or not motion.running:
             return
         if isinstance(motion, Navigation):
             self.base.command(0.0, 0.0)
         if isinstance(motion, TrajectoryFollow):
             self.arm.hold()
+        if isinstance(motion, GripperMotion):
+            self.fingers.hold()
         motion.end(self, state, message)
 
     # Streams and limits
@@ -571,7 +576,8 @@ class Controllers:
 
     def set_speed_scale(self, scale: float, linear: float | None = None, angular: float | None = None) -> None:
         """Let the base and arm use `scale` (0..1) of their normal speed from the next step on; the
-        base at most `linear` m/s and `angular` rad/s when given (else its own maximum times the scale).
+        base at most its own maximum times the scale, and at most `linear` m/s and `angular` rad/s
+        when given (a limit given above the scaled one does not raise it).
 
         The base ramps down to the new limit at its normal deceleration; trajectories slow down in
         time along the same path; navigation's stall and deadline clocks slow down alike; goals keep
@@ -581,8 +587,8 @@ class Controllers:
         robot = self.world.spec.robot
         limits = []
         for given, own in ((linear, robot.max_linear_speed), (angular, robot.max_angular_speed)):
-            limit = own * self.speed_scale if given is None else min(own, given) if given >= 0.0 else 0.0
-            limits.append(limit)
+            scaled = own * self.speed_scale
+            limits.append(scaled if given is None else min(scaled, given) if given >= 0.0 else 0.0)
         self.base.limits = (limits[0], limits[1])
 
     def stop(self, reason: str) -> None:

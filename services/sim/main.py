@@ -8,7 +8,7 @@ from pathlib import Path
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
 from services.sim.config import SimConfig
 from services.sim.node import SimNode
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.worldmodel import load_world
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,7 @@ from services.runtime import Node
 from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import SETTLE_TIMEOUT, Drop, Motion
 
 log = logging.getLogger(__name__)
@@ -35,6 +35,10 @@ START_TIMEOUT = 5.0
 ANSWER_TIMEOUT = 2.0
 # A goal arriving while the e-stop shows latched waits this long for a newer heartbeat (a reset).
 RESET_GRACE = 0.1
+# A preempting goal waits this long for the running one to end. With the waits in accepting it
+# (RESET_GRACE, twice: before and after), send_goal answers well within safety's forward_timeout
+# (5 s), so safety never reports a forward failed that the sim then runs. docs/robot.md, Timing.
+PREEMPT_TIMEOUT = 2.0
 # If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
 MAX_LAG = 0.5
 
@@ -65,22 +69,23 @@ class SimNode:
         self._odom = node.publisher(keys.ODOM)
         self._objects = node.publisher(keys.OBJECTS)
         self._humans = node.publisher(keys.HUMANS)
-        # A new goal preempts the running one of its action, as Nav2's and ros2_control's servers do:
-        # the old goal ends (canceled) before the new one is accepted, so two never drive at once.
+        # A new goal preempts the running one of its action: the old goal ends (canceled, "preempted
+        # by goal <id>") before the new one is accepted, so two never drive at once. A ROS 2 backend
+        # does the same by canceling the old goal and waiting for its result before sending the new.
         self.servers: list[ActionServer[Any, Any, Any]] = [
             ActionServer(
-                node, keys.ROBOT_NAVIGATE, self._run_goal(Controllers.navigate), accept=self._accept, preempts=_always
-            ),
-            ActionServer(
                 node,
-                keys.ROBOT_TRAJECTORY,
-                self._run_goal(Controllers.follow_trajectory),
-                accept=self._accept_trajectory,
+                action,
+                self._run_goal(start),
+                accept=accept,
                 preempts=_always,
-            ),
-            ActionServer(
-                node, keys.ROBOT_GRIPPER, self._run_goal(Controllers.gripper), accept=self._accept, preempts=_always
-            ),
+                preempt_timeout=PREEMPT_TIMEOUT,
+            )
+            for action, start, accept in (
+                (keys.ROBOT_NAVIGATE, Controllers.navigate, self._accept),
+                (keys.ROBOT_TRAJECTORY, Controllers.follow_trajectory, self._accept_trajectory),
+                (keys.ROBOT_GRIPPER, Controllers.gripper, self._accept),
+            )
         ]
         node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
         node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
@@ -236,26 +241,58 @@ class SimNode:
         """An ActionServer execute callback: start the motion on the sim thread, relay feedback, wait."""
 
         def execute(handle: GoalHandle[Any, Any]) -> Outcome[Any]:
-            def begin(sim: Simulation) -> Motion[Any, Any] | str:
-                self._enforce_safety()  # as of the latest heartbeat, not the last step's
-                return self._blocked_reason or start(sim.controllers, handle.goal)
+            lock = threading.Lock()
+            abandoned = False  # set under `lock` when the wait for `begin` gives up
+            # What begin did: the motion it started, why it refused, or None when it did not start
+            # one because the goal was to stop first.
+            started: list[Motion[Any, Any] | str | None] = []
+            answered = threading.Event()
 
-            started = self._ask(begin, START_TIMEOUT)
-            if started is None:
-                return Outcome(GoalState.ABORTED, None, "the simulator did not start the goal")
-            if isinstance(started, str):
-                return Outcome(GoalState.ABORTED, None, started)
-            motion = started
+            def begin(sim: Simulation) -> None:
+                try:
+                    with lock:
+                        if abandoned:
+                            return  # its waiter gave up: started now, no cancel could reach it
+                        self._enforce_safety()  # as of the latest heartbeat, not the last step's
+                        if handle.should_stop:
+                            started.append(None)
+                        else:
+                            started.append(self._blocked_reason or start(sim.controllers, handle.goal))
+                finally:
+                    answered.set()
+
+            if handle.should_stop:
+                return self._ended_before_start(handle)
+            self.submit(begin)
+            answered.wait(START_TIMEOUT)
+            with lock:
+                if not started:
+                    abandoned = True
+                    return Outcome(GoalState.ABORTED, None, "the simulator did not start the goal")
+            motion = started[0]
+            if motion is None:
+                return self._ended_before_start(handle)
+            if isinstance(motion, str):
+                return Outcome(GoalState.ABORTED, None, motion)
             cancel_sent = False
-            while not motion.done.wait(FEEDBACK_PERIOD):
-                if motion.feedback is not None:
-                    handle.feedback(motion.feedback)
+            while True:
                 if handle.should_stop and not cancel_sent:
                     cancel_sent = True
                     self.submit(self._canceller(motion, handle.abort_reason))
+                if motion.done.wait(FEEDBACK_PERIOD):
+                    break
+                if motion.feedback is not None:
+                    handle.feedback(motion.feedback)
             return Outcome(motion.state, motion.result, motion.message)
 
         return execute
+
+    @staticmethod
+    def _ended_before_start(handle: GoalHandle[Any, Any]) -> Outcome[Any]:
+        """A goal canceled (or aborted) before it started: it never moved."""
+        if handle.abort_reason:
+            return Outcome(GoalState.ABORTED, None, handle.abort_reason)
+        return Outcome(GoalState.CANCELED, None, "canceled before it started")
 
     @staticmethod
     def _canceller(motion: Motion[Any, Any], abort_reason: str) -> Command:
@@ -296,7 +333,8 @@ class SimNode:
                     self._enforce_safety()
                     # Also while catching up: on a busy machine physics runs behind, but odometry
                     # and joint states must keep coming, or safety's watchdog sees a silent robot.
-                    self._publish(due, periods)
+                    # Not objects: each renders a camera frame (about 20 ms), slowing the catch-up.
+                    self._publish(due, periods, only=("odom", "joint_states"))
                 self._publish(due, periods)
                 next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
                 self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
@@ -316,11 +354,12 @@ class SimNode:
             except Exception:
                 log.exception("sim command failed")
 
-    def _publish(self, due: dict[str, float], periods: dict[str, float]) -> None:
+    def _publish(self, due: dict[str, float], periods: dict[str, float], only: tuple[str, ...] = ()) -> None:
+        """Publish what is due; only the reports named in `only`, when given."""
         now = time.monotonic()
         stamp = time.time()
         for name, period in periods.items():
-            if now < due[name]:
+            if now < due[name] or (only and name not in only):
                 continue
             # On the schedule, so a late wake-up does not stretch every later period; after a
             # stall longer than a period it starts afresh rather than publishing the backlog.

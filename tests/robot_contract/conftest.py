@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 import uuid
@@ -20,13 +21,33 @@ from schemas.safety import EstopState, SafetyStatus
 from schemas.world import PerceivedHumans, PerceivedObjects
 from services.errors import CallError
 from services.runtime import SERVICES, Node, NodeSettings
+from services.safety.config import SafetyConfig
 from services.sim.config import SimConfig
 from tests.sessions import free_ports
 from tests.watch import Watch
 from tether.supervisor import Supervisor
 
-HEARTBEAT_PERIOD = 0.02  # safety's 50 Hz
+HEARTBEAT_PERIOD = 1.0 / SafetyConfig().heartbeat_hz  # as often as safety beats by default
 STARTUP_TIMEOUT = 90.0
+
+
+@dataclass(frozen=True)
+class Lane:
+    """A straight stretch of the backend's world clear of walls and furniture, from where the robot
+    starts (or first stands when the suite begins), for the suite's goals to drive along."""
+
+    x: float  # where it begins (map frame, metres)
+    y: float
+    heading: float  # its direction (radians)
+    length: float  # metres
+
+    def along(self, x: float, y: float) -> float:
+        """How far along the lane the point (x, y) is."""
+        return (x - self.x) * math.cos(self.heading) + (y - self.y) * math.sin(self.heading)
+
+    def point(self, s: float) -> tuple[float, float]:
+        """The point `s` metres along the lane."""
+        return self.x + s * math.cos(self.heading), self.y + s * math.sin(self.heading)
 
 
 @dataclass(frozen=True)
@@ -46,6 +67,7 @@ class Backend:
     joint_states_hz: float
     objects_hz: float
     humans_hz: float
+    lane: Lane
     robot: str | None = None  # the robot's name; None: a fresh one per run, so runs never share keys
 
 
@@ -68,6 +90,8 @@ def sim_backend(config: SimConfig) -> Backend:
         joint_states_hz=config.joint_states_hz,
         objects_hz=config.objects_hz,
         humans_hz=config.humans_hz,
+        # The household's corridor from the start pose (6.0, 1.2) east.
+        lane=Lane(x=6.0, y=1.2, heading=0.0, length=4.0),
     )
 
 
@@ -81,7 +105,7 @@ class PlayedSafety:
     """The test in safety's place: the only writer of the heartbeat and of robot/**.
 
     The heartbeat goes out every HEARTBEAT_PERIOD, carrying whatever `set` last said; `silence`
-    stops it as a crashed safety would.
+    stops it as a crashed safety would. Times are wall (Unix) seconds, as the robot's stamps are.
     """
 
     def __init__(self, node: Node, *, beating: bool = True) -> None:
@@ -90,7 +114,9 @@ class PlayedSafety:
         self._state: dict[str, Any] = {"beating": beating, "latched": False, "speed_scale": 1.0}
         self._limits: dict[str, float | None] = {"max_linear_speed": None, "max_angular_speed": None}
         self.sent = 0
-        self.last_sent = 0.0
+        self.last_sent = 0.0  # the stamp of the latest heartbeat
+        self.applied = 0.0  # the stamp of the first heartbeat carrying what `set` last said
+        self._fresh = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="played-safety", daemon=True)
         self._thread.start()
@@ -111,7 +137,9 @@ class PlayedSafety:
                 )
                 self._node.publish(keys.HEARTBEAT, status)
                 self.sent += 1
-                self.last_sent = time.monotonic()
+                self.last_sent = status.stamp
+                if self._fresh:
+                    self.applied, self._fresh = status.stamp, False
                 self._changed.notify_all()
 
     def set(
@@ -127,9 +155,10 @@ class PlayedSafety:
         with self._changed:
             self._state = {"beating": beating, "latched": latched, "speed_scale": speed_scale}
             self._limits = {"max_linear_speed": max_linear_speed, "max_angular_speed": max_angular_speed}
+            self._fresh = True
 
     def silence(self) -> float:
-        """Stop the heartbeat; when the last one went out (monotonic seconds)."""
+        """Stop the heartbeat; the stamp of the last one that went out."""
         with self._changed:
             self._state = {**self._state, "beating": False}
             return self.last_sent

@@ -32,6 +32,9 @@ class Script:
     """How the served goals behave: each blocks until released or canceled (unless it ignores cancel)."""
 
     ignore_cancel: bool = False
+    # When set, a goal told to stop makes the server refuse new goals with this (an e-stop latching).
+    refuse_once_stopped: str = ""
+    refusal: str | None = None
     release: threading.Event = field(default_factory=threading.Event)
     started: list[str] = field(default_factory=list)
     ended: list[str] = field(default_factory=list)
@@ -50,6 +53,7 @@ class Script:
         try:
             while not self.release.wait(0.01):
                 if handle.should_stop and not self.ignore_cancel:
+                    self.refusal = self.refuse_once_stopped or None
                     return Outcome(GoalState.CANCELED, None, "stopped")
             return Outcome(GoalState.SUCCEEDED, NavigateToPoseResult(pose=HERE), "arrived")
         finally:
@@ -74,6 +78,7 @@ def rig() -> Iterator[Rig]:
             server_node,
             keys.ROBOT_NAVIGATE,
             script.execute,
+            accept=lambda _goal: script.refusal,
             preempts=lambda goal: goal.max_speed == PREEMPTS,
             preempt_timeout=1.0,
             concurrent=lambda goal: goal.max_turn_rate == MOVES_NOTHING,
@@ -114,6 +119,15 @@ def test_a_second_goal_is_rejected_while_one_runs_unless_it_preempts(rig: Rig) -
     rig.script.release.set()
     assert second.result(WAIT).state is GoalState.SUCCEEDED
     assert rig.script.started == [first.goal_id, second.goal_id]
+
+
+def test_a_preempting_goal_is_checked_again_once_the_old_one_ended(rig: Rig) -> None:
+    rig.script.refuse_once_stopped = "e-stop latched by test"
+    rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+    with pytest.raises(GoalRejected, match="e-stop latched by test"):
+        rig.client.send(NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS), timeout=WAIT)
+    assert len(rig.script.started) == 1
 
 
 def test_a_goal_that_will_not_stop_keeps_a_preempting_one_out(rig: Rig) -> None:

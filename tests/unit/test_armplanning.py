@@ -44,7 +44,7 @@ from services.executor.navigation import BasePlanner
 from services.robotmodel import ArmModel, arm_to_world
 from services.safety.policy import SafetyPolicy
 from services.safety.policyfile import load_policy
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import FINGER_LINKS
 from services.worldmodel import WorldModel, load_world
 

@@ -17,7 +17,7 @@ from schemas.world import Moved, MoveEntity, PerceivedObject
 from services.executor.navigation import BasePlanner
 from services.runtime import ConfigError, load_config
 from services.sim.config import CameraConfig, SimConfig
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import Drop
 from services.worldmodel import WorldModel, load_world
 

@@ -20,7 +20,7 @@ from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
 from services.resolver.resolver import Resolver
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import Motion
 from services.worldmodel import WorldModel, load_world
 

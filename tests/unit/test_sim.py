@@ -34,7 +34,7 @@ from services.robotmodel import world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
@@ -144,7 +144,7 @@ def test_a_goal_preempting_a_moving_base_brakes_first_and_drives_from_where_it_s
     assert sim.robot.base_speed() > 0.5
     goal = Pose2D(x=sim.robot.base_pose().x + 1.0, y=1.2, yaw=0.0)
     second = sim.run(sim.controllers.navigate(NavigateToPoseGoal(pose=goal)), timeout=30.0)
-    assert first.state is GoalState.ABORTED and "preempted" in first.message
+    assert first.state is GoalState.CANCELED and "preempted" in first.message
     assert second.state is GoalState.SUCCEEDED, second.message
     here = sim.robot.base_pose()
     assert math.hypot(here.x - goal.x, here.y - goal.y) < 0.05
@@ -159,6 +159,38 @@ def test_stop_holds_the_fingers_where_they_are(sim: Simulation) -> None:
     assert closing.state is GoalState.ABORTED
     sim.settle(0.5)
     assert sim.robot.gripper_gap() == pytest.approx(gap, abs=0.003)
+
+
+def test_canceling_a_gripper_goal_holds_the_fingers_where_they_are(sim: Simulation) -> None:
+    closing = sim.controllers.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.1)
+    sim.controllers.cancel(closing)
+    gap = sim.robot.gripper_gap()
+    assert 0.01 < gap < 0.07 and closing.state is GoalState.CANCELED
+    sim.settle(0.5)
+    assert sim.robot.gripper_gap() == pytest.approx(gap, abs=0.003)
+
+
+def test_a_gripper_goal_preempting_a_closing_one_reaches_its_own_gap(sim: Simulation) -> None:
+    closing = sim.controllers.gripper(GripperCommandGoal(position=0.0))
+    sim.settle(0.05)
+    opening = sim.run(sim.controllers.gripper(GripperCommandGoal(position=0.08)), timeout=5.0)
+    assert closing.state is GoalState.CANCELED and "preempted" in closing.message
+    assert opening.state is GoalState.SUCCEEDED and opening.result is not None
+    assert opening.result.reached_goal, opening.result
+
+
+def test_a_refused_navigation_leaves_cmd_vel_to_expire(sim: Simulation) -> None:
+    # Safety fills `start` from odometry; while cmd_vel turns the base it is soon elsewhere.
+    assert sim.controllers.set_cmd_vel(Twist(angular_z=0.8), hold_for=0.5)
+    start = sim.robot.base_pose()
+    sim.settle(0.3)
+    refused = sim.controllers.navigate(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2, yaw=0.0), start=start))
+    assert refused.state is GoalState.ABORTED and "checked from" in refused.message
+    sim.settle(0.2 + 1.0)  # past the hold, and braking from 0.8 rad/s
+    assert sim.robot.base_speed() < 0.01
+    _, angular = sim.robot.base_velocity()
+    assert abs(angular) < 0.01, angular
 
 
 def test_cmd_vel_drives_and_expires(sim: Simulation) -> None:
@@ -182,6 +214,14 @@ def test_cmd_vel_is_limited_by_the_speed_scale(sim: Simulation) -> None:
     linear, angular = sim.robot.base_velocity()
     assert linear == pytest.approx(0.5 * robot.max_linear_speed, abs=0.01)
     assert angular == pytest.approx(0.5 * robot.max_angular_speed, abs=0.02)
+
+
+def test_the_heartbeats_limits_never_raise_the_scaled_ones(sim: Simulation) -> None:
+    robot = sim.world.robot
+    sim.controllers.set_speed_scale(0.5, linear=robot.max_linear_speed, angular=10.0)
+    assert sim.controllers.base.limits == (0.5 * robot.max_linear_speed, 0.5 * robot.max_angular_speed)
+    sim.controllers.set_speed_scale(0.5, linear=0.1, angular=0.2)
+    assert sim.controllers.base.limits == (0.1, 0.2)
 
 
 # Two metres straight ahead of the start pose, with nothing in the way.

@@ -7,6 +7,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import pytest
 
@@ -16,13 +17,15 @@ from schemas.common import ErrorKind, Pose2D, ServiceError
 from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import Empty, Moved, MoveEntity
-from services.actionlib import ActionClient
+from services.actionlib import ActionClient, GoalHandle, Outcome
 from services.errors import GoalRejected
 from services.runtime import Node, NodeSettings
+from services.safety.config import SafetyConfig
+from services.sim import node as sim_node_module
 from services.sim.config import SimConfig
-from services.sim.controllers import STALL_TIME
-from services.sim.node import SimNode
-from services.sim.physics import Simulation
+from services.sim.controllers import STALL_TIME, Controllers
+from services.sim.node import PREEMPT_TIMEOUT, RESET_GRACE, SimNode
+from services.sim.simulation import Simulation
 from services.worldmodel import load_world
 from tests.sessions import free_port
 from tests.watch import Watch
@@ -131,6 +134,56 @@ def test_losing_the_heartbeat_stops_the_base_and_aborts_the_goal(rig: Rig) -> No
         truth = rig.client.call(keys.GROUND_TRUTH, Empty())
     assert truth.linear_speed < 0.01
     assert truth.sim_time - aborted.sim_time <= 0.1
+
+
+def test_send_goal_answers_well_within_safetys_forward_timeout(rig: Rig) -> None:
+    # Else safety may report a forward failed that the sim then runs (docs/robot.md, Timing).
+    forward_timeout = SafetyConfig().forward_timeout
+    assert all(server._preempt_timeout == PREEMPT_TIMEOUT for server in rig.sim_node.servers)
+    assert 0.5 * forward_timeout > PREEMPT_TIMEOUT + 2 * RESET_GRACE
+    assert SimConfig().first_heartbeat_wait + RESET_GRACE < forward_timeout
+
+
+def hold_the_sim_thread(rig: Rig) -> threading.Event:
+    """Keep the sim thread busy until the returned event is set (as a long stall would)."""
+    release = threading.Event()
+    rig.sim_node.submit(lambda _sim: release.wait(10.0) and None)
+    return release
+
+
+def running_motions(rig: Rig) -> list[str]:
+    kinds = rig.sim_node._ask(lambda sim: list(sim.controllers.motions), 5.0)
+    assert kinds is not None, "the sim thread did not answer"
+    return kinds
+
+
+def handle_for(goal: NavigateToPoseGoal) -> GoalHandle[NavigateToPoseGoal, object]:
+    return GoalHandle(uuid.uuid4().hex, goal, lambda _goal_id, _feedback: None)
+
+
+def test_a_goal_the_sim_did_not_start_in_time_never_starts_later(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
+    wait_for_heartbeat(rig)
+    monkeypatch.setattr(sim_node_module, "START_TIMEOUT", 0.2)
+    release = hold_the_sim_thread(rig)
+    outcome = rig.sim_node._run_goal(Controllers.navigate)(handle_for(FAR))
+    assert outcome.state is GoalState.ABORTED and "did not start" in outcome.message
+    release.set()
+    assert running_motions(rig) == [], "the abandoned goal started, out of reach of any cancel"
+
+
+def test_a_goal_canceled_before_the_sim_starts_it_never_moves(rig: Rig) -> None:
+    wait_for_heartbeat(rig)
+    release = hold_the_sim_thread(rig)
+    handle = handle_for(FAR)
+    outcomes: list[Outcome[Any]] = []
+    runner = threading.Thread(target=lambda: outcomes.append(rig.sim_node._run_goal(Controllers.navigate)(handle)))
+    runner.start()
+    handle.cancel_requested.set()
+    release.set()
+    runner.join(10.0)
+    assert outcomes and outcomes[0].state is GoalState.CANCELED, outcomes
+    assert outcomes[0].message == "canceled before it started"
+    assert running_motions(rig) == []
 
 
 def test_a_latched_estop_rejects_goals_naming_who_and_why(rig: Rig) -> None:

@@ -8,7 +8,7 @@ import pytest
 
 from schemas.common import ErrorKind, ServiceError, Vec3
 from schemas.world import Moved, MoveEntity
-from services.sim.physics import Simulation
+from services.sim.simulation import Simulation
 from services.sim.world import Drop
 from services.worldmodel import load_world
 
