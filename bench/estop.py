@@ -1,7 +1,8 @@
 """E-stop to a measured standstill: from an operator's e-stop on `safety/estop` to zero velocity of base and arm.
 
-    python -m bench.estop --json        one JSON object on stdout, progress on stderr
-    python -m bench.estop               a short table
+    python -m bench.estop --json                  one JSON object on stdout, progress on stderr
+    python -m bench.estop                         a short table
+    python -m bench.estop --backend ros2 --json   the same, through the ros2 backend to the stand-in robot
 
 Measured, in each trial: the base is driven with cmd_vel on `cmd/cmd_vel` (through safety, 20 Hz,
 0.3 m/s, forwards and backwards in turn so it stays in the room) while the arm follows a trajectory
@@ -14,9 +15,20 @@ goes on until then, as a joystick's would. Then the operator resets the e-stop w
 `tether reset` does, and the next trial waits for a heartbeat showing the latch clear.
 
 The sim and safety are real processes started by the Supervisor on their own robot name and ports;
-the sim runs at real time and reports odometry and joint states at 500 Hz, so a halt is resolved to
-about 2 ms. Baseline from the same run: `heartbeat_period_ms`, safety's beat period as heard here
-(median gap between heartbeat arrivals): the sim hears an e-stop at the latest with the next beat.
+the sim runs at real time and is asked for odometry and joint states at 500 Hz, but reports at most
+once a physics step (240 Hz), so a halt is resolved to about 4 ms. Baseline from the same run:
+`heartbeat_period_ms`, safety's beat period as heard here (median gap between heartbeat arrivals):
+the sim hears an e-stop at the latest with the next beat.
+
+With `--backend ros2` (default `sim`; the JSON's `backend` says which ran), the ros2 backend and the
+stand-in ROS 2 robot (ros2sim: the same sim, as configured above, behind a ROS 2 face on rmw_zenoh
+keys, on a loopback Zenoh network of their own) run in the sim's place: the backend hears the latched
+beat, aborts the trajectory (canceling the robot's FollowJointTrajectory goal) and publishes
+`emergency_stop` true and a zero cmd_vel to the robot. The halt is measured in the same way, on
+odometry and joint states as the backend publishes them on tether's side, by the stand-in's stamps;
+the backend's rate limits (`[ros2] odom_hz`, `joint_states_hz`) are raised to 1 kHz so it passes all
+of them on. Unlike the sim, the stand-in also renders its camera picture (`[ros2sim] camera_hz`, 1 Hz)
+on its sim thread, and neither reports nor hears anything while it does. The goal is the same.
 """
 
 from __future__ import annotations
@@ -31,6 +43,7 @@ from bench.service import (
     Heartbeats,
     RobotMotion,
     Stack,
+    add_backend_argument,
     bench_main,
     bounded,
     drive,
@@ -54,6 +67,8 @@ from services.errors import CallError
 PROG = "bench.estop"
 GOALS = {"goal_p99_ms": 50.0}
 SIM = {"realtime_factor": 1.0, "odom_hz": 500.0, "joint_states_hz": 500.0}
+# With --backend ros2: the backend's rate limits above the stand-in's rates, so it passes every report on.
+ROS2 = {"odom_hz": 1000.0, "joint_states_hz": 1000.0}
 SPEED = 0.3  # m/s, base
 SWING = 0.8  # rad, panda_joint1
 SWING_TIME = 2.0  # s
@@ -80,13 +95,25 @@ def swing_arm(stack: Stack, state: RobotMotion, direction: float) -> str:
     return request.goal_id
 
 
+def arm_goal_ended(stack: Stack, goal_id: str) -> str:
+    """How the arm's trajectory ended, if it has: why the arm did not move; "" while it runs."""
+    try:
+        reply = stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=0.5)
+    except CallError:
+        return ""
+    return f" (the arm's trajectory ended {reply.state.value}: {reply.message or 'no reason given'})"
+
+
 def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: list[float]) -> float:
     """One e-stop of the moving robot; ms to the halt. Appends to `heard` the ms to the latched beat."""
     direction = 1.0 if i % 2 == 0 else -1.0
     estop = EStop(source=EstopSource.OPERATOR, reason=f"{PROG} trial {i + 1}")
     with drive(stack.node, direction * SPEED):
         goal_id = swing_arm(stack, state, direction)
-        wait_until(state.moving, MOVE_TIMEOUT, "the base and the arm moving")
+        try:
+            wait_until(state.moving, MOVE_TIMEOUT, "the base and the arm moving")
+        except BenchError as exc:
+            raise BenchError(f"{exc}{arm_goal_ended(stack, goal_id)}") from None
         halt = state.halt_ms(lambda: stack.node.publish(keys.ESTOP, estop), HALT_TIMEOUT)
     beats.wait(lambda beat: beat.estop.latched, HALT_TIMEOUT, "a latched heartbeat", after=state.t0)
     latched_ms = beats.latched_after(state.t0)
@@ -98,8 +125,8 @@ def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: li
     return halt
 
 
-def bench(trials: int) -> dict[str, Any]:
-    with robot_ready("estop", progress, SIM, arm=True) as (stack, state, beats):
+def bench(trials: int, backend: str) -> dict[str, Any]:
+    with robot_ready("estop", progress, SIM, arm=True, backend=backend, ros2=ROS2) as (stack, state, beats):
         heard: list[float] = []
         halts = halt_trials(trials, lambda i: trial(stack, state, beats, i, heard), progress, "the e-stop")
         period = beats.period_ms()
@@ -121,16 +148,24 @@ def bench(trials: int) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    defaults: dict[str, Any] = {"halt_p50_ms": None, "halt_p99_ms": None, "halt_max_ms": None, "trials": 0, **GOALS}
-    result = measured(defaults, lambda: bench(args.trials), progress)
+    defaults: dict[str, Any] = {
+        "backend": args.backend,
+        "halt_p50_ms": None,
+        "halt_p99_ms": None,
+        "halt_max_ms": None,
+        "trials": 0,
+        **GOALS,
+    }
+    result = measured(defaults, lambda: bench(args.trials, args.backend), progress)
     result["notes"] = notes(
         trial="base on a 20 Hz cmd_vel stream at 0.3 m/s and panda_joint1 on a 0.8 rad / 2 s trajectory; "
         "e-stop once both move faster than 0.1; halt at the first odometry and joint states sample with "
-        "everything below 0.01 (m/s, rad/s), by the sim's stamps",
+        "everything below 0.01 (m/s, rad/s), by the robot's stamps",
         baseline="heartbeat_period_ms: median gap between safety heartbeats arriving here",
         ratio_p50="halt_p50_ms / heartbeat_period_ms",
         latch_heard="ms from t0 to the first heartbeat showing the latch arriving here: safety's part of the halt",
         sim=SIM,
+        **({"ros2": ROS2} if args.backend == "ros2" else {}),
     )
     return result
 
@@ -145,13 +180,15 @@ def print_table(result: dict[str, Any]) -> None:
         ("latched beat heard p50 / max ms", pair("latch_heard_p50_ms", "latch_heard_max_ms"), ""),
         ("heartbeat period ms (baseline)", show(result.get("heartbeat_period_ms")), ""),
     ]
-    print_rows(f"e-stop to standstill ({result['trials']} trials)", rows, result["errors"])
+    title = f"e-stop to standstill, {result['backend']} ({result['trials']} trials)"
+    print_rows(title, rows, result["errors"])
     if result.get("halts_ms"):
         print(f"halts ms: {statistics.median(result['halts_ms']):.1f} median of {result['halts_ms']}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trials", type=bounded(int, 1, 1000), default=20, help="e-stops (at least 20 for a p99)")
+    add_backend_argument(parser)
 
 
 def main(argv: list[str] | None = None) -> None:

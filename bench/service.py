@@ -2,14 +2,16 @@
 
 Services are started with TETHER_BENCH_ECHO=1 (services.runtime.BENCH_ECHO_ENV), so the same process
 and session also answer the bare Zenoh echo of `bench.transport`: the baseline each query is compared
-with, interleaved with it. Safety is also started with TETHER_BENCH_RELAY=sim: a bare relay of raw
-queries (to the sim's echo) and of a raw topic, the baseline for commands passing through safety.
+with, interleaved with it. Safety is also started with TETHER_BENCH_RELAY=sim (the robot's backend):
+a bare relay of raw queries (to its echo) and of a raw topic, the baseline for commands passing
+through safety.
 
-Also here, shared by the benches of the robot path (gate, estop, watchdog, stream): the sim and
-safety started with a config file and an operator token of their own (`running_robot`), the robot's
-state as the sim reports it with the moment it comes to a halt (`RobotMotion`), safety's heartbeat
-(`Heartbeats`), a slow cmd_vel stream that keeps the base moving (`drive`), the operator's reset,
-and the command line every bench shares.
+Also here, shared by the benches of the robot path (gate, estop, watchdog, stream): the robot and
+safety started with a config file and an operator token of their own (`running_robot`; the robot is
+the sim, or with `--backend ros2` the ros2 backend driving the stand-in ROS 2 robot on a Zenoh
+network of their own, `standin_tables`), the robot's state as its backend reports it with the moment
+it comes to a halt (`RobotMotion`), safety's heartbeat (`Heartbeats`), a slow cmd_vel stream that
+keeps the base moving (`drive`), the operator's reset, and the command line every bench shares.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from schemas.keys import Topic
 from schemas.robot import ARM_JOINTS, JointState, Odometry, Twist
 from schemas.safety import SafetyStatus
 from services import runtime
-from services.runtime import Node, NodeSettings
+from services.runtime import ALL_SERVICES, ROBOT_BACKENDS, Node, NodeSettings
 from tether.supervisor import Supervisor, free_base_port
 
 T = TypeVar("T")
@@ -52,6 +54,9 @@ MAX_N = 20_000
 STILL = 0.01
 MOVING = 0.1
 TOKEN_ENV = "TETHER_OPERATOR_TOKEN_FILE"
+# `--backend` of the robot path's benches -> the robot's services (runtime.ROBOT_BACKENDS): the sim, or
+# the ros2 backend with the stand-in robot (the sim behind a ROS 2 face) in the sim's place.
+BACKENDS = {"sim": "sim", "ros2": "ros2-standin"}
 
 
 class BenchError(Exception):
@@ -160,26 +165,47 @@ def running_service(service: str, settings: NodeSettings, log_dir: Path, progres
         yield stack.node
 
 
+def robot_endpoint(settings: NodeSettings) -> str:
+    """A free loopback Zenoh endpoint for a ROS 2 robot's own network, none of the stack's ports."""
+    stack_ports = range(settings.base_port, settings.base_port + len(ALL_SERVICES))
+    while (port := free_base_port(1)) in stack_ports:
+        pass
+    return f"tcp/{settings.host}:{port}"
+
+
+def standin_tables(endpoint: str, ros2: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """`[ros2]` (with the entries of `ros2`) and `[ros2sim]` of the ros2 backend and the stand-in robot
+    meeting on the robot's network at `endpoint`; the stand-in's world, pace and report rates are `[sim]`'s."""
+    return {"ros2": {"endpoint": endpoint, **(ros2 or {})}, "ros2sim": {"listen": endpoint}}
+
+
 @contextlib.contextmanager
-def running_robot(bench: str, progress: Progress, sim: dict[str, Any]) -> Iterator[Stack]:
-    """The sim (`[sim]` table `sim`) and safety, with the bench echo in both and safety's bare relay
-    to the sim: the operator token, e-stop state file, config and logs in a temporary directory."""
+def running_robot(
+    bench: str, progress: Progress, sim: dict[str, Any], *, backend: str = "sim", ros2: dict[str, Any] | None = None
+) -> Iterator[Stack]:
+    """The robot of `backend` (a BACKENDS key) and safety, with the bench echo in each and safety's
+    bare relay to the robot's backend: the sim (`[sim]` table `sim`), or the ros2 backend (`[ros2]`
+    with `ros2`) and the stand-in robot (the same `[sim]`). The operator token, e-stop state file,
+    config and logs in a temporary directory."""
     settings = bench_settings(bench)
+    robot = ROBOT_BACKENDS[BACKENDS[backend]]
     with tempfile.TemporaryDirectory(prefix=f"bench-{bench}-") as tmp:
         token = Path(tmp) / "operator-token"
         config = {
             "sim": sim,
             "safety": {"operator_token_file": str(token), "estop_state_file": str(Path(tmp) / "estop-state.json")},
         }
-        progress(f"starting sim and safety (robot {settings.robot}, base port {settings.base_port})")
+        if "ros2" in robot:
+            config |= standin_tables(robot_endpoint(settings), ros2)
+        progress(f"starting {', '.join(robot)} and safety (robot {settings.robot}, base port {settings.base_port})")
         with running_stack(
-            ("sim", "safety"),
+            (*robot, "safety"),
             settings,
             Path(tmp),
             progress,
             config=config,
             env={TOKEN_ENV: str(token)},
-            service_env={"safety": {runtime.BENCH_RELAY_ENV: "sim"}},
+            service_env={"safety": {runtime.BENCH_RELAY_ENV: robot[0]}},
         ) as stack:
             stack.token_file = token
             yield stack
@@ -301,9 +327,9 @@ class _Halt:
 
 
 class RobotMotion:
-    """Odometry (and joint states with `arm`) as the sim publishes them, and halts measured on them.
+    """Odometry (and joint states with `arm`) as the robot's backend publishes them, and halts measured on them.
 
-    A halt is the first sample, by the sim's own `stamp` (wall time), after which the base's
+    A halt is the first sample, by its `stamp` (the robot's wall clock), after which the base's
     |linear_x| and |angular_z| (and, with `arm`, every arm joint's |velocity|) are below STILL in the
     latest sample of each topic.
     """
@@ -337,8 +363,8 @@ class RobotMotion:
         return "joints" not in self._watched or (joints is not None and arm_speed(joints) > MOVING)
 
     def wait_ready(self, timeout: float) -> None:
-        wait_until(lambda: self.odom.message is not None, timeout, "odometry from the sim")
-        wait_until(lambda: self.joints.message is not None, timeout, "joint states from the sim")
+        wait_until(lambda: self.odom.message is not None, timeout, "odometry from the robot")
+        wait_until(lambda: self.joints.message is not None, timeout, "joint states from the robot")
 
     def halt_ms(self, trigger: Callable[[], None], timeout: float) -> float:
         """ms from t0, taken just before `trigger()` (which must stop the robot), to the halt."""
@@ -376,10 +402,16 @@ def drive(node: Node, linear_x: float, hz: float = 20.0) -> Iterator[None]:
 
 @contextlib.contextmanager
 def robot_ready(
-    bench: str, progress: Progress, sim: dict[str, Any], *, arm: bool
+    bench: str,
+    progress: Progress,
+    sim: dict[str, Any],
+    *,
+    arm: bool,
+    backend: str = "sim",
+    ros2: dict[str, Any] | None = None,
 ) -> Iterator[tuple[Stack, RobotMotion, Heartbeats]]:
-    """`running_robot`, once the sim reports its state and safety beats with the e-stop clear."""
-    with running_robot(bench, progress, sim) as stack:
+    """`running_robot`, once the robot reports its state and safety beats with the e-stop clear."""
+    with running_robot(bench, progress, sim, backend=backend, ros2=ros2) as stack:
         state = RobotMotion(stack.node, arm=arm)
         beats = Heartbeats(stack.node)
         state.wait_ready(10.0)
@@ -466,6 +498,16 @@ def bounded(kind: Callable[[str], N], low: N, high: N, *, open_low: bool = False
         return value
 
     return parse
+
+
+def add_backend_argument(parser: argparse.ArgumentParser) -> None:
+    """`--backend`, for the benches of the robot path."""
+    parser.add_argument(
+        "--backend",
+        choices=tuple(BACKENDS),
+        default="sim",
+        help="the robot: the sim, or the ros2 backend driving the stand-in ROS 2 robot (the sim behind a ROS 2 face)",
+    )
 
 
 def bench_main(

@@ -1,7 +1,8 @@
-"""Safety killed to a measured standstill: the sim's heartbeat watchdog stopping the base when safety dies.
+"""Safety killed to a measured standstill: the robot's heartbeat watchdog stopping the base when safety dies.
 
-    python -m bench.watchdog --json        one JSON object on stdout, progress on stderr
-    python -m bench.watchdog               a short table
+    python -m bench.watchdog --json                  one JSON object on stdout, progress on stderr
+    python -m bench.watchdog                         a short table
+    python -m bench.watchdog --backend ros2 --json   the same, with the ros2 backend and the stand-in robot
 
 Measured, in each trial: the base is driven with cmd_vel on `cmd/cmd_vel` (through safety, 20 Hz,
 0.3 m/s, forwards and backwards in turn so it stays in the room). Once odometry shows
@@ -13,9 +14,20 @@ liveliness token and a heartbeat from it (a restarted safety reads its e-stop st
 bench latches nothing, so it resumes, and a latch it did find is reset with the operator token).
 
 The sim and safety are real processes started by the Supervisor on their own robot name and ports;
-the sim runs at real time and reports odometry at 500 Hz, so a halt is resolved to about 2 ms. The
-figure to compare with is `timeout_ms`, the sim's heartbeat_timeout (from the config this bench
-wrote): a halt cannot come before the last beat is that old.
+the sim runs at real time and is asked for odometry at 500 Hz, but reports at most once a physics
+step (240 Hz), so a halt is resolved to about 4 ms. The figure to compare with is `timeout_ms`, the
+sim's heartbeat_timeout (from the config this bench wrote): a halt cannot come before the last beat
+is that old.
+
+With `--backend ros2` (default `sim`; the JSON's `backend` says which ran), the ros2 backend and the
+stand-in ROS 2 robot (ros2sim: the same sim, as configured above, behind a ROS 2 face on rmw_zenoh
+keys, on a loopback Zenoh network of their own) run in the sim's place. The stand-in knows nothing of
+safety: the backend's heartbeat watch stops it, publishing `emergency_stop` true and a zero cmd_vel
+once the last beat is `[ros2] heartbeat_timeout` old, and that is `timeout_ms`. The halt is measured
+in the same way, on odometry as the backend publishes it on tether's side, by the stand-in's stamps;
+the backend's rate limit (`[ros2] odom_hz`) is raised to 1 kHz so it passes all of them on. Unlike
+the sim, the stand-in also renders its camera picture (`[ros2sim] camera_hz`, 1 Hz) on its sim
+thread, and neither reports nor hears anything while it does. The goal is the same.
 """
 
 from __future__ import annotations
@@ -30,6 +42,7 @@ from bench.service import (
     Heartbeats,
     RobotMotion,
     Stack,
+    add_backend_argument,
     bench_main,
     bounded,
     drive,
@@ -43,12 +56,15 @@ from bench.service import (
     show,
     wait_until,
 )
+from services.ros2.config import Ros2Config
 from services.runtime import load_config
 from services.sim.config import SimConfig
 
 PROG = "bench.watchdog"
 GOALS = {"goal_ms": 250.0}
 SIM = {"realtime_factor": 1.0, "odom_hz": 500.0}
+# With --backend ros2: the backend's rate limit above the stand-in's rate, so it passes every report on.
+ROS2 = {"odom_hz": 1000.0}
 SPEED = 0.3  # m/s
 MOVE_TIMEOUT = 10.0  # a restarted safety needs fresh odometry before it passes cmd_vel
 HALT_TIMEOUT = 3.0
@@ -69,10 +85,17 @@ def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int) -> float:
     return halt
 
 
-def bench(trials: int) -> dict[str, Any]:
-    with robot_ready("watchdog", progress, SIM, arm=False) as (stack, state, beats):
-        assert stack.config_file is not None
-        timeout = load_config(SimConfig, stack.config_file, "sim").heartbeat_timeout
+def heartbeat_timeout(stack: Stack, backend: str) -> float:
+    """The heartbeat_timeout of the service that watches the heartbeat, from the config this bench wrote."""
+    assert stack.config_file is not None
+    if backend == "ros2":
+        return load_config(Ros2Config, stack.config_file, "ros2").heartbeat_timeout
+    return load_config(SimConfig, stack.config_file, "sim").heartbeat_timeout
+
+
+def bench(trials: int, backend: str) -> dict[str, Any]:
+    with robot_ready("watchdog", progress, SIM, arm=False, backend=backend, ros2=ROS2) as (stack, state, beats):
+        timeout = heartbeat_timeout(stack, backend)
         halts = halt_trials(trials, lambda i: trial(stack, state, beats, i), progress, "the kill")
     return {
         "halt_ms": round(statistics.median(halts), 2),
@@ -87,6 +110,7 @@ def bench(trials: int) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     defaults: dict[str, Any] = {
+        "backend": args.backend,
         "halt_ms": None,
         "halt_max_ms": None,
         "halts_ms": [],
@@ -94,12 +118,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "trials": 0,
         **GOALS,
     }
-    result = measured(defaults, lambda: bench(args.trials), progress)
+    result = measured(defaults, lambda: bench(args.trials, args.backend), progress)
     result["notes"] = notes(
         trial="base on a 20 Hz cmd_vel stream at 0.3 m/s; SIGKILL of safety once odometry shows > 0.1 m/s; "
-        "halt at the first odometry sample below 0.01 m/s and rad/s, by the sim's stamp",
-        baseline="timeout_ms: the sim's heartbeat_timeout; ratio: halt_ms / timeout_ms",
+        "halt at the first odometry sample below 0.01 m/s and rad/s, by the robot's stamp",
+        baseline=f"timeout_ms: the {args.backend} backend's heartbeat_timeout; ratio: halt_ms / timeout_ms",
         sim=SIM,
+        **({"ros2": ROS2} if args.backend == "ros2" else {}),
     )
     return result
 
@@ -110,11 +135,13 @@ def print_table(result: dict[str, Any]) -> None:
         ("halt max ms", show(result["halt_max_ms"]), f"<= {show(GOALS['goal_ms'])}"),
         ("heartbeat timeout ms (baseline)", show(result["timeout_ms"]), ""),
     ]
-    print_rows(f"safety killed to standstill ({result['trials']} trials)", rows, result["errors"])
+    title = f"safety killed to standstill, {result['backend']} ({result['trials']} trials)"
+    print_rows(title, rows, result["errors"])
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trials", type=bounded(int, 1, 100), default=5, help="kills of the safety process")
+    add_backend_argument(parser)
 
 
 def main(argv: list[str] | None = None) -> None:

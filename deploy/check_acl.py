@@ -3,14 +3,18 @@
     python deploy/check_acl.py      exits 0 and prints one line per check, or fails on the first wrong one
 
 Everything is in one process on a free loopback port; ordering, not sleeping, decides what was dropped:
-a denied put is followed by an allowed marker from the same client on the same link, so once the
-marker arrives, the denied put would have too.
+a denied put or declaration is followed by an allowed marker put from the same client on the same link,
+so once the marker arrives, the router has handled what came before it. Puts and queries travel in
+order at data priority; declarations go at control priority, so they cannot fall behind the marker.
+zenoh-python runs each subscriber's callbacks on its own thread, so a put and its marker are watched
+by one subscriber.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import queue
 import socket
 import tempfile
@@ -22,7 +26,16 @@ import zenoh
 
 HERE = Path(__file__).resolve().parent
 ROBOT = "tether/r1"
-USERS = {"safety": "pw-safety", "sim": "pw-sim", "executor": "pw-executor", "operator": "pw-operator"}
+USERS = {
+    "safety": "pw-safety",
+    "sim": "pw-sim",
+    "ros2": "pw-ros2",
+    "ros2sim": "pw-ros2sim",
+    "executor": "pw-executor",
+    "planner": "pw-planner",
+    "operator": "pw-operator",
+}
+MARKER = f"{ROBOT}/plan/marker"
 DEADLINE = 10.0
 
 
@@ -53,31 +66,59 @@ def check(what: str, ok: bool) -> None:
         raise SystemExit(1)
 
 
+Seen = queue.Queue[tuple[str, bytes]]
+
+
+def until_marker(seen: Seen, writer: zenoh.Session) -> list[tuple[str, bytes]]:
+    """Put markers from `writer` until `seen` shows one; return the (key, payload) seen before it.
+
+    The marker is repeated because the router may not know the reader's subscription yet; each one
+    was put after everything `writer` sent before, so any one arriving is enough.
+    """
+    nonce = os.urandom(8)
+    before: list[tuple[str, bytes]] = []
+    deadline = time.monotonic() + DEADLINE
+    while time.monotonic() < deadline:
+        writer.put(MARKER, nonce)
+        with contextlib.suppress(queue.Empty):
+            end = time.monotonic() + 0.05
+            while (left := end - time.monotonic()) > 0:
+                key, payload = seen.get(timeout=left)
+                if (key, payload) == (MARKER, nonce):
+                    return before
+                before.append((key, payload))
+    raise SystemExit("the reader never saw the marker")
+
+
+def watch(reader: zenoh.Session, key: str, seen: Seen) -> zenoh.Subscriber[None]:
+    return reader.declare_subscriber(key, lambda s: seen.put((str(s.key_expr), s.payload.to_bytes())))
+
+
+def settle(reader: zenoh.Session, writer: zenoh.Session) -> None:
+    """Return once the router has handled everything `writer` sent so far (a marker reached `reader`)."""
+    seen: Seen = queue.Queue()
+    with watch(reader, MARKER, seen):
+        until_marker(seen, writer)
+
+
 def received_before_marker(reader: zenoh.Session, writer: zenoh.Session, key: str) -> bool:
-    """Does `writer`'s put on `key` reach `reader`? A marker put after it tells when to stop waiting."""
-    marker = f"{ROBOT}/plan/marker"
-    got: queue.Queue[str] = queue.Queue()
-    sub = reader.declare_subscriber(f"{ROBOT}/**", lambda s: got.put(str(s.key_expr)))
-    try:
-        # The subscription must be known on the writer's side before the real test: repeat a marker until seen.
-        deadline = time.monotonic() + DEADLINE
-        while True:
-            writer.put(marker, b"{}")
-            with contextlib.suppress(queue.Empty):
-                if got.get(timeout=0.05) == marker:
-                    break
-            if time.monotonic() > deadline:
-                raise SystemExit("subscriber never saw the marker")
-        while not got.empty():
-            got.get_nowait()
-        writer.put(key, b"{}")
-        writer.put(marker, b"{}")
-        seen = []
-        while (k := got.get(timeout=DEADLINE)) != marker:
-            seen.append(k)
-        return key in seen
-    finally:
-        sub.undeclare()
+    """Does `writer`'s put on `key` reach `reader`? A marker put after it tells when to stop waiting.
+
+    One subscriber sees both, so its callback gets them in the order they arrived.
+    """
+    seen: Seen = queue.Queue()
+    with watch(reader, f"{ROBOT}/**", seen):
+        until_marker(seen, writer)  # the subscription is known to the router
+        nonce = os.urandom(8)
+        writer.put(key, nonce)
+        return (key, nonce) in until_marker(seen, writer)
+
+
+def served(caller: zenoh.Session, server: zenoh.Session, key: str) -> bool:
+    """Does the router let `server` answer `caller`'s queries on `key`, i.e. accept its queryable?"""
+    with server.declare_queryable(key, lambda q: q.reply(key, b"{}")):
+        settle(caller, server)
+        return answered(caller, key)
 
 
 def answered(caller: zenoh.Session, key: str, timeout: float = 1.0) -> bool:
@@ -133,6 +174,24 @@ def main() -> None:
         humans = f"{ROBOT}/world/humans"
         check("sim may report people", received_before_marker(observer, s["sim"], humans))
         check("executor may not report people", not received_before_marker(observer, s["executor"], humans))
+        odom = f"{ROBOT}/robot/odom"
+        check("ros2 may put robot/odom", received_before_marker(observer, s["ros2"], odom))
+        check("executor may not put robot/odom", not received_before_marker(observer, s["executor"], odom))
+        check("ros2sim may not put robot/odom", not received_before_marker(observer, s["ros2sim"], odom))
+        check(
+            "ros2 may not put robot/cmd_vel", not received_before_marker(observer, s["ros2"], f"{ROBOT}/robot/cmd_vel")
+        )
+        check(
+            "ros2sim may put sim/** (as everyone may)",
+            received_before_marker(observer, s["ros2sim"], f"{ROBOT}/sim/move"),
+        )
+
+        gripper_goal = f"{ROBOT}/robot/gripper_command/_action/send_goal"
+        check("ros2 may serve robot/**", served(s["safety"], s["ros2"], gripper_goal))
+        check("executor may not serve robot/**", not served(s["safety"], s["executor"], gripper_goal))
+        check("planner may not serve robot/**", not served(s["safety"], s["planner"], gripper_goal))
+        check("ros2sim may not serve robot/**", not served(s["safety"], s["ros2sim"], gripper_goal))
+        check("ros2sim may serve sim/**", served(s["executor"], s["ros2sim"], f"{ROBOT}/sim/ground_truth"))
 
         goal = f"{ROBOT}/robot/navigate_to_pose/_action/send_goal"
         reset = f"{ROBOT}/safety/reset"

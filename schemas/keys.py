@@ -35,6 +35,7 @@ from schemas.robot import (
     NavigateToPoseGoal,
     NavigateToPoseResult,
     Odometry,
+    RobotDiagnostics,
     Twist,
 )
 from schemas.safety import EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
@@ -186,6 +187,8 @@ ODOM = Topic("robot/odom", Odometry)
 OBJECTS = Topic("world/objects", PerceivedObjects)
 # A picture from the robot's camera, on request (for people and models to look at).
 CAMERA_IMAGE: Service[Empty, CameraImage] = Service("robot/camera/image", Empty, CameraImage)
+# What the backend finds wrong with the robot now (optional; `tether status` shows it).
+ROBOT_DIAGNOSTICS: Service[Empty, RobotDiagnostics] = Service("robot/diagnostics", Empty, RobotDiagnostics)
 HUMANS = Topic("world/humans", PerceivedHumans)
 # The resolver's view of the world: objects where last seen, relations, a description for prompts.
 SCENE: Service[Empty, SceneDescription] = Service("world/scene", Empty, SceneDescription)
@@ -230,6 +233,7 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     SIM_MOVE,
     RECORDER_STATUS,
     CAMERA_IMAGE,
+    ROBOT_DIAGNOSTICS,
     *(s for a in ACTIONS for s in (a.send_goal, a.cancel_goal, a.get_result, a.get_status)),
 )
 

@@ -135,3 +135,26 @@ class GripperCommandResult(Frozen):
     stalled: bool
     reached_goal: bool
     holding: Name | None = None
+
+
+# What a backend finds wrong with its robot (optional: robot/diagnostics)
+
+MAX_PROBLEMS = 32
+
+
+class RobotProblem(Frozen):
+    """Something wrong on the robot's side, in words: a report refused (another type hash, bytes
+    that do not decode, another frame), a goal it would not take, aborted or did not stop."""
+
+    text: Text
+    last_seen: float  # wall time
+
+
+class RobotDiagnostics(Frozen):
+    """A robot backend's problems with its robot: each one seen in the last `window` seconds, the
+    latest first; none when all is well."""
+
+    stamp: float
+    backend: Name
+    window: Seconds
+    problems: Annotated[list[RobotProblem], Meta(max_length=MAX_PROBLEMS)] = []

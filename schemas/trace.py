@@ -18,6 +18,17 @@ class TraceRecord(Frozen):
     error: str = ""
 
 
+class Ros2RecorderStatus(Frozen):
+    """The ROS 2 side of a recording (`[recorder.ros2]`): its own file beside each of tether's."""
+
+    path: str  # the file being written; "" when it could not be opened
+    messages: int = 0
+    skipped: int = 0  # samples without a place in the file: unknown keys or types, not CDR
+    files: list[str] = []
+    # Why nothing is being recorded now (the session to the robot not open, the file not writable); "" when fine.
+    error: str = ""
+
+
 class RecorderStatus(Frozen):
     """The file being written, and totals over every file of this run (one per rotation)."""
 
@@ -26,3 +37,4 @@ class RecorderStatus(Frozen):
     started: float
     dropped: int = 0
     files: list[str] = []
+    ros2: Ros2RecorderStatus | None = None

@@ -42,7 +42,20 @@ A = TypeVar("A")
 # Every service listens on its own loopback port, base port + offset, and connects to the others,
 # so any one of them can restart and find the rest without a router or multicast.
 SERVICES = ("sim", "safety", "parser", "resolver", "executor", "recorder", "planner")
-DEFAULT_BASE_PORT = 7447
+# The robot backends besides the sim: "ros2" drives a ROS 2 robot; "ros2sim" is the sim behind a ROS 2
+# face, standing in for one on a machine without it (docs/ros2.md).
+ROBOT_BACKENDS = {"sim": ("sim",), "ros2": ("ros2",), "ros2-standin": ("ros2", "ros2sim")}
+# Every service `tether run` knows; a service's port is the base port plus its index here.
+ALL_SERVICES = (*SERVICES, "ros2", "ros2sim")
+
+
+def stack_services(backend: str = "sim") -> tuple[str, ...]:
+    """The services `tether up` starts to drive the robot through `backend` (a ROBOT_BACKENDS key)."""
+    return (*ROBOT_BACKENDS[backend], *(s for s in SERVICES if s != "sim"))
+
+
+# Not 7447: that is where rmw_zenoh's router listens on a ROS 2 robot (docs/ros2.md).
+DEFAULT_BASE_PORT = 7460
 DEFAULT_ROBOT = "robot1"
 # Bigger queries are refused before decoding; a service may raise its own limit.
 MAX_REQUEST_BYTES = 1024 * 1024
@@ -61,8 +74,8 @@ class NodeSettings:
     def __post_init__(self) -> None:
         if not self.robot.replace("_", "").replace("-", "").isalnum():
             raise ValueError(f"robot name {self.robot!r} must be letters, digits, '-' or '_'")
-        if not 1024 <= self.base_port <= 65535 - len(SERVICES):
-            raise ValueError(f"base port {self.base_port} must be between 1024 and {65535 - len(SERVICES)}")
+        if not 1024 <= self.base_port <= 65535 - len(ALL_SERVICES):
+            raise ValueError(f"base port {self.base_port} must be between 1024 and {65535 - len(ALL_SERVICES)}")
         if self.zenoh_config is not None and not self.zenoh_config.is_file():
             raise ValueError(f"zenoh config {self.zenoh_config} does not exist")
 
@@ -83,7 +96,7 @@ class NodeSettings:
         return cls(**values)
 
     def endpoint(self, service: str) -> str:
-        return f"tcp/{self.host}:{self.base_port + SERVICES.index(service)}"
+        return f"tcp/{self.host}:{self.base_port + ALL_SERVICES.index(service)}"
 
     def zenoh(self, service: str | None) -> zenoh.Config:
         """A config file when one is given; else a loopback peer that nothing outside can reach."""
@@ -92,8 +105,8 @@ class NodeSettings:
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")
-        listen = [self.endpoint(service)] if service in SERVICES else []
-        connect = [self.endpoint(s) for s in SERVICES if s != service]
+        listen = [self.endpoint(service)] if service in ALL_SERVICES else []
+        connect = [self.endpoint(s) for s in ALL_SERVICES if s != service]
         conf.insert_json5("listen/endpoints", msgspec.json.encode(listen).decode())
         conf.insert_json5("connect/endpoints", msgspec.json.encode(connect).decode())
         # A peer not up yet (still starting, or not run at all, as the planner often is) is tried

@@ -16,6 +16,7 @@ from typing import Annotated, Any, NoReturn
 import msgspec
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from schemas import keys
@@ -23,12 +24,22 @@ from schemas.actions import CancelGoal, GetResult
 from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.plan import MAX_PLAN_BYTES
-from schemas.robot import Odometry
+from schemas.robot import Odometry, RobotDiagnostics
 from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
 from services.actionlib import CANCEL_ALL, RESULT_RETENTION
 from services.errors import CallError, GoalRejected
-from services.runtime import SERVICES, ConfigError, Node, NodeSettings, encode, stop_event
+from services.runtime import (
+    ALL_SERVICES,
+    ROBOT_BACKENDS,
+    SERVICES,
+    ConfigError,
+    Node,
+    NodeSettings,
+    encode,
+    stack_services,
+    stop_event,
+)
 from services.worldmodel import WorldFileError
 from tether import recordings
 from tether.ask import ask
@@ -44,7 +55,7 @@ from tether.client import (
 )
 from tether.inspect import inspect
 from tether.schema import schema
-from tether.supervisor import Supervisor
+from tether.supervisor import Supervisor, free_base_port
 
 app = typer.Typer(help="tether: LLM plans to safe robot actions over Zenoh.", no_args_is_help=True)
 console = Console(stderr=True)
@@ -99,12 +110,12 @@ def client(ctx: typer.Context) -> Node:
 @app.command()
 def run(
     ctx: typer.Context,
-    service: Annotated[str, typer.Argument(help=f"One of: {', '.join(SERVICES)}.")],
+    service: Annotated[str, typer.Argument(help=f"One of: {', '.join(ALL_SERVICES)}.")],
     config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [SERVICE] table.")] = None,
 ) -> None:
     """Run one service in the foreground until SIGINT or SIGTERM."""
-    if service not in SERVICES:
-        console.print(f"[red]error:[/] unknown service {service!r}; services are {', '.join(SERVICES)}")
+    if service not in ALL_SERVICES:
+        console.print(f"[red]error:[/] unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise typer.Exit(2)
     module = importlib.import_module(f"services.{service}.main")
     try:
@@ -114,15 +125,18 @@ def run(
         raise typer.Exit(2) from None
 
 
-def start_services(ctx: typer.Context, config: Path | None, log_dir: Path, timeout: float) -> tuple[Supervisor, Node]:
+def start_services(
+    ctx: typer.Context, config: Path | None, log_dir: Path, timeout: float, backend: str = "sim"
+) -> tuple[Supervisor, Node]:
     settings = settings_of(ctx)
+    services = stack_services(backend)
     supervisor = Supervisor(settings, log_dir, config)
-    supervisor.start_all()
+    supervisor.start_all(services)
     node = client(ctx)
-    with console.status(f"starting {len(SERVICES)} services for robot {settings.robot}..."):
-        missing = node.wait_alive(SERVICES, timeout)
+    with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
+        missing = node.wait_alive(services, timeout)
     table = Table("service", "pid", "state")
-    for name in SERVICES:
+    for name in services:
         table.add_row(name, str(supervisor.procs[name].pid), "[red]not up[/]" if name in missing else "[green]up[/]")
     console.print(table)
     if missing:
@@ -139,6 +153,13 @@ ConfigOpt = Annotated[
     Path | None, typer.Option("--config", help="TOML file with one table per service ([sim], [safety], ...).")
 ]
 LogDirOpt = Annotated[Path, typer.Option("--log-dir", help="Where each service's log goes.")]
+BackendOpt = Annotated[
+    str,
+    typer.Option(
+        help="The robot backend: sim (pybullet), ros2 (a ROS 2 robot at [ros2] endpoint), or ros2-standin "
+        "(the ros2 backend driving the pybullet sim behind a ROS 2 face; docs/ros2.md)."
+    ),
+]
 
 
 @app.command()
@@ -147,9 +168,13 @@ def up(
     config: ConfigOpt = None,
     log_dir: LogDirOpt = Path("logs"),
     timeout: Annotated[float, typer.Option(help="Seconds to wait for every service to come up.")] = 60.0,
+    backend: BackendOpt = "sim",
 ) -> None:
     """Start every service, wait until all are alive, and stop them all cleanly on Ctrl-C."""
-    supervisor, node = start_services(ctx, config, log_dir, timeout)
+    if backend not in ROBOT_BACKENDS:
+        console.print(f"[red]error:[/] unknown backend {backend!r}; backends are {', '.join(ROBOT_BACKENDS)}")
+        raise typer.Exit(2)
+    supervisor, node = start_services(ctx, config, log_dir, timeout, backend)
     console.print(f"all services up; logs in {log_dir}/. Ctrl-C (or SIGTERM) stops them.")
     stop = stop_event()
     try:
@@ -402,10 +427,17 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     def grab(name: str, topic: Any) -> None:
         found[name] = next_message(node, topic, timeout)
 
+    def diagnose() -> None:
+        try:
+            found["diagnostics"] = node.call(keys.ROBOT_DIAGNOSTICS, Empty(), timeout=timeout)
+        except CallError:  # a backend that serves none (the sim), or none running
+            found["diagnostics"] = None
+
     threads = [
         threading.Thread(target=grab, args=a)
         for a in (("heartbeat", keys.HEARTBEAT), ("odom", keys.ODOM), ("objects", keys.OBJECTS))
     ]
+    threads.append(threading.Thread(target=diagnose))
     for t in threads:
         t.start()
     alive = node.alive_services(timeout=timeout)
@@ -414,8 +446,10 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     beat: SafetyStatus | None = found["heartbeat"]
     odom: Odometry | None = found["odom"]
     objects: PerceivedObjects | None = found["objects"]
+    problems = robot_problems(found["diagnostics"])
     return {
-        "services": {name: name in alive for name in SERVICES},
+        # The robot's other backends only when one runs.
+        "services": {name: name in alive for name in ALL_SERVICES if name in SERVICES or name in alive},
         "estop": (
             {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
             if beat
@@ -423,11 +457,12 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
         ),
         "robot": (
             {
-                "pose": {"x": odom.pose.x, "y": odom.pose.y, "yaw": odom.pose.yaw},
-                "linear_x": odom.linear_x,
-                "angular_z": odom.angular_z,
+                "pose": {"x": odom.pose.x, "y": odom.pose.y, "yaw": odom.pose.yaw} if odom else None,
+                "linear_x": odom.linear_x if odom else None,
+                "angular_z": odom.angular_z if odom else None,
+                "problems": problems,
             }
-            if odom
+            if odom or problems
             else None
         ),
         "objects": [
@@ -443,9 +478,20 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     }
 
 
+def robot_problems(diagnostics: RobotDiagnostics | None) -> list[dict[str, Any]]:
+    """What the robot's backend finds wrong with it (robot/diagnostics), the latest first; `age`:
+    how long before the backend answered each was last seen (seconds)."""
+    if diagnostics is None:
+        return []
+    return [
+        {"text": p.text, "last_seen": p.last_seen, "age": max(0.0, diagnostics.stamp - p.last_seen)}
+        for p in diagnostics.problems
+    ]
+
+
 @app.command()
 def status(ctx: typer.Context, as_json: Annotated[bool, typer.Option("--json")] = False) -> None:
-    """Which services are alive, the e-stop latch, the robot's pose and where objects are."""
+    """Which services are alive, the e-stop latch, the robot's pose and problems, and where objects are."""
     with client(ctx) as node:
         state = status_dict(node)
     if as_json:
@@ -459,9 +505,13 @@ def status(ctx: typer.Context, as_json: Annotated[bool, typer.Option("--json")] 
     console.print(
         f"e-stop: {'[red]LATCHED[/] by ' + e['source'] + ': ' + e['reason'] if e['latched'] else e['latched']}"
     )
-    if state["robot"]:
-        p = state["robot"]["pose"]
+    robot = state["robot"] or {"pose": None, "problems": []}
+    if p := robot["pose"]:
         console.print(f"robot at x={p['x']:.2f} y={p['y']:.2f} yaw={math.degrees(p['yaw']):.0f} deg")
+    if robot["problems"]:
+        console.print("[red]robot problems[/] (the latest first):")
+        for problem in robot["problems"]:
+            console.print(f"  {problem['age']:.0f} s ago: {escape(problem['text'])}")
     table = Table("object", "room", "on", "x", "y", "z")
     for o in state["objects"]:
         table.add_row(o["name"], o["room"] or "-", o["on"] or "-", *(f"{o['pose'][k]:.2f}" for k in "xyz"))
@@ -563,15 +613,32 @@ def demo(
     log_dir: LogDirOpt = Path("logs"),
     recordings: Annotated[Path, typer.Option(help="Where the MCAP recording goes.")] = Path("recordings"),
     timeout: Annotated[float, typer.Option(help="Seconds allowed for the plan.")] = 600.0,
+    backend: Annotated[
+        str,
+        typer.Option(
+            help="sim: the pybullet sim on tether's keys; ros2: the ros2 backend driving the sim behind a ROS 2 "
+            "face (rmw_zenoh keys), as it would a ROS 2 robot."
+        ),
+    ] = "sim",
 ) -> None:
     """Start everything, bring the red cup to the coffee table, check it in the simulator, keep the recording."""
     logging.basicConfig(level=logging.WARNING)
+    if backend not in ("sim", "ros2"):
+        console.print(f"[red]error:[/] unknown backend {backend!r}; the demo runs on sim or ros2")
+        raise typer.Exit(2)
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "demo.toml"
-        config.write_text(
-            f'[sim]\nrealtime_factor = {sim_speed}\n\n[recorder]\noutput_dir = "{recordings.resolve()}"\n'
-        )
-        supervisor, node = start_services(ctx, config, log_dir, timeout=90.0)
+        text = f'[sim]\nrealtime_factor = {sim_speed}\n\n[recorder]\noutput_dir = "{recordings.resolve()}"\n'
+        if backend == "ros2":
+            # The stand-in robot's ROS 2 side on a port of its own, not 7447: a real robot's router may be there.
+            endpoint = f"tcp/127.0.0.1:{free_base_port(1)}"
+            text += (
+                f'\n[ros2]\nendpoint = "{endpoint}"\n\n[ros2sim]\nlisten = "{endpoint}"\n'
+                f'\n[recorder.ros2]\nendpoint = "{endpoint}"\n'
+            )
+        config.write_text(text)
+        stack = "ros2-standin" if backend == "ros2" else "sim"
+        supervisor, node = start_services(ctx, config, log_dir, timeout=90.0, backend=stack)
         ok = False
         recording = "(unknown)"
         try:

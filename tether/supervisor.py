@@ -14,14 +14,21 @@ import time
 from pathlib import Path
 from typing import IO
 
-from services.runtime import DUMP_STACKS, SERVICES, NodeSettings
+from services.runtime import ALL_SERVICES, DUMP_STACKS, SERVICES, NodeSettings
 
 log = logging.getLogger(__name__)
 
 # Stopped stage by stage, each stage's services together: nothing new is planned; safety goes before
 # the robot so its watchdog never sees a robot vanish mid-motion (the robot stops on the missing
-# heartbeat); the recorder hears it all.
-STOP_STAGES = (("planner",), ("executor", "parser", "resolver"), ("safety",), ("sim",), ("recorder",))
+# heartbeat); a ROS 2 backend before the robot it drives (the stand-in); the recorder hears it all.
+STOP_STAGES = (
+    ("planner",),
+    ("executor", "parser", "resolver"),
+    ("safety",),
+    ("sim", "ros2"),
+    ("ros2sim",),
+    ("recorder",),
+)
 # How long a service that did not stop gets to write its stacks before it is killed.
 STACK_DUMP_WAIT = 0.5
 # Stacks for tests and benchmarks listen on ports from here up to the kernel's range for outgoing
@@ -37,7 +44,7 @@ def _outgoing_low() -> int:
         return 32768
 
 
-def free_base_port(count: int = len(SERVICES)) -> int:
+def free_base_port(count: int = len(ALL_SERVICES)) -> int:
     """The first of `count` consecutive loopback ports that are free now: a base port for a stack of
     its own (tests, benchmarks), below the range the kernel hands out to outgoing connections."""
     highest = max(LOWEST_PORT + 1, _outgoing_low() - count)
@@ -81,8 +88,8 @@ class Supervisor:
         return env
 
     def start(self, service: str) -> subprocess.Popen[bytes]:
-        if service not in SERVICES:
-            raise ValueError(f"unknown service {service!r}; services are {', '.join(SERVICES)}")
+        if service not in ALL_SERVICES:
+            raise ValueError(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         cmd = [sys.executable, "-m", "tether", "run", service]
         if self.config_file is not None:
             cmd += ["--config", str(self.config_file)]

@@ -1,4 +1,4 @@
-"""`tether run recorder`: record all of one robot's traffic to MCAP files until SIGINT or SIGTERM."""
+"""`tether run recorder`: record a robot's traffic (and its ROS 2 traffic) to MCAP files until SIGINT or SIGTERM."""
 
 from __future__ import annotations
 
@@ -7,10 +7,14 @@ from pathlib import Path
 
 from schemas import keys
 from services import runtime
-from services.recorder.config import RecorderConfig
+from services.recorder.config import RecorderConfig, Ros2RecordConfig
 from services.recorder.mcapfile import Provenance, SourceFile
 from services.recorder.node import bind
 from services.recorder.recorder import Recorder
+from services.recorder.ros2file import Ros2Source, RosKeys
+from services.recorder.ros2link import Ros2Link
+from services.ros2.types import RosTypeError, RosTypes
+from services.ros2.wire import Naming
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
 from services.safety.policyfile import DEFAULT_POLICY
@@ -31,20 +35,38 @@ def provenance(robot: str, config_file: Path | None) -> Provenance:
     return Provenance(robot, world=files["world"], policy=files["policy"])
 
 
+def ros2_source(config: Ros2RecordConfig, config_file: Path | None) -> Ros2Source:
+    """The robot's ROS 2 network as `[recorder.ros2]` describes it, its types checked against the typestore."""
+    try:
+        types = RosTypes(config.distro)
+        ros_keys = RosKeys(types, Naming(config.style, config.domain()), config.topics)
+    except (ValueError, RosTypeError) as exc:
+        raise ConfigError(f"config file {config_file} [recorder.ros2]: {exc}") from None
+    return Ros2Source(ros_keys, config.endpoint, config.mode)
+
+
 def main(settings: NodeSettings, config_file: Path | None) -> None:
     runtime.configure_logging()
     config = runtime.load_config(RecorderConfig, config_file, "recorder")
+    ros2 = ros2_source(config.ros2, config_file) if config.ros2 is not None else None
     stop = runtime.stop_event()
-    recorder = Recorder(config, provenance(settings.robot, config_file))
+    recorder = Recorder(config, provenance(settings.robot, config_file), ros2=ros2)
+    link = Ros2Link(ros2, recorder) if ros2 is not None else None
     try:
         with Node("recorder", settings) as node:
             bind(node, recorder)
+            if link is not None:
+                link.start()
             node.declare_alive()
             log.info("recording %s", keys.all_keys(settings.robot))
             while not stop.wait(config.flush_interval):
                 recorder.tick()
+                if link is not None:
+                    link.poll()
     finally:
-        # The node is closed first, so no callback writes while the summary is being written.
+        # The sessions are closed first, so no callback writes while the summaries are being written.
+        if link is not None:
+            link.close()
         recorder.finish()
         log.info(
             "recording finished: %s (%d messages, %d dropped)",
@@ -52,3 +74,10 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
             recorder.messages,
             recorder.dropped,
         )
+        if (ros2_status := recorder.status().ros2) is not None:
+            log.info(
+                "ROS 2 recording finished: %s (%d messages, %d skipped)",
+                ", ".join(ros2_status.files) or "no file",
+                ros2_status.messages,
+                ros2_status.skipped,
+            )

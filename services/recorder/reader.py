@@ -12,8 +12,9 @@ from typing import Any
 
 import lz4.frame
 import zstandard
-from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.well_known import Profile
 from mcap.writer import Writer
 
 from schemas import keys
@@ -196,6 +197,13 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
             elif isinstance(record, DataEnd | Footer):
                 recording.complete = True
                 break
+            elif isinstance(record, Header) and record.profile == Profile.ROS2:
+                raise RecordingError(
+                    f"{path} is a ROS 2 recording (MCAP ros2 profile) for Foxglove and ros2 bag; "
+                    "tether's tools read the tether recording beside it"
+                )
+    except RecordingError:
+        raise
     # Whatever a cut or damaged file raises inside the mcap library (short reads, bad lengths,
     # decompression errors, CRC mismatches, absurd sizes) ends the reading there.
     except Exception as exc:

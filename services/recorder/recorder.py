@@ -1,4 +1,4 @@
-"""A run of recording: the current MCAP file, rotated by size and by age, with totals over all files."""
+"""A run of recording: the current MCAP file and its ROS 2 twin, rotated by size and age, with totals over all files."""
 
 from __future__ import annotations
 
@@ -10,17 +10,19 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-from schemas.trace import RecorderStatus
+from schemas.trace import RecorderStatus, Ros2RecorderStatus
 from services.recorder.config import RecorderConfig
-from services.recorder.mcapfile import Provenance, Recording
+from services.recorder.mcapfile import Provenance, Recording, version
+from services.recorder.ros2file import Ros2Recording, Ros2Source, WarnOnce, ros2_path
 
 log = logging.getLogger(__name__)
 
 
-def unused_path(path: Path) -> Path:
-    """`path`, or `name_1.mcap`, `name_2.mcap`... when a file of that name exists (two rotations in one second)."""
+def unused_path(path: Path, twin: Callable[[Path], Path] | None = None) -> Path:
+    """`path`, or `name_1.mcap`, `name_2.mcap`... when a file of that name (or its `twin`) exists (two
+    rotations in one second)."""
     candidate, n = path, 0
-    while candidate.exists():
+    while candidate.exists() or (twin is not None and twin(candidate).exists()):
         n += 1
         candidate = path.with_name(f"{path.stem}_{n}{path.suffix}")
     return candidate
@@ -28,7 +30,12 @@ def unused_path(path: Path) -> Path:
 
 class Recorder:
     """Writes every message to the current file; `tick()` flushes it and starts a new one when it is
-    full or old enough. Thread-safe: Zenoh delivers from several threads."""
+    full or old enough. Thread-safe: Zenoh delivers from several threads.
+
+    With `ros2`, each file has a twin `<stem>.ros2.mcap` for the robot's ROS 2 samples (`record_ros2`),
+    opened, flushed and rotated with it. Nothing on that side stops tether's file: a twin that cannot be
+    opened is logged and shown in the status, and tether's recording goes on.
+    """
 
     def __init__(
         self,
@@ -37,6 +44,7 @@ class Recorder:
         *,
         clock: Callable[[], int] = time.time_ns,
         first_path: Path | None = None,
+        ros2: Ros2Source | None = None,
     ) -> None:
         self.config = config
         self.provenance = provenance
@@ -49,14 +57,22 @@ class Recorder:
         self._dropped_before = 0
         self.started_ns = clock()
         self.run = uuid.uuid4().hex  # in every part's metadata
+        self._ros2 = ros2
+        self._ros2_warn = WarnOnce()  # once per kind over the whole run, not per file
+        self.ros2_files: list[Path] = []
+        self._ros2_messages_before = 0
+        self._ros2_skipped_before = 0
+        self._ros2_file_error = ""
+        self._ros2_link_error = ""
         self._current = self._open()
+        self._ros2_current = self._open_ros2(Path(self._current.path))
 
     def _open(self) -> Recording:
         now = self._clock()
         named = self._first_path or self.config.path_for(
             self.provenance.robot, dt.datetime.fromtimestamp(now / 1e9, dt.UTC)
         )
-        path = unused_path(named)
+        path = unused_path(named, ros2_path if self._ros2 is not None else None)
         path.parent.mkdir(parents=True, exist_ok=True)
         recording = Recording(
             path,
@@ -72,16 +88,61 @@ class Recorder:
         log.info("recording to %s", path)
         return recording
 
+    def _open_ros2(self, tether_path: Path) -> Ros2Recording | None:
+        """The twin of the tether file at `tether_path`; None (logged, in the status) if it cannot be opened."""
+        if self._ros2 is None:
+            return None
+        path = ros2_path(tether_path)
+        metadata = {
+            "robot": self.provenance.robot,
+            "run": self.run,
+            "part": str(len(self.files) - 1),
+            "tether_file": tether_path.name,
+            "version": version(),
+            **self._ros2.metadata(),
+        }
+        try:
+            recording = Ros2Recording(
+                path,
+                self._ros2.keys,
+                compression=self.config.compression,
+                chunk_size=self.config.chunk_size,
+                clock=self._clock,
+                metadata=metadata,
+                warn=self._ros2_warn,
+            )
+        except OSError as exc:
+            self._ros2_file_error = f"cannot write the ROS 2 recording {path}: {exc.strerror or exc}"
+            log.error("%s; tether's recording goes on without it", self._ros2_file_error)
+            return None
+        self._ros2_file_error = ""
+        self.ros2_files.append(path)
+        log.info("recording ROS 2 traffic (%s) to %s", ", ".join(self._ros2.keys.key_exprs()), path)
+        return recording
+
     def record(self, key: str, payload: bytes) -> bool:
         with self._lock:
             return self._current.record(key, payload)
 
+    def record_ros2(self, key: str, payload: bytes, attachment: bytes | None = None) -> bool:
+        """Write one sample of the robot's ROS 2 traffic to the twin; False if there is none or it was skipped."""
+        with self._lock:
+            current = self._ros2_current
+            return current.record(key, payload, attachment) if current is not None else False
+
+    def ros2_link_failed(self, error: str) -> None:
+        """Why the robot's ROS 2 network is not reached now ("" once it is): shown in the status."""
+        with self._lock:
+            self._ros2_link_error = error
+
     def tick(self) -> None:
         """Flush, then rotate if the file reached max_file_bytes or max_file_seconds. Call about once a second."""
         with self._lock:
-            current = self._current
+            current, twin = self._current, self._ros2_current
             current.flush()
-            why = self._rotation_due(current)
+            if twin is not None:
+                self._on_twin(twin, twin.flush)
+            why = self._rotation_due(current, twin)
             if why is None:
                 return
             log.info("rotating %s: %s", current.path, why)
@@ -89,13 +150,31 @@ class Recorder:
             self._messages_before += current.messages
             self._dropped_before += current.dropped
             self._current = following
-        # The summary of the full file is written outside the lock; nothing writes to it any more.
+            if twin is not None:
+                self._ros2_messages_before += twin.messages
+                self._ros2_skipped_before += twin.skipped
+            self._ros2_current = self._open_ros2(Path(following.path))
+        # The summaries of the full files are written outside the lock; nothing writes to them any more.
         current.finish()
+        if twin is not None:
+            self._on_twin(twin, twin.finish)
 
-    def _rotation_due(self, current: Recording) -> str | None:
+    def _on_twin(self, twin: Ros2Recording, write: Callable[[], None]) -> None:
+        """Flush or finish the twin; a failure (its disk full) is logged once and shown, never raised."""
+        try:
+            write()
+        except OSError as exc:
+            error = f"cannot write the ROS 2 recording {twin.path}: {exc.strerror or exc}"
+            if error != self._ros2_file_error:
+                log.error("%s; tether's recording goes on", error)
+            self._ros2_file_error = error
+
+    def _rotation_due(self, current: Recording, twin: Ros2Recording | None) -> str | None:
         limit_bytes, limit_seconds = self.config.max_file_bytes, self.config.max_file_seconds
         if limit_bytes is not None and (size := current.size) >= limit_bytes:
             return f"{size} bytes, the limit is {limit_bytes}"
+        if limit_bytes is not None and twin is not None and (size := twin.size) >= limit_bytes:
+            return f"its ROS 2 twin holds {size} bytes, the limit is {limit_bytes}"
         age = (self._clock() - current.started_ns) / 1e9
         if limit_seconds is not None and age >= limit_seconds:
             return f"{age:.0f} s old, the limit is {limit_seconds:g} s"
@@ -104,6 +183,8 @@ class Recorder:
     def finish(self) -> None:
         with self._lock:
             self._current.finish()
+            if self._ros2_current is not None:
+                self._on_twin(self._ros2_current, self._ros2_current.finish)
 
     @property
     def messages(self) -> int:
@@ -124,4 +205,17 @@ class Recorder:
                 started=self.started_ns / 1e9,
                 dropped=self._dropped_before + current.dropped,
                 files=[str(p) for p in self.files],
+                ros2=self._ros2_status(),
             )
+
+    def _ros2_status(self) -> Ros2RecorderStatus | None:
+        if self._ros2 is None:
+            return None
+        twin = self._ros2_current
+        return Ros2RecorderStatus(
+            path=twin.path if twin is not None else "",
+            messages=self._ros2_messages_before + (twin.messages if twin is not None else 0),
+            skipped=self._ros2_skipped_before + (twin.skipped if twin is not None else 0),
+            files=[str(p) for p in self.ros2_files],
+            error="; ".join(e for e in (self._ros2_link_error, self._ros2_file_error) if e),
+        )

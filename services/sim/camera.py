@@ -18,11 +18,16 @@ from services.sim.config import CameraConfig
 from services.sim.detection import Detection, Intrinsics, Target, camera_pose, detect, view_matrix
 
 
-def png_base64(pixels: np.ndarray) -> str:
-    """An RGB image (height x width x 3, uint8) as a base64 PNG, as MCP image content carries it."""
+def png(pixels: np.ndarray) -> bytes:
+    """An RGB image (height x width x 3, uint8) as PNG."""
     out = io.BytesIO()
     Image.fromarray(pixels, mode="RGB").save(out, format="PNG", optimize=False)
-    return base64.b64encode(out.getvalue()).decode()
+    return out.getvalue()
+
+
+def png_base64(pixels: np.ndarray) -> str:
+    """An RGB image as a base64 PNG, as MCP image content carries it."""
+    return base64.b64encode(png(pixels)).decode()
 
 
 @dataclass(frozen=True)

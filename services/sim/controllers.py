@@ -24,6 +24,7 @@ from schemas.robot import (
     Twist,
 )
 from services.footprint import TRACKING_TOLERANCE, Leg, route_legs
+from services.robotrules import away_from, check_trajectory
 from services.sim.world import GRIPPER_OPEN, Motion, SimWorld, wrap_angle
 from services.worldmodel import drive_route
 
@@ -121,24 +122,7 @@ class ArmController:
 
     def check_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
         """Why a trajectory goal cannot run, or None when it can. Safe from any thread."""
-        unknown = [n for n in goal.joint_names if n not in ARM_JOINTS]
-        if unknown:
-            return f"unknown joints {unknown}; this arm has {list(ARM_JOINTS)}"
-        if len(set(goal.joint_names)) != len(goal.joint_names):
-            return f"joint names repeat: {goal.joint_names}"
-        lower, upper = self.body.arm_limits
-        previous = -1.0
-        for k, point in enumerate(goal.points):
-            if len(point.positions) != len(goal.joint_names):
-                return f"point {k} has {len(point.positions)} positions for {len(goal.joint_names)} joints"
-            if point.time_from_start < previous:
-                return f"point {k} goes back in time ({point.time_from_start:g} s after {previous:g} s)"
-            previous = point.time_from_start
-            for name, value in zip(goal.joint_names, point.positions, strict=True):
-                i = ARM_JOINTS.index(name)
-                if not lower[i] <= value <= upper[i]:
-                    return f"point {k}: {name} = {value:.3f} rad is outside [{lower[i]:.3f}, {upper[i]:.3f}]"
-        return None
+        return check_trajectory(goal, *self.body.arm_limits)
 
 
 class GripperController:
@@ -527,16 +511,7 @@ class Controllers:
         return self._start(Navigation.kind, lambda: Navigation(self, goal))
 
     def _away_from(self, start: Pose2D) -> str | None:
-        here = self.world.robot.base_pose()
-        off = math.dist((here.x, here.y), (start.x, start.y)) + self.world.model.base_radius * abs(
-            wrap_angle(here.yaw - start.yaw)
-        )
-        if off <= TRACKING_TOLERANCE:
-            return None
-        return (
-            f"the route was checked from ({start.x:.2f}, {start.y:.2f}, {start.yaw:.2f} rad) but the base stands at "
-            f"({here.x:.2f}, {here.y:.2f}, {here.yaw:.2f} rad)"
-        )
+        return away_from(self.world.robot.base_pose(), start, self.world.model.base_radius)
 
     def follow_trajectory(self, goal: FollowJointTrajectoryGoal) -> Motion[Any, Any]:
         reason = self.arm.check_trajectory(goal)

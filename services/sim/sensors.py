@@ -55,9 +55,9 @@ class Sensors:
                 objects.append(world.report(obj, position, on, stamp, seen[obj.id].yaw))
         return PerceivedObjects(stamp=stamp, objects=objects)
 
-    def camera_picture(self) -> np.ndarray:
-        """What the robot's camera sees now, in colour (see Camera.picture)."""
-        return self.camera.picture(self.world.robot.base_pose())
+    def camera_picture(self, scale: int = 2) -> np.ndarray:
+        """What the robot's camera sees now, in colour, `scale` times the detector's resolution (see Camera.picture)."""
+        return self.camera.picture(self.world.robot.base_pose(), scale)
 
     def perceived_humans(self, stamp: float) -> PerceivedHumans:
         """Every person where they stand: a people tracker, not the camera."""

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from services.runtime import SERVICES, Node, NodeSettings
+from services.runtime import ALL_SERVICES, SERVICES, Node, NodeSettings
 from tests.sessions import free_ports
 from tether.supervisor import Supervisor
 
@@ -31,12 +31,14 @@ class Stack:
         return self.tmp / "recordings"
 
 
-def write_config(path: Path, realtime_factor: float, policy: Path | None = None) -> Path:
+def write_config(path: Path, realtime_factor: float, policy: Path | None = None, extra: str = "") -> Path:
+    """The stack's config file; `extra`: more tables, appended."""
     path.write_text(
         f"[sim]\nrealtime_factor = {realtime_factor}\n\n"
         f'[recorder]\noutput_dir = "{path.parent / "recordings"}"\n\n'
         f'[safety]\noperator_token_file = "{path.parent / "operator-token"}"\n'
         + (f'policy = "{policy}"\n' if policy else "")
+        + (f"\n{extra}" if extra else "")
     )
     return path
 
@@ -47,10 +49,14 @@ STACK_SERVICES = tuple(s for s in SERVICES if s != "planner")
 
 
 def start_stack(
-    tmp: Path, realtime_factor: float, services: tuple[str, ...] = STACK_SERVICES, policy: Path | None = None
+    tmp: Path,
+    realtime_factor: float,
+    services: tuple[str, ...] = STACK_SERVICES,
+    policy: Path | None = None,
+    extra_config: str = "",
 ) -> Stack:
-    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(SERVICES)))
-    config = write_config(tmp / "tether.toml", realtime_factor, policy)
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(ALL_SERVICES)))
+    config = write_config(tmp / "tether.toml", realtime_factor, policy, extra_config)
     token = tmp / "operator-token"
     supervisor = Supervisor(settings, tmp / "logs", config, extra_env={"TETHER_OPERATOR_TOKEN_FILE": str(token)})
     node: Node | None = None

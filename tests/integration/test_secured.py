@@ -17,3 +17,6 @@ def test_access_control_config_lets_only_safety_write_robot_commands() -> None:
     assert done.returncode == 0, done.stdout + done.stderr
     assert "executor may not send a robot goal" in done.stdout
     assert "safety may send a robot goal" in done.stdout
+    assert "ok   ros2 may put robot/odom" in done.stdout
+    assert "ok   ros2 may serve robot/**" in done.stdout
+    assert "ok   executor may not serve robot/**" in done.stdout

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import threading
 import time
@@ -20,7 +21,7 @@ from schemas.robot import JointState, Odometry
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import PerceivedHumans, PerceivedObjects
 from services.errors import CallError
-from services.runtime import SERVICES, Node, NodeSettings
+from services.runtime import ALL_SERVICES, Node, NodeSettings
 from services.safety.config import SafetyConfig
 from services.sim.config import SimConfig
 from tests.sessions import free_ports
@@ -69,6 +70,9 @@ class Backend:
     humans_hz: float
     lane: Lane
     robot: str | None = None  # the robot's name; None: a fresh one per run, so runs never share keys
+    # Started first and stopped last: the robot a backend drives, when it is a process of its own.
+    robot_service: str | None = None
+    # `config` may name {endpoint}: a free loopback Zenoh endpoint for the robot's own network.
 
 
 def sim_backend(config: SimConfig) -> Backend:
@@ -95,10 +99,24 @@ def sim_backend(config: SimConfig) -> Backend:
     )
 
 
+def ros2_backend(config: SimConfig) -> Backend:
+    """The ros2 backend driving the stand-in robot (the sim behind a ROS 2 face) over rmw_zenoh keys."""
+    sim = sim_backend(config)
+    toml = (
+        f'{sim.config}\n[ros2]\nendpoint = "{{endpoint}}"\nheartbeat_timeout = {config.heartbeat_timeout}\n'
+        f"first_heartbeat_wait = {config.first_heartbeat_wait}\nodom_hz = {config.odom_hz}\n"
+        f"joint_states_hz = {config.joint_states_hz}\nobjects_hz = {config.objects_hz}\n"
+        f"humans_hz = {config.humans_hz}\n\n"
+        f'[ros2sim]\nlisten = "{{endpoint}}"\ncmd_vel_timeout = {config.cmd_vel_timeout}\n'
+    )
+    return dataclasses.replace(sim, name="ros2", service="ros2", config=toml, robot_service="ros2sim")
+
+
 # The sim at real time: faster, on two loaded cores it falls behind the wall clock and its reports
 # sag below their rates; the suite's goals are short, so it is no slower for it.
 # A goal before the first heartbeat waits 1 s for it rather than the default 3 s: the same path, sooner.
-BACKENDS = [sim_backend(SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0))]
+CONTRACT_SIM = SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0)
+BACKENDS = [sim_backend(CONTRACT_SIM), ros2_backend(CONTRACT_SIM)]
 
 
 class PlayedSafety:
@@ -200,19 +218,21 @@ def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBa
     """`backend` as a real process next to the test's node, always stopped, also on failure; the
     played safety's heartbeat from the start when `beating`."""
     robot = backend.robot or f"t{uuid.uuid4().hex[:8]}"
-    settings = NodeSettings(robot=robot, base_port=free_ports(len(SERVICES)))
+    settings = NodeSettings(robot=robot, base_port=free_ports(len(ALL_SERVICES)))
     config = tmp / "tether.toml"
-    config.write_text(backend.config)
+    config.write_text(backend.config.replace("{endpoint}", f"tcp/127.0.0.1:{free_ports()}"))
     supervisor = Supervisor(settings, tmp / "logs", config)
     node: Node | None = None
     safety: PlayedSafety | None = None
+    services = [s for s in (backend.robot_service, backend.service) if s is not None]
     try:
-        supervisor.start(backend.service)
+        for service in services:
+            supervisor.start(service)
         node = Node("cli", settings)
         odom, joint_states = Watch(node, keys.ODOM), Watch(node, keys.JOINT_STATES)
         objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
-        missing = node.wait_alive([backend.service], STARTUP_TIMEOUT)
-        assert not missing, f"{backend.service} not up:\n{supervisor.log_tail(backend.service)}"
+        missing = node.wait_alive(services, STARTUP_TIMEOUT)
+        assert not missing, "\n".join(f"{s} not up:\n{supervisor.log_tail(s)}" for s in sorted(missing))
         safety = PlayedSafety(node, beating=beating)
         yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
     finally:
@@ -222,7 +242,8 @@ def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBa
             node.close()
         supervisor.stop_all()
         # Shown by pytest only when a test failed.
-        print(f"----- {backend.service} log -----\n{supervisor.log_tail(backend.service, 60)}")
+        for service in services:
+            print(f"----- {service} log -----\n{supervisor.log_tail(service, 60)}")
 
 
 @pytest.fixture(scope="module", params=BACKENDS, ids=lambda b: b.name)

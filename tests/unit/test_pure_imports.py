@@ -18,6 +18,13 @@ PURE = [
     "services.safety.monitor",
     "services.safety.gate",
     "services.executor.runner",
+    "services.robotrules",
+    "services.ros2.types",
+    "services.ros2.wire",
+    "services.ros2.backend",
+    "services.ros2.goals",
+    "services.ros2.config",  # the stand-in takes its ROS names from it
+    "services.ros2sim.estop",
 ]
 
 CHILD = """

@@ -19,12 +19,13 @@ from schemas.safety import EstopState, SafetyStatus
 from schemas.world import Empty, Moved, MoveEntity
 from services.actionlib import ActionClient, GoalHandle, Outcome
 from services.errors import GoalRejected
+from services.robotrules import PREEMPT_TIMEOUT, RESET_GRACE
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
-from services.sim import node as sim_node_module
+from services.sim import loop as sim_loop_module
 from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME, Controllers
-from services.sim.node import PREEMPT_TIMEOUT, RESET_GRACE, SimNode
+from services.sim.node import SimNode
 from services.sim.simulation import Simulation
 from services.worldmodel import load_world
 from tests.sessions import free_port
@@ -152,7 +153,7 @@ def hold_the_sim_thread(rig: Rig) -> threading.Event:
 
 
 def running_motions(rig: Rig) -> list[str]:
-    kinds = rig.sim_node._ask(lambda sim: list(sim.controllers.motions), 5.0)
+    kinds = rig.sim_node.loop.ask(lambda sim: list(sim.controllers.motions), 5.0)
     assert kinds is not None, "the sim thread did not answer"
     return kinds
 
@@ -163,7 +164,7 @@ def handle_for(goal: NavigateToPoseGoal) -> GoalHandle[NavigateToPoseGoal, objec
 
 def test_a_goal_the_sim_did_not_start_in_time_never_starts_later(rig: Rig, monkeypatch: pytest.MonkeyPatch) -> None:
     wait_for_heartbeat(rig)
-    monkeypatch.setattr(sim_node_module, "START_TIMEOUT", 0.2)
+    monkeypatch.setattr(sim_loop_module, "START_TIMEOUT", 0.2)
     release = hold_the_sim_thread(rig)
     outcome = rig.sim_node._run_goal(Controllers.navigate)(handle_for(FAR))
     assert outcome.state is GoalState.ABORTED and "did not start" in outcome.message

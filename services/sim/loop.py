@@ -1,0 +1,261 @@
+"""The thread that owns a Simulation: physics paced to the wall clock, work from other threads, reports, goals."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar
+
+from schemas.actions import GoalState
+from schemas.common import ErrorKind, ServiceError
+from schemas.world import Empty, GroundTruth, MoveEntity, MoveReply
+from services.actionlib import Outcome
+from services.errors import CallError
+from services.robotrules import FEEDBACK_PERIOD
+from services.sim.controllers import Controllers
+from services.sim.simulation import Simulation
+from services.sim.world import SETTLE_TIMEOUT, Drop, Motion
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+Command = Callable[[Simulation], None]
+
+START_TIMEOUT = 5.0
+ANSWER_TIMEOUT = 2.0
+# If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
+MAX_LAG = 0.5
+
+
+@dataclass(frozen=True)
+class Report:
+    """Something the robot publishes on its own schedule, read on the sim thread and stamped with wall time."""
+
+    name: str
+    hz: float
+    publish: Callable[[float], None]
+    # Also while physics catches up with the wall clock: what safety's watchdog must never miss.
+    while_catching_up: bool = False
+
+
+class ReportSchedule:
+    """When each report is due: on its period, so a late wake-up does not stretch every later one;
+    after a stall longer than a period it starts afresh rather than publishing the backlog."""
+
+    def __init__(self, reports: Sequence[Report]) -> None:
+        self.reports = list(reports)
+        self._due = [0.0] * len(self.reports)  # all due at once at the start
+
+    def due(self, now: float, catching_up: bool = False) -> list[Report]:
+        """The reports due at `now` (monotonic seconds), each then scheduled for its next period."""
+        due = []
+        for i, report in enumerate(self.reports):
+            if now < self._due[i] or (catching_up and not report.while_catching_up):
+                continue
+            period = 1.0 / report.hz
+            scheduled = self._due[i] + period
+            self._due[i] = scheduled if scheduled > now else now + period
+            due.append(report)
+        return due
+
+
+class GoalPort(Protocol):
+    """What relaying needs of one goal from its action server."""
+
+    @property
+    def should_stop(self) -> bool:
+        """Asked to stop: canceled, or aborted with `abort_reason`."""
+        ...
+
+    @property
+    def abort_reason(self) -> str: ...
+
+    def feedback(self, message: Any) -> None: ...
+
+
+class SimLoop:
+    """Owns a Simulation on the thread that calls run(): other threads hand it work through submit().
+
+    `obey` runs on that thread before every step and before a goal starts: it applies whatever
+    limits hold now (a heartbeat's, a ROS emergency stop's) and says why the robot must stay
+    still, or None.
+    """
+
+    def __init__(
+        self,
+        sim: Simulation,
+        realtime_factor: float,
+        obey: Callable[[], str | None],
+        reports: Sequence[Report] = (),
+    ) -> None:
+        self.sim = sim
+        self.realtime_factor = realtime_factor
+        self._obey = obey
+        self.schedule = ReportSchedule(reports)
+        self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
+        self._wake = threading.Event()
+
+    # From other threads
+
+    def submit(self, command: Command) -> None:
+        """Run `command` on the sim thread."""
+        self._commands.put(command)
+        self._wake.set()
+
+    def ask(self, query: Callable[[Simulation], T], timeout: float) -> T | None:
+        """Run `query` on the sim thread and wait for its value; None if the thread does not answer."""
+        box: list[T] = []
+        answered = threading.Event()
+
+        def run(sim: Simulation) -> None:
+            try:
+                box.append(query(sim))
+            finally:
+                answered.set()
+
+        self.submit(run)
+        answered.wait(timeout)
+        return box[0] if box else None
+
+    def answer(self, query: Callable[[Simulation], T]) -> T:
+        """`query`'s value from the sim thread, for a queryable: an unavailable error if it does not answer."""
+        value = self.ask(query, ANSWER_TIMEOUT)
+        if value is None:
+            message = f"the simulator did not answer within {ANSWER_TIMEOUT:g} s"
+            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=message))
+        return value
+
+    def ground_truth(self, _request: Empty) -> GroundTruth:
+        """sim/ground_truth: every object exactly where it is."""
+        return self.answer(lambda sim: sim.scene.ground_truth())
+
+    def move(self, request: MoveEntity) -> MoveReply:
+        """sim/move: the reply once the moved thing is at rest, or why it was not moved."""
+        moved = self.answer(lambda sim: sim.scene.move(request))
+        if not isinstance(moved, Drop):
+            return moved
+        # The object falls and comes to rest while the sim thread keeps stepping (and obeying safety).
+        if not moved.done.wait(SETTLE_TIMEOUT / self.realtime_factor + ANSWER_TIMEOUT):
+            message = f"{request.id} was moved but the simulator did not report it at rest"
+            raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
+        assert moved.result is not None
+        return moved.result
+
+    # Goals
+
+    def relay(self, start: Callable[[Controllers], Motion[Any, Any]], goal: GoalPort) -> Outcome[Any]:
+        """Carry out one goal, on the calling (action server's) thread: start its motion on the sim
+        thread unless `obey` blocks it, relay the feedback, cancel the motion once the goal should
+        stop, and return how it ended. A goal that should stop before it started never moves."""
+        lock = threading.Lock()
+        abandoned = False  # set under `lock` when the wait for `begin` gives up
+        # What begin did: the motion it started, why it refused, or None when it did not start one
+        # because the goal was to stop first.
+        started: list[Motion[Any, Any] | str | None] = []
+        answered = threading.Event()
+
+        def begin(sim: Simulation) -> None:
+            try:
+                with lock:
+                    if abandoned:
+                        return  # its waiter gave up: started now, no cancel could reach it
+                    blocked = self._obey()  # as things stand now, not as of the last step
+                    if goal.should_stop:
+                        started.append(None)
+                    else:
+                        started.append(blocked or start(sim.controllers))
+            finally:
+                answered.set()
+
+        if goal.should_stop:
+            return self._ended_before_start(goal)
+        self.submit(begin)
+        answered.wait(START_TIMEOUT)
+        with lock:
+            if not started:
+                abandoned = True
+                return Outcome(GoalState.ABORTED, None, "the simulator did not start the goal")
+        motion = started[0]
+        if motion is None:
+            return self._ended_before_start(goal)
+        if isinstance(motion, str):
+            return Outcome(GoalState.ABORTED, None, motion)
+        cancel_sent = False
+        while True:
+            if goal.should_stop and not cancel_sent:
+                cancel_sent = True
+                self.submit(self._canceller(motion, goal.abort_reason))
+            if motion.done.wait(FEEDBACK_PERIOD):
+                break
+            if motion.feedback is not None:
+                goal.feedback(motion.feedback)
+        return Outcome(motion.state, motion.result, motion.message)
+
+    @staticmethod
+    def _ended_before_start(goal: GoalPort) -> Outcome[Any]:
+        """A goal canceled (or aborted) before it started: it never moved."""
+        if goal.abort_reason:
+            return Outcome(GoalState.ABORTED, None, goal.abort_reason)
+        return Outcome(GoalState.CANCELED, None, "canceled before it started")
+
+    @staticmethod
+    def _canceller(motion: Motion[Any, Any], abort_reason: str) -> Command:
+        """Ends `motion` as aborted (safety, shutdown) when there is a reason, else as canceled."""
+        if abort_reason:
+            return lambda sim: sim.controllers.cancel(motion, GoalState.ABORTED, abort_reason)
+        return lambda sim: sim.controllers.cancel(motion, GoalState.CANCELED, "canceled")
+
+    # The sim thread
+
+    def run(self, stop: threading.Event) -> None:
+        """Step physics paced to wall time x realtime_factor, publish the reports, obey, until `stop`."""
+        sim, factor = self.sim, self.realtime_factor
+        wall_start, sim_start = time.monotonic(), sim.sim_time
+        try:
+            while not stop.is_set():
+                self._drain()
+                self._obey()
+                now = time.monotonic()
+                target = sim_start + (now - wall_start) * factor
+                if target - sim.sim_time > MAX_LAG:
+                    log.warning(
+                        "simulation is %.2f s behind the wall clock; dropping the backlog", target - sim.sim_time
+                    )
+                    wall_start, sim_start = now, sim.sim_time
+                    target = sim.sim_time
+                while sim.sim_time + sim.dt <= target and not stop.is_set():
+                    sim.step()
+                    self._drain()
+                    self._obey()
+                    # Also while catching up: on a busy machine physics runs behind, but odometry
+                    # and joint states must keep coming, or safety's watchdog sees a silent robot.
+                    # Not objects: each renders a camera frame (about 20 ms), slowing the catch-up.
+                    self._publish(catching_up=True)
+                self._publish()
+                next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
+                self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
+                self._wake.clear()
+        finally:
+            sim.controllers.stop("the simulator is shutting down")
+            self._drain()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                command = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                command(self.sim)
+            except Exception:
+                log.exception("sim command failed")
+
+    def _publish(self, catching_up: bool = False) -> None:
+        due = self.schedule.due(time.monotonic(), catching_up)
+        stamp = time.time()
+        for report in due:
+            report.publish(stamp)
