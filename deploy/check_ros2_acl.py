@@ -6,11 +6,11 @@ One process, a free loopback port, a temporary users file. `robot` stands for th
 peer, as rmw_zenoh's nodes are), `tether` for tether's ros2 backend and `intruder` for any other host
 that has credentials; both are clients, so everything they send passes the router's rules.
 
-Ordering, not sleeping, decides what was dropped, as in check_acl.py: denied messages are followed by
-an allowed marker from the same session on the same link (puts and queries travel in order at data
-priority, declarations ahead of them at control priority), so once the marker arrives, anything the
-router let through would have arrived before it. Access control filters what a session sends before
-the router routes it anywhere, so one observer per sender is enough.
+Ordering, not sleeping, decides what was dropped (as in tests/integration/test_deploy_acl.py): denied
+messages are followed by an allowed marker from the same session on the same link (puts and queries
+travel in order at data priority, declarations ahead of them at control priority), so once the marker
+arrives, anything the router let through would have arrived before it. Access control filters what a
+session sends before the router routes it anywhere, so one observer per sender is enough.
 """
 
 from __future__ import annotations

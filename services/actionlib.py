@@ -28,7 +28,7 @@ from schemas.actions import (
 from schemas.common import ErrorKind, ServiceError
 from schemas.keys import ActionKeys
 from services.errors import CallError, GoalRejected
-from services.runtime import Node
+from services.runtime import Node, Verify
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,8 @@ class ActionServer(Generic[G, F, R]):
     meanwhile rejects it). Of two goals preempting at once, the later one to finish its wait finds
     the other running and is rejected as busy: the sender retries. A goal `concurrent(goal)` says
     moves nothing (a dry run) is neither kept out nor keeps others out. Besides the five ROS 2 keys
-    it answers `get_status`.
+    it answers `get_status`. `verify` checks each goal and cancel before it is read (a robot's
+    action: only safety's signed ones, services/robotlink.py).
     """
 
     def __init__(
@@ -106,6 +107,7 @@ class ActionServer(Generic[G, F, R]):
         preempts: Callable[[G], bool] | None = None,
         preempt_timeout: float = PREEMPT_TIMEOUT,
         concurrent: Callable[[G], bool] | None = None,
+        verify: Verify | None = None,
     ) -> None:
         self._node = node
         self._action = action
@@ -119,8 +121,8 @@ class ActionServer(Generic[G, F, R]):
         self._lock = threading.Lock()
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
-        node.serve(action.send_goal, self._on_send_goal)
-        node.serve(action.cancel_goal, self._on_cancel)
+        node.serve(action.send_goal, self._on_send_goal, verify=verify)
+        node.serve(action.cancel_goal, self._on_cancel, verify=verify)
         node.serve(action.get_result, self._on_get_result)
         node.serve(action.get_status, self._on_get_status)
 

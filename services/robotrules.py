@@ -1,7 +1,9 @@
-"""What every robot backend does alike (docs/robot.md): fail closed on the heartbeat, check goals. Pure logic."""
+"""What every robot backend does alike (docs/robot.md): fail closed on the heartbeat, check goals, keep out of
+keep-out zones on its own. Pure logic."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import threading
@@ -9,10 +11,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import shapely
+from shapely.geometry import Polygon
+from shapely.geometry.base import BaseGeometry
+
 from schemas.common import Pose2D
-from schemas.robot import ARM_JOINTS, FollowJointTrajectoryGoal
+from schemas.robot import ARM_JOINTS, FollowJointTrajectoryGoal, NavigateToPoseGoal
 from schemas.safety import SafetyStatus
-from services.footprint import TRACKING_TOLERANCE, turn_angle
+from schemas.world import World
+from services.footprint import MIN_TURN, TRACKING_TOLERANCE, footprint, route_legs, route_sweeps, turn_angle
+from services.worldmodel import drive_route
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +33,18 @@ RESET_GRACE = 0.1
 # (5 s), so safety never reports a forward failed that the robot then runs. docs/robot.md, Timing.
 PREEMPT_TIMEOUT = 2.0
 NO_HEARTBEAT_YET = "no safety heartbeat received yet"
+# A heartbeat whose stamp (safety's wall clock) is older than this when it arrives (the robot's wall
+# clock) counts for less, and not at all beyond it: a beat held up by a stalled link is no sign of
+# life. Covers its transit and the offset between the two hosts' clocks (0 when they share a host).
+HEARTBEAT_MAX_AGE = 0.5
+# A held cmd_vel's path is drawn as the footprint at this many poses along it.
+DRIVE_SAMPLES = 10
+# Overlap smaller than this (m^2) is touching, not entering.
+TOUCHING = 1e-6
+# A base already in a zone is checked at poses this far apart along a route (m, rad): its overlap with
+# the zone may not grow.
+ROUTE_STEP = 0.05
+ROUTE_TURN_STEP = math.radians(5.0)
 
 
 @dataclass(frozen=True)
@@ -51,24 +71,45 @@ class HeartbeatGuard:
     action server's accept check (waiting, bounded, for the first heartbeat and for a reset);
     `poll`, from the one loop that enforces it, also says when the robot has just become blocked or
     clear. Times come from `clock` (monotonic seconds), so tests can step it.
+
+    A heartbeat counts for `heartbeat_timeout` from its arrival, but never once its stamp is older
+    than `max_age` by `wall_clock`: one stamped `age` before it arrived counts for
+    min(heartbeat_timeout, max_age - age), so a beat a stalled link held back does not refresh the
+    guard when it finally arrives. Freshness never goes back: a late beat's word (its e-stop, its
+    speed) is taken, its age does not cut short what an earlier, timely one allowed.
     """
 
     def __init__(
-        self, heartbeat_timeout: float, first_heartbeat_wait: float, clock: Callable[[], float] = time.monotonic
+        self,
+        heartbeat_timeout: float,
+        first_heartbeat_wait: float,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        max_age: float = HEARTBEAT_MAX_AGE,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.heartbeat_timeout = heartbeat_timeout
         self.first_heartbeat_wait = first_heartbeat_wait
+        self.max_age = max_age
         self._clock = clock
+        self._wall_clock = wall_clock
         self._beat = threading.Condition()
         self._status: SafetyStatus | None = None
-        self._heard_at = 0.0
+        self._heard_at = 0.0  # when the heartbeat counting longest arrived
+        self._stale_at = -math.inf  # when it stops counting
+        self._late = 0.0  # how old the latest heartbeat's stamp was when it arrived
         self._first = threading.Event()
         self._blocked: str | None = NO_HEARTBEAT_YET  # as of the last poll
         self._scale = 1.0  # as of the last poll
 
     def heard(self, status: SafetyStatus) -> None:
+        now, age = self._clock(), self._wall_clock() - status.stamp
+        # How long it counts; not at all with a stamp that is no time.
+        counts_for = min(self.heartbeat_timeout, self.max_age - age) if math.isfinite(age) else 0.0
         with self._beat:
-            self._status, self._heard_at = status, self._clock()
+            self._status, self._late = status, age
+            if counts_for > 0.0 and now + counts_for > self._stale_at:
+                self._heard_at, self._stale_at = now, now + counts_for
             self._beat.notify_all()
         self._first.set()
 
@@ -78,19 +119,24 @@ class HeartbeatGuard:
             return self._status
 
     def stale_at(self) -> float | None:
-        """When the latest heartbeat stops counting (clock seconds); None before the first."""
+        """When the heartbeats heard stop counting (clock seconds); None before the first that counts."""
         with self._beat:
-            return None if self._status is None else self._heard_at + self.heartbeat_timeout
+            return None if self._stale_at == -math.inf else self._stale_at
 
     def block(self) -> str | None:
         """Why the robot must stay still right now, or None when safety says it may move."""
         with self._beat:
-            status, at = self._status, self._heard_at
+            status, at, stale_at, late = self._status, self._heard_at, self._stale_at, self._late
         if status is None:
             return NO_HEARTBEAT_YET
-        age = self._clock() - at
-        if age > self.heartbeat_timeout:
-            return f"no safety heartbeat for {age * 1000:.0f} ms"
+        now = self._clock()
+        if now > stale_at:
+            if not late <= self.max_age - self.heartbeat_timeout:  # the latest came late (or stamped no time)
+                return (
+                    f"no fresh safety heartbeat: the latest was stamped {late * 1000:.0f} ms before it arrived "
+                    f"(heartbeat_max_age {self.max_age * 1000:.0f} ms)"
+                )
+            return f"no safety heartbeat for {(now - at) * 1000:.0f} ms"
         if status.estop.latched:
             return f"e-stop latched by {status.estop.source or 'unknown'}: {status.estop.reason or 'no reason given'}"
         return None
@@ -181,4 +227,123 @@ def away_from(here: Pose2D, start: Pose2D, base_radius: float) -> str | None:
     return (
         f"the route was checked from ({start.x:.2f}, {start.y:.2f}, {start.yaw:.2f} rad) but the base stands at "
         f"({here.x:.2f}, {here.y:.2f}, {here.yaw:.2f} rad)"
+    )
+
+
+class KeepOut:
+    """The world's keep-out zones, checked by the robot itself (docs/robot.md, Keep-out zones): a
+    navigation goal whose target or route (the legs the robot drives, services/footprint.py) would
+    put the base's footprint into a zone, or a cmd_vel that held for its time would, is refused
+    before the base moves. Safety checks the same and more (its policy may add zones); this is the
+    robot's own line, for a command that came past safety. A base already in a zone (touching is not
+    in) may leave it, or move within it, but only so that its footprint's overlap with the zone
+    shrinks or stays: never deeper in, nor through it."""
+
+    def __init__(
+        self, zones: dict[str, Polygon], length: float, width: float, accelerations: tuple[float, float] = (1.5, 3.0)
+    ) -> None:
+        self.zones = zones
+        self.length = length
+        self.width = width
+        # The base's (linear m/s^2, angular rad/s^2): how far it rolls on braking after a cmd_vel's hold.
+        self.accelerations = accelerations
+
+    @classmethod
+    def of(cls, world: World) -> KeepOut:
+        robot = world.robot
+        zones = {k.name: Polygon(k.polygon) for k in world.keep_out}
+        accelerations = (robot.max_linear_acceleration, robot.max_angular_acceleration)
+        return cls(zones, robot.base_size.x, robot.base_size.y, accelerations)
+
+    def _entered(
+        self, here: Pose2D, shapes: Sequence[BaseGeometry], poses: Callable[[], Sequence[Pose2D]]
+    ) -> str | None:
+        """The first zone one of `shapes` (the floor the move covers) enters from outside, or, for a
+        zone the footprint at `here` is already in, one that the footprint at any of `poses` (along
+        the move) overlaps more than it does at `here`."""
+        start = footprint(here.x, here.y, here.yaw, self.length, self.width)
+        along: Sequence[Polygon] | None = None
+        for name, zone in self.zones.items():
+            inside = start.intersection(zone).area
+            if inside <= TOUCHING:
+                if any(shape.intersection(zone).area > TOUCHING for shape in shapes):
+                    return name
+                continue
+            if along is None:
+                along = [footprint(p.x, p.y, p.yaw, self.length, self.width) for p in poses()]
+            if any(shape.intersection(zone).area > inside + TOUCHING for shape in along):
+                return name
+        return None
+
+    def goal(self, goal: NavigateToPoseGoal, here: Pose2D | None) -> str | None:
+        """Why the robot refuses `goal` from `here` (its `start` when it carries one), or None."""
+        start = goal.start or here
+        if start is None:
+            return "the robot's pose is unknown: it cannot check the route against keep-out zones"
+        route = drive_route(start, goal.path, goal.pose)
+        sweeps = route_sweeps(start, route, goal.pose.yaw, self.length, self.width)
+        target = goal.pose
+        shapes = [footprint(target.x, target.y, target.yaw, self.length, self.width), *(s.shape for s in sweeps)]
+        zone = self._entered(start, shapes, lambda: _route_poses(start, route, target))
+        if zone is None:
+            return None
+        return f"the route to ({target.x:.2f}, {target.y:.2f}) would take the base into keep-out zone '{zone}'"
+
+    def drive(self, here: Pose2D | None, linear: float, angular: float, seconds: float) -> str | None:
+        """Why the robot refuses to hold (`linear` m/s, `angular` rad/s) for `seconds` from `here`, or None."""
+        if linear == 0.0 and angular == 0.0:
+            return None
+        if here is None:
+            return "the robot's pose is unknown: it cannot check a cmd_vel against keep-out zones"
+        # Braking to rest from v at a takes v / a and covers as much as v / (2 a) at full speed.
+        braking = max(abs(linear) / (2 * self.accelerations[0]), abs(angular) / (2 * self.accelerations[1]))
+        total = seconds + braking
+        poses = [_arc(here, linear, angular, total * k / DRIVE_SAMPLES) for k in range(DRIVE_SAMPLES + 1)]
+        prints = [footprint(p.x, p.y, p.yaw, self.length, self.width) for p in poses]
+        shapes = [shapely.union_all([a, b]).convex_hull for a, b in itertools.pairwise(prints)]
+        zone = self._entered(here, shapes, lambda: poses)
+        if zone is None:
+            return None
+        twist = f"cmd_vel ({linear:.2f} m/s, {angular:.2f} rad/s)"
+        return f"{twist} held {seconds:.2f} s would take the base into keep-out zone '{zone}'"
+
+
+def _route_poses(start: Pose2D, points: Sequence[tuple[float, float]], target: Pose2D) -> list[Pose2D]:
+    """The base's poses along a route (route_legs: turn, then drive each leg; turn to the target's
+    heading at the end), at most ROUTE_STEP and ROUTE_TURN_STEP apart."""
+    poses = [start]
+
+    def turn(x: float, y: float, yaw_from: float, yaw_to: float) -> None:
+        angle = turn_angle(yaw_from, yaw_to)
+        if abs(angle) <= MIN_TURN:
+            return
+        count = math.ceil(abs(angle) / ROUTE_TURN_STEP)
+        poses.extend(Pose2D(x=x, y=y, yaw=yaw_from + angle * k / count) for k in range(1, count + 1))
+
+    yaw = start.yaw
+    for leg in route_legs(start, points):
+        turn(leg.start[0], leg.start[1], yaw, leg.heading)
+        count = max(1, math.ceil(leg.length / ROUTE_STEP))
+        (x0, y0), (x1, y1) = leg.start, leg.end
+        poses.extend(
+            Pose2D(x=x0 + (x1 - x0) * k / count, y=y0 + (y1 - y0) * k / count, yaw=leg.heading)
+            for k in range(1, count + 1)
+        )
+        yaw = leg.heading
+    last = poses[-1]
+    turn(last.x, last.y, yaw, target.yaw)
+    return poses
+
+
+def _arc(start: Pose2D, linear: float, angular: float, t: float) -> Pose2D:
+    """Where a base at `start` is after `t` seconds at a constant twist."""
+    yaw = start.yaw + angular * t
+    if abs(angular) < 1e-9:
+        step = linear * t
+        return Pose2D(x=start.x + step * math.cos(start.yaw), y=start.y + step * math.sin(start.yaw), yaw=yaw)
+    radius = linear / angular
+    return Pose2D(
+        x=start.x + radius * (math.sin(yaw) - math.sin(start.yaw)),
+        y=start.y - radius * (math.cos(yaw) - math.cos(start.yaw)),
+        yaw=yaw,
     )

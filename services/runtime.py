@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import faulthandler
 import functools
+import json
 import logging
 import os
 import signal
@@ -24,6 +25,8 @@ from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.trace import TraceRecord
 from services.errors import CallError
+from services.repeats import RepeatLog
+from services.robotlink import Refusal, Signer, signed
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +104,7 @@ class NodeSettings:
     def zenoh(self, service: str | None) -> zenoh.Config:
         """A config file when one is given; else a loopback peer that nothing outside can reach."""
         if self.zenoh_config is not None:
-            return zenoh.Config.from_file(str(self.zenoh_config))
+            return zenoh_config_file(self.zenoh_config)
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")
@@ -118,6 +121,28 @@ class NodeSettings:
         return conf
 
 
+# The file paths a Zenoh config may hold: TLS keys, certificates and CA, and the router's password list.
+CONFIG_FILE_PATHS = (
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/connect_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/auth/usrpwd/dictionary_file",
+)
+
+
+def zenoh_config_file(path: Path) -> zenoh.Config:
+    """A Zenoh config file, its relative file paths taken from the file's own directory (Zenoh would take
+    them from the working directory), so a deployment's files can be moved together."""
+    conf = zenoh.Config.from_file(str(path))
+    for item in CONFIG_FILE_PATHS:
+        value = json.loads(conf.get_json(item))
+        if isinstance(value, str) and value and not Path(value).is_absolute():
+            conf.insert_json5(item, json.dumps(str(path.resolve().parent / value)))
+    return conf
+
+
 @functools.cache
 def decoder(type_: Any) -> msgspec.json.Decoder[Any]:
     """One decoder per type, built once."""
@@ -131,12 +156,23 @@ def encode(message: Any) -> bytes:
     return _encoder.encode(message)
 
 
+# Checks a message before it is decoded: None to take it, else why it is refused (the check reports it).
+Verify = Callable[[str, bytes, bytes | None], Refusal | None]
+
+
+def _attachment(item: zenoh.Sample | zenoh.Query) -> bytes | None:
+    attachment = item.attachment
+    return None if attachment is None else attachment.to_bytes()
+
+
 class Publisher(Generic[T]):
-    def __init__(self, publisher: zenoh.Publisher) -> None:
+    def __init__(self, publisher: zenoh.Publisher, node: Node) -> None:
         self._publisher = publisher
+        self._node = node
+        self._key = str(publisher.key_expr)
 
     def put(self, message: T) -> None:
-        self._publisher.put(encode(message))
+        self._node._send(self._key, encode(message), self._publisher.put)
 
 
 class Subscription:
@@ -161,27 +197,60 @@ class Node:
         self._declared: list[Any] = []
         self._trace_publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
+        # Safety's: signs what it sends to the robot (services/robotlink.py); None: nothing is signed.
+        self.signer: Signer | None = None
+        self.undecodable = RepeatLog("undecodable messages dropped")
+        # Told (key, the log line, how many it tells of) with each line about undecodable messages:
+        # a service may publish it as an event too (safety does, on safety/events).
+        self.on_undecodable: Callable[[str, str, int], None] | None = None
 
     # Topics
 
     def publisher(self, topic: Topic[T]) -> Publisher[T]:
         pub = self.session.declare_publisher(topic.key(self.robot))
         self._declared.append(pub)
-        return Publisher(pub)
+        return Publisher(pub, self)
 
     def publish(self, topic: Topic[T], message: T) -> None:
-        self.session.put(topic.key(self.robot), encode(message))
+        key = topic.key(self.robot)
+        self._send(key, encode(message), lambda payload, **signature: self.session.put(key, payload, **signature))
 
-    def subscribe(self, topic: Topic[T], callback: Callable[[T], None]) -> Subscription:
-        """Subscribe with a typed callback; a sample that does not decode is logged and dropped."""
+    def _send(self, key: str, payload: bytes, put: Callable[..., object]) -> None:
+        """`put(payload)` for `key`, with safety's MAC as its attachment when this node signs and the
+        key needs one (services/robotlink.py): signed and sent in one step, so the counters go out in order."""
+        signer = self.signer
+        if signer is None or not signed(key):
+            put(payload)
+            return
+        with signer.lock:
+            put(payload, attachment=signer.sign(key, payload))
+
+    def _undecodable(self, key: object, what: str, exc: Exception) -> None:
+        """A flood of bad bytes is one line, then a count every few seconds (services/repeats.py)."""
+        if (line := self.undecodable.note(str(key), f"{what}: {exc}")) is not None:
+            log.warning("%s", line)
+            if (report := self.on_undecodable) is not None:
+                try:
+                    report(str(key), line, self.undecodable.covered(str(key)))
+                except Exception:
+                    log.exception("reporting undecodable messages on %s failed", key)
+
+    def subscribe(
+        self, topic: Topic[T], callback: Callable[[T], None], *, verify: Verify | None = None
+    ) -> Subscription:
+        """Subscribe with a typed callback; a sample that does not decode is logged and dropped, and
+        one `verify` refuses is dropped before decoding."""
         dec = decoder(cast(Any, topic.type))
         key = topic.key(self.robot)
 
         def on_sample(sample: zenoh.Sample) -> None:
+            payload = sample.payload.to_bytes()
+            if verify is not None and verify(str(sample.key_expr), payload, _attachment(sample)) is not None:
+                return
             try:
-                message = dec.decode(sample.payload.to_bytes())
+                message = dec.decode(payload)
             except DECODE_ERRORS as exc:
-                log.warning("dropped undecodable sample on %s: %s", sample.key_expr, exc)
+                self._undecodable(sample.key_expr, "sample", exc)
                 return
             try:
                 callback(message)
@@ -192,9 +261,14 @@ class Node:
         self._declared.append(subscriber)
         return Subscription(self, subscriber)
 
-    def subscribe_raw(self, key_expr: str, callback: Callable[[str, bytes], None]) -> None:
+    def subscribe_raw(self, key_expr: str, callback: Callable[..., None], *, attachments: bool = False) -> None:
+        """`callback(key, payload)`, or with `attachments` `callback(key, payload, attachment or None)`."""
+
         def on_sample(sample: zenoh.Sample) -> None:
-            callback(str(sample.key_expr), sample.payload.to_bytes())
+            if attachments:
+                callback(str(sample.key_expr), sample.payload.to_bytes(), _attachment(sample))
+            else:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
 
         self._declared.append(self.session.declare_subscriber(key_expr, on_sample))
 
@@ -207,13 +281,15 @@ class Node:
         *,
         max_request_bytes: int = MAX_REQUEST_BYTES,
         inline: bool = False,
+        verify: Verify | None = None,
     ) -> None:
         """Answer queries on `service`. Always replies: with the handler's value or a ServiceError.
 
         Each query is handled on its own thread, so a handler may block (waiting for a result)
         without holding up Zenoh; `inline` handlers are quick and never block (parsing), and run on
         Zenoh's callback thread, saving a thread start per query. Each query and its reply is
-        published on `_trace/**`.
+        published on `_trace/**`. A query `verify` refuses gets an unauthorized error and never
+        reaches the handler; it is checked on Zenoh's callback thread, in the order queries arrive.
         """
         dec = decoder(cast(Any, service.request))
         key = service.key(self.robot)
@@ -234,6 +310,7 @@ class Node:
                     try:
                         request = dec.decode(raw)
                     except DECODE_ERRORS as exc:
+                        self._undecodable(key, "request", exc)
                         error = ServiceError(
                             kind=ErrorKind.INVALID_REQUEST, message=f"invalid request for {service.path}: {exc}"
                         )
@@ -256,15 +333,41 @@ class Node:
                 request = msgspec.structs.replace(request, **dict.fromkeys(service.redact, "(redacted)"))
             self._trace(service.path, started, request, raw, reply, error)
 
+        def refused(query: zenoh.Query) -> bool:
+            if verify is None:
+                return False
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            refusal = verify(str(query.key_expr), raw, _attachment(query))
+            if refusal is None:
+                return False
+            error = ServiceError(kind=ErrorKind.UNAUTHORIZED, message=f"{service.path} refused: {refusal}")
+            try:
+                query.reply_err(encode(error))
+            finally:
+                query.drop()
+            # Traced like any query answered: a recording shows who tried what (tether inspect flags it).
+            self._trace(service.path, time.time(), None, raw, None, error)
+            return True
+
         def on_query(query: zenoh.Query) -> None:
+            if refused(query):
+                return
+            if inline:
+                answer(query)
+                return
             threading.Thread(target=answer, args=(query,), name=f"q:{service.path}", daemon=True).start()
 
-        self._declared.append(self.session.declare_queryable(key, answer if inline else on_query))
+        self._declared.append(self.session.declare_queryable(key, on_query))
 
     def call(self, service: Service[Q, A], request: Q, *, timeout: float = 5.0) -> A:
         """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
-        key = service.key(self.robot)
-        replies = self.session.get(key, payload=encode(request), timeout=timeout)
+        key, payload = service.key(self.robot), encode(request)
+        signer = self.signer
+        if signer is None or not signed(key):
+            replies = self.session.get(key, payload=payload, timeout=timeout)
+        else:
+            with signer.lock:  # the get only sends here; its replies are read below, outside the lock
+                replies = self.session.get(key, payload=payload, timeout=timeout, attachment=signer.sign(key, payload))
         for reply in replies:
             if reply.ok is not None:
                 try:

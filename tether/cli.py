@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
@@ -15,6 +16,7 @@ from typing import Annotated, Any, NoReturn
 
 import msgspec
 import typer
+import zenoh
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
@@ -36,18 +38,21 @@ from services.runtime import (
     ConfigError,
     Node,
     NodeSettings,
+    configure_logging,
     encode,
     stack_services,
     stop_event,
+    zenoh_config_file,
 )
 from services.worldmodel import WorldFileError
-from tether import recordings
+from tether import deployment, recordings
 from tether.ask import ask
 from tether.client import (
     EXIT_CODES,
     EXIT_UNREACHABLE,
     PlanRun,
     PlanSender,
+    next_heartbeat,
     next_message,
     operator_name,
     reset_estop,
@@ -126,13 +131,27 @@ def run(
 
 
 def start_services(
-    ctx: typer.Context, config: Path | None, log_dir: Path, timeout: float, backend: str = "sim"
+    ctx: typer.Context,
+    config: Path | None,
+    log_dir: Path,
+    timeout: float,
+    backend: str = "sim",
+    services: tuple[str, ...] | None = None,
+    deployed: deployment.Deployment | None = None,
 ) -> tuple[Supervisor, Node]:
     settings = settings_of(ctx)
-    services = stack_services(backend)
-    supervisor = Supervisor(settings, log_dir, config)
+    services = services or stack_services(backend)
+    if deployed is None:
+        supervisor = Supervisor(settings, log_dir, config)
+        node_settings = settings
+    else:
+        # Each service logs in as itself; this process watches their liveliness as the first of them.
+        configs = {s: deployed.client_config(settings.robot, s) for s in services}
+        supervisor = Supervisor(settings, log_dir, deployed.robot_config(settings.robot), zenoh_configs=configs)
+        supervisor.robot_key_file = deployed.directory / settings.robot / "robot.key"
+        node_settings = dataclasses.replace(settings, zenoh_config=configs[services[0]])
     supervisor.start_all(services)
-    node = client(ctx)
+    node = Node("cli", node_settings)
     with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
         missing = node.wait_alive(services, timeout)
     table = Table("service", "pid", "state")
@@ -162,6 +181,24 @@ BackendOpt = Annotated[
 ]
 
 
+def only_services(only: str | None, backend: str, deployed: deployment.Deployment | None) -> tuple[str, ...]:
+    """The services `--only` names (comma-separated), checked; all of the backend's stack without it."""
+    if only is None:
+        return stack_services(backend)
+    names = tuple(dict.fromkeys(n.strip() for n in only.split(",") if n.strip()))
+    known = deployment.SERVICE_IDENTITIES if deployed is not None else ALL_SERVICES
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        where = f"the deployment {deployed.directory}" if deployed is not None else "tether"
+        console.print(
+            f"[red]error:[/] --only {only!r}: {', '.join(unknown) or 'no service named'} not a service of {where}; "
+            f"its services are {', '.join(known)}",
+            soft_wrap=True,
+        )
+        raise typer.Exit(2)
+    return names
+
+
 @app.command()
 def up(
     ctx: typer.Context,
@@ -169,12 +206,47 @@ def up(
     log_dir: LogDirOpt = Path("logs"),
     timeout: Annotated[float, typer.Option(help="Seconds to wait for every service to come up.")] = 60.0,
     backend: BackendOpt = "sim",
+    deploy: Annotated[
+        Path | None,
+        typer.Option(
+            "--deploy",
+            help="A directory from `tether deploy init`: each service logs in to its router as itself, "
+            "with DIR/ROBOT/<service>.json5 and DIR/ROBOT/tether.toml.",
+        ),
+    ] = None,
+    robot: Annotated[str | None, typer.Option("--robot", help="The robot whose services to start.")] = None,
+    only: Annotated[
+        str | None, typer.Option("--only", help="Comma-separated services to start here (e.g. sim,safety,recorder).")
+    ] = None,
 ) -> None:
-    """Start every service, wait until all are alive, and stop them all cleanly on Ctrl-C."""
+    """Start every service (or --only some), wait until all are alive, and stop them all cleanly on Ctrl-C."""
     if backend not in ROBOT_BACKENDS:
         console.print(f"[red]error:[/] unknown backend {backend!r}; backends are {', '.join(ROBOT_BACKENDS)}")
         raise typer.Exit(2)
-    supervisor, node = start_services(ctx, config, log_dir, timeout, backend)
+    if robot is not None:
+        try:
+            ctx.obj = dataclasses.replace(settings_of(ctx), robot=robot)
+        except ValueError as exc:
+            console.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(2) from None
+    deployed: deployment.Deployment | None = None
+    if deploy is not None:
+        if config is not None:
+            console.print(
+                "[red]error:[/] --config and --deploy: a deployment's config is DIR/ROBOT/tether.toml", soft_wrap=True
+            )
+            raise typer.Exit(2)
+        try:
+            deployed = deployment.Deployment.load(deploy)
+            services = only_services(only, backend, deployed)
+            for service in services:
+                deployed.client_config(settings_of(ctx).robot, service)
+        except deployment.DeploymentError as exc:
+            console.print(f"[red]error:[/] {exc}", soft_wrap=True)
+            raise typer.Exit(2) from None
+    else:
+        services = only_services(only, backend, None)
+    supervisor, node = start_services(ctx, config, log_dir, timeout, backend, services, deployed)
     console.print(f"all services up; logs in {log_dir}/. Ctrl-C (or SIGTERM) stops them.")
     stop = stop_event()
     try:
@@ -187,6 +259,81 @@ def up(
         node.close()
         codes = supervisor.stop_all()
         console.print("stopped: " + ", ".join(f"{k} ({v})" for k, v in codes.items()))
+
+
+# Deployments
+
+deploy_app = typer.Typer(help="A secured deployment: a router, one identity per service, TLS.", no_args_is_help=True)
+app.add_typer(deploy_app, name="deploy")
+
+
+@deploy_app.command("init")
+def deploy_init(
+    directory: Annotated[Path, typer.Argument(help="Where the deployment goes (made if missing).")],
+    robot: Annotated[list[str], typer.Option("--robot", help="A robot of the fleet (repeatable).")],
+    tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a CA and a certificate per identity.")] = False,
+    router: Annotated[
+        str | None,
+        typer.Option(
+            "--router",
+            help=f"HOST[:PORT] where clients reach the router (default {deployment.DEFAULT_ROUTER_HOST}:"
+            f"{deployment.DEFAULT_ROUTER_PORT}).",
+        ),
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json")] = False,
+) -> None:
+    """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay."""
+    try:
+        address = deployment.RouterAddress.parse(router) if router is not None else None
+        written = deployment.init(directory, robot, tls=tls, router=address)
+        made = deployment.Deployment.load(directory)
+    except (deployment.DeploymentError, OSError) as exc:
+        console.print(f"[red]error:[/] {exc}", soft_wrap=True)
+        raise typer.Exit(2) from None
+    if warning := deployment.cleartext_warning(made):
+        console.print(f"[yellow]warning:[/] {warning}", soft_wrap=True)
+    if as_json:
+        files = [{"path": str(w.path), "created": w.created, "secret": w.secret} for w in written]
+        print(json.dumps({"directory": str(directory.resolve()), "robots": robot, "tls": tls, "files": files}))
+        return
+    table = Table("file", "", "mode")
+    for w in written:
+        table.add_row(str(w.path), "written" if w.created else "kept", "600 (secret)" if w.secret else "")
+    out.print(table)
+    created = sum(w.created for w in written)
+    out.print(f"{created} files written, {len(written) - created} kept, in {directory.resolve()}")
+
+
+@app.command()
+def router(directory: Annotated[Path, typer.Argument(help="A directory from `tether deploy init`.")]) -> None:
+    """Run a deployment's Zenoh router (DIR/router.json5) until SIGINT or SIGTERM."""
+    path = directory / deployment.ROUTER_CONFIG
+    if not path.is_file():
+        console.print(
+            f"[red]error:[/] {path} does not exist; "
+            f"make a deployment with `tether deploy init {directory} --robot NAME`",
+            soft_wrap=True,
+        )
+        raise typer.Exit(2)
+    configure_logging()
+    zenoh.init_log_from_env_or("error")
+    log = logging.getLogger("tether.router")
+    try:
+        conf = zenoh_config_file(path)
+        endpoints = json.loads(conf.get_json("listen/endpoints"))
+    except (zenoh.ZError, ValueError) as exc:
+        console.print(f"[red]error:[/] {path} is not a valid Zenoh config: {exc}", soft_wrap=True)
+        raise typer.Exit(2) from None
+    stop = stop_event()
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        console.print(f"[red]error:[/] the router from {path} did not start: {exc}", soft_wrap=True)
+        raise typer.Exit(1) from None
+    with session:
+        log.info("router %s listening on %s (config %s)", session.info.zid(), ", ".join(endpoints), path.resolve())
+        stop.wait()
+        log.info("router stopping")
 
 
 # Plans
@@ -433,27 +580,33 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
         except CallError:  # a backend that serves none (the sim), or none running
             found["diagnostics"] = None
 
-    threads = [
-        threading.Thread(target=grab, args=a)
-        for a in (("heartbeat", keys.HEARTBEAT), ("odom", keys.ODOM), ("objects", keys.OBJECTS))
-    ]
-    threads.append(threading.Thread(target=diagnose))
+    def heartbeat() -> None:
+        found["heartbeat"] = next_heartbeat(node, timeout)
+
+    threads = [threading.Thread(target=grab, args=a) for a in (("odom", keys.ODOM), ("objects", keys.OBJECTS))]
+    threads += [threading.Thread(target=diagnose), threading.Thread(target=heartbeat)]
     for t in threads:
         t.start()
     alive = node.alive_services(timeout=timeout)
     for t in threads:
         t.join()
-    beat: SafetyStatus | None = found["heartbeat"]
-    odom: Odometry | None = found["odom"]
-    objects: PerceivedObjects | None = found["objects"]
-    problems = robot_problems(found["diagnostics"])
+    # The latch only from a fresh heartbeat with a robot-link MAC (an unsigned one is not safety's).
+    waited = found.get("heartbeat")
+    beat: SafetyStatus | None = waited.status if waited is not None else None
+    odom: Odometry | None = found.get("odom")
+    objects: PerceivedObjects | None = found.get("objects")
+    problems = robot_problems(found.get("diagnostics"))
     return {
         # The robot's other backends only when one runs.
         "services": {name: name in alive for name in ALL_SERVICES if name in SERVICES or name in alive},
         "estop": (
             {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
             if beat
-            else {"latched": None, "source": "", "reason": "no heartbeat from safety"}
+            else {
+                "latched": None,
+                "source": "",
+                "reason": waited.why_not(timeout) if waited is not None else "no heartbeat from safety",
+            }
         ),
         "robot": (
             {
@@ -489,9 +642,74 @@ def robot_problems(diagnostics: RobotDiagnostics | None) -> list[dict[str, Any]]
     ]
 
 
+def health(node: Node, services: list[str], timeout: float = 1.5) -> dict[str, Any]:
+    """Are `services` (all of a robot's, the robot backend being sim or ros2, when empty) alive, and is
+    safety's heartbeat fresh (one arrives within `timeout`, stamped within `timeout` of now, with a
+    robot-link MAC: tether.client.HeartbeatWait)? `problems`: what is not, one phrase each."""
+    found: dict[str, Any] = {}
+    beat = threading.Thread(target=lambda: found.update(heartbeat=next_heartbeat(node, timeout)))
+    beat.start()
+    alive = node.alive_services(timeout=timeout)
+    beat.join()
+    problems = []
+    if services:
+        problems += [f"{s} not alive" for s in services if s not in alive]
+    else:
+        problems += [f"{s} not alive" for s in SERVICES if s != "sim" and s not in alive]
+        if not alive & {"sim", "ros2"}:
+            problems.insert(0, "no robot backend (sim or ros2) alive")
+    waited = found.get("heartbeat")  # missing when listening failed
+    fresh = waited is not None and waited.status is not None
+    if not fresh:
+        problems.append(waited.why_not(timeout) if waited is not None else "could not listen for safety's heartbeat")
+    return {
+        "ok": not problems,
+        "alive": sorted(alive),
+        "heartbeat": fresh,
+        "problems": problems,
+    }
+
+
 @app.command()
-def status(ctx: typer.Context, as_json: Annotated[bool, typer.Option("--json")] = False) -> None:
+def status(
+    ctx: typer.Context,
+    as_json: Annotated[bool, typer.Option("--json")] = False,
+    check: Annotated[
+        bool,
+        typer.Option(
+            "--check",
+            help="A health probe: exit 0 only if the services are alive and safety's heartbeat is fresh, "
+            "else 1 with one line saying what is missing.",
+        ),
+    ] = False,
+    service: Annotated[
+        list[str] | None, typer.Option("--service", help="With --check: only this service (repeatable).")
+    ] = None,
+) -> None:
     """Which services are alive, the e-stop latch, the robot's pose and problems, and where objects are."""
+    if service and not check:
+        console.print("[red]error:[/] --service goes with --check")
+        raise typer.Exit(2)
+    if unknown := [s for s in service or [] if s not in ALL_SERVICES]:
+        console.print(f"[red]error:[/] unknown service {', '.join(unknown)}; services are {', '.join(ALL_SERVICES)}")
+        raise typer.Exit(2)
+    if check:
+        try:
+            node = client(ctx)
+        except Exception as exc:  # zenoh.ZError: no router, refused login; anything else, as unhealthy
+            console.print(f"unhealthy: cannot open a Zenoh session: {exc}", markup=False, soft_wrap=True)
+            raise typer.Exit(EXIT_UNREACHABLE) from None
+        with node:
+            report = health(node, service or [])
+        if as_json:
+            print(json.dumps(report))
+        elif report["ok"]:
+            out.print(
+                f"healthy: {', '.join(service or report['alive'])} alive; safety's heartbeat fresh", soft_wrap=True
+            )
+        else:
+            console.print("unhealthy: " + "; ".join(report["problems"]), markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(0 if report["ok"] else 1)
     with client(ctx) as node:
         state = status_dict(node)
     if as_json:

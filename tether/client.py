@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import getpass
 import threading
+import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -17,6 +19,7 @@ from schemas.keys import Topic
 from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
 from services.actionlib import PREEMPT_TIMEOUT, ActionClient, ClientGoal
 from services.errors import CallError
+from services.robotlink import NOT_SIGNED, Refusal, unpack
 from services.runtime import Node
 from services.safety.operator import read_token, token_path
 
@@ -49,6 +52,67 @@ def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
     finally:
         subscription.undeclare()
     return box[0] if box else None
+
+
+class HeartbeatWait:
+    """The first heartbeat that can be safety's and is fresh: it carries a signature-shaped robot-link
+    attachment (the CLI has no robot key: this screens out unsigned forgeries, not a forger's own
+    MAC) and is stamped within `fresh` seconds of `clock` (a beat buffered across a stalled link and
+    delivered late is not fresh). `why_not` says what came instead, when nothing did."""
+
+    def __init__(self, fresh: float, clock: Callable[[], float] = time.time) -> None:
+        self.fresh = fresh
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._arrived = threading.Event()
+        self.status: SafetyStatus | None = None
+        self._unsigned = 0
+        self._stale: float | None = None  # the age of the latest stale beat
+
+    def verify(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
+        """Before decoding: refused without a signature-shaped attachment."""
+        if unpack(attachment) is not None:
+            return None
+        with self._lock:
+            self._unsigned += 1
+        return Refusal(NOT_SIGNED)
+
+    def take(self, status: SafetyStatus) -> None:
+        age = self._clock() - status.stamp
+        with self._lock:
+            if self.status is not None:
+                return
+            if not abs(age) < self.fresh:  # also NaN
+                self._stale = age
+                return
+            self.status = status
+        self._arrived.set()
+
+    def wait(self, timeout: float) -> SafetyStatus | None:
+        self._arrived.wait(timeout)
+        with self._lock:
+            return self.status
+
+    def why_not(self, timeout: float) -> str:
+        with self._lock:
+            stale, unsigned = self._stale, self._unsigned
+        if stale is not None:
+            when = f"{stale:.1f} s ago" if stale > 0 else f"{-stale:.1f} s ahead of this clock"
+            return f"no fresh heartbeat from safety within {timeout:g} s (one stamped {when}: stale)"
+        if unsigned:
+            return f"no heartbeat from safety within {timeout:g} s ({unsigned} without a robot-link MAC: not safety's)"
+        return f"no heartbeat from safety within {timeout:g} s"
+
+
+def next_heartbeat(node: Node, timeout: float) -> HeartbeatWait:
+    """Wait up to `timeout` for a fresh heartbeat that may be safety's (HeartbeatWait)."""
+    waiting = HeartbeatWait(fresh=timeout)
+    subscription = node.subscribe(keys.HEARTBEAT, waiting.take, verify=waiting.verify)
+    try:
+        waiting.wait(timeout)
+    finally:
+        subscription.undeclare()
+    return waiting
 
 
 def operator_name() -> str:

@@ -19,7 +19,7 @@ from services.recorder.reader import RecordingError, RecordingFile
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.timeline import Level, RobotState, Row, Timeline, build_timeline
 from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
-from tether.recordings import FilesArg, console, fail, key_matcher, open_recording
+from tether.recordings import FilesArg, RobotKeyOpt, console, fail, key_matcher, open_recording, robot_key_of
 
 out = Console()
 
@@ -53,16 +53,20 @@ def inspect(
         str | None,
         typer.Option("--world", help="The world to draw when the recording carries none (a file or a bundled name)."),
     ] = None,
+    robot_key_file: RobotKeyOpt = None,
 ) -> None:
     """Show what happened in a recording: plan, steps, commands, safety decisions, e-stops, robot state.
 
     Odometry, heartbeats and other fast streams only set each row's robot state, unless they change something.
+    Messages that are not safety's are rows of their own; with --robot-key their MACs are checked too. The
+    e-stop column shows "?" where the latch is unknown (heartbeats of several senders at once, without the key).
 
     Exit 0; 2 for a missing or non-MCAP file, or files that are not consecutive parts of one recording.
     A file cut short is inspected as far as it is whole.
     """
+    robot_key = robot_key_of(robot_key_file)
     recording = open_recording(files)
-    timeline = build_timeline(recording, everything)
+    timeline = build_timeline(recording, everything, robot_key)
     rows = timeline.rows
     if key_expr is not None:
         rows = select(rows, recording.robot, key_expr)

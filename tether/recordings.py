@@ -32,6 +32,7 @@ from services.recorder.replay import (
     is_replay_name,
     plan_replay,
 )
+from services.robotlink import KeyFileError, read_key
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 from services.worldmodel import WorldFileError, load_world
@@ -53,11 +54,30 @@ KeysOpt = Annotated[
         help="A Zenoh key expression; relative ones (safety/**) are under the robot's prefix. Default: every key.",
     ),
 ]
+RobotKeyOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--robot-key",
+        help="The robot key file (mode 0600) the recording was made under: every robot-link MAC is checked, "
+        "so safety's heartbeats are told from a forger's. Without it, heartbeats of several senders at once "
+        "leave the e-stop latch unknown.",
+    ),
+]
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
     console.print(f"[red]error:[/] {message}", highlight=False)
     raise typer.Exit(code)
+
+
+def robot_key_of(path: Path | None) -> bytes | None:
+    """The key in `--robot-key`'s file, or None without one; exit 2 naming what is wrong with the file."""
+    if path is None:
+        return None
+    try:
+        return read_key(path.expanduser())
+    except KeyFileError as exc:
+        fail(f"--robot-key: {exc}")
 
 
 def key_filter(robot: str, expr: str | None) -> zenoh.KeyExpr:
@@ -307,12 +327,17 @@ def recheck_command(
     ] = None,
     show_all: Annotated[bool, typer.Option("--all", help="List every rechecked command, not only changes.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    robot_key_file: RobotKeyOpt = None,
 ) -> None:
     """Check the recorded commands again, offline, and list every decision that differs from the recorded one.
 
-    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), 2 on bad
-    input or when nothing could be rechecked.
+    Robot commands and heartbeats that are not safety's (no robot-link MAC, another sender, replayed, no
+    decision allowing them) are listed as warnings.
+
+    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot) or when
+    something not safety's reached the robot's keys, 2 on bad input or when nothing could be rechecked.
     """
+    robot_key = robot_key_of(robot_key_file)
     recording = open_recording(files)
     name = recording.name
     if policy is not None and not policy.is_file():
@@ -335,11 +360,13 @@ def recheck_command(
     robot = recording.robot
     root = keys.prefix(robot) + "/"
     messages = (
-        Message(m.log_time / 1e9, m.key[len(root) :], m.data) for m in recording.messages if m.key.startswith(root)
+        Message(m.log_time / 1e9, m.key[len(root) :], m.data, m.attachment)
+        for m in recording.messages
+        if m.key.startswith(root)
     )
     kept = recording.policy
     kept_hash = recording.metadata.get("tether", {}).get("policy_hash", "")
-    report = recheck(messages, safety, kept_hash if kept is not None else "")
+    report = recheck(messages, safety, kept_hash if kept is not None else "", robot, robot_key)
     start = recording.messages[0].log_time / 1e9 if recording.messages else 0.0
     if as_json:
         print(json.dumps(_report_json(report, recording, start, show_all)))
@@ -348,7 +375,8 @@ def recheck_command(
     if not report.checked:
         # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing.
         fail(f"nothing in {name} could be rechecked: it holds no safety decision with the robot's state before it")
-    raise typer.Exit(1 if report.differences else 0)
+    # Commands or heartbeats that are not safety's are a finding too (listed as warnings).
+    raise typer.Exit(1 if report.differences or report.suspects else 0)
 
 
 def _report_json(report: RecheckReport, recording: RecordingFile, start: float, show_all: bool) -> dict[str, Any]:

@@ -14,9 +14,14 @@ import time
 from pathlib import Path
 from typing import IO
 
+from services.robotlink import KEY_ENV, ensure_key, key_path
 from services.runtime import ALL_SERVICES, DUMP_STACKS, SERVICES, NodeSettings
+from services.safety.operator import TOKEN_ENV
 
 log = logging.getLogger(__name__)
+
+# The services that sign or check robot commands and heartbeats with the robot key.
+KEY_HOLDERS = ("safety", "sim", "ros2")
 
 # Stopped stage by stage, each stage's services together: nothing new is planned; safety goes before
 # the robot so its watchdog never sees a robot vanish mid-motion (the robot stops on the missing
@@ -61,7 +66,15 @@ def free_base_port(count: int = len(ALL_SERVICES)) -> int:
 
 
 class Supervisor:
-    """Each service in its own process group, its output in `log_dir/<service>.log`."""
+    """Each service in its own process group, its output in `log_dir/<service>.log`.
+
+    Safety and the robot backend share a key (services/robotlink.py): unless the environment names
+    one ($TETHER_ROBOT_KEY_FILE), the stack's own, `robot-<robot>.key` (0600) beside the operator
+    token when one is named ($TETHER_OPERATOR_TOKEN_FILE, as safety would put it), else in a 0700
+    `keys/` directory beside `log_dir`: never in the log directory, which goes into incident reports.
+    It is made when the first of safety and the robot backends starts, and only they are told where
+    it is (a config's `robot_key_file` wins). Under one Unix user the mode does not keep the other
+    services from reading it: only separate users (systemd's DynamicUser) or containers do."""
 
     def __init__(
         self,
@@ -69,27 +82,61 @@ class Supervisor:
         log_dir: Path,
         config_file: Path | None = None,
         extra_env: dict[str, str] | None = None,
+        zenoh_configs: dict[str, Path] | None = None,
     ) -> None:
         self.settings = settings
+        # A deployment's services each log in with their own Zenoh config (`tether up --deploy`).
+        self.zenoh_configs = zenoh_configs or {}
         self.log_dir = log_dir
         self.config_file = config_file
         self.extra_env = extra_env or {}
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self._logs: dict[str, IO[bytes]] = {}
         log_dir.mkdir(parents=True, exist_ok=True)
+        self._robot_key_file: Path | None = None
 
-    def env(self) -> dict[str, str]:
+    @property
+    def robot_key_file(self) -> Path:
+        """Where the robot key is (see the class): fixed at its first use, or set by the caller."""
+        if self._robot_key_file is None:
+            token = self.extra_env.get(TOKEN_ENV) or os.environ.get(TOKEN_ENV)
+            default = Path(token).expanduser().parent if token else self.log_dir.parent / "keys"
+            self._robot_key_file = key_path(self.extra_env.get(KEY_ENV), default, self.settings.robot)
+        return self._robot_key_file
+
+    @robot_key_file.setter
+    def robot_key_file(self, path: Path) -> None:
+        self._robot_key_file = path
+
+    def robot_key(self) -> bytes:
+        """The key the stack's safety and robot backend share (made if there is none yet): what a test
+        that plays safety, or bypasses it as only safety could, signs with."""
+        path = self.robot_key_file
+        if not path.parent.exists():
+            path.parent.mkdir(mode=0o700, parents=True)  # a directory of keys: its owner's only
+        return ensure_key(path)
+
+    def env(self, service: str | None = None) -> dict[str, str]:
         env = dict(os.environ)
         env["TETHER_ROBOT"] = self.settings.robot
         env["TETHER_BASE_PORT"] = str(self.settings.base_port)
         if self.settings.zenoh_config is not None:
             env["TETHER_ZENOH_CONFIG"] = str(self.settings.zenoh_config)
+        if service in self.zenoh_configs:
+            env["TETHER_ZENOH_CONFIG"] = str(self.zenoh_configs[service])
         env.update(self.extra_env)
+        # Only safety and the robot backends hold the robot key; nothing else is even told where it
+        # is, not by the caller's environment nor by `extra_env`.
+        env.pop(KEY_ENV, None)
+        if service in KEY_HOLDERS:
+            env[KEY_ENV] = str(self.robot_key_file)
         return env
 
     def start(self, service: str) -> subprocess.Popen[bytes]:
         if service not in ALL_SERVICES:
             raise ValueError(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
+        if service in KEY_HOLDERS:
+            self.robot_key()  # made here, before the other holder could race for it
         cmd = [sys.executable, "-m", "tether", "run", service]
         if self.config_file is not None:
             cmd += ["--config", str(self.config_file)]
@@ -97,7 +144,12 @@ class Supervisor:
         if out is None or out.closed:
             out = self._logs[service] = open(self.log_dir / f"{service}.log", "ab")  # noqa: SIM115
         proc = subprocess.Popen(
-            cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=self.env(), start_new_session=True
+            cmd,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=self.env(service),
+            start_new_session=True,
         )
         self.procs[service] = proc
         log.info("started %s (pid %d)", service, proc.pid)

@@ -12,6 +12,7 @@ from services.executor.navigation import BasePlanner
 from services.executor.node import NodePlanServices, NodeRobot, serve_execute_plan
 from services.executor.runner import PlanRunner
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.sdnotify import Notifier
 from services.worldmodel import WorldModel, load_world
 
 log = logging.getLogger(__name__)
@@ -32,5 +33,8 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         server = serve_execute_plan(node, runner, config)
         node.declare_alive()
         log.info("executor up for robot %s", settings.robot)
-        stop.wait()
+        notifier = Notifier()
+        notifier.ready(f"executing plans for robot {settings.robot}")
+        notifier.wait(stop)
+        notifier.stopping("aborting running plans")
         server.abort_all("executor shutting down")

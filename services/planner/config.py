@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Annotated
 
 import msgspec
@@ -16,6 +17,9 @@ from services.planner.errors import NotConfigured
 URL_ENV = "TETHER_LLM_URL"
 MODEL_ENV = "TETHER_LLM_MODEL"
 KEY_ENV = "TETHER_LLM_API_KEY"
+# A file holding the key instead (a compose secret, a systemd credential): not in the process's
+# environment, where `docker inspect` and /proc/PID/environ show it. Empty file: no key.
+KEY_FILE_ENV = "TETHER_LLM_API_KEY_FILE"
 
 HOW_TO_CONFIGURE = f"""no LLM endpoint is configured. Any OpenAI-compatible chat-completions endpoint works
 (Ollama, llama.cpp server, vLLM, or a hosted one). Either set, in the environment:
@@ -112,6 +116,16 @@ def resolve_endpoint(config: PlannerConfig, environ: Mapping[str, str] | None = 
     source = ""
     if env.get(KEY_ENV):
         key, source = Secret(env[KEY_ENV]), KEY_ENV
+    elif env.get(KEY_FILE_ENV):
+        path = env[KEY_FILE_ENV]
+        try:
+            text = Path(path).read_text().strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise NotConfigured(
+                f"{KEY_FILE_ENV} names {path}, which cannot be read: {exc.__class__.__name__}"
+            ) from None
+        if text:
+            key, source = Secret(text), f"{KEY_FILE_ENV} ({path})"
     elif config.api_key_env:
         if not env.get(config.api_key_env):
             raise NotConfigured(

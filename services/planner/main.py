@@ -9,6 +9,7 @@ from services.planner.config import PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner, declare
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
+from services.sdnotify import Notifier
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,9 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         try:
             declare(node, planner)
             node.declare_alive()
-            stop.wait()
+            notifier = Notifier()
+            notifier.ready("serving plan/ask" + ("" if endpoint else " (no LLM endpoint configured)"))
+            notifier.wait(stop)
+            notifier.stopping()
         finally:
             planner.close()

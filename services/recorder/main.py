@@ -18,6 +18,7 @@ from services.ros2.wire import Naming
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
 from services.safety.policyfile import DEFAULT_POLICY
+from services.sdnotify import Notifier
 from services.worldmodel import world_path
 
 log = logging.getLogger(__name__)
@@ -59,10 +60,16 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
                 link.start()
             node.declare_alive()
             log.info("recording %s", keys.all_keys(settings.robot))
-            while not stop.wait(config.flush_interval):
+            notifier = Notifier()
+            notifier.ready(f"recording robot {settings.robot} to {config.output_dir}")
+            # Fed after each flush, so a recorder stuck writing is restarted; flushes at least that often.
+            interval = min(config.flush_interval, notifier.period or config.flush_interval)
+            while not stop.wait(interval):
                 recorder.tick()
                 if link is not None:
                     link.poll()
+                notifier.keepalive()
+            notifier.stopping("finishing the recording")
     finally:
         # The sessions are closed first, so no callback writes while the summaries are being written.
         if link is not None:

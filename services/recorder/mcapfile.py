@@ -35,6 +35,40 @@ METADATA_NAME = "tether"
 WORLD_ATTACHMENT = "world"
 POLICY_ATTACHMENT = "policy"
 MEDIA_TYPES = {".yaml": "application/yaml", ".yml": "application/yaml", ".toml": "application/toml"}
+# The Zenoh attachments of signed messages (safety's MAC on robot commands and heartbeats,
+# services/robotlink.py), each the message after the one it belongs to, on the channel
+# `tether/<robot>/_robot_link`: JSON {"seq": the message's sequence, "attachment": hex}. No key
+# is published there: the reader puts each back on its message, so replay and the timeline never see it.
+LINK_SUFFIX = "/_robot_link"
+
+
+def link_channel(robot: str) -> str:
+    return keys.prefix(robot) + LINK_SUFFIX
+
+
+def is_link_channel(topic: str) -> bool:
+    return topic.startswith(keys.ROOT + "/") and topic.endswith(LINK_SUFFIX) and topic.count("/") == 2
+
+
+# A longer attachment is not the robot link's (its is services.robotlink.ATTACHMENT_BYTES): not kept.
+MAX_ATTACHMENT = 256
+
+
+def link_record(sequence: int, attachment: bytes) -> bytes:
+    """The link channel's record of the attachment of the message of `sequence` (written right after it)."""
+    return b'{"seq":%d,"attachment":"%s"}' % (sequence, attachment.hex().encode())
+
+
+def link_attachment(data: bytes, sequence: int) -> bytes | None:
+    """The attachment in a link channel's record, if it belongs to the message of `sequence`."""
+    try:
+        link = json.loads(data)
+        if not isinstance(link, dict) or link.get("seq") != sequence:
+            return None
+        attachment = bytes.fromhex(str(link.get("attachment", "")))
+    except (ValueError, RecursionError):
+        return None
+    return attachment if len(attachment) <= MAX_ATTACHMENT else None
 
 
 def version() -> str:
@@ -141,6 +175,7 @@ class Recording:
         self._lock = threading.Lock()
         self._schemas: dict[tuple[str, bytes], int] = {}  # (name, document) -> schema id
         self._channels: dict[str, int] = {}  # key -> channel id
+        self._link_channel: int | None = None
         self._warned: set[str] = set()
         self.started_ns = clock()
         self.messages = 0
@@ -165,8 +200,17 @@ class Recording:
                 data=source.data,
             )
 
-    def record(self, key: str, payload: bytes, *, log_time: int | None = None, publish_time: int | None = None) -> bool:
-        """Write one message; False if it was dropped (not JSON, or the recording is finished)."""
+    def record(
+        self,
+        key: str,
+        payload: bytes,
+        *,
+        log_time: int | None = None,
+        publish_time: int | None = None,
+        attachment: bytes | None = None,
+    ) -> bool:
+        """Write one message, and its `attachment` (if any, at most MAX_ATTACHMENT bytes) on the link
+        channel right after it; False if it was dropped (not JSON, or the recording is finished)."""
         try:
             msgspec.json.decode(payload)
         except DECODE_ERRORS as exc:
@@ -189,8 +233,25 @@ class Recording:
                 data=payload,
                 sequence=self.messages,
             )
+            if attachment is not None and len(attachment) <= MAX_ATTACHMENT:
+                self._record_link(self.messages, attachment, now)
             self.messages += 1
         return True
+
+    def _record_link(self, sequence: int, attachment: bytes, log_time: int) -> None:
+        """With the lock held."""
+        if self._link_channel is None:
+            schema = self._writer.register_schema(name="RobotLink", encoding=SchemaEncoding.JSONSchema, data=b"{}")
+            self._link_channel = self._writer.register_channel(
+                topic=link_channel(self.robot), message_encoding=MessageEncoding.JSON, schema_id=schema
+            )
+        self._writer.add_message(
+            channel_id=self._link_channel,
+            log_time=log_time,
+            publish_time=log_time,
+            data=link_record(sequence, attachment),
+            sequence=sequence,
+        )
 
     def _register(self, key: str) -> int:
         topic = keys.topic_for_key(self.robot, key)

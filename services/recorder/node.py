@@ -16,9 +16,10 @@ def bind(node: Node, recording: Recorder, key_expr: str | None = None, serve_sta
     def status(_request: Empty) -> RecorderStatus:
         return recording.status()
 
-    def on_sample(key: str, payload: bytes) -> None:
-        recording.record(key, payload)
+    # With the attachments: safety's MACs, for `tether inspect` and `recheck` to tell its messages from others.
+    def on_sample(key: str, payload: bytes, attachment: bytes | None) -> None:
+        recording.record(key, payload, attachment)
 
-    node.subscribe_raw(key_expr or keys.all_keys(node.robot), on_sample)
+    node.subscribe_raw(key_expr or keys.all_keys(node.robot), on_sample, attachments=True)
     if serve_status:
         node.serve(keys.RECORDER_STATUS, status)

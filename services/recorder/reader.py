@@ -18,7 +18,17 @@ from mcap.well_known import Profile
 from mcap.writer import Writer
 
 from schemas import keys
-from services.recorder.mcapfile import COMPRESSION, LIBRARY, METADATA_NAME, POLICY_ATTACHMENT, PROFILE, WORLD_ATTACHMENT
+from services.recorder.mcapfile import (
+    COMPRESSION,
+    LIBRARY,
+    METADATA_NAME,
+    POLICY_ATTACHMENT,
+    PROFILE,
+    WORLD_ATTACHMENT,
+    is_link_channel,
+    link_attachment,
+    link_record,
+)
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +48,8 @@ class Recorded:
     log_time: int
     key: str
     data: bytes
+    # The Zenoh attachment it came with (safety's MAC on robot commands and heartbeats), if recorded.
+    attachment: bytes | None = None
 
 
 @dataclass
@@ -175,6 +187,7 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
         raise RecordingError(f"{path} is empty: the recorder never wrote to it")
     recording = RecordingFile(path)
     kept: dict[int, bool] = {}
+    last_sequence: int | None = None  # of the last message kept, which a link record may belong to
     records = _records(path)
     try:
         for record in records:
@@ -182,10 +195,20 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                 channel = recording.channels.get(record.channel_id)
                 if channel is None:
                     continue
+                if is_link_channel(channel.topic):
+                    if (
+                        last_sequence is not None
+                        and (attachment := link_attachment(record.data, last_sequence)) is not None
+                    ):
+                        recording.messages[-1] = replace(recording.messages[-1], attachment=attachment)
+                    last_sequence = None
+                    continue
                 if record.channel_id not in kept:
                     kept[record.channel_id] = keep is None or keep(channel.topic)
+                last_sequence = None
                 if kept[record.channel_id]:
                     recording.messages.append(Recorded(record.log_time, channel.topic, record.data))
+                    last_sequence = record.sequence
             elif isinstance(record, Channel):
                 recording.channels[record.id] = record
             elif isinstance(record, Schema):
@@ -311,6 +334,7 @@ def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
             for sid, s in recording.schemas.items()
         }
         channel_ids: dict[str, int] = {}
+        link = next((c.topic for c in recording.channels.values() if is_link_channel(c.topic)), None)
         for channel in recording.channels.values():
             channel_ids[channel.topic] = writer.register_channel(
                 topic=channel.topic,
@@ -336,6 +360,15 @@ def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
                 data=message.data,
                 sequence=sequence,
             )
+            if message.attachment is not None and link is not None:
+                # Its attachment right after it, as the recorder wrote it.
+                writer.add_message(
+                    channel_id=channel_ids[link],
+                    log_time=message.log_time,
+                    publish_time=message.log_time,
+                    data=link_record(sequence, message.attachment),
+                    sequence=sequence,
+                )
         writer.finish()
     return Recovered(
         source, output, len(recording.messages), len(recording.channels), recording.complete, recording.problem

@@ -120,9 +120,9 @@ class Recorder:
         log.info("recording ROS 2 traffic (%s) to %s", ", ".join(self._ros2.keys.key_exprs()), path)
         return recording
 
-    def record(self, key: str, payload: bytes) -> bool:
+    def record(self, key: str, payload: bytes, attachment: bytes | None = None) -> bool:
         with self._lock:
-            return self._current.record(key, payload)
+            return self._current.record(key, payload, attachment=attachment)
 
     def record_ros2(self, key: str, payload: bytes, attachment: bytes | None = None) -> bool:
         """Write one sample of the robot's ROS 2 traffic to the twin; False if there is none or it was skipped."""

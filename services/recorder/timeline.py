@@ -33,6 +33,7 @@ from schemas.robot import (
 from schemas.safety import Decision, EStop, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from schemas.world import GroundTruth, Moved, MoveEntity
+from services.recorder.linkaudit import Flag, Why, audit
 from services.recorder.reader import Recorded, RecordingFile
 
 # Without a heartbeat for this long the robot has stopped (safety's timeout is 200 ms): worth a row.
@@ -59,6 +60,7 @@ class EventKind(enum.StrEnum):
     HEARTBEAT = "heartbeat"  # safety's heartbeat missing
     WORLD = "world"  # the simulated world changed, or was read for a check
     BAD = "bad"  # a message that does not decode into its key's type
+    SUSPECT = "suspect"  # a robot command or heartbeat that is not safety's (services/recorder/linkaudit.py)
     MESSAGE = "message"  # any other message (only with everything=True)
 
 
@@ -144,13 +146,17 @@ class Timeline:
     messages: int
 
 
-def build_timeline(recording: RecordingFile, everything: bool = False) -> Timeline:
+def build_timeline(recording: RecordingFile, everything: bool = False, robot_key: bytes | None = None) -> Timeline:
     """The incident timeline of `recording`. High-rate streams (odometry, joint states, heartbeats,
     perception, action feedback) only set the robot's state, except where they change something
-    (the e-stop latch, the speed scale, a missing heartbeat); `everything` lists every other message too."""
+    (the e-stop latch, the speed scale, a missing heartbeat); `everything` lists every other message too.
+    With the robot key (`robot_key`) the MACs are checked, so a forger's heartbeats are told from safety's;
+    without it, while heartbeats of several senders overlap, the latch is unknown (None)."""
     builder = _Builder(recording, everything)
-    for message in recording.messages:
-        builder.add(message)
+    # What is not safety's is a row of its own, and never taken as safety's (a forged heartbeat's latch).
+    flags = audit(recording.messages, recording.robot, robot_key).at()
+    for i, message in enumerate(recording.messages):
+        builder.add(message, flags.get(i))
     rows = builder.finish()
     start = recording.messages[0].log_time if recording.messages else 0
     return Timeline(recording.robot, rows, start, recording.duration, len(recording.messages))
@@ -334,8 +340,11 @@ class _Builder:
         self.feedback: dict[str, tuple[Any, ...]] = {}  # plan goal id -> the last step feedback shown
         self.twists: dict[str, tuple[Row, tuple[float, float]]] = {}  # cmd_vel key -> last row, values
         self.bad: dict[str, Row] = {}  # key -> the row about its first undecodable message
+        self.suspects: dict[tuple[str, str], Row] = {}  # (key, why) -> the latest row about such messages
         self.last_heartbeat: int | None = None
         self.since_heartbeat = 0
+        # Heartbeats of several senders came at once since safety's last one: the latch is unknown.
+        self.conflicted = False
         self.handlers = {
             keys.ODOM.path: self._odom,
             keys.HEARTBEAT.path: self._heartbeat,
@@ -376,7 +385,7 @@ class _Builder:
         self.rows.append(row)
         return row
 
-    def add(self, message: Recorded) -> None:
+    def add(self, message: Recorded, flag: Flag | None = None) -> None:
         if not message.key.startswith(self.prefix):
             if self.everything:
                 self.now, self.source = message.log_time, message.key
@@ -384,6 +393,11 @@ class _Builder:
             return
         key = message.key[len(self.prefix) :]
         self.now, self.source = message.log_time, key
+        if flag is not None:
+            if flag.why is Why.CONFLICTING_STREAM:
+                self._conflicting_heartbeat()
+            self._suspect(flag)
+            return
         if key != keys.HEARTBEAT.path:
             self.since_heartbeat += 1
         before = len(self.rows)
@@ -400,6 +414,21 @@ class _Builder:
 
     def _raw(self, key: str, message: Recorded) -> None:
         self.row(EventKind.MESSAGE, key, preview(message.data.decode(errors="replace"), 2 * PREVIEW))
+
+    def _suspect(self, flag: Flag) -> None:
+        """Folded into the row about the last one like it, when that is at most a second old."""
+        last = self.suspects.get((flag.path, flag.why))
+        if last is not None and self.now - last.log_time <= SAME_CHANGE * 1e9:
+            last.repeats += 1
+            return
+        row = self.row(EventKind.SUSPECT, flag.path, f"NOT SAFETY'S: {flag.text}", Level.BAD)
+        self.suspects[(flag.path, flag.why)] = row
+
+    def _conflicting_heartbeat(self) -> None:
+        """A heartbeat that may be safety's or a forger's: neither its latch nor the one before holds now."""
+        self.state.estop, self.state.speed_scale = None, None
+        self.last_heartbeat, self.since_heartbeat = self.now, 0
+        self.conflicted = True
 
     def _bad(self, key: str, why: str) -> None:
         if key in self.bad:
@@ -451,6 +480,13 @@ class _Builder:
         latched, scale = state.estop, state.speed_scale
         state.estop, state.speed_scale = status.estop.latched, status.speed_scale
         estop = status.estop
+        after_conflict, self.conflicted = self.conflicted, False
+        if latched is None and after_conflict:
+            said = f"latched: by {estop.source}: {estop.reason}" if estop.latched else "clear"
+            why = f"e-stop {said} (the first heartbeat of one sender after several senders' at once)"
+            kind, level = (EventKind.ESTOP, Level.BAD) if estop.latched else (EventKind.HEARTBEAT, Level.WARN)
+            self.row(kind, key, why, level)
+            return
         if latched is None:
             if estop.latched:
                 why = f"e-stop latched when the recording starts: by {estop.source}: {estop.reason}"

@@ -7,6 +7,7 @@ from pathlib import Path
 from services.resolver.config import ResolverConfig
 from services.resolver.node import build_resolver, declare
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.sdnotify import Notifier
 
 
 def main(settings: NodeSettings, config_file: Path | None) -> None:
@@ -17,4 +18,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     with Node("resolver", settings) as node:
         declare(node, resolver, config)
         node.declare_alive()
-        stop.wait()
+        notifier = Notifier()
+        notifier.ready(f"serving plan/resolve for robot {settings.robot}")
+        notifier.wait(stop)
+        notifier.stopping()

@@ -95,6 +95,9 @@ class Ros2Config(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     world: Annotated[str, Meta(min_length=1, max_length=1000)] = "household"
     heartbeat_timeout: WallSeconds = 0.2
     first_heartbeat_wait: WallSeconds = 3.0
+    # A heartbeat stamped longer ago than this (by this host's clock) counts for less, not at all past
+    # it (services/robotrules.py): as the sim's [sim] heartbeat_max_age.
+    heartbeat_max_age: WallSeconds = 0.5
     # The base's own top speeds; None: the world file's robot.
     max_linear_speed: Annotated[float, Meta(gt=0.0, le=10.0)] | None = None
     max_angular_speed: Annotated[float, Meta(gt=0.0, le=20.0)] | None = None
@@ -113,6 +116,9 @@ class Ros2Config(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     odom_timeout: WallSeconds = 0.5
     # ... or when the base makes no progress for this long (seconds of scaled time; a pause never counts).
     stall_timeout: WallSeconds = 10.0
+    # The key safety signs robot commands and heartbeats with (services/robotlink.py); None:
+    # $TETHER_ROBOT_KEY_FILE, else robot-<robot>.key beside the operator token. Made if missing.
+    robot_key_file: Annotated[str, Meta(min_length=1, max_length=4096)] | None = None
 
     def __post_init__(self) -> None:
         if self.distro not in SUPPORTED_DISTROS:

@@ -17,13 +17,14 @@ import zenoh
 from schemas import keys
 from schemas.actions import GoalState
 from schemas.common import ErrorKind, ServiceError, preview
-from schemas.robot import FollowJointTrajectoryGoal, RobotDiagnostics, RobotProblem, Twist
+from schemas.robot import FollowJointTrajectoryGoal, NavigateToPoseGoal, RobotDiagnostics, RobotProblem, Twist
 from schemas.safety import SafetyStatus
 from schemas.world import CameraImage, Empty, World
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.errors import CallError
+from services.robotlink import LinkGuard, Verifier
 from services.robotmodel import ArmModel
-from services.robotrules import PREEMPT_TIMEOUT, HeartbeatGuard, check_trajectory
+from services.robotrules import PREEMPT_TIMEOUT, HeartbeatGuard, KeepOut, check_trajectory
 from services.ros2.backend import (
     BOOL,
     COMPRESSED_IMAGE,
@@ -183,13 +184,27 @@ class Ros2Backend:
     """
 
     def __init__(
-        self, node: Node, session: zenoh.Session, ros_naming: Naming, config: Ros2Config, world: World
+        self,
+        node: Node,
+        session: zenoh.Session,
+        ros_naming: Naming,
+        config: Ros2Config,
+        world: World,
+        *,
+        robot_key: bytes,
     ) -> None:
         self.node = node
         self.config = config
         self.world = world
-        self.guard = HeartbeatGuard(config.heartbeat_timeout, config.first_heartbeat_wait)
+        self.guard = HeartbeatGuard(
+            config.heartbeat_timeout, config.first_heartbeat_wait, max_age=config.heartbeat_max_age
+        )
         self.robot = RobotState(odom_topic=config.names.odom)
+        # Commands and heartbeats count only with safety's MAC (services/robotlink.py): anything else
+        # is dropped, logged and listed in robot/diagnostics; a forged heartbeat is no heartbeat.
+        self.link = LinkGuard(Verifier(robot_key), report=self.robot.problem)
+        # Its own check of the world's keep-out zones, also for a signed command (docs/robot.md).
+        self.keep_out = KeepOut.of(world)
         robot_spec = world.robot
         self.limits = BaseLimits(
             config.max_linear_speed or robot_spec.max_linear_speed,
@@ -272,16 +287,22 @@ class Ros2Backend:
         # then is accepted (docs/robot.md, Preemption), within PREEMPT_TIMEOUT.
         self.servers: list[ActionServer[Any, Any, Any]] = [
             ActionServer(
-                node, action, execute, accept=accept, preempts=lambda _goal: True, preempt_timeout=PREEMPT_TIMEOUT
+                node,
+                action,
+                execute,
+                accept=accept,
+                preempts=lambda _goal: True,
+                preempt_timeout=PREEMPT_TIMEOUT,
+                verify=self.link,
             )
             for action, execute, accept in (
-                (keys.ROBOT_NAVIGATE, self._execute(self._navigation), self._accept),
+                (keys.ROBOT_NAVIGATE, self._execute(self._navigation), self._accept_navigation),
                 (keys.ROBOT_TRAJECTORY, self._execute(self._trajectory_run), self._accept_trajectory),
                 (keys.ROBOT_GRIPPER, self._execute(self._gripper_run), self._accept),
             )
         ]
-        node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
-        node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
+        node.subscribe(keys.HEARTBEAT, self._on_heartbeat, verify=self.link)
+        node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel, verify=self.link)
         node.serve(keys.CAMERA_IMAGE, self._on_camera_image)
         node.serve(keys.ROBOT_DIAGNOSTICS, self._on_diagnostics, inline=True)
 
@@ -294,20 +315,33 @@ class Ros2Backend:
     def _accept(self, _goal: object) -> str | None:
         return self.guard.accept() or self._held()
 
+    def _accept_navigation(self, goal: NavigateToPoseGoal) -> str | None:
+        if (reason := self._accept(goal)) is not None:
+            return reason
+        odom = self.robot.odometry(self.config.odom_timeout)
+        reason = self.keep_out.goal(goal, None if isinstance(odom, str) else odom.pose)
+        if reason is not None:
+            self.robot.goal_failed(f"refused a navigate_to_pose goal: {reason}")
+        return reason
+
     def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
         # ROS's goal response carries no reason: the arm's own checks here, so the reason reaches safety.
         return self.guard.accept() or self._held() or check_trajectory(goal, *self.arm_limits)
 
-    def run(self, stop: threading.Event) -> None:
+    def run(self, stop: threading.Event, keepalive: Callable[[], None] = lambda: None) -> None:
         """Watch the heartbeat until `stop`: stop the robot when it goes quiet or latches, tell it
         emergency_stop (true or false) at 20 Hz always, release it on a clear heartbeat, keep cmd_vel
-        within limits and end it after its hold. A round that fails is logged and the next one runs."""
+        within limits and end it after its hold. A round that fails is logged and the next one runs.
+        `keepalive` (systemd's watchdog) after every round that succeeded, so a watch that hangs, or
+        fails round after round, is restarted."""
         while not stop.is_set():
             try:
                 wake_at = self._watch()
             except Exception:
                 log.exception("the heartbeat watch failed a round; it goes on")
                 wake_at = time.monotonic() + ESTOP_PERIOD
+            else:
+                keepalive()
             self._wake.wait(max(0.0, wake_at - time.monotonic()))
 
     def _watch(self) -> float:
@@ -410,6 +444,13 @@ class Ros2Backend:
                 self._complain("cmd_vel", "ignored while a navigate_to_pose goal runs")
                 return
             linear, angular = self.limits.clamp(twist, safety)
+            odom = self.robot.odometry(self.config.odom_timeout)
+            here = None if isinstance(odom, str) else odom.pose
+            if reason := self.keep_out.drive(here, linear, angular, self.config.cmd_vel_timeout):
+                # Dropped: what the robot holds now was checked when it came, and ends before any zone.
+                self.robot.problem(f"refused a cmd_vel: {reason}")
+                self._complain("cmd_vel", reason)
+                return
             self._cmd_hold.sent(twist, linear, angular, time.monotonic())
             self._put(self._cmd_vel, self.messages.cmd_vel(linear, angular, twist.stamp or time.time()))
 

@@ -12,6 +12,7 @@ from services.ros2.wire import Naming
 from services.ros2sim.config import Ros2SimConfig, domain_id
 from services.ros2sim.node import NODE_NAME, StandIn, ros_session
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
+from services.sdnotify import Notifier
 from services.sim.config import SimConfig
 from services.sim.simulation import Simulation
 from services.worldmodel import load_world
@@ -44,8 +45,12 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
                 config.style.value,
                 naming.domain_id,
             )
-            # This thread owns pybullet from here on; everything else reaches it through the loop.
-            standin.run(stop)
+            notifier = Notifier()
+            notifier.ready(f"ROS 2 stand-in robot for {settings.robot}")
+            # This thread owns pybullet from here on; everything else reaches it through the loop,
+            # which feeds the watchdog.
+            standin.run(stop, notifier.keepalive)
+            notifier.stopping()
             standin.close()
     finally:
         sim.close()

@@ -362,21 +362,19 @@ class StandIn:
     @staticmethod
     def _report(publisher: RosPublisher, make: Callable[[float], Any]) -> Callable[[float], None]:
         """A report for the sim thread: the message made for a wall-clock stamp and published; a
-        failure (a session closing) is logged, never stopping the thread."""
+        failure (a session closing) is the loop's to log (SimLoop._publish), never stopping the
+        thread, and holds back systemd's watchdog while it lasts."""
 
         def publish(stamp: float) -> None:
-            try:
-                publisher.put(make(stamp))
-            except Exception:
-                log.exception("not published on %s", publisher.endpoint.name)
+            publisher.put(make(stamp))
 
         return publish
 
     # The sim thread
 
-    def run(self, stop: threading.Event) -> None:
+    def run(self, stop: threading.Event, keepalive: Callable[[], None] = lambda: None) -> None:
         """Step physics paced to wall time x realtime_factor, publish, obey the stops, until `stop`."""
-        self.loop.run(stop)
+        self.loop.run(stop, keepalive)
 
     def close(self) -> None:
         """After run(): wait (bounded) for the goals the shutdown aborted to report it."""

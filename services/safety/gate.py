@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
@@ -53,6 +54,10 @@ TELEOP_TIMEOUT = 0.5
 TELEOP_MAX_STEP = 0.1
 # Repeated vetoes of a stream for one rule are one event per this many seconds.
 REPEAT_WINDOW = 1.0
+# Reset attempts are counted over this many seconds; all identities together may make this many
+# times one identity's share (names are whatever a caller says, so one caller can use many).
+RESET_WINDOW = 60.0
+RESET_SHARES = 3
 
 GoalRuling = SendGoal[Any] | GoalResponse
 
@@ -102,6 +107,38 @@ def _refusal_kind(exc: Vetoed) -> ErrorKind:
     return ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
 
 
+class AttemptLimit:
+    """At most `per_window` failed attempts per identity in any `window` seconds, and `total` for all
+    together; `attempt` says how long to wait when a limit is reached (0.0: allowed) and counts the
+    attempt if it is a wrong one. A `right` attempt (a reset with the right token) is never counted
+    and is held only to its identity's limit of wrong ones: an operator may reset as often as the
+    robot needs, and many made-up names filling the shared limit cannot lock the real operator out.
+    Not thread-safe: the gate calls it under its lock."""
+
+    def __init__(self, per_window: int, total: int, window: float = RESET_WINDOW) -> None:
+        self.per_window = per_window
+        self.total = total
+        self.window = window
+        self._by: dict[str, deque[float]] = {}
+        self._all: deque[float] = deque()
+
+    def attempt(self, identity: str, t: float, right: bool = False) -> float:
+        for times in (self._all, *self._by.values()):
+            while times and t - times[0] >= self.window:
+                times.popleft()
+        self._by = {k: v for k, v in self._by.items() if v}
+        mine = self._by.setdefault(identity, deque())
+        caps = ((mine, self.per_window),) if right else ((mine, self.per_window), (self._all, self.total))
+        full = [times for times, cap in caps if len(times) >= cap]
+        if full:
+            # Allowed again once the oldest attempt counted against the full one leaves the window.
+            return max(max(times[0] for times in full) + self.window - t, 0.001)
+        if not right:
+            mine.append(t)
+            self._all.append(t)
+        return 0.0
+
+
 class SafetyGate:
     """Every decision safety takes, on inputs the node hands it, at the time of its `clock` (seconds,
     monotonic; a fake one in tests). The gate reads it under its lock, so readings reach it in the
@@ -120,6 +157,7 @@ class SafetyGate:
         latch: EstopLatch,
         clock: Callable[[], float],
         wall_clock: Callable[[], float],
+        max_resets_per_minute: int = 5,
     ) -> None:
         self.policy = policy
         self.latch = latch
@@ -139,6 +177,7 @@ class SafetyGate:
         # Never sent counts as sent long ago.
         self._sent_twist: tuple[float, Twist] = (-math.inf, Twist())
         self._repeats: dict[tuple[str, Rule], tuple[float, int, str]] = {}
+        self._resets = AttemptLimit(max_resets_per_minute, RESET_SHARES * max_resets_per_minute)
         self._rates: dict[str, RateLimit] = {}
         for topic in (keys.CMD_VEL, keys.TELEOP_CMD_VEL):
             self._rates[topic.path] = RateLimit(rules.rate.max_cmd_vel_per_second, rules.rate.burst_seconds)
@@ -386,6 +425,20 @@ class SafetyGate:
     def reset(self, req: ResetRequest) -> Ruling[ResetReply]:
         """Clear the latch with the operator's token; the token never leaves in an event."""
         redacted = msgspec.structs.replace(req, token="***")
+        with self._lock:
+            t = self._advance()
+            # Wrong tokens are counted; the right one only waits out its name's lockout.
+            wait = self._resets.attempt(req.operator, t, right=self.latch.accepts(req.token))
+        if wait > 0.0:
+            # A name with too many wrong guesses is locked out for a while, even with the right token.
+            limit = self._resets.per_window
+            why = (
+                f"reset refused for '{req.operator}': too many attempts (at most {limit} a minute per operator, "
+                f"{self._resets.total} for all); try again in {math.ceil(wait)} s"
+            )
+            values = {"retry_after_s": wait, "limit_per_minute": float(limit)}
+            event = GateEvent(keys.RESET.path, Decision.VETOED, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,), values)
+            return Ruling(ResetReply(ok=False, message=why), (event,))
         try:
             self.latch.reset(req.operator, req.token, self._wall_clock())
         except Unauthorized as exc:

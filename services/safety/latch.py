@@ -28,8 +28,13 @@ class EstopLatch:
         self._state = self._load()
 
     def _load(self) -> EstopState:
-        if self._file is None or not self._file.exists():
+        if self._file is None:
             return EstopState(latched=False)
+        if not self._file.exists():
+            # Fail closed: the first start of an install writes it (operator.ensure_token); missing
+            # now, it may have held a latch (deleted, a volume not mounted).
+            log.error("e-stop state file %s is missing: starting latched; an operator must reset it", self._file)
+            return EstopState(latched=True, source="safety", reason=f"e-stop state file {self._file} is missing")
         try:
             state = msgspec.json.decode(self._file.read_bytes(), type=EstopState)
         except (OSError, msgspec.DecodeError) as exc:
@@ -48,8 +53,17 @@ class EstopLatch:
             state = self.state
             self._file.parent.mkdir(parents=True, exist_ok=True)
             tmp = self._file.with_suffix(".tmp")
-            tmp.write_bytes(msgspec.json.encode(state))
+            with tmp.open("wb") as out:
+                out.write(msgspec.json.encode(state))
+                out.flush()
+                os.fsync(out.fileno())
             os.replace(tmp, self._file)
+            # The rename itself is durable only once the directory is: a power cut now keeps the latch.
+            directory = os.open(self._file.parent, os.O_RDONLY | os.O_DIRECTORY)
+            try:
+                os.fsync(directory)
+            finally:
+                os.close(directory)
 
     @property
     def state(self) -> EstopState:
@@ -68,6 +82,10 @@ class EstopLatch:
                 return False
             self._state = EstopState(latched=True, source=source, reason=reason, stamp=stamp)
             return True
+
+    def accepts(self, token: str) -> bool:
+        """Whether `token` is the operator's (compared in constant time)."""
+        return token_matches(self._token, token)
 
     def reset(self, operator: str, token: str, stamp: float) -> EstopState:
         """Clear it at `stamp` (wall-clock seconds), with the operator's token."""

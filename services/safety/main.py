@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from services.robotlink import KeyFileError, Signer, robot_key
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
 from services.safety.latch import EstopLatch
@@ -12,6 +13,7 @@ from services.safety.node import SafetyNode
 from services.safety.operator import ensure_token, token_path
 from services.safety.policy import load_safety_policy
 from services.safety.policyfile import PolicyError
+from services.sdnotify import Notifier
 from services.worldmodel import load_world
 
 log = logging.getLogger(__name__)
@@ -28,17 +30,31 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     limits = policy.limits
     token_file = token_path(config.operator_token_file)
     state_file = Path(config.estop_state_file) if config.estop_state_file else None
-    latch = EstopLatch(ensure_token(token_file), state_file or token_file.parent / f"estop-{settings.robot}.json")
+    state_file = state_file or token_file.parent / f"estop-{settings.robot}.json"
+    # A fresh install's first start makes the token and an unlatched latch file; after that a missing
+    # latch file starts latched (fail closed; services/safety/README.md, The e-stop latch).
+    latch = EstopLatch(ensure_token(token_file, state_file), state_file)
+    try:
+        key, key_file = robot_key(config.robot_key_file, token_file.parent, settings.robot)
+    except (KeyFileError, OSError) as exc:
+        raise ConfigError(f"[safety] robot_key_file: {exc}") from None
     stop = stop_event()
+    notifier = Notifier()
     with Node("safety", settings) as node:
-        safety = SafetyNode(node, policy, latch, config)
+        # Everything safety sends to the robot (commands, heartbeats) carries a MAC under this key.
+        node.signer = Signer(key)
+        # The watchdog is fed from the heartbeat loop, not from here: a hung check loop is restarted.
+        safety = SafetyNode(node, policy, latch, config, keepalive=notifier.keepalive)
         node.declare_alive()
         log.info(
-            "safety up for robot %s; policy %s (%s); operator token in %s",
+            "safety up for robot %s; policy %s (%s); operator token in %s; robot key in %s",
             settings.robot,
             limits.path,
             limits.hash,
             token_file,
+            key_file,
         )
+        notifier.ready(f"checking robot {settings.robot}" + (": e-stop latched" if latch.state.latched else ""))
         stop.wait()
+        notifier.stopping()
         safety.close()

@@ -47,13 +47,17 @@ class SafetyNode:
         config: SafetyConfig,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
+        keepalive: Callable[[], None] = lambda: None,
     ) -> None:
         self.node = node
+        # Called after every beat that ticked and published (systemd's watchdog): if the checking loop
+        # hangs, or fails beat after beat, the service is restarted.
+        self._keepalive = keepalive
         self.config = config
         self.latch = latch
         self.policy_hash = policy.limits.hash
         self.wall_clock = wall_clock
-        self.gate = SafetyGate(policy, latch, clock, wall_clock)
+        self.gate = SafetyGate(policy, latch, clock, wall_clock, config.max_resets_per_minute)
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
@@ -66,6 +70,8 @@ class SafetyNode:
         self._events = node.publisher(keys.SAFETY_EVENTS)
         self._robot_cmd_vel = node.publisher(keys.ROBOT_CMD_VEL)
         self._stop = threading.Event()
+        # A flood of garbage on safety's inputs: one event, then one with the count every few seconds.
+        node.on_undecodable = self._on_undecodable
 
         node.subscribe(keys.ODOM, self._on_odom)
         node.subscribe(keys.JOINT_STATES, self._on_joints)
@@ -103,7 +109,8 @@ class SafetyNode:
             # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
             threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
 
-    def _publish_event(self, event: GateEvent) -> None:
+    def _publish_event(self, event: GateEvent, logged: bool = False) -> None:
+        """Publish `event`; a veto is logged too unless it was (`logged`)."""
         finite = {k: float(v) for k, v in event.values.items() if math.isfinite(v)}
         command = msgspec.Raw(encode(event.command) if event.command is not None else b"null")
         self._events.put(
@@ -119,8 +126,12 @@ class SafetyNode:
                 command=command,
             )
         )
-        if event.decision is Decision.VETOED:
+        if event.decision is Decision.VETOED and not logged:
             log.warning("vetoed %s: %s", event.key, event.reason)
+
+    def _on_undecodable(self, key: str, line: str, count: int) -> None:
+        path = key.split("/", 2)[-1]
+        self._publish_event(GateEvent(path, Decision.VETOED, line, values={"count": float(count)}), logged=True)
 
     def _publish_heartbeat(self) -> None:
         with self._beat_lock:
@@ -133,14 +144,20 @@ class SafetyNode:
         next_beat = time.monotonic()
         while not self._stop.is_set():
             # Nothing may end this thread: without heartbeats the robot stops and takes no goal.
+            ok = True
             try:
                 self._carry_out(self.gate.tick())
             except Exception:
+                ok = False
                 log.exception("carrying out the heartbeat's tick failed")
             try:
                 self._publish_heartbeat()
             except Exception:
+                ok = False
                 log.exception("the heartbeat could not be published")
+            # Fed only after a beat that did its work: one that fails every time is restarted.
+            if ok:
+                self._keepalive()
             next_beat += period
             self._stop.wait(max(0.0, next_beat - time.monotonic()))
 

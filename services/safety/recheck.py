@@ -11,6 +11,9 @@ commands (`cmd/cmd_vel`). Not rechecked, and counted: commands refused for the e
 command rate (the operator's and the clock's doing, not the policy's), teleop (clamped, not
 refused, from a state that depends on the stream's timing), and commands without a recorded
 decision (a file cut short).
+
+Also flagged, never taken as safety's: every robot/** command and heartbeat that is not safety's (no
+robot-link MAC, another sender, replayed, no decision allowing it; services/recorder/linkaudit.py).
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ from schemas.plan import GroundedPlan
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, JointState, NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import Decision, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
+from services.recorder.linkaudit import Flag, audit
+from services.recorder.reader import Recorded
 from services.safety.errors import Vetoed
 from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy, Verdict, base_moving
 
@@ -61,6 +66,7 @@ class Message:
     time: float
     path: str
     data: bytes
+    attachment: bytes | None = None  # the Zenoh attachment recorded with it (safety's MAC)
 
 
 @dataclass(frozen=True)
@@ -85,6 +91,8 @@ class RecheckReport:
     checked: list[Rechecked] = field(default_factory=list)
     skipped: Counter[str] = field(default_factory=Counter)
     warnings: list[str] = field(default_factory=list)
+    # Robot commands and heartbeats that are not safety's.
+    suspects: list[Flag] = field(default_factory=list)
 
     @property
     def differences(self) -> list[Rechecked]:
@@ -222,16 +230,30 @@ def _decode(data: bytes | msgspec.Raw, type_: type[T]) -> T | None:
         return None
 
 
-def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash: str = "") -> RecheckReport:
+def recheck(
+    messages: Iterable[Message],
+    policy: SafetyPolicy,
+    robot_policy_hash: str = "",
+    robot: str = "robot",
+    robot_key: bytes | None = None,
+) -> RecheckReport:
     """Every rechecked command in `messages` (in arrival order) under `policy`, with what differs.
 
     Times are the recorder's receive times (one clock for the state and the commands, whichever
     machines published them). `robot_policy_hash` is the hash of the policy file kept with the
     recording, checked against the hash safety put in its events, so a recording whose file does not
-    match what safety ran with says so.
+    match what safety ran with says so. With `robot_key` every robot-link MAC is checked
+    (services/recorder/linkaudit.py): a heartbeat whose MAC checks out is safety's, even beside a forger's.
     """
     rechecker = Rechecker(policy)
     report = RecheckReport(policy.limits.hash)
+    messages = list(messages)
+    root = keys.prefix(robot) + "/"
+    recorded = [Recorded(int(m.time * 1e9), root + m.path, m.data, m.attachment) for m in messages]
+    found = audit(recorded, robot, robot_key)
+    report.suspects = found.flags
+    report.warnings.extend(_suspect_lines(found.flags, messages[0].time if messages else 0.0))
+    flagged = found.at()
     state_topics: dict[str, tuple[type[Any], Callable[[float, Any], None]]] = {
         keys.ODOM.path: (Odometry, rechecker.state.odom.add),
         keys.JOINT_STATES.path: (JointState, rechecker.state.joints.add),
@@ -241,7 +263,9 @@ def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash
     # trajectory from the one just after too.
     events: list[tuple[float, SafetyEvent]] = []
     traces: list[tuple[float, TraceRecord]] = []
-    for message in messages:
+    for i, message in enumerate(messages):
+        if i in flagged:
+            continue  # a heartbeat not safety's is not what safety saw
         if (topic := state_topics.get(message.path)) is not None:
             if (value := _decode(message.data, topic[0])) is not None:
                 topic[1](message.time, value)
@@ -282,6 +306,18 @@ def recheck(messages: Iterable[Message], policy: SafetyPolicy, robot_policy_hash
         _recheck_goal(rechecker, report, time, trace, goal_events, checks)
     report.checked = sorted(checks, key=lambda c: c.stamp)
     return report
+
+
+def _suspect_lines(flags: list[Flag], start: float) -> list[str]:
+    """One line per kind of suspect message: how many, and when the first came (seconds from `start`)."""
+    kinds: dict[tuple[str, str], list[Flag]] = {}
+    for flag in flags:
+        kinds.setdefault((flag.path, flag.why), []).append(flag)
+    return [
+        f"not safety's: {len(same)} message(s) on {path}: {why}; the first at {same[0].log_time / 1e9 - start:.2f} s"
+        + (f" ({same[0].detail})" if same[0].detail else "")
+        for (path, why), same in kinds.items()
+    ]
 
 
 def _count(event: SafetyEvent) -> int:

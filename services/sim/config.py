@@ -50,6 +50,12 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     realtime_factor: Annotated[float, Meta(ge=0.1, le=20.0)] = 1.0
     physics_hz: Annotated[float, Meta(ge=60.0, le=2000.0)] = 240.0
     heartbeat_timeout: WallSeconds = 0.2
+    # A heartbeat counts for heartbeat_timeout from its arrival, but never once its stamp (safety's
+    # wall clock) is older than this by the sim's: one held back by a stalled link is no sign of life.
+    # It covers the heartbeat's transit and how far the robot's clock may be ahead of safety's (not
+    # at all when they run on one host); a robot whose clock is this much ahead never moves, and says
+    # why. services/robotrules.py, HeartbeatGuard; docs/robot.md.
+    heartbeat_max_age: WallSeconds = 0.5
     # A goal that arrives before safety's first heartbeat (right after start-up, while the peers are
     # still connecting) waits this long for it before it is refused.
     first_heartbeat_wait: WallSeconds = 3.0
@@ -62,3 +68,6 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     objects_hz: Hz = 5.0
     humans_hz: Hz = 5.0
     camera: CameraConfig = CameraConfig()
+    # The key safety signs robot commands and heartbeats with (services/robotlink.py); None:
+    # $TETHER_ROBOT_KEY_FILE, else robot-<robot>.key beside the operator token. Made if missing.
+    robot_key_file: Annotated[str, Meta(min_length=1, max_length=4096)] | None = None

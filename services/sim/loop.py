@@ -98,6 +98,8 @@ class SimLoop:
         self.schedule = ReportSchedule(reports)
         self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._wake = threading.Event()
+        # The reports whose last publish failed (sim thread only): the watchdog is not fed meanwhile.
+        self.failing: set[str] = set()
 
     # From other threads
 
@@ -211,8 +213,11 @@ class SimLoop:
 
     # The sim thread
 
-    def run(self, stop: threading.Event) -> None:
-        """Step physics paced to wall time x realtime_factor, publish the reports, obey, until `stop`."""
+    def run(self, stop: threading.Event, keepalive: Callable[[], None] = lambda: None) -> None:
+        """Step physics paced to wall time x realtime_factor, publish the reports, obey, until `stop`;
+        `keepalive` (systemd's watchdog) after every pass that did its work, so a physics loop that
+        hangs, or whose reports fail pass after pass, is restarted. A step or `obey` that raises ends
+        the loop (and the service): the robot is not kept within safety's word any more."""
         sim, factor = self.sim, self.realtime_factor
         wall_start, sim_start = time.monotonic(), sim.sim_time
         try:
@@ -236,6 +241,8 @@ class SimLoop:
                     # Not objects: each renders a camera frame (about 20 ms), slowing the catch-up.
                     self._publish(catching_up=True)
                 self._publish()
+                if not self.failing:
+                    keepalive()
                 next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
                 self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
                 self._wake.clear()
@@ -255,7 +262,18 @@ class SimLoop:
                 log.exception("sim command failed")
 
     def _publish(self, catching_up: bool = False) -> None:
+        """The reports due, each on its own: one that fails (a session closing) is logged when it starts
+        and when it ends failing, and holds back the watchdog meanwhile; the others still go out."""
         due = self.schedule.due(time.monotonic(), catching_up)
         stamp = time.time()
         for report in due:
-            report.publish(stamp)
+            try:
+                report.publish(stamp)
+            except Exception:
+                if report.name not in self.failing:
+                    self.failing.add(report.name)
+                    log.exception("%s not published (the watchdog is not fed until it is)", report.name)
+                continue
+            if report.name in self.failing:
+                self.failing.discard(report.name)
+                log.info("%s published again", report.name)

@@ -9,20 +9,32 @@ from collections.abc import Callable
 from typing import Any
 
 from schemas import keys
-from schemas.robot import FollowJointTrajectoryGoal, Twist
+from schemas.robot import (
+    MAX_PROBLEMS,
+    FollowJointTrajectoryGoal,
+    NavigateToPoseGoal,
+    RobotDiagnostics,
+    RobotProblem,
+    Twist,
+)
 from schemas.safety import SafetyStatus
 from schemas.world import CameraImage, Empty
 from services.actionlib import ActionServer, GoalHandle, Outcome
-from services.robotrules import PREEMPT_TIMEOUT, HeartbeatGuard
+from services.repeats import Problems
+from services.robotlink import LinkGuard, Verifier
+from services.robotrules import PREEMPT_TIMEOUT, HeartbeatGuard, KeepOut
 from services.runtime import Node
 from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers
-from services.sim.loop import Command, Report, SimLoop
+from services.sim.loop import ANSWER_TIMEOUT, Command, Report, SimLoop
 from services.sim.simulation import Simulation
 from services.sim.world import Motion
 
 log = logging.getLogger(__name__)
+
+# robot/diagnostics lists the refusals seen in this many seconds.
+DIAGNOSTICS_WINDOW = 60.0
 
 Execute = Callable[[GoalHandle[Any, Any]], Outcome[Any]]
 
@@ -37,11 +49,19 @@ class SimNode:
     Call run() on the thread that should own pybullet.
     """
 
-    def __init__(self, node: Node, sim: Simulation, config: SimConfig) -> None:
+    def __init__(self, node: Node, sim: Simulation, config: SimConfig, *, robot_key: bytes) -> None:
         self.node = node
         self.sim = sim
         self.config = config
-        self.guard = HeartbeatGuard(config.heartbeat_timeout, config.first_heartbeat_wait)
+        self.guard = HeartbeatGuard(
+            config.heartbeat_timeout, config.first_heartbeat_wait, max_age=config.heartbeat_max_age
+        )
+        # Commands and heartbeats count only with safety's MAC (services/robotlink.py): anything else
+        # is dropped and reported on robot/diagnostics; a forged heartbeat is no heartbeat.
+        self.link = LinkGuard(Verifier(robot_key))
+        # Its own check of the world's keep-out zones, also for a signed command (docs/robot.md).
+        self.keep_out = KeepOut.of(sim.world)
+        self.problems = Problems()
         self._blocked_reason: str | None = "no safety heartbeat received yet"  # as of the sim thread's last look
         self._joint_states = node.publisher(keys.JOINT_STATES)
         self._odom = node.publisher(keys.ODOM)
@@ -65,15 +85,17 @@ class SimNode:
                 accept=accept,
                 preempts=_always,
                 preempt_timeout=PREEMPT_TIMEOUT,
+                verify=self.link,
             )
             for action, start, accept in (
-                (keys.ROBOT_NAVIGATE, Controllers.navigate, self._accept),
+                (keys.ROBOT_NAVIGATE, Controllers.navigate, self._accept_navigation),
                 (keys.ROBOT_TRAJECTORY, Controllers.follow_trajectory, self._accept_trajectory),
                 (keys.ROBOT_GRIPPER, Controllers.gripper, self._accept),
             )
         ]
-        node.subscribe(keys.HEARTBEAT, self._on_heartbeat)
-        node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel)
+        node.subscribe(keys.HEARTBEAT, self._on_heartbeat, verify=self.link)
+        node.subscribe(keys.ROBOT_CMD_VEL, self._on_cmd_vel, verify=self.link)
+        node.serve(keys.ROBOT_DIAGNOSTICS, self._on_diagnostics, inline=True)
         node.serve(keys.GROUND_TRUTH, self.loop.ground_truth)
         node.serve(keys.SIM_MOVE, self.loop.move)
         node.serve(keys.CAMERA_IMAGE, self._on_camera_image)
@@ -89,6 +111,17 @@ class SimNode:
 
     def _accept(self, _goal: object) -> str | None:
         return self.guard.accept()
+
+    def _accept_navigation(self, goal: NavigateToPoseGoal) -> str | None:
+        if (reason := self._accept(goal)) is not None:
+            return reason
+        # From where safety checked it (the sim refuses it if the base stands elsewhere), else from here.
+        here = None
+        if goal.start is None:
+            here = self.loop.ask(lambda sim: sim.scene.robot.base_pose(), ANSWER_TIMEOUT)
+        if (reason := self.keep_out.goal(goal, here)) is not None:
+            self.problems.note(f"refused a navigate_to_pose goal: {reason}", keys.ROBOT_NAVIGATE.path)
+        return reason
 
     def _accept_trajectory(self, goal: FollowJointTrajectoryGoal) -> str | None:
         return self._accept(goal) or self.sim.controllers.arm.check_trajectory(goal)
@@ -124,12 +157,26 @@ class SimNode:
         self.submit(lambda sim: self._apply_cmd_vel(sim, twist, hold_for))
 
     def _apply_cmd_vel(self, sim: Simulation, twist: Twist, hold_for: float) -> None:
-        if self._blocked_reason is None and not sim.controllers.set_cmd_vel(twist, hold_for):
+        if self._blocked_reason is not None:
+            return
+        if reason := self.keep_out.drive(sim.scene.robot.base_pose(), twist.linear_x, twist.angular_z, hold_for):
+            # Dropped: what the base holds now was checked when it came, and ends before any zone.
+            self.problems.note(f"refused a cmd_vel: {reason}", keys.ROBOT_CMD_VEL.path)
+            return
+        if not sim.controllers.set_cmd_vel(twist, hold_for):
             log.info("ignored cmd_vel while a navigate_to_pose goal runs")
 
     def submit(self, command: Command) -> None:
         """Run `command` on the sim thread."""
         self.loop.submit(command)
+
+    def _on_diagnostics(self, _request: Empty) -> RobotDiagnostics:
+        seen = self.link.problems(DIAGNOSTICS_WINDOW) + self.problems.recent(DIAGNOSTICS_WINDOW)
+        seen = sorted(seen, key=lambda problem: -problem[1])[:MAX_PROBLEMS]
+        problems = [RobotProblem(text=text, last_seen=at) for text, at in seen]
+        return RobotDiagnostics(
+            stamp=time.time(), backend=self.node.service, window=DIAGNOSTICS_WINDOW, problems=problems
+        )
 
     def _on_camera_image(self, _request: Empty) -> CameraImage:
         # Rendered on the sim thread (pybullet is not thread-safe); encoded here, off it.
@@ -148,9 +195,9 @@ class SimNode:
 
     # The sim thread
 
-    def run(self, stop: threading.Event) -> None:
+    def run(self, stop: threading.Event, keepalive: Callable[[], None] = lambda: None) -> None:
         """Step physics paced to wall time x realtime_factor, publish, and obey safety, until `stop`."""
-        self.loop.run(stop)
+        self.loop.run(stop, keepalive)
 
     def _publish_joint_states(self, stamp: float) -> None:
         self._joint_states.put(self.sim.sensors.joint_state(stamp))

@@ -24,13 +24,17 @@ from schemas import keys
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import Pose2D
 from schemas.executor import ExecutePlanGoal, PlanStatus
-from schemas.robot import ARM_JOINTS, FINGER_JOINTS, NavigateToPoseGoal, NavigateToPoseResult
+from schemas.robot import ARM_JOINTS, FINGER_JOINTS, NavigateToPoseGoal, NavigateToPoseResult, Twist
+from schemas.safety import EstopState, SafetyStatus
 from schemas.world import Empty
 from services.actionlib import ActionClient
+from services.errors import CallError
+from services.robotlink import NOT_SIGNED
 from services.ros2.config import Ros2Config
 from services.ros2.rmw import RosCallError, RosNode, RosServerGoal
 from services.ros2.types import RosTypes
 from services.ros2.wire import Attachment, Naming, Style
+from services.runtime import Node
 from services.worldmodel import load_world
 from tests.integration.conftest import start_stack, stop_stack, tether_cli
 from tests.robot_contract.conftest import CONTRACT_SIM, RunningBackend, ros2_backend, running
@@ -448,3 +452,32 @@ def test_a_plan_whose_goal_the_robot_aborts_fails_naming_the_robots_reason_also_
             stop_stack(stack)
     finally:
         robot.close()
+
+
+def test_commands_and_heartbeats_safety_did_not_sign_never_reach_the_robot(hostile: Rig) -> None:
+    """An attacker's session (no robot key) puts cmd_vel, sends a goal, and forges an unlatched
+    heartbeat while safety's (here the test's, signed) says latched: the ROS 2 robot hears none of it."""
+    robot, backend = hostile.robot, hostile.backend
+    since, mark = time.time(), time.monotonic()
+    goals_before = len(robot.goals.items)
+    unlatched = SafetyStatus(seq=1, stamp=time.time(), estop=EstopState(latched=False), speed_scale=1.0)
+    backend.safety.set(latched=True)
+    assert backend.safety.beats(3)
+    try:
+        with Node("attacker", backend.settings) as attacker:
+            with pytest.raises(CallError, match="not signed by safety"):
+                ActionClient(attacker, keys.ROBOT_NAVIGATE).send(ahead(), timeout=DEADLINE)
+            for _ in range(20):
+                attacker.publish(keys.HEARTBEAT, unlatched)
+                attacker.publish(keys.ROBOT_CMD_VEL, Twist(linear_x=0.4))
+                # Signed (the test holds the key, as safety): it would drive, were the forged beat believed.
+                backend.node.publish(keys.ROBOT_CMD_VEL, Twist(linear_x=0.3))
+                assert backend.safety.beats(1), "the played safety's heartbeat stopped"
+        diagnosed(hostile, since, "refused safety/heartbeat", NOT_SIGNED)
+        diagnosed(hostile, since, "refused robot/cmd_vel", NOT_SIGNED)
+        diagnosed(hostile, since, "refused robot/navigate_to_pose/_action/send_goal", NOT_SIGNED)
+        assert robot.cmd_vel.since(mark, lambda t: t.linear.x != 0.0, timeout=0.0) is None, "the robot was driven"
+        assert len(robot.goals.items) == goals_before, "a goal reached the robot"
+    finally:
+        backend.safety.set(latched=False)
+        assert backend.safety.beats(2)

@@ -23,7 +23,9 @@ from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopSource
 from schemas.trace import TraceRecord
 from schemas.world import Empty, GroundTruth
-from services.runtime import SERVICES
+from services.errors import CallError
+from services.robotlink import Signer
+from services.runtime import SERVICES, Node
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.cli import DEMO_PLAN
@@ -228,9 +230,14 @@ def test_killing_safety_stops_the_base_and_the_sim_refuses_goals_until_it_return
     assert stopped is not None, "the base kept moving without safety"
     assert stopped.stamp - killed <= 0.3, f"stopped {stopped.stamp - killed:.3f} s after safety died"
 
-    # Asked directly (as any peer could), the sim refuses while safety is gone.
+    # Asked directly by any peer, the sim refuses a goal safety did not sign; and one signed with the
+    # robot key (as safety would) while safety is gone.
     goal = SendGoal(goal_id="direct1", goal=NavigateToPoseGoal(pose=Pose2D(x=6.0, y=1.2)))
-    reply = stack.node.call(keys.ROBOT_NAVIGATE.send_goal, goal, timeout=5.0)
+    with pytest.raises(CallError, match="not signed by safety"):
+        stack.node.call(keys.ROBOT_NAVIGATE.send_goal, goal, timeout=5.0)
+    with Node("key-holder", stack.settings) as holder:
+        holder.signer = Signer(stack.supervisor.robot_key())
+        reply = holder.call(keys.ROBOT_NAVIGATE.send_goal, goal, timeout=5.0)
     assert not reply.accepted and "heartbeat" in reply.reason
 
     stack.supervisor.start("safety")

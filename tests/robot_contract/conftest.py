@@ -21,6 +21,7 @@ from schemas.robot import JointState, Odometry
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import PerceivedHumans, PerceivedObjects
 from services.errors import CallError
+from services.robotlink import Signer
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from services.safety.config import SafetyConfig
 from services.sim.config import SimConfig
@@ -229,6 +230,8 @@ def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBa
         for service in services:
             supervisor.start(service)
         node = Node("cli", settings)
+        # The test plays safety: it signs what it sends to the robot with the stack's robot key.
+        node.signer = Signer(supervisor.robot_key())
         odom, joint_states = Watch(node, keys.ODOM), Watch(node, keys.JOINT_STATES)
         objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
         missing = node.wait_alive(services, STARTUP_TIMEOUT)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx2 as httpx
@@ -173,6 +174,22 @@ def test_the_environment_overrides_the_file_and_the_key_comes_from_the_named_var
         resolve_endpoint(config, {})
     with pytest.raises(NotConfigured, match="no model"):
         resolve_endpoint(PlannerConfig(url="http://a/v1"), {})
+
+
+def test_the_key_may_come_from_a_file_named_in_the_environment(tmp_path: Path) -> None:
+    # A compose secret or systemd credential: the key is not in the process's environment.
+    config = PlannerConfig(url="http://a/v1", model="m")
+    key_file = tmp_path / "llm-api-key"
+    key_file.write_text(KEY + "\n")
+    ep = resolve_endpoint(config, {"TETHER_LLM_API_KEY_FILE": str(key_file)})
+    assert ep is not None and ep.api_key is not None and ep.api_key.reveal() == KEY
+    assert KEY not in ep.key_source
+    key_file.write_text("")  # compose made the secret from an unset variable: no key, not an empty one
+    ep = resolve_endpoint(config, {"TETHER_LLM_API_KEY_FILE": str(key_file)})
+    assert ep is not None and ep.api_key is None
+    missing = tmp_path / "no-such-key"
+    with pytest.raises(NotConfigured, match="no-such-key, which cannot be read"):
+        resolve_endpoint(config, {"TETHER_LLM_API_KEY_FILE": str(missing)})
 
 
 def test_a_key_pasted_into_the_file_is_refused_without_being_repeated() -> None:

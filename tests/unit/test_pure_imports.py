@@ -19,6 +19,8 @@ PURE = [
     "services.safety.gate",
     "services.executor.runner",
     "services.robotrules",
+    "services.robotlink",
+    "services.repeats",
     "services.ros2.types",
     "services.ros2.wire",
     "services.ros2.backend",

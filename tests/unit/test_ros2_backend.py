@@ -486,7 +486,7 @@ class Clock:
 
 def test_the_robot_stays_still_before_the_first_heartbeat_after_a_late_one_and_while_latched() -> None:
     clock = Clock()
-    guard = HeartbeatGuard(0.2, 0.01, clock)
+    guard = HeartbeatGuard(0.2, 0.01, clock, wall_clock=lambda: NOW)
     assert guard.block() == NO_HEARTBEAT_YET
     guard.heard(status())
     assert guard.block() is None
@@ -498,7 +498,7 @@ def test_the_robot_stays_still_before_the_first_heartbeat_after_a_late_one_and_w
 
 def test_poll_says_once_when_the_robot_must_stop_and_once_when_it_may_move() -> None:
     clock = Clock()
-    guard = HeartbeatGuard(0.2, 0.01, clock)
+    guard = HeartbeatGuard(0.2, 0.01, clock, wall_clock=lambda: NOW)
     first = guard.poll()
     assert first.blocked == NO_HEARTBEAT_YET and not first.stopped, "blocked from the start: nothing to stop"
     guard.heard(status(scale=0.5))
@@ -512,12 +512,12 @@ def test_poll_says_once_when_the_robot_must_stop_and_once_when_it_may_move() -> 
 
 
 def test_a_goal_before_any_heartbeat_waits_for_one_then_is_refused() -> None:
-    guard = HeartbeatGuard(0.2, 0.05)
+    guard = HeartbeatGuard(0.2, 0.05, wall_clock=lambda: NOW)
     assert guard.accept() == NO_HEARTBEAT_YET
 
 
 def test_a_goal_finding_the_estop_latched_hears_one_more_heartbeat_a_reset() -> None:
-    guard = HeartbeatGuard(0.2, 0.05)
+    guard = HeartbeatGuard(0.2, 0.05, wall_clock=lambda: NOW)
     guard.heard(status(latched=True))
     threading.Timer(0.01, guard.heard, args=(status(),)).start()
     assert guard.accept() is None

@@ -194,18 +194,34 @@ def test_the_latch_holds_until_the_operator_token_resets_it(tmp_path: Path) -> N
 
 def test_the_latch_survives_a_restart_and_an_unreadable_state_fails_closed(tmp_path: Path) -> None:
     state = tmp_path / "estop.json"
-    first = EstopLatch("secret", state)
+    token = ensure_token(tmp_path / "token", state)  # a fresh install: unlatched
+    first = EstopLatch(token, state)
+    assert not first.state.latched
     assert first.trigger("watchdog", "lost the arm", 100.0)
     assert not EstopLatch("secret", state).state.latched, "trigger only latches in memory; save writes it"
     first.save()
-    again = EstopLatch("secret", state)
+    again = EstopLatch(token, state)
     assert again.state.latched and again.state.source == "watchdog"
-    again.reset("operator", "secret", 101.0)
-    assert EstopLatch("secret", state).state.latched, "reset, like trigger, is written by save"
+    again.reset("operator", token, 101.0)
+    assert EstopLatch(token, state).state.latched, "reset, like trigger, is written by save"
     again.save()
-    assert not EstopLatch("secret", state).state.latched
+    assert not EstopLatch(token, state).state.latched
     state.write_text("{ not json")
-    assert EstopLatch("secret", state).state.latched
+    assert EstopLatch(token, state).state.latched
+
+
+def test_a_missing_latch_file_starts_latched_except_on_a_fresh_installs_first_start(tmp_path: Path) -> None:
+    token_file, state = tmp_path / "cfg" / "operator-token", tmp_path / "state" / "estop-r1.json"
+    token = ensure_token(token_file, state)
+    assert not EstopLatch(token, state).state.latched, "the first start of a fresh install is usable"
+    assert oct(state.stat().st_mode & 0o777) == "0o600" and oct(token_file.stat().st_mode & 0o777) == "0o600"
+    state.unlink()  # lost: deleted, or a volume that was not mounted
+    assert ensure_token(token_file, state) == token and not state.exists(), "a token that exists makes no latch file"
+    lost = EstopLatch(token, state)
+    assert lost.state.latched and "missing" in lost.state.reason
+    lost.reset("operator", token, 5.0)
+    lost.save()
+    assert not EstopLatch(token, state).state.latched
 
 
 # Whole plans with sub-steps, on_failure alternatives and the gripper

@@ -583,3 +583,57 @@ def test_an_estop_latched_while_waiting_for_fresh_joints_refuses_the_goal_asked_
     assert isinstance(again.forward, GoalResponse) and not again.forward.accepted
     assert again.forward.kind is not None and again.forward.kind.value == "estop"
     assert again.events[0].rule is Rule.ESTOP
+
+
+def test_reset_attempts_are_rate_limited_per_operator_saying_when_to_retry(gate: SafetyGate, clock: FakeClock) -> None:
+    gate.estop(EStop(source="test", reason="stop"))
+    for _ in range(5):
+        assert not gate.reset(ResetRequest(operator="mallory", token="guess")).forward.ok
+        clock.advance(1.0)
+    # The sixth within a minute is refused before the token is even looked at: the right one too.
+    limited = gate.reset(ResetRequest(operator="mallory", token=TOKEN))
+    assert not limited.forward.ok and gate.latch.state.latched
+    assert "too many attempts (at most 5 a minute per operator" in limited.forward.message
+    assert limited.forward.message.endswith("try again in 55 s"), limited.forward.message
+    [event] = limited.events
+    assert event.decision is Decision.VETOED and event.rule is Rule.OPERATOR
+    assert event.values["retry_after_s"] == pytest.approx(55.0)
+    assert "guess" not in repr(event) and TOKEN not in repr(event)
+    # Another operator is not held up by mallory's attempts.
+    assert gate.reset(ResetRequest(operator="alice", token=TOKEN)).forward.ok
+    gate.estop(EStop(source="test", reason="again"))
+    clock.advance(55.0)  # mallory's first attempt has left the window
+    assert gate.reset(ResetRequest(operator="mallory", token=TOKEN)).forward.ok
+
+
+def test_many_names_do_not_get_around_the_reset_limit(gate: SafetyGate, clock: FakeClock) -> None:
+    gate.estop(EStop(source="test", reason="stop"))
+    for i in range(15):
+        assert "too many" not in gate.reset(ResetRequest(operator=f"name{i}", token="guess")).forward.message
+    refused = gate.reset(ResetRequest(operator="fresh", token="guess"))
+    assert not refused.forward.ok and "15 for all" in refused.forward.message
+    clock.advance(60.0)
+    assert "too many" not in gate.reset(ResetRequest(operator="fresh", token="guess")).forward.message
+
+
+def test_made_up_names_filling_the_shared_limit_do_not_lock_out_the_operator(
+    gate: SafetyGate, clock: FakeClock
+) -> None:
+    gate.estop(EStop(source="test", reason="stop"))
+    for i in range(15):
+        gate.reset(ResetRequest(operator=f"made-up-{i}", token="guess"))
+        clock.advance(1.0)
+    assert "15 for all" in gate.reset(ResetRequest(operator="alice", token="guess")).forward.message
+    right = gate.reset(ResetRequest(operator="alice", token=TOKEN))
+    assert right.reset and right.forward.ok and not gate.latch.state.latched
+    # Right resets are never counted: the operator may reset as often as the robot needs.
+    for _ in range(10):
+        gate.estop(EStop(source="test", reason="again"))
+        assert gate.reset(ResetRequest(operator="alice", token=TOKEN)).forward.ok
+    # Wrong ones by that name still are: five lock the name out, the right token too.
+    clock.advance(60.0)  # the made-up names' attempts have left the window
+    for _ in range(5):
+        assert "too many" not in gate.reset(ResetRequest(operator="alice", token="guess")).forward.message
+    gate.estop(EStop(source="test", reason="again"))
+    limited = gate.reset(ResetRequest(operator="alice", token=TOKEN))
+    assert not limited.forward.ok and "at most 5 a minute per operator" in limited.forward.message

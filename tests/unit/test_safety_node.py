@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import pytest
 
 from schemas import keys
@@ -30,7 +31,7 @@ from schemas.robot import (
     TrajectoryPoint,
     Twist,
 )
-from schemas.safety import Decision, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
+from schemas.safety import Decision, EstopState, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import GoalRejected
@@ -58,7 +59,7 @@ class Recorder:
 
     def __init__(self, state_file: Path) -> None:
         self.sent: list[tuple[str, Any]] = []
-        # Whether the e-stop state file was there when each message went out.
+        # Whether the e-stop state file said latched when each message went out.
         self.written: list[bool] = []
         self._state_file = state_file
         self.callbacks: dict[str, Callable[..., Any]] = {}
@@ -70,7 +71,7 @@ class Recorder:
         self.on_put(path, message)
         with self.changed:
             self.sent.append((path, message))
-            self.written.append(self._state_file.exists())
+            self.written.append(self._state_file.exists() and b'"latched":true' in self._state_file.read_bytes())
             self.changed.notify_all()
 
     def publisher(self, topic: keys.Topic[Any]) -> Any:
@@ -127,10 +128,15 @@ def start(tmp_path: Path) -> Iterator[Start]:
     started: list[SafetyNode] = []
 
     def start(
-        clock: Callable[[], float] = time.monotonic, state_file: Path = tmp_path / "estop.json"
+        clock: Callable[[], float] = time.monotonic,
+        state_file: Path = tmp_path / "estop.json",
+        keepalive: Callable[[], None] = lambda: None,
     ) -> tuple[Recorder, SafetyNode]:
         node = Recorder(state_file)
-        safety = SafetyNode(node, policy, EstopLatch("token", state_file), SafetyConfig(), clock)  # type: ignore[arg-type]
+        if state_file.parent.is_dir() and not state_file.exists():
+            state_file.write_bytes(msgspec.json.encode(EstopState(latched=False)))  # as a fresh install's
+        latch = EstopLatch("token", state_file)
+        safety = SafetyNode(node, policy, latch, SafetyConfig(), clock, keepalive=keepalive)  # type: ignore[arg-type]
         started.append(safety)
         return node, safety
 
@@ -219,6 +225,39 @@ def test_the_heartbeat_goes_on_after_a_latch_from_the_beat_fails_to_publish(star
     assert safety.latch.state.latched and safety.latch.state.source == "watchdog"
 
 
+def test_the_watchdog_is_fed_only_by_beats_that_published_their_heartbeat(start: Start) -> None:
+    broken = threading.Event()
+    beats = threading.Condition()
+    failed = [0]
+    last_failed = [False]  # whether the beat's heartbeat (just before its feed) failed to go out
+    feeds: list[bool] = []  # last_failed at each feed
+
+    def fail_while_broken(path: str, message: Any) -> None:
+        if isinstance(message, SafetyStatus):
+            with beats:
+                last_failed[0] = broken.is_set()
+                failed[0] += broken.is_set()
+                beats.notify_all()
+            if broken.is_set():
+                raise RuntimeError("the heartbeat publisher failed")
+
+    def keepalive() -> None:
+        with beats:
+            feeds.append(last_failed[0])
+            beats.notify_all()
+
+    node, _ = start(keepalive=keepalive)
+    node.on_put = fail_while_broken
+    with beats:
+        assert beats.wait_for(lambda: len(feeds) >= 2, WAIT), "beats that published fed the watchdog"
+        broken.set()
+        assert beats.wait_for(lambda: failed[0] >= 3, WAIT)
+        broken.clear()
+        fed = len(feeds)
+        assert beats.wait_for(lambda: len(feeds) > fed, WAIT), "fed again once the heartbeat goes out"
+        assert True not in feeds, "fed after a beat whose heartbeat failed"
+
+
 def test_a_gate_clock_that_steps_back_does_not_stall_the_heartbeat(start: Start) -> None:
     clock = FakeClock(1000.0)
     node, _ = start(clock=clock)
@@ -226,6 +265,16 @@ def test_a_gate_clock_that_steps_back_does_not_stall_the_heartbeat(start: Start)
     clock.now = 0.0
     since = len(node.sent)
     node.wait_for(lambda sent: node.heartbeats(since) >= 10)
+
+
+def test_a_flood_of_undecodable_input_is_one_event_with_its_count(start: Start) -> None:
+    node, _safety = start()
+    report = node.on_undecodable  # set by safety on its node; the runtime calls it once per log line
+    report(keys.CMD_VEL.key(node.robot), "412 more undecodable messages dropped on ...", 412)
+    with node.changed:
+        events = [m for _, m in node.sent if isinstance(m, SafetyEvent) and m.key == keys.CMD_VEL.path]
+    assert len(events) == 1 and events[0].decision is Decision.VETOED and events[0].values == {"count": 412.0}
+    assert events[0].reason.startswith("412 more undecodable")
 
 
 def test_a_reset_whose_state_file_cannot_be_written_says_so_and_still_clears_the_latch(
@@ -272,6 +321,7 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
     arm = ArmModel(WORLD.robot.arm_urdf)
     policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
+    (tmp_path / "estop.json").write_bytes(msgspec.json.encode(EstopState(latched=False)))  # as a fresh install's
     latch = EstopLatch("token", tmp_path / "estop.json")
     with Node("safety", settings) as safety_session, Node("sim", settings) as robot:
         safety = SafetyNode(safety_session, policy, latch, SafetyConfig())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 import threading
 import time
 import uuid
@@ -18,7 +19,8 @@ from schemas.robot import NavigateToPoseGoal
 from schemas.safety import EstopState, SafetyStatus
 from schemas.world import Empty, Moved, MoveEntity
 from services.actionlib import ActionClient, GoalHandle, Outcome
-from services.errors import GoalRejected
+from services.errors import CallError, GoalRejected
+from services.robotlink import BAD_MAC, NOT_SIGNED, Signer
 from services.robotrules import PREEMPT_TIMEOUT, RESET_GRACE
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
@@ -47,8 +49,11 @@ def rig() -> Iterator[Rig]:
     config = SimConfig(realtime_factor=4.0, first_heartbeat_wait=0.5)
     sim = Simulation(load_world(config.world), physics_hz=config.physics_hz)
     stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
+    key = secrets.token_bytes(32)
     with Node("sim", settings) as sim_session, Node("test", settings) as client:
-        sim_node = SimNode(sim_session, sim, config)
+        # The test plays safety: it holds the robot key and signs what it sends to the robot.
+        client.signer = Signer(key)
+        sim_node = SimNode(sim_session, sim, config, robot_key=key)
         sim_session.declare_alive()
         runner = threading.Thread(target=sim_node.run, args=(stop,), daemon=True)
         runner.start()
@@ -210,3 +215,32 @@ def test_sim_move_replies_where_the_object_came_to_rest_or_why_not_even_without_
     refused = rig.client.call(keys.SIM_MOVE, MoveEntity(id="blue_book", x=50.0, y=2.5))
     assert isinstance(refused, ServiceError) and refused.kind is ErrorKind.INVALID_REQUEST, refused
     assert "outside every room" in refused.message
+
+
+def test_commands_and_heartbeats_without_safetys_mac_are_dropped_and_reported(rig: Rig) -> None:
+    rig.latched.set()
+    rig.beating.set()
+    deadline = time.monotonic() + 5.0
+    while "e-stop" not in (rig.sim_node.safety_block() or "") and time.monotonic() < deadline:
+        time.sleep(0.02)  # polling the heartbeat's arrival with a deadline
+    assert "e-stop" in (rig.sim_node.safety_block() or "")
+    settings = rig.client.settings
+    with Node("attacker", settings) as attacker, Node("forger", settings) as forger:
+        # No key at all: the goal is answered unauthorized, never reaching the action server.
+        with pytest.raises(CallError, match="not signed by safety") as refused:
+            ActionClient(attacker, keys.ROBOT_NAVIGATE).send(FAR)
+        assert refused.value.error.kind is ErrorKind.UNAUTHORIZED
+        # Signed, but with another key: an unlatched heartbeat is no heartbeat.
+        forger.signer = Signer(secrets.token_bytes(32))
+        unlatched = SafetyStatus(seq=1, stamp=time.time(), estop=EstopState(latched=False), speed_scale=1.0)
+        deadline = time.monotonic() + 5.0
+        while not any(BAD_MAC in text for text, _ in rig.sim_node.link.problems(60.0)):
+            assert time.monotonic() < deadline, "the forged heartbeat was never refused"
+            forger.publish(keys.HEARTBEAT, unlatched)
+            attacker.publish(keys.HEARTBEAT, unlatched)
+            assert "e-stop" in (rig.sim_node.safety_block() or ""), "a forged heartbeat unlatched the robot"
+            time.sleep(0.01)  # pacing the forgeries
+    diagnostics = rig.client.call(keys.ROBOT_DIAGNOSTICS, Empty())
+    texts = " | ".join(p.text for p in diagnostics.problems)
+    assert "robot/navigate_to_pose/_action/send_goal" in texts and NOT_SIGNED in texts, texts
+    assert f"safety/heartbeat: {BAD_MAC}" in texts, texts

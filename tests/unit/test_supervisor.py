@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import signal
+import stat
 import subprocess
 import sys
 import uuid
 from pathlib import Path
 
+import pytest
+
+from services.robotlink import KEY_ENV
 from services.runtime import NodeSettings
-from tether.supervisor import Supervisor
+from services.safety.operator import TOKEN_ENV
+from tether.supervisor import KEY_HOLDERS, Supervisor
 
 # A "service" stuck where SIGTERM cannot reach it: the runtime's handlers, then SIGTERM ignored.
 STUCK = """
@@ -49,3 +54,49 @@ def test_a_service_that_does_not_stop_is_killed_after_writing_its_stacks_to_its_
             proc.kill()
             proc.wait()
         log.close()
+
+
+def settings() -> NodeSettings:
+    return NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}")
+
+
+def test_the_robot_key_is_never_in_the_log_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    # Without an operator token named: a keys/ directory of its own (0700) beside the logs.
+    plain = Supervisor(settings(), tmp_path / "a" / "logs")
+    plain.robot_key()
+    assert plain.robot_key_file.parent == tmp_path / "a" / "keys"
+    assert stat.S_IMODE(plain.robot_key_file.parent.stat().st_mode) == 0o700
+    assert stat.S_IMODE(plain.robot_key_file.stat().st_mode) == 0o600
+    # With one: beside it, where safety would put the key by itself.
+    token = tmp_path / "b" / "secrets" / "operator-token"
+    beside = Supervisor(settings(), tmp_path / "b" / "logs", extra_env={TOKEN_ENV: str(token)})
+    beside.robot_key()
+    assert beside.robot_key_file.parent == token.parent
+    for supervisor in (plain, beside):
+        assert not list(supervisor.log_dir.iterdir()), "nothing of the key in the log directory"
+
+
+def test_only_the_key_holders_make_the_key_or_are_told_where_it_is(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # `tether up --deploy DIR --only parser,...` on a host that must not hold the key: none is made.
+    monkeypatch.setenv(KEY_ENV, str(tmp_path / "from-the-environment.key"))
+    key = tmp_path / "deploy" / "robot1" / "robot.key"
+    supervisor = Supervisor(settings(), tmp_path / "logs", extra_env={KEY_ENV: str(tmp_path / "from-extra.key")})
+    supervisor.robot_key_file = key
+    monkeypatch.setattr(sys, "executable", "/bin/true")  # a real process that exits at once
+    try:
+        for service in ("parser", "resolver", "executor", "planner", "recorder"):
+            supervisor.start(service)
+            assert not key.exists(), service
+            # Neither the caller's environment nor extra_env tells a non-holder where a key is.
+            assert KEY_ENV not in supervisor.env(service), service
+        for service in KEY_HOLDERS:
+            assert supervisor.env(service)[KEY_ENV] == str(key)
+        supervisor.start("safety")
+        assert key.exists() and stat.S_IMODE(key.stat().st_mode) == 0o600
+    finally:
+        supervisor.stop_all()
+    assert not (tmp_path / "from-the-environment.key").exists() and not (tmp_path / "from-extra.key").exists()

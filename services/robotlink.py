@@ -1,0 +1,288 @@
+"""Safety's authenticated link to the robot: a MAC on each robot command and heartbeat, checked by the robot. Pure."""
+
+from __future__ import annotations
+
+import contextlib
+import hmac
+import logging
+import os
+import secrets
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from hashlib import sha256
+from pathlib import Path
+
+from schemas import keys
+from services.repeats import Problems, RepeatLog
+
+log = logging.getLogger(__name__)
+
+# Names the key file for every service a supervisor starts (a stack's own key); a service's config
+# (`robot_key_file` in [safety], [sim], [ros2]) takes precedence.
+KEY_ENV = "TETHER_ROBOT_KEY_FILE"
+KEY_BYTES = 32
+# A signed message stamped further than this from the robot's wall clock (either way) is refused:
+# safety and the robot backend run on one computer (or on hosts kept in time by NTP).
+MAX_SKEW = 2.0
+# Sender sessions remembered at most (each safety start is one); the oldest is forgotten first.
+MAX_SESSIONS = 64
+SESSION_BYTES = 16
+MAGIC = b"T1"
+# The attachment: magic, sender session, counter, sender's wall-clock stamp, HMAC-SHA256.
+_ATTACHMENT = struct.Struct("!2s16sQd32s")
+ATTACHMENT_BYTES = _ATTACHMENT.size
+_DOMAIN = b"tether robot link v1\0"
+
+# What only safety sends to the robot, under tether/<robot>/: the robot acts on these only when signed.
+SIGNED_PATHS = frozenset(
+    {
+        keys.HEARTBEAT.path,
+        keys.ROBOT_CMD_VEL.path,
+        *(a.send_goal.path for a in (keys.ROBOT_NAVIGATE, keys.ROBOT_TRAJECTORY, keys.ROBOT_GRIPPER)),
+        *(a.cancel_goal.path for a in (keys.ROBOT_NAVIGATE, keys.ROBOT_TRAJECTORY, keys.ROBOT_GRIPPER)),
+    }
+)
+
+
+def path_of(key_expr: str) -> str:
+    """`tether/<robot>/<path>` -> `<path>`."""
+    parts = key_expr.split("/", 2)
+    return parts[2] if len(parts) == 3 and parts[0] == keys.ROOT else key_expr
+
+
+def signed(key_expr: str) -> bool:
+    """Whether messages on `key_expr` carry (and need) safety's MAC."""
+    return path_of(key_expr) in SIGNED_PATHS
+
+
+# The key file
+
+
+class KeyFileError(Exception):
+    """The robot key file is missing, unreadable, open to others or not a 32-byte hex key (the message says)."""
+
+
+def key_path(configured: str | None, default_dir: Path, robot: str) -> Path:
+    """The key file: the config's, else $TETHER_ROBOT_KEY_FILE, else robot-<robot>.key in `default_dir`
+    (beside the operator token)."""
+    if configured:
+        return Path(configured).expanduser()
+    if env := os.environ.get(KEY_ENV):
+        return Path(env).expanduser()
+    return default_dir / f"robot-{robot}.key"
+
+
+def ensure_key(path: Path) -> bytes:
+    """The key in `path`, made (mode 0600) if there is none. Safety and the robot backend may both
+    start at once and both make one: each writes a complete file under another name and links it
+    into place, which fails for all but the first, so both read the same whole key."""
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}")
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(secrets.token_hex(KEY_BYTES) + "\n")
+                f.flush()
+                os.fsync(f.fileno())
+            with contextlib.suppress(FileExistsError):
+                os.link(tmp, path)  # atomic, and never replaces: the first one made wins
+        finally:
+            tmp.unlink(missing_ok=True)
+    return read_key(path)
+
+
+def robot_key(configured: str | None, default_dir: Path, robot: str) -> tuple[bytes, Path]:
+    """The robot key, made on first start, and the file it is in (see key_path)."""
+    path = key_path(configured, default_dir, robot)
+    return ensure_key(path), path
+
+
+def read_key(path: Path) -> bytes:
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text().strip()
+    except OSError as exc:
+        raise KeyFileError(f"robot key file {path}: {exc.strerror}") from None
+    if mode & 0o077:
+        raise KeyFileError(f"robot key file {path} is readable by others (mode {mode & 0o777:o}); chmod 600 it")
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        raise KeyFileError(f"robot key file {path} is not hex") from None
+    if len(key) != KEY_BYTES:
+        raise KeyFileError(f"robot key file {path} holds {len(key)} bytes; a robot key is {KEY_BYTES}")
+    return key
+
+
+# Signing and checking
+
+
+def _mac(key: bytes, key_expr: str, payload: bytes, session: bytes, counter: int, stamp: float) -> bytes:
+    expr = key_expr.encode()
+    message = b"".join(
+        (_DOMAIN, struct.pack("!I", len(expr)), expr, session, struct.pack("!Qd", counter, stamp), payload)
+    )
+    return hmac.new(key, message, sha256).digest()
+
+
+class Signer:
+    """Safety's side: signs what it sends to the robot. One random session per start, a counter over
+    all it signs. The sender holds `lock` from signing a message to handing it to Zenoh, so the
+    counters on each key go out in order."""
+
+    def __init__(self, key: bytes, clock: Callable[[], float] = time.time, session: bytes | None = None) -> None:
+        if len(key) != KEY_BYTES:
+            raise ValueError(f"a robot key is {KEY_BYTES} bytes, not {len(key)}")
+        self._key = key
+        self._clock = clock
+        self.session = session or secrets.token_bytes(SESSION_BYTES)
+        self._counter = 0
+        self.lock = threading.RLock()
+
+    def sign(self, key_expr: str, payload: bytes) -> bytes:
+        """The attachment for `payload` on `key_expr`."""
+        with self.lock:
+            self._counter += 1
+            counter = self._counter
+        stamp = self._clock()
+        mac = _mac(self._key, key_expr, payload, self.session, counter, stamp)
+        return _ATTACHMENT.pack(MAGIC, self.session, counter, stamp, mac)
+
+
+@dataclass(frozen=True)
+class Signature:
+    """An attachment taken apart (not yet checked)."""
+
+    session: bytes
+    counter: int
+    stamp: float
+    mac: bytes
+
+
+def unpack(attachment: bytes | None) -> Signature | None:
+    """The signature in an attachment; None when there is none or it is not one."""
+    if attachment is None or len(attachment) != ATTACHMENT_BYTES:
+        return None
+    magic, session, counter, stamp, mac = _ATTACHMENT.unpack(attachment)
+    if magic != MAGIC:
+        return None
+    return Signature(session, counter, stamp, mac)
+
+
+def mac_matches(key: bytes, key_expr: str, payload: bytes, signature: Signature) -> bool:
+    """Whether `signature` was made with `key` over `payload` on `key_expr` (for checking a recording)."""
+    expected = _mac(key, key_expr, payload, signature.session, signature.counter, signature.stamp)
+    return hmac.compare_digest(expected, signature.mac)
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Why a message was not taken as safety's: `why` stays the same for one kind of refusal (for
+    counting and diagnostics); `detail` has the numbers."""
+
+    why: str
+    detail: str = ""
+
+    def __str__(self) -> str:
+        return f"{self.why} ({self.detail})" if self.detail else self.why
+
+
+NOT_SIGNED = "not signed by safety (no robot-link MAC attached)"
+MALFORMED = "robot-link attachment malformed"
+BAD_MAC = "robot-link MAC does not match: not signed with this robot's key, or altered"
+STALE = "robot-link stamp out of the time window"
+BEFORE_START = "robot-link stamp from before this robot backend started (a replay?)"
+REPLAYED = "robot-link counter not increasing: replayed or reordered"
+
+
+class Verifier:
+    """The robot's side: a message counts as safety's when its MAC matches under the robot key, its
+    stamp is within MAX_SKEW of `clock` and not from before this verifier was made (a restarted robot
+    takes nothing recorded before), and its counter is above the last taken from its sender session
+    on that key (replayed or reordered messages are refused). A restarted safety is a new session.
+    A session not heard within MAX_SKEW is forgotten: anything of it sent before that is too old anyway."""
+
+    def __init__(self, key: bytes, clock: Callable[[], float] = time.time, max_skew: float = MAX_SKEW) -> None:
+        if len(key) != KEY_BYTES:
+            raise ValueError(f"a robot key is {KEY_BYTES} bytes, not {len(key)}")
+        self._key = key
+        self._clock = clock
+        self.max_skew = max_skew
+        self.started = clock()
+        self._lock = threading.Lock()
+        self._last: dict[tuple[bytes, str], int] = {}  # (session, key expr) -> counter last taken
+        self._newest: dict[bytes, float] = {}  # session -> its newest stamp taken
+
+    def check(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
+        """None when the message is safety's, and it is taken (its counter remembered); else why not."""
+        if attachment is None:
+            return Refusal(NOT_SIGNED)
+        sig = unpack(attachment)
+        if sig is None:
+            return Refusal(MALFORMED, f"{len(attachment)} bytes")
+        if not mac_matches(self._key, key_expr, payload, sig):
+            return Refusal(BAD_MAC)
+        now = self._clock()
+        age = now - sig.stamp
+        if not abs(age) <= self.max_skew:  # also NaN
+            return Refusal(STALE, f"stamped {age:+.3f} s from now; at most {self.max_skew:g} s either way")
+        if sig.stamp < self.started:
+            return Refusal(BEFORE_START, f"{self.started - sig.stamp:.3f} s before")
+        with self._lock:
+            self._forget_old(now)
+            last = self._last.get((sig.session, key_expr), 0)
+            if sig.counter <= last:
+                return Refusal(REPLAYED, f"counter {sig.counter} after {last} on {path_of(key_expr)}")
+            self._last[(sig.session, key_expr)] = sig.counter
+            self._newest[sig.session] = max(self._newest.get(sig.session, sig.stamp), sig.stamp)
+            self._newest[sig.session] = self._newest.pop(sig.session)  # the latest heard last
+            if len(self._newest) > MAX_SESSIONS:
+                self._drop(next(iter(self._newest)))
+        return None
+
+    def _forget_old(self, now: float) -> None:
+        for session, newest in list(self._newest.items()):
+            if now - newest > 2 * self.max_skew:
+                self._drop(session)
+
+    def _drop(self, session: bytes) -> None:
+        self._newest.pop(session, None)
+        for k in [k for k in self._last if k[0] == session]:
+            del self._last[k]
+
+
+class LinkGuard:
+    """A robot backend's door: each message on a signed key is checked before anything reads it; what
+    is refused is dropped, logged (the first at once, then a count every few seconds) and kept as a
+    problem for robot/diagnostics, and `report` (if given) hears it too."""
+
+    def __init__(
+        self,
+        verifier: Verifier,
+        report: Callable[[str], None] | None = None,
+        wall_clock: Callable[[], float] = time.time,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.verifier = verifier
+        self._report = report
+        self._problems = Problems(wall_clock, RepeatLog("messages refused as not from safety", clock=clock), log)
+
+    def __call__(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
+        refusal = self.verifier.check(key_expr, payload, attachment)
+        if refusal is None:
+            return None
+        path = path_of(key_expr)
+        text = f"refused {path}: {refusal.why}"
+        self._problems.note(text, path, refusal)
+        if self._report is not None:
+            self._report(text)
+        return refusal
+
+    def problems(self, within: float) -> list[tuple[str, float]]:
+        """Each kind of refusal seen in the last `within` seconds, with its count, and when last seen
+        (wall clock): the latest first."""
+        return self._problems.recent(within)

@@ -1,0 +1,690 @@
+"""`tether deploy init`: a secured deployment directory (router, one identity per service, TLS) for a fleet."""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+import os
+import secrets
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from schemas import keys
+from services.runtime import DEFAULT_BASE_PORT
+
+# Not 7447 (rmw_zenoh's router on a ROS 2 robot) and clear of the services' own loopback ports.
+DEFAULT_ROUTER_PORT = DEFAULT_BASE_PORT + 10
+DEFAULT_ROUTER_HOST = "localhost"
+# The services of a robot, each its own identity, then the two that are not services: a person and an LLM agent.
+SERVICE_IDENTITIES = ("sim", "safety", "parser", "resolver", "executor", "recorder", "planner", "ros2")
+IDENTITIES = (*SERVICE_IDENTITIES, "operator", "agent")
+ROBOT_BACKEND_IDENTITIES = ("sim", "ros2")
+MANIFEST = "deployment.json"
+ROUTER_CONFIG = "router.json5"
+USERS_FILE = "router-users.txt"
+CA_DIR = "ca"
+# Certificates outlive a robot's usual service interval; `tether deploy init` never renews one, so an
+# installer renews by deleting the expired files (and the CA, to rotate everything) and rerunning it.
+CA_LIFETIME = dt.timedelta(days=3650)
+CERT_LIFETIME = dt.timedelta(days=1825)
+# A service started before the router is reachable waits for it (-1: no deadline), trying again after
+# 0.2 s and then every second; a person's or agent's command gives up at once and says so.
+SERVICE_CONNECT = {
+    "timeout_ms": -1,
+    "exit_on_failure": False,
+    "retry": {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2},
+}
+PERSON_RETRY = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
+SECRET_MODE = 0o600
+# The planner's LLM API key: written empty (no key), for the installer to fill; never overwritten.
+LLM_KEY_FILE = "llm-api-key"
+
+
+class DeploymentError(Exception):
+    """A deployment directory that cannot be written or extended as asked; the message says why."""
+
+
+@dataclass(frozen=True)
+class RouterAddress:
+    """Where clients reach the router: a host name or IP address and a port."""
+
+    host: str = DEFAULT_ROUTER_HOST
+    port: int = DEFAULT_ROUTER_PORT
+
+    @classmethod
+    def parse(cls, text: str) -> RouterAddress:
+        """`HOST`, `HOST:PORT`, `[IPv6]` or `[IPv6]:PORT`."""
+        text = text.strip()
+        host, port_text = text, ""
+        if text.startswith("["):
+            host, _, rest = text[1:].partition("]")
+            if rest and not rest.startswith(":"):
+                raise DeploymentError(f"router address {text!r}: expected [IPv6]:PORT")
+            port_text = rest[1:]
+        elif text.count(":") == 1:
+            host, port_text = text.split(":")
+        elif text.count(":") > 1:
+            host = text  # a bare IPv6 address
+        if not host:
+            raise DeploymentError(f"router address {text!r} has no host")
+        if not _is_ip(host) and not all(part.replace("-", "").isalnum() for part in host.split(".")):
+            raise DeploymentError(f"router address {text!r}: {host!r} is neither a host name nor an IP address")
+        if not port_text:
+            return cls(host)
+        try:
+            port = int(port_text)
+        except ValueError:
+            raise DeploymentError(f"router address {text!r}: port {port_text!r} is not a number") from None
+        if not 1 <= port <= 65535:
+            raise DeploymentError(f"router address {text!r}: port {port} is not between 1 and 65535")
+        return cls(host, port)
+
+    @property
+    def loopback(self) -> bool:
+        """Whether only this host reaches the router at this address (then nothing crosses a network)."""
+        if self.host == "localhost":
+            return True
+        return _is_ip(self.host) and ipaddress.ip_address(self.host).is_loopback
+
+    @property
+    def container_alias(self) -> str | None:
+        """The host name, when it is one a container network can give the router (not an IP, not localhost)."""
+        return None if self.host == "localhost" or _is_ip(self.host) else self.host
+
+    def endpoint(self, tls: bool) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{'tls' if tls else 'tcp'}/{host}:{self.port}"
+
+    def __str__(self) -> str:
+        return f"{f'[{self.host}]' if ':' in self.host else self.host}:{self.port}"
+
+
+@dataclass(frozen=True)
+class Written:
+    """One file of the deployment: `created` when written now (new, or its content changed), else kept as it was."""
+
+    path: Path
+    created: bool
+    secret: bool
+
+
+def username(robot: str, identity: str) -> str:
+    """The Zenoh user name, and with TLS the certificate's common name, of one identity of one robot."""
+    return f"{robot}-{identity}"
+
+
+def check_robot_name(robot: str) -> str:
+    # The same alphabet as NodeSettings, and no name that the rules' key expressions would widen.
+    if not robot or not robot.replace("_", "").replace("-", "").isalnum():
+        raise DeploymentError(f"robot name {robot!r} must be letters, digits, '-' or '_'")
+    return robot
+
+
+def init(
+    directory: Path, robots: Sequence[str], *, tls: bool = False, router: RouterAddress | None = None
+) -> list[Written]:
+    """Write (or extend) the deployment in `directory` for `robots`; return every file, written or kept.
+
+    A secret, key or certificate already there is never changed. The router's config, its password
+    list (each user's password kept as it was), the manifest and the generated units and compose
+    files are rewritten to cover every robot, and reported as written only when their content changed.
+    """
+    for robot in robots:
+        check_robot_name(robot)
+    if not robots:
+        raise DeploymentError("name at least one robot (--robot NAME)")
+    directory = directory.resolve()
+    if directory.exists() and not directory.is_dir():
+        raise DeploymentError(f"{directory} exists and is not a directory")
+    manifest = _read_manifest(directory)
+    if manifest is not None:
+        if manifest["tls"] != tls:
+            was = "with" if manifest["tls"] else "without"
+            raise DeploymentError(f"{directory} was made {was} --tls; rerun it {was} --tls to add robots")
+        known = RouterAddress.parse(manifest["router"])
+        if router is not None and router != known:
+            raise DeploymentError(
+                f"{directory} was made for the router at {known}, not {router}; "
+                "its clients and certificates name that address (start a new directory to change it)"
+            )
+        router = known
+    router = router or RouterAddress()
+    all_robots = list(dict.fromkeys([*(manifest["robots"] if manifest else []), *robots]))
+    directory.mkdir(parents=True, exist_ok=True)
+    written: list[Written] = []
+
+    ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None = None
+    if tls:
+        ca = _certificate_authority(directory, written)
+        _router_certificate(directory, router, ca, written)
+
+    passwords = _passwords(directory, all_robots, written)
+    for robot in all_robots:
+        _robot_files(directory, robot, router, tls, ca, passwords, written)
+    written.append(_write_text(directory / ROUTER_CONFIG, router_config(all_robots, router, tls), replace=True))
+    manifest_text = json.dumps({"robots": all_robots, "tls": tls, "router": str(router)}, indent=2) + "\n"
+    written.append(_write_text(directory / MANIFEST, manifest_text, replace=True))
+    # The systemd units and compose files of the same deployment, by their own module.
+    from tether import deployunits
+
+    written += deployunits.write_all(directory, all_robots, tls=tls, router=router)
+    return written
+
+
+@dataclass(frozen=True)
+class Deployment:
+    """A deployment directory made by `init`: its robots, whether it uses TLS, where its router is."""
+
+    directory: Path
+    robots: tuple[str, ...]
+    tls: bool
+    router: RouterAddress
+
+    @classmethod
+    def load(cls, directory: Path) -> Deployment:
+        manifest = _read_manifest(directory)
+        if manifest is None:
+            raise DeploymentError(
+                f"{directory} is not a deployment (no {MANIFEST}); make one with `tether deploy init {directory} "
+                "--robot NAME`"
+            )
+        return cls(
+            directory.resolve(), tuple(manifest["robots"]), manifest["tls"], RouterAddress.parse(manifest["router"])
+        )
+
+    def client_config(self, robot: str, identity: str) -> Path:
+        """The Zenoh config of `identity` on `robot`; a clear error when the deployment has none."""
+        if robot not in self.robots:
+            raise DeploymentError(f"robot {robot!r} is not in {self.directory} (robots: {', '.join(self.robots)})")
+        if identity not in IDENTITIES:
+            raise DeploymentError(f"{identity!r} is not an identity of a deployment ({', '.join(IDENTITIES)})")
+        path = self.directory / robot / f"{identity}.json5"
+        if not path.is_file():
+            raise DeploymentError(f"{path} is missing: is {identity} installed on this host?")
+        return path
+
+    def robot_config(self, robot: str) -> Path:
+        return self.directory / robot / "tether.toml"
+
+
+def cleartext_warning(made: Deployment) -> str | None:
+    """What to tell the installer when logins and traffic would cross a network unencrypted."""
+    if made.tls or made.router.loopback:
+        return None
+    return (
+        f"the router is reached at {made.router} without --tls: every password (and all traffic) crosses "
+        "the network in the clear, and anyone on the path can log in as that identity. Make a new "
+        "directory with --tls, or keep the router's port on a network only you can reach."
+    )
+
+
+def _read_manifest(directory: Path) -> dict[str, Any] | None:
+    path = directory / MANIFEST
+    if not path.exists():
+        if (directory / ROUTER_CONFIG).exists():
+            raise DeploymentError(f"{directory} holds a {ROUTER_CONFIG} but no {MANIFEST}: not made by tether deploy")
+        return None
+    try:
+        data = json.loads(path.read_text())
+        robots = [check_robot_name(str(r)) for r in data["robots"]]
+        return {"robots": robots, "tls": bool(data["tls"]), "router": str(data["router"])}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DeploymentError(f"{path} is unreadable or damaged: {exc}") from None
+
+
+# Files
+
+
+def _write_bytes(path: Path, data: bytes, *, secret: bool = False, replace: bool = False) -> Written:
+    """Create `path` (mode 600 when `secret`), or keep it as it is when it exists and not `replace`
+    (or `replace` but it already holds `data`)."""
+    if path.exists() and (not replace or (path.is_file() and path.read_bytes() == data)):
+        return Written(path, created=False, secret=secret)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mode = SECRET_MODE if secret else 0o644
+    target = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp") if replace else path
+    # O_EXCL: never write through a file or link someone else put there; the mode is set at creation.
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        if replace:
+            os.replace(target, path)
+    except BaseException:
+        target.unlink(missing_ok=True)
+        raise
+    return Written(path, created=True, secret=secret)
+
+
+def _write_text(path: Path, text: str, *, secret: bool = False, replace: bool = False) -> Written:
+    return _write_bytes(path, text.encode(), secret=secret, replace=replace)
+
+
+def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -> dict[str, str]:
+    """Every identity's password: those in router-users.txt kept, new ones for new identities."""
+    path = directory / USERS_FILE
+    known: dict[str, str] = {}
+    if path.exists():
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if not line.strip():
+                continue
+            user, sep, password = line.partition(":")
+            if not sep or not password:
+                raise DeploymentError(f"{path}:{number} is not a `user:password` line")
+            known[user] = password
+    passwords = dict(known)
+    for robot in robots:
+        for identity in IDENTITIES:
+            passwords.setdefault(username(robot, identity), secrets.token_urlsafe(24))
+    if passwords != known or not path.exists():
+        text = "".join(f"{user}:{password}\n" for user, password in passwords.items())
+        written.append(_write_text(path, text, secret=True, replace=True))
+    else:
+        written.append(Written(path, created=False, secret=True))
+    return passwords
+
+
+def _robot_files(
+    directory: Path,
+    robot: str,
+    router: RouterAddress,
+    tls: bool,
+    ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None,
+    passwords: dict[str, str],
+    written: list[Written],
+) -> None:
+    home = directory / robot
+    if ca is not None:
+        ca_pem = ca[1].public_bytes(serialization.Encoding.PEM)
+        written.append(_write_bytes(home / "ca.pem", ca_pem))
+    for identity in IDENTITIES:
+        user = username(robot, identity)
+        if ca is not None:
+            key_path, cert_path = home / f"{identity}.key", home / f"{identity}.pem"
+            if not key_path.exists() or not cert_path.exists():
+                key_path.unlink(missing_ok=True)  # a certificate is only ever made with a new key of its own
+                cert_path.unlink(missing_ok=True)
+                key, cert = _issue(ca, user, sans=(), server=False)
+                written.append(_write_bytes(key_path, _key_pem(key), secret=True))
+                written.append(_write_bytes(cert_path, cert.public_bytes(serialization.Encoding.PEM)))
+            else:
+                written += [Written(key_path, False, True), Written(cert_path, False, False)]
+        text = client_config(robot, identity, router, passwords[user], tls)
+        written.append(_write_text(home / f"{identity}.json5", text, secret=True))
+    written.append(_write_text(home / "operator.token", secrets.token_hex(24) + "\n", secret=True))
+    written.append(_write_text(home / "robot.key", secrets.token_hex(32) + "\n", secret=True))
+    written.append(_write_text(home / LLM_KEY_FILE, "", secret=True))
+    written.append(_write_text(home / "tether.toml", robot_config(home)))
+    (home / "state").mkdir(mode=0o700, exist_ok=True)
+
+
+def robot_config(home: Path) -> str:
+    """The services' shared config for one robot: where safety keeps its secrets and latch, where recordings go."""
+    key = json.dumps(str(home / "robot.key"))
+    return (
+        f"# tether config for robot {home.name}, written by `tether deploy init`. The paths are absolute;\n"
+        "# edit them when the files are installed elsewhere (docs: deploy/README.md).\n\n"
+        "[safety]\n"
+        f"operator_token_file = {json.dumps(str(home / 'operator.token'))}\n"
+        f"estop_state_file = {json.dumps(str(home / 'state' / 'estop.json'))}\n"
+        f"robot_key_file = {key}\n\n"
+        "# Only safety and the robot backend read the robot key.\n"
+        f"[sim]\nrobot_key_file = {key}\n\n"
+        f"[ros2]\nrobot_key_file = {key}\n\n"
+        "[recorder]\n"
+        f"output_dir = {json.dumps(str(home / 'recordings'))}\n"
+    )
+
+
+# Zenoh configs
+
+
+def client_config(robot: str, identity: str, router: RouterAddress, password: str, tls: bool) -> str:
+    """One identity's Zenoh client config; its file paths are relative to the config's own directory."""
+    connect: dict[str, Any] = {"endpoints": [router.endpoint(tls)]}
+    connect |= SERVICE_CONNECT if identity in SERVICE_IDENTITIES else {"retry": PERSON_RETRY}
+    transport: dict[str, Any] = {"auth": {"usrpwd": {"user": username(robot, identity), "password": password}}}
+    if tls:
+        transport["link"] = {
+            "tls": {
+                "root_ca_certificate": "ca.pem",
+                "connect_private_key": f"{identity}.key",
+                "connect_certificate": f"{identity}.pem",
+                "enable_mtls": True,
+                "verify_name_on_connect": True,
+            }
+        }
+    conf = {"mode": "client", "connect": connect, "scouting": {"multicast": {"enabled": False}}, "transport": transport}
+    header = (
+        f"// {username(robot, identity)}: the Zenoh client config of {identity} on robot {robot}, written by\n"
+        "// `tether deploy init`. It holds a password: keep it readable by that identity only (mode 600).\n"
+        "// Relative file paths are relative to this file's directory.\n"
+    )
+    return header + json.dumps(conf, indent=2) + "\n"
+
+
+def router_config(robots: Sequence[str], router: RouterAddress, tls: bool) -> str:
+    """The router: every client authenticated, every message denied unless a rule of its robot allows it."""
+    listen = f"{'tls' if tls else 'tcp'}/0.0.0.0:{router.port}"
+    transport: dict[str, Any] = {"auth": {"usrpwd": {"dictionary_file": USERS_FILE}}}
+    if tls:
+        transport["link"] = {
+            "tls": {
+                "root_ca_certificate": f"{CA_DIR}/ca.pem",
+                "listen_private_key": "router.key",
+                "listen_certificate": "router.pem",
+                "enable_mtls": True,
+            }
+        }
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for robot in robots:
+        r, s, p = access_rules(robot, tls)
+        rules += r
+        subjects += s
+        policies += p
+    conf = {
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": transport,
+        "adminspace": {"permissions": {"read": False, "write": False}},
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": subjects,
+            "policies": policies,
+        },
+    }
+    header = (
+        "// The tether router, written by `tether deploy init` (rewritten when a robot is added: edit the\n"
+        "// generator, not this file). Every client logs in as one identity of one robot"
+        + (" and shows a certificate\n// with the same common name" if tls else "")
+        + "; each may only send what its robot's rules allow, under\n"
+        "// tether/<robot>/, and receives only that robot's traffic. Relative paths: from this file's directory.\n"
+    )
+    return header + json.dumps(conf, indent=2) + "\n"
+
+
+# The keys under tether/<robot>/ on which each service declares queryables and replies (its node.py):
+# nobody else may, so a compromised service cannot answer in another's place. The robot backends
+# serve robot/** by their own rule (serve-the-robot); the operator and the agent serve nothing.
+SERVES: dict[str, tuple[str, ...]] = {
+    "safety": ("cmd/*/_action/**",),  # the command doors; safety/** by its own rule (be-safety)
+    "parser": ("plan/parse",),
+    "resolver": ("plan/resolve", "world/scene"),
+    "executor": ("plan/execute/_action/**",),
+    "planner": ("plan/ask", "planner/**"),
+    "recorder": ("recorder/**",),
+    "sim": ("sim/**",),
+}
+
+ALL_MESSAGES = [
+    "put",
+    "delete",
+    "query",
+    "reply",
+    "declare_subscriber",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
+
+
+def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+    """Rules, subjects and policies of one robot, all scoped to tether/<robot>/.
+
+    Deny by default; each identity gets only what it does: every one of the robot's identities may
+    subscribe to and receive its robot's keys; the services and the operator put and query the planner
+    side and the command doors; each service declares queryables (and replies) only on the keys it
+    serves itself (SERVES), so no service can pose as the parser or as safety's command doors; only
+    safety commands the robot and publishes safety/**; only the robot backend (sim, ros2) reports the
+    robot's state and people and serves robot/**; only the operator resets the e-stop and drives by hand;
+    each liveliness token and query trace only under its own name; the agent only what an LLM agent
+    needs (plans, the e-stop, the scene and the camera).
+    """
+    root = keys.prefix(robot)
+
+    def rule(name: str, messages: list[str], key_exprs: Iterable[str], flow: str = "ingress") -> dict[str, Any]:
+        return {
+            "id": f"{robot}-{name}",
+            "permission": "allow",
+            "flows": [flow],
+            "messages": messages,
+            "key_exprs": [f"{root}/{k}" for k in key_exprs],
+        }
+
+    rules = [
+        rule("receive", ALL_MESSAGES, ["**"], flow="egress"),
+        rule("subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], ["**"]),
+        # The planner side and the command doors to safety: put and ask, not serve (SERVES says who
+        # serves each). Not teleop, not the robot's own reports.
+        rule(
+            "planner-side",
+            ["put", "delete", "query"],
+            [
+                "plan/**",
+                "cmd/cmd_vel",
+                "cmd/*/_action/**",
+                "world/scene",
+                "sim/**",
+                "recorder/**",
+                "planner/**",
+            ],
+        ),
+        rule("stop", ["put"], ["safety/estop"]),
+        rule(
+            "read",
+            ["query"],
+            [
+                "safety/check_plan",
+                "robot/*/_action/get_result",
+                "robot/*/_action/get_status",
+                "robot/camera/image",
+                "robot/diagnostics",
+            ],
+        ),
+        # What an LLM agent's tools ask (tether/agentapi.py): plans, questions, the scene, the camera.
+        rule(
+            "agent-asks",
+            ["query"],
+            [
+                "plan/**",
+                "safety/check_plan",
+                "world/scene",
+                "recorder/status",
+                "robot/camera/image",
+                "robot/diagnostics",
+            ],
+        ),
+        rule("reset", ["query"], ["safety/reset"]),
+        rule("teleop", ["put"], ["cmd/teleop/**"]),
+        rule("be-safety", ["put", "delete", "declare_queryable", "reply"], ["safety/**"]),
+        rule(
+            "drive",
+            ["put", "delete", "query"],
+            ["robot/cmd_vel", "robot/*/_action/send_goal", "robot/*/_action/cancel_goal"],
+        ),
+        rule(
+            "be-the-robot",
+            ["put", "delete"],
+            [
+                "robot/joint_states",
+                "robot/odom",
+                "world/objects",
+                "world/humans",
+                "robot/*/_action/feedback",
+                "robot/*/_action/status",
+            ],
+        ),
+        rule("serve-the-robot", ["declare_queryable", "reply"], ["robot/**"]),
+    ]
+    rules += [rule(f"serve-{service}", ["declare_queryable", "reply"], served) for service, served in SERVES.items()]
+    for identity in IDENTITIES:
+        alive, trace = keys.alive_key(robot, identity), keys.trace_key(robot, identity, "**")
+        rules.append(rule(f"alive-{identity}", ["liveliness_token"], [alive.removeprefix(root + "/")]))
+        rules.append(rule(f"trace-{identity}", ["put"], [trace.removeprefix(root + "/")]))
+
+    subjects = []
+    for identity in IDENTITIES:
+        name = username(robot, identity)
+        # Within one subject the properties must all match: with TLS the password and the certificate
+        # must both be this identity's.
+        subject: dict[str, Any] = {"id": name, "usernames": [name]}
+        if tls:
+            subject["cert_common_names"] = [name]
+        subjects.append(subject)
+
+    def policy(name: str, rule_names: Sequence[str], identities: Sequence[str]) -> dict[str, Any]:
+        return {
+            "id": f"{robot}-{name}",
+            "rules": [f"{robot}-{r}" for r in rule_names],
+            "subjects": [username(robot, i) for i in identities],
+        }
+
+    people_and_services = [i for i in IDENTITIES if i != "agent"]
+    policies = [
+        policy("everyone", ["receive", "subscribe", "stop"], IDENTITIES),
+        policy("services-and-operator", ["planner-side", "read"], people_and_services),
+        policy("agent", ["agent-asks"], ["agent"]),
+        policy("operator", ["reset", "teleop"], ["operator"]),
+        policy("safety", ["be-safety", "drive"], ["safety"]),
+        policy("robot", ["be-the-robot", "serve-the-robot"], ROBOT_BACKEND_IDENTITIES),
+    ]
+    policies += [policy(f"own-{i}", [f"alive-{i}", f"trace-{i}"], [i]) for i in IDENTITIES]
+    policies += [policy(f"serves-{s}", [f"serve-{s}"], [s]) for s in SERVES]
+    return rules, subjects, policies
+
+
+# Certificates
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    pkcs8 = serialization.PrivateFormat.PKCS8
+    return key.private_bytes(serialization.Encoding.PEM, pkcs8, serialization.NoEncryption())
+
+
+def _key_usage(*, ca: bool) -> x509.KeyUsage:
+    """A CA signs certificates (and revocation lists); an identity's key only signs its TLS handshakes."""
+    return x509.KeyUsage(
+        digital_signature=not ca,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=ca,
+        crl_sign=ca,
+        encipher_only=False,
+        decipher_only=False,
+    )
+
+
+def _load_key(path: Path) -> ec.EllipticCurvePrivateKey:
+    key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise DeploymentError(f"{path} is not an elliptic-curve key made by tether deploy init")
+    return key
+
+
+def _certificate_authority(
+    directory: Path, written: list[Written]
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    key_path, cert_path = directory / CA_DIR / "ca.key", directory / CA_DIR / "ca.pem"
+    if key_path.exists() and cert_path.exists():
+        written += [Written(key_path, False, True), Written(cert_path, False, False)]
+        return _load_key(key_path), x509.load_pem_x509_certificate(cert_path.read_bytes())
+    if key_path.exists() or cert_path.exists():
+        raise DeploymentError(f"{directory / CA_DIR} holds only half a CA (ca.key and ca.pem go together)")
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"tether deployment CA {directory.name}")])
+    now = dt.datetime.now(dt.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + CA_LIFETIME)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_key_usage(ca=True), critical=True)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    written.append(_write_bytes(key_path, _key_pem(key), secret=True))
+    written.append(_write_bytes(cert_path, cert.public_bytes(serialization.Encoding.PEM)))
+    return key, cert
+
+
+def _router_certificate(
+    directory: Path,
+    router: RouterAddress,
+    ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate],
+    written: list[Written],
+) -> None:
+    key_path, cert_path = directory / "router.key", directory / "router.pem"
+    if key_path.exists() and cert_path.exists():
+        written += [Written(key_path, False, True), Written(cert_path, False, False)]
+        return
+    key_path.unlink(missing_ok=True)
+    cert_path.unlink(missing_ok=True)
+    sans = list(dict.fromkeys([router.host, "localhost", "127.0.0.1"]))
+    key, cert = _issue(ca, "tether-router", sans=sans, server=True)
+    written.append(_write_bytes(key_path, _key_pem(key), secret=True))
+    written.append(_write_bytes(cert_path, cert.public_bytes(serialization.Encoding.PEM)))
+
+
+def _issue(
+    ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate], common_name: str, *, sans: Sequence[str], server: bool
+) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """A new key and its certificate signed by the CA: a server's (with its names) or a client's."""
+    ca_key, ca_cert = ca
+    key = ec.generate_private_key(ec.SECP256R1())
+    now = dt.datetime.now(dt.UTC)
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(min(now + CERT_LIFETIME, ca_cert.not_valid_after_utc))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(ca=False), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH]),
+            critical=False,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()),
+            critical=False,
+        )
+    )
+    if sans:
+        names: list[x509.GeneralName] = [
+            x509.IPAddress(ipaddress.ip_address(n)) if _is_ip(n) else x509.DNSName(n) for n in sans
+        ]
+        builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
+    return key, builder.sign(ca_key, hashes.SHA256())
