@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -11,11 +12,14 @@ from pathlib import Path
 
 import pytest
 
+from schemas import keys
+from schemas.robot import Odometry
 from services.runtime import ALL_SERVICES, SERVICES, Node, NodeSettings
 from tests.sessions import free_ports
 from tether.supervisor import Supervisor
 
 STARTUP_TIMEOUT = 90.0
+ODOMETRY_SAMPLES = 3
 
 
 @dataclass
@@ -65,6 +69,10 @@ def start_stack(
         node = Node("cli", settings)
         missing = node.wait_alive(services, STARTUP_TIMEOUT)
         assert not missing, f"services not up: {missing}\n" + "\n".join(supervisor.log_tail(s) for s in missing)
+        if "sim" in services:
+            # Alive is not yet reporting: until safety has heard the robot's odometry, a plan is vetoed
+            # for an unknown pose. A few samples here have reached safety's subscriber too.
+            assert wait_for_odometry(node, ODOMETRY_SAMPLES, STARTUP_TIMEOUT), "the sim is up but sends no odometry"
     except BaseException:
         if node is not None:
             node.close()
@@ -72,6 +80,23 @@ def start_stack(
         dump_logs(supervisor, services)
         raise
     return Stack(settings, supervisor, node, tmp, token)
+
+
+def wait_for_odometry(node: Node, samples: int, timeout: float) -> bool:
+    """True once `samples` odometry messages have arrived, False after `timeout` seconds."""
+    heard: list[Odometry] = []
+    enough = threading.Event()
+
+    def on_odom(msg: Odometry) -> None:
+        heard.append(msg)
+        if len(heard) >= samples:
+            enough.set()
+
+    subscription = node.subscribe(keys.ODOM, on_odom)
+    try:
+        return enough.wait(timeout)
+    finally:
+        subscription.undeclare()
 
 
 def stop_stack(stack: Stack) -> None:
