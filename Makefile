@@ -15,8 +15,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/tether demo
 
+# The suite sized for two cores (tests/suite.py): the wall-clock tests (`-m realtime`) one at a time
+# at normal priority, beside the rest on two pytest-xdist workers at low priority; then the
+# multi-host tests (`-m multihost`) alone. The bytecode is
+# compiled once up front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again.
 test: $(STAMP) lint typecheck
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m compileall -q -j 0 schemas services tether tests bench
+	$(BIN)/python -m tests.suite tests
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

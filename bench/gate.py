@@ -20,9 +20,15 @@ the bytes with a plain get to the sim's bare echo and replies with the first rep
 two processes and two hops, carrying the same request bytes, with no decoding and no checks. Each
 goal is interleaved with one relay round trip, alternating which goes first.
 
-The tail of both is mostly the sim's camera: each frame (`--objects-hz`, 5 a second by default)
-is rendered on the sim's thread and holds its GIL for ~20 ms, delaying whatever the sim process is
-answering then, the relay's echo included. `--objects-hz 0.2` shows the path without it.
+Safety answers the goal on a kept worker thread (services/querypool.py; it waits for the sim's
+reply, so never on Zenoh's callback thread), where the relay answers on the callback thread itself:
+one hand-over the relay does not have. The sim answers on Zenoh's callback thread, as its echo
+does, since no goal runs for it to preempt (each goal's result is fetched before the next), and
+starts the accepted goal's thread after its reply. Both trace the goal after replying; safety's
+decision is published on safety/events before the goal is forwarded. The camera (`--objects-hz`, 5 frames a second by
+default) renders in a process of the sim's own (services/sim/README.md, The camera's process); it
+used to hold the sim's GIL ~20 ms a frame, most of both tails. `--objects-hz 0.2` shows the path
+without it.
 
 `ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
 reason in `errors`), `failed` goals accepted whose result was not `succeeded`.
@@ -233,7 +239,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     result = measured(defaults, lambda: bench(args), progress)
     result["notes"] = notes(
         gate="send_goal on cmd/<action> to safety: decode, e-stop and policy checks, a safety event, then "
-        "send_goal on robot/<action> to the sim and its reply back; a thread per query in each service",
+        "send_goal on robot/<action> to the sim (signed, checked there) and its reply back; safety serves it "
+        "on a kept worker thread (services/querypool.py), the sim on Zenoh's callback thread (no goal to "
+        "preempt), its goal started and both traces published after the replies",
         relay="raw get on bench/raw_relay: safety forwards the bytes with a plain get to the sim's "
         "bench/raw_echo/sim and replies with them; same request bytes as the goal",
         order="interleaved, alternating first call; each goal's result fetched (untimed) before the next",
@@ -283,7 +291,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--objects-hz",
         type=bounded(float, 0.0, 100.0, open_low=True),
         default=5.0,
-        help="the sim's camera rate; each frame holds the sim's GIL ~20 ms, which is most of the tail",
+        help="the sim's camera rate (frames are rendered in a process of the sim's own)",
     )
 
 

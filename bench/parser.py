@@ -10,6 +10,14 @@ Round trips: the parser service is a real process started by the Supervisor on i
 and ports; readiness is its liveliness token. The baseline is the bare Zenoh echo of
 `bench.transport`, answered by the same parser process on the same session (see `bench.service`).
 Both kinds of round trip are interleaved, alternating which goes first, as in `bench.transport`.
+
+A plan/parse round trip is all a client pays for a parse: `Node.call` encodes the PlanText, the
+service (served inline, on Zenoh's callback thread) decodes it, parses the plan (a real parse each
+time, nothing cached), encodes the Plan and replies; the client decodes the Plan. The service's
+log line and its trace on `_trace/**` follow the reply on the same thread, so they are not in the
+round trip, but they are in the service's time: a query that comes before they are done waits for
+them (the next echo or parse, whichever comes next). The echo replies with the request's bytes,
+undecoded.
 """
 
 from __future__ import annotations
@@ -184,7 +192,8 @@ def run(seconds: float, n: int, warmup: int, max_query_seconds: float) -> dict[s
         "parse_seconds_per_format": seconds,
         "parse": parse_detail,
         "plans_per_s": "1000 / median ms of a single parse, each parse timed alone, after warm-up",
-        "query": "plan/parse with the 10-step JSON plan (format json) to a parser process started by the Supervisor",
+        "query": "plan/parse with the 10-step JSON plan (format json) to a parser process started by the Supervisor: "
+        "encode, decode, parse, encode, reply, decode the Plan; the log line and trace follow the reply",
         "bare": "bare Zenoh get on bench/raw_echo/parser, echoed by the same parser process and session, "
         "same request bytes",
         "order": "interleaved, alternating first call",

@@ -1,12 +1,12 @@
-"""The recorder under load: 1 KB JSON messages at 10 kHz for 30 s, counted as published and as found in the file.
+"""The recorder under load: 1 KB JSON messages at 40 kHz for 30 s, counted as published and as found in the file.
 
     python -m bench.recorder --json        one JSON object on stdout, progress on stderr
     python -m bench.recorder               a short table with the goals
 
 Measured: this process puts 1024-byte JSON objects (a sequence number and a padding string of
 fresh random base64, so zstd cannot shrink the stream to nothing) raw on `bench/recorder_load` at a
-fixed rate (`--rate`, default 10,000 a second) for `--duration` seconds (default 30; less only with
-`--quick`). The puts follow a deadline schedule on perf_counter: each wake-up (at most one per TICK)
+fixed rate (`--rate`, default 40,000 a second: the goal) for `--duration` seconds (default 30; less
+only with `--quick`). The puts follow a deadline schedule on perf_counter: each wake-up (at most one per TICK)
 puts every message due by then, so the rate holds however coarse sleep is. The recorder is a real
 process started by the Supervisor on a robot name and ports of its own, writing into a temporary
 directory. After the last put the recorder's status is polled until its count stops rising
@@ -74,7 +74,7 @@ from services.recorder.reader import read_recording
 from services.runtime import Node, NodeSettings
 
 PROG = "bench.recorder"
-GOALS = {"goal_rate_hz": 10_000.0, "goal_lost": 0}
+GOALS = {"goal_rate_hz": 40_000.0, "goal_lost": 0}
 # The rate may fall this far short of the goal: the last puts can be late (150 ms in 30 s).
 RATE_TOLERANCE = 0.005
 MIN_DURATION = 30.0
@@ -375,7 +375,7 @@ def print_table(result: dict[str, Any]) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--rate", type=bounded(float, 0.0, 100_000.0, open_low=True), default=10_000.0, help="messages a second"
+        "--rate", type=bounded(float, 0.0, 100_000.0, open_low=True), default=40_000.0, help="messages a second"
     )
     parser.add_argument(
         "--duration",

@@ -5,6 +5,11 @@
 
 The server is a child process on its own robot name; readiness is its liveliness token. Both round
 trips use the same two sessions and the same payload, interleaved so drift hits both alike.
+
+`tether` is a query served the default way, its handler run on one of the server's kept worker
+threads (a hand-over from Zenoh's callback thread); `inline` the same echo served with `inline=True`,
+answered on Zenoh's callback thread, as plan/parse is. Each is interleaved with the bare echo in a
+run of its own; `ratio_median` is the worker path's.
 """
 
 from __future__ import annotations
@@ -31,8 +36,10 @@ from services import runtime
 from services.runtime import Node, NodeSettings
 from tether.supervisor import free_base_port
 
-# A bench-only echo service shaped like plan/parse: a real PlanText in, the same PlanText back.
+# Bench-only echo services shaped like plan/parse: a real PlanText in, the same PlanText back; the
+# first answered on a worker thread, the second on Zenoh's callback thread (as plan/parse is).
 ECHO: Service[PlanText, PlanText] = Service("bench/echo", PlanText, PlanText)
+ECHO_INLINE: Service[PlanText, PlanText] = Service("bench/echo_inline", PlanText, PlanText)
 SERVER, CLIENT = "parser", "executor"
 REQUEST = PlanText(text="pick up the red cup from the kitchen counter and bring it to me", format="text")
 MAX_SAMPLES = 20_000
@@ -45,6 +52,7 @@ def serve(settings: NodeSettings) -> None:
     stop = runtime.stop_event()
     with Node(SERVER, settings) as node:
         node.serve(ECHO, lambda request: request)
+        node.serve(ECHO_INLINE, lambda request: request, inline=True)
         node.declare_bench_echo()
         node.declare_alive()
         stop.wait()
@@ -111,11 +119,13 @@ def interleaved(
     return baseline, results
 
 
-def measure(node: Node, samples: int, warmup: int, max_seconds: float) -> tuple[list[float], list[float]]:
-    """Interleaved round trips, in ms: (bare zenoh, tether); stops early at `max_seconds`."""
+def measure(
+    node: Node, samples: int, warmup: int, max_seconds: float, echo: Service[PlanText, PlanText] = ECHO
+) -> tuple[list[float], list[float]]:
+    """Interleaved round trips, in ms: (bare zenoh, tether's `echo`); stops early at `max_seconds`."""
 
     def tether() -> None:
-        if node.call(ECHO, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
+        if node.call(echo, REQUEST, timeout=CALL_TIMEOUT) != REQUEST:
             raise RuntimeError("tether echo returned a different message")
 
     return interleaved(bare_echo(node, runtime.encode(REQUEST), SERVER), tether, samples, warmup, max_seconds)
@@ -139,7 +149,8 @@ def machine_notes(payload_bytes: int, warmup: int) -> dict[str, Any]:
         "payload_bytes": payload_bytes,
         "warmup": warmup,
         "order": "interleaved, alternating first call",
-        "tether_path": "msgspec decode+encode, a thread per query, a _trace publication per query",
+        "tether_path": "msgspec decode+encode, a kept worker thread per query at a time (inline: Zenoh's "
+        "callback thread), a _trace publication per query after its reply",
     }
 
 
@@ -179,6 +190,7 @@ def run(samples: int, warmup: int, max_seconds: float) -> dict[str, Any]:
                 if missing:
                     raise RuntimeError(f"bench server not alive within {READY_TIMEOUT:g} s")
                 baseline, measured = measure(node, samples, warmup, max_seconds)
+                inline_baseline, inline = measure(node, samples, warmup, max_seconds, ECHO_INLINE)
         except BaseException:
             stop_server(proc)
             log.seek(0)
@@ -186,12 +198,20 @@ def run(samples: int, warmup: int, max_seconds: float) -> dict[str, Any]:
             raise
         stop_server(proc)
     base, teth = summary(baseline), summary(measured)
+    inline_base, inline_teth = summary(inline_baseline), summary(inline)
     return {
         "samples": len(measured),
         "baseline": base,
         "tether": teth,
         "ratio_median": round(teth["median_ms"] / base["median_ms"], 3),
         "ratio_p99": round(teth["p99_ms"] / base["p99_ms"], 3),
+        "inline": {
+            "samples": len(inline),
+            "baseline": inline_base,
+            "tether": inline_teth,
+            "ratio_median": round(inline_teth["median_ms"] / inline_base["median_ms"], 3),
+            "ratio_p99": round(inline_teth["p99_ms"] / inline_base["p99_ms"], 3),
+        },
         "notes": machine_notes(len(runtime.encode(REQUEST)), warmup),
     }
 
@@ -207,6 +227,10 @@ def print_table(result: dict[str, Any]) -> None:
     table.add_row("bare zenoh get", f"{result['baseline']['median_ms']:.3f}", f"{result['baseline']['p99_ms']:.3f}")
     table.add_row("tether call", f"{result['tether']['median_ms']:.3f}", f"{result['tether']['p99_ms']:.3f}")
     table.add_row("ratio", f"{result['ratio_median']:.2f}x", f"{result['ratio_p99']:.2f}x")
+    inline = result["inline"]
+    table.add_row("bare zenoh get", f"{inline['baseline']['median_ms']:.3f}", f"{inline['baseline']['p99_ms']:.3f}")
+    table.add_row("tether call, inline", f"{inline['tether']['median_ms']:.3f}", f"{inline['tether']['p99_ms']:.3f}")
+    table.add_row("ratio, inline", f"{inline['ratio_median']:.2f}x", f"{inline['ratio_p99']:.2f}x")
     console = Console()
     console.print(table)
     notes = result["notes"]

@@ -242,6 +242,11 @@ def alive_key(robot: str, service: str = "*") -> str:
     return f"{prefix(robot)}/alive/{service}"
 
 
+def process_key(robot: str, service: str = "*") -> str:
+    """Where each service answers with a schemas.process.ProcessStatus: its host, pid and memory."""
+    return f"{prefix(robot)}/_process/{service}"
+
+
 def trace_key(robot: str, service: str, path: str) -> str:
     return f"{prefix(robot)}/_trace/{service}/{path}"
 

@@ -83,7 +83,9 @@ class GoalHandle(Generic[G, F]):
 
 
 class ActionServer(Generic[G, F, R]):
-    """Serves one action. Each accepted goal runs `execute` on its own thread.
+    """Serves one action. Each accepted goal runs `execute` on its own thread, started once the
+    goal's acceptance is on its way back; until then it counts as running (it keeps others out, a
+    cancel or abort reaches it before it moves).
 
     `accept` returns None to accept a goal or the reason to reject it. With `exclusive`, a goal
     that arrives while another runs is rejected, unless `preempts(goal)` says it preempts: then the
@@ -94,6 +96,13 @@ class ActionServer(Generic[G, F, R]):
     moves nothing (a dry run) is neither kept out nor keeps others out. Besides the five ROS 2 keys
     it answers `get_status`. `verify` checks each goal and cancel before it is read (a robot's
     action: only safety's signed ones, services/robotlink.py).
+
+    A goal that will not wait is answered on Zenoh's callback thread, with no hand-over to a worker:
+    one that preempts nothing (no goal running, checked as it arrives), whose `accept` never waits.
+    `accept_waits(goal)` says whether `accept` may wait for it (the sim asks its own thread where
+    the base is); without it, an `accept` is taken to wait and every goal goes to a worker. A goal
+    started between that look and its turn is still preempted, on the callback thread: rare, and
+    over once the preempted goal has ended (its motion stops at the next step).
     """
 
     def __init__(
@@ -108,6 +117,7 @@ class ActionServer(Generic[G, F, R]):
         preempt_timeout: float = PREEMPT_TIMEOUT,
         concurrent: Callable[[G], bool] | None = None,
         verify: Verify | None = None,
+        accept_waits: Callable[[G], bool] | None = None,
     ) -> None:
         self._node = node
         self._action = action
@@ -117,14 +127,21 @@ class ActionServer(Generic[G, F, R]):
         self._preempts = preempts
         self._preempt_timeout = preempt_timeout
         self._concurrent = concurrent or (lambda _goal: False)
+        self._accept_waits = accept_waits or (lambda _goal: accept is not None)
         self._goals: dict[str, GoalHandle[G, F]] = {}
         self._lock = threading.Lock()
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
-        node.serve(action.send_goal, self._on_send_goal, verify=verify)
-        node.serve(action.cancel_goal, self._on_cancel, verify=verify)
-        node.serve(action.get_result, self._on_get_result)
-        node.serve(action.get_status, self._on_get_status)
+        # An accepted goal starts once its acceptance has gone back (`_start`): the sender does not
+        # wait for a thread to start, nor for the GIL the new thread takes first.
+        node.serve(
+            action.send_goal, self._on_send_goal, inline=self._answered_at_once, after=self._start, verify=verify
+        )
+        # Cancel and status never wait: answered on Zenoh's callback thread, with no hand-over.
+        node.serve(action.cancel_goal, self._on_cancel, inline=True, verify=verify)
+        node.serve(action.get_status, self._on_get_status, inline=True)
+        # Waits as long as the goal runs: on the node's pool for such waits, not a quick query's worker.
+        node.serve(action.get_result, self._on_get_result, waits=True)
 
     def active(self) -> list[GoalHandle[G, F]]:
         with self._lock:
@@ -138,6 +155,16 @@ class ActionServer(Generic[G, F, R]):
 
     def _publish_status(self, goal_id: str, state: GoalState, message: str = "") -> None:
         self._status.put(GoalStatus(goal_id=goal_id, state=state, message=message, stamp=time.time()))
+
+    def _answered_at_once(self, request: SendGoal[G]) -> bool:
+        """Whether deciding on this goal waits for nothing: its accept does not, it preempts no goal."""
+        goal = request.goal
+        if self._accept_waits(goal):
+            return False
+        if not (self._exclusive and self._preempts is not None) or self._concurrent(goal) or not self._preempts(goal):
+            return True
+        with self._lock:
+            return not self._blocking()
 
     def _on_send_goal(self, request: SendGoal[G]) -> GoalResponse:
         reason = self._accept(request.goal) if self._accept else None
@@ -160,9 +187,15 @@ class ActionServer(Generic[G, F, R]):
                 return GoalResponse(goal_id=request.goal_id, accepted=False, reason=reason)
             handle: GoalHandle[G, F] = GoalHandle(request.goal_id, request.goal, self._publish_feedback)
             self._goals[request.goal_id] = handle
-        self._publish_status(handle.goal_id, GoalState.ACCEPTED)
-        threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
         return GoalResponse(goal_id=request.goal_id, accepted=True)
+
+    def _start(self, request: SendGoal[G], response: GoalResponse) -> None:
+        """After the reply to send_goal: an accepted goal is set running (it announces itself)."""
+        if not response.accepted:
+            return
+        with self._lock:
+            handle = self._goals[request.goal_id]
+        threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
 
     def _blocking(self) -> list[GoalHandle[G, F]]:
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
@@ -189,6 +222,7 @@ class ActionServer(Generic[G, F, R]):
         self._feedback.put(Feedback(goal_id=goal_id, feedback=message))
 
     def _run(self, handle: GoalHandle[G, F]) -> None:
+        self._publish_status(handle.goal_id, GoalState.ACCEPTED)
         self._publish_status(handle.goal_id, GoalState.EXECUTING)
         try:
             outcome: Outcome[Any] = self._execute(handle)

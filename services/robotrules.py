@@ -243,6 +243,7 @@ class KeepOut:
         self, zones: dict[str, Polygon], length: float, width: float, accelerations: tuple[float, float] = (1.5, 3.0)
     ) -> None:
         self.zones = zones
+        self._bounds = [zone.bounds for zone in zones.values()]
         self.length = length
         self.width = width
         # The base's (linear m/s^2, angular rad/s^2): how far it rolls on braking after a cmd_vel's hold.
@@ -298,6 +299,12 @@ class KeepOut:
         # Braking to rest from v at a takes v / a and covers as much as v / (2 a) at full speed.
         braking = max(abs(linear) / (2 * self.accelerations[0]), abs(angular) / (2 * self.accelerations[1]))
         total = seconds + braking
+        # The base's centre travels at most |linear| * total along its arc, and its footprint reaches
+        # half its diagonal beyond: a zone whose bounding box is farther than that cannot be entered.
+        # Most twists are far from every zone, and this costs microseconds where the sweep costs ~1 ms.
+        reach = abs(linear) * total + math.hypot(self.length, self.width) / 2 + TOUCHING
+        if all(_box_distance(bounds, here.x, here.y) > reach for bounds in self._bounds):
+            return None
         poses = [_arc(here, linear, angular, total * k / DRIVE_SAMPLES) for k in range(DRIVE_SAMPLES + 1)]
         prints = [footprint(p.x, p.y, p.yaw, self.length, self.width) for p in poses]
         shapes = [shapely.union_all([a, b]).convex_hull for a, b in itertools.pairwise(prints)]
@@ -306,6 +313,13 @@ class KeepOut:
             return None
         twist = f"cmd_vel ({linear:.2f} m/s, {angular:.2f} rad/s)"
         return f"{twist} held {seconds:.2f} s would take the base into keep-out zone '{zone}'"
+
+
+def _box_distance(bounds: tuple[float, float, float, float], x: float, y: float) -> float:
+    """How far (x, y) is from the box `bounds` (min x, min y, max x, max y); 0 inside. Never more
+    than the distance to the shape the box bounds."""
+    min_x, min_y, max_x, max_y = bounds
+    return math.hypot(max(min_x - x, 0.0, x - max_x), max(min_y - y, 0.0, y - max_y))
 
 
 def _route_poses(start: Pose2D, points: Sequence[tuple[float, float]], target: Pose2D) -> list[Pose2D]:

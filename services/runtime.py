@@ -23,8 +23,11 @@ import zenoh
 from schemas import keys
 from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
+from schemas.process import ProcessStatus
 from schemas.trace import TraceRecord
 from services.errors import CallError
+from services.procstat import process_status
+from services.querypool import QueryPool
 from services.repeats import RepeatLog
 from services.robotlink import Refusal, Signer, signed
 
@@ -63,6 +66,20 @@ DEFAULT_ROBOT = "robot1"
 # Bigger queries are refused before decoding; a service may raise its own limit.
 MAX_REQUEST_BYTES = 1024 * 1024
 TRACE_PAYLOAD_LIMIT = 64 * 1024
+# A process's queries are answered on kept worker threads (services/querypool.py), not a thread each.
+# Most handlers answer within a few ms, some within seconds (a preempted goal's end, a camera frame):
+# QUERY_WORKERS of them at once, QUERY_BACKLOG more queued; past that a query is answered "busy".
+QUERY_WORKERS = 16
+QUERY_BACKLOG = 64
+# Handlers served with `waits` may block as long as a goal runs (get_result): a pool of their own, so
+# they never take the workers of quick queries; one arriving with all of these taken is answered "busy".
+WAITING_WORKERS = 64
+# How long a thread holds the GIL while another waits for it (CPython's default: 5 ms), set by
+# `tether run` for every service. A query's thread waiting behind the sim's physics loop or safety's
+# heartbeat waited up to the whole 5 ms: most of a served query's p99. A bare queryable behind a
+# 4 ms Python loop, queried from another process: p99 10-11 ms at 5 ms, 5 ms at 0.5 ms, p50 alike.
+# The cost is a switch (a few us) at most every 0.5 ms, and only while two threads want the GIL.
+SWITCH_INTERVAL = 0.0005
 
 
 @dataclass(frozen=True)
@@ -118,6 +135,10 @@ class NodeSettings:
         # loopback cost nothing.
         retry = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
         conf.insert_json5("connect/retry", msgspec.json.encode(retry).decode())
+        # By default Zenoh copies every message over 3 KB into a 16 MB shared-memory pool of the sender's,
+        # which each receiver maps as well: about 25 MB more resident per service after the demo
+        # (bench.memory), to spare copies of messages that cross loopback TCP in microseconds anyway.
+        conf.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
         return conf
 
 
@@ -197,9 +218,13 @@ class Node:
         self._declared: list[Any] = []
         self._trace_publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
+        # Threads start with the first query that needs one (services/querypool.py).
+        self.queries = QueryPool(f"q:{service}", QUERY_WORKERS, QUERY_BACKLOG)
+        self.waiting_queries = QueryPool(f"w:{service}", WAITING_WORKERS)
         # Safety's: signs what it sends to the robot (services/robotlink.py); None: nothing is signed.
         self.signer: Signer | None = None
         self.undecodable = RepeatLog("undecodable messages dropped")
+        self.overloaded = RepeatLog("queries answered busy")
         # Told (key, the log line, how many it tells of) with each line about undecodable messages:
         # a service may publish it as an event too (safety does, on safety/events).
         self.on_undecodable: Callable[[str, str, int], None] | None = None
@@ -280,43 +305,61 @@ class Node:
         handler: Callable[[Q], A],
         *,
         max_request_bytes: int = MAX_REQUEST_BYTES,
-        inline: bool = False,
+        inline: bool | Callable[[Q], bool] = False,
+        waits: bool = False,
+        after: Callable[[Q, A], None] | None = None,
         verify: Verify | None = None,
     ) -> None:
         """Answer queries on `service`. Always replies: with the handler's value or a ServiceError.
 
-        Each query is handled on its own thread, so a handler may block (waiting for a result)
-        without holding up Zenoh; `inline` handlers are quick and never block (parsing), and run on
-        Zenoh's callback thread, saving a thread start per query. Each query and its reply is
-        published on `_trace/**`. A query `verify` refuses gets an unauthorized error and never
-        reaches the handler; it is checked on Zenoh's callback thread, in the order queries arrive.
+        Handlers run on this node's kept worker threads (`queries`), so one may block for a while (a
+        forwarded query, a camera frame) without holding up Zenoh's callback thread. One that waits
+        as long as a goal runs (get_result) is served with `waits`, on a pool of its own
+        (`waiting_queries`), so it never takes a quick query's worker. A query that finds its pool
+        full is answered at once with an `unavailable` error saying how full. `inline` handlers are
+        quick and never block (parsing): they run on Zenoh's callback thread, with no hand-over.
+        `inline` may also be a test of the decoded request (a goal that will not wait for another
+        to end): then requests are decoded on the callback thread, those it passes answered there,
+        the others handed to a worker with their decoded request.
+
+        The request is decoded once, the reply encoded once. `after(request, reply)` runs once the
+        reply has gone (or failed to go): work the asker need not wait for, such as starting an
+        accepted goal or writing the log line. Then each query and its reply is published on
+        `_trace/**`, the request as it came (re-encoded only to redact). A query `verify` refuses gets
+        an unauthorized error and never reaches the handler; it is checked on Zenoh's callback
+        thread, in the order queries arrive.
         """
         dec = decoder(cast(Any, service.request))
         key = service.key(self.robot)
+        # Parsed once: a reply's key given as a string is parsed again for every reply.
+        reply_key = zenoh.KeyExpr(key)
+        pool = self.waiting_queries if waits else self.queries
 
-        def answer(query: zenoh.Query) -> None:
+        def read(query: zenoh.Query) -> tuple[float, bytes, Any, ServiceError | None]:
+            """(when it came, its bytes, the request decoded or None, the error that refuses it or None)."""
             started = time.time()
             raw = query.payload.to_bytes() if query.payload is not None else b""
-            request: Any = None
-            reply: bytes | None = None
-            error: ServiceError | None = None
+            if len(raw) > max_request_bytes:
+                message = f"request is {len(raw)} bytes; {service.path} accepts at most {max_request_bytes}"
+                return started, raw, None, ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
             try:
-                if len(raw) > max_request_bytes:
-                    error = ServiceError(
-                        kind=ErrorKind.INVALID_REQUEST,
-                        message=f"request is {len(raw)} bytes; {service.path} accepts at most {max_request_bytes}",
-                    )
-                else:
-                    try:
-                        request = dec.decode(raw)
-                    except DECODE_ERRORS as exc:
-                        self._undecodable(key, "request", exc)
-                        error = ServiceError(
-                            kind=ErrorKind.INVALID_REQUEST, message=f"invalid request for {service.path}: {exc}"
-                        )
+                return started, raw, dec.decode(raw), None
+            except DECODE_ERRORS as exc:
+                self._undecodable(key, "request", exc)
+                message = f"invalid request for {service.path}: {exc}"
+                return started, raw, None, ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+
+        def respond(query: zenoh.Query, started: float, raw: bytes, request: Any, error: ServiceError | None) -> None:
+            """Reply to a read query (with `error` if it is refused), then what follows, then its trace."""
+            decoded, answered = error is None, False
+            value: Any = None
+            reply: bytes | None = None
+            try:
                 if error is None:
                     try:
-                        reply = encode(handler(request))
+                        value = handler(request)
+                        answered = True
+                        reply = encode(value)
                     except CallError as exc:
                         error = exc.error
                     except Exception as exc:
@@ -326,12 +369,24 @@ class Node:
                     query.reply_err(encode(error))
                 else:
                     assert reply is not None
-                    query.reply(key, reply)
+                    query.reply(reply_key, reply)
             finally:
                 query.drop()
-            if request is not None and service.redact:
-                request = msgspec.structs.replace(request, **dict.fromkeys(service.redact, "(redacted)"))
-            self._trace(service.path, started, request, raw, reply, error)
+                finished = time.time()
+                if answered and after is not None:
+                    try:
+                        after(request, value)
+                    except Exception:
+                        log.exception("what follows the reply on %s failed", key)
+            kept: bytes | None = None
+            if decoded:
+                kept = raw
+                if service.redact:
+                    kept = encode(msgspec.structs.replace(request, **dict.fromkeys(service.redact, "(redacted)")))
+            self._trace(service.path, started, finished, kept, raw, reply, error)
+
+        def answer(query: zenoh.Query) -> None:
+            respond(query, *read(query))
 
         def refused(query: zenoh.Query) -> bool:
             if verify is None:
@@ -341,21 +396,53 @@ class Node:
             if refusal is None:
                 return False
             error = ServiceError(kind=ErrorKind.UNAUTHORIZED, message=f"{service.path} refused: {refusal}")
+            started = time.time()
             try:
                 query.reply_err(encode(error))
             finally:
                 query.drop()
             # Traced like any query answered: a recording shows who tried what (tether inspect flags it).
-            self._trace(service.path, time.time(), None, raw, None, error)
+            self._trace(service.path, started, time.time(), None, raw, None, error)
             return True
+
+        def busy(query: zenoh.Query) -> None:
+            """Answer at once that there is no worker for it; the query is not handled."""
+            started = time.time()
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            load = pool.load()
+            message = f"{self.service} is too busy to answer {service.path} ({load}); try again"
+            error = ServiceError(kind=ErrorKind.UNAVAILABLE, message=message)
+            try:
+                query.reply_err(encode(error))
+            finally:
+                query.drop()
+            if (line := self.overloaded.note(key, load)) is not None:
+                log.warning("%s", line)
+            self._trace(service.path, started, time.time(), None, raw, None, error)
+
+        def here(request: Any) -> bool:
+            """Whether a decoded request is answered on the callback thread (`inline` as a test)."""
+            assert callable(inline)
+            try:
+                return inline(request)
+            except Exception:
+                log.exception("deciding where to answer %s failed; answered on a worker", key)
+                return False
 
         def on_query(query: zenoh.Query) -> None:
             if refused(query):
                 return
-            if inline:
+            if inline is True:
                 answer(query)
-                return
-            threading.Thread(target=answer, args=(query,), name=f"q:{service.path}", daemon=True).start()
+            elif inline is False:
+                if not pool.submit(functools.partial(answer, query)):
+                    busy(query)
+            else:
+                started, raw, request, error = read(query)
+                if error is not None or here(request):
+                    respond(query, started, raw, request, error)
+                elif not pool.submit(functools.partial(respond, query, started, raw, request, None)):
+                    busy(query)
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
@@ -386,14 +473,23 @@ class Node:
         )
 
     def _trace(
-        self, path: str, started: float, request: Any, raw: bytes, reply: bytes | None, error: ServiceError | None
+        self,
+        path: str,
+        started: float,
+        finished: float,
+        request: bytes | None,
+        raw: bytes,
+        reply: bytes | None,
+        error: ServiceError | None,
     ) -> None:
+        """Publish a query served on `path`: `request` is its JSON as kept (None: not decoded, then only
+        the size of `raw` is told), `reply` the reply's (kept up to TRACE_PAYLOAD_LIMIT)."""
         record = TraceRecord(
             stamp=started,
             service=self.service,
             key=path,
-            duration=time.time() - started,
-            query=msgspec.Raw(encode(request) if request is not None else b"null"),
+            duration=finished - started,
+            query=msgspec.Raw(request if request is not None else b"null"),
             reply=msgspec.Raw(reply if reply is not None and len(reply) <= TRACE_PAYLOAD_LIMIT else b"null"),
             error=error.message if error else "",
         )
@@ -416,7 +512,50 @@ class Node:
             self.declare_bench_echo()
         if relay_to := os.environ.get(BENCH_RELAY_ENV):
             self.declare_bench_relay(relay_to)
+        self.declare_process_status()
         self._declared.append(self.session.liveliness().declare_token(keys.alive_key(self.robot, self.service)))
+
+    def declare_process_status(self) -> None:
+        """Answer `keys.process_key` with this process's figures (services.procstat), for `tether status`.
+
+        Before the liveliness token, so whoever sees the service alive can ask at once. Not traced:
+        it is about the process, not the robot, and `tether status` would fill recordings with it.
+        """
+        key = keys.process_key(self.robot, self.service)
+
+        def answer(query: zenoh.Query) -> None:
+            try:
+                query.reply(key, encode(process_status(self.service)))
+            finally:
+                query.drop()
+
+        self._declared.append(self.session.declare_queryable(key, answer))
+
+    def process_statuses(self, timeout: float = 1.0) -> dict[str, ProcessStatus]:
+        """Each service's ProcessStatus, from those that answer within `timeout`, by service name."""
+        replies = self.session.get(
+            keys.process_key(self.robot, "*"),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            timeout=timeout,
+        )
+        found: dict[str, ProcessStatus] = {}
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            # The name is the key's (the access rules let each identity answer only on its own);
+            # a reply whose body names another service is someone claiming to be it, and dropped.
+            key = str(reply.ok.key_expr)
+            try:
+                status = decoder(ProcessStatus).decode(reply.ok.payload.to_bytes())
+            except DECODE_ERRORS as exc:
+                self._undecodable(key, "process status", exc)
+                continue
+            if key != keys.process_key(self.robot, status.service):
+                log.warning("dropped a process status for %r answered on %s", status.service, key)
+                continue
+            found[status.service] = status
+        return found
 
     def declare_bench_echo(self) -> None:
         """A bare Zenoh echo on this session: the baseline a benchmark compares this service's queries with.
@@ -516,9 +655,31 @@ class Node:
 DUMP_STACKS = signal.SIGUSR1
 
 
+# How often a main thread waiting for its stop event wakes (see StopEvent).
+SIGNAL_POLL = 0.2
+
+
+class StopEvent(threading.Event):
+    """A threading.Event whose waits wake every SIGNAL_POLL seconds.
+
+    The kernel may deliver SIGTERM to any thread, Zenoh's own among them. Python then only flags it,
+    and runs the handler when the main thread next runs: a main thread blocked in an untimed
+    Event.wait() never does, and the service would outlive its stop until the supervisor kills it.
+    """
+
+    def wait(self, timeout: float | None = None) -> bool:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            left = SIGNAL_POLL if deadline is None else min(SIGNAL_POLL, deadline - time.monotonic())
+            if super().wait(max(0.0, left)):
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+
+
 def stop_event() -> threading.Event:
     """An event set by SIGINT or SIGTERM, for a service's main loop to wait on."""
-    stop = threading.Event()
+    stop = StopEvent()
 
     def handle(signum: int, _frame: object) -> None:
         log.info("received %s, shutting down", signal.Signals(signum).name)

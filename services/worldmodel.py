@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from importlib import resources
 from pathlib import Path
 
 from shapely.geometry import LineString, Point, Polygon, box
@@ -14,9 +13,9 @@ from shapely.ops import unary_union
 
 from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, Wall, World, WorldObject
+from services.bundled import DEFAULT_WORLD, world_path  # importable from here too, as before
 from services.datafile import decode_struct, read_struct
 
-DEFAULT_WORLD = "household"
 # The base drives the last leg straight in from this far behind the goal, along the goal's
 # heading, so its corners never swing around next to the furniture it parks at.
 PRE_GOAL_DISTANCE = 0.4
@@ -32,15 +31,6 @@ SPOT_INSET = 0.01
 
 class WorldFileError(Exception):
     """The world file is missing or does not validate; the message names the file and the field."""
-
-
-def world_path(name_or_path: str | Path = DEFAULT_WORLD) -> Path:
-    """A bundled world by name ('household'), or a path to a world file."""
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml", ".json") or path.exists():
-        return path
-    bundled = resources.files("services") / "worlds" / f"{name_or_path}.yaml"
-    return Path(str(bundled))
 
 
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:

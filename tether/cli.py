@@ -1,4 +1,9 @@
-"""The `tether` command line: start services, send plans, watch, stop and reset the robot."""
+"""The `tether` command line: start services, send plans, watch, stop and reset the robot.
+
+A command imports what only it needs when it runs (the recordings' mcap and matplotlib, the
+deployment's cryptography, the world model's shapely, pinocchio), so `tether status` or `tether send`
+starts without them; `run` is tether.runservice's, which `tether run` (tether/__main__.py) reaches alone.
+"""
 
 from __future__ import annotations
 
@@ -11,21 +16,25 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator, MutableMapping
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import msgspec
 import typer
+import typer.main
 import zenoh
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from typer.core import TyperGroup
 
 from schemas import keys
 from schemas.actions import CancelGoal, GetResult
 from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.plan import MAX_PLAN_BYTES
+from schemas.process import ProcessStatus
 from schemas.robot import Odometry, RobotDiagnostics
 from schemas.safety import EstopSource, SafetyStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
@@ -35,7 +44,6 @@ from services.runtime import (
     ALL_SERVICES,
     ROBOT_BACKENDS,
     SERVICES,
-    ConfigError,
     Node,
     NodeSettings,
     configure_logging,
@@ -44,9 +52,6 @@ from services.runtime import (
     stop_event,
     zenoh_config_file,
 )
-from services.worldmodel import WorldFileError
-from tether import deployment, recordings
-from tether.ask import ask
 from tether.client import (
     EXIT_CODES,
     EXIT_UNREACHABLE,
@@ -58,14 +63,89 @@ from tether.client import (
     reset_estop,
     trigger_estop,
 )
-from tether.inspect import inspect
-from tether.schema import schema
+from tether.runservice import HELP, common, run
 from tether.supervisor import Supervisor, free_base_port
 
-app = typer.Typer(help="tether: LLM plans to safe robot actions over Zenoh.", no_args_is_help=True)
+if TYPE_CHECKING:
+    from tether import deployment
+
+
+# A click Command as typer makes it: this typer brings its own copy of click, with classes of its own.
+Command = Any
+
+
+def load_command(name: str, target: str) -> Command:
+    """The command `name` made from the function `target` ("module:function"), importing its module now."""
+    module, _, function = target.partition(":")
+    callback = getattr(importlib.import_module(module), function)
+    one = typer.Typer(add_completion=False)
+    one.command(name)(callback)
+    return typer.main.get_command(one)
+
+
+class LazyCommands(MutableMapping[str, Command]):
+    """A group's commands by name, in their order, those named in `lazy` made only when first looked up."""
+
+    def __init__(self, commands: MutableMapping[str, Command], lazy: dict[str, str]) -> None:
+        self._commands = commands
+        self._pending = {name: target for name, target in lazy.items() if name in commands}
+
+    def __getitem__(self, name: str) -> Command:
+        if (target := self._pending.pop(name, None)) is not None:
+            self._commands[name] = load_command(name, target)
+        return self._commands[name]
+
+    def __setitem__(self, name: str, command: Command) -> None:
+        self._pending.pop(name, None)
+        self._commands[name] = command
+
+    def __delitem__(self, name: str) -> None:
+        self._pending.pop(name, None)
+        del self._commands[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._commands)
+
+    def __len__(self) -> int:
+        return len(self._commands)
+
+
+class LazyGroup(TyperGroup):
+    """A group whose commands in `lazy` (name -> "module:function") stand in its help and command list
+    under their names, in their places, but import their modules only when one runs (or a help lists it)."""
+
+    lazy: dict[str, str] = {}
+
+    def __init__(self, **attrs: Any) -> None:
+        super().__init__(**attrs)
+        self.commands = LazyCommands(self.commands, self.lazy)
+
+
+def lazy_command(group: typer.Typer, name: str, target: str) -> None:
+    """Register `name` in `group` (made with a LazyGroup class) as `target` ("module:function"), not imported yet."""
+    group_class = group.info.cls
+    assert isinstance(group_class, type) and issubclass(group_class, LazyGroup), group_class
+    group_class.lazy[name] = target
+
+    def not_loaded() -> None:  # pragma: no cover - replaced by `target` before click can call it
+        raise AssertionError(f"{name} ran before {target} was loaded")
+
+    group.command(name)(not_loaded)
+
+
+class MainGroup(LazyGroup):
+    lazy: dict[str, str] = {}
+
+
+class DeployGroup(LazyGroup):
+    lazy: dict[str, str] = {}
+
+
+app = typer.Typer(help=HELP, no_args_is_help=True, cls=MainGroup)
 console = Console(stderr=True)
 out = Console()
 
+MB = 1024 * 1024
 DEMO_PLAN = json.dumps(
     {
         "plan": [
@@ -79,25 +159,7 @@ DEMO_PLAN = json.dumps(
     indent=2,
 )
 
-RobotOpt = Annotated[str | None, typer.Option("--robot", envvar="TETHER_ROBOT", help="Robot name in the keys.")]
-PortOpt = Annotated[
-    int | None, typer.Option("--base-port", envvar="TETHER_BASE_PORT", help="First of the services' loopback ports.")
-]
-ZenohOpt = Annotated[
-    Path | None, typer.Option("--zenoh-config", envvar="TETHER_ZENOH_CONFIG", help="A Zenoh config file.")
-]
-
-
-@app.callback()
-def common(
-    ctx: typer.Context, robot: RobotOpt = None, base_port: PortOpt = None, zenoh_config: ZenohOpt = None
-) -> None:
-    """Flags every command shares, written once."""
-    try:
-        ctx.obj = NodeSettings.from_env(robot=robot, base_port=base_port, zenoh_config=zenoh_config)
-    except ValueError as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(2) from None
+app.callback()(common)
 
 
 def settings_of(ctx: typer.Context) -> NodeSettings:
@@ -111,23 +173,7 @@ def client(ctx: typer.Context) -> Node:
 
 # Services
 
-
-@app.command()
-def run(
-    ctx: typer.Context,
-    service: Annotated[str, typer.Argument(help=f"One of: {', '.join(ALL_SERVICES)}.")],
-    config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [SERVICE] table.")] = None,
-) -> None:
-    """Run one service in the foreground until SIGINT or SIGTERM."""
-    if service not in ALL_SERVICES:
-        console.print(f"[red]error:[/] unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
-        raise typer.Exit(2)
-    module = importlib.import_module(f"services.{service}.main")
-    try:
-        module.main(settings_of(ctx), config)
-    except (ConfigError, WorldFileError) as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(2) from None
+app.command()(run)
 
 
 def start_services(
@@ -186,7 +232,9 @@ def only_services(only: str | None, backend: str, deployed: deployment.Deploymen
     if only is None:
         return stack_services(backend)
     names = tuple(dict.fromkeys(n.strip() for n in only.split(",") if n.strip()))
-    known = deployment.SERVICE_IDENTITIES if deployed is not None else ALL_SERVICES
+    from tether.deployment import SERVICE_IDENTITIES
+
+    known = SERVICE_IDENTITIES if deployed is not None else ALL_SERVICES
     unknown = [n for n in names if n not in known]
     if unknown or not names:
         where = f"the deployment {deployed.directory}" if deployed is not None else "tether"
@@ -223,6 +271,8 @@ def up(
     if backend not in ROBOT_BACKENDS:
         console.print(f"[red]error:[/] unknown backend {backend!r}; backends are {', '.join(ROBOT_BACKENDS)}")
         raise typer.Exit(2)
+    from tether import deployment
+
     if robot is not None:
         try:
             ctx.obj = dataclasses.replace(settings_of(ctx), robot=robot)
@@ -263,51 +313,21 @@ def up(
 
 # Deployments
 
-deploy_app = typer.Typer(help="A secured deployment: a router, one identity per service, TLS.", no_args_is_help=True)
+deploy_app = typer.Typer(
+    help="A secured deployment: a router, one identity per service, TLS.", no_args_is_help=True, cls=DeployGroup
+)
 app.add_typer(deploy_app, name="deploy")
 
 
-@deploy_app.command("init")
-def deploy_init(
-    directory: Annotated[Path, typer.Argument(help="Where the deployment goes (made if missing).")],
-    robot: Annotated[list[str], typer.Option("--robot", help="A robot of the fleet (repeatable).")],
-    tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a CA and a certificate per identity.")] = False,
-    router: Annotated[
-        str | None,
-        typer.Option(
-            "--router",
-            help=f"HOST[:PORT] where clients reach the router (default {deployment.DEFAULT_ROUTER_HOST}:"
-            f"{deployment.DEFAULT_ROUTER_PORT}).",
-        ),
-    ] = None,
-    as_json: Annotated[bool, typer.Option("--json")] = False,
-) -> None:
-    """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay."""
-    try:
-        address = deployment.RouterAddress.parse(router) if router is not None else None
-        written = deployment.init(directory, robot, tls=tls, router=address)
-        made = deployment.Deployment.load(directory)
-    except (deployment.DeploymentError, OSError) as exc:
-        console.print(f"[red]error:[/] {exc}", soft_wrap=True)
-        raise typer.Exit(2) from None
-    if warning := deployment.cleartext_warning(made):
-        console.print(f"[yellow]warning:[/] {warning}", soft_wrap=True)
-    if as_json:
-        files = [{"path": str(w.path), "created": w.created, "secret": w.secret} for w in written]
-        print(json.dumps({"directory": str(directory.resolve()), "robots": robot, "tls": tls, "files": files}))
-        return
-    table = Table("file", "", "mode")
-    for w in written:
-        table.add_row(str(w.path), "written" if w.created else "kept", "600 (secret)" if w.secret else "")
-    out.print(table)
-    created = sum(w.created for w in written)
-    out.print(f"{created} files written, {len(written) - created} kept, in {directory.resolve()}")
+lazy_command(deploy_app, "init", "tether.deploycli:deploy_init")
 
 
 @app.command()
 def router(directory: Annotated[Path, typer.Argument(help="A directory from `tether deploy init`.")]) -> None:
     """Run a deployment's Zenoh router (DIR/router.json5) until SIGINT or SIGTERM."""
-    path = directory / deployment.ROUTER_CONFIG
+    from tether.deployment import ROUTER_CONFIG
+
+    path = directory / ROUTER_CONFIG
     if not path.is_file():
         console.print(
             f"[red]error:[/] {path} does not exist; "
@@ -539,7 +559,7 @@ def policy(
     """
     from services.robotmodel import ArmModel
     from services.safety.policyfile import PolicyError, load_policy
-    from services.worldmodel import load_world
+    from services.worldmodel import WorldFileError, load_world
 
     try:
         model = load_world(world)
@@ -583,8 +603,11 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     def heartbeat() -> None:
         found["heartbeat"] = next_heartbeat(node, timeout)
 
+    def ask_processes() -> None:
+        found["processes"] = node.process_statuses(timeout)
+
     threads = [threading.Thread(target=grab, args=a) for a in (("odom", keys.ODOM), ("objects", keys.OBJECTS))]
-    threads += [threading.Thread(target=diagnose), threading.Thread(target=heartbeat)]
+    threads += [threading.Thread(target=t) for t in (diagnose, heartbeat, ask_processes)]
     for t in threads:
         t.start()
     alive = node.alive_services(timeout=timeout)
@@ -596,9 +619,15 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     odom: Odometry | None = found.get("odom")
     objects: PerceivedObjects | None = found.get("objects")
     problems = robot_problems(found.get("diagnostics"))
+    processes: dict[str, ProcessStatus] = found.get("processes", {})
     return {
         # The robot's other backends only when one runs.
         "services": {name: name in alive for name in ALL_SERVICES if name in SERVICES or name in alive},
+        # Each service that answered (as it counts itself, on its own host), in the order of `services`.
+        "processes": {
+            name: msgspec.structs.asdict(processes[name])
+            for name in [*(n for n in ALL_SERVICES if n in processes), *sorted(set(processes) - set(ALL_SERVICES))]
+        },
         "estop": (
             {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
             if beat
@@ -670,6 +699,13 @@ def health(node: Node, services: list[str], timeout: float = 1.5) -> dict[str, A
     }
 
 
+def memory_line(processes: dict[str, dict[str, Any]]) -> str:
+    """The services' resident memory in MB, their total first (status_dict's `processes`)."""
+    total = sum(p["rss_bytes"] for p in processes.values())
+    each = ", ".join(f"{name} {p['rss_bytes'] / MB:.0f}" for name, p in processes.items())
+    return f"memory: {total / MB:.0f} MB resident ({each})"
+
+
 @app.command()
 def status(
     ctx: typer.Context,
@@ -719,6 +755,8 @@ def status(
         f"{k} [{'green' if v else 'red'}]{'up' if v else 'down'}[/]" for k, v in state["services"].items()
     )
     console.print(services)
+    if state["processes"]:
+        console.print(memory_line(state["processes"]), highlight=False)
     e = state["estop"]
     console.print(
         f"e-stop: {'[red]LATCHED[/] by ' + e['source'] + ': ' + e['reason'] if e['latched'] else e['latched']}"
@@ -895,12 +933,15 @@ def verify_demo(node: Node) -> bool:
 
 
 # Recordings
-app.command()(inspect)
-recordings.register(app)
+lazy_command(app, "inspect", "tether.inspect:inspect")
+lazy_command(app, "record", "tether.recordings:record")
+lazy_command(app, "replay", "tether.recordings:replay")
+lazy_command(app, "recheck", "tether.recordings:recheck_command")
+lazy_command(app, "recover", "tether.recordings:recover_command")
 
 # Agents
-app.command("schema")(schema)
-app.command("ask")(ask)
+lazy_command(app, "schema", "tether.schema:schema")
+lazy_command(app, "ask", "tether.ask:ask")
 
 
 # Only loopback: the MCP server has no authentication, and whoever reaches it can move the robot.

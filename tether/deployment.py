@@ -453,8 +453,9 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     serves itself (SERVES), so no service can pose as the parser or as safety's command doors; only
     safety commands the robot and publishes safety/**; only the robot backend (sim, ros2) reports the
     robot's state and people and serves robot/**; only the operator resets the e-stop and drives by hand;
-    each liveliness token and query trace only under its own name; the agent only what an LLM agent
-    needs (plans, the e-stop, the scene and the camera).
+    each liveliness token and query trace only under its own name, and each service answers
+    `_process/<itself>` only (the services and the operator ask `_process/*`); the agent only what an
+    LLM agent needs (plans, the e-stop, the scene and the camera).
     """
     root = keys.prefix(robot)
 
@@ -510,6 +511,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
                 "robot/diagnostics",
             ],
         ),
+        # Each service's own figures (`tether status`): asked by the operator and the services, not the agent.
+        rule("ask-processes", ["query"], [keys.process_key(robot).removeprefix(root + "/")]),
         rule("reset", ["query"], ["safety/reset"]),
         rule("teleop", ["put"], ["cmd/teleop/**"]),
         rule("be-safety", ["put", "delete", "declare_queryable", "reply"], ["safety/**"]),
@@ -537,6 +540,10 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         alive, trace = keys.alive_key(robot, identity), keys.trace_key(robot, identity, "**")
         rules.append(rule(f"alive-{identity}", ["liveliness_token"], [alive.removeprefix(root + "/")]))
         rules.append(rule(f"trace-{identity}", ["put"], [trace.removeprefix(root + "/")]))
+    # Each service answers for its own process only (services/runtime.py `declare_process_status`).
+    for service in SERVICE_IDENTITIES:
+        process = keys.process_key(robot, service)
+        rules.append(rule(f"process-{service}", ["declare_queryable", "reply"], [process.removeprefix(root + "/")]))
 
     subjects = []
     for identity in IDENTITIES:
@@ -558,7 +565,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     people_and_services = [i for i in IDENTITIES if i != "agent"]
     policies = [
         policy("everyone", ["receive", "subscribe", "stop"], IDENTITIES),
-        policy("services-and-operator", ["planner-side", "read"], people_and_services),
+        policy("services-and-operator", ["planner-side", "read", "ask-processes"], people_and_services),
         policy("agent", ["agent-asks"], ["agent"]),
         policy("operator", ["reset", "teleop"], ["operator"]),
         policy("safety", ["be-safety", "drive"], ["safety"]),
@@ -566,6 +573,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     ]
     policies += [policy(f"own-{i}", [f"alive-{i}", f"trace-{i}"], [i]) for i in IDENTITIES]
     policies += [policy(f"serves-{s}", [f"serve-{s}"], [s]) for s in SERVES]
+    policies += [policy(f"own-process-{s}", [f"process-{s}"], [s]) for s in SERVICE_IDENTITIES]
     return rules, subjects, policies
 
 

@@ -75,8 +75,9 @@ def inspect(
     if as_json:
         print(json.dumps(as_document(recording, timeline, rows)))
         return
-    # A file or a pager gets room for every column; a terminal its own width.
-    screen = out if out.is_terminal or "COLUMNS" in os.environ else Console(width=PIPE_WIDTH)
+    # A terminal its own width; a file or a pager room for every column, or COLUMNS if set (read now:
+    # `out` took its width when it was made).
+    screen = out if out.is_terminal else Console() if "COLUMNS" in os.environ else Console(width=PIPE_WIDTH)
     screen.print(table(recording, timeline, rows, screen.width))
 
 

@@ -445,10 +445,3 @@ def recover_command(
         fail(f"cannot write {output}: {exc.strerror}")
     state = "was complete; copied" if done.complete else f"recovered ({done.problem})"
     console.print(f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}")
-
-
-def register(app: typer.Typer) -> None:
-    app.command()(record)
-    app.command()(replay)
-    app.command("recheck")(recheck_command)
-    app.command("recover")(recover_command)

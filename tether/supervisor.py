@@ -49,12 +49,20 @@ def _outgoing_low() -> int:
         return 32768
 
 
-def free_base_port(count: int = len(ALL_SERVICES)) -> int:
+def free_base_port(count: int = len(ALL_SERVICES), band: tuple[int, int] = (0, 1)) -> int:
     """The first of `count` consecutive loopback ports that are free now: a base port for a stack of
-    its own (tests, benchmarks), below the range the kernel hands out to outgoing connections."""
-    highest = max(LOWEST_PORT + 1, _outgoing_low() - count)
+    its own (tests, benchmarks), below the range the kernel hands out to outgoing connections.
+
+    `band` (index, of how many) picks from one slice of that range only, so that processes choosing
+    at the same moment (parallel test workers) never pick the same ports between check and use."""
+    index, bands = band
+    if not 0 <= index < bands:
+        raise ValueError(f"port band {index} of {bands}: the index must be in 0..{bands - 1}")
+    width = (max(LOWEST_PORT + 1, _outgoing_low() - count) - LOWEST_PORT) // bands
+    lowest = LOWEST_PORT + index * width
+    highest = max(lowest + 1, lowest + width - count)
     for _ in range(200):
-        base = random.randrange(LOWEST_PORT, highest)
+        base = random.randrange(lowest, highest)
         try:
             with contextlib.ExitStack() as stack:
                 for port in range(base, base + count):
@@ -62,7 +70,7 @@ def free_base_port(count: int = len(ALL_SERVICES)) -> int:
             return base
         except OSError:
             continue
-    raise RuntimeError(f"no {count} free consecutive loopback ports between {LOWEST_PORT} and {highest}")
+    raise RuntimeError(f"no {count} free consecutive loopback ports between {lowest} and {highest}")
 
 
 class Supervisor:

@@ -116,6 +116,11 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return value
 
 
+# JSON with every key given once, built once (json.loads builds a decoder per call). Only ever
+# given text that starts with a bracket, so json.loads' check for a leading byte-order mark is moot.
+_STRICT = json.JSONDecoder(object_pairs_hook=_no_duplicates)
+
+
 class TruncatedJson(ParseError):
     """JSON whose brackets are still open where the text ends: output cut off."""
 
@@ -172,7 +177,7 @@ class JsonFinder:
         chunk = text[start : span.end]
         line = text.count("\n", 0, start) + 1
         try:
-            return Candidate(json.loads(chunk, object_pairs_hook=_no_duplicates), [], line)
+            return Candidate(_STRICT.decode(chunk), [], line)
         except json.JSONDecodeError as exc:
             detail = f"{exc.msg} at {line_col(text, start + exc.pos)}"
         except (RecursionError, ValueError) as exc:
@@ -211,7 +216,7 @@ class JsonFinder:
             except ParseError:
                 return None
         try:
-            value = json.loads(chunk, object_pairs_hook=_no_duplicates)
+            value = _STRICT.decode(chunk)
         except (ValueError, RecursionError):
             return None
         return Candidate(value, [], text.count("\n", 0, start) + 1)

@@ -28,17 +28,21 @@ def handler(parser: Parser) -> Callable[[PlanText], ParseReply]:
     """A handler that always answers: a Plan, or a ServiceError saying what was wrong."""
 
     def handle(request: PlanText) -> ParseReply:
-        reply = answer(parser, request)
-        if isinstance(reply, ServiceError):
-            log.info("refused plan: %s", reply.message)
-        else:
-            log.info("parsed plan: %d steps, %d warnings", len(reply.steps), len(reply.warnings))
-        return reply
+        return answer(parser, request)
 
     return handle
+
+
+def logged(_request: PlanText, reply: ParseReply) -> None:
+    """The log line of one answer, written once it has gone: formatting and writing it took a fifth
+    of a plan/parse's time in the service when written before the reply."""
+    if isinstance(reply, ServiceError):
+        log.info("refused plan: %s", reply.message)
+    else:
+        log.info("parsed plan: %d steps, %d warnings", len(reply.steps), len(reply.warnings))
 
 
 def declare(node: Node, parser: Parser) -> None:
     # The size limit is checked on the raw bytes before decoding: a 10 MB request is refused unread.
     # Parsing is quick and never blocks (hostile 256 KiB inputs take milliseconds): answered inline.
-    node.serve(keys.PLAN_PARSE, handler(parser), max_request_bytes=MAX_PLAN_BYTES + 4096, inline=True)
+    node.serve(keys.PLAN_PARSE, handler(parser), max_request_bytes=MAX_PLAN_BYTES + 4096, inline=True, after=logged)

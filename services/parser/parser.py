@@ -193,6 +193,24 @@ class Parser:
         self.plan_keys = [normalise_word(k) for k in vocabulary.plan_keys]
         self.plan_tools = {normalise_word(k) for k in vocabulary.plan_tools}
         self._known_actions = ", ".join(a.value for a in vocabulary.actions)
+        # Numbers of each action signed by a direction: (number, direction, the directions meaning minus).
+        self._signed = {
+            action: [
+                (name, pspec.signed_by, spec.params[pspec.signed_by].negative)
+                for name, pspec in spec.params.items()
+                if pspec.signed_by is not None
+            ]
+            for action, spec in vocabulary.actions.items()
+        }
+        # Required parameters of each action, in the vocabulary's order.
+        self._required = {
+            action: [name for name, pspec in spec.params.items() if pspec.required]
+            for action, spec in vocabulary.actions.items()
+        }
+        # The type a plain plan's steps are converted to, built once (see _plain_steps).
+        plain_step = _plain_step_type(self.fields, self.ignored_fields)
+        self._plain_steps_type: Any = None if plain_step is None else list[plain_step]  # type: ignore[valid-type]
+        self._plain_name_fields = [f for f in _NAME_FIELDS if self.fields.get(f) == f]
         keys = sorted({*self.plan_keys, *self.fields}, key=len, reverse=True)
         # A line that starts a YAML plan: "plan:", "- action: pick", "steps:".
         self._yaml_start = re.compile(
@@ -341,6 +359,10 @@ class Parser:
         return msgspec.structs.replace(plan, warnings=[*plan.warnings, *notes][: self.config.max_steps * 4])
 
     def _from_value(self, value: Any, fmt: SourceFormat, ctx: _Context) -> Plan:
+        plain = self._plain_steps(value)
+        if plain is not None:
+            steps, description = plain
+            return self._plan(steps, description, fmt, ctx)
         calls = find_tool_calls(value)
         if calls is not None:
             ctx.warnings.extend(calls.warnings)
@@ -429,6 +451,96 @@ class Parser:
         if found.error is not None:
             raise ParseError(f"{where}: arguments are not valid JSON: {found.error}")
         raise ParseError(f"{where}: arguments must be a JSON object")
+
+    # Plain plans
+
+    def _plain_steps(self, value: Any) -> tuple[list[Step], Any] | None:
+        """The steps and description of a plan written plainly, or None to map it field by field.
+
+        Plainly: an array of steps, or an object holding one under a plan key (and perhaps a
+        'description'), each step with its action by one of its names as the vocabulary spells it,
+        the name fields, a description and parameters by their own names, and ignored fields. Those
+        steps are read by one msgspec conversion into `PlainStep` structs rather than key by key.
+        Everything the general mapping would refuse or warn about (a sub-step, an alias, a null, a
+        blank action, a control character, a bad value) hands the whole plan over to it, so this
+        path gives the same Plan as the general one for every plan it takes, and never an error or
+        a warning of its own.
+        """
+        if self._plain_steps_type is None:
+            return None
+        description: Any = ""
+        steps: Any = None
+        if isinstance(value, dict):
+            for key, item in value.items():
+                if key == "description":
+                    description = item
+                elif steps is None and key in self.plan_keys:
+                    steps = item
+                else:  # a second plan key, or a key the general mapping warns about or reads further
+                    return None
+        elif isinstance(value, list):
+            steps = value
+        if not isinstance(steps, list) or not steps or len(steps) > self.config.max_steps:
+            return None
+        if find_tool_calls(value) is not None:
+            return None
+        try:
+            plain = msgspec.convert(steps, self._plain_steps_type)
+        except msgspec.ValidationError:
+            return None
+        limit = self.config.max_string_chars
+        out: list[Step] = []
+        try:
+            for raw in plain:
+                named = self.actions.get(raw.action)
+                if named is None:
+                    return None
+                action, preset = named
+                names: dict[str, str] = {}
+                for name in self._plain_name_fields:
+                    item = getattr(raw, name)
+                    if item is None or not (text := item.strip()):
+                        continue
+                    if _CONTROL.search(item):
+                        return None
+                    names[name] = text
+                text = raw.description
+                if text is None:
+                    text = ""
+                elif len(text) > limit or _CONTROL.search(text):
+                    return None
+                params: dict[str, ParamValue] = {}
+                if raw.parameters:
+                    known = self.params[action]
+                    for key, item in raw.parameters.items():
+                        entry = known.get(key)
+                        if entry is None or entry[0] in params:
+                            return None
+                        name, pspec, unit = entry
+                        params[name] = self._value(_PLAIN, name, pspec, item, unit)
+                for name, preset_value in preset.items():
+                    if params.setdefault(name, preset_value) != preset_value:
+                        return None
+                self._apply_signs(_PLAIN, action, params)
+                warnings: list[str] = []
+                target, location = self._names(_PLAIN, action, names, params, warnings)
+                if warnings or any(name not in params for name in self._required[action]):
+                    return None
+                specs = self.vocabulary.actions[action].params
+                units = {n: specs[n].unit for n, v in params.items() if specs[n].unit and not isinstance(v, str | bool)}
+                out.append(
+                    Step(
+                        action=action,
+                        target=target,
+                        location=location,
+                        params=params,
+                        units=units,
+                        description=text,
+                    )
+                )
+        except ParseError:
+            return None
+        return out, description
 
     # One step
 
@@ -628,11 +740,10 @@ class Parser:
 
     def _apply_signs(self, where: _Where, action: Action, params: dict[str, ParamValue]) -> None:
         """Fold a direction into the signed number it qualifies: turn right 90 degrees -> angle -1.5708."""
-        specs = self.vocabulary.actions[action].params
-        for name, spec in specs.items():
-            if spec.signed_by is None or spec.signed_by not in params:
+        for name, signed_by, negatives in self._signed[action]:
+            if signed_by not in params:
                 continue
-            direction = params.pop(spec.signed_by)
+            direction = params.pop(signed_by)
             value = params.get(name)
             if isinstance(value, int | float) and not isinstance(value, bool):
                 if value < 0:
@@ -640,8 +751,7 @@ class Parser:
                         f"parameter '{name}' is negative and the direction is {direction!r}; give the "
                         f"{name} as a positive number and the direction on its own"
                     )
-                negative = direction in specs[spec.signed_by].negative
-                params[name] = -value if negative else value
+                params[name] = -value if direction in negatives else value
 
     # Coordinates
 
@@ -894,40 +1004,29 @@ class Parser:
         A step with coordinates needs no name: the resolver grounds the point (a name, when given, wins).
         """
         used: set[str] = set()
-
-        def take(*fields: str) -> str | None:
-            for f in fields:
-                if f in names:
-                    used.add(f)
-                    return names[f]
-            return None
-
         target: str | None = None
         location: str | None = None
-        if action in (Action.NAVIGATE_TO, Action.LOOK_AT, Action.MOVE_ARM):
-            target = take("target", "target_location", "target_object")
+        if action in _GOES_TO:
+            target = _take(names, used, "target", "target_location", "target_object")
             if target is None and not has_point:
-                need = {
-                    Action.NAVIGATE_TO: "where to go",
-                    Action.LOOK_AT: "what to look at",
-                    Action.MOVE_ARM: "a named arm pose such as home or ready",
-                }[action]
-                raise where.refuse(f"{action.value} needs a target: {need}{self._or_point(action)}")
-        elif action in (Action.PICK, Action.DETECT):
-            target = take("target", "target_object")
-            location = take("target_location")
+                raise where.refuse(f"{action.value} needs a target: {_GOES_TO[action]}{self._or_point(action)}")
+        elif action in _FINDS:
+            target = _take(names, used, "target", "target_object")
+            location = _take(names, used, "target_location")
             if target is None and not has_point:
                 raise where.refuse(f"{action.value} needs a target: which object{self._or_point(action)}")
-        elif action is Action.PLACE:
-            location = take("target_location", "target")
-            target = take("target_object") or (take("target") if "target_location" in names else None)
+        elif action is _PLACE:
+            location = _take(names, used, "target_location", "target")
+            target = _take(names, used, "target_object") or (
+                _take(names, used, "target") if "target_location" in names else None
+            )
             if location is None and not has_point:
                 need = "the furniture to put the object on"
                 raise where.refuse(f"place needs a location: {need}{self._or_point(action)}")
-        elif action is Action.GESTURE:
-            target = take("target", "target_object")
-        elif action is Action.SAY:
-            spoken = take("target")
+        elif action is _GESTURE:
+            target = _take(names, used, "target", "target_object")
+        elif action is _SAY:
+            spoken = _take(names, used, "target")
             if spoken is not None:
                 spec = self.params[action]["text"][1]
                 if "text" in params:
@@ -935,7 +1034,7 @@ class Parser:
                 params["text"] = self._value(where, "text", spec, spoken, None)
             if not params.get("text"):
                 raise where.refuse("say needs the words to speak, in 'target' or parameters.text")
-        elif action is Action.WAIT and "duration" not in params and "target" in names:
+        elif action is _WAIT and "duration" not in params and "target" in names:
             used.add("target")
             params["duration"] = self._value(
                 where, "duration", self.params[action]["duration"][1], names["target"], None
@@ -966,6 +1065,49 @@ class Parser:
         return value
 
 
+# Actions whose target is where they go (and what each needs), those whose target is an object; the
+# members looked up once, as an Enum's attribute lookups are slow.
+_GOES_TO = {
+    Action.NAVIGATE_TO: "where to go",
+    Action.LOOK_AT: "what to look at",
+    Action.MOVE_ARM: "a named arm pose such as home or ready",
+}
+_FINDS = frozenset((Action.PICK, Action.DETECT))
+_PLACE, _GESTURE, _SAY, _WAIT = Action.PLACE, Action.GESTURE, Action.SAY, Action.WAIT
+
+
+def _take(names: dict[str, str], used: set[str], *fields: str) -> str | None:
+    """The first of `fields` given in `names`, noted as used."""
+    for f in fields:
+        if f in names:
+            used.add(f)
+            return names[f]
+    return None
+
+
+# Where a plain step is, for the checks it shares with the general mapping; their refusals are not
+# shown (the general mapping reads the plan again and words them), so one place does for all.
+_PLAIN = _Where("a plain step", 0)
+
+
+def _plain_step_type(fields: dict[str, str], ignored: set[str]) -> type[msgspec.Struct] | None:
+    """A step's fields under their own names, and the ignored ones: what `Parser._plain_steps` reads.
+
+    None when the vocabulary gives one of those names another meaning.
+    """
+    own = ("action", *_NAME_FIELDS, "description", "parameters")
+    if any(fields.get(name) != name for name in own):
+        return None
+    kinds: list[tuple[str, Any, Any]] = [("action", str, msgspec.NODEFAULT)]
+    kinds += [(name, str | None, None) for name in (*_NAME_FIELDS, "description")]
+    kinds.append(("parameters", dict[str, ParamValue] | None, None))
+    # Ignored keys need not be identifiers: each is held by an attribute of its own, renamed.
+    skipped = sorted(word for word in ignored if word not in fields)
+    kinds += [(f"ignored_{i}", Any, None) for i in range(len(skipped))]
+    rename = {f"ignored_{i}": word for i, word in enumerate(skipped)}
+    return msgspec.defstruct("PlainStep", kinds, kw_only=True, forbid_unknown_fields=True, rename=rename)
+
+
 def _no_objects(value: Any) -> bool:
     """[1] in "as noted in [1]" is a citation, not a plan."""
     return isinstance(value, list) and not any(isinstance(v, dict) for v in value)
@@ -981,10 +1123,14 @@ def _point_text(point: tuple[float, float, float | None]) -> str:
     return "(" + ", ".join(f"{n:g}" for n in point if n is not None) + ")"
 
 
+_ENCODER = msgspec.json.Encoder()
+_PLAN_DECODER = msgspec.json.Decoder(Plan)
+
+
 def _validated(plan: Plan) -> Plan:
     """Check every bound the schema declares (Struct constructors do not), naming the path on failure."""
     try:
-        return msgspec.json.decode(msgspec.json.encode(plan), type=Plan)
+        return _PLAN_DECODER.decode(_ENCODER.encode(plan))
     except msgspec.ValidationError as exc:
         raise ParseError(f"the plan does not fit the schema: {exc}") from None
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from schemas import keys
 from services import runtime
+from services.bundled import DEFAULT_POLICY, world_path  # the paths only: no shapely, no numpy
 from services.recorder.config import RecorderConfig, Ros2RecordConfig
 from services.recorder.mcapfile import Provenance, SourceFile
 from services.recorder.node import bind
@@ -17,9 +18,7 @@ from services.ros2.types import RosTypeError, RosTypes
 from services.ros2.wire import Naming
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
-from services.safety.policyfile import DEFAULT_POLICY
 from services.sdnotify import Notifier
-from services.worldmodel import world_path
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ class Ros2SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     stamped_cmd_vel: bool = False
     # Wall seconds a cmd_vel holds; as the sim's, counted in sim time x [sim] realtime_factor.
     cmd_vel_timeout: WallSeconds = 0.5
-    # Each picture renders a frame on the sim thread (about 20 ms).
+    # Each picture renders a frame (about 20 ms) in the sim's renderer process, off the sim thread.
     camera_hz: Hz = 1.0
     # emergency_stop is also a dead-man signal (a twist_mux lock's timeout): the robot stops as on
     # data=true once none has arrived for this long, and before the first; until data=false comes.

@@ -27,7 +27,8 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     naming = Naming(config.style, domain_id(config, os.environ))
     world = load_world(sim_config.world)
     stop = stop_event()
-    sim = Simulation(world, physics_hz=sim_config.physics_hz, camera=sim_config.camera)
+    # Its camera renders in a process of its own (StandIn.renderer): no visual meshes here.
+    sim = Simulation(world, physics_hz=sim_config.physics_hz, camera=sim_config.camera, visuals=False)
     try:
         with (
             Node("ros2sim", settings) as node,

@@ -15,6 +15,7 @@ import zenoh
 from schemas import keys
 from schemas.actions import GoalState
 from schemas.robot import Twist
+from schemas.world import PerceivedObjects
 from services.actionlib import Outcome
 from services.ros2.config import Names
 from services.ros2.rmw import RosNode, RosPublisher, RosServerGoal
@@ -23,10 +24,10 @@ from services.ros2sim.config import Ros2SimConfig
 from services.ros2sim.estop import STOP_REASON, EstopLock
 from services.ros2sim.messages import BadMessage
 from services.runtime import Node
-from services.sim.camera import png
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers
 from services.sim.loop import Report, SimLoop
+from services.sim.renderer import Picture, Renderer
 from services.sim.simulation import Simulation
 from services.sim.world import Motion
 
@@ -118,7 +119,8 @@ class StandIn:
         self._joint_states = ros.publisher(NAMES.joint_states, "sensor_msgs/msg/JointState")
         self._detections = ros.publisher(NAMES.detections, "vision_msgs/msg/Detection3DArray")
         self._camera = ros.publisher(NAMES.camera, "sensor_msgs/msg/CompressedImage")
-        self._encoding = threading.Lock()  # held while a picture is encoded off the sim thread
+        # The camera renders, detects and encodes in a process of its own, never on the sim thread.
+        self.renderer = Renderer(sim.world, sim_config.camera)
         self.loop = SimLoop(sim, sim_config.realtime_factor, self._obey, self._reports(sim_config))
 
         cmd_vel_type = "geometry_msgs/msg/TwistStamped" if config.stamped_cmd_vel else "geometry_msgs/msg/Twist"
@@ -136,8 +138,12 @@ class StandIn:
     def _reports(self, sim_config: SimConfig) -> tuple[Report, ...]:
         """What the robot publishes on its own, each at its rate: odometry and joint states also while
         the sim catches up with the wall clock."""
-        types, sensors = self.types, self.sim.sensors
+        types, sensors, scene = self.types, self.sim.sensors, self.sim.scene
         sizes = {o.id: o.size for o in self.sim.world.objects}
+
+        def publish_objects(objects: PerceivedObjects) -> None:
+            self._detections.put(messages.object_detections(types, objects, sizes))
+
         return (
             Report(
                 "joint_states",
@@ -151,13 +157,8 @@ class StandIn:
                 self._report(self._odom, lambda t: messages.odometry(types, sensors.odometry(t))),
                 while_catching_up=True,
             ),
-            Report(
-                "objects",
-                sim_config.objects_hz,
-                self._report(
-                    self._detections, lambda t: messages.object_detections(types, sensors.perceived_objects(t), sizes)
-                ),
-            ),
+            # Published from the renderer's thread once detected; a frame it is busy with is not queued.
+            Report("objects", sim_config.objects_hz, lambda t: self.renderer.detect(scene.poses(t), publish_objects)),
             Report(
                 "humans",
                 sim_config.humans_hz,
@@ -342,22 +343,19 @@ class StandIn:
     # Reports, on the sim thread
 
     def _picture(self, stamp: float) -> None:
-        """The camera's picture: rendered on the sim thread at the detector's resolution (about 20 ms,
-        as a detection costs), encoded and published off it, so the robot keeps reporting and obeying."""
-        pixels = self.sim.sensors.camera_picture(scale=1)
-        if self._encoding.locked():
-            return  # the last one is still being encoded: skip this one rather than queue them up
-        self._encoding.acquire()
+        """The camera's picture at the detector's resolution: where things stand read here, on the sim
+        thread; rendered and encoded by the renderer process and published from its thread. One still
+        waiting to be drawn is replaced by this one rather than queued."""
 
-        def encode() -> None:
+        def publish(picture: Picture | None) -> None:
+            if picture is None:
+                return  # the renderer is gone: it said so when it went
             try:
-                self._camera.put(messages.compressed_image(self.types, png(pixels), stamp))
+                self._camera.put(messages.compressed_image(self.types, picture.png, stamp))
             except Exception:
                 log.exception("no camera picture published")
-            finally:
-                self._encoding.release()
 
-        threading.Thread(target=encode, name="camera-encode", daemon=True).start()
+        self.renderer.picture(self.sim.scene.poses(stamp), 1, publish)
 
     @staticmethod
     def _report(publisher: RosPublisher, make: Callable[[float], Any]) -> Callable[[float], None]:
@@ -377,7 +375,8 @@ class StandIn:
         self.loop.run(stop, keepalive)
 
     def close(self) -> None:
-        """After run(): wait (bounded) for the goals the shutdown aborted to report it."""
+        """After run(): wait (bounded) for the goals the shutdown aborted to report it; stop the renderer."""
         deadline = time.monotonic() + CLOSE_TIMEOUT
         while any(goal.active for server in self.servers for goal in server.goals) and time.monotonic() < deadline:
             time.sleep(0.02)  # polling goal threads finishing, bounded by CLOSE_TIMEOUT
+        self.renderer.close()

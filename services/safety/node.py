@@ -281,7 +281,8 @@ class SafetyNode:
 
         self.node.serve(cmd.send_goal, send_goal)
         self.node.serve(cmd.cancel_goal, cancel_goal)
-        self.node.serve(cmd.get_result, get_result)
+        # Waits as long as the goal runs: on the node's pool for such waits (services/runtime.py).
+        self.node.serve(cmd.get_result, get_result, waits=True)
         self.node.serve(cmd.get_status, get_status)
         feedback = self.node.publisher(cmd.feedback)
         status = self.node.publisher(cmd.status)

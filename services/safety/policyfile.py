@@ -14,7 +14,7 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import msgspec
 import numpy as np
@@ -24,10 +24,11 @@ from shapely.geometry import Polygon as ShapelyPolygon
 from schemas.common import Id, Name, Text
 from schemas.robot import ARM_JOINTS
 from schemas.world import KeepOut, Polygon, RobotSpec
+from services.bundled import DEFAULT_POLICY
 from services.datafile import decode_struct
-from services.robotmodel import ArmModel
 
-DEFAULT_POLICY = Path(__file__).with_name("policy.toml")
+if TYPE_CHECKING:  # the arm is handed in: whoever only needs DEFAULT_POLICY (the recorder) loads no pinocchio
+    from services.robotmodel import ArmModel
 
 Positive = Annotated[float, Meta(gt=0.0, le=1000.0)]
 Fraction = Annotated[float, Meta(ge=0.0, le=1.0)]

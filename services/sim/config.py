@@ -28,6 +28,7 @@ class CameraConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # A RealSense D435's depth field of view is 87 degrees across. The CPU renderer's cost is
     # mostly per triangle (the arm's meshes), about 20 ms a frame at 160 x 120; 4:3 gives 70
     # degrees vertically, enough to see both the near edge of a table and the room ahead.
+    # It renders in a process of its own (services/sim/renderer.py), never on the sim thread.
     width: Pixels = 160
     height: Pixels = 120
     hfov_deg: Annotated[float, Meta(ge=20.0, le=150.0)] = 87.0
@@ -64,7 +65,8 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     cmd_vel_timeout: WallSeconds = 0.5
     joint_states_hz: Hz = 50.0
     odom_hz: Hz = 50.0
-    # Each report of objects renders a camera frame (about 20 ms on the sim thread).
+    # Each report of objects renders a camera frame (about 20 ms of CPU, in the renderer process,
+    # services/sim/renderer.py); a frame not drawn before the next is due is dropped, not queued.
     objects_hz: Hz = 5.0
     humans_hz: Hz = 5.0
     camera: CameraConfig = CameraConfig()

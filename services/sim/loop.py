@@ -238,7 +238,7 @@ class SimLoop:
                     self._obey()
                     # Also while catching up: on a busy machine physics runs behind, but odometry
                     # and joint states must keep coming, or safety's watchdog sees a silent robot.
-                    # Not objects: each renders a camera frame (about 20 ms), slowing the catch-up.
+                    # Not objects nor people: the perception the robot reports at its own pace.
                     self._publish(catching_up=True)
                 self._publish()
                 if not self.failing:

@@ -26,7 +26,8 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     except (KeyFileError, OSError) as exc:
         raise ConfigError(f"[sim] robot_key_file: {exc}") from None
     stop = stop_event()
-    sim = Simulation(world, physics_hz=config.physics_hz, camera=config.camera)
+    # Its camera renders in a process of its own (SimNode.renderer): no visual meshes here.
+    sim = Simulation(world, physics_hz=config.physics_hz, camera=config.camera, visuals=False)
     try:
         with Node("sim", settings) as node:
             sim_node = SimNode(node, sim, config, robot_key=key)

@@ -24,15 +24,18 @@ from services.repeats import Problems
 from services.robotlink import LinkGuard, Verifier
 from services.robotrules import PREEMPT_TIMEOUT, HeartbeatGuard, KeepOut
 from services.runtime import Node
-from services.sim.camera import png_base64
 from services.sim.config import SimConfig
 from services.sim.controllers import Controllers
 from services.sim.loop import ANSWER_TIMEOUT, Command, Report, SimLoop
+from services.sim.renderer import Renderer
 from services.sim.simulation import Simulation
 from services.sim.world import Motion
 
 log = logging.getLogger(__name__)
 
+# robot/camera/image waits this long for the renderer (a 320 x 240 picture takes 0.1 to 0.5 s on a
+# busy machine), within the MCP camera tool's 5 s.
+PICTURE_TIMEOUT = 4.0
 # robot/diagnostics lists the refusals seen in this many seconds.
 DIAGNOSTICS_WINDOW = 60.0
 
@@ -41,6 +44,14 @@ Execute = Callable[[GoalHandle[Any, Any]], Outcome[Any]]
 
 def _always(_goal: object) -> bool:
     return True
+
+
+def _never(_goal: object) -> bool:
+    return False
+
+
+def _unplaced(goal: NavigateToPoseGoal) -> bool:
+    return goal.start is None
 
 
 class SimNode:
@@ -62,11 +73,15 @@ class SimNode:
         # Its own check of the world's keep-out zones, also for a signed command (docs/robot.md).
         self.keep_out = KeepOut.of(sim.world)
         self.problems = Problems()
+        self._cmd_vel_lock = threading.Lock()
+        self._cmd_vel: tuple[Twist, float] | None = None  # the latest, until the sim thread applies it
         self._blocked_reason: str | None = "no safety heartbeat received yet"  # as of the sim thread's last look
         self._joint_states = node.publisher(keys.JOINT_STATES)
         self._odom = node.publisher(keys.ODOM)
         self._objects = node.publisher(keys.OBJECTS)
         self._humans = node.publisher(keys.HUMANS)
+        # The camera renders and detects in a process of its own, never on the sim thread.
+        self.renderer = Renderer(sim.world, config.camera)
         reports = (
             Report("joint_states", config.joint_states_hz, self._publish_joint_states, while_catching_up=True),
             Report("odom", config.odom_hz, self._publish_odom, while_catching_up=True),
@@ -86,11 +101,13 @@ class SimNode:
                 preempts=_always,
                 preempt_timeout=PREEMPT_TIMEOUT,
                 verify=self.link,
+                accept_waits=waits,
             )
-            for action, start, accept in (
-                (keys.ROBOT_NAVIGATE, Controllers.navigate, self._accept_navigation),
-                (keys.ROBOT_TRAJECTORY, Controllers.follow_trajectory, self._accept_trajectory),
-                (keys.ROBOT_GRIPPER, Controllers.gripper, self._accept),
+            # Only a navigation goal safety did not fill `start` in for waits: for the sim thread's pose.
+            for action, start, accept, waits in (
+                (keys.ROBOT_NAVIGATE, Controllers.navigate, self._accept_navigation, _unplaced),
+                (keys.ROBOT_TRAJECTORY, Controllers.follow_trajectory, self._accept_trajectory, _never),
+                (keys.ROBOT_GRIPPER, Controllers.gripper, self._accept, _never),
             )
         ]
         node.subscribe(keys.HEARTBEAT, self._on_heartbeat, verify=self.link)
@@ -154,7 +171,19 @@ class SimNode:
             log.debug("ignored cmd_vel: %s", reason)
             return
         hold_for = self.config.cmd_vel_timeout * self.config.realtime_factor
-        self.submit(lambda sim: self._apply_cmd_vel(sim, twist, hold_for))
+        # Only the latest twist waits for the sim thread: one that a newer replaces before that thread
+        # gets to it would never have driven the base (the newer overrides it before the next step),
+        # so a fast stream (1 kHz) cannot pile up keep-out checks ahead of physics and odometry.
+        with self._cmd_vel_lock:
+            waiting, self._cmd_vel = self._cmd_vel is not None, (twist, hold_for)
+        if not waiting:
+            self.submit(self._apply_latest_cmd_vel)
+
+    def _apply_latest_cmd_vel(self, sim: Simulation) -> None:
+        with self._cmd_vel_lock:
+            latest, self._cmd_vel = self._cmd_vel, None
+        if latest is not None:
+            self._apply_cmd_vel(sim, *latest)
 
     def _apply_cmd_vel(self, sim: Simulation, twist: Twist, hold_for: float) -> None:
         if self._blocked_reason is not None:
@@ -179,9 +208,9 @@ class SimNode:
         )
 
     def _on_camera_image(self, _request: Empty) -> CameraImage:
-        # Rendered on the sim thread (pybullet is not thread-safe); encoded here, off it.
-        pixels = self.loop.answer(lambda sim: sim.sensors.camera_picture())
-        return CameraImage(stamp=time.time(), width=pixels.shape[1], height=pixels.shape[0], data=png_base64(pixels))
+        # Where things stand read on the sim thread; rendered and encoded by the renderer process.
+        poses = self.loop.answer(lambda sim: sim.scene.poses(time.time()))
+        return self.renderer.camera_image(poses, scale=2, timeout=PICTURE_TIMEOUT)
 
     # Goals
 
@@ -206,7 +235,8 @@ class SimNode:
         self._odom.put(self.sim.sensors.odometry(stamp))
 
     def _publish_objects(self, stamp: float) -> None:
-        self._objects.put(self.sim.sensors.perceived_objects(stamp))
+        # Published from the renderer's thread once detected; a frame it is still busy with is not queued.
+        self.renderer.detect(self.sim.scene.poses(stamp), self._objects.put)
 
     def _publish_humans(self, stamp: float) -> None:
         self._humans.put(self.sim.sensors.perceived_humans(stamp))
@@ -214,3 +244,4 @@ class SimNode:
     def close(self) -> None:
         for server in self.servers:
             server.abort_all("the simulator is shutting down")
+        self.renderer.close()

@@ -27,6 +27,10 @@ class Sensors:
         self.camera = Camera(world.bullet, camera or CameraConfig())
         self._camera_targets = {world.object_bodies[o.id]: _target(o) for o in world.spec.objects}
 
+    def _can_render(self) -> None:
+        if not self.world.visuals:
+            raise RuntimeError("this sim was built without visuals: its camera renders in services/sim/renderer.py")
+
     def joint_state(self, stamp: float) -> JointState:
         position, velocity = self.world.robot.joints()
         return JointState(stamp=stamp, name=[*ARM_JOINTS, *FINGER_JOINTS], position=position, velocity=velocity)
@@ -41,6 +45,7 @@ class Sensors:
     def perceived_objects(self, stamp: float) -> PerceivedObjects:
         """What the camera sees from where the base stands, and what the gripper holds: the robot
         knows what it grasped without looking, so that one is exact and `on` the gripper."""
+        self._can_render()
         world = self.world
         targets = {body: t for body, t in self._camera_targets.items() if t.name != world.holding}
         seen = self.camera.look(world.robot.base_pose(), targets)
@@ -57,6 +62,7 @@ class Sensors:
 
     def camera_picture(self, scale: int = 2) -> np.ndarray:
         """What the robot's camera sees now, in colour, `scale` times the detector's resolution (see Camera.picture)."""
+        self._can_render()
         return self.camera.picture(self.world.robot.base_pose(), scale)
 
     def perceived_humans(self, stamp: float) -> PerceivedHumans:

@@ -23,9 +23,18 @@ class Simulation:
     what the robot reports, `scene` for ground truth and moving things, `robot` for its joints.
     """
 
-    def __init__(self, world: World, *, physics_hz: float = 240.0, camera: CameraConfig | None = None) -> None:
+    def __init__(
+        self,
+        world: World,
+        *,
+        physics_hz: float = 240.0,
+        camera: CameraConfig | None = None,
+        visuals: bool = True,
+    ) -> None:
+        """`visuals=False` for a sim whose camera renders in a process of its own (services/sim/renderer.py):
+        the robot's visual meshes are not loaded, and `sensors` cannot render."""
         self.world = world
-        self.scene = SimWorld(world, physics_hz=physics_hz)
+        self.scene = SimWorld(world, physics_hz=physics_hz, visuals=visuals)
         self.robot: RobotBody = self.scene.robot
         self.controllers = Controllers(self.scene)
         self.sensors = Sensors(self.scene, camera)

@@ -6,6 +6,8 @@ import logging
 import math
 import tempfile
 import threading
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
@@ -87,22 +89,53 @@ class Motion(Generic[F, R]):
         self.done.set()
 
 
+Position = tuple[float, float, float]
+Orientation = tuple[float, float, float, float]  # a quaternion (x, y, z, w), as pybullet gives it
+
+
+@dataclass(frozen=True)
+class Poses:
+    """Where everything that moves stood at one moment (`stamp`, wall clock): what another pybullet
+    client with the same world loaded needs to draw the same scene (services/sim/renderer.py)."""
+
+    stamp: float
+    joints: tuple[float, ...]  # the robot's movable joints (RobotBody.movable), in that order
+    objects: dict[str, tuple[Position, Orientation]]
+    humans: dict[str, tuple[Position, Orientation]]
+    holding: str | None
+
+
+def without_visuals(urdf: str) -> str:
+    """The URDF without its <visual> elements: the same physics, nothing to draw. The Panda's visual
+    meshes take some 70 MB; a sim whose camera renders in another process has no use for them."""
+    root = ET.fromstring(urdf)
+    for link in root.iter("link"):
+        for visual in link.findall("visual"):
+            link.remove(visual)
+    return ET.tostring(root, encoding="unicode")
+
+
 class RobotBody:
     """The robot's joints in pybullet: its motors take targets, its encoders are read here."""
 
-    def __init__(self, bullet: Any, world: World) -> None:
+    def __init__(self, bullet: Any, world: World, *, visuals: bool = True) -> None:
         self.bullet = bullet
         spec = world.robot
+        urdf = mobile_manipulator_urdf(spec)
         with tempfile.TemporaryDirectory(prefix="tether-sim-") as tmp:
             path = Path(tmp) / "mobile_panda.urdf"
-            path.write_text(mobile_manipulator_urdf(spec))
+            path.write_text(urdf if visuals else without_visuals(urdf))
             self.id: int = bullet.loadURDF(str(path), useFixedBase=True)
         self.joint_index: dict[str, int] = {}
         self.link_index: dict[str, int] = {}
+        # Every joint that is not fixed, in index order: what Poses carries of the robot.
+        self.movable: list[int] = []
         for i in range(bullet.getNumJoints(self.id)):
             info = bullet.getJointInfo(self.id, i)
             self.joint_index[info[1].decode()] = i
             self.link_index[info[12].decode()] = i
+            if info[2] != pybullet.JOINT_FIXED:
+                self.movable.append(i)
         self.base_joints = [self.joint_index[n] for n in (BASE_X_JOINT, BASE_Y_JOINT, BASE_YAW_JOINT)]
         self.arm_joints = [self.joint_index[n] for n in ARM_JOINTS]
         self.finger_joints = [self.joint_index[n] for n in FINGER_JOINTS]
@@ -209,8 +242,11 @@ class Drop(Motion[None, Moved]):
 class SimWorld:
     """The household and the robot's body in one pybullet client, stepped by whoever owns it (one thread)."""
 
-    def __init__(self, world: World, *, physics_hz: float = 240.0) -> None:
+    def __init__(self, world: World, *, physics_hz: float = 240.0, visuals: bool = True) -> None:
         self.spec = world
+        # Without the robot's visual meshes (visuals=False) nothing here can be rendered: the sim's
+        # camera then renders in a process of its own (services/sim/renderer.py).
+        self.visuals = visuals
         self.model = WorldModel(world)
         self.dt = 1.0 / physics_hz
         self.sim_time = 0.0
@@ -229,7 +265,7 @@ class SimWorld:
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
         # Where people stand now: they move (sim/move), the world file only says where they start.
         self.human_poses = {h.id: h.pose for h in world.humans}
-        self.robot = RobotBody(self.bullet, world)
+        self.robot = RobotBody(self.bullet, world, visuals=visuals)
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
     # Building
@@ -380,6 +416,27 @@ class SimWorld:
             holding=self.holding,
             objects=[self.exact(o, self.sim_time) for o in self.spec.objects],
         )
+
+    # What another client needs to draw this scene (services/sim/renderer.py)
+
+    def poses(self, stamp: float) -> Poses:
+        """Where every movable body stands now: the robot's joints, the objects, the people."""
+        bullet, robot = self.bullet, self.robot
+        joints = tuple(s[0] for s in bullet.getJointStates(robot.id, robot.movable))
+        objects = {name: bullet.getBasePositionAndOrientation(b) for name, b in self.object_bodies.items()}
+        humans = {name: bullet.getBasePositionAndOrientation(b) for name, b in self.human_bodies.items()}
+        return Poses(stamp=stamp, joints=joints, objects=objects, humans=humans, holding=self.holding)
+
+    def pose_as(self, poses: Poses) -> None:
+        """Put every movable body where `poses` says, and hold what it holds: for a copy of the world
+        that only draws (it is never stepped, so nothing falls or collides)."""
+        bullet, robot = self.bullet, self.robot
+        for joint, value in zip(robot.movable, poses.joints, strict=True):
+            bullet.resetJointState(robot.id, joint, value)
+        for bodies, where in ((self.object_bodies, poses.objects), (self.human_bodies, poses.humans)):
+            for name, (position, orientation) in where.items():
+                bullet.resetBasePositionAndOrientation(bodies[name], position, orientation)
+        self.holding = poses.holding
 
     # The world changing under the robot's feet (sim/move)
 

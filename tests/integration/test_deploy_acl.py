@@ -279,14 +279,26 @@ def test_the_rights_each_identity_has_and_has_not(fleet: Fleet) -> None:
     assert not query_passes(fleet, fleet.s("r1", "sim"), "tether/r1/safety/reset", m)
 
 
-def serves(f: Fleet, server: zenoh.Session, key: str, marker: str, asker: zenoh.Session) -> bool:
+def serves(
+    f: Fleet,
+    server: zenoh.Session,
+    key: str,
+    marker: str,
+    asker: zenoh.Session,
+    *,
+    ask: str | None = None,
+    reply_as: str | None = None,
+) -> bool:
     """Does the router let `server` answer `asker`'s queries on `key` (accept its queryable and replies)?
 
-    The router's own queryable answers every query too; the server's reply is known by its nonce."""
+    `asker` asks `ask` (default `key`); `server` replies under `reply_as` (default `key`). The router's
+    own queryable answers every query too; the server's reply is known by its nonce."""
     nonce = os.urandom(8)
-    with server.declare_queryable(key, lambda q: q.reply(key, nonce)):
+    with server.declare_queryable(key, lambda q: q.reply(reply_as or key, nonce)):
         until_marker(f, server, marker)  # the router has handled the declaration
-        replies = asker.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0)
+        replies = asker.get(
+            ask or key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE, timeout=5.0
+        )
         return any(r.ok is not None and r.ok.payload.to_bytes() == nonce for r in replies)
 
 
@@ -310,6 +322,37 @@ def test_each_service_serves_only_its_own_keys(fleet: Fleet) -> None:
     assert not serves(fleet, s("planner"), "tether/r1/safety/check_plan", m, s("operator"))
     for identity in ("executor", "planner"):
         assert not serves(fleet, s(identity), gripper, m, s("safety")), identity
+
+
+def test_each_service_answers_for_its_own_process_only(fleet: Fleet) -> None:
+    # `tether status` asks tether/<robot>/_process/*; each service answers on its own key (runtime.py).
+    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/plan/marker"
+    every = "tether/r1/_process/*"
+    assert serves(fleet, s("sim"), "tether/r1/_process/sim", m, s("operator"), ask=every)
+    assert serves(fleet, s("safety"), "tether/r1/_process/safety", m, s("executor"), ask=every)
+    # Asked by the operator and the services, not the agent.
+    assert query_passes(fleet, s("recorder"), every, m)
+    assert not query_passes(fleet, s("agent"), every, marker_of("r1", "agent"))
+    # Nobody answers in another's place: not on its key, not under a wider one, not by a reply's key.
+    for identity in ("sim", "planner", "recorder", "operator", "agent"):
+        server, marker = s(identity), marker_of("r1", identity)
+        assert not serves(fleet, server, "tether/r1/_process/safety", marker, s("executor"), ask=every), identity
+        wide = serves(
+            fleet,
+            server,
+            "tether/r1/_process/**",
+            marker,
+            s("executor"),
+            ask=every,
+            reply_as="tether/r1/_process/safety",
+        )
+        assert not wide, identity
+    assert not serves(
+        fleet, s("sim"), "tether/r1/_process/sim", m, s("operator"), ask=every, reply_as="tether/r1/_process/safety"
+    )
+    assert not serves(
+        fleet, fleet.s("r2", "safety"), "tether/r1/_process/safety", "tether/r2/plan/marker", s("operator")
+    )
 
 
 def cmd_vel_passes_with(f: Fleet, conf: zenoh.Config) -> bool:
@@ -424,6 +467,11 @@ def test_a_deployment_runs_a_plan_through_its_router_with_an_identity_per_servic
         assert {"sim", "safety", "parser", "resolver", "executor", "recorder"} <= set(report["alive"])
         one = tether(*agent, "status", "--check", "--service", "safety")
         assert one.returncode == 0, one.stderr
+        # Each service's own figures cross the router to the operator (the `_process` rules).
+        shown = tether(*operator, "status", "--json")
+        processes = json.loads(shown.stdout)["processes"]
+        assert set(report["alive"]) <= set(processes), shown.stdout
+        assert all(p["rss_bytes"] > 0 for p in processes.values()), processes
 
         # A new deployment has no latch file yet, so safety starts latched; only the operator clears it.
         refused = tether(*agent, "reset", "--token-file", str(directory / "r1" / "operator.token"))

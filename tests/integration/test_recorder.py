@@ -86,6 +86,83 @@ def drive(stack: Stack) -> None:
     assert beats.wait_for(lambda b: not b.estop.latched, timeout=5.0, after=len(beats))
 
 
+# These two start a recorder of their own: they run before `incident`'s stack is up.
+def test_a_recorder_stopped_cleanly_holds_exactly_what_was_published(tmp_path: Path) -> None:
+    settings = NodeSettings(robot="counted", base_port=free_ports(6))
+    supervisor = Supervisor(settings, tmp_path / "logs", write_config(tmp_path / "tether.toml", 1.0))
+    key = f"{keys.prefix(settings.robot)}/load/counter"
+    published = 5000
+    try:
+        supervisor.start("recorder")
+        with Node("cli", settings) as node:
+            assert not node.wait_alive(["recorder"], 30.0), supervisor.log_tail("recorder")
+            # BLOCK: the publisher waits rather than drop, so all are on their way.
+            publisher = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(published):
+                publisher.put(encode({"i": i, "pad": "x" * 900}))
+            asked = 0
+            deadline = time.monotonic() + 20.0
+            # Each status query adds its own trace to the file.
+            while node.call(keys.RECORDER_STATUS, Empty()).messages < published + asked:
+                asked += 1
+                assert time.monotonic() < deadline, "the recorder never caught up"
+        assert supervisor.stop("recorder") == 0
+    finally:
+        supervisor.stop_all()
+    [file] = (tmp_path / "recordings").glob("*.mcap")
+    recording = read_recording(file)
+    assert recording.complete
+    numbers = [json.loads(m.data)["i"] for m in recording.messages if m.key == key]
+    assert numbers == list(range(published))
+
+
+def test_a_recorder_killed_with_sigkill_leaves_a_file_that_recovers(tmp_path: Path) -> None:
+    settings = NodeSettings(robot="killed", base_port=free_ports(6))
+    config = write_config(tmp_path / "tether.toml", 1.0)
+    supervisor = Supervisor(settings, tmp_path / "logs", config)
+    key = f"{keys.prefix(settings.robot)}/load/counter"
+    try:
+        supervisor.start("recorder")
+        with Node("cli", settings) as node:
+            assert not node.wait_alive(["recorder"], 30.0), supervisor.log_tail("recorder")
+            publisher = node.session.declare_publisher(key)
+            for i in range(300):
+                publisher.put(encode({"i": i, "sent": time.time()}))
+            deadline = time.monotonic() + 10.0
+            while (status := node.call(keys.RECORDER_STATUS, Empty())).messages < 300:
+                assert time.monotonic() < deadline, f"the recorder holds {status.messages} of 300"
+            # Keep publishing for two flush intervals, then kill it mid-stream.
+            i, stop_at = 300, time.time() + 2.5
+            while time.time() < stop_at:
+                publisher.put(encode({"i": i, "sent": time.time()}))
+                i += 1
+                time.sleep(0.01)  # pacing the publisher at 100 Hz, not waiting on the recorder
+            killed = time.time()
+            os.killpg(supervisor.procs["recorder"].pid, signal.SIGKILL)
+            supervisor.procs["recorder"].wait(timeout=10)
+    finally:
+        supervisor.stop_all()
+    [file] = (tmp_path / "recordings").glob("*.mcap")
+    cut = read_recording(file)
+    assert not cut.complete
+    counters = [json.loads(m.data) for m in cut.messages if m.key == key]
+    assert [c["i"] for c in counters] == list(range(len(counters))), "a gap in what was kept"
+    # At most one flush interval (1 s) is lost, plus the time the last flush takes.
+    assert counters[-1]["sent"] > killed - 1.5, f"lost the last {killed - counters[-1]['sent']:.2f} s"
+
+    out = tmp_path / "recovered.mcap"
+    done = run_tether(supervisor, "recover", str(file), "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "recovered" in done.stderr
+    with out.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(cut.messages)
+        assert [a.name.split("/")[0] for a in reader.iter_attachments()] == ["world", "policy"]
+    assert read_recording(out).complete
+
+
 @pytest.fixture(scope="module")
 def incident(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Incident]:
     stack = start_stack(tmp_path_factory.mktemp("incident"), 10.0, services=("sim", "safety", "recorder"))
@@ -308,79 +385,3 @@ def test_replaying_onto_the_live_robot_needs_a_flag_and_goes_through_safety(inci
     assert (keys.CMD_NAVIGATE.send_goal.path, Decision.APPROVED, None) in decided
     assert (keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, Rule.KEEP_OUT) in decided
     assert (keys.CMD_GRIPPER.send_goal.path, Decision.APPROVED, None) in decided
-
-
-def test_a_recorder_stopped_cleanly_holds_exactly_what_was_published(tmp_path: Path) -> None:
-    settings = NodeSettings(robot="counted", base_port=free_ports(6))
-    supervisor = Supervisor(settings, tmp_path / "logs", write_config(tmp_path / "tether.toml", 1.0))
-    key = f"{keys.prefix(settings.robot)}/load/counter"
-    published = 5000
-    try:
-        supervisor.start("recorder")
-        with Node("cli", settings) as node:
-            assert not node.wait_alive(["recorder"], 30.0), supervisor.log_tail("recorder")
-            # BLOCK: the publisher waits rather than drop, so all are on their way.
-            publisher = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-            for i in range(published):
-                publisher.put(encode({"i": i, "pad": "x" * 900}))
-            asked = 0
-            deadline = time.monotonic() + 20.0
-            # Each status query adds its own trace to the file.
-            while node.call(keys.RECORDER_STATUS, Empty()).messages < published + asked:
-                asked += 1
-                assert time.monotonic() < deadline, "the recorder never caught up"
-        assert supervisor.stop("recorder") == 0
-    finally:
-        supervisor.stop_all()
-    [file] = (tmp_path / "recordings").glob("*.mcap")
-    recording = read_recording(file)
-    assert recording.complete
-    numbers = [json.loads(m.data)["i"] for m in recording.messages if m.key == key]
-    assert numbers == list(range(published))
-
-
-def test_a_recorder_killed_with_sigkill_leaves_a_file_that_recovers(tmp_path: Path) -> None:
-    settings = NodeSettings(robot="killed", base_port=free_ports(6))
-    config = write_config(tmp_path / "tether.toml", 1.0)
-    supervisor = Supervisor(settings, tmp_path / "logs", config)
-    key = f"{keys.prefix(settings.robot)}/load/counter"
-    try:
-        supervisor.start("recorder")
-        with Node("cli", settings) as node:
-            assert not node.wait_alive(["recorder"], 30.0), supervisor.log_tail("recorder")
-            publisher = node.session.declare_publisher(key)
-            for i in range(300):
-                publisher.put(encode({"i": i, "sent": time.time()}))
-            deadline = time.monotonic() + 10.0
-            while (status := node.call(keys.RECORDER_STATUS, Empty())).messages < 300:
-                assert time.monotonic() < deadline, f"the recorder holds {status.messages} of 300"
-            # Keep publishing for two flush intervals, then kill it mid-stream.
-            i, stop_at = 300, time.time() + 2.5
-            while time.time() < stop_at:
-                publisher.put(encode({"i": i, "sent": time.time()}))
-                i += 1
-                time.sleep(0.01)  # pacing the publisher at 100 Hz, not waiting on the recorder
-            killed = time.time()
-            os.killpg(supervisor.procs["recorder"].pid, signal.SIGKILL)
-            supervisor.procs["recorder"].wait(timeout=10)
-    finally:
-        supervisor.stop_all()
-    [file] = (tmp_path / "recordings").glob("*.mcap")
-    cut = read_recording(file)
-    assert not cut.complete
-    counters = [json.loads(m.data) for m in cut.messages if m.key == key]
-    assert [c["i"] for c in counters] == list(range(len(counters))), "a gap in what was kept"
-    # At most one flush interval (1 s) is lost, plus the time the last flush takes.
-    assert counters[-1]["sent"] > killed - 1.5, f"lost the last {killed - counters[-1]['sent']:.2f} s"
-
-    out = tmp_path / "recovered.mcap"
-    done = run_tether(supervisor, "recover", str(file), "-o", str(out))
-    assert done.returncode == 0, done.stderr
-    assert "recovered" in done.stderr
-    with out.open("rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        assert summary is not None and summary.statistics is not None
-        assert summary.statistics.message_count == len(cut.messages)
-        assert [a.name.split("/")[0] for a in reader.iter_attachments()] == ["world", "policy"]
-    assert read_recording(out).complete

@@ -36,7 +36,7 @@ from services.ros2.types import RosTypes
 from services.ros2.wire import Attachment, Naming, Style
 from services.runtime import Node
 from services.worldmodel import load_world
-from tests.integration.conftest import start_stack, stop_stack, tether_cli
+from tests.integration.conftest import LOADED_MACHINE_HEARTBEAT, start_stack, stop_stack, tether_cli
 from tests.robot_contract.conftest import CONTRACT_SIM, RunningBackend, ros2_backend, running
 from tests.sessions import free_port
 from tether.cli import status_dict
@@ -66,7 +66,7 @@ goal_timeout = {GOAL_TIMEOUT}
 cancel_timeout = 1.0
 odom_timeout = {ODOM_TIMEOUT}
 first_heartbeat_wait = 1.0
-"""
+{LOADED_MACHINE_HEARTBEAT}"""
 
 WORLD = load_world("household")
 START = WORLD.robot.start

@@ -13,7 +13,7 @@ from schemas import keys
 from schemas.executor import ExecutePlanGoal, PlanStatus
 from schemas.world import Empty, GroundTruth
 from services.runtime import stack_services
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import LOADED_MACHINE_HEARTBEAT, Stack, start_stack, stop_stack, tether_cli
 from tests.sessions import free_ports
 from tether.cli import DEMO_PLAN
 from tether.client import PlanSender
@@ -29,7 +29,7 @@ def truth(stack: Stack) -> GroundTruth:
 def ros2_config(endpoint: str) -> str:
     """The backend, the stand-in robot and the recorder's ROS 2 side on one robot network."""
     return (
-        f'[ros2]\nendpoint = "{endpoint}"\n\n[ros2sim]\nlisten = "{endpoint}"\n\n'
+        f'[ros2]\nendpoint = "{endpoint}"\n{LOADED_MACHINE_HEARTBEAT}\n[ros2sim]\nlisten = "{endpoint}"\n\n'
         f'[recorder.ros2]\nendpoint = "{endpoint}"\n'
     )
 

@@ -38,6 +38,9 @@ from tests.robot_contract.conftest import CONTRACT_SIM, ros2_backend, running
 from tests.sessions import free_port, free_ports
 from tether.supervisor import Supervisor
 
+# Bounds in wall-clock time: `make test` runs these one at a time at normal priority (tests/suite.py).
+pytestmark = pytest.mark.realtime
+
 T = TypeVar("T")
 
 DOMAIN = 7  # not the default, so a side that ignored ROS_DOMAIN_ID would hear nothing

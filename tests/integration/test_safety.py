@@ -43,7 +43,7 @@ def move(stack: Stack, entity: str, x: float, y: float) -> None:
 @pytest.fixture
 def robot_stack(tmp_path: Path) -> Iterator[Stack]:
     """The robot and its safety only, the sim at real time: commands sent as the executor would."""
-    s = start_stack(tmp_path, realtime_factor=1.0, services=("sim", "safety"))
+    s = start_stack(tmp_path, realtime_factor=1.0, services=("sim", "safety"), strict_timing=True)
     try:
         yield s
     finally:
@@ -53,7 +53,7 @@ def robot_stack(tmp_path: Path) -> Iterator[Stack]:
 @pytest.fixture
 def safety_alone(tmp_path: Path) -> Iterator[Stack]:
     """Safety with no robot: the test plays the robot's state, to make it fail in ways the sim cannot."""
-    s = start_stack(tmp_path, realtime_factor=1.0, services=("safety",))
+    s = start_stack(tmp_path, realtime_factor=1.0, services=("safety",), strict_timing=True)
     try:
         yield s
     finally:
@@ -97,6 +97,7 @@ def test_unsafe_plans_never_move_the_robot(stack: Stack) -> None:
     assert all(e.policy_hash == POLICY_HASH for e in events.messages)
 
 
+@pytest.mark.realtime
 def test_an_estop_during_arm_motion_stops_the_arm(robot_stack: Stack) -> None:
     stack = robot_stack
     joints = Watch(stack.node, keys.JOINT_STATES)
@@ -126,6 +127,7 @@ def test_an_estop_during_arm_motion_stops_the_arm(robot_stack: Stack) -> None:
     assert still.position[0] < target[0] - 0.1, "the trajectory ran to its end"
 
 
+@pytest.mark.realtime
 def test_a_person_near_slows_the_base_and_a_person_close_pauses_it(robot_stack: Stack) -> None:
     stack = robot_stack
     beats = Watch(stack.node, keys.HEARTBEAT)
@@ -171,6 +173,7 @@ def is_subsequence(wanted: list[float], seen: list[float]) -> bool:
     return all(any(x == w for x in it) for w in wanted)
 
 
+@pytest.mark.realtime
 def test_teleop_is_clamped_and_reported_while_a_program_over_the_limit_is_refused(robot_stack: Stack) -> None:
     stack = robot_stack
     events = Watch(stack.node, keys.SAFETY_EVENTS)
@@ -219,6 +222,7 @@ def publish_odom(stack: Stack, linear: float, samples: int, x: float = 6.0) -> N
         time.sleep(0.02)  # paces the played robot's 50 Hz odometry; nothing waits on it
 
 
+@pytest.mark.realtime
 def test_a_runaway_robot_trips_the_monitor_and_a_silent_one_the_watchdog(safety_alone: Stack) -> None:
     stack = safety_alone
     beats = Watch(stack.node, keys.HEARTBEAT)
@@ -264,6 +268,7 @@ def test_a_runaway_robot_trips_the_monitor_and_a_silent_one_the_watchdog(safety_
     assert len(refusals) == 2 and "an operator must reset it" in refusals[0].reason
 
 
+@pytest.mark.realtime
 def test_a_policy_zone_where_the_robot_stands_trips_the_monitor_at_once(tmp_path: Path) -> None:
     policy = tmp_path / "policy.toml"
     policy.write_text(
@@ -271,7 +276,7 @@ def test_a_policy_zone_where_the_robot_stands_trips_the_monitor_at_once(tmp_path
         + '\n[[keep_out]]\nid = "wet_floor"\nname = "wet floor"\nreason = "just mopped"\n'
         + "polygon = [[5.5, 0.7], [6.5, 0.7], [6.5, 1.7], [5.5, 1.7]]\n"
     )
-    stack = start_stack(tmp_path, realtime_factor=1.0, services=("sim", "safety"), policy=policy)
+    stack = start_stack(tmp_path, realtime_factor=1.0, services=("sim", "safety"), policy=policy, strict_timing=True)
     try:
         beat = Watch(stack.node, keys.HEARTBEAT).wait_for(lambda b: b.estop.latched, timeout=10.0)
         assert beat is not None and beat.estop.source == EstopSource.MONITOR

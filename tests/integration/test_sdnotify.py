@@ -21,6 +21,9 @@ from tests.integration.conftest import STARTUP_TIMEOUT, dump_logs, write_config
 from tests.sessions import free_ports
 from tether.supervisor import Supervisor
 
+# Bounds in wall-clock time: `make test` runs these one at a time at normal priority (tests/suite.py).
+pytestmark = pytest.mark.realtime
+
 WATCHDOG_USEC = 400_000  # fed every 0.2 s
 SERVICES = ("parser", "safety")
 UCRED = struct.Struct("3i")  # pid, uid, gid: what SO_PASSCRED attaches, as systemd reads the sender
@@ -87,7 +90,7 @@ def test_ready_then_watchdog_and_a_stopped_safety_stops_feeding(
 ) -> None:
     listener, path = notify
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(ALL_SERVICES)))
-    config = write_config(tmp_path / "tether.toml", realtime_factor=1.0)
+    config = write_config(tmp_path / "tether.toml", realtime_factor=1.0, strict_timing=True)
     env = {
         "NOTIFY_SOCKET": path,
         "WATCHDOG_USEC": str(WATCHDOG_USEC),

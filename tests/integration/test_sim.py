@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import itertools
 import math
+import os
+import signal
+import statistics
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from schemas import keys
-from schemas.world import Empty, Moved, MoveEntity
+from schemas.world import CameraImage, Empty, Moved, MoveEntity
+from services.sim.config import CameraConfig, SimConfig
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.procs import children, gone, wait_until
 from tests.watch import Watch
 
 # On the coffee table, which the camera sees from the robot's start pose.
@@ -71,3 +77,24 @@ def test_tether_world_move_prints_the_result_or_the_refusal_with_exit_codes(sim_
     assert outside.returncode == 2 and "outside every room" in outside.stderr
     unreachable = tether_cli(sim_stack, "--base-port", "1100", "--robot", "nobody", "world", "move", "apple", "7", "1")
     assert unreachable.returncode == 3, unreachable.stderr
+
+
+def test_the_camera_renders_in_a_child_at_the_objects_rate_and_dies_with_the_sim(sim_stack: Stack) -> None:
+    sim = sim_stack.supervisor.procs["sim"].pid
+    renderers = [p for p in children(sim) if "services.sim.renderer" in Path(f"/proc/{p}/cmdline").read_text()]
+    assert len(renderers) == 1, f"the sim (pid {sim}) has no renderer process"
+    # Detections come from it at objects_hz per wall second, stamped by the sim's schedule.
+    objects = Watch(sim_stack.node, keys.OBJECTS)
+    assert objects.wait_for(lambda m: True, timeout=10.0, after=0)
+    assert objects.wait_for(lambda m: True, timeout=10.0, after=len(objects) + 5), "detections stopped"
+    stamps = [m.stamp for m in objects.messages]
+    gap = statistics.median(b - a for a, b in itertools.pairwise(stamps))
+    assert gap == pytest.approx(1.0 / SimConfig().objects_hz, rel=0.25), f"stamps {stamps}"
+    assert any(o.id == "blue_book" for o in objects.messages[-1].objects), "the coffee table's book is in view"
+    # The MCP camera tool's picture, drawn there too.
+    image = sim_stack.node.call(keys.CAMERA_IMAGE, Empty(), timeout=10.0)
+    assert isinstance(image, CameraImage)
+    assert (image.width, image.height) == (2 * CameraConfig().width, 2 * CameraConfig().height)
+
+    os.kill(sim, signal.SIGKILL)  # the sim alone, as a crash: nothing of it runs, the child is not told
+    assert wait_until(lambda: gone(renderers[0]), 10.0), f"renderer {renderers[0]} outlived the killed sim"

@@ -36,6 +36,15 @@ FAR_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen tab
 BACK_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "coffee table"}]})
 
 
+MB = 1024 * 1024
+
+
+def resident(pid: int) -> int:
+    """A process's resident memory in bytes, as the kernel here counts it (VmRSS)."""
+    line = next(x for x in Path(f"/proc/{pid}/status").read_text().splitlines() if x.startswith("VmRSS:"))
+    return int(line.split()[1]) * 1024
+
+
 def truth(stack: Stack) -> GroundTruth:
     return stack.node.call(keys.GROUND_TRUTH, Empty(), timeout=5.0)
 
@@ -124,6 +133,13 @@ def test_a_plan_into_the_stairs_is_rejected_by_safety_and_nothing_moves(stack: S
     assert (book["room"], book["on"]) == ("living_room", "coffee_table")
     assert set(book["pose"]) == {"x", "y", "z"}
     assert not any(o["name"] == "red cup" for o in state["objects"])
+    # Each service tells its own process's memory: that of the process the supervisor started.
+    assert set(state["processes"]) == set(stack.supervisor.procs), state["processes"]
+    for name, process in state["processes"].items():
+        assert process["service"] == name and process["pid"] == stack.supervisor.procs[name].pid
+        assert 10 * MB < process["rss_bytes"] <= process["peak_rss_bytes"] < 2048 * MB, process
+        assert process["cpu_seconds"] > 0 and process["uptime_seconds"] > 0
+        assert process["rss_bytes"] == pytest.approx(resident(process["pid"]), rel=0.25), name
 
 
 def test_send_exit_codes(stack: Stack) -> None:
@@ -159,6 +175,7 @@ def test_send_exit_codes(stack: Stack) -> None:
     assert json.loads(unreachable.stdout)["status"] == "unreachable"
 
 
+@pytest.mark.realtime
 def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_stack: Stack) -> None:
     stack = realtime_stack
     odom = Watch(stack.node, keys.ODOM)
@@ -217,6 +234,7 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
     assert status is PlanStatus.SUCCEEDED, reason
 
 
+@pytest.mark.realtime
 def test_killing_safety_stops_the_base_and_the_sim_refuses_goals_until_it_returns(realtime_stack: Stack) -> None:
     stack = realtime_stack
     odom = Watch(stack.node, keys.ODOM)

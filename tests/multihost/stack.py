@@ -36,8 +36,8 @@ from schemas.world import Empty, GroundTruth
 from services.runtime import Node, NodeSettings
 from tests.multihost.linkproxy import ProxyControl
 from tests.multihost.netns import ROUTER_ALT_IP, ROUTER_IP, ROUTER_PORT, Proc, Topology, sh
+from tests.sessions import free_port
 from tether.client import PlanRun, PlanSender
-from tether.supervisor import free_base_port
 
 ROBOT_SERVICES = ("sim", "safety", "recorder")
 EDGE_SERVICES = ("parser", "resolver", "executor", "planner")
@@ -187,7 +187,7 @@ class MultiHost:
             self.robots[name] = robot = Robot(name, host, link)
             robot.on_robot = self.up(name, host, ROBOT_SERVICES)
             robot.on_edge = self.up(name, "edge", EDGE_SERVICES)
-        tap_port = free_base_port(1)
+        tap_port = free_port()
         self.topo.start_proxy(
             "root", f"127.0.0.1:{tap_port}", f"{ROUTER_IP}:{ROUTER_PORT}", connect_netns=self.topo.edge.netns
         )

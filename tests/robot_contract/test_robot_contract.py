@@ -32,6 +32,9 @@ from services.safety.policyfile import MonitorPolicy
 from tests.robot_contract.conftest import RunningBackend
 from tests.watch import Watch
 
+# Bounds in wall-clock time: `make test` runs these one at a time at normal priority (tests/suite.py).
+pytestmark = pytest.mark.realtime
+
 G = TypeVar("G")
 F = TypeVar("F")
 R = TypeVar("R")

@@ -1,21 +1,27 @@
-"""Actions over two real Zenoh sessions in one process: status without waiting, preemption, cancel grace."""
+"""Actions over two real Zenoh sessions in one process: status without waiting, preemption, cancel grace,
+goals decided on Zenoh's callback thread when nothing makes them wait."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import pytest
 
 from schemas import keys
 from schemas.actions import GetResult, GoalState
-from schemas.common import Pose2D, Stage
+from schemas.common import ErrorKind, Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.keys import Service
+from schemas.plan import PlanText
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import CallError, GoalRejected
+from services.querypool import QueryPool
 from services.runtime import Node, NodeSettings
 from tests.sessions import free_port
 from tether.client import PlanSender
@@ -40,6 +46,12 @@ class Script:
     ended: list[str] = field(default_factory=list)
     running: threading.Event = field(default_factory=threading.Event)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    # The threads `accept` ran on, in order: Zenoh's callback thread or a pool worker.
+    accepted_on: list[str] = field(default_factory=list)
+
+    def accept(self, _goal: NavigateToPoseGoal) -> str | None:
+        self.accepted_on.append(threading.current_thread().name)
+        return self.refusal
 
     def execute(self, handle: GoalHandle[NavigateToPoseGoal, NavigateToPoseFeedback]) -> Outcome[NavigateToPoseResult]:
         if handle.goal.max_turn_rate == MOVES_NOTHING:
@@ -62,32 +74,87 @@ class Script:
                 self.ended.append(handle.goal_id)
 
 
+# Holds the server's one quick-query worker until released, so a query handed to a worker finds none.
+HOLD: Service[PlanText, PlanText] = Service("test/hold", PlanText, PlanText)
+
+
 @dataclass
 class Rig:
     client: ActionClient[NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult]
     node: Node
     script: Script
+    held: threading.Event = field(default_factory=threading.Event)
+    release_worker: threading.Event = field(default_factory=threading.Event)
+
+    def hold_the_worker(self, callers: ThreadPoolExecutor) -> Future[PlanText]:
+        """The server's only worker blocked (the pool has no backlog): a goal sent to a worker is answered busy."""
+        holding = callers.submit(self.node.call, HOLD, PlanText(text="hold"), timeout=WAIT)
+        assert self.held.wait(WAIT), "the worker was not taken"
+        return holding
 
 
-@pytest.fixture
-def rig() -> Iterator[Rig]:
+@contextlib.contextmanager
+def serving(accept_waits: Callable[[NavigateToPoseGoal], bool] | None = None) -> Iterator[Rig]:
+    """A navigation server whose `accept` is the script's, and a client; with `accept_waits`, the
+    server's quick queries have one worker and no backlog."""
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
     script = Script()
     with Node("sim", settings) as server_node, Node("test", settings) as client_node:
+        rig = Rig(ActionClient(client_node, keys.ROBOT_NAVIGATE, cancel_grace=0.5), client_node, script)
+        if accept_waits is not None:
+            server_node.queries = QueryPool("q:test", workers=1)
+
+            def hold(request: PlanText) -> PlanText:
+                rig.held.set()
+                assert rig.release_worker.wait(WAIT), "the worker was never released"
+                return request
+
+            server_node.serve(HOLD, hold)
         ActionServer(
             server_node,
             keys.ROBOT_NAVIGATE,
             script.execute,
-            accept=lambda _goal: script.refusal,
+            accept=script.accept,
             preempts=lambda goal: goal.max_speed == PREEMPTS,
             preempt_timeout=1.0,
             concurrent=lambda goal: goal.max_turn_rate == MOVES_NOTHING,
+            accept_waits=accept_waits,
         )
-        client = ActionClient(client_node, keys.ROBOT_NAVIGATE, cancel_grace=0.5)
         server_node.declare_alive()
         assert not client_node.wait_alive({"sim"}, WAIT), "the two sessions did not find each other"
-        yield Rig(client, client_node, script)
-        script.release.set()
+        try:
+            yield rig
+        finally:
+            script.release.set()
+            rig.release_worker.set()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    """Without `accept_waits`: the script's `accept` is taken to wait, every goal is decided on a worker."""
+    with serving() as rig:
+        yield rig
+
+
+def placed(goal: NavigateToPoseGoal) -> bool:
+    """As the sim's: deciding on a goal without `start` waits (for where the base stands)."""
+    return goal.start is None
+
+
+@pytest.fixture
+def quick() -> Iterator[Rig]:
+    with serving(accept_waits=placed) as rig:
+        yield rig
+
+
+def from_here(**limits: float) -> NavigateToPoseGoal:
+    """A goal whose `accept` does not wait (its start is given)."""
+    return NavigateToPoseGoal(pose=HERE, start=HERE, **limits)
+
+
+def on_a_worker(thread: str) -> bool:
+    """Whether `thread` is a worker of a node's query pools (services/querypool.py)."""
+    return thread.startswith(("q:", "w:"))
 
 
 def test_status_answers_at_once_with_the_latest_feedback_and_then_the_result(rig: Rig) -> None:
@@ -119,6 +186,8 @@ def test_a_second_goal_is_rejected_while_one_runs_unless_it_preempts(rig: Rig) -
     rig.script.release.set()
     assert second.result(WAIT).state is GoalState.SUCCEEDED
     assert rig.script.started == [first.goal_id, second.goal_id]
+    # Without `accept_waits`, an `accept` is taken to wait: every goal was decided on a worker.
+    assert len(rig.script.accepted_on) == 4 and all(on_a_worker(t) for t in rig.script.accepted_on)
 
 
 def test_a_preempting_goal_is_checked_again_once_the_old_one_ended(rig: Rig) -> None:
@@ -166,6 +235,59 @@ def test_a_goal_that_moves_nothing_runs_beside_the_running_one_and_preempts_noth
     rig.script.release.set()
     assert first.result(WAIT).state is GoalState.SUCCEEDED
     assert beside.result(WAIT).state is GoalState.SUCCEEDED
+
+
+def test_a_goal_that_waits_for_nothing_is_decided_on_zenohs_thread_with_no_worker_free(quick: Rig) -> None:
+    with ThreadPoolExecutor(1, thread_name_prefix="caller") as callers:
+        holding = quick.hold_the_worker(callers)
+        try:
+            # Nothing running, `accept` does not wait: accepted although no worker could have taken it.
+            first = quick.client.send(from_here())
+            assert quick.script.running.wait(WAIT)
+            assert len(quick.script.accepted_on) == 1
+            assert not on_a_worker(quick.script.accepted_on[0]) and not quick.script.accepted_on[0].startswith("caller")
+            # Neither does one that does not preempt: rejected at once as busy; nor one that moves nothing.
+            with pytest.raises(GoalRejected, match="busy with another goal"):
+                quick.client.send(from_here())
+            beside = quick.client.send(from_here(max_speed=PREEMPTS, max_turn_rate=MOVES_NOTHING))
+            assert beside.result(WAIT).state is GoalState.SUCCEEDED
+            # One that would preempt the running goal waits for it to end: that is a worker's, and none is free.
+            with pytest.raises(CallError, match="too busy to answer") as busy:
+                quick.client.send(from_here(max_speed=PREEMPTS))
+            assert busy.value.error.kind is ErrorKind.UNAVAILABLE
+            assert quick.script.ended == [], "a goal answered busy preempted the running one"
+            # Cancel never waits either.
+            assert first.cancel().accepted
+            ended = first.result(WAIT)
+            assert (ended.state, quick.script.ended) == (GoalState.CANCELED, [first.goal_id])
+            # Nothing runs now, but this goal's `accept` waits (no start): a worker's, and none is free.
+            with pytest.raises(CallError, match="too busy to answer"):
+                quick.client.send(NavigateToPoseGoal(pose=HERE))
+            assert not any(on_a_worker(t) for t in quick.script.accepted_on)
+            assert quick.script.started == [first.goal_id]
+        finally:
+            quick.release_worker.set()
+        assert holding.result(WAIT) == PlanText(text="hold")
+
+
+def test_a_goal_that_preempts_or_whose_accept_waits_is_decided_on_a_worker(quick: Rig) -> None:
+    first = quick.client.send(from_here())
+    assert quick.script.running.wait(WAIT)
+    assert not on_a_worker(quick.script.accepted_on[-1])
+    second = quick.client.send(from_here(max_speed=PREEMPTS))
+    # Accepted on a worker only once the preempted goal had ended (the script asserts no overlap);
+    # `accept` asked before the wait and again after it.
+    ended = first.result(WAIT)
+    assert (ended.state, ended.message) == (GoalState.CANCELED, f"preempted by goal {second.goal_id}; stopped")
+    assert quick.script.accepted_on[1:] == [quick.script.accepted_on[1]] * 2
+    assert on_a_worker(quick.script.accepted_on[1])
+    quick.script.release.set()
+    assert second.result(WAIT).state is GoalState.SUCCEEDED
+    # Nothing running, but its `accept` waits: on a worker too.
+    third = quick.client.send(NavigateToPoseGoal(pose=HERE))
+    assert third.result(WAIT).state is GoalState.SUCCEEDED
+    assert len(quick.script.accepted_on) == 4 and on_a_worker(quick.script.accepted_on[3])
+    assert quick.script.started == [first.goal_id, second.goal_id, third.goal_id]
 
 
 def test_a_plan_sender_hears_only_its_own_plans_and_keeps_nothing_once_they_end() -> None:

@@ -281,10 +281,13 @@ def test_each_service_may_serve_only_its_own_keys(tmp_path: Path) -> None:
             for k in rules[name]["key_exprs"]
         }
 
-    assert served_by("parser") == {"tether/r1/plan/parse"}
-    assert served_by("planner") == {"tether/r1/plan/ask", "tether/r1/planner/**"}
-    assert served_by("safety") == {"tether/r1/cmd/*/_action/**", "tether/r1/safety/**"}
+    assert served_by("parser") == {"tether/r1/plan/parse", "tether/r1/_process/parser"}
+    assert served_by("planner") == {"tether/r1/plan/ask", "tether/r1/planner/**", "tether/r1/_process/planner"}
+    assert served_by("safety") == {"tether/r1/cmd/*/_action/**", "tether/r1/safety/**", "tether/r1/_process/safety"}
     assert served_by("operator") == served_by("agent") == set()
     for identity in deployment.IDENTITIES:
         if identity != "safety":
             assert not any(k.startswith(("tether/r1/cmd/", "tether/r1/safety/")) for k in served_by(identity))
+        # Each service answers `tether status` for its own process, and for no other's.
+        process = {k for k in served_by(identity) if k.startswith("tether/r1/_process/")}
+        assert process == ({f"tether/r1/_process/{identity}"} if identity in deployment.SERVICE_IDENTITIES else set())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import subprocess
 import sys
@@ -14,14 +15,15 @@ from typing import Any
 import msgspec
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from bench.parser import TEXT_PLAN
+from bench.parser import JSON_PLAN, TEXT_PLAN
 from schemas.common import ServiceError, Stage
 from schemas.plan import Action, Plan, PlanText
 from services.parser.errors import ParseError
-from services.parser.parser import answer, default_parser, parse
+from services.parser.parser import Parser, answer, default_parser, parse
+from services.parser.vocabulary import load_vocabulary
 
 ROOT = Path(__file__).resolve().parents[2]
 FORMATS = ("auto", "json", "yaml", "text")
@@ -612,3 +614,97 @@ def test_deep_nesting_is_refused_without_crashing_the_process(name: str) -> None
         pytest.fail(f"the process died with {died} at {at}\n{child.stderr[-2000:]}")
     assert [line for line in lines if not line.endswith(": refused")] == []
     assert len(lines) == len(FORMATS), child.stdout + child.stderr
+
+
+# The plain path: plans written plainly are read by one msgspec conversion instead of field by field.
+# It must give exactly what the general mapping gives, and hand everything else over to it.
+
+
+class GeneralOnly(Parser):
+    """The parser with its plain path switched off: every step mapped field by field."""
+
+    def _plain_steps(self, value: Any) -> None:
+        return None
+
+
+GENERAL = GeneralOnly(load_vocabulary())
+
+
+# Mostly plans the plain path takes, with now and then what it must hand over (a wrong type, a
+# synonym spelled otherwise, a null, a bad unit, a name the action does not use, a missing target).
+def mostly(good: list[Any], other: st.SearchStrategy[Any]) -> st.SearchStrategy[Any]:
+    return st.integers(0, 4).flatmap(lambda i: other if i == 0 else st.sampled_from(good))
+
+
+plain_params = st.dictionaries(
+    mostly(["speed", "distance", "angle", "direction", "duration", "text", "gesture"], st.sampled_from(PARAM_KEYS)),
+    mostly([0.5, 2, 90, "30 cm", "90 degrees", "2 seconds", "left", "forward", "here you are", "wave"], param_values),
+    max_size=3,
+)
+plain_variants = st.fixed_dictionaries(
+    {"action": mostly([*(a.value for a in Action), "go_to", "pick_up", "turn_left"], st.sampled_from(ACTION_WORDS))},
+    optional={
+        "target": mostly(["kitchen", "red cup"], names),
+        "target_object": mostly(["red cup", " apple "], names),
+        "target_location": mostly(["coffee table", "kitchen counter"], names),
+        "parameters": st.one_of(plain_params, st.none()),
+        "description": mostly(["go there", ""], st.one_of(st.none(), long_strings, scalars)),
+        "id": scalars,
+    },
+)
+# The benchmark's steps and the seeds' plain ones, as they are or with fields of a variant.
+PLAIN_STEPS = [*json.loads(JSON_PLAN)["plan"], *STEPS[:6]]
+# Copies: `perturbed` changes what it is given.
+plain_seeds = st.sampled_from(PLAIN_STEPS).map(copy.deepcopy)
+plain_steps = st.one_of(
+    plain_seeds,
+    st.builds(lambda step, other: {**step, **other}, plain_seeds, plain_variants),
+    plain_variants,
+)
+plain_plans = st.one_of(
+    st.lists(plain_steps, min_size=1, max_size=4),
+    st.builds(
+        lambda key, steps, description: {key: steps, **description},
+        st.sampled_from(["plan", "steps"]),
+        st.lists(plain_steps, max_size=4),
+        st.fixed_dictionaries({}, optional={"description": st.one_of(st.text(max_size=20), json_values)}),
+    ),
+)
+
+
+def both_ways(text: str, fmt: str) -> tuple[bytes | ServiceError, bytes | ServiceError]:
+    """The outcome of the parser and of the general mapping alone: the encoded Plan or the refusal."""
+    outcomes: list[bytes | ServiceError] = []
+    for parser in (default_parser(), GENERAL):
+        try:
+            outcomes.append(msgspec.json.encode(parser.parse(text, fmt)))
+        except ParseError as exc:
+            outcomes.append(exc.error)
+    return outcomes[0], outcomes[1]
+
+
+@PROPERTIES
+@given(value=st.one_of(plain_plans, perturbed(plain_plans)), fmt=st.sampled_from(["auto", "json", "yaml"]))
+def test_the_plain_path_gives_what_the_general_mapping_gives(value: Any, fmt: str) -> None:
+    if fmt == "yaml":
+        try:
+            text = yaml.safe_dump(value, sort_keys=False)
+        except yaml.YAMLError:  # a lone surrogate: not YAML at all
+            assume(False)
+    else:
+        text = to_json(value, 2, False)
+    fast, general = both_ways(text, fmt)
+    assert fast == general
+
+
+def test_plain_plans_take_the_plain_path() -> None:
+    """The property above compares something: the benchmark's plan and the seeds' plain steps are plain."""
+    parser = default_parser()
+    plain = [json.loads(JSON_PLAN), STEPS[:6], {"plan": STEPS[:6], "description": "Fetch the cup"}]
+    for value in plain:
+        assert parser._plain_steps(value) is not None, value
+        text = json.dumps(value)
+        assert both_ways(text, "json")[0] == both_ways(text, "json")[1]
+    # A sub-step, a synonym spelled otherwise, or a point hand the plan over.
+    for step in ({"substeps": [STEPS[0]]}, {"action": "Pick Up", "target": "cup"}, STEPS[6], STEPS[7]):
+        assert parser._plain_steps([step]) is None, step

@@ -1,12 +1,15 @@
-"""Pure logic loads without the transport: importing it in a fresh interpreter leaves zenoh out."""
+"""Pure logic loads without the transport, and a service without the heavy packages of the others."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tether.runservice import runs_a_service
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -49,3 +52,73 @@ def test_a_pure_module_does_not_load_zenoh(module: str) -> None:
     )
     assert child.returncode == 0, child.stderr[-2000:]
     assert child.stdout.strip() == "", f"importing {module} loaded {child.stdout.strip()}"
+
+
+# A service process loads what its service uses, no more: `tether run SERVICE` (the script, as systemd
+# units and containers run it) and `python -m tether run SERVICE` (as the Supervisor does) go through
+# tether.runservice, not tether.cli, and the CLI's quick commands load none of the heavy packages.
+# Steps in one interpreter, each adding to what the ones before loaded, so each forbids a subset of
+# what the step before it did.
+HEAVY = ("pinocchio", "pybullet", "ompl", "cryptography", "matplotlib", "mcp")
+LIGHT = (*HEAVY, "shapely", "numpy", "rich", "tether.cli")
+LOAD_STEPS = {
+    "module": [
+        ("`tether run` with the parser and the planner", "services.parser.main, services.planner.main", LIGHT),
+        ("the resolver", "services.resolver.main", (*HEAVY, "mcap", "rosbags")),
+        ("tether.cli (status, send, ...)", "tether.cli", HEAVY),
+    ],
+    # The recorder keeps the world and policy files, by their paths only (services/bundled.py).
+    "script": [("`tether run` with the recorder", "services.recorder.main", LIGHT)],
+}
+
+STEPS_CHILD = """
+import contextlib, importlib.metadata, io, json, runpy, sys
+
+entry, steps = sys.argv[1], json.loads(sys.argv[2])
+# `tether run` for real: tether/__main__.py picks the module, then `run` refuses the name.
+sys.argv = ["tether", "run", "no-such-service"]
+with contextlib.redirect_stderr(io.StringIO()), contextlib.suppress(SystemExit):
+    if entry == "module":  # python -m tether
+        runpy.run_module("tether", run_name="__main__", alter_sys=True)
+    else:  # the installed `tether` script: what pyproject.toml's [project.scripts] names
+        (script,) = importlib.metadata.entry_points(group="console_scripts", name="tether")
+        script.load()()
+loaded = {}
+for what, modules, forbidden in steps:
+    exec("import " + modules)
+    loaded[what] = [name for name in forbidden if name in sys.modules]
+print(json.dumps(loaded))
+"""
+
+
+@pytest.mark.parametrize("entry", LOAD_STEPS)
+def test_a_service_process_and_the_cli_load_no_heavy_package_they_do_not_use(entry: str) -> None:
+    steps = LOAD_STEPS[entry]
+    child = subprocess.run(
+        [sys.executable, "-c", STEPS_CHILD, entry, json.dumps(steps)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert child.returncode == 0, child.stderr[-2000:]
+    loaded = json.loads(child.stdout.splitlines()[-1])
+    assert loaded == {what: [] for what, _, _ in steps}, loaded
+
+
+@pytest.mark.parametrize(
+    ("argv", "alone"),
+    [
+        (["run", "parser"], True),
+        (["--robot", "r1", "--base-port", "7500", "run", "sim", "--config", "x.toml"], True),
+        (["--robot=r1", "--zenoh-config", "z.json5", "run", "--help"], True),
+        (["--robot", "run", "status"], False),  # `run` is the robot's name here
+        (["--help", "run"], False),  # the whole CLI's help
+        (["status"], False),
+        (["--robot", "r1"], False),
+        ([], False),
+    ],
+)
+def test_only_run_goes_to_the_small_module(argv: list[str], alone: bool) -> None:
+    assert runs_a_service(argv) is alone

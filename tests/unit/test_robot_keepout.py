@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from schemas.common import Pose2D
 from schemas.robot import NavigateToPoseGoal
@@ -117,3 +119,22 @@ def test_problems_count_each_kind_and_log_a_flood_once(caplog: pytest.LogCapture
             problems.note("refused a cmd_vel: into 'stairs'", "robot/cmd_vel")
     assert problems.recent(60.0) == [("refused a cmd_vel: into 'stairs' (50 so far)", 100.0)]
     assert len([r for r in caplog.records if r.name == "services.repeats"]) == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    x=st.floats(7.0, 14.0),
+    y=st.floats(4.0, 10.0),
+    yaw=st.floats(-math.pi, math.pi),
+    linear=st.floats(-1.5, 1.5),
+    angular=st.floats(-2.0, 2.0),
+)
+def test_skipping_zones_out_of_reach_never_changes_a_cmd_vel_verdict(
+    x: float, y: float, yaw: float, linear: float, angular: float
+) -> None:
+    fast = KeepOut.of(WORLD)
+    # The same check with every zone's box stretched over the plane: the sweep always runs.
+    full = KeepOut.of(WORLD)
+    full._bounds = [(-math.inf, -math.inf, math.inf, math.inf)] * len(full.zones)
+    here = Pose2D(x=x, y=y, yaw=yaw)
+    assert fast.drive(here, linear, angular, HOLD) == full.drive(here, linear, angular, HOLD)

@@ -89,7 +89,7 @@ class Recorder:
     def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> None:
         self.callbacks[key] = callback
 
-    def serve(self, service: keys.Service[Any, Any], handler: Callable[[Any], Any]) -> None:
+    def serve(self, service: keys.Service[Any, Any], handler: Callable[[Any], Any], **_how: Any) -> None:
         self.callbacks[service.path] = handler
 
     def call(self, service: keys.Service[Any, Any], request: Any, timeout: float) -> Any:

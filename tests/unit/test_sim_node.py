@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+import os
 import secrets
+import signal
 import threading
 import time
 import uuid
@@ -30,6 +33,7 @@ from services.sim.controllers import STALL_TIME, Controllers
 from services.sim.node import SimNode
 from services.sim.simulation import Simulation
 from services.worldmodel import load_world
+from tests.procs import wait_until
 from tests.sessions import free_port
 from tests.watch import Watch
 
@@ -244,3 +248,28 @@ def test_commands_and_heartbeats_without_safetys_mac_are_dropped_and_reported(ri
     texts = " | ".join(p.text for p in diagnostics.problems)
     assert "robot/navigate_to_pose/_action/send_goal" in texts and NOT_SIGNED in texts, texts
     assert f"safety/heartbeat: {BAD_MAC}" in texts, texts
+
+
+def test_a_dead_camera_renderer_stops_detections_and_pictures_but_not_the_robot(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    renderer = rig.sim_node.renderer
+    objects = Watch(rig.client, keys.OBJECTS)
+    assert objects.wait_for(lambda m: True, timeout=30.0), "no detections from the renderer"
+    with caplog.at_level(logging.ERROR, logger="services.sim.renderer"):
+        os.kill(renderer.pid, signal.SIGKILL)
+        assert wait_until(lambda: renderer.failure is not None, 10.0), "the sim never noticed"
+    assert any(str(renderer.pid) in r.getMessage() for r in caplog.records), "not logged"
+    with pytest.raises(CallError) as refused:
+        rig.client.call(keys.CAMERA_IMAGE, Empty(), timeout=5.0)
+    assert refused.value.error.kind is ErrorKind.UNAVAILABLE
+    assert f"pid {renderer.pid}" in refused.value.error.message
+    # The robot is still controlled and reports its state; no detections come any more.
+    seen = len(objects)
+    navigate = ActionClient(rig.client, keys.ROBOT_NAVIGATE)
+    wait_for_heartbeat(rig)
+    odom = Watch(rig.client, keys.ODOM)
+    goal = navigate.send(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2, yaw=0.0), max_speed=0.6))
+    assert odom.wait_for(lambda o: o.linear_x > 0.3, timeout=10.0), "the base never got going"
+    goal.cancel()
+    assert len(objects) == seen

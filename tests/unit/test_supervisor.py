@@ -14,7 +14,7 @@ import pytest
 from services.robotlink import KEY_ENV
 from services.runtime import NodeSettings
 from services.safety.operator import TOKEN_ENV
-from tether.supervisor import KEY_HOLDERS, Supervisor
+from tether.supervisor import KEY_HOLDERS, LOWEST_PORT, Supervisor, _outgoing_low, free_base_port
 
 # A "service" stuck where SIGTERM cannot reach it: the runtime's handlers, then SIGTERM ignored.
 STUCK = """
@@ -100,3 +100,33 @@ def test_only_the_key_holders_make_the_key_or_are_told_where_it_is(
     finally:
         supervisor.stop_all()
     assert not (tmp_path / "from-the-environment.key").exists() and not (tmp_path / "from-extra.key").exists()
+
+
+def test_parallel_workers_choose_ports_from_bands_that_do_not_overlap() -> None:
+    top = _outgoing_low()
+    first = {free_base_port(9, (0, 2)) for _ in range(50)}
+    second = {free_base_port(9, (1, 2)) for _ in range(50)}
+    middle = LOWEST_PORT + (top - 9 - LOWEST_PORT) // 2
+    assert all(base >= LOWEST_PORT and base + 9 <= middle for base in first)
+    assert all(middle <= base and base + 9 <= top for base in second)
+    with pytest.raises(ValueError, match="port band 2 of 2"):
+        free_base_port(9, (2, 2))
+
+
+# A service's main thread waiting for its stop, and SIGTERM delivered to another thread (as the
+# kernel may: to one of Zenoh's). Python only flags it; the main thread must wake to run the handler.
+SIGNALED_ELSEWHERE = """
+import signal, threading, time
+from services.runtime import stop_event
+stop = stop_event()
+threading.Thread(target=lambda: (time.sleep(0.2), signal.pthread_kill(threading.get_ident(), signal.SIGTERM))).start()
+started = time.monotonic()
+stop.wait()
+print(f"stopped after {time.monotonic() - started:.2f} s", flush=True)
+"""
+
+
+def test_sigterm_delivered_to_another_thread_still_stops_the_main_thread() -> None:
+    done = subprocess.run([sys.executable, "-c", SIGNALED_ELSEWHERE], capture_output=True, text=True, timeout=20)
+    assert done.returncode == 0, done.stderr
+    assert float(done.stdout.split()[2]) < 2.0, done.stdout

@@ -1,0 +1,51 @@
+"""A service process's own figures for `tether status`: resident memory and its peak, CPU time, uptime.
+
+Each service reads them about itself (services may run on other hosts than the one asking).
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import socket
+import sys
+import time
+from pathlib import Path
+
+from schemas.process import ProcessStatus
+
+STARTED = time.monotonic()
+PROC_STATUS = Path("/proc/self/status")
+
+
+def memory(status_file: Path = PROC_STATUS) -> tuple[int, int]:
+    """(resident, peak resident) in bytes: VmRSS and VmHWM from /proc; where there is no /proc (not
+    Linux), the peak from getrusage for both."""
+    try:
+        text = status_file.read_text()
+    except OSError:
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        peak *= 1 if sys.platform == "darwin" else 1024  # bytes on macOS, kB elsewhere
+        return peak, peak
+    fields: dict[str, int] = {}
+    for line in text.splitlines():
+        name, _, value = line.partition(":")
+        if name in ("VmRSS", "VmHWM"):
+            number, *unit = value.split()
+            fields[name] = int(number) * (1024 if unit == ["kB"] else 1)
+    rss = fields.get("VmRSS", 0)
+    return rss, max(rss, fields.get("VmHWM", rss))
+
+
+def process_status(service: str) -> ProcessStatus:
+    rss, peak = memory()
+    times = os.times()
+    return ProcessStatus(
+        service=service,
+        host=socket.gethostname()[:255],
+        pid=os.getpid(),
+        rss_bytes=rss,
+        peak_rss_bytes=peak,
+        cpu_seconds=times.user + times.system,
+        uptime_seconds=time.monotonic() - STARTED,
+    )

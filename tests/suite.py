@@ -1,0 +1,77 @@
+"""`make test`'s pytest run, sized for a 2-core machine: `python -m tests.suite [PYTEST ARGS]`.
+
+First, two pytest runs at once:
+- the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
+  time at normal priority; their output goes to a file and is shown when they end;
+- everything else on two pytest-xdist workers (`--dist loadscope`: whole modules, so a module's
+  shared stack stays on one worker; tests/conftest.py puts the longest first), at low priority
+  (nice 15), its output on the terminal.
+Then the tests marked `multihost` (realtime too: two robots' stacks in network namespaces, a router,
+link proxies) alone on the machine: with the others' load beside them, their robots' heartbeats
+came late now and then, and they are the slowest to recover from that.
+
+Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
+Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
+wall-clock tests' processes the moment they wake. Stacks of the parallel part run with a looser
+heartbeat bound (tests/integration/conftest.py, LOADED_MACHINE_HEARTBEAT) for the same reason.
+The exit status is the first failing run's (pytest's codes), or 0.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+# Low priority for the parallel part: at nice 15 a process weighs 1/28 of one at nice 0.
+NICE = 15
+# pytest's exit status when a selection holds no test: a run of files without such tests is fine.
+NO_TESTS = 5
+
+
+def pytest(*args: str) -> list[str]:
+    """pytest, quiet, listing each run's 15 slowest tests at the end (the suite's time is watched)."""
+    return [sys.executable, "-m", "pytest", "-q", "--durations=15", *args]
+
+
+def main(argv: list[str]) -> int:
+    extra = argv or ["tests"]
+    # Three bands of ports (tests/sessions.py): one per worker, the last for the realtime runs.
+    env = os.environ | {"TETHER_TEST_PORT_BANDS": "3"}
+    alone = env | {"TETHER_TEST_PORT_BAND": "2"}
+    with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
+        realtime = subprocess.Popen(
+            pytest("-m", "realtime and not multihost", "-p", "no:cacheprovider", *extra),
+            stdout=log,
+            stderr=log,
+            env=alone,
+        )
+        print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
+        try:
+            parallel = subprocess.run(
+                pytest("-n", "2", "--dist", "loadscope", "-m", "not realtime", *extra),
+                preexec_fn=lambda: os.nice(NICE),
+                env=env,
+                check=False,
+            ).returncode
+            if realtime.poll() is None:
+                print("waiting for the tests marked realtime ...", flush=True)
+            realtime.wait()
+        finally:
+            if realtime.poll() is None:
+                realtime.terminate()
+                realtime.wait()
+        print("\n== tests marked realtime ==", flush=True)
+        sys.stdout.buffer.write(Path(log.name).read_bytes())
+        sys.stdout.flush()
+    print("\n== tests marked multihost, alone ==", flush=True)
+    multihost = subprocess.run(pytest("-m", "multihost", "-p", "no:cacheprovider", *extra), env=alone).returncode
+    codes = (parallel, realtime.returncode, multihost)
+    failed = [code for code in codes if code not in (0, NO_TESTS)]
+    return failed[0] if failed else (0 if 0 in codes else NO_TESTS)
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,101 @@
+"""A service's own memory figures (services/procstat.py), and how `tether status` shows them."""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import uuid
+from pathlib import Path
+
+import msgspec
+import pytest
+import zenoh
+
+from schemas import keys
+from schemas.process import ProcessStatus
+from services.procstat import memory, process_status
+from services.runtime import Node, NodeSettings, decoder, encode
+from tests.sessions import free_port
+from tether.cli import memory_line
+
+MB = 1024 * 1024
+
+STATUS = """Name:\tpython
+Umask:\t0022
+State:\tS (sleeping)
+VmPeak:\t 2412340 kB
+VmSize:\t 2346804 kB
+VmHWM:\t  180224 kB
+VmRSS:\t  122880 kB
+RssAnon:\t   40960 kB
+Threads:\t39
+"""
+
+
+def test_resident_and_peak_come_from_vmrss_and_vmhwm(tmp_path: Path) -> None:
+    status = tmp_path / "status"
+    status.write_text(STATUS)
+    assert memory(status) == (120 * MB, 176 * MB)
+
+
+def test_without_proc_the_peak_stands_for_both(tmp_path: Path) -> None:
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    rss, peak = memory(tmp_path / "missing")
+    assert rss == peak
+    assert before <= peak <= resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def test_this_process_reports_itself_and_the_report_crosses_the_wire() -> None:
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    status = process_status("parser")
+    assert (status.service, status.pid) == ("parser", os.getpid())
+    assert 0 < status.rss_bytes <= status.peak_rss_bytes
+    assert status.peak_rss_bytes >= before  # VmHWM never below the peak getrusage saw earlier
+    assert status.cpu_seconds > 0 and status.uptime_seconds > 0
+    assert decoder(ProcessStatus).decode(encode(status)) == status
+
+
+def test_status_shows_the_total_then_each_service_in_mb() -> None:
+    processes = {
+        name: msgspec.structs.asdict(
+            ProcessStatus(
+                service=name,
+                host="h",
+                pid=10 + i,
+                rss_bytes=rss * MB,
+                peak_rss_bytes=rss * MB,
+                cpu_seconds=1.0,
+                uptime_seconds=5.0,
+            )
+        )
+        for i, (name, rss) in enumerate((("sim", 114), ("parser", 58)))
+    }
+    assert memory_line(processes) == "memory: 172 MB resident (sim 114, parser 58)"
+
+
+def test_status_takes_each_process_from_its_own_key_and_drops_one_claiming_another(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    with Node("sim", settings) as sim, Node("parser", settings) as liar, Node("cli", settings) as cli:
+        sim.declare_alive()
+        # On its own key, but saying it is safety.
+        claim = encode(msgspec.structs.replace(process_status("parser"), service="safety"))
+        key = keys.process_key(settings.robot, "parser")
+
+        def answer(query: zenoh.Query) -> None:
+            try:
+                query.reply(key, claim)
+            finally:
+                query.drop()
+
+        queryable = liar.session.declare_queryable(key, answer)
+        try:
+            assert not cli.wait_alive(["sim"], 10.0)
+            with caplog.at_level(logging.WARNING, logger="services.runtime"):
+                found = cli.process_statuses(timeout=2.0)
+        finally:
+            queryable.undeclare()
+    assert set(found) == {"sim"} and found["sim"].pid == os.getpid()
+    assert "dropped a process status for 'safety'" in caplog.text

@@ -1,0 +1,168 @@
+"""The camera's renderer process: the same detections and pictures as rendering in the sim's own process;
+frames dropped rather than queued; a dead renderer named, and the child gone with its parent."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schemas.common import ErrorKind
+from schemas.world import MoveEntity, PerceivedObjects
+from services.errors import CallError
+from services.sim.camera import png_base64
+from services.sim.config import CameraConfig
+from services.sim.renderer import Renderer
+from services.sim.simulation import Simulation
+from services.sim.world import Drop
+from services.worldmodel import load_world
+from tests.procs import gone, wait_until
+
+WORLD = load_world("household")
+CAMERA = CameraConfig()  # with its seeded noise: both processes must draw the same numbers
+DEADLINE = 30.0  # seconds for the child to load the world and draw, on a busy machine
+
+
+class Frames:
+    """What a renderer delivers, for waiting on."""
+
+    def __init__(self) -> None:
+        self.objects: list[PerceivedObjects] = []
+        self._arrived = threading.Condition()
+
+    def deliver(self, objects: PerceivedObjects) -> None:
+        with self._arrived:
+            self.objects.append(objects)
+            self._arrived.notify_all()
+
+    def wait(self, count: int, timeout: float = DEADLINE) -> bool:
+        with self._arrived:
+            return self._arrived.wait_for(lambda: len(self.objects) >= count, timeout)
+
+
+@pytest.fixture(scope="module")
+def sims() -> Iterator[tuple[Simulation, Simulation]]:
+    """(the sim without visuals, as the service runs it; one rendering in this process, the reference)."""
+    sim, reference = Simulation(WORLD, camera=CAMERA, visuals=False), Simulation(WORLD, camera=CAMERA)
+    yield sim, reference
+    sim.close()
+    reference.close()
+
+
+@pytest.fixture(scope="module")
+def renderer() -> Iterator[Renderer]:
+    renderer = Renderer(WORLD, CAMERA)
+    yield renderer
+    renderer.close()
+
+
+def test_detections_and_pictures_are_the_ones_the_sims_own_process_would_render(
+    sims: tuple[Simulation, Simulation], renderer: Renderer
+) -> None:
+    sim, reference = sims
+    frames = Frames()
+    # An object moved into view, the robot turned and its arm swung: the renderer sees what the sim has.
+    assert isinstance(sim.scene.move(MoveEntity(id="red_cup", x=7.8, y=2.4)), Drop)
+    sim.settle(1.0)
+    robot = sim.robot
+    robot.bullet.resetJointState(robot.id, robot.base_joints[2], 0.15)
+    robot.bullet.resetJointState(robot.id, robot.arm_joints[0], 0.4)
+    for i in range(3):
+        renderer.detect(sim.scene.poses(float(i)), frames.deliver)
+        assert frames.wait(i + 1), "no detections from the renderer"
+    # The reference renders in this process, its bodies put where the sim's are.
+    reference.scene.pose_as(sim.scene.poses(0.0))
+    expected = [reference.sensors.perceived_objects(float(i)) for i in range(3)]
+    assert frames.objects == expected
+    assert {"red_cup", "blue_book"} <= {o.id for o in frames.objects[0].objects}
+    # The noise is the same seeded sequence, frame after frame: the positions differ between frames.
+    assert frames.objects[0].objects != frames.objects[1].objects
+
+    image = renderer.camera_image(sim.scene.poses(9.0), scale=2, timeout=DEADLINE)
+    assert (image.width, image.height, image.stamp) == (2 * CAMERA.width, 2 * CAMERA.height, 9.0)
+    assert image.data == png_base64(reference.sensors.camera_picture(2))
+
+
+def test_a_sim_without_visuals_refuses_to_render_in_its_own_process(sims: tuple[Simulation, Simulation]) -> None:
+    sim, _ = sims
+    with pytest.raises(RuntimeError, match="renderer"):
+        sim.sensors.perceived_objects(0.0)
+
+
+def test_frames_asked_for_while_the_renderer_is_busy_are_dropped_for_the_latest(
+    sims: tuple[Simulation, Simulation], renderer: Renderer
+) -> None:
+    sim, _ = sims
+    frames = Frames()
+    dropped, drawn = renderer.dropped, renderer.frames
+    for i in range(30):  # far faster than it draws
+        renderer.detect(sim.scene.poses(100.0 + i), frames.deliver)
+    assert frames.wait(1)
+    assert wait_until(lambda: renderer.frames - drawn == len(frames.objects) and frames.objects[-1].stamp == 129.0, 20)
+    assert renderer.dropped - dropped == 30 - len(frames.objects) > 0
+    stamps = [f.stamp for f in frames.objects]
+    assert stamps == sorted(stamps) and len(stamps) < 30
+
+
+def test_a_dead_renderer_is_named_and_refuses_pictures(
+    sims: tuple[Simulation, Simulation], caplog: pytest.LogCaptureFixture
+) -> None:
+    sim, _ = sims
+    renderer = Renderer(WORLD, CAMERA)
+    try:
+        frames = Frames()
+        renderer.detect(sim.scene.poses(1.0), frames.deliver)
+        assert frames.wait(1)
+        with caplog.at_level(logging.ERROR, logger="services.sim.renderer"):
+            os.kill(renderer.pid, signal.SIGKILL)
+            assert wait_until(lambda: renderer.failure is not None, 10.0)
+        assert renderer.failure is not None and str(renderer.pid) in renderer.failure
+        assert f"code {-signal.SIGKILL}" in renderer.failure
+        assert any("camera renderer is gone" in r.getMessage() for r in caplog.records)
+        renderer.detect(sim.scene.poses(2.0), frames.deliver)  # no error, nothing delivered
+        with pytest.raises(CallError) as refused:
+            renderer.camera_image(sim.scene.poses(2.0), scale=1, timeout=5.0)
+        assert refused.value.error.kind is ErrorKind.UNAVAILABLE
+        assert str(renderer.pid) in refused.value.error.message
+        assert len(frames.objects) == 1
+    finally:
+        renderer.close()
+
+
+HOST = """
+import sys, time
+from services.sim.config import CameraConfig
+from services.sim.renderer import Renderer
+from services.worldmodel import load_world
+from tests.procs import gone, wait_until
+renderer = Renderer(load_world("household"), CameraConfig())
+print(renderer.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_renderer_exits_when_its_parent_is_killed() -> None:
+    host = subprocess.Popen([sys.executable, "-c", HOST], stdout=subprocess.PIPE, text=True)
+    child = None
+    try:
+        assert host.stdout is not None
+        child = int(host.stdout.readline())
+        assert not gone(child)
+        assert "services.sim.renderer" in Path(f"/proc/{child}/cmdline").read_text()
+        host.kill()  # SIGKILL: nothing of the parent's runs
+        host.wait(10)
+        assert wait_until(lambda: gone(child), 10.0), f"renderer {child} outlived its parent"
+    finally:
+        host.kill()
+        host.wait(10)
+        if host.stdout is not None:
+            host.stdout.close()
+        if child is not None and not gone(child):
+            os.kill(child, signal.SIGKILL)

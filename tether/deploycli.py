@@ -1,0 +1,52 @@
+"""`tether deploy init`: write a secured deployment (its own module: it needs cryptography, no other command does)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from tether import deployment
+
+console = Console(stderr=True)
+out = Console()
+
+
+def deploy_init(
+    directory: Annotated[Path, typer.Argument(help="Where the deployment goes (made if missing).")],
+    robot: Annotated[list[str], typer.Option("--robot", help="A robot of the fleet (repeatable).")],
+    tls: Annotated[bool, typer.Option("--tls", help="Mutual TLS: a CA and a certificate per identity.")] = False,
+    router: Annotated[
+        str | None,
+        typer.Option(
+            "--router",
+            help=f"HOST[:PORT] where clients reach the router (default {deployment.DEFAULT_ROUTER_HOST}:"
+            f"{deployment.DEFAULT_ROUTER_PORT}).",
+        ),
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json")] = False,
+) -> None:
+    """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay."""
+    try:
+        address = deployment.RouterAddress.parse(router) if router is not None else None
+        written = deployment.init(directory, robot, tls=tls, router=address)
+        made = deployment.Deployment.load(directory)
+    except (deployment.DeploymentError, OSError) as exc:
+        console.print(f"[red]error:[/] {exc}", soft_wrap=True)
+        raise typer.Exit(2) from None
+    if warning := deployment.cleartext_warning(made):
+        console.print(f"[yellow]warning:[/] {warning}", soft_wrap=True)
+    if as_json:
+        files = [{"path": str(w.path), "created": w.created, "secret": w.secret} for w in written]
+        print(json.dumps({"directory": str(directory.resolve()), "robots": robot, "tls": tls, "files": files}))
+        return
+    table = Table("file", "", "mode")
+    for w in written:
+        table.add_row(str(w.path), "written" if w.created else "kept", "600 (secret)" if w.secret else "")
+    out.print(table)
+    created = sum(w.created for w in written)
+    out.print(f"{created} files written, {len(written) - created} kept, in {directory.resolve()}")
