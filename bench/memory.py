@@ -10,8 +10,9 @@ and the sim reports odometry, each service's memory is read as `tether status` r
 `_process/*` that every service answers about itself (services/procstat.py: VmRSS, VmHWM); that is
 `after_start`. Then the demo plan (tether.cli.DEMO_PLAN: the red cup to the coffee table) runs to its
 end, and the figures are read again, `--samples` times `--interval` s apart; each service's figure is
-the median of its samples (`rss_mb`), with the most it ever held (`peak_rss_mb`). `total_rss_mb`
-sums the medians: the goal is at most GOAL_TOTAL_MB. RSS counts a page shared by several processes
+the median of its samples (`rss_mb`), with the most it ever held (`peak_rss_mb`). The processes a
+service started itself (the sim's camera renderer) are read from /proc (`children`). `total_rss_mb`
+sums the medians and the children: the goal is at most GOAL_TOTAL_MB. RSS counts a page shared by several processes
 (a library file both safety and the executor map, such as pinocchio's) in each of them; `pss_mb` is
 the service's proportional share instead (/proc/PID/smaps_rollup, a page shared by n counting 1/n),
 and `total_pss_mb` their sum, closer to what the stack takes from the machine.
@@ -107,6 +108,26 @@ def proportional(pid: int) -> int | None:
     return next((int(line.split()[1]) * 1024 for line in lines if line.startswith("Pss:")), None)
 
 
+def children(pid: int) -> dict[str, tuple[int, int | None]]:
+    """A local process's child processes (the sim's camera renderer): (VmRSS, Pss) bytes by "name pid".
+    They belong to the stack's memory as much as the service itself, but no service reports them."""
+    try:
+        pids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return {}
+    found = {}
+    for child in pids:
+        try:
+            status = Path(f"/proc/{child}/status").read_text().splitlines()
+            args = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        rss = next((int(line.split()[1]) * 1024 for line in status if line.startswith("VmRSS:")), 0)
+        name = next((a.decode().rsplit(".", 1)[-1] for a in args if a.startswith(b"services.")), "child")
+        found[f"{name} {child}"] = (rss, proportional(int(child)))
+    return found
+
+
 def baseline(settings: NodeSettings, services: tuple[str, ...]) -> dict[str, Any]:
     """One bare Zenoh process on the stack: its VmRSS once it sees every service's liveliness."""
     endpoints = [settings.endpoint(s) for s in ALL_SERVICES]
@@ -168,6 +189,7 @@ def measure(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
                     time.sleep(args.interval)
                 samples.append(read_processes(node, services))
             shares = {name: proportional(stack.supervisor.procs[name].pid) for name in services}
+            kids = {name: children(stack.supervisor.procs[name].pid) for name in services}
     floor = statistics.median(floors)
     each = {}
     for name in services:
@@ -181,14 +203,22 @@ def measure(args: argparse.Namespace, progress: Progress) -> dict[str, Any]:
             "pss_mb": mb(share) if share is not None else None,
             "cpu_seconds": round(samples[-1][name].cpu_seconds, 2),
         }
+    helpers = {f"{name}/{child}": figures for name in services for child, figures in kids[name].items()}
     total = sum(statistics.median(sample[name].rss_bytes for sample in samples) for name in services)
+    total += sum(rss for rss, _ in helpers.values())
     known = [share for share in shares.values() if share is not None]
+    known += [share for _, share in helpers.values() if share is not None]
     result |= {
         "services": each,
+        # Processes the services started (the sim's renderer), counted in the totals.
+        "children": {
+            name: {"rss_mb": mb(rss), "pss_mb": mb(share) if share is not None else None}
+            for name, (rss, share) in helpers.items()
+        },
         "total_rss_mb": mb(total),
         "total_rss_mb_after_start": mb(sum(p.rss_bytes for p in started.values())),
         "total_peak_rss_mb": mb(sum(max(s[name].peak_rss_bytes for s in samples) for name in services)),
-        "total_pss_mb": mb(sum(known)) if len(known) == len(shares) else None,
+        "total_pss_mb": mb(sum(known)) if len(known) == len(shares) + len(helpers) else None,
         "baseline_rss_mb": mb(floor),
         "baseline_runs_mb": [mb(f) for f in floors],
         "baseline_total_mb": mb(floor * len(services)),

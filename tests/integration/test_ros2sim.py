@@ -140,6 +140,11 @@ class Robot:
                 self._closed.wait(ESTOP_PERIOD)  # a poll between two replies, bounded by the deadline
                 continue
             status, result = goal.result(timeout=GOAL_TIMEOUT)
+            # Taken on the first signal after a silence, a goal may still end on the dead-man if the
+            # signal (from this loaded test process) stalls again: free means a goal that succeeds.
+            if status != GoalStatus.SUCCEEDED and "no emergency_stop signal" in result.error_msg:
+                assert time.monotonic() < deadline, f"the stand-in still stops goals: {result.error_msg}"
+                continue
             assert status == GoalStatus.SUCCEEDED, result.error_msg
             return
 
