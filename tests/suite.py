@@ -6,9 +6,10 @@ First, two pytest runs at once:
 - everything else on two pytest-xdist workers (`--dist loadscope`: whole modules, so a module's
   shared stack stays on one worker; tests/conftest.py puts the longest first), at low priority
   (nice 15), its output on the terminal.
-Then the tests marked `multihost` (realtime too: two robots' stacks in network namespaces, a router,
-link proxies) alone on the machine: with the others' load beside them, their robots' heartbeats
-came late now and then, and they are the slowest to recover from that.
+Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
+namespaces with a router and link proxies, and the ROS 2 stand-in's, whose dead-man signal comes
+from the test process at 20 Hz) alone on the machine: with the others' load beside them, their
+robots' heartbeats or signals came late now and then.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
@@ -43,7 +44,7 @@ def main(argv: list[str]) -> int:
     alone = env | {"TETHER_TEST_PORT_BAND": "2"}
     with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
         realtime = subprocess.Popen(
-            pytest("-m", "realtime and not multihost", "-p", "no:cacheprovider", *extra),
+            pytest("-m", "realtime and not alone", "-p", "no:cacheprovider", *extra),
             stdout=log,
             stderr=log,
             env=alone,
@@ -66,9 +67,9 @@ def main(argv: list[str]) -> int:
         print("\n== tests marked realtime ==", flush=True)
         sys.stdout.buffer.write(Path(log.name).read_bytes())
         sys.stdout.flush()
-    print("\n== tests marked multihost, alone ==", flush=True)
-    multihost = subprocess.run(pytest("-m", "multihost", "-p", "no:cacheprovider", *extra), env=alone).returncode
-    codes = (parallel, realtime.returncode, multihost)
+    print("\n== tests marked alone ==", flush=True)
+    by_itself = subprocess.run(pytest("-m", "alone", "-p", "no:cacheprovider", *extra), env=alone).returncode
+    codes = (parallel, realtime.returncode, by_itself)
     failed = [code for code in codes if code not in (0, NO_TESTS)]
     return failed[0] if failed else (0 if 0 in codes else NO_TESTS)
 

@@ -27,7 +27,7 @@ from tests.multihost import netns
 from tests.multihost.intruder import MARKER_NAME, MARKER_SPEED
 from tests.multihost.stack import EDGE_SERVICES, ROBOT_SERVICES, STILL, MultiHost, Watch, clean_env, wait_for
 
-pytestmark = [pytest.mark.multihost, pytest.mark.realtime, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.multihost, pytest.mark.realtime, pytest.mark.alone, pytest.mark.timeout(600)]
 
 FAR_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen table"}]})
 BACK_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "coffee table"}]})

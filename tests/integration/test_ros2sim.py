@@ -38,8 +38,9 @@ from tests.robot_contract.conftest import CONTRACT_SIM, ros2_backend, running
 from tests.sessions import free_port, free_ports
 from tether.supervisor import Supervisor
 
-# Bounds in wall-clock time: `make test` runs these one at a time at normal priority (tests/suite.py).
-pytestmark = pytest.mark.realtime
+# Bounds in wall-clock time, and a dead-man signal sent from this process at 20 Hz: `make test`
+# runs these alone on the machine (tests/suite.py).
+pytestmark = [pytest.mark.realtime, pytest.mark.alone]
 
 T = TypeVar("T")
 
