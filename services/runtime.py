@@ -335,10 +335,9 @@ class Node:
         reply_key = zenoh.KeyExpr(key)
         pool = self.waiting_queries if waits else self.queries
 
-        def read(query: zenoh.Query) -> tuple[float, bytes, Any, ServiceError | None]:
-            """(when it came, its bytes, the request decoded or None, the error that refuses it or None)."""
+        def read(raw: bytes) -> tuple[float, bytes, Any, ServiceError | None]:
+            """(when it was read, its bytes, the request decoded or None, the error that refuses it or None)."""
             started = time.time()
-            raw = query.payload.to_bytes() if query.payload is not None else b""
             if len(raw) > max_request_bytes:
                 message = f"request is {len(raw)} bytes; {service.path} accepts at most {max_request_bytes}"
                 return started, raw, None, ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
@@ -385,40 +384,37 @@ class Node:
                     kept = encode(msgspec.structs.replace(request, **dict.fromkeys(service.redact, "(redacted)")))
             self._trace(service.path, started, finished, kept, raw, reply, error)
 
-        def answer(query: zenoh.Query) -> None:
-            respond(query, *read(query))
+        def answer(query: zenoh.Query, raw: bytes) -> None:
+            respond(query, *read(raw))
 
-        def refused(query: zenoh.Query) -> bool:
+        def turn_away(query: zenoh.Query, raw: bytes, error: ServiceError) -> None:
+            """Answer with `error` without handling the query; traced like any query answered (a
+            recording shows who tried what: tether inspect flags it)."""
+            started = time.time()
+            try:
+                query.reply_err(encode(error))
+            finally:
+                query.drop()
+            self._trace(service.path, started, time.time(), None, raw, None, error)
+
+        def refused(query: zenoh.Query, raw: bytes) -> bool:
             if verify is None:
                 return False
-            raw = query.payload.to_bytes() if query.payload is not None else b""
             refusal = verify(str(query.key_expr), raw, _attachment(query))
             if refusal is None:
                 return False
-            error = ServiceError(kind=ErrorKind.UNAUTHORIZED, message=f"{service.path} refused: {refusal}")
-            started = time.time()
-            try:
-                query.reply_err(encode(error))
-            finally:
-                query.drop()
-            # Traced like any query answered: a recording shows who tried what (tether inspect flags it).
-            self._trace(service.path, started, time.time(), None, raw, None, error)
+            turn_away(
+                query, raw, ServiceError(kind=ErrorKind.UNAUTHORIZED, message=f"{service.path} refused: {refusal}")
+            )
             return True
 
-        def busy(query: zenoh.Query) -> None:
+        def busy(query: zenoh.Query, raw: bytes) -> None:
             """Answer at once that there is no worker for it; the query is not handled."""
-            started = time.time()
-            raw = query.payload.to_bytes() if query.payload is not None else b""
             load = pool.load()
             message = f"{self.service} is too busy to answer {service.path} ({load}); try again"
-            error = ServiceError(kind=ErrorKind.UNAVAILABLE, message=message)
-            try:
-                query.reply_err(encode(error))
-            finally:
-                query.drop()
+            turn_away(query, raw, ServiceError(kind=ErrorKind.UNAVAILABLE, message=message))
             if (line := self.overloaded.note(key, load)) is not None:
                 log.warning("%s", line)
-            self._trace(service.path, started, time.time(), None, raw, None, error)
 
         def here(request: Any) -> bool:
             """Whether a decoded request is answered on the callback thread (`inline` as a test)."""
@@ -430,19 +426,21 @@ class Node:
                 return False
 
         def on_query(query: zenoh.Query) -> None:
-            if refused(query):
+            # The payload is copied out once, here, for the signature check, decoding and the trace.
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            if refused(query, raw):
                 return
             if inline is True:
-                answer(query)
+                answer(query, raw)
             elif inline is False:
-                if not pool.submit(functools.partial(answer, query)):
-                    busy(query)
+                if not pool.submit(functools.partial(answer, query, raw)):
+                    busy(query, raw)
             else:
-                started, raw, request, error = read(query)
+                started, raw, request, error = read(raw)
                 if error is not None or here(request):
                     respond(query, started, raw, request, error)
                 elif not pool.submit(functools.partial(respond, query, started, raw, request, None)):
-                    busy(query)
+                    busy(query, raw)
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
