@@ -40,18 +40,19 @@ print(" ".join(loaded))
 """
 
 
-@pytest.mark.parametrize("module", PURE)
-def test_a_pure_module_does_not_load_zenoh(module: str) -> None:
+def python(code: str, *args: str) -> str:
+    """What a fresh interpreter running `code` (from the project's root) printed; it must succeed."""
     child = subprocess.run(
-        [sys.executable, "-c", CHILD.format(module=module)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
+        [sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True, timeout=120, check=False
     )
     assert child.returncode == 0, child.stderr[-2000:]
-    assert child.stdout.strip() == "", f"importing {module} loaded {child.stdout.strip()}"
+    return child.stdout
+
+
+@pytest.mark.parametrize("module", PURE)
+def test_a_pure_module_does_not_load_zenoh(module: str) -> None:
+    child = python(CHILD.format(module=module))
+    assert child.strip() == "", f"importing {module} loaded {child.strip()}"
 
 
 # A service process loads what its service uses, no more: `tether run SERVICE` (the script, as systemd
@@ -94,16 +95,7 @@ print(json.dumps(loaded))
 @pytest.mark.parametrize("entry", LOAD_STEPS)
 def test_a_service_process_and_the_cli_load_no_heavy_package_they_do_not_use(entry: str) -> None:
     steps = LOAD_STEPS[entry]
-    child = subprocess.run(
-        [sys.executable, "-c", STEPS_CHILD, entry, json.dumps(steps)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=False,
-    )
-    assert child.returncode == 0, child.stderr[-2000:]
-    loaded = json.loads(child.stdout.splitlines()[-1])
+    loaded = json.loads(python(STEPS_CHILD, entry, json.dumps(steps)).splitlines()[-1])
     assert loaded == {what: [] for what, _, _ in steps}, loaded
 
 
