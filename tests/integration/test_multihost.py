@@ -132,9 +132,14 @@ def succeeded(mh: MultiHost, robot: str, plan: str) -> None:
     assert run.result.status is PlanStatus.SUCCEEDED, run.result.reason
 
 
-def near(mh: MultiHost, robot: str, x: float, y: float) -> float:
+# Where each plan leaves the base: the furniture's approach poses in the bundled world.
+ENDS = {FAR_PLAN: (2.5, 3.05), BACK_PLAN: (8.0, 1.75)}
+
+
+def away(mh: MultiHost, robot: str) -> str:
+    """The plan whose end is farther from where `robot` stands now, so that it surely drives."""
     pose = mh.truth(robot).robot
-    return math.hypot(pose.x - x, pose.y - y)
+    return max(ENDS, key=lambda plan: math.hypot(pose.x - ENDS[plan][0], pose.y - ENDS[plan][1]))
 
 
 def test_a_cut_link_halts_the_robot_within_the_watchdog_bound_and_the_stack_recovers(stack: MultiHost) -> None:
@@ -172,7 +177,7 @@ def test_b_a_slow_stalling_link_and_a_narrow_one_never_let_the_robot_move_unchec
                 link.delay(0)
                 stack.topo.narrow("robot", rate="1mbit", burst="32kb", latency="200ms")
             after_fault(stack, "r1")
-            plan = FAR_PLAN if near(stack, "r1", 6.0, 1.2) < 1.5 else BACK_PLAN
+            plan = away(stack, "r1")
             handle = start_moving(stack, "r1", plan)
             stall = link.stall(1.2)
             wait_for(lambda s=stall: time.time() > s["stall_until"], 5.0, "the stall's end")
@@ -214,7 +219,7 @@ def test_c_router_killed_services_killed_and_hung_the_stack_recovers_and_nothing
     # Safety killed, then hung (SIGSTOP), each while the robot drives: it halts on the missing heartbeat.
     for fault in ("SIGKILL", "SIGSTOP"):
         after_fault(stack, "r1")
-        handle = start_moving(stack, "r1", FAR_PLAN if near(stack, "r1", 6.0, 1.2) < 1.5 else BACK_PLAN)
+        handle = start_moving(stack, "r1", away(stack, "r1"))
         pid = stack.service_pid("r1", "safety")
         t0 = time.time()
         os.kill(pid, getattr(signal, fault))
@@ -227,7 +232,11 @@ def test_c_router_killed_services_killed_and_hung_the_stack_recovers_and_nothing
         assert not still_during(watch, t0 + halt, until - 0.5)
         print(f"safety {fault}: base at rest {halt * 1000:.0f} ms after it")
         run = stack.result("r1", handle, PLAN_TIMEOUT)
-        assert run.result is not None and run.result.status is not PlanStatus.SUCCEEDED, run.result
+        # The attempt under way when safety went is lost; the executor may retry the step, and the retry
+        # reaches a safety that is back (restarted, or continued) and checks it afresh.
+        assert run.result is not None, run
+        if run.result.status is PlanStatus.SUCCEEDED:
+            assert run.result.steps[0].attempts > 1, f"the attempt that lost safety succeeded: {run.result}"
         healthy(stack, "r1", 30.0)
 
     # Every other service killed at once, then every one hung at once for 2 s: the stack comes back.
@@ -245,7 +254,7 @@ def test_c_router_killed_services_killed_and_hung_the_stack_recovers_and_nothing
     print(f"healthy {healthy(stack, 'r1', 30.0):.2f} s after every service was continued")
     assert watch.samples()[-1].speed < STILL
     after_fault(stack, "r1")
-    succeeded(stack, "r1", FAR_PLAN if near(stack, "r1", 6.0, 1.2) < 1.5 else BACK_PLAN)
+    succeeded(stack, "r1", away(stack, "r1"))
 
 
 def intrude(stack: MultiHost, config: Path, robot: str, *attempts: str, token: Path | None = None) -> dict[str, Any]:
@@ -337,7 +346,7 @@ def test_e_two_robots_on_one_router_run_plans_at_once_isolated(stack: MultiHost)
     # r1's operator may not hear r2's robot at all.
     stack.robots["r1"].node.subscribe_raw("tether/r2/**", lambda key, _raw: other.append(key))
     starts = {robot: stack.truth(robot).robot for robot in ("r1", "r2")}
-    plans = {robot: FAR_PLAN if near(stack, robot, 6.0, 1.2) < 1.5 else BACK_PLAN for robot in ("r1", "r2")}
+    plans = {robot: away(stack, robot) for robot in ("r1", "r2")}
     handles = {robot: stack.send(robot, plans[robot]) for robot in ("r1", "r2")}
     for robot, handle in handles.items():
         run = stack.result(robot, handle, PLAN_TIMEOUT)
