@@ -57,6 +57,8 @@ class ExecutePlanGoal(Frozen):
     preempt: bool = False
 
 
+# A place a search looked ("around in the kitchen", "on the kitchen table").
+Place = Annotated[str, Meta(max_length=200)]
 # Where a step came from in the parsed plan: "2", "3.1" (first sub-step of step 3), "2 on_failure 1".
 Label = Annotated[str, Meta(max_length=64)]
 
@@ -73,6 +75,8 @@ class ExecutePlanFeedback(Frozen):
     label: Label | None = None
     failure: FailureKind | None = None
     attempt: int = 1
+    # Where the step has looked for its object so far (see StepResult.searched).
+    searched: list[Place] = []
 
 
 class StepResult(Frozen):
@@ -87,6 +91,12 @@ class StepResult(Frozen):
     label: Label | None = None
     failure: FailureKind | None = None
     attempts: int = 1
+    # Where a detect or a pick looked for an object that was not in view, in order, in its last
+    # attempt ("on the kitchen counter", "around in the kitchen", "on the kitchen table"); empty
+    # when it saw the object at once.
+    searched: list[Place] = []
+    # Seconds (the executor's clock) the step spent searching, over all its attempts.
+    search_s: Annotated[float, Meta(ge=0.0)] = 0.0
 
 
 class ExecutePlanResult(Frozen):

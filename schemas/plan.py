@@ -39,6 +39,8 @@ SourceFormat = Literal[
     "openai_function_call",
     "anthropic_tool_use",
     "mcp_tools_call",
+    "openai_responses",
+    "gemini_function_call",
 ]
 
 
@@ -161,6 +163,12 @@ class NavigateStep(Frozen, tag="navigate_to"):
         return f"navigate_to {self.target} {fmt_pose(self.goal)}"
 
 
+# How far the executor may look for an object it does not see (its README): not at all, in the room
+# the base is in (turning round, then the furniture tops), or in every room. A step may narrow the
+# executor's configured scope, never widen it.
+SearchScope = Literal["none", "room", "flat"]
+
+
 class PickStep(Frozen, tag="pick"):
     spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=2)
 
@@ -170,6 +178,7 @@ class PickStep(Frozen, tag="pick"):
     mass: Kilograms
     support_id: Id
     approach: Pose2D
+    search: SearchScope | None = None
 
     def describe(self) -> str:
         return f"picking {self.object_name}"
@@ -194,10 +203,12 @@ class PlaceStep(Frozen, tag="place"):
 
 
 class DetectStep(Frozen, tag="detect"):
-    spec: ClassVar[StepSpec] = StepSpec(moves_base=False, timeout=60.0, retries=1)
+    # It turns the base round and drives to furniture when the object is not in view (a search).
+    spec: ClassVar[StepSpec] = StepSpec(moves_base=True, timeout=240.0, retries=1)
 
     object_id: Id
     object_name: Name
+    search: SearchScope | None = None
 
     def describe(self) -> str:
         return f"looking for {self.object_name}"

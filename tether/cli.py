@@ -376,7 +376,10 @@ def print_feedback(fb: ExecutePlanFeedback) -> None:
     mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(fb.status, "...")
     if fb.status is StepStatus.RUNNING and fb.attempt > 1:
         mark = "[yellow]retrying[/]"
-    console.print(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message} {mark}")
+    # Where a detect or pick searched, once the step has ended (the notes said it as it went).
+    ended = fb.status in (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
+    searched = f" [dim](searched: {', '.join(fb.searched)})[/]" if fb.searched and ended else ""
+    console.print(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message} {mark}{searched}")
 
 
 def print_result(run: PlanRun, as_json: bool) -> None:

@@ -48,7 +48,9 @@ def _step(step: StepResult) -> str:
     kind = f" ({step.failure})" if step.failure else ""
     tries = f" after {step.attempts} attempts" if step.attempts > 1 else ""
     text = f"{name}: {step.status}{kind}{tries}"
-    return f"{text}: {step.message}" if step.message else text
+    text = f"{text}: {step.message}" if step.message else text
+    # Where it looked for an object not in view: a model planning a recovery should know.
+    return f"{text} (searched: {', '.join(step.searched)})" if step.searched else text
 
 
 def result_text(result: ExecutePlanResult) -> str:

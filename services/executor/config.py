@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Generic, Literal, TypeVar, get_args
 
 import msgspec
 from msgspec import Meta
 
-from schemas.plan import STEP_TYPES, GroundedStep, StepSpec, step_kind
+from schemas.plan import STEP_TYPES, GroundedStep, SearchScope, StepSpec, step_kind
 
 Timeout = Annotated[float, Meta(gt=0.0, le=3600.0)]
 Retries = Annotated[int, Meta(ge=0, le=10)]
@@ -52,6 +52,30 @@ else:
     )
 
 
+# How far a search for an object not in view may go: not at all, the furniture tops of the room the
+# robot is in, or every furniture top of the flat. Narrowest first.
+SEARCH_SCOPES: tuple[SearchScope, ...] = get_args(SearchScope)
+
+
+class SearchConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """`[executor.search]`: how a detect or a pick looks for an object that is not in view. First
+    it turns in place and looks (`headings` directions round the circle; from the room's centre pose
+    when the base has no room to turn where it stands), then it visits the furniture tops of the
+    room it is in, where memory last saw the object first, then, with `scope = "flat"`, those of the
+    other rooms, nearest first. A place is the look around or one furniture top; `max_places` and
+    `max_time` (wall seconds, checked before each move) bound the search, and a step's own `search`
+    parameter may narrow `scope`, never widen it. The step's time (`[executor.timeouts]`) bounds it
+    too. Not found within the bounds: the step fails naming every place it looked."""
+
+    scope: SearchScope = "flat"
+    max_places: Annotated[int, Meta(ge=0, le=50)] = 8
+    max_time: Annotated[float, Meta(gt=0.0, le=3600.0)] = 120.0
+    headings: Annotated[int, Meta(ge=2, le=12)] = 4
+    # Metres of a furniture top's edge one look from its approach pose takes in; a longer top is
+    # also looked at from along its edge towards each end (the counter, 2 m, from three poses).
+    surface_view: Annotated[float, Meta(gt=0.1, le=10.0)] = 1.2
+
+
 class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     world: str = "household"
     parse_timeout: Timeout = 5.0
@@ -80,3 +104,4 @@ class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     # are held at their centre. The palm sits about 4 cm above the fingertips: grasping a 10 cm
     # cup at its centre pressed the palm onto its rim and tipped it over between the fingers.
     grasp_depth: Annotated[float, Meta(gt=0.0, le=0.2)] = 0.03
+    search: SearchConfig = SearchConfig()

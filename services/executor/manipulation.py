@@ -1,4 +1,4 @@
-"""The motions that make up the steps: planned base routes, picks and places, finding moved objects.
+"""The motions that make up the steps: planned base routes, picks and places, searching for objects.
 
 Every motion goes to the robot through safety (the Robot port) and every outcome is checked, the
 last ones through perception: after a pick the object must be seen in the gripper, after a place
@@ -10,7 +10,8 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Collection, Sequence
 from typing import Any, assert_never
 
 import numpy as np
@@ -49,7 +50,7 @@ from services.executor.armplanning import (
     plan_place,
     time_parameterize,
 )
-from services.executor.config import ExecutorConfig
+from services.executor.config import ExecutorConfig, SearchScope
 from services.executor.errors import (
     Canceled,
     CommandVetoed,
@@ -62,6 +63,7 @@ from services.executor.errors import (
 from services.executor.grasps import GraspConfig, grasps, object_pose, placements
 from services.executor.navigation import BasePlanner
 from services.executor.ports import Robot
+from services.executor.search import Look, SearchPlan, narrowest, not_found, plan_search, step_scope
 from services.robotmodel import arm_to_world, map_to_base
 from services.worldmodel import WorldModel
 
@@ -108,6 +110,10 @@ def refused(what: str, exc: GoalRejected) -> ExecutionError:
     if exc.kind in (ErrorKind.VETOED, ErrorKind.ESTOP):
         return CommandVetoed(f"{what}: {exc.reason}")
     return ExecutionError(f"{what}: the robot did not take it: {exc.reason}")
+
+
+def _so_far(searched: list[str]) -> str:
+    return f" after looking {', '.join(searched)}" if searched else ""
 
 
 def _cm(metres: float) -> str:
@@ -163,6 +169,10 @@ class Manipulator:
         self._held: HeldObject | None = None
         # Grasps and placements tried and failed, per object, so a retry comes in another way.
         self._failed: dict[str, set[str]] = {}
+        # What a search's time limit is measured by (tests step it by hand).
+        self.clock: Callable[[], float] = time.monotonic
+        # Seconds spent searching since start, by that clock (a step's result reports its share).
+        self.search_time = 0.0
 
     # Base
 
@@ -296,27 +306,24 @@ class Manipulator:
     def _within_reach(self, base: Pose2D, position: Vec3) -> bool:
         return math.hypot(position.x - base.x, position.y - base.y) <= self.world.world.robot.reach
 
-    def locate(self, step: PickStep, cancel: threading.Event, note: Note, attempt: int = 1) -> PerceivedObject:
+    def locate(
+        self, step: PickStep, cancel: threading.Event, note: Note, attempt: int = 1, searched: list[str] | None = None
+    ) -> PerceivedObject:
         """Stand where the object can be picked and see it there: at the step's approach pose, or,
-        when perception has it elsewhere, re-detected: where the resolver last saw it, then on each
-        other surface, nearest first. Raises PreconditionFailed saying where it looked."""
+        when perception has it elsewhere, found by a search (`search`), then approached. Raises
+        PreconditionFailed saying where it looked; `searched` gets each place looked at."""
+        searched = [] if searched is None else searched
         self.ensure_at(step.approach, cancel, attempt)
         found = self._find_in_view(step.object_id, cancel)
         if found is not None and self._within_reach(self._base(), found.position):
             return found
-        looked = [self._surface_name(step.support_id)]
         if found is None:
-            note(f"{step.object_name} is not where it was expected ({looked[0]}); looking for it")
-            for surface in self._search_order(step):
-                if cancel.is_set():
-                    raise Canceled("canceled while looking")
-                self.drive_to(self.world.furniture[surface].approach, cancel, attempt=attempt)
-                found = self._find_in_view(step.object_id, cancel)
-                if found is not None:
-                    break
-                looked.append(self.world.furniture[surface].name)
-        if found is None:
-            raise PreconditionFailed(f"{step.object_name} was not seen on the {', the '.join(looked)}")
+            expected = self._surface_name(step.support_id)
+            searched.append(f"on the {expected}")
+            note(f"{step.object_name} is not where it was expected ({expected}); looking for it")
+            found = self.search(
+                step.object_id, step.object_name, cancel, note, searched, step_scope(step), attempt, {step.support_id}
+            )
         if not self._within_reach(self._base(), found.position):
             note(f"{step.object_name} is on the {self._surface_name(found.on)}, out of reach: moving closer")
             self.drive_to(self.approach_near(found), cancel, attempt=attempt)
@@ -324,6 +331,118 @@ class Manipulator:
             if found is None:
                 raise PreconditionFailed(f"{step.object_name} went out of view moving closer to it")
         return found
+
+    def search(
+        self,
+        object_id: str,
+        name: str,
+        cancel: threading.Event,
+        note: Note,
+        searched: list[str],
+        scope: SearchScope | None = None,
+        attempt: int = 1,
+        skip: Collection[str] = (),
+    ) -> PerceivedObject:
+        """Look for an object that is not in view, place by place as search.plan_search orders them
+        within `[executor.search]` (`scope`, the step's, narrows it), each place appended to
+        `searched` once looked at. Every motion is a base goal through safety; the search stops at
+        once on cancel or while safety holds the robot still, and a veto or a motion ended by the
+        robot side ends it with that reason. Not found: PreconditionFailed naming every place looked
+        (those in `searched` already, then the search's), and the bound that stopped it."""
+        bounds = self.config.search
+        remembered = self.robot.remembered(object_id)
+        plan = plan_search(
+            self.world,
+            self._base(),
+            scope=narrowest(bounds.scope, scope),
+            max_places=bounds.max_places,
+            headings=bounds.headings,
+            remembered_on=remembered.on if remembered is not None else None,
+            skip=skip,
+            clearance=self.config.base_clearance,
+            surface_view=bounds.surface_view,
+        )
+        started = self.clock()
+        try:
+            return self._search(plan, object_id, name, cancel, note, searched, attempt, started)
+        finally:
+            self.search_time += self.clock() - started
+
+    def _search(
+        self,
+        plan: SearchPlan,
+        object_id: str,
+        name: str,
+        cancel: threading.Event,
+        note: Note,
+        searched: list[str],
+        attempt: int,
+        started: float,
+    ) -> PerceivedObject:
+        bounds = self.config.search
+        for look in plan.looks:
+            self._may_search_on(name, searched, cancel)
+            if self.clock() - started > bounds.max_time:
+                raise PreconditionFailed(not_found(name, searched, plan, bounds.max_time))
+            note(f"looking for {name} {look.place}")
+            try:
+                found = self._look_from(look, object_id, cancel, attempt)
+            except PlanningFailed as exc:
+                note(f"not looking {look.place}: {exc}")  # planned, not driven: nothing moved
+                continue
+            except Canceled:
+                raise Canceled(f"searching for {name}{_so_far(searched)} canceled") from None
+            except ExecutionError as exc:
+                # A veto, an e-stop, a motion ended or aborted: never on to the next place.
+                raise type(exc)(f"{exc} (searching for {name}{_so_far(searched)})") from None
+            searched.append(look.place)
+            if found is not None:
+                note(f"found {name} {look.place}")
+                return found
+        raise PreconditionFailed(not_found(name, searched, plan))
+
+    def _may_search_on(self, name: str, searched: list[str], cancel: threading.Event) -> None:
+        if cancel.is_set():
+            raise Canceled(f"searching for {name}{_so_far(searched)} canceled")
+        stop = self.robot.safety_stop()
+        if stop is not None:
+            raise Interrupted(f"searching for {name} stopped{_so_far(searched)}: {stop}")
+
+    def _look_from(self, look: Look, object_id: str, cancel: threading.Event, attempt: int) -> PerceivedObject | None:
+        """Go where `look` says and look: at each heading of a look around (one the base cannot turn
+        to is left out), or at a furniture top (from a little further back too)."""
+        unplanned: PlanningFailed | None = None
+        if look.surface is not None:
+            reached = False
+            for pose in look.poses:  # the approach pose, then along the edge of a long top
+                try:
+                    self.drive_to(pose, cancel, attempt=attempt)
+                except PlanningFailed as exc:
+                    unplanned = exc
+                    continue
+                reached = True
+                found = self._find_in_view(object_id, cancel)
+                if found is not None:
+                    return found
+            if not reached and unplanned is not None:
+                raise unplanned
+            return None
+        turned = False
+        for pose in look.poses:
+            if cancel.is_set():
+                raise Canceled("looking around canceled")
+            try:
+                self.drive_to(pose, cancel, attempt=attempt)
+            except PlanningFailed as exc:
+                unplanned = exc
+                continue
+            turned = True
+            found = self._seen_twice(object_id)
+            if found is not None:
+                return found
+        if not turned and unplanned is not None:
+            raise unplanned
+        return None
 
     def _seen(self, object_id: str, new: bool = False) -> PerceivedObject | None:
         return next((o for o in self._look(new) if o.id == object_id), None)
@@ -353,18 +472,6 @@ class Manipulator:
         item = self.world.furniture.get(surface or "")
         return item.name if item else "floor"
 
-    def _search_order(self, step: PickStep) -> list[str]:
-        """Furniture tops to look on: where the resolver last saw the object first, then the rest by
-        distance from where the base stands, the one already looked at left out."""
-        base = self._base()
-        remembered = self.robot.remembered(step.object_id)
-        first = remembered.on if remembered is not None and remembered.on in self.world.furniture else None
-        rest = sorted(
-            (f for f in self.world.furniture.values() if f.id not in (step.support_id, first)),
-            key=lambda f: math.hypot(f.approach.x - base.x, f.approach.y - base.y),
-        )
-        return ([first] if first and first != step.support_id else []) + [f.id for f in rest]
-
     def approach_near(self, seen: PerceivedObject) -> Pose2D:
         """The approach pose of the furniture under `seen`, moved along its edge to face it."""
         support = self.world.furniture.get(seen.on or "")
@@ -374,10 +481,17 @@ class Manipulator:
 
     # Steps
 
-    def pick(self, step: PickStep, cancel: threading.Event, attempt: int = 1, note: Note = _quiet) -> str:
+    def pick(
+        self,
+        step: PickStep,
+        cancel: threading.Event,
+        attempt: int = 1,
+        note: Note = _quiet,
+        searched: list[str] | None = None,
+    ) -> str:
         if (held_now := self.robot.held_object()) is not None:
             raise PreconditionFailed(f"the gripper already holds {held_now}")
-        target = self.locate(step, cancel, note, attempt)
+        target = self.locate(step, cancel, note, attempt, searched)
         obj = self.world.objects[step.object_id]
         base, q = self._base(), self._arm_now()
         seen = self._look()
@@ -474,18 +588,36 @@ class Manipulator:
         failed.clear()
         return f"placed {obj.name} on the {step.surface_name}"
 
-    def detect(self, step: DetectStep, cancel: threading.Event, attempt: int = 1) -> str:
-        """Succeeds when perception, looking now, reports the object (from a little further back
-        too); a retry looks again."""
+    def detect(
+        self,
+        step: DetectStep,
+        cancel: threading.Event,
+        attempt: int = 1,
+        note: Note = _quiet,
+        searched: list[str] | None = None,
+    ) -> str:
+        """Succeeds when perception reports the object: looking now (from a little further back
+        too), or else found by a search (`search`; a person is not searched for). A retry looks
+        again."""
+        searched = [] if searched is None else searched
         seen = self._find_in_view(step.object_id, cancel)
         if seen is None:
-            raise PostconditionFailed(f"{step.object_name} is not in view from here")
+            scope = narrowest(self.config.search.scope, step_scope(step))
+            if scope == "none" or step.object_id not in self.world.objects:
+                unsearched = " (search scope none)" if scope == "none" else ""
+                raise PostconditionFailed(f"{step.object_name} is not in view from here{unsearched}")
+            note(f"{step.object_name} is not in view from here; looking for it")
+            seen = self.search(step.object_id, step.object_name, cancel, note, searched, scope, attempt)
         p = seen.position
         where = f"on the {self._surface_name(seen.on)}" if seen.on != "gripper" else "in the gripper"
-        return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
+        after = f" after looking {', '.join(searched)}" if searched else ""
+        return f"{step.object_name} seen {where} at ({p.x:.2f}, {p.y:.2f}, {p.z:.2f}){after}"
 
-    def run(self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note) -> str:
-        """One try at a step; what it did, in a few words."""
+    def run(
+        self, step: GroundedStep, cancel: threading.Event, attempt: int, note: Note, searched: list[str] | None = None
+    ) -> str:
+        """One try at a step; what it did, in a few words. A detect or a pick that searches for its
+        object appends each place it looked at to `searched`."""
         match step:
             case NavigateStep():
                 self.drive_to(step.goal, cancel, step.max_speed, attempt=attempt)
@@ -493,11 +625,11 @@ class Manipulator:
             case GripperStep():
                 return self.operate_gripper(step.open, cancel)
             case PickStep():
-                return self.pick(step, cancel, attempt, note)
+                return self.pick(step, cancel, attempt, note, searched)
             case PlaceStep():
                 return self.place(step, cancel, attempt, note)
             case DetectStep():
-                return self.detect(step, cancel, attempt)
+                return self.detect(step, cancel, attempt, note, searched)
             case SayStep():
                 # This robot has no speaker; the text is carried in feedback and the recording.
                 log.info("say: %s", step.text)

@@ -196,6 +196,9 @@ class PlanRunner:
         timeout = self.config.timeouts.of(step)
         tries = 1 + self.config.retries.of(step)
 
+        searched: list[str] = []  # where the attempt under way has looked for its object
+        searching_before = self.manipulator.search_time
+
         def report(status: StepStatus, message: str, attempt: int, kind: FailureKind | None = None) -> None:
             feedback(
                 ExecutePlanFeedback(
@@ -207,6 +210,7 @@ class PlanRunner:
                     label=label,
                     failure=kind,
                     attempt=attempt,
+                    searched=list(searched),
                 )
             )
 
@@ -219,6 +223,8 @@ class PlanRunner:
                 label=label,
                 failure=kind,
                 attempts=attempt,
+                searched=list(searched),
+                search_s=round(self.manipulator.search_time - searching_before, 3),
             )
 
         report(StepStatus.RUNNING, step.describe(), 1)
@@ -230,7 +236,7 @@ class PlanRunner:
         earlier: list[str] = []  # why the tries before the last failed
         while True:
             try:
-                message = self._attempt(step, timeout, cancel, attempt, note)
+                message = self._attempt(step, timeout, cancel, attempt, note, searched)
             except Canceled as exc:
                 failure = _Failure(
                     f"step {label} ({action}) canceled", PlanStatus.CANCELED, "canceled", FailureKind.CANCELED
@@ -262,9 +268,13 @@ class PlanRunner:
             report(StepStatus.SUCCEEDED, message, attempt)
             return result(StepStatus.SUCCEEDED, message, attempt), None
 
-    def _attempt(self, step: GroundedStep, timeout: float, cancel: threading.Event, attempt: int, note: Note) -> str:
+    def _attempt(
+        self, step: GroundedStep, timeout: float, cancel: threading.Event, attempt: int, note: Note, searched: list[str]
+    ) -> str:
         """One try at a step within its time; a retry first brings the robot back to where a step
-        can start (hand empty and open, or holding, with the arm stowed)."""
+        can start (hand empty and open, or holding, with the arm stowed). `searched` starts empty
+        and gets the places the try looks for its object."""
+        searched.clear()
         if cancel.is_set():
             raise Canceled("canceled before the step started")
         clock = StepClock(timeout, cancel, self.robot.speed_scale)
@@ -272,7 +282,7 @@ class PlanRunner:
             with clock.running() as step_cancel:
                 if attempt > 1:
                     self.manipulator.recover(step, step_cancel)
-                return self.manipulator.run(step, step_cancel, attempt, note)
+                return self.manipulator.run(step, step_cancel, attempt, note, searched)
         except Canceled as exc:
             if clock.expired and not cancel.is_set():
                 raise StepTimedOut(

@@ -24,7 +24,9 @@ from schemas.plan import (
 )
 from services.parser.config import ParserConfig
 from services.parser.errors import ParseError
+from services.parser.expand import Expansions
 from services.parser.extract import JsonFinder, fenced_blocks
+from services.parser.hints import Hints
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
 from services.parser.toolcalls import ToolCalls, call_arguments, find_tool_calls
 from services.parser.vocabulary import AXES, STEP_FIELDS, ParamSpec, Vocabulary, load_vocabulary, normalise_word
@@ -45,6 +47,8 @@ _NUMBER_WITH_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)
 _NAME_FIELDS = ("target", "target_object", "target_location")
 # Control characters have no place in a name or a spoken sentence (newlines and tabs excepted).
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
+# A list marker at the start of one English sentence of a JSON array ("1. Go to the kitchen").
+_LIST_MARK = re.compile(r"^\s*(?:[-*\u2022+]|\(?\d{1,3}[.):])?\s*")
 # A list item or a heading-like line: the text may be English steps.
 _LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)", re.IGNORECASE | re.MULTILINE)
 _YAML_FENCES = ("yaml", "yml")
@@ -179,6 +183,8 @@ class Parser:
         }
         for name in STEP_FIELDS:
             self.fields.setdefault(name, name)
+        self.expansions = Expansions(vocabulary, self.fields)
+        self.hints = Hints(vocabulary)
         self.ignored_fields = {normalise_word(n) for n in vocabulary.ignored_fields}
         coordinates = vocabulary.coordinates
         self.coordinate_actions = frozenset(coordinates.actions)
@@ -289,6 +295,8 @@ class Parser:
         if isinstance(value, list):
             if value and all(isinstance(v, dict) for v in value):
                 return True
+            if value and all(isinstance(v, str) for v in value):  # ["Go to the kitchen", "Pick up the cup"]
+                return any(self.grammar.starts_step(_LIST_MARK.sub("", v, count=1), 0) for v in value[:MAX_LISTED])
         elif isinstance(value, dict):
             keys = {normalise_word(k) for k in value if isinstance(k, str)}
             if any(k in keys for k in self.plan_keys) or any(self.fields.get(k) == "action" for k in keys):
@@ -545,6 +553,11 @@ class Parser:
     # One step
 
     def _step(self, value: Any, where: _Where, depth: int, ctx: _Context) -> Step:
+        if isinstance(value, str):
+            return self._sentence_step(value, where, depth, ctx)
+        if isinstance(value, dict):
+            takes = self._takes
+            value = self.expansions.rewrite(value, where.label, takes, where.refuse, ctx.warnings) or value
         ctx.count(where)
         if depth > self.config.max_nesting:
             raise where.refuse(f"sub-steps are nested more than {self.config.max_nesting} levels deep")
@@ -560,8 +573,34 @@ class Parser:
             on_failure=[self._step(v, where.alternative(i), depth + 1, ctx) for i, v in enumerate(on_failure)],
         )
 
-    def _text_step(self, item: TextStep, top: int, depth: int, ctx: _Context) -> Step:
-        where = _Where(f"line {item.line}, column {item.column}", top, item.line, item.column)
+    def _takes(self, action: str, key: Any) -> bool:
+        """Whether `action` takes a parameter named `key` (an expansion hands it its parameters)."""
+        return isinstance(key, str) and normalise_word(key) in self.params[Action(action)]
+
+    def _sentence_step(self, text: str, where: _Where, depth: int, ctx: _Context) -> Step:
+        """A step written as an English sentence in a JSON or YAML plan; several clauses make a group."""
+        try:
+            text_steps, warnings = read_text(
+                text, self.grammar, max_steps=self.config.max_steps, max_depth=self.config.max_nesting
+            )
+        except ParseError as exc:
+            message = exc.error.message
+            if exc.error.line == 1 and "\n" not in text.strip():  # one line: the sentence itself is quoted
+                message = message.removeprefix(f"line 1, column {exc.error.column}: ")
+            raise where.refuse(message, kind=exc.error.kind, candidates=exc.error.candidates) from None
+        ctx.warnings.extend(f"{where.label}: {w}" for w in warnings)
+        steps = [self._text_step(s, where.top, depth + (len(text_steps) > 1), ctx, where.label) for s in text_steps]
+        if len(steps) == 1:
+            return steps[0]
+        ctx.count(where)
+        description = self._text(text, f"{where.label}: description", ctx.warnings)
+        return Step(action=None, description=description, substeps=steps)
+
+    def _text_step(self, item: TextStep, top: int, depth: int, ctx: _Context, label: str | None = None) -> Step:
+        if label is not None:  # a sentence of a structured plan: named by its place there
+            where = _Where(label, top)
+        else:
+            where = _Where(f"line {item.line}, column {item.column}", top, item.line, item.column)
         ctx.count(where)
         if depth > self.config.max_nesting:
             raise where.refuse(f"sub-steps are nested more than {self.config.max_nesting} levels deep")
@@ -570,8 +609,8 @@ class Parser:
         step = self._build(raw, where, bool(item.substeps), ctx)
         return msgspec.structs.replace(
             step,
-            substeps=[self._text_step(s, top, depth + 1, ctx) for s in item.substeps],
-            on_failure=[self._text_step(s, top, depth + 1, ctx) for s in item.on_failure],
+            substeps=[self._text_step(s, top, depth + 1, ctx, label) for s in item.substeps],
+            on_failure=[self._text_step(s, top, depth + 1, ctx, label) for s in item.on_failure],
         )
 
     def _nested(self, value: Any, name: str, where: _Where) -> list[Any]:
@@ -700,6 +739,7 @@ class Parser:
         ignored: list[str] = []
         known = self.params[action]
         given = [(k, v, True) for k, v in raw.parameters.items()] + [(k, v, False) for k, v in raw.extra.items()]
+        given, manner = self.hints.sift(where.label, known, given, warnings)
         for key, value, in_parameters in given:
             if value is None:  # not given: a model in strict mode sends null for each argument it leaves out
                 continue
@@ -723,6 +763,7 @@ class Parser:
         for name, value in preset.items():
             if params.setdefault(name, value) != value:
                 raise where.refuse(f"the action says {name} {value!r} but parameter '{name}' is {echo(params[name])}")
+        self.hints.slow_down(where.label, action, manner, params, warnings)
         self._apply_signs(where, action, params)
         if unknown or ignored:
             names = sorted(self.vocabulary.actions[action].params)

@@ -53,6 +53,30 @@ class ActionGrammar(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     patterns: Annotated[list[PatternText | PatternEntry], Meta(min_length=1)]
 
 
+class StepTemplate(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One step an expansion stands for. "{target}" and "{location}" are what the clause's slots read;
+    any other text is kept as written ("me"); a slot the clause left out leaves the field out."""
+
+    action: Action
+    target: Phrase | None = None
+    location: Phrase | None = None
+    set: dict[Phrase, Phrase] = {}
+
+
+class ExpansionEntry(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A clause that means several steps ("bring me the cup": pick it, put it by the person), or,
+    with `reason` instead of `steps`, a clause of that kind refused with a reason of its own."""
+
+    pattern: PatternText
+    steps: Annotated[list[StepTemplate], Meta(max_length=8)] = []
+    reason: Annotated[str, Meta(max_length=1000)] = ""
+
+
+class ExpansionGrammar(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    examples: Annotated[list[Example], Meta(min_length=1)]
+    patterns: Annotated[list[ExpansionEntry], Meta(min_length=1)]
+
+
 class GrammarFile(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     actions: dict[Action, ActionGrammar]
     fillers: list[Phrase] = []
@@ -66,6 +90,13 @@ class GrammarFile(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fiel
     # The quantity whose unit words a number of a {point} may carry ("(3.5 m, 2 m)").
     point_quantity: Phrase | None = None
     refusals: list[RefusalEntry] = []
+    # Never the first word of a noun phrase: "get to the kitchen" names no object "to the kitchen".
+    not_first_in_names: list[Phrase] = []
+    # Clauses that stand for several steps, tried before the actions' patterns.
+    expansions: dict[Phrase, ExpansionGrammar] = {}
+    # Phrases that may end a clause with a hint ("carefully", "with a pinch grasp"), read off its end
+    # only when the whole clause matches no pattern.
+    hints: list[PatternText | PatternEntry] = []
 
 
 @dataclass(frozen=True)
@@ -114,11 +145,12 @@ class _Slot:
 
 @dataclass(frozen=True)
 class _Pattern:
-    action: str  # canonical action name; "" for a refusal
+    action: str  # canonical action name; "" for a refusal or an expansion
     regex: re.Pattern[str]
     slots: tuple[_Slot, ...]
     fixed: tuple[tuple[str, str], ...] = ()
     reason: str = ""
+    steps: tuple[StepTemplate, ...] = ()  # an expansion's steps
 
 
 @dataclass(frozen=True)
@@ -150,12 +182,16 @@ class _PatternCompiler:
         self.point = point
         self.slots: list[_Slot] = []
 
-    def compile(self) -> tuple[str, str, frozenset[str]]:
-        """(regex, head regex, first words)."""
+    def compile(self, *, verb: bool = True) -> tuple[str, str, frozenset[str]]:
+        """(regex, head regex, first words). A hint (`verb` False) may start with anything."""
         fragments = self._sequence(in_parens=False)
         if self.pos != len(self.tokens):
             raise _PatternProblem(f"unexpected {self.tokens[self.pos]!r}")
-        if not fragments or fragments[0].firsts is None:
+        if not fragments:
+            raise _PatternProblem("empty pattern")
+        if not verb:
+            return "".join(f.regex for f in fragments), "", frozenset()
+        if fragments[0].firsts is None:
             raise _PatternProblem("a pattern must start with a word (its verb)")
         firsts = fragments[0].firsts
         head = ""
@@ -281,6 +317,7 @@ class TextGrammar:
         self.articles = frozenset(w.lower() for w in spec.articles)
         self.determiners = frozenset(w.lower() for w in spec.determiners) | self.articles
         self.not_in_names = frozenset(w.lower() for w in spec.not_in_names)
+        self.not_first_in_names = frozenset(w.lower() for w in spec.not_first_in_names)
         self.trailing_fillers = tuple(" " + " ".join(w.lower().split()) for w in spec.trailing_fillers)
         numbers = ((" ".join(w.lower().split()), d) for w, d in spec.numbers.items())
         self.numbers = sorted(numbers, key=lambda pair: len(pair[0]), reverse=True)
@@ -305,7 +342,8 @@ class TextGrammar:
         self.point, self.point_numbers = _point_regexes(_units(point_units))
         self.patterns: dict[str, list[_Pattern]] = {}
         self.refusals: dict[str, list[_Pattern]] = {}
-        self.actions_by_verb: dict[str, list[Action]] = {}
+        # The examples of each action or expansion a verb starts, shown when its clause cannot be read.
+        self.examples_by_verb: dict[str, list[list[str]]] = {}
         heads: dict[str, list[str]] = {}
         for index, refusal in enumerate(spec.refusals):
             entry = f"refusals[{index}] {refusal.pattern!r}"
@@ -314,16 +352,27 @@ class TextGrammar:
             for word in firsts:
                 self.refusals.setdefault(word, []).append(pattern)
                 heads.setdefault(word, []).append(head)
+        # Expansions first: "take the cup to the kitchen" is two steps, not a pick of "cup to the kitchen".
+        for name, expansion in spec.expansions.items():
+            for index, item in enumerate(expansion.patterns):
+                entry = f"expansions.{name}.patterns[{index}] {item.pattern!r}"
+                pattern, head, firsts = self._compile(entry, item.pattern, quantities, None, {})
+                pattern = self._expansion(entry, pattern, item)
+                self._index(pattern, head, firsts, heads, expansion.examples)
         for action, grammar in spec.actions.items():
-            for index, item in enumerate(grammar.patterns):
-                text, fixed = (item, {}) if isinstance(item, str) else (item.pattern, item.set)
+            for index, action_item in enumerate(grammar.patterns):
+                text, fixed = (
+                    (action_item, {}) if isinstance(action_item, str) else (action_item.pattern, action_item.set)
+                )
                 entry = f"actions.{action.value}.patterns[{index}] {text!r}"
                 pattern, head, firsts = self._compile(entry, text, quantities, action, fixed)
-                for word in firsts:
-                    self.patterns.setdefault(word, []).append(pattern)
-                    heads.setdefault(word, []).append(head)
-                    if action not in self.actions_by_verb.setdefault(word, []):
-                        self.actions_by_verb[word].append(action)
+                self._index(pattern, head, firsts, heads, grammar.examples)
+        # Verbs that start only expansions: over sub-items, such a heading names what they do.
+        self.summary_verbs = frozenset(w for w, ps in self.patterns.items() if all(not p.action for p in ps))
+        self.hints: list[_Pattern] = []
+        for index, hint in enumerate(spec.hints):
+            text, fixed = (hint, {}) if isinstance(hint, str) else (hint.pattern, hint.set)
+            self.hints.append(self._hint(f"hints[{index}] {text!r}", text, quantities, fixed))
         # Heads only answer "does a step start here", so their slots need no names (which would clash).
         self.heads = {
             w: re.compile(_alternation(sorted({_UNNAMED.sub("(?:", x) for x in h})) + _HEAD_END, re.IGNORECASE)
@@ -335,6 +384,45 @@ class TextGrammar:
 
     def _error(self, entry: str, problem: str) -> VocabularyError:
         return VocabularyError(f"grammar file {self.source}: {entry}: {problem}")
+
+    def _index(
+        self, pattern: _Pattern, head: str, firsts: frozenset[str], heads: dict[str, list[str]], examples: list[str]
+    ) -> None:
+        for word in firsts:
+            self.patterns.setdefault(word, []).append(pattern)
+            heads.setdefault(word, []).append(head)
+            groups = self.examples_by_verb.setdefault(word, [])
+            if examples not in groups:
+                groups.append(examples)
+
+    def _expansion(self, entry: str, pattern: _Pattern, item: ExpansionEntry) -> _Pattern:
+        if bool(item.steps) == bool(item.reason.strip()):
+            raise self._error(entry, "an expansion has either `steps` or a `reason`")
+        kinds = {slot.name: slot.kind for slot in pattern.slots}
+        if any(kind != "noun" for kind in kinds.values()):
+            raise self._error(entry, "an expansion's pattern may only have {target}, {location} and {_} slots")
+        for template in item.steps:
+            for value in (template.target, template.location, *template.set.values()):
+                slot = _slot_reference(value)
+                if slot is not None and _NOUN_SLOTS.get(slot) not in kinds:
+                    raise self._error(entry, f"step {template.action.value}: {value!r} is not a slot of the pattern")
+        return _Pattern("", pattern.regex, pattern.slots, reason=" ".join(item.reason.split()), steps=tuple(item.steps))
+
+    def _hint(self, entry: str, text: str, quantities: dict[str, str], fixed: dict[str, str]) -> _Pattern:
+        try:
+            compiler = _PatternCompiler(text, quantities, self.point)
+            regex, _, _ = compiler.compile(verb=False)
+            # At the end of the clause, perhaps after a comma: "go to the kitchen, carefully".
+            compiled = re.compile(f",?{regex}$", re.IGNORECASE)
+        except _PatternProblem as exc:
+            raise self._error(entry, str(exc)) from None
+        except re.error as exc:
+            raise self._error(entry, f"does not compile: {exc}") from None
+        if any(slot.kind not in ("quantity", "choice") for slot in compiler.slots):
+            raise self._error(entry, "a hint may only have quantity and {name:a|b} slots")
+        if any(name in _NOUN_SLOTS for name in fixed):
+            raise self._error(entry, "a hint sets parameters only, never a target or location")
+        return _Pattern("", compiled, tuple(compiler.slots), tuple(fixed.items()))
 
     def _compile(
         self, entry: str, text: str, quantities: dict[str, str], action: Action | None, fixed: dict[str, str]
@@ -374,25 +462,32 @@ class TextGrammar:
         heads = self.heads.get(words[0].rstrip(",;:.!?").lower()) if words else None
         return heads is not None and heads.match(" " + " ".join(words)) is not None
 
-    def read_clause(self, clause: str, line: int, column: int, tail: str = "") -> dict[str, Any]:
+    def read_clause(self, clause: str, line: int, column: int, tail: str = "") -> list[dict[str, Any]]:
         """The step fields of one clause (whitespace collapsed, fillers removed), or a refusal.
 
-        `tail` is the "?" or "!" trimmed off the clause, given back to a spoken text that ends it.
+        One clause is one step, or several when it is an expansion ("bring me the cup"). Hints at its
+        end ("carefully") are read off only when the whole clause matches nothing, and go into the
+        parameters of each of its steps. `tail` is the "?" or "!" trimmed off the clause, given back
+        to a spoken text that ends it.
         """
+        if self.hints:
+            rest, hinted = self._without_hints(clause)
+            # Spoken words are kept whole: "say drive carefully" is not a hint.
+            if hinted and (found := self._match(rest, clause, line, column, "")) is not None and not found[0]:
+                for fields in found[1]:
+                    params = fields.setdefault("parameters", {})
+                    for name, value in hinted.items():
+                        params.setdefault(name, value)
+                return found[1]
+        whole = self._match(clause, clause, line, column, tail)
+        if whole is not None:
+            return whole[1]
         verb = clause.split(" ", 1)[0].lower()
-        subject = " " + clause
-        for refusal in self.refusals.get(verb, ()):
-            if refusal.regex.fullmatch(subject):
-                raise ParseError(f"cannot read {echo(clause)}: {refusal.reason}", **_at(line, column))
-        for pattern in self.patterns.get(verb, ()):
-            match = pattern.regex.fullmatch(subject)
-            if match is not None and (fields := self._fields(pattern, match, tail)) is not None:
-                return fields
         if verb not in self.patterns:
-            found = process.extract(
+            near = process.extract(
                 verb[:ECHO_CHARS], self.verbs, scorer=fuzz.ratio, limit=MAX_SUGGESTIONS, score_cutoff=SUGGEST_SCORE
             )
-            suggestions = [choice for choice, _, _ in found]
+            suggestions = [choice for choice, _, _ in near]
             hint = f" (did you mean {suggestions[0]!r}?)" if suggestions else ""
             raise ParseError(
                 f"cannot read {echo(clause)}: unknown verb {echo(verb)}{hint}; expected a step such as "
@@ -401,13 +496,51 @@ class TextGrammar:
                 candidates=suggestions,
                 **_at(line, column),
             )
-        actions = self.actions_by_verb[verb]
-        examples = [self.spec.actions[a].examples[0] for a in actions]
-        if len(examples) == 1:
-            examples = self.spec.actions[actions[0]].examples
+        groups = self.examples_by_verb[verb]
+        examples = groups[0] if len(groups) == 1 else [group[0] for group in groups]
         raise ParseError(
             f"cannot read {echo(clause)}: expected a step such as {_examples(examples[:3])}", **_at(line, column)
         )
+
+    def _match(
+        self, clause: str, written: str, line: int, column: int, tail: str
+    ) -> tuple[bool, list[dict[str, Any]]] | None:
+        """The steps of the first pattern `clause` matches whole, and whether that pattern reads free text;
+        None if none matches. Refusals raise."""
+        verb = clause.split(" ", 1)[0].lower()
+        subject = " " + clause
+        for refusal in self.refusals.get(verb, ()):
+            if refusal.regex.fullmatch(subject):
+                raise ParseError(f"cannot read {echo(written)}: {refusal.reason}", **_at(line, column))
+        for pattern in self.patterns.get(verb, ()):
+            match = pattern.regex.fullmatch(subject)
+            if match is None or (fields := self._fields(pattern, match, tail)) is None:
+                continue
+            if pattern.reason:
+                reason = pattern.reason.format_map(_Slots(fields))
+                raise ParseError(f"cannot read {echo(written)}: {reason}", **_at(line, column))
+            if pattern.steps:
+                return False, [_expanded(template, fields) for template in pattern.steps]
+            return any(slot.kind == "text" for slot in pattern.slots), [fields]
+        return None
+
+    def _without_hints(self, clause: str) -> tuple[str, dict[str, Any]]:
+        """The clause with the hints at its end read off, and the parameters they give."""
+        subject = " " + clause
+        hinted: dict[str, Any] = {}
+        for _ in range(len(self.hints)):
+            for hint in self.hints:
+                match = hint.regex.search(subject)
+                if match is None or not subject[: match.start()].strip():
+                    continue
+                fields = self._fields(hint, match, "") or {}
+                for name, value in fields.get("parameters", {}).items():
+                    hinted.setdefault(name, value)
+                subject = subject[: match.start()].rstrip(" ,")
+                break
+            else:
+                break
+        return subject.strip(), hinted
 
     def _fields(self, pattern: _Pattern, match: re.Match[str], tail: str) -> dict[str, Any] | None:
         fields: dict[str, Any] = {"action": pattern.action}
@@ -418,6 +551,8 @@ class TextGrammar:
                 continue
             if slot.kind == "noun":
                 words = value.lower().split(" ")
+                if words[0] in self.not_first_in_names:
+                    return None
                 if len(words) > 1 and words[0] in self.determiners:
                     words = words[1:]
                 elif words[0] in self.articles:
@@ -460,6 +595,44 @@ class TextGrammar:
         return quantity
 
 
+class _Slots(dict[str, str]):
+    """What a refusal's reason may name: "{target}" is the clause's target; a missing slot stays as written."""
+
+    def __init__(self, fields: dict[str, Any]) -> None:
+        super().__init__({slot: _cut(str(fields[name])) for slot, name in _NOUN_SLOTS.items() if name in fields})
+
+    def __missing__(self, key: str) -> str:
+        return "{" + key + "}"
+
+
+def _slot_reference(value: str | None) -> str | None:
+    """'target' for "{target}"; None for text kept as written."""
+    if value is not None and len(value) > 2 and value[0] == "{" and value[-1] == "}":
+        return value[1:-1].strip()
+    return None
+
+
+def _expanded(template: StepTemplate, read: dict[str, Any]) -> dict[str, Any]:
+    """One step of an expansion: the template's fields, with the slots the clause read filled in."""
+    fields: dict[str, Any] = {"action": template.action.value}
+    params: dict[str, Any] = {}
+    for name, value in (("target", template.target), ("target_location", template.location), *template.set.items()):
+        if value is None:
+            continue
+        slot = _slot_reference(value)
+        if slot is not None:
+            value = read.get(_NOUN_SLOTS[slot])
+            if value is None:  # the clause left it out: so does the step, which the parser then checks
+                continue
+        if name in ("target", "target_location"):
+            fields[name] = value
+        else:
+            params[name] = value
+    if params:
+        fields["parameters"] = params
+    return fields
+
+
 def _units(words: list[str]) -> str:
     """An optional unit word after a number ("30 cm", "30cm")."""
     return f"(?: ?{_alternation([_phrase_regex(u, ' ') for u in words])})?" if words else ""
@@ -488,6 +661,10 @@ def _unquoted(text: str) -> str:
     if len(text) >= 2 and text[-1] in _CLOSING_QUOTES.get(text[0], ""):
         return text[1:-1].strip()
     return text
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= ECHO_CHARS else text[:ECHO_CHARS] + "..."
 
 
 def echo(text: str) -> str:
@@ -560,7 +737,7 @@ class _Item:
 
 @dataclass
 class _Clause:
-    fields: dict[str, Any]
+    steps: list[dict[str, Any]]  # one step's fields, or an expansion's steps
     line: int
     column: int
     description: str
@@ -717,8 +894,8 @@ class _Reader:
                     **_at(item.line, column),
                 )
             tail = "".join(c for c in written[len(clause) :] if c in "?!") if len(written) > len(clause) else ""
-            fields = grammar.read_clause(clause, item.line, column, tail)
-            out.append(_Clause(fields, item.line, column, clause, hard, marker_text))
+            steps = grammar.read_clause(clause, item.line, column, tail)
+            out.append(_Clause(steps, item.line, column, clause, hard, marker_text))
         if pending is not None:
             raise ParseError(
                 f"{echo(pending[0])} is not followed by a step: write what to do instead, e.g. "
@@ -792,13 +969,22 @@ class _Reader:
             elif clause.hard:
                 owner = None
             if owner is not None:
-                node = self.node(clause.fields, clause.line, clause.column, clause.description, owner.depth + 1)
+                node = self._clause_node(clause, owner.depth + 1)
                 owner.on_failure.append(node)
             else:
-                node = self.node(clause.fields, clause.line, clause.column, clause.description, depth)
+                node = self._clause_node(clause, depth)
                 out.append(node)
             last = node
         return last
+
+    def _clause_node(self, clause: _Clause, depth: int) -> _Node:
+        """A clause's step; an expansion is a group named by the clause, its steps as sub-steps."""
+        if len(clause.steps) == 1:
+            return self.node(clause.steps[0], clause.line, clause.column, clause.description, depth)
+        group = self.node({}, clause.line, clause.column, clause.description, depth)
+        for fields in clause.steps:
+            group.substeps.append(self.node(fields, clause.line, clause.column, "", depth + 1))
+        return group
 
     def _emit_group(self, item: _Item, out: list[_Node], depth: int, last: _Node | None) -> _Node | None:
         heading = item.heading
@@ -819,11 +1005,15 @@ class _Reader:
             own = self.clauses(item)
         except ParseError:
             verb = heading.split(" ", 1)[0].lower()
-            if verb in self.grammar.patterns:
+            # "Tidy up the table" over the steps that do it names them: nothing is lost.
+            if verb in self.grammar.patterns and verb not in self.grammar.summary_verbs:
                 self.warnings.append(
                     f"line {item.line}: {echo(heading)} has sub-items and cannot be read as a step; "
                     "it is kept as their heading only"
                 )
+        if any(len(c.steps) > 1 for c in own) and not all(self.grammar.marker.match(c.text) for c in item.children):
+            # "Fetch the cup:" over the steps that fetch it: the heading names them, it is not more steps.
+            own = []
         inner = self._emit_clauses(own, group.substeps, depth + 1, None) if own else None
         self.emit_items(item.children, group.substeps, depth + 1, inner)
         return group

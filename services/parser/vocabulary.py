@@ -86,6 +86,59 @@ class CoordinateSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     map_frames: list[Word] = msgspec.field(default_factory=lambda: ["map"])
 
 
+class SlotSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A name an expansion takes: from the first of `fields` given, else `default`, else refused with `needs`."""
+
+    fields: Annotated[list[Literal["target", "target_object", "target_location"]], Meta(min_length=1)]
+    default: Word | None = None
+    needs: str = ""
+
+
+class StepTemplate(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """One step of an expansion: target and location are "{slot}" or words kept as written."""
+
+    action: Action
+    target: Word | None = None
+    location: Word | None = None
+
+
+class ExpansionSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """An action name that stands for several steps ("bring": pick, then place by the person)."""
+
+    synonyms: list[Word] = []
+    slots: dict[Word, SlotSpec] = {}
+    describe: str = ""
+    steps: Annotated[list[StepTemplate], Meta(min_length=1, max_length=8)]
+
+
+class GraspHints(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Grasp types given where a parameter expects something else: each type's meaning, and the reason."""
+
+    params: list[Word] = []
+    types: dict[Word, Word] = {}
+    meanings: dict[Word, str] = {}
+    reason: str = ""
+
+
+class IgnoredHints(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    params: Annotated[list[Word], Meta(min_length=1)]
+    reason: str
+
+
+class MannerHints(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Manner words, what each means, and the speed each meaning sets per action when the step gives none."""
+
+    params: list[Word] = []
+    words: dict[Word, Word] = {}
+    speeds: dict[Word, dict[Action, Annotated[float, Meta(gt=0.0)]]] = {}
+
+
+class HintSpec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    grasp: GraspHints = GraspHints()
+    ignored: list[IgnoredHints] = []
+    manner: MannerHints = MannerHints()
+
+
 class Vocabulary(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     actions: dict[Action, ActionSpec]
     coordinates: CoordinateSpec = CoordinateSpec()
@@ -97,6 +150,10 @@ class Vocabulary(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     plan_keys: Annotated[list[Word], Meta(min_length=1)] = msgspec.field(default_factory=lambda: ["plan"])
     # Tools whose arguments hold a whole plan (execute_plan), when a plan arrives as a tool call.
     plan_tools: list[Word] = []
+    # Action names that stand for several steps (services/parser/expand.py).
+    expansions: dict[Word, ExpansionSpec] = {}
+    # What a plan may say that is a hint, not a command (services/parser/hints.py).
+    hints: HintSpec = HintSpec()
 
 
 @functools.lru_cache(maxsize=4096)
@@ -162,6 +219,8 @@ def _check(vocabulary: Vocabulary, path: Path) -> None:
                         f"vocabulary file {path}: variant {variant!r} sets {param}={value!r}, "
                         f"not a choice of a parameter of {action.value}"
                     )
+    _check_expansions(vocabulary, path, seen)
+    _check_hints(vocabulary, path)
     field_names: dict[str, str] = {}
     for field, names in vocabulary.fields.items():
         for name in names:
@@ -191,3 +250,62 @@ def _check_coordinates(vocabulary: Vocabulary, path: Path, field_names: dict[str
                 raise VocabularyError(f"vocabulary file {path}: {kind} key {name!r} is also a step field")
     if not {normalise_word(p) for p in spec.poses} <= {normalise_word(p) for p in spec.points}:
         raise VocabularyError(f"vocabulary file {path}: coordinates.poses must be among coordinates.points")
+
+
+def slot_reference(value: str | None) -> str | None:
+    """'object' for "{object}"; None for words kept as written."""
+    if value is not None and len(value) > 2 and value[0] == "{" and value[-1] == "}":
+        return value[1:-1].strip()
+    return None
+
+
+def _check_expansions(vocabulary: Vocabulary, path: Path, seen: dict[str, str]) -> None:
+    for name, spec in vocabulary.expansions.items():
+        where = f"vocabulary file {path}: expansions.{name}"
+        for word in (name, *spec.synonyms):
+            key = normalise_word(word)
+            if seen.setdefault(key, f"expansion {name}") != f"expansion {name}":
+                raise VocabularyError(f"{where}: {word!r} also names {seen[key]}")
+        for slot_name, slot_spec in spec.slots.items():
+            if slot_spec.default is None and not slot_spec.needs.strip():
+                raise VocabularyError(f"{where}: slot {slot_name!r} needs a `default` or a `needs` text")
+        for template in spec.steps:
+            for written in (template.target, template.location):
+                slot = slot_reference(written)
+                if slot is not None and slot not in spec.slots:
+                    action = template.action.value
+                    raise VocabularyError(f"{where}: step {action} names {written!r}, not one of its slots")
+        try:
+            spec.describe.format_map(dict.fromkeys(spec.slots, ""))
+        except (KeyError, ValueError, IndexError) as exc:
+            raise VocabularyError(f"{where}: describe {spec.describe!r} names what no slot gives ({exc})") from None
+
+
+def _check_hints(vocabulary: Vocabulary, path: Path) -> None:
+    hints = vocabulary.hints
+    where = f"vocabulary file {path}: hints"
+    params = {
+        normalise_word(n): action.value
+        for action, spec in vocabulary.actions.items()
+        for name, pspec in spec.params.items()
+        for n in (name, *pspec.aliases, *pspec.unit_aliases)
+    }
+    names = [*hints.manner.params, *(n for group in hints.ignored for n in group.params)]
+    for name in names:
+        if normalise_word(name) in params:
+            raise VocabularyError(f"{where}: {name!r} is a parameter of {params[normalise_word(name)]}, not a hint")
+    for name in hints.grasp.params:
+        if not any(name in spec.params for spec in vocabulary.actions.values()):
+            raise VocabularyError(f"{where}.grasp: {name!r} is no action's parameter")
+    for kind in hints.grasp.types.values():
+        if kind not in hints.grasp.meanings:
+            raise VocabularyError(f"{where}.grasp: type {kind!r} has no meaning")
+    for meaning, speeds in hints.manner.speeds.items():
+        if meaning not in hints.manner.words.values():
+            raise VocabularyError(f"{where}.manner: speeds for {meaning!r}, which no manner word means")
+        for action, speed in speeds.items():
+            spec = vocabulary.actions[action].params.get("speed")
+            low = spec.min if spec is not None and spec.min is not None else 0.0
+            high = spec.max if spec is not None and spec.max is not None else 0.0
+            if spec is None or not low <= speed <= high:
+                raise VocabularyError(f"{where}.manner: {action.value} speed {speed:g} is not one its speed allows")

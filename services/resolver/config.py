@@ -3,12 +3,30 @@ remembers what perception saw, and how it picks spots and poses."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 from msgspec import Meta
 
 Distance = Annotated[float, Meta(ge=0.0, le=3.0)]
+Phrase = Annotated[str, Meta(min_length=1, max_length=100)]
+# A place location that means "where the object was before it was picked up".
+PUT_BACK_PHRASES = (
+    "where it was found",
+    "where it was",
+    "where you found it",
+    "where it came from",
+    "where it was before",
+    "where it belongs",
+    "back",
+    "back where it was",
+    "its place",
+    "its spot",
+    "its original place",
+    "its original position",
+    "original place",
+    "original position",
+)
 
 
 class ResolverConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -36,3 +54,14 @@ class ResolverConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     # Where the base stops when told to go to a person, and to an object lying on the floor.
     human_standoff: Annotated[float, Meta(ge=0.3, le=3.0)] = 0.8
     object_standoff: Annotated[float, Meta(ge=0.2, le=2.0)] = 0.6
+    # A place at a person ("bring it to me"): "surface" puts the object down on the free furniture
+    # top nearest them; "hand" drives to them (human_standoff) and keeps holding it out.
+    deliver: Literal["surface", "hand"] = "surface"
+    # "surface": no top whose free spot is within this (xy, metres) of the person: refused.
+    deliver_max_distance: Annotated[float, Meta(gt=0.0, le=20.0)] = 3.0
+    # "surface": the spot is at most this far (xy) from the base at the top's approach pose, where
+    # the arm reaches it without stretching.
+    deliver_reach: Annotated[float, Meta(ge=0.3, le=1.2)] = 0.85
+    # Place locations meaning "where the object stood before this plan (or the gripper) took it".
+    # Compared without case, articles or punctuation; a name the world knows wins over them.
+    put_back_phrases: Annotated[tuple[Phrase, ...], Meta(max_length=100)] = PUT_BACK_PHRASES

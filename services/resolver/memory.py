@@ -20,6 +20,15 @@ MAX_AVERAGED = 20
 MAX_OBJECTS = 1000
 
 
+@dataclass(frozen=True)
+class Origin:
+    """Where an object was last seen before it entered the gripper: on a furniture top (`on`), or
+    on the floor (`on` None)."""
+
+    on: str | None
+    position: Vec3
+
+
 @dataclass
 class _Sighting:
     """One remembered object: its latest report, its refined position, and when it was last seen."""
@@ -49,6 +58,7 @@ class ObjectMemory:
         self.move_tolerance = move_tolerance
         self.version = 0
         self._objects: dict[str, _Sighting] = {}
+        self._origins: dict[str, Origin] = {}
         self._stamp: float | None = None  # the latest frame's stamp; None before any frame
 
     def __len__(self) -> int:
@@ -93,9 +103,23 @@ class ObjectMemory:
         ]
         return PerceivedObjects(stamp=self._stamp, objects=objects)
 
+    def origins(self) -> dict[str, Origin]:
+        """For each object in the gripper, where it was last seen before it got there (when it was
+        seen at all): what "put it back" means for an object a plan starts out holding."""
+        return {
+            object_id: origin
+            for object_id, origin in self._origins.items()
+            if object_id in self._objects and self._objects[object_id].report.on == GRIPPER
+        }
+
     def _sighted(self, seen: PerceivedObject, stamp: float, now: float) -> bool:
         """Remember one sighting; True when it changes what is believed (new, moved, or on something else)."""
         known = self._objects.get(seen.id)
+        if seen.on == GRIPPER and (known is None or known.report.on != GRIPPER):
+            if known is not None and not known.released:
+                self._origins[seen.id] = Origin(known.report.on, known.position)
+            else:
+                self._origins.pop(seen.id, None)  # where it was before is not known
         if known is None or known.released or seen.on != known.report.on or not self._near(known.position, seen):
             self._objects[seen.id] = _Sighting(seen, seen.position, 1, now, stamp)
             return True
@@ -129,6 +153,7 @@ class ObjectMemory:
         oldest = sorted(self._objects, key=lambda object_id: self._objects[object_id].seen_at)[:excess]
         for object_id in oldest:
             del self._objects[object_id]
+            self._origins.pop(object_id, None)
         return True
 
 

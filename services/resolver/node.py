@@ -16,7 +16,7 @@ from schemas.robot import Odometry
 from schemas.world import Empty, PerceivedHumans, PerceivedObjects, SceneDescription
 from services.resolver.cache import ResolutionCache, WorldKey, world_key
 from services.resolver.config import ResolverConfig
-from services.resolver.memory import ObjectMemory
+from services.resolver.memory import ObjectMemory, Origin
 from services.resolver.resolver import Resolver, answer
 from services.runtime import Node, encode
 from services.worldmodel import WorldModel, load_world
@@ -26,12 +26,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Snapshot:
-    """What the resolver believes at one moment: objects where last seen, the robot, the people."""
+    """What the resolver believes at one moment: objects where last seen (and where each held one
+    was before the gripper took it), the robot, the people."""
 
     objects: PerceivedObjects | None
     robot: Pose2D | None
     humans: PerceivedHumans | None
     key: WorldKey
+    origins: dict[str, Origin]
 
 
 class Perception:
@@ -60,7 +62,7 @@ class Perception:
         with self._lock:
             objects = self._memory.snapshot(self._clock())
             key = world_key(self._memory.version, self._robot, self._humans)
-            return Snapshot(objects, self._robot, self._humans, key)
+            return Snapshot(objects, self._robot, self._humans, key, self._memory.origins())
 
 
 def build_resolver(config: ResolverConfig) -> Resolver:
@@ -81,7 +83,7 @@ def handler(resolver: Resolver, perception: Perception, cache: ResolutionCache) 
         if cached is not None:
             log.debug("grounded plan of %d steps from the cache (%d hits)", len(cached.steps), cache.hits)
             return cached
-        reply = answer(resolver, plan, snap.objects, snap.robot, snap.humans)
+        reply = answer(resolver, plan, snap.objects, snap.robot, snap.humans, snap.origins)
         if isinstance(reply, ServiceError):
             log.info("refused plan: %s", reply.message)
         else:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from schemas.common import Vec3
 from schemas.world import Furniture
@@ -35,11 +35,12 @@ def place_position(
     inset: float,
     clearance: float,
     near: tuple[float, float] | None = None,
+    allowed: Callable[[float, float], bool] | None = None,
 ) -> Vec3 | None:
     """A spot on `surface`'s top, `inset` in from the edge nearest its approach pose, at least
     `clearance` (xy) from every occupied point, shifted sideways along the edge (then further in)
-    as needed; with `near`, the free spot closest to that point instead. None when the top has no
-    free spot."""
+    as needed; with `near`, the free spot closest to that point instead. Only spots (x, y) that
+    `allowed` accepts, when given. None when the top has no such spot."""
     cx, cy = surface.center
     half = (surface.size.x / 2, surface.size.y / 2)
     ax, ay = surface.approach.x, surface.approach.y
@@ -57,7 +58,9 @@ def place_position(
             point = [0.0, 0.0]
             point[across] = edge - sign * depth
             point[along] = side
-            if all(math.dist(point, other) >= clearance - 1e-9 for other in occupied):
+            if all(math.dist(point, other) >= clearance - 1e-9 for other in occupied) and (
+                allowed is None or allowed(point[0], point[1])
+            ):
                 free.append((point[0], point[1]))
     if not free:
         return None

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import assert_never
+from typing import assert_never, get_args
 
 import msgspec
 from shapely.geometry import Point
@@ -28,6 +28,7 @@ from schemas.plan import (
     Resolution,
     ResolveReply,
     SayStep,
+    SearchScope,
     Step,
     StopStep,
     WaitStep,
@@ -36,7 +37,8 @@ from schemas.world import Furniture, PerceivedHumans, PerceivedObjects, SceneDes
 from services.resolver.config import ResolverConfig
 from services.resolver.errors import ResolveError
 from services.resolver.match import Matcher, NoMatch
-from services.resolver.names import KIND_NOUNS, Entity, Kind, NameIndex
+from services.resolver.memory import Origin
+from services.resolver.names import KIND_NOUNS, Entity, Kind, NameIndex, normalise_name
 from services.resolver.placement import place_position
 from services.resolver.reference import parse_reference
 from services.resolver.scene import GRIPPER, Belief, Scene, describe_scene, perceived, scene_graph
@@ -58,6 +60,13 @@ SAME_YAW = 1e-3
 ECHO_CHARS = 60
 # A spot a plan gives for place must be this far in from the edge of the top.
 PLACE_EDGE_MARGIN = 0.05
+# A delivery spot is at least this far (xy) from where the person stands or sits, and the base's
+# approach pose at least this plus the base's half-diagonal: never on or into them.
+PERSON_CLEARANCE = 0.4
+# schemas.common.Name's bound, for names the resolver puts together.
+MAX_NAME_CHARS = 200
+# Surfaces named when a delivery finds none near enough.
+DELIVERY_SUGGESTIONS = 3
 
 
 def _echo(name: str) -> str:
@@ -86,9 +95,10 @@ class _Notes:
 @dataclass
 class _State:
     """What the resolver predicts as the plan unfolds: where things are, what the gripper holds,
-    where the base stands, which object "it" is. `robot` is None when that is not known;
-    `pose_note` then says why, if it is not simply missing odometry. `humans` and `notes` are shared
-    by every copy."""
+    where the base stands, which object "it" is, where each held object was before the gripper took
+    it (`origins`: that place and how it is known, for "put it back"). `robot` is None when that is
+    not known; `pose_note` then says why, if it is not simply missing odometry. `humans` and `notes`
+    are shared by every copy."""
 
     beliefs: dict[str, Belief]
     holding: str | _Unknown | None
@@ -97,10 +107,11 @@ class _State:
     notes: _Notes
     pose_note: str | None = None
     last_object: str | None = None
+    origins: dict[str, tuple[Origin, str]] = field(default_factory=dict)
 
     def copy(self) -> _State:
         beliefs = {k: dataclasses.replace(b) for k, b in self.beliefs.items()}
-        return dataclasses.replace(self, beliefs=beliefs)
+        return dataclasses.replace(self, beliefs=beliefs, origins=dict(self.origins))
 
     def scene(self, model: WorldModel) -> Scene:
         return Scene(model, self.beliefs, self.robot, self.humans)
@@ -149,6 +160,7 @@ class Resolver:
         self._places = {p.id: p for p in self.world.places}
         base = self.world.robot.base_size
         self._base_radius = math.hypot(base.x / 2, base.y / 2)
+        self._put_back = frozenset(normalise_name(p) for p in self.config.put_back_phrases) - {""}
 
     def resolve(
         self,
@@ -157,10 +169,12 @@ class Resolver:
         robot: Pose2D | None = None,
         *,
         humans: PerceivedHumans | None = None,
+        origins: Mapping[str, Origin] | None = None,
     ) -> GroundedPlan:
         """The grounded plan, or ResolveError naming the step: `step` is the 0-based top-level step,
-        the message says "step N" (1-based) or, for a sub-step or an alternative, its label."""
-        state = self._initial_state(objects, robot, humans)
+        the message says "step N" (1-based) or, for a sub-step or an alternative, its label.
+        `origins`: where perception last saw each held object before the gripper took it."""
+        state = self._initial_state(objects, robot, humans, origins)
         out = _Grounded()
         self._ground_steps(plan.steps, "", None, state, out, in_alternative=False)
         too_long = [len(out.steps), *(len(f.steps) for f in out.fallbacks)]
@@ -207,7 +221,11 @@ class Resolver:
         )
 
     def _initial_state(
-        self, objects: PerceivedObjects | None, robot: Pose2D | None, humans: PerceivedHumans | None
+        self,
+        objects: PerceivedObjects | None,
+        robot: Pose2D | None,
+        humans: PerceivedHumans | None,
+        origins: Mapping[str, Origin] | None = None,
     ) -> _State:
         beliefs = {o.id: Belief(self.model.initial_position(o), o.support, o.size.z / 2) for o in self.world.objects}
         holding: str | _Unknown | None = UNKNOWN
@@ -223,7 +241,10 @@ class Resolver:
         human_poses = {h.id: h.pose for h in self.world.humans}
         if humans is not None:
             human_poses.update({h.id: h.pose for h in humans.humans if h.id in human_poses})
-        return _State(beliefs, holding, robot, human_poses, _Notes())
+        state = _State(beliefs, holding, robot, human_poses, _Notes())
+        if isinstance(holding, str) and origins and holding in origins:
+            state.origins[holding] = (origins[holding], "where the camera last saw it before it was in the gripper")
+        return state
 
     # Groups, sub-steps and alternatives
 
@@ -263,6 +284,9 @@ class Resolver:
         range drives the base, where it stands when a step fails is not known in advance, so moves
         relative to the base (drive, turn, look_at) are refused there until an absolute one."""
         last = len(out.steps) - 1
+        if last < first:  # the step itself grounded to nothing (a pick of what is already held): it cannot fail
+            at.warn(state, "its on_failure is left out: the step has nothing to do, so it cannot fail")
+            return
         if any(s.spec.moves_base for s in out.steps[first:]):
             before.robot = None
             before.pose_note = f"where the robot stands when step {at.label} fails is not known in advance"
@@ -284,7 +308,8 @@ class Resolver:
             case Action.NAVIGATE_TO:
                 return [self._navigate(at, step, state)]
             case Action.PICK:
-                return [self._pick(at, step, state)]
+                pick = self._pick(at, step, state)
+                return [] if pick is None else [pick]
             case Action.PLACE:
                 return [self._place(at, step, state)]
             case Action.DETECT:
@@ -592,7 +617,7 @@ class Resolver:
             )
             self._expect_kind(at, "detect", target, entity, ("object", "human"))
         self._handled(state, entity)
-        return DetectStep(object_id=entity.id, object_name=entity.name)
+        return DetectStep(object_id=entity.id, object_name=entity.name, search=_search_scope(step))
 
     def _look_at(self, at: _At, step: Step, state: _State) -> NavigateStep:
         name = step.target or step.location
@@ -628,7 +653,9 @@ class Resolver:
         # Closing on nothing holds nothing; closing on what is held keeps holding it.
         return GripperStep(open=open_)
 
-    def _pick(self, at: _At, step: Step, state: _State) -> PickStep:
+    def _pick(self, at: _At, step: Step, state: _State) -> PickStep | None:
+        """The pick, or None when the gripper already holds that object ("pick up the cup, bring it to
+        me": the bring's own pick is done already)."""
         if step.target is None and step.coordinates is not None:
             entity = self._object_at(at, state, step.coordinates)
             name = entity.name
@@ -637,7 +664,9 @@ class Resolver:
             entity = self._find(at, name, state, ("object",), hint=step.location, coordinates=step.coordinates)
             self._expect_kind(at, "pick", name, entity, ("object",))
         if state.holding == entity.id:
-            raise at.error(f"cannot pick {entity.name}: it is already in the gripper", ErrorKind.PRECONDITION)
+            at.warn(state, f"{entity.name} is already in the gripper: nothing to pick up")
+            self._handled(state, entity)
+            return None
         if isinstance(state.holding, str):
             held = self._display_name(state.holding)
             raise at.error(
@@ -655,14 +684,25 @@ class Resolver:
             mass=obj.mass,  # from the world file: a plan never says how heavy something is
             support_id=support,
             approach=approach,
+            search=_search_scope(step),
         )
         state.holding = entity.id
+        on = belief.on if belief.on in self.model.furniture else None
+        state.origins[entity.id] = (Origin(on, belief.position), f"where step {at.label} picked it up")
         belief.on = GRIPPER
         self._handled(state, entity)
         self._moved_to(state, approach)
         return pick
 
-    def _place(self, at: _At, step: Step, state: _State) -> PlaceStep:
+    def _place(self, at: _At, step: Step, state: _State) -> GroundedStep:
+        if (
+            step.target is not None
+            and (step.location is None or not step.location.strip())
+            and step.coordinates is None
+            and (self._means_put_back(step.target) or self._names_a_person(step.target))
+        ):
+            # {"action": "place", "target": "me"}: the target is where, not what.
+            step = msgspec.structs.replace(step, target=None, location=step.target)
         held = state.holding
         if step.target is not None:
             obj = self._find(at, step.target, state, ("object",))
@@ -674,28 +714,47 @@ class Resolver:
                     f"cannot place {obj.name}: the gripper holds {self._display_name(held)}", ErrorKind.PRECONDITION
                 )
             held = obj.id
-        surface, position = self._put_down_spot(at, step, state, held)
+        if step.location is not None and self._means_put_back(step.location):
+            surface, position = self._put_back_spot(at, step.location, state, held)
+        elif (step.location is None or not step.location.strip()) and step.coordinates is not None:
+            surface, position = self._spot_at(at, state, step.coordinates, held)
+        else:
+            name = self._required(
+                at, step.location, "place needs a location: the furniture to put the object on (none given)"
+            )
+            entity = self._find(at, name, state, ("furniture",), coordinates=step.coordinates)
+            if entity.kind == "human" and self.config.deliver == "hand":
+                return self._hand_over(at, state, entity, held)
+            if entity.kind == "human":
+                surface, position = self._delivery_spot(at, name, state, entity, held)
+            else:
+                surface, position = self._put_down_spot(at, name, entity, state, held)
         if held is None:
             raise at.error(f"cannot place on {surface.name}: the gripper holds nothing", ErrorKind.PRECONDITION)
         if isinstance(held, str):
             belief = state.beliefs.get(held)
             half = belief.half_height if belief else 0.0
             state.beliefs[held] = Belief(Vec3(x=position.x, y=position.y, z=position.z + half), surface.id, half)
+            state.origins.pop(held, None)
             state.last_object = held
         state.holding = None
         self._moved_to(state, surface.approach)
         return PlaceStep(surface_id=surface.id, surface_name=surface.name, position=position, approach=surface.approach)
 
-    def _put_down_spot(self, at: _At, step: Step, state: _State, held: str | _Unknown | None) -> tuple[Furniture, Vec3]:
-        """The surface the step names and a free spot on it: where the plan's coordinates say when
-        it gives only those, else near the edge the robot stands at, next to a named object if the
-        location is one ("next to the apple")."""
-        if (step.location is None or not step.location.strip()) and step.coordinates is not None:
-            return self._spot_at(at, state, step.coordinates, held)
-        name = self._required(
-            at, step.location, "place needs a location: the furniture to put the object on (none given)"
-        )
-        entity = self._find(at, name, state, ("furniture",), coordinates=step.coordinates)
+    def _means_put_back(self, location: str) -> bool:
+        """Whether a place location means where the object was: one of the config's phrases ("where
+        it was found", "back", ...), unless the world has a thing of that name."""
+        return normalise_name(location) in self._put_back and not self.names.lookup(location)
+
+    def _names_a_person(self, name: str) -> bool:
+        found = self.names.lookup(name)
+        return bool(found) and all(e.kind == "human" for e in found)
+
+    def _put_down_spot(
+        self, at: _At, name: str, entity: Entity, state: _State, held: str | _Unknown | None
+    ) -> tuple[Furniture, Vec3]:
+        """The surface the location names and a free spot on it: near the edge the robot stands
+        at, next to a named object if the location is one ("next to the apple")."""
         beside: Belief | None = None
         if entity.kind == "object" and entity.id != held:
             beside = state.beliefs[entity.id]
@@ -720,6 +779,146 @@ class Resolver:
                 f"{self.config.place_clearance:g} m of another object",
                 ErrorKind.PRECONDITION,
             )
+        return surface, position
+
+    def _surface_named(self, at: _At, text: str, state: _State, surface: Furniture) -> None:
+        """Record that the location `text` was read as `surface`."""
+        state.notes.resolutions.append(
+            Resolution(label=at.label, text=text, kind="furniture", id=surface.id, name=surface.name, via="relation")
+        )
+
+    def _holding_for(self, at: _At, verb: str, held: str | _Unknown | None) -> str:
+        """What the gripper holds, for a place that needs to know it."""
+        if held is None:
+            raise at.error(f"cannot {verb}: the gripper holds nothing", ErrorKind.PRECONDITION)
+        if isinstance(held, _Unknown):
+            raise at.error(
+                f"cannot {verb}: what the gripper holds is not known yet (no camera frame); name the object",
+                ErrorKind.PRECONDITION,
+            )
+        return held
+
+    def _delivery_spot(
+        self, at: _At, name: str, state: _State, person: Entity, held: str | _Unknown | None
+    ) -> tuple[Furniture, Vec3]:
+        """The free furniture top nearest the person (in their room first) that the arm reaches
+        from the top's approach pose, and the spot on it nearest them."""
+        thing = self._display_name(held) if isinstance(held, str) else "the object"
+        pose = state.humans[person.id]
+        room = self.model.room_of(pose.x, pose.y)
+        keep_out = list(self.model.keep_out_shapes.values())
+        limit = self.config.deliver_max_distance
+        free: list[tuple[bool, float, Furniture, Vec3]] = []
+        unusable: list[tuple[float, Furniture, str]] = []
+        for surface in self.world.furniture:
+            approach = surface.approach
+            gap = float(self.model.footprint(surface).distance(Point(pose.x, pose.y)))
+            stands_on_them = math.dist((approach.x, approach.y), (pose.x, pose.y)) < (
+                self._base_radius + PERSON_CLEARANCE
+            )
+            if stands_on_them:
+                unusable.append((gap, surface, ", the robot would stand where they are"))
+                continue
+            if any(zone.covers(Point(approach.x, approach.y)) for zone in keep_out):
+                unusable.append((gap, surface, ", its approach pose is in a keep-out zone"))
+                continue
+
+            def allowed(x: float, y: float, approach: Pose2D = approach) -> bool:
+                return (
+                    math.dist((x, y), (approach.x, approach.y)) <= self.config.deliver_reach
+                    and math.dist((x, y), (pose.x, pose.y)) >= PERSON_CLEARANCE
+                    and not any(zone.covers(Point(x, y)) for zone in keep_out)
+                )
+
+            spot = place_position(
+                surface,
+                self._occupied(state, surface.id, held),
+                inset=self.config.place_inset,
+                clearance=self.config.place_clearance,
+                near=(pose.x, pose.y),
+                allowed=allowed,
+            )
+            if spot is None:
+                unusable.append((gap, surface, ", no free spot the arm reaches"))
+            else:
+                distance = math.dist((spot.x, spot.y), (pose.x, pose.y))
+                free.append((self.model.room_of(spot.x, spot.y) != room, distance, surface, spot))
+        choices = sorted((c for c in free if c[1] <= limit), key=lambda c: (c[0], c[1]))
+        if not choices:
+            nearest = sorted([(d, f, "") for _, d, f, _ in free] + unusable, key=lambda c: c[0])
+            listed = [f"the {f.name} ({d:.1f} m{why})" for d, f, why in nearest[:DELIVERY_SUGGESTIONS]]
+            raise at.error(
+                f"cannot place {thing} at {_echo(name)} ({person.name}): no furniture top with a free spot the arm "
+                f"reaches is within {limit:g} m of them; the nearest: {', '.join(listed)}; name the surface",
+                ErrorKind.PRECONDITION,
+                [f.name for _, f, _ in nearest[:DELIVERY_SUGGESTIONS]],
+            )
+        _, distance, surface, spot = choices[0]
+        self._surface_named(at, name, state, surface)
+        at.warn(
+            state,
+            f"{_echo(name)} is the {person.name}: {thing} goes on the {surface.name}, the free surface nearest "
+            f"them ({distance:.1f} m), not into their hands",
+        )
+        return surface, spot
+
+    def _hand_over(self, at: _At, state: _State, person: Entity, held: str | _Unknown | None) -> NavigateStep:
+        """deliver = "hand": drive up to the person and keep holding the object out to them."""
+        if held is None:
+            raise at.error(
+                f"cannot hand anything to the {person.name}: the gripper holds nothing", ErrorKind.PRECONDITION
+            )
+        thing = self._display_name(held) if isinstance(held, str) else "what the gripper holds"
+        goal = _rounded(self._towards_human(state.humans[person.id], state.robot))
+        at.warn(
+            state,
+            f"{thing} is handed to the {person.name}: the robot stops {self.config.human_standoff:g} m from them "
+            'and keeps holding it (deliver = "hand"); the gripper does not open',
+        )
+        if isinstance(held, str):
+            state.last_object = held
+        self._moved_to(state, goal)
+        return NavigateStep(target=f"{person.name} (handing over {thing})"[:MAX_NAME_CHARS], goal=goal)
+
+    def _put_back_spot(
+        self, at: _At, phrase: str, state: _State, held: str | _Unknown | None
+    ) -> tuple[Furniture, Vec3]:
+        """Where the held object stood before the gripper took it: the same spot if it is still
+        free, else the free spot on that top nearest it."""
+        held_id = self._holding_for(at, "put it back", held)
+        thing = self._display_name(held_id)
+        if held_id not in state.origins:
+            raise at.error(
+                f"cannot put {thing} back ({_echo(phrase)}): this plan did not pick it up, and the camera never "
+                "saw it anywhere before it was in the gripper; name the surface to put it on",
+                ErrorKind.PRECONDITION,
+            )
+        origin, how = state.origins[held_id]
+        if origin.on is None or origin.on not in self.model.furniture:
+            raise at.error(
+                f"cannot put {thing} back ({_echo(phrase)}): {how} it was on the floor, and place puts things "
+                "on furniture only; name a surface",
+                ErrorKind.PRECONDITION,
+            )
+        surface = self.model.furniture[origin.on]
+        occupied = self._occupied(state, surface.id, held_id)
+        was = (origin.position.x, origin.position.y)
+        clearance = self.config.place_clearance
+        position: Vec3 | None
+        if all(math.dist(was, other) >= clearance - 1e-9 for other in occupied):
+            position = Vec3(x=round(was[0], 3), y=round(was[1], 3), z=round(surface.size.z, 3))
+            spot = "the same spot"
+        else:
+            position = place_position(surface, occupied, inset=self.config.place_inset, clearance=clearance, near=was)
+            spot = "the free spot nearest its old one (something else stands there now)"
+        if position is None:
+            raise at.error(
+                f"cannot put {thing} back on the {surface.name}: every spot on it is within {clearance:g} m "
+                "of another object",
+                ErrorKind.PRECONDITION,
+            )
+        self._surface_named(at, phrase, state, surface)
+        at.warn(state, f"{_echo(phrase)}: {thing} goes back on the {surface.name}, {how}, at {spot}")
         return surface, position
 
     def _occupied(self, state: _State, surface_id: str, held: str | _Unknown | None) -> list[tuple[float, float]]:
@@ -764,6 +963,12 @@ def _vec(v: Vec3) -> Vec3:
     return Vec3(x=round(v.x, 4), y=round(v.y, 4), z=round(v.z, 4))
 
 
+def _search_scope(step: Step) -> SearchScope | None:
+    """The search a detect or pick asks for (`search` in its parameters; the parser checked the word)."""
+    value = step.params.get("search")
+    return next((scope for scope in get_args(SearchScope) if scope == value), None)
+
+
 def _rounded(pose: Pose2D) -> Pose2D:
     return Pose2D(x=round(pose.x, 4), y=round(pose.y, 4), yaw=round(pose.yaw, 4))
 
@@ -774,9 +979,10 @@ def answer(
     objects: PerceivedObjects | None = None,
     robot: Pose2D | None = None,
     humans: PerceivedHumans | None = None,
+    origins: Mapping[str, Origin] | None = None,
 ) -> ResolveReply:
     """What plan/resolve replies: the GroundedPlan, or the refusal as a value. Never raises ResolveError."""
     try:
-        return resolver.resolve(plan, objects, robot, humans=humans)
+        return resolver.resolve(plan, objects, robot, humans=humans, origins=origins)
     except ResolveError as exc:
         return exc.error

@@ -1,6 +1,6 @@
 """The executor over real processes: navigation through every doorway, cancel, re-detection of a
-moved object, planning failures, preemption, each judged by the sim (pick and place everywhere:
-tests/integration/test_tours.py)."""
+moved object, planning failures, preemption, a delivery and putting it back, each judged by the sim
+(pick and place everywhere: tests/integration/test_tours.py)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from shapely.geometry import Point
 
 from schemas import keys
 from schemas.actions import GoalState
@@ -206,3 +207,74 @@ def test_an_agent_starts_follows_and_cancels_a_plan_in_three_calls(fast_stack: S
     assert stopped is not None
     unknown = tether_cli(stack, "goal", "nosuchgoal", "--json")
     assert unknown.returncode == 2 and json.loads(unknown.stdout)["state"] == "unknown"
+
+
+def test_an_object_brought_to_me_ends_on_the_top_nearest_me_and_goes_back_where_it_was(fast_stack: Stack) -> None:
+    stack = fast_stack
+    operator = WORLD.world.humans[0].pose
+    here = Point(operator.x, operator.y)
+    nearest = min(WORLD.world.furniture, key=lambda f: WORLD.footprint(f).distance(here))
+    bring = plan(
+        {"action": "pick", "target": "red cup"}, {"action": "place", "target": "red cup", "target_location": "me"}
+    )
+    result = execute(stack, bring)
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert any("the free surface nearest them" in w for w in result.warnings), result.warnings
+    now = truth(stack)
+    cup = next(o for o in now.objects if o.id == "red_cup")
+    assert now.holding is None and cup.on == nearest.id, (now.holding, cup)  # on a top, not the floor or held
+    assert 0.4 <= math.dist((cup.position.x, cup.position.y), (operator.x, operator.y)) <= 2.0, cup.position
+    delivered = cup.position
+
+    # Carried off in one plan, put back by the next: the resolver remembers where the camera saw it.
+    result = execute(stack, plan({"action": "pick", "target": "red cup"}, {"action": "navigate_to", "target": "chair"}))
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert truth(stack).holding == "red_cup"
+    result = execute(stack, plan({"action": "place", "target": "red cup", "target_location": "where it was found"}))
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert any("where the camera last saw it before it was in the gripper" in w for w in result.warnings)
+    now = truth(stack)
+    cup = next(o for o in now.objects if o.id == "red_cup")
+    assert now.holding is None and cup.on == nearest.id, (now.holding, cup)
+    assert math.dist((cup.position.x, cup.position.y), (delivered.x, delivered.y)) < 0.05, (cup.position, delivered)
+
+
+# Searches bounded below the defaults: the room the robot is in, two places at most.
+NARROW_SEARCH = '[executor.search]\nscope = "room"\nmax_places = 2\n'
+
+
+def test_an_object_out_of_view_is_searched_for_and_one_nowhere_fails_naming_where_it_looked(tmp_path: Path) -> None:
+    stack = start_stack(
+        tmp_path, realtime_factor=FAST, services=WITHOUT_RECORDER, sim_options=FAST_SIM, extra_config=NARROW_SEARCH
+    )
+    try:
+        # Along the kitchen table, beside the camera's left edge as the base stands at the kitchen's
+        # pose facing east (and 0.3 m back from it).
+        moved = stack.node.call(keys.SIM_MOVE, MoveEntity(id="blue_cup", x=2.5, y=3.75), timeout=10.0)
+        assert isinstance(moved, Moved) and WORLD.support_under(moved.position, 0.05) == "kitchen_table"
+        feedback: list[ExecutePlanFeedback] = []
+        steps = [{"action": "navigate_to", "target": "kitchen"}, {"action": "detect", "target": "blue cup"}]
+        result = execute(stack, plan(*steps, {"action": "pick", "target": "blue cup"}), feedback)
+        assert result.status is PlanStatus.SUCCEEDED, result.reason
+        assert truth(stack).holding == "blue_cup"
+        detect = result.steps[1]
+        assert detect.searched == ["around in the kitchen"], detect
+        assert detect.search_s > 0, detect  # the executor timed its search
+        assert detect.message.endswith("after looking around in the kitchen"), detect.message
+        notes = [f.message for f in feedback if f.step == 1]
+        assert "blue cup is not in view from here; looking for it" in notes, notes
+        assert "looking for blue cup around in the kitchen" in notes, notes
+        # In the office, out of the search's scope: the step fails naming the places it looked,
+        # as `tether send` shows it.
+        moved = stack.node.call(keys.SIM_MOVE, MoveEntity(id="apple", x=6.2, y=8.7), timeout=10.0)
+        assert isinstance(moved, Moved) and WORLD.support_under(moved.position, 0.0375) == "shelf"
+        sent = tether_cli(stack, "send", "--wait", plan({"action": "detect", "target": "apple"}))
+        shown = " ".join(sent.stderr.split())
+        assert sent.returncode == 1, sent.stdout + sent.stderr
+        looked = "around in the kitchen, on the kitchen table"
+        assert f"apple not found: looked {looked}; 1 more place(s) not visited" in shown, shown
+        assert "other rooms not searched (search scope room)" in shown, shown
+        assert f"(searched: {looked})" in shown, shown
+        assert truth(stack).holding == "blue_cup"
+    finally:
+        stop_stack(stack)

@@ -43,6 +43,7 @@ def test_a_failure_names_its_kind_and_each_step() -> None:
                 failure=FailureKind.PLANNING,
                 attempts=3,
                 message="no grasp reaches the red cup",
+                searched=["on the kitchen counter", "around in the kitchen"],
             ),
             StepResult(index=2, action="place", status=StepStatus.PENDING),
         ],
@@ -51,7 +52,8 @@ def test_a_failure_names_its_kind_and_each_step() -> None:
     assert result_text(result).splitlines() == [
         "failed (planning): step 2 pick failed",
         "step 1 navigate_to: succeeded: reached the counter",
-        "step 2 pick: failed (planning) after 3 attempts: no grasp reaches the red cup",
+        "step 2 pick: failed (planning) after 3 attempts: no grasp reaches the red cup "
+        "(searched: on the kitchen counter, around in the kitchen)",
         "warning: 'cofee table' read as 'coffee table'",
     ]
 

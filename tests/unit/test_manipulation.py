@@ -12,7 +12,7 @@ import pytest
 
 from schemas.actions import ResultResponse
 from schemas.common import Pose2D, Vec3
-from schemas.plan import NavigateStep, PickStep, PlaceStep, Plan, Step
+from schemas.plan import DetectStep, NavigateStep, PickStep, PlaceStep, Plan, Step
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Twist
 from schemas.world import PerceivedObject
 from services.executor.armplanning import ArmPlanner
@@ -210,3 +210,24 @@ def test_open_and_close_gripper_on_nothing(sim: Simulation, planners: tuple[ArmP
     assert sim.robot.gripper_gap() < 0.005
     assert manipulator.operate_gripper(True, cancel) == "gripper open"
     assert sim.robot.gripper_gap() > 0.07
+
+
+def test_detect_turns_round_in_the_room_to_find_what_the_camera_does_not_see(
+    sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]
+) -> None:
+    """From the kitchen's pose (facing east) the blue cup on the kitchen table is behind the camera's
+    left edge: detect looks around and sees it, and says where it looked."""
+    world = WorldModel(sim.world)
+    manipulator = manipulator_for(SimRobot(sim), planners)
+    cancel = threading.Event()
+    manipulator.drive_to(world.room_pose("kitchen"), cancel)
+    assert all(o.id != "blue_cup" for o in sim.sensors.perceived_objects(0.0).objects), "in view already"
+    step = DetectStep(object_id="blue_cup", object_name="blue cup")
+    searched: list[str] = []
+    message = manipulator.detect(step, cancel, searched=searched)
+    assert searched == ["around in the kitchen"]
+    assert message.startswith("blue cup seen on the kitchen table") and message.endswith(
+        "after looking around in the kitchen"
+    )
+    here = sim.robot.base_pose()
+    assert world.room_of(here.x, here.y) == "kitchen"

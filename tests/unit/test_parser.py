@@ -222,7 +222,8 @@ def test_strict_parser_refuses_what_lenient_repairs() -> None:
 @pytest.mark.parametrize(
     ("steps", "expected", "step"),
     [
-        (["go to the kitchen"], "step 1: is a string, not an object with an 'action'", 0),
+        (["go to the kitchen", "fly to the moon"], "step 2: cannot read 'fly to the moon': unknown verb 'fly'", 1),
+        ([{"action": "stop"}, 3], "step 2: is a number, not an object with an 'action'", 1),
         ([{"action": "stop"}, {"target": "red cup"}], "step 2: has no 'action'", 1),
         ([{"action": 7}], "'action' must be a string", 0),
         ([{"action": "pick"}], "pick needs a target", 0),
@@ -511,6 +512,233 @@ def test_vocabulary_coordinate_keys_are_checked(tmp_path: Path, coordinates: dic
     if not problem:
         assert load_vocabulary(path).coordinates.points == coordinates["points"]
         return
+    with pytest.raises(VocabularyError, match=str(path)) as caught:
+        load_vocabulary(path)
+    assert problem in str(caught.value)
+
+
+# Arrays of English sentences: each string is read by the English grammar as one step (or a group).
+
+
+def test_an_array_of_sentences_is_a_plan() -> None:
+    plan = parse(json.dumps(["Go to the kitchen table", "Pick up the blue cup", "Bring it to me"]))
+    assert plan.source_format == "json" and plan.warnings == []
+    go, pick, bring = plan.steps
+    assert (go.action, go.target, go.description) == (Action.NAVIGATE_TO, "kitchen table", "Go to the kitchen table")
+    assert (pick.action, pick.target) == (Action.PICK, "blue cup")
+    assert bring.action is None and bring.description == "Bring it to me"
+    assert [(s.action, s.target, s.location) for s in bring.substeps] == [
+        (Action.PICK, "it", None),
+        (Action.PLACE, "it", "me"),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("text", "source_format"),
+    [
+        ('{"plan": ["go to the kitchen", "bring me the cup"]}', "json"),
+        ('{"steps": ["go to the kitchen", "bring me the cup"]}', "json"),
+        ('Sure! Here is the plan: ["go to the kitchen", "bring me the cup"]', "json"),
+        ("plan:\n  - go to the kitchen\n  - bring me the cup\n", "yaml"),
+        ('[{"action": "navigate_to", "target": "kitchen"}, "bring me the cup"]', "json"),
+    ],
+)
+def test_sentences_in_structured_plans(text: str, source_format: str) -> None:
+    plan = parse(text)
+    assert plan.source_format == source_format
+    assert [s.action for s in plan.steps] == [Action.NAVIGATE_TO, None]
+    assert [(s.action, s.location) for s in plan.steps[1].substeps] == [(Action.PICK, None), (Action.PLACE, "me")]
+
+
+def test_a_sentence_with_several_clauses_is_a_group_and_bad_ones_name_their_index() -> None:
+    plan = parse(json.dumps(["go to the kitchen and pick up the cup", "stop"]))
+    assert plan.steps[0].action is None and plan.steps[0].description == "go to the kitchen and pick up the cup"
+    assert [s.action for s in plan.steps[0].substeps] == [Action.NAVIGATE_TO, Action.PICK]
+    error = refusal(json.dumps(["go to the kitchen", "pick up the cup", "plce it on the table"]))
+    assert error.step == 2 and error.kind is ErrorKind.UNKNOWN_ACTION
+    assert error.message.startswith("step 3: cannot read 'plce it on the table': unknown verb 'plce'")
+    assert error.candidates[0] == "place"
+    error = refusal(json.dumps(["go to the kitchen", "drive forward 9 m"]))
+    assert error.step == 1 and "step 2: parameter 'distance' is 9 m; allowed -5..5 m" in error.message
+    error = refusal(json.dumps({"plan": ["tidy up the cup"]}))
+    assert (
+        error.message
+        == "step 1: cannot read 'tidy up the cup': tidy up needs a place to put cup: say 'tidy up cup onto the shelf'"
+    )
+
+
+def test_prose_with_a_list_of_words_is_not_a_plan() -> None:
+    assert "no plan found" in refusal('I could use ["red", "blue"] cups.').message
+
+
+# Structured steps whose action stands for several steps, driven by vocabulary.yaml `expansions`.
+
+
+def steps_of(step: dict[str, object]) -> list[tuple[Action | None, str | None, str | None]]:
+    (only,) = parse(json.dumps([step])).steps
+    return [(s.action, s.target, s.location) for s in (only.substeps or [only])]
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [
+        ({"action": "bring", "target": "red cup"}, [(Action.PICK, "red cup", None), (Action.PLACE, "red cup", "me")]),
+        ({"action": "fetch", "object": "keys"}, [(Action.PICK, "keys", None), (Action.PLACE, "keys", "me")]),
+        ({"action": "get", "target": "mug"}, [(Action.PICK, "mug", None), (Action.PLACE, "mug", "me")]),
+        (
+            {"action": "bring", "object": "cup", "target": "operator"},
+            [(Action.PICK, "cup", None), (Action.PLACE, "cup", "operator")],
+        ),
+        (
+            {"action": "deliver", "target_object": "cup", "destination": "kitchen table"},
+            [(Action.PICK, "cup", None), (Action.PLACE, "cup", "kitchen table")],
+        ),
+        (
+            {"action": "tidy_up", "target": "book", "location": "bookshelf"},
+            [(Action.PICK, "book", None), (Action.PLACE, "book", "bookshelf")],
+        ),
+        ({"action": "put_back", "target": "cup"}, [(Action.PLACE, "cup", "where it was found")]),
+        ({"action": "putBack"}, [(Action.PLACE, "it", "where it was found")]),
+        ({"action": "go_home"}, [(Action.NAVIGATE_TO, "home", None)]),
+        ({"action": "return home"}, [(Action.NAVIGATE_TO, "home", None)]),
+        ({"action": "return_to_dock"}, [(Action.NAVIGATE_TO, "dock", None)]),
+    ],
+)
+def test_structured_expansions(step: dict[str, object], expected: list[tuple[Action, str, str | None]]) -> None:
+    assert steps_of(step) == expected
+
+
+def test_an_expansion_keeps_its_fallback_and_hands_on_its_parameters() -> None:
+    step = {
+        "action": "bring",
+        "target": "cup",
+        "approach": "top",
+        "description": "the user is thirsty",
+        "on_failure": [{"action": "say", "text": "I could not bring it"}],
+    }
+    plan = parse(json.dumps([step]))
+    (group,) = plan.steps
+    assert group.description == "the user is thirsty"
+    assert [s.params for s in group.substeps] == [{"approach": "top"}, {"approach": "top"}]
+    assert [s.action for s in group.on_failure] == [Action.SAY]
+    (home,) = parse(json.dumps([{"action": "go_home", "speed": 0.5, "target": "kitchen"}])).steps
+    assert (home.target, home.params) == ("home", {"speed": 0.5})  # the plan's target is not where go_home goes
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [
+        ({"action": "bring"}, "step 1: 'bring' needs which object to bring"),
+        ({"action": "tidy_up", "target": "cup"}, "step 1: 'tidy_up' needs a place to put it"),
+        ({"action": "bring", "target": "cup", "approach": "under"}, "step 1.1: parameter 'approach' is 'under'"),
+        ({"action": "go_home", "speed": 3}, "step 1: parameter 'speed' is 3 m/s; allowed 0.05..1 m/s"),
+        ({"action": "bring", "target": "cup", "substeps": [{"action": "stop"}]}, "cannot also have sub-steps"),
+    ],
+)
+def test_structured_expansions_never_invent_and_never_skip_checks(step: dict[str, object], expected: str) -> None:
+    assert expected in refusal(json.dumps([step])).message
+
+
+def test_a_target_an_expansion_does_not_use_is_warned_about() -> None:
+    plan = parse(json.dumps([{"action": "go_home", "target": "kitchen"}]))
+    assert plan.steps[0].target == "home"
+    assert any("target 'kitchen' ignored: go_home does not use it" in w for w in plan.warnings)
+
+
+# Hints: not commands; warnings, and a mapping where one exists.
+
+
+@pytest.mark.parametrize(
+    ("params", "warning"),
+    [
+        ({"approach": "pinch"}, "a precision (pinch) grasp is what the parallel gripper does"),
+        ({"grasp_type": "power"}, "the parallel gripper has no power grasp"),
+        ({"grasp": "Precision grasp"}, "the approach is left to the robot"),
+        ({"approach_distance": 0.1}, "'approach_distance' is a hint the robot does not take"),
+        ({"pre_grasp_offset": "5 cm"}, "the robot plans its approach from the world model"),
+        ({"manner": "gently"}, "manner 'gently' read as a hint: pick has no slower speed"),
+    ],
+)
+def test_a_hint_is_a_warning_not_a_refusal(params: dict[str, object], warning: str) -> None:
+    plan = parse(json.dumps([{"action": "pick", "target": "cup", "parameters": params}]))
+    assert plan.steps[0].params == {}
+    assert any(warning in w for w in plan.warnings), plan.warnings
+
+
+def test_a_grasp_type_beside_a_real_approach_keeps_the_approach() -> None:
+    plan = parse(json.dumps([{"action": "pick", "target": "cup", "approach": "side"}]))
+    assert plan.steps[0].params == {"approach": "side"} and plan.warnings == []
+    assert (
+        "expected one of top, side"
+        in refusal(json.dumps([{"action": "pick", "target": "c", "approach": "under"}])).message
+    )
+
+
+def test_a_manner_only_ever_slows_the_robot() -> None:
+    vocabulary = load_vocabulary()
+    slow = vocabulary.hints.manner.speeds["slow"]
+    plan = parse(
+        json.dumps(
+            [
+                {"action": "navigate_to", "target": "kitchen", "manner": "carefully"},
+                {"action": "drive", "distance": 0.5, "parameters": {"manner": "slowly"}},
+                {"action": "navigate_to", "target": "hall", "speed": 0.1, "manner": "gently"},
+                {"action": "turn", "angle": "90 degrees", "manner": "carefully"},
+                {"action": "navigate_to", "target": "hall", "manner": "quickly"},
+            ]
+        )
+    )
+    speeds = [s.params.get("speed") for s in plan.steps]
+    assert speeds == [slow[Action.NAVIGATE_TO], slow[Action.DRIVE], 0.1, None, None]
+    # Every speed a manner sets is below the robot's usual one, and within what the parameter allows.
+    for action, speed in slow.items():
+        spec = vocabulary.actions[action].params["speed"]
+        assert spec.min is not None and spec.max is not None and spec.min <= speed < 0.5 * spec.max
+    assert plan.steps[0].units == {"speed": "m/s"}
+    assert any("speed set to 0.25 m/s" in w for w in plan.warnings)
+    assert any("the step's speed 0.1 m/s is kept" in w for w in plan.warnings)
+    assert any("manner 'quickly' ignored" in w for w in plan.warnings)
+
+
+def test_english_hints_become_warnings_and_mappings() -> None:
+    plan = parse("1. go to the kitchen carefully\n2. pick up the cup with a pinch grasp from 10 cm above\n3. stop")
+    assert plan.steps[0].params == {"speed": 0.25} and plan.steps[1].params == {}
+    assert [w.split(":")[0] for w in plan.warnings] == ["line 1, column 4", "line 2, column 4", "line 2, column 4"]
+
+
+@pytest.mark.parametrize(
+    ("step", "expected"),
+    [
+        ({"action": "navigate_to", "target": "kitchen", "speed": 2.0, "manner": "carefully"}, "'speed' is 2 m/s"),
+        ({"action": "drive", "distance": "9 m", "manner": "gently"}, "'distance' is 9 m"),
+        ({"action": "close_gripper", "force": 500, "manner": "gently"}, "'force' is 500 N"),
+        ({"action": "pick", "target": "cup", "approach": "pinchy"}, "expected one of top, side"),
+    ],
+)
+def test_parameters_that_touch_safety_are_checked_beside_hints(step: dict[str, object], expected: str) -> None:
+    assert expected in refusal(json.dumps([step])).message
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [
+        ({"expansions": {"bring": {"synonyms": ["grab"], "steps": [{"action": "pick"}]}}}, "'grab' also names pick"),
+        (
+            {"expansions": {"x": {"steps": [{"action": "pick", "target": "{thing}"}]}}},
+            "'{thing}', not one of its slots",
+        ),
+        ({"expansions": {"x": {"slots": {"a": {"fields": ["target"]}}, "steps": [{"action": "stop"}]}}}, "`needs`"),
+        ({"hints": {"manner": {"params": ["speed"]}}}, "'speed' is a parameter of"),
+        ({"hints": {"manner": {"words": {"slowly": "slow"}, "speeds": {"slow": {"navigate_to": 5.0}}}}}, "not one"),
+        ({"hints": {"manner": {"words": {"slowly": "slow"}, "speeds": {"slow": {"pick": 0.1}}}}}, "not one"),
+        ({"hints": {"grasp": {"params": ["approach"], "types": {"pinch": "precision"}}}}, "has no meaning"),
+    ],
+)
+def test_vocabulary_expansions_and_hints_are_checked(tmp_path: Path, change: dict[str, object], problem: str) -> None:
+    vocabulary = msgspec.to_builtins(load_vocabulary())
+    vocabulary.update(change)
+    path = tmp_path / "vocabulary.yaml"
+    path.write_text(json.dumps(vocabulary))
     with pytest.raises(VocabularyError, match=str(path)) as caught:
         load_vocabulary(path)
     assert problem in str(caught.value)

@@ -162,10 +162,14 @@ def test_without_a_list_each_sentence_is_a_step() -> None:
     ]
 
 
-def test_without_a_list_prose_is_refused() -> None:
-    error = refused("Sure! Go home.")
-    assert at(error) == (1, 1)
-    assert "unknown verb 'sure'" in str(error)
+def test_prose_after_a_chat_preamble_reads_and_a_sentence_that_is_no_step_is_refused() -> None:
+    # What a chat model says before its plan is a filler (grammar.yaml), not a step.
+    steps = read("Sure! Okay, here is the plan: go to the kitchen table. I will pick up the apple.")
+    assert [s.fields["action"] for s in steps] == ["navigate_to", "pick"]
+    error = refused("Sure, I can help with that.")
+    assert at(error) == (1, 7)
+    assert "unknown verb 'i'" in str(error)
+    assert "has no step" in str(refused("Okay!"))
 
 
 # Clauses
@@ -444,10 +448,10 @@ def test_unknown_verb_is_refused_with_did_you_mean() -> None:
     assert "expected a step such as 'go to the kitchen' or 'pick up the red cup'" in message
 
 
-def test_bring_is_an_unknown_verb_not_a_macro() -> None:
-    error = refused("- Bring me the red cup")
+def test_an_unknown_verb_near_an_expansion_is_refused_with_did_you_mean() -> None:
+    error = refused("- Brign me the red cup")
     assert at(error) == (1, 3)
-    assert "unknown verb 'bring'" in str(error)
+    assert "unknown verb 'brign' (did you mean 'bring'?)" in str(error)
 
 
 def test_the_column_of_a_refused_clause_is_where_it_starts() -> None:
@@ -465,7 +469,8 @@ def test_the_column_of_a_refused_clause_is_where_it_starts() -> None:
         ("wait for the user", "'wait 5 seconds'"),
         ("pick up the", "'pick up the red cup'"),
         ("open the door", "'open the gripper'"),
-        ("go to the kitchen slowly", "'go to the kitchen'"),
+        ("go to the kitchen quickly", "'go to the kitchen'"),
+        ("go to the kitchen or the hall carefully", "'go to the kitchen'"),
         ("drive forward a bit", "'drive forward 1 meter'"),
         ("pick up the cup (the red one)", "'pick up the red cup'"),
     ],
@@ -478,9 +483,183 @@ def test_a_known_verb_in_an_unreadable_clause_is_refused_with_examples(clause: s
     assert error.error.kind is ErrorKind.INVALID_REQUEST
 
 
+# Expansions: one clause, the several steps a person means
+
+
+def expansion(text: str) -> tuple[TextStep, list[dict[str, Any]]]:
+    """The one group `text` reads as, and its steps' fields."""
+    steps = read(text)
+    assert len(steps) == 1 and steps[0].fields == {}, steps
+    return steps[0], [s.fields for s in steps[0].substeps]
+
+
+def pick_and_place(target: str, location: str, where: str | None = None) -> list[dict[str, Any]]:
+    pick = {"action": "pick", "target": target, **({"target_location": where} if where else {})}
+    return [pick, {"action": "place", "target": target, "target_location": location}]
+
+
+@pytest.mark.parametrize(
+    ("clause", "expected"),
+    [
+        ("bring me the red cup", pick_and_place("red cup", "me")),
+        ("Bring me the red cup, please", pick_and_place("red cup", "me")),
+        ("fetch the keys", pick_and_place("keys", "me")),
+        ("fetch me the keys", pick_and_place("keys", "me")),
+        ("get the blue book", pick_and_place("blue book", "me")),
+        ("get me the blue book", pick_and_place("blue book", "me")),
+        ("hand me the mug", pick_and_place("mug", "me")),
+        ("give me the mug", pick_and_place("mug", "me")),
+        ("bring it to me", pick_and_place("it", "me")),
+        ("bring the cup here", pick_and_place("cup", "here")),
+        ("bring the red cup to the user", pick_and_place("red cup", "user")),
+        ("bring the red cup to the operator", pick_and_place("red cup", "operator")),
+        ("bring the cup to the kitchen table", pick_and_place("cup", "kitchen table")),
+        ("take the cup to the kitchen", pick_and_place("cup", "kitchen")),
+        ("carry the plate over to the sink", pick_and_place("plate", "sink")),
+        ("give the remote to the operator", pick_and_place("remote", "operator")),
+        ("fetch the keys from the shelf", pick_and_place("keys", "me", "shelf")),
+        ("bring me the cup from the kitchen counter", pick_and_place("cup", "me", "kitchen counter")),
+        ("tidy up the cup onto the shelf", pick_and_place("cup", "shelf")),
+        ("tidy the book away onto the bookshelf", pick_and_place("book", "bookshelf")),
+        ("put away the book on the bookshelf", pick_and_place("book", "bookshelf")),
+        ("put the book away in the drawer", pick_and_place("book", "drawer")),
+    ],
+)
+def test_an_expansion_is_a_group_of_the_steps_a_person_means(clause: str, expected: list[dict[str, Any]]) -> None:
+    group, steps = expansion("1. " + clause)
+    assert steps == expected
+    assert group.description == clause.removesuffix(", please")
+    assert all((s.line, s.column) == (1, 4) for s in group.substeps)
+
+
+@pytest.mark.parametrize(
+    ("clause", "expected"),
+    [
+        ("go home", {"action": "navigate_to", "target": "home"}),
+        ("return home", {"action": "navigate_to", "target": "home"}),
+        ("go back home", {"action": "navigate_to", "target": "home"}),
+        ("return to the dock", {"action": "navigate_to", "target": "dock"}),
+        ("go back to the dock", {"action": "navigate_to", "target": "dock"}),
+        ("dock", {"action": "navigate_to", "target": "dock"}),
+        ("put it back", {"action": "place", "target": "it", "target_location": "where it was found"}),
+        ("put the cup back", {"action": "place", "target": "cup", "target_location": "where it was found"}),
+        ("put back the cup", {"action": "place", "target": "cup", "target_location": "where it was found"}),
+        ("put it back where it was", {"action": "place", "target": "it", "target_location": "where it was found"}),
+        (
+            "return the mug to where it was",
+            {"action": "place", "target": "mug", "target_location": "where it was found"},
+        ),
+        ("put it back on the shelf", {"action": "place", "target": "it", "target_location": "shelf"}),
+        ("get to the kitchen", {"action": "navigate_to", "target": "kitchen"}),
+        ("get back to the kitchen", {"action": "navigate_to", "target": "kitchen"}),
+        ("take the cup", {"action": "pick", "target": "cup"}),
+        ("take the cup from the counter", {"action": "pick", "target": "cup", "target_location": "counter"}),
+    ],
+)
+def test_phrasings_of_one_step_stay_one_step(clause: str, expected: dict[str, Any]) -> None:
+    assert fields("- " + clause) == expected
+
+
+def test_an_expansion_takes_a_fallback_and_splits_like_any_step() -> None:
+    go, bring = read("go to the kitchen and bring me the cup; if that fails, say sorry")
+    assert go.fields == {"action": "navigate_to", "target": "kitchen"}
+    assert [s.fields["action"] for s in bring.substeps] == ["pick", "place"]
+    assert [s.fields for s in bring.on_failure] == [{"action": "say", "parameters": {"text": "sorry"}}]
+
+
+def test_a_heading_that_names_its_sub_items_is_not_run_twice() -> None:
+    (group,) = read("1. Fetch the cup:\n   - go to the kitchen\n   - pick up the cup\n   - bring it to me")
+    assert group.fields == {} and group.description == "Fetch the cup:"
+    assert [s.fields.get("action") for s in group.substeps] == ["navigate_to", "pick", None]
+    # Over fallbacks only, the heading is the step they fall back from.
+    (bring,) = read("1. Bring me the cup\n   - if that fails, say sorry")
+    assert [s.fields["action"] for s in bring.substeps[0].substeps] == ["pick", "place"]
+
+
+@pytest.mark.parametrize(
+    ("clause", "expected"),
+    [
+        ("tidy up the cup", "tidy up needs a place to put cup: say 'tidy up cup onto the shelf'"),
+        ("tidy up the cup carefully", "tidy up needs a place to put cup"),
+        ("put the book away", "putting away needs a place to put book"),
+        ("bring me the cup and the plate", "one thing at a time"),
+        ("fetch", "expected a step such as 'bring me the red cup'"),
+        ("bring me", "say what to bring, e.g. 'bring me the red cup'"),
+        ("bring the", "expected a step such as"),
+    ],
+)
+def test_an_expansion_never_invents_what_the_plan_did_not_name(clause: str, expected: str) -> None:
+    error = refused("- " + clause)
+    assert at(error) == (1, 3)
+    assert expected in str(error)
+
+
+# Hints: words at the end of a clause that the robot takes as hints, not commands
+
+
+@pytest.mark.parametrize(
+    ("clause", "expected"),
+    [
+        (
+            "go to the kitchen carefully",
+            {"action": "navigate_to", "target": "kitchen", "parameters": {"manner": "carefully"}},
+        ),
+        (
+            "go to the kitchen, slowly",
+            {"action": "navigate_to", "target": "kitchen", "parameters": {"manner": "slowly"}},
+        ),
+        (
+            "go to the kitchen at 0.5 m/s gently",
+            {"action": "navigate_to", "target": "kitchen", "parameters": {"speed": "0.5 m/s", "manner": "gently"}},
+        ),
+        (
+            "drive forward 1 m with care",
+            {"action": "drive", "parameters": {"direction": "forward", "distance": "1 m", "manner": "carefully"}},
+        ),
+        (
+            "pick up the cup with a pinch grasp",
+            {"action": "pick", "target": "cup", "parameters": {"approach": "pinch"}},
+        ),
+        ("grasp the mug using a power grip", {"action": "pick", "target": "mug", "parameters": {"approach": "power"}}),
+        ("pick up the cup with a top grasp", {"action": "pick", "target": "cup", "parameters": {"approach": "top"}}),
+        (
+            "pick up the cup from 10 cm above carefully",
+            {"action": "pick", "target": "cup", "parameters": {"approach_distance": "10 cm", "manner": "carefully"}},
+        ),
+        (
+            "put it on the shelf at a height of 5 cm",
+            {"action": "place", "target": "it", "target_location": "shelf", "parameters": {"placement_height": "5 cm"}},
+        ),
+        # Spoken words are never read as hints.
+        ("say drive carefully", {"action": "say", "parameters": {"text": "drive carefully"}}),
+    ],
+)
+def test_hints_at_the_end_of_a_clause_become_parameters(clause: str, expected: dict[str, Any]) -> None:
+    assert fields("- " + clause) == expected
+
+
+def test_a_hint_goes_to_every_step_of_an_expansion() -> None:
+    _, steps = expansion("- bring me the cup gently")
+    assert [s["parameters"] for s in steps] == [{"manner": "gently"}, {"manner": "gently"}]
+
+
+@pytest.mark.parametrize(
+    "clause",
+    [
+        "go to the kitchen quickly",
+        "go to the kitchen fast",
+        "go to the kitchen or the hall",
+        "carefully",
+        "go carefully",
+    ],
+)
+def test_what_is_not_a_hint_is_still_refused(clause: str) -> None:
+    assert "cannot read" in str(refused("- " + clause))
+
+
 def test_refusal_entries_give_their_reason() -> None:
-    error = refused("- take the cup to the kitchen")
-    assert "several steps" in str(error) and at(error) == (1, 3)
+    error = refused("- bring me the cup and the plate")
+    assert "one thing at a time" in str(error) and at(error) == (1, 3)
 
 
 def test_long_clauses_are_cut_in_messages() -> None:
@@ -668,8 +847,29 @@ def test_the_bundled_grammar_is_the_default() -> None:
 def test_the_grammar_emits_only_parameters_and_choices_the_vocabulary_knows() -> None:
     vocabulary = yaml.safe_load((default_grammar_path().parent / "vocabulary.yaml").read_text())
     units = vocabulary["units"]
+    hints = vocabulary["hints"]
+    hint_params = {*hints["manner"]["params"], *(n for group in hints["ignored"] for n in group["params"])}
+    for pattern in GRAMMAR.hints:
+        for slot in pattern.slots:
+            takers = [a for a in vocabulary["actions"].values() if slot.name in a.get("params", {})]
+            assert slot.name in hint_params or takers, slot.name
+            for value in slot.choices.values():
+                if slot.name == "manner":
+                    assert value.replace(" ", "_") in hints["manner"]["words"], value
+                else:  # a grasp type, or a choice the parameter takes
+                    assert (
+                        any(value in a["params"][slot.name]["choices"] for a in takers)
+                        or value in hints["grasp"]["types"]
+                    ), value
+            if slot.kind == "quantity":
+                assert set(GRAMMAR.spec.quantities[slot.name]) <= set(units["m"]), slot.name
     for verb_patterns in GRAMMAR.patterns.values():
         for pattern in verb_patterns:
+            if not pattern.action:  # an expansion: its steps' actions and parameters must be known
+                for template in pattern.steps:
+                    params = vocabulary["actions"][template.action.value].get("params", {})
+                    assert set(template.set) <= set(params), template
+                continue
             params = vocabulary["actions"][pattern.action].get("params", {})
             for slot in pattern.slots:
                 if slot.name in ("target", "target_location"):
@@ -719,6 +919,26 @@ def write(tmp_path: Path, text: str) -> Path:
         ("quantities: {point: [m]}\nactions: {stop: {examples: [stop], patterns: [stop]}}", "quantities.point"),
         ("actions: {stop: {examples: [], patterns: [stop]}}", "examples"),
         ("actions: [", "not valid YAML"),
+        (
+            "actions: {stop: {examples: [stop], patterns: [stop]}}\nexpansions: {x: {examples: [x], patterns: "
+            "[{pattern: 'fetch {target}', steps: [{action: pick, target: '{location}'}]}]}}",
+            "'{location}' is not a slot of the pattern",
+        ),
+        (
+            "actions: {stop: {examples: [stop], patterns: [stop]}}\nexpansions: {x: {examples: [x], patterns: "
+            "[{pattern: 'fetch {target}'}]}}",
+            "either `steps` or a `reason`",
+        ),
+        (
+            "actions: {stop: {examples: [stop], patterns: [stop]}}\nexpansions: {x: {examples: [x], patterns: "
+            "[{pattern: 'fetch {target} {text}', steps: [{action: stop}]}]}}",
+            "only have {target}, {location} and {_} slots",
+        ),
+        ("actions: {stop: {examples: [stop], patterns: [stop]}}\nhints: ['with {target}']", "hints[0]"),
+        (
+            "actions: {stop: {examples: [stop], patterns: [stop]}}\nhints: [{pattern: carefully, set: {target: x}}]",
+            "never a target",
+        ),
     ],
 )
 def test_a_bad_grammar_file_names_the_file_and_the_entry(tmp_path: Path, text: str, problem: str) -> None:

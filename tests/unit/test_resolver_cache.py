@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import cast
 
+import msgspec
 import pytest
 
 from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
@@ -13,7 +15,7 @@ from schemas.robot import Odometry
 from schemas.world import PerceivedHuman, PerceivedHumans, PerceivedObject, PerceivedObjects
 from services.resolver.cache import MAX_CACHED_PLAN_BYTES, ResolutionCache, world_key
 from services.resolver.errors import ResolveError
-from services.resolver.memory import ObjectMemory
+from services.resolver.memory import ObjectMemory, Origin
 from services.resolver.node import Perception, handler
 from services.resolver.resolver import Resolver
 from services.runtime import encode
@@ -151,6 +153,7 @@ class FakeResolver:
 
     def __init__(self) -> None:
         self.calls: list[tuple[Plan, PerceivedObjects | None, Pose2D | None, PerceivedHumans | None]] = []
+        self.origins: list[dict[str, Origin]] = []
 
     def resolve(
         self,
@@ -159,8 +162,10 @@ class FakeResolver:
         robot: Pose2D | None = None,
         *,
         humans: PerceivedHumans | None = None,
+        origins: Mapping[str, Origin] | None = None,
     ) -> GroundedPlan:
         self.calls.append((plan, objects, robot, humans))
+        self.origins.append(dict(origins or {}))
         if plan.steps[0].target == "cup":
             raise ResolveError("'cup' is ambiguous", kind=ErrorKind.AMBIGUOUS_NAME)
         return GroundedPlan(steps=[WaitStep(duration=1.0)], source=plan, labels=["1"])
@@ -190,6 +195,20 @@ def test_the_handler_resolves_with_what_it_remembers() -> None:
     _, objects, robot, humans = fake.calls[-1]
     assert objects is not None and [(o.id, o.position.x, o.stale) for o in objects.objects] == [("blue_cup", 8.2, True)]
     assert robot == ROBOT and humans == people(9.5)
+
+
+def test_the_handler_tells_the_resolver_where_a_held_object_was_before() -> None:
+    fake = FakeResolver()
+    latest = Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05), Clock())
+    handle = handler(cast(Resolver, fake), latest, ResolutionCache(8))
+    on_table = cup_at(8.2).objects[0]
+    latest.on_objects(PerceivedObjects(stamp=1.0, objects=[msgspec.structs.replace(on_table, on="coffee_table")]))
+    handle(pick("blue cup"))
+    assert fake.origins[-1] == {}  # not held: nothing to put back
+    lifted = msgspec.structs.replace(on_table, on="gripper", position=Vec3(x=7.9, y=1.9, z=1.0))
+    latest.on_objects(PerceivedObjects(stamp=2.0, objects=[lifted]))
+    handle(pick("blue cup"))
+    assert fake.origins[-1] == {"blue_cup": Origin("coffee_table", on_table.position)}
 
 
 def test_the_handler_answers_repeats_from_the_cache_until_the_world_changes(caplog: pytest.LogCaptureFixture) -> None:

@@ -222,3 +222,29 @@ def test_frames_come_validated_off_the_wire() -> None:
 def test_configuration_is_checked() -> None:
     with pytest.raises(ValueError, match="must be positive"):
         ObjectMemory(stale_after=0.0, move_tolerance=0.05)
+
+
+def test_where_a_held_object_was_before_the_gripper_took_it(memory: ObjectMemory) -> None:
+    memory.update(frame(1.0, obj("red_cup", 2.2, 0.55), obj("apple", 2.8, 3.65, 0.79, "kitchen_table")), now=1.0)
+    assert memory.origins() == {}  # nothing held
+    memory.update(frame(1.2, obj("red_cup", 2.21, 0.56), obj("apple", 2.8, 3.65, 0.79, "kitchen_table")), now=1.2)
+    memory.update(frame(1.4, obj("red_cup", 2.3, 0.8, 1.2, "gripper")), now=1.4)
+    # Where it was last seen on the counter (the refined position), while it is held.
+    (origin,) = memory.origins().values()
+    assert origin.on == "kitchen_counter"
+    assert (origin.position.x, origin.position.y) == pytest.approx((2.205, 0.555))
+    memory.update(frame(1.6, obj("red_cup", 2.5, 0.9, 1.1, "gripper")), now=1.6)
+    assert memory.origins()["red_cup"] is origin  # carried about: still where it came from
+    memory.update(frame(1.8, obj("red_cup", 8.0, 2.35, 0.5, "coffee_table")), now=1.8)
+    assert memory.origins() == {}  # put down: not held any more
+
+
+def test_no_origin_for_what_was_first_seen_held_or_lost_from_view(memory: ObjectMemory) -> None:
+    memory.update(frame(1.0, obj("red_cup", 6.3, 1.2, 1.0, "gripper")), now=1.0)
+    assert memory.origins() == {}  # never seen anywhere else
+    memory.update(frame(1.2), now=1.2)  # let go out of view: where it went is not known
+    memory.update(frame(1.4, obj("red_cup", 6.3, 1.2, 1.0, "gripper")), now=1.4)
+    assert memory.origins() == {}
+    memory.update(frame(1.6, obj("apple", 6.0, 1.0, 0.04, None)), now=1.6)
+    memory.update(frame(1.8, obj("apple", 6.0, 1.0, 0.3, "gripper")), now=1.8)
+    assert memory.origins()["apple"].on is None  # from the floor

@@ -115,13 +115,13 @@ class RecordingManipulator(Manipulator):
     def operate_gripper(self, open_: bool, cancel: threading.Event) -> str:
         return self._did("operate_gripper")
 
-    def pick(self, step: PickStep, cancel: threading.Event, attempt: int, note: Any) -> str:
+    def pick(self, step: PickStep, cancel: threading.Event, attempt: int, note: Any, searched: Any = None) -> str:
         return self._did("pick")
 
     def place(self, step: PlaceStep, cancel: threading.Event, attempt: int, note: Any) -> str:
         return self._did("place")
 
-    def detect(self, step: DetectStep, cancel: threading.Event, attempt: int) -> str:
+    def detect(self, step: DetectStep, cancel: threading.Event, attempt: int, note: Any, searched: Any = None) -> str:
         return self._did("detect")
 
 
@@ -175,7 +175,7 @@ def test_the_step_tables_keep_their_keys_and_defaults_and_refuse_unknown_keys() 
         "navigate_to": 300.0,
         "pick": 240.0,
         "place": 240.0,
-        "detect": 60.0,
+        "detect": 240.0,
         "gripper": 30.0,
         "say": 10.0,
         "wait": 120.0,
