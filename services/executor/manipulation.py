@@ -87,6 +87,11 @@ REPLAN_ABOVE = 0.1
 Note = Callable[[str], None]
 
 
+# An object the resolver's memory has this far from where its pick step was grounded has been seen
+# elsewhere since (metres): the pick goes there first.
+MOVED_SINCE_GROUNDED = 0.1
+
+
 def _quiet(_: str) -> None:
     pass
 
@@ -313,16 +318,29 @@ class Manipulator:
         when perception has it elsewhere, found by a search (`search`), then approached. Raises
         PreconditionFailed saying where it looked; `searched` gets each place looked at."""
         searched = [] if searched is None else searched
-        self.ensure_at(step.approach, cancel, attempt)
+        # Seen somewhere else since the plan was grounded (a detect before this pick found it): there.
+        remembered = self.robot.remembered(step.object_id)
+        moved = (
+            remembered is not None
+            and remembered.on in self.world.furniture
+            and math.dist((remembered.position.x, remembered.position.y), (step.position.x, step.position.y))
+            > MOVED_SINCE_GROUNDED
+        )
+        support = step.support_id
+        if remembered is not None and moved:
+            support = str(remembered.on)
+            self.drive_to(self.approach_near(remembered), cancel, attempt=attempt)
+        else:
+            self.ensure_at(step.approach, cancel, attempt)
         found = self._find_in_view(step.object_id, cancel)
         if found is not None and self._within_reach(self._base(), found.position):
             return found
         if found is None:
-            expected = self._surface_name(step.support_id)
+            expected = self._surface_name(support)
             searched.append(f"on the {expected}")
             note(f"{step.object_name} is not where it was expected ({expected}); looking for it")
             found = self.search(
-                step.object_id, step.object_name, cancel, note, searched, step_scope(step), attempt, {step.support_id}
+                step.object_id, step.object_name, cancel, note, searched, step_scope(step), attempt, {support}
             )
         if not self._within_reach(self._base(), found.position):
             note(f"{step.object_name} is on the {self._surface_name(found.on)}, out of reach: moving closer")

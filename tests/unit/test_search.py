@@ -211,7 +211,8 @@ class SearchRobot:
     def remembered(self, object_id: str) -> PerceivedObject | None:
         if self.remembered_on is None:
             return None
-        where = Vec3(x=0.0, y=0.0, z=0.0)
+        x, y = WORLD.furniture[self.remembered_on].center
+        where = Vec3(x=x, y=y, z=0.8)
         return PerceivedObject(id=object_id, name="", cls="", color="", position=where, on=self.remembered_on)
 
 
@@ -351,20 +352,38 @@ def test_an_estop_during_a_motion_or_between_places_ends_the_search() -> None:
     assert len(robot.goals) == 4  # the back-off, three turns
 
 
+PICK_FROM_THE_COUNTER = PickStep(
+    object_id="blue_cup",
+    object_name="blue cup",
+    position=Vec3(x=2.5, y=0.5, z=0.95),
+    mass=0.25,
+    support_id="kitchen_counter",
+    approach=COUNTER.approach,
+)
+
+
 def test_a_pick_searches_the_same_way_from_where_it_expected_the_object() -> None:
-    robot = SearchRobot(at(TABLE.approach), start=COUNTER.approach, remembered_on="kitchen_table")
-    pick = PickStep(
-        object_id="blue_cup",
-        object_name="blue cup",
-        position=Vec3(x=2.5, y=0.5, z=0.95),
-        mass=0.25,
-        support_id="kitchen_counter",
-        approach=COUNTER.approach,
-    )
+    robot = SearchRobot(at(TABLE.approach), start=COUNTER.approach)
     searched: list[str] = []
     notes: list[str] = []
-    found = manipulator(robot).locate(pick, threading.Event(), notes.append, searched=searched)
+    found = manipulator(robot).locate(PICK_FROM_THE_COUNTER, threading.Event(), notes.append, searched=searched)
     assert found.on == "kitchen_table"
-    assert searched == ["on the kitchen counter", "around in the kitchen", "on the kitchen table"]
+    # Around (from the room's pose: no room to turn at the counter), then the room's tops nearest
+    # first: the counter again from along its edge, then the table.
+    assert searched == [
+        "on the kitchen counter",
+        "around in the kitchen",
+        "along the kitchen counter",
+        "on the kitchen table",
+    ]
     assert "blue cup is not where it was expected (kitchen counter); looking for it" in notes
     assert robot.pose == TABLE.approach
+
+
+def test_a_pick_goes_first_where_memory_saw_the_object_since_the_plan_was_grounded() -> None:
+    # A detect before the pick saw it on the table: the pick goes there, no search.
+    robot = SearchRobot(at(TABLE.approach), start=COUNTER.approach, remembered_on="kitchen_table")
+    searched: list[str] = []
+    found = manipulator(robot).locate(PICK_FROM_THE_COUNTER, threading.Event(), lambda _: None, searched=searched)
+    assert found.on == "kitchen_table" and searched == []
+    assert [g.pose for g in robot.goals] == [TABLE.approach]
