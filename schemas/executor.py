@@ -44,6 +44,8 @@ class StepStatus(enum.StrEnum):
     FAILED = "failed"
     CANCELED = "canceled"
     SKIPPED = "skipped"
+    # The whole plan (step None, stage safety) waits for an operator's approval (supervised mode).
+    AWAITING_APPROVAL = "awaiting_approval"
 
 
 class ExecutePlanGoal(Frozen):

@@ -38,7 +38,20 @@ from schemas.robot import (
     RobotDiagnostics,
     Twist,
 )
-from schemas.safety import EStop, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
+from schemas.safety import (
+    ApprovalDecision,
+    ApprovalReply,
+    ApprovalRequest,
+    EStop,
+    ModeReply,
+    ModeRequest,
+    PendingPlans,
+    PlanApproval,
+    ResetReply,
+    ResetRequest,
+    SafetyEvent,
+    SafetyStatus,
+)
 from schemas.trace import RecorderStatus, TraceRecord
 from schemas.world import (
     CameraImage,
@@ -169,6 +182,17 @@ HEARTBEAT = Topic("safety/heartbeat", SafetyStatus)
 ESTOP = Topic("safety/estop", EStop)
 SAFETY_EVENTS = Topic("safety/events", SafetyEvent)
 RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply, redact=("token",))
+# The control mode (operator only, with the token); the heartbeat says which is in force.
+SET_MODE: Service[ModeRequest, ModeReply] = Service("safety/mode", ModeRequest, ModeReply, redact=("token",))
+# Supervised mode: the executor asks before a plan's first motion; an operator decides; anyone with
+# the read rights lists what waits.
+APPROVAL_REQUEST: Service[ApprovalRequest, PlanApproval] = Service(
+    "safety/approval/request", ApprovalRequest, PlanApproval
+)
+APPROVAL_DECIDE: Service[ApprovalDecision, ApprovalReply] = Service(
+    "safety/approval/decide", ApprovalDecision, ApprovalReply, redact=("token",)
+)
+PENDING_PLANS: Service[Empty, PendingPlans] = Service("safety/approval/pending", Empty, PendingPlans)
 
 # The robot interface: only safety writes the command keys here.
 ROBOT_NAVIGATE = ActionKeys("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
@@ -228,6 +252,10 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     PLAN_RESOLVE,
     PLAN_CHECK,
     RESET,
+    SET_MODE,
+    APPROVAL_REQUEST,
+    APPROVAL_DECIDE,
+    PENDING_PLANS,
     SCENE,
     GROUND_TRUTH,
     SIM_MOVE,

@@ -1,4 +1,5 @@
-"""Safety: heartbeat with the e-stop latch, e-stop triggers, operator reset, decision events."""
+"""Safety: heartbeat with the e-stop latch and the control mode, e-stop triggers, operator reset,
+mode changes and plan approvals, decision events."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
+from schemas.actions import GoalId
 from schemas.common import Frozen, Name, Text
+from schemas.plan import GroundedPlan
 
 
 class EstopSource(enum.StrEnum):
@@ -19,6 +22,15 @@ class EstopSource(enum.StrEnum):
     AGENT = "agent"  # an LLM agent or MCP tool
     WATCHDOG = "watchdog"  # safety's watchdog: the robot's state stopped arriving while it moved
     MONITOR = "monitor"  # safety's monitors: measured motion beyond a limit, the base in a keep-out zone
+
+
+class ControlMode(enum.StrEnum):
+    """Who drives. Only the operator's identity changes it (`tether mode`); safety holds it."""
+
+    DIRECT = "direct"  # only a person drives (teleop); plans are refused
+    SHARED = "shared"  # a person drives (teleop); plans are refused
+    SUPERVISED = "supervised"  # a plan moves the robot only once an operator approved it
+    AUTONOMOUS = "autonomous"  # a plan safety approves runs (the default)
 
 
 class EstopState(Frozen):
@@ -46,6 +58,7 @@ class SafetyStatus(Frozen):
     max_linear_speed: Annotated[float, Meta(ge=0.0, le=10.0)] | None = None
     max_angular_speed: Annotated[float, Meta(ge=0.0, le=20.0)] | None = None
     policy_hash: Annotated[str, Meta(max_length=80)] = ""
+    mode: ControlMode = ControlMode.AUTONOMOUS
 
 
 class EStop(Frozen):
@@ -65,6 +78,92 @@ class ResetReply(Frozen):
     message: Text
 
 
+OperatorToken = Annotated[str, Meta(max_length=256)]
+
+
+class ModeState(Frozen):
+    """The control mode as safety writes it down (it survives a restart)."""
+
+    mode: ControlMode
+    source: Text = ""
+    stamp: float = 0.0
+
+
+class ModeRequest(Frozen):
+    """Set the control mode: only with the operator's token (as a reset)."""
+
+    operator: Name
+    token: OperatorToken
+    mode: ControlMode
+
+
+class ModeReply(Frozen):
+    """`mode`: the mode now (the old one when refused)."""
+
+    ok: bool
+    message: Text
+    mode: ControlMode
+
+
+class ApprovalState(enum.StrEnum):
+    NOT_NEEDED = "not_needed"  # the mode is autonomous: safety's plan check is enough
+    PENDING = "pending"  # supervised: waits for an operator
+    APPROVED = "approved"  # an operator approved it; it may move the robot until it ends
+    DENIED = "denied"  # an operator denied it, or the mode or safety's check refuses it: it never moves
+    FINISHED = "finished"  # it ended (ran, was canceled) and is remembered for a while
+
+
+MAX_PLAN_LINES = 64
+
+
+class PlanApproval(Frozen):
+    """Where a plan stands with safety's approval. `steps`: the plan's steps and route as safety read
+    them; `checks`: safety's dry run of the whole plan (what it checked); `requested`, `decided`: wall
+    clock seconds; `by`: the operator who decided."""
+
+    goal_id: GoalId
+    state: ApprovalState
+    reason: Text = ""
+    steps: Annotated[list[Text], Meta(max_length=MAX_PLAN_LINES)] = []
+    checks: Annotated[list[Text], Meta(max_length=MAX_PLAN_LINES)] = []
+    requested: float = 0.0
+    decided: float = 0.0
+    by: Annotated[str, Meta(max_length=200)] = ""
+
+
+class ApprovalRequest(Frozen):
+    """From the executor before a plan's first motion: may `plan` (goal `goal_id`) move the robot?
+    Asking again is answered from what safety holds; `wait`: seconds to wait for a decision while it
+    is pending."""
+
+    goal_id: GoalId
+    plan: GroundedPlan
+    wait: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.0
+
+
+class ApprovalDecision(Frozen):
+    """An operator approves or denies a waiting plan, with the operator's token."""
+
+    operator: Name
+    token: OperatorToken
+    goal_id: GoalId
+    approve: bool
+    reason: Text = ""
+
+
+class ApprovalReply(Frozen):
+    ok: bool
+    message: Text
+    approval: PlanApproval | None = None
+
+
+class PendingPlans(Frozen):
+    """The plans waiting for an operator, the oldest first."""
+
+    mode: ControlMode
+    plans: list[PlanApproval] = []
+
+
 class Decision(enum.StrEnum):
     APPROVED = "approved"
     VETOED = "vetoed"
@@ -74,13 +173,20 @@ class Decision(enum.StrEnum):
     RESET = "reset"
     # The speed limit near people changed (slowed, paused or back to full speed).
     LIMITED = "limited"
+    # The control mode changed (an operator's `tether mode`).
+    MODE = "mode"
+    # A plan waits for an operator (supervised mode); an operator denied one.
+    AWAITING_APPROVAL = "awaiting_approval"
+    DENIED = "denied"
 
 
 class Rule(enum.StrEnum):
     """The rules safety applies, named in every event (services/safety/policy.toml sets their limits)."""
 
     ESTOP = "estop"  # nothing moves while the e-stop is latched
-    OPERATOR = "operator"  # only the operator's token resets the e-stop
+    OPERATOR = "operator"  # only the operator's token resets the e-stop, sets the mode, approves plans
+    MODE = "mode"  # what the control mode lets move (direct, shared: no plans; supervised: approved ones)
+    APPROVAL = "approval"  # in supervised mode a plan moves only once an operator approved it
     POSE_KNOWN = "pose_known"  # motion needs recent odometry / joint states
     MAP = "map"  # the base stays on the map
     KEEP_OUT = "keep_out"  # the base's footprint stays out of keep-out zones

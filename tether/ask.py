@@ -24,6 +24,7 @@ from services.planner.config import HOW_TO_CONFIGURE, PlannerConfig, resolve_end
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
+from tether.output import literal
 
 console = Console(stderr=True)
 
@@ -53,7 +54,7 @@ def show(reply: AskReply, as_json: bool) -> None:
     console.print(f"[{colour}]{reply.status}[/]{where}: ", end="")
     console.print(reply.reason, markup=False, highlight=False)
     if reply.goal_id:
-        console.print(f"goal {reply.goal_id}; `tether goal {reply.goal_id}` follows it.", highlight=False)
+        console.print(f"goal {reply.goal_id}; `tether goal {reply.goal_id}` follows it.", markup=False, highlight=False)
 
 
 def ask(
@@ -63,16 +64,18 @@ def ask(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object with the outcome.")] = False,
     max_attempts: Annotated[
         int | None,
-        typer.Option("--max-attempts", min=1, max=MAX_ATTEMPTS, help="Model calls at most (default: [planner])."),
+        typer.Option(
+            "--max-attempts", min=1, max=MAX_ATTEMPTS, help=literal("Model calls at most (default: [planner]).")
+        ),
     ] = None,
-    config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [planner] table.")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help=literal("TOML file with a [planner] table."))] = None,
     preempt: Annotated[bool, typer.Option("--preempt", help="Cancel a plan already running for this one.")] = False,
     timeout: Annotated[float, typer.Option(help="Seconds to wait for the planner service.")] = 900.0,
 ) -> None:
     """Ask an LLM for a plan, dry-run it (parse, resolve, safety), feed refusals back, then send it.
 
-    The endpoint: TETHER_LLM_URL, TETHER_LLM_MODEL, TETHER_LLM_API_KEY, or a [planner] table (url,
-    model, api_key_env). Exit 0 approved or sent, 1 the LLM endpoint failed, 2 rejected or no
+    The endpoint: TETHER_LLM_URL, TETHER_LLM_MODEL, TETHER_LLM_API_KEY, or the config's planner table
+    (url, model, api_key_env). Exit 0 approved or sent, 1 the LLM endpoint failed, 2 rejected or no
     endpoint configured, 3 no services reachable.
     """
     settings: NodeSettings = ctx.obj
@@ -84,7 +87,7 @@ def ask(
         planner_config = load_config(PlannerConfig, config, "planner")
         endpoint = resolve_endpoint(planner_config)
     except (ConfigError, NotConfigured) as exc:
-        console.print(f"[red]error:[/] {exc}", highlight=False)
+        console.print(f"[red]error:[/] {literal(exc)}", highlight=False)
         raise typer.Exit(2) from None
     ask_request = AskRequest(text=text, dry_run=dry_run, max_attempts=max_attempts or 0, preempt=preempt)
     with Node("cli", settings) as node:
@@ -98,7 +101,7 @@ def ask(
             try:
                 reply = node.call(keys.PLAN_ASK, ask_request, timeout=timeout)
             except CallError as exc:
-                console.print(f"[red]planner failed[/]: {exc.error.message}", highlight=False)
+                console.print(f"[red]planner failed[/]: {literal(exc.error.message)}", highlight=False)
                 raise typer.Exit(3 if exc.error.kind == "unavailable" else 1) from None
         else:
             reply = AskReply(status=AskStatus.UNCONFIGURED, request_id="none", reason=HOW_TO_CONFIGURE)

@@ -25,7 +25,6 @@ import typer
 import typer.main
 import zenoh
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 from typer.core import TyperGroup
 
@@ -63,6 +62,8 @@ from tether.client import (
     reset_estop,
     trigger_estop,
 )
+from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
+from tether.output import conclude, literal
 from tether.runservice import HELP, common, run
 from tether.supervisor import Supervisor, free_base_port
 
@@ -215,14 +216,17 @@ def start_services(
 
 
 ConfigOpt = Annotated[
-    Path | None, typer.Option("--config", help="TOML file with one table per service ([sim], [safety], ...).")
+    Path | None, typer.Option("--config", help=literal("TOML file with one table per service ([sim], [safety], ...)."))
 ]
 LogDirOpt = Annotated[Path, typer.Option("--log-dir", help="Where each service's log goes.")]
 BackendOpt = Annotated[
     str,
     typer.Option(
-        help="The robot backend: sim (pybullet), ros2 (a ROS 2 robot at [ros2] endpoint), or ros2-standin "
-        "(the ros2 backend driving the pybullet sim behind a ROS 2 face; docs/ros2.md)."
+        help=literal(
+            "The robot backend: sim (pybullet), ros2 (a ROS 2 robot at [ros2] endpoint), or ros2-standin "
+            "(the ros2 backend driving the pybullet sim behind a ROS 2 face; docs/ros2.md)."
+        ),
+        autocompletion=complete_backend,
     ),
 ]
 
@@ -239,8 +243,11 @@ def only_services(only: str | None, backend: str, deployed: deployment.Deploymen
     if unknown or not names:
         where = f"the deployment {deployed.directory}" if deployed is not None else "tether"
         console.print(
-            f"[red]error:[/] --only {only!r}: {', '.join(unknown) or 'no service named'} not a service of {where}; "
-            f"its services are {', '.join(known)}",
+            "[red]error:[/] "
+            + literal(
+                f"--only {only!r}: {', '.join(unknown) or 'no service named'} not a service of {where}; "
+                f"its services are {', '.join(known)}"
+            ),
             soft_wrap=True,
         )
         raise typer.Exit(2)
@@ -264,12 +271,18 @@ def up(
     ] = None,
     robot: Annotated[str | None, typer.Option("--robot", help="The robot whose services to start.")] = None,
     only: Annotated[
-        str | None, typer.Option("--only", help="Comma-separated services to start here (e.g. sim,safety,recorder).")
+        str | None,
+        typer.Option(
+            "--only",
+            help="Comma-separated services to start here (e.g. sim,safety,recorder).",
+            autocompletion=complete_services,
+        ),
     ] = None,
 ) -> None:
     """Start every service (or --only some), wait until all are alive, and stop them all cleanly on Ctrl-C."""
     if backend not in ROBOT_BACKENDS:
-        console.print(f"[red]error:[/] unknown backend {backend!r}; backends are {', '.join(ROBOT_BACKENDS)}")
+        known = ", ".join(ROBOT_BACKENDS)
+        console.print(f"[red]error:[/] unknown backend {literal(repr(backend))}; backends are {known}")
         raise typer.Exit(2)
     from tether import deployment
 
@@ -277,7 +290,7 @@ def up(
         try:
             ctx.obj = dataclasses.replace(settings_of(ctx), robot=robot)
         except ValueError as exc:
-            console.print(f"[red]error:[/] {exc}")
+            console.print(f"[red]error:[/] {literal(exc)}")
             raise typer.Exit(2) from None
     deployed: deployment.Deployment | None = None
     if deploy is not None:
@@ -292,12 +305,12 @@ def up(
             for service in services:
                 deployed.client_config(settings_of(ctx).robot, service)
         except deployment.DeploymentError as exc:
-            console.print(f"[red]error:[/] {exc}", soft_wrap=True)
+            console.print(f"[red]error:[/] {literal(exc)}", soft_wrap=True)
             raise typer.Exit(2) from None
     else:
         services = only_services(only, backend, None)
     supervisor, node = start_services(ctx, config, log_dir, timeout, backend, services, deployed)
-    console.print(f"all services up; logs in {log_dir}/. Ctrl-C (or SIGTERM) stops them.")
+    console.print(f"all services up; logs in {literal(log_dir)}/. Ctrl-C (or SIGTERM) stops them.")
     stop = stop_event()
     try:
         while not stop.wait(0.5):
@@ -330,8 +343,8 @@ def router(directory: Annotated[Path, typer.Argument(help="A directory from `tet
     path = directory / ROUTER_CONFIG
     if not path.is_file():
         console.print(
-            f"[red]error:[/] {path} does not exist; "
-            f"make a deployment with `tether deploy init {directory} --robot NAME`",
+            "[red]error:[/] "
+            + literal(f"{path} does not exist; make a deployment with `tether deploy init {directory} --robot NAME`"),
             soft_wrap=True,
         )
         raise typer.Exit(2)
@@ -342,13 +355,13 @@ def router(directory: Annotated[Path, typer.Argument(help="A directory from `tet
         conf = zenoh_config_file(path)
         endpoints = json.loads(conf.get_json("listen/endpoints"))
     except (zenoh.ZError, ValueError) as exc:
-        console.print(f"[red]error:[/] {path} is not a valid Zenoh config: {exc}", soft_wrap=True)
+        console.print(f"[red]error:[/] {literal(path)} is not a valid Zenoh config: {literal(exc)}", soft_wrap=True)
         raise typer.Exit(2) from None
     stop = stop_event()
     try:
         session = zenoh.open(conf)
     except zenoh.ZError as exc:
-        console.print(f"[red]error:[/] the router from {path} did not start: {exc}", soft_wrap=True)
+        console.print(f"[red]error:[/] the router from {literal(path)} did not start: {literal(exc)}", soft_wrap=True)
         raise typer.Exit(1) from None
     with session:
         log.info("router %s listening on %s (config %s)", session.info.zid(), ", ".join(endpoints), path.resolve())
@@ -370,16 +383,17 @@ def read_plan(plan: str) -> str:
 
 def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
-        console.print(f"[dim]{fb.stage}[/]: {fb.message}")
+        console.print(f"[dim]{fb.stage}[/]: {literal(fb.message)}")
         return
-    failed = f"[red]failed ({fb.failure})[/]" if fb.failure else "[red]failed[/]"
+    failed = f"[red]failed ({literal(fb.failure)})[/]" if fb.failure else "[red]failed[/]"
     mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(fb.status, "...")
     if fb.status is StepStatus.RUNNING and fb.attempt > 1:
         mark = "[yellow]retrying[/]"
     # Where a detect or pick searched, once the step has ended (the notes said it as it went).
     ended = fb.status in (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
-    searched = f" [dim](searched: {', '.join(fb.searched)})[/]" if fb.searched and ended else ""
-    console.print(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message} {mark}{searched}")
+    searched = f" [dim](searched: {literal(', '.join(fb.searched))})[/]" if fb.searched and ended else ""
+    said = literal(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message}")
+    console.print(f"{said} {mark}{searched}")
 
 
 def print_result(run: PlanRun, as_json: bool) -> None:
@@ -387,22 +401,25 @@ def print_result(run: PlanRun, as_json: bool) -> None:
         out.print_json(data=run.as_json()) if sys.stdout.isatty() else print(json.dumps(run.as_json()))
         return
     result = run.result
+    if result is None and (waiting := run.awaiting_approval) is not None:
+        console.print(f"[yellow]awaiting_approval[/] (goal {literal(run.goal_id)}): {literal(waiting.message)}")
+        return
     if result is None:
-        console.print(f"plan accepted (goal {run.goal_id}); executing. `tether goal {run.goal_id}` follows it.")
+        goal = literal(run.goal_id)
+        console.print(f"plan accepted (goal {goal}); executing. `tether goal {goal}` follows it.")
         return
     for warning in result.warnings:
-        console.print(f"[yellow]warning[/]: {warning}")
+        console.print(f"[yellow]warning[/]: {literal(warning)}")
     colour = "green" if result.status is PlanStatus.SUCCEEDED else "red"
-    console.print(
-        f"[{colour}]{result.status}[/] at stage {result.stage}" + (f": {result.reason}" if result.reason else "")
-    )
+    reason = f": {literal(result.reason)}" if result.reason else ""
+    console.print(f"[{colour}]{result.status}[/] at stage {result.stage}{reason}")
 
 
 def unreachable(as_json: bool, reason: str) -> NoReturn:
     if as_json:
         print(json.dumps({"status": "unreachable", "stage": None, "reason": reason, "steps": []}))
     else:
-        console.print(f"[red]{reason}[/]")
+        console.print(f"[red]{literal(reason)}[/]")
     raise typer.Exit(EXIT_UNREACHABLE)
 
 
@@ -410,7 +427,9 @@ def unreachable(as_json: bool, reason: str) -> NoReturn:
 def send(
     ctx: typer.Context,
     plan: Annotated[str, typer.Argument(help="Plan text, a file holding it, or - for stdin.")],
-    fmt: Annotated[str, typer.Option("--format", help="auto, json, yaml or text.")] = "auto",
+    fmt: Annotated[
+        str, typer.Option("--format", help="auto, json, yaml or text.", autocompletion=complete_plan_format)
+    ] = "auto",
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Parse, resolve and check only; nothing moves.")] = False,
     wait: Annotated[bool, typer.Option("--wait", help="Wait until the plan has finished.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object with the outcome.")] = False,
@@ -421,11 +440,13 @@ def send(
 ) -> None:
     """Send a plan to the executor. Exit 0 succeeded, 1 failed or canceled, 2 rejected, 3 unreachable.
 
-    Without --wait, returns once the plan is parsed, resolved, approved and moving (status 'accepted').
+    Without --wait, returns once the plan is parsed, resolved, approved and moving (status 'accepted'),
+    or, in supervised mode, waits for an operator (status 'awaiting_approval' with the goal id and
+    safety's dry run; exit 0; `tether approve GOAL_ID` lets it move).
     While another plan runs this one is rejected, unless --preempt.
     """
     if fmt not in ("auto", "json", "yaml", "text"):
-        console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {fmt!r}")
+        console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {literal(repr(fmt))}")
         raise typer.Exit(2)
     text = read_plan(plan)
     if len(text.encode()) > MAX_PLAN_BYTES:
@@ -446,7 +467,7 @@ def send(
             if as_json:
                 print(json.dumps({"status": "rejected", "stage": "execute", "reason": exc.reason, "steps": []}))
             else:
-                console.print(f"[red]rejected[/]: {exc.reason}")
+                console.print(f"[red]rejected[/]: {literal(exc.reason)}")
             raise typer.Exit(2) from None
         except CallError as exc:
             unreachable(as_json, f"executor unreachable: {exc}")
@@ -463,15 +484,27 @@ def send(
 
 
 @app.command()
-def cancel(ctx: typer.Context, goal_id: Annotated[str, typer.Argument(help="A goal id, or all.")] = CANCEL_ALL) -> None:
-    """Cancel the running plan (or the goal given)."""
+def cancel(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="A goal id, or all.")] = CANCEL_ALL,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object: status, goal_id, reason.")] = False,
+) -> None:
+    """Cancel the running plan (or the goal given).
+
+    Exit 0 when the cancel was requested (status 'requested') or there was nothing to cancel (status
+    'nothing_to_cancel', with the executor's reason: no plan running, an unknown or finished goal),
+    3 when the executor is unreachable (status 'unreachable').
+    """
     with client(ctx) as node:
         try:
             reply = node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=3.0)
         except CallError as exc:
-            console.print(f"[red]executor unreachable[/]: {exc}")
-            raise typer.Exit(EXIT_UNREACHABLE) from None
-        console.print("cancel requested" if reply.accepted else f"nothing to cancel ({reply.reason})")
+            document = {"status": "unreachable", "goal_id": goal_id, "reason": f"executor unreachable: {exc}"}
+            conclude(console, as_json, document, f"[red]executor unreachable[/]: {literal(exc)}", EXIT_UNREACHABLE)
+    if reply.accepted:
+        conclude(console, as_json, {"status": "requested", "goal_id": goal_id, "reason": ""}, "cancel requested")
+    document = {"status": "nothing_to_cancel", "goal_id": goal_id, "reason": reply.reason}
+    conclude(console, as_json, document, f"nothing to cancel ({literal(reply.reason)})")
 
 
 @app.command()
@@ -493,7 +526,7 @@ def goal(
                     print(json.dumps({"goal_id": goal_id, "state": "unknown", "reason": exc.error.message}))
                 else:
                     kept = RESULT_RETENTION / 60
-                    console.print(f"[red]{exc.error.message}[/] (results are kept for {kept:g} minutes)")
+                    console.print(f"[red]{literal(exc.error.message)}[/] (results are kept for {kept:g} minutes)")
                 raise typer.Exit(2) from None
             unreachable(as_json, f"executor unreachable: {exc}")
     result = progress.result
@@ -501,7 +534,8 @@ def goal(
     if as_json:
         print(json.dumps(msgspec.to_builtins(progress)))
         raise typer.Exit(code)
-    console.print(f"goal {goal_id}: {progress.state}" + (f" ({progress.message})" if progress.message else ""))
+    said = f"goal {goal_id}: {progress.state}" + (f" ({progress.message})" if progress.message else "")
+    console.print(said, markup=False)
     if result is None and progress.feedback is not None:
         print_feedback(progress.feedback)
     if result is not None:
@@ -516,36 +550,52 @@ def goal(
 def estop(
     ctx: typer.Context,
     reason: Annotated[str, typer.Option(help="Why; kept in the latch and the recording.")] = "operator e-stop",
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object: status, source, reason.")] = False,
 ) -> None:
-    """Trigger the e-stop. It latches until `tether reset`."""
+    """Trigger the e-stop. It latches until `tether reset`.
+
+    Exit 0 once safety's heartbeat shows the latch (status 'latched', with the latch's source and
+    reason), 3 when no heartbeat confirmed it within 2 s (status 'unconfirmed': the e-stop was sent, but
+    safety may be unreachable).
+    """
+    # The reason is bounded in the message; an over-long one is cut rather than lost.
+    sent = f"{reason[:3800]} ({operator_name()[:100]})"
     with client(ctx) as node:
-        # The reason is bounded in the message; an over-long one is cut rather than lost.
-        status = trigger_estop(node, EstopSource.OPERATOR, f"{reason[:3800]} ({operator_name()[:100]})")
+        status = trigger_estop(node, EstopSource.OPERATOR, sent)
     if status is None:
-        console.print("[red]e-stop sent, but no heartbeat from safety confirmed it[/]")
-        raise typer.Exit(EXIT_UNREACHABLE)
-    console.print(f"[red]E-STOP latched[/] by {status.estop.source}: {status.estop.reason}")
+        document = {"status": "unconfirmed", "source": EstopSource.OPERATOR, "reason": sent}
+        said = "[red]e-stop sent, but no heartbeat from safety confirmed it[/]"
+        conclude(console, as_json, document, said, EXIT_UNREACHABLE)
+    latch = status.estop
+    document = {"status": "latched", "source": latch.source, "reason": latch.reason}
+    conclude(console, as_json, document, f"[red]E-STOP latched[/] by {literal(latch.source)}: {literal(latch.reason)}")
 
 
 @app.command()
 def reset(
     ctx: typer.Context,
     token_file: Annotated[str | None, typer.Option(help="The operator token file safety created.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object: status, message.")] = False,
 ) -> None:
-    """Clear a latched e-stop (operator only: needs the operator token file)."""
+    """Clear a latched e-stop (operator only: needs the operator token file).
+
+    Exit 0 when safety reset it (status 'reset'), 2 when safety refused (status 'refused': a wrong
+    token, a cause still present) or the token file cannot be read (status 'no_token'), 3 when safety
+    is unreachable (status 'unreachable').
+    """
     with client(ctx) as node:
         try:
             reply = reset_estop(node, token_file)
         except OSError as exc:
-            console.print(f"[red]cannot read the operator token[/]: {exc}")
-            raise typer.Exit(2) from None
+            document = {"status": "no_token", "message": f"cannot read the operator token: {exc}"}
+            conclude(console, as_json, document, f"[red]cannot read the operator token[/]: {literal(exc)}", 2)
         except CallError as exc:
-            console.print(f"[red]safety unreachable[/]: {exc}")
-            raise typer.Exit(EXIT_UNREACHABLE) from None
+            document = {"status": "unreachable", "message": f"safety unreachable: {exc}"}
+            conclude(console, as_json, document, f"[red]safety unreachable[/]: {literal(exc)}", EXIT_UNREACHABLE)
     if not reply.ok:
-        console.print(f"[red]refused[/]: {reply.message}")
-        raise typer.Exit(2)
-    console.print(reply.message)
+        document = {"status": "refused", "message": reply.message}
+        conclude(console, as_json, document, f"[red]refused[/]: {literal(reply.message)}", 2)
+    conclude(console, as_json, {"status": "reset", "message": reply.message}, literal(reply.message))
 
 
 @app.command()
@@ -575,16 +625,16 @@ def policy(
         if as_json:
             print(json.dumps({"ok": False, "error": str(exc)}))
         else:
-            console.print(f"[red]error:[/] {exc}")
+            console.print(f"[red]error:[/] {literal(exc)}")
         raise typer.Exit(2) from None
     summary = limits.summary()
     if as_json:
         print(json.dumps({"ok": True, **summary}))
         return
-    console.print(f"policy {summary.pop('path')}\n{summary.pop('hash')}")
+    console.print(f"policy {summary.pop('path')}\n{summary.pop('hash')}", markup=False)
     table = Table("rule", "limits")
     for section, values in summary.items():
-        table.add_row(section, json.dumps(values))
+        table.add_row(literal(section), literal(json.dumps(values)))
     console.print(table)
 
 
@@ -631,6 +681,7 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
             name: msgspec.structs.asdict(processes[name])
             for name in [*(n for n in ALL_SERVICES if n in processes), *sorted(set(processes) - set(ALL_SERVICES))]
         },
+        "mode": str(beat.mode) if beat else None,
         "estop": (
             {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
             if beat
@@ -722,7 +773,10 @@ def status(
         ),
     ] = False,
     service: Annotated[
-        list[str] | None, typer.Option("--service", help="With --check: only this service (repeatable).")
+        list[str] | None,
+        typer.Option(
+            "--service", help="With --check: only this service (repeatable).", autocompletion=complete_service
+        ),
     ] = None,
 ) -> None:
     """Which services are alive, the e-stop latch, the robot's pose and problems, and where objects are."""
@@ -730,7 +784,9 @@ def status(
         console.print("[red]error:[/] --service goes with --check")
         raise typer.Exit(2)
     if unknown := [s for s in service or [] if s not in ALL_SERVICES]:
-        console.print(f"[red]error:[/] unknown service {', '.join(unknown)}; services are {', '.join(ALL_SERVICES)}")
+        console.print(
+            f"[red]error:[/] unknown service {literal(', '.join(unknown))}; services are {', '.join(ALL_SERVICES)}"
+        )
         raise typer.Exit(2)
     if check:
         try:
@@ -760,9 +816,10 @@ def status(
     console.print(services)
     if state["processes"]:
         console.print(memory_line(state["processes"]), highlight=False)
+    console.print(f"mode: {state['mode'] or 'unknown (no heartbeat)'}")
     e = state["estop"]
     console.print(
-        f"e-stop: {'[red]LATCHED[/] by ' + e['source'] + ': ' + e['reason'] if e['latched'] else e['latched']}"
+        f"e-stop: {'[red]LATCHED[/] by ' + literal(e['source'] + ': ' + e['reason']) if e['latched'] else e['latched']}"
     )
     robot = state["robot"] or {"pose": None, "problems": []}
     if p := robot["pose"]:
@@ -770,10 +827,11 @@ def status(
     if robot["problems"]:
         console.print("[red]robot problems[/] (the latest first):")
         for problem in robot["problems"]:
-            console.print(f"  {problem['age']:.0f} s ago: {escape(problem['text'])}")
+            console.print(f"  {problem['age']:.0f} s ago: {literal(problem['text'])}")
     table = Table("object", "room", "on", "x", "y", "z")
     for o in state["objects"]:
-        table.add_row(o["name"], o["room"] or "-", o["on"] or "-", *(f"{o['pose'][k]:.2f}" for k in "xyz"))
+        names = (literal(o[k] or "-") for k in ("name", "room", "on"))
+        table.add_row(*names, *(f"{o['pose'][k]:.2f}" for k in "xyz"))
     console.print(table)
 
 
@@ -788,11 +846,12 @@ app.add_typer(world_app, name="world")
 WORLD_EXIT_CODES = {ErrorKind.INVALID_REQUEST: 2, ErrorKind.PRECONDITION: 2, ErrorKind.UNAVAILABLE: EXIT_UNREACHABLE}
 
 
-def world_failed(error: ServiceError) -> NoReturn:
-    console.print(f"[red]{error.kind}[/]: {error.message}")
-    if error.candidates:
-        console.print("known: " + ", ".join(error.candidates))
-    raise typer.Exit(WORLD_EXIT_CODES.get(error.kind, 1))
+def world_failed(error: ServiceError, as_json: bool = False) -> NoReturn:
+    code = WORLD_EXIT_CODES.get(error.kind, 1)
+    status = {2: "refused", EXIT_UNREACHABLE: "unreachable"}.get(code, "failed")
+    document = {"status": status, "error": msgspec.to_builtins(error)}
+    known = "\nknown: " + literal(", ".join(error.candidates)) if error.candidates else ""
+    conclude(console, as_json, document, f"[red]{literal(error.kind)}[/]: {literal(error.message)}{known}", code)
 
 
 @world_app.command("move")
@@ -806,25 +865,30 @@ def world_move(
         typer.Option(help="Height of an object's bottom in metres. Default: the top of the furniture there, or 0."),
     ] = None,
     yaw: Annotated[float | None, typer.Option(help="Heading in radians. Default: as it is.")] = None,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print one JSON object: status, and the id and position or the error.")
+    ] = False,
 ) -> None:
     """Move an object or a person in the SIMULATED world, for demos and tests (not a robot action).
 
     An object is set down upright at (x, y) and let settle; a person stands there. Prints where it ended up.
 
-    Exit 0 moved, 2 refused (an unknown id, a point outside every room, the object in the gripper), 3 no simulator.
+    Exit 0 moved (status 'moved'), 2 refused (status 'refused': an unknown id, a point outside every room,
+    the object in the gripper), 3 no simulator (status 'unreachable'), 1 when the simulator failed otherwise.
     """
     with client(ctx) as node:
         if "sim" not in node.alive_services(timeout=2.0):
-            console.print("[red]no simulator reachable[/]: start it with `tether up` or `tether run sim`")
-            raise typer.Exit(EXIT_UNREACHABLE)
+            why = "no simulator reachable: start it with `tether up` or `tether run sim`"
+            world_failed(ServiceError(kind=ErrorKind.UNAVAILABLE, message=why), as_json)
         try:
             reply = node.call(keys.SIM_MOVE, MoveEntity(id=entity, x=x, y=y, z=z, yaw=yaw), timeout=10.0)
         except CallError as exc:
-            world_failed(exc.error)
+            world_failed(exc.error, as_json)
     if isinstance(reply, ServiceError):
-        world_failed(reply)
+        world_failed(reply, as_json)
     p = reply.position
-    out.print(f"{reply.id} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
+    document = {"status": "moved", "id": reply.id, "position": {"x": p.x, "y": p.y, "z": p.z}}
+    conclude(out, as_json, document, f"{literal(reply.id)} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
 
 
 @world_app.command("scene")
@@ -844,7 +908,7 @@ def world_scene(
         try:
             scene = node.call(keys.SCENE, Empty(), timeout=5.0)
         except CallError as exc:
-            console.print(f"[red]{exc.error.kind}[/]: {exc.error.message}")
+            console.print(f"[red]{literal(exc.error.kind)}[/]: {literal(exc.error.message)}")
             raise typer.Exit(EXIT_UNREACHABLE) from None
     if as_json:
         print(encode(scene).decode())
@@ -854,7 +918,8 @@ def world_scene(
     for o in scene.objects:
         seen = "stale" if o.stale else ("yes" if o.stamp else "world file")
         p = o.position
-        table.add_row(o.name, o.on or "-", o.room or "-", f"{p.x:.2f}", f"{p.y:.2f}", f"{p.z:.2f}", seen)
+        names = (literal(name or "-") for name in (o.name, o.on, o.room))
+        table.add_row(*names, f"{p.x:.2f}", f"{p.y:.2f}", f"{p.z:.2f}", seen)
     console.print(table)
     relations = [
         f"{r.subject} {r.relation.replace('_', ' ')} {r.object}" for r in scene.relations if r.relation != "in"
@@ -876,14 +941,15 @@ def demo(
         str,
         typer.Option(
             help="sim: the pybullet sim on tether's keys; ros2: the ros2 backend driving the sim behind a ROS 2 "
-            "face (rmw_zenoh keys), as it would a ROS 2 robot."
+            "face (rmw_zenoh keys), as it would a ROS 2 robot.",
+            autocompletion=one_of("sim", "ros2"),
         ),
     ] = "sim",
 ) -> None:
     """Start everything, bring the red cup to the coffee table, check it in the simulator, keep the recording."""
     logging.basicConfig(level=logging.WARNING)
     if backend not in ("sim", "ros2"):
-        console.print(f"[red]error:[/] unknown backend {backend!r}; the demo runs on sim or ros2")
+        console.print(f"[red]error:[/] unknown backend {literal(repr(backend))}; the demo runs on sim or ros2")
         raise typer.Exit(2)
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "demo.toml"
@@ -904,7 +970,7 @@ def demo(
             try:
                 recording = node.call(keys.RECORDER_STATUS, Empty(), timeout=3.0).path
             except CallError as exc:
-                console.print(f"[yellow]recorder did not answer: {exc}[/]")
+                console.print(f"[yellow]recorder did not answer: {literal(exc)}[/]")
             console.print("sending the plan:")
             console.print(DEMO_PLAN, markup=False, highlight=False)
             started = time.monotonic()
@@ -914,11 +980,11 @@ def demo(
             ok = verify_demo(node) and ok
             console.print(f"plan took {time.monotonic() - started:.1f} s")
         except CallError as exc:
-            console.print(f"[red]demo failed[/]: {exc}")
+            console.print(f"[red]demo failed[/]: {literal(exc)}")
         finally:
             node.close()
             supervisor.stop_all()
-        console.print(f"recording: {recording}")
+        console.print(f"recording: {recording}", markup=False)
         console.print("[green]demo succeeded[/]" if ok else "[red]demo failed[/]")
         raise typer.Exit(0 if ok else 1)
 
@@ -931,9 +997,16 @@ def verify_demo(node: Node) -> bool:
         console.print("[red]ground truth has no red cup[/]")
         return False
     where = f"({cup.position.x:.2f}, {cup.position.y:.2f}, {cup.position.z:.2f})"
-    console.print(f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding}")
+    said = f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding}"
+    console.print(said, markup=False)
     return cup.on == "coffee_table" and truth.holding is None
 
+
+# The operator's say: the control mode and approving plans (tether/modecli.py)
+lazy_command(app, "mode", "tether.modecli:mode")
+lazy_command(app, "approve", "tether.modecli:approve")
+lazy_command(app, "deny", "tether.modecli:deny")
+lazy_command(app, "pending", "tether.modecli:pending")
 
 # Recordings
 lazy_command(app, "inspect", "tether.inspect:inspect")
@@ -945,6 +1018,10 @@ lazy_command(app, "recover", "tether.recordings:recover_command")
 # Agents
 lazy_command(app, "schema", "tether.schema:schema")
 lazy_command(app, "ask", "tether.ask:ask")
+
+# Operators
+lazy_command(app, "teleop", "tether.teleop:teleop")
+lazy_command(app, "view", "tether.view:view")
 
 
 # Only loopback: the MCP server has no authentication, and whoever reaches it can move the robot.

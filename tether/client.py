@@ -14,7 +14,7 @@ import msgspec
 
 from schemas import keys
 from schemas.common import Stage
-from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.keys import Topic
 from schemas.safety import EStop, EstopSource, ResetReply, ResetRequest, SafetyStatus
 from services.actionlib import PREEMPT_TIMEOUT, ActionClient, ClientGoal
@@ -154,8 +154,24 @@ class PlanRun:
     feedback: list[ExecutePlanFeedback] = field(default_factory=list)
     result: ExecutePlanResult | None = None
 
+    @property
+    def awaiting_approval(self) -> ExecutePlanFeedback | None:
+        """The feedback saying the plan waits for an operator (supervised mode), while that is the latest."""
+        latest = self.feedback[-1] if self.feedback else None
+        if self.result is None and latest is not None and latest.status is StepStatus.AWAITING_APPROVAL:
+            return latest
+        return None
+
     def as_json(self) -> dict[str, Any]:
         r = self.result
+        if r is None and (waiting := self.awaiting_approval) is not None:
+            return {
+                "status": StepStatus.AWAITING_APPROVAL,
+                "stage": waiting.stage,
+                "reason": waiting.message,
+                "goal_id": self.goal_id,
+                "steps": [],
+            }
         if r is None:
             return {"status": "accepted", "stage": Stage.EXECUTE, "reason": "", "goal_id": self.goal_id, "steps": []}
         out: dict[str, Any] = msgspec.to_builtins(r)
@@ -182,7 +198,8 @@ class PlanSender:
                 return
             run.feedback.append(fb)
             started = self._started[goal_id]
-        if fb.stage is Stage.EXECUTE:
+        # Moving, or waiting for an operator (supervised mode): either way the sender may return now.
+        if fb.stage is Stage.EXECUTE or fb.status is StepStatus.AWAITING_APPROVAL:
             started.set()
         if self._on_feedback is not None:
             self._on_feedback(fb)

@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from tether import deployment
+from tether.output import literal
 
 console = Console(stderr=True)
 out = Console()
@@ -36,17 +37,17 @@ def deploy_init(
         written = deployment.init(directory, robot, tls=tls, router=address)
         made = deployment.Deployment.load(directory)
     except (deployment.DeploymentError, OSError) as exc:
-        console.print(f"[red]error:[/] {exc}", soft_wrap=True)
+        console.print(f"[red]error:[/] {literal(exc)}", soft_wrap=True)
         raise typer.Exit(2) from None
     if warning := deployment.cleartext_warning(made):
-        console.print(f"[yellow]warning:[/] {warning}", soft_wrap=True)
+        console.print(f"[yellow]warning:[/] {literal(warning)}", soft_wrap=True)
     if as_json:
         files = [{"path": str(w.path), "created": w.created, "secret": w.secret} for w in written]
         print(json.dumps({"directory": str(directory.resolve()), "robots": robot, "tls": tls, "files": files}))
         return
     table = Table("file", "", "mode")
     for w in written:
-        table.add_row(str(w.path), "written" if w.created else "kept", "600 (secret)" if w.secret else "")
+        table.add_row(literal(w.path), "written" if w.created else "kept", "600 (secret)" if w.secret else "")
     out.print(table)
     created = sum(w.created for w in written)
-    out.print(f"{created} files written, {len(written) - created} kept, in {directory.resolve()}")
+    out.print(f"{created} files written, {len(written) - created} kept, in {directory.resolve()}", markup=False)

@@ -452,7 +452,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     side and the command doors; each service declares queryables (and replies) only on the keys it
     serves itself (SERVES), so no service can pose as the parser or as safety's command doors; only
     safety commands the robot and publishes safety/**; only the robot backend (sim, ros2) reports the
-    robot's state and people and serves robot/**; only the operator resets the e-stop and drives by hand;
+    robot's state and people and serves robot/**; only the operator resets the e-stop, sets the control
+    mode, approves plans and drives by hand; only the executor asks safety to approve a plan;
     each liveliness token and query trace only under its own name, and each service answers
     `_process/<itself>` only (the services and the operator ask `_process/*`); the agent only what an
     LLM agent needs (plans, the e-stop, the scene and the camera).
@@ -492,6 +493,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
             ["query"],
             [
                 "safety/check_plan",
+                "safety/approval/pending",
                 "robot/*/_action/get_result",
                 "robot/*/_action/get_status",
                 "robot/camera/image",
@@ -514,6 +516,10 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         # Each service's own figures (`tether status`): asked by the operator and the services, not the agent.
         rule("ask-processes", ["query"], [keys.process_key(robot).removeprefix(root + "/")]),
         rule("reset", ["query"], ["safety/reset"]),
+        # The control mode and the approval of plans: a person's, like the reset (safety checks the token too).
+        rule("supervise", ["query"], ["safety/mode", "safety/approval/decide"]),
+        # Before a plan's first motion the executor asks safety whether it may move (supervised mode).
+        rule("ask-approval", ["query"], ["safety/approval/request"]),
         rule("teleop", ["put"], ["cmd/teleop/**"]),
         rule("be-safety", ["put", "delete", "declare_queryable", "reply"], ["safety/**"]),
         rule(
@@ -567,7 +573,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         policy("everyone", ["receive", "subscribe", "stop"], IDENTITIES),
         policy("services-and-operator", ["planner-side", "read", "ask-processes"], people_and_services),
         policy("agent", ["agent-asks"], ["agent"]),
-        policy("operator", ["reset", "teleop"], ["operator"]),
+        policy("operator", ["reset", "supervise", "teleop"], ["operator"]),
+        policy("executor", ["ask-approval"], ["executor"]),
         policy("safety", ["be-safety", "drive"], ["safety"]),
         policy("robot", ["be-the-robot", "serve-the-robot"], ROBOT_BACKEND_IDENTITIES),
     ]

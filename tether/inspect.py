@@ -19,6 +19,8 @@ from services.recorder.reader import RecordingError, RecordingFile
 from services.recorder.recorded import recorded_policy, recorded_world
 from services.recorder.timeline import Level, RobotState, Row, Timeline, build_timeline
 from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
+from tether.output import literal
+from tether.progress import Bar, ProgressOpt, progress_bar
 from tether.recordings import FilesArg, RobotKeyOpt, console, fail, key_matcher, open_recording, robot_key_of
 
 out = Console()
@@ -54,6 +56,7 @@ def inspect(
         typer.Option("--world", help="The world to draw when the recording carries none (a file or a bundled name)."),
     ] = None,
     robot_key_file: RobotKeyOpt = None,
+    progress: ProgressOpt = None,
 ) -> None:
     """Show what happened in a recording: plan, steps, commands, safety decisions, e-stops, robot state.
 
@@ -65,13 +68,15 @@ def inspect(
     A file cut short is inspected as far as it is whole.
     """
     robot_key = robot_key_of(robot_key_file)
-    recording = open_recording(files)
-    timeline = build_timeline(recording, everything, robot_key)
-    rows = timeline.rows
-    if key_expr is not None:
-        rows = select(rows, recording.robot, key_expr)
-    if png is not None:
-        write_map(png, recording, timeline, world)
+    with progress_bar(progress) as bar:
+        recording = open_recording(files, bar=bar)
+        with bar.step("building the timeline"):
+            timeline = build_timeline(recording, everything, robot_key)
+        rows = timeline.rows
+        if key_expr is not None:
+            rows = select(rows, recording.robot, key_expr)
+        if png is not None:
+            write_map(png, recording, timeline, world, bar)
     if as_json:
         print(json.dumps(as_document(recording, timeline, rows)))
         return
@@ -87,23 +92,19 @@ def select(rows: list[Row], robot: str, expr: str) -> list[Row]:
     return [row for row in rows if match(row.key) or match(row.source)]
 
 
-def write_map(png: Path, recording: RecordingFile, timeline: Timeline, world_name: str | None) -> None:
+def write_map(
+    png: Path, recording: RecordingFile, timeline: Timeline, world_name: str | None, bar: Bar | None = None
+) -> None:
     world, keep_out = map_world(recording, world_name)
     robot = recording.robot or "unknown"
     title = f"{recording.name} — robot {robot}" + ("" if world is not None else " (no world file)")
+    track, vetoed, estops = track_of(recording), vetoed_goals(timeline.rows), estop_points(timeline.rows)
     try:
-        draw_map(
-            png,
-            title,
-            world,
-            keep_out,
-            track_of(recording),
-            vetoed_goals(timeline.rows),
-            estop_points(timeline.rows),
-        )
+        with (bar or Bar()).step("drawing the map"):
+            draw_map(png, title, world, keep_out, track, vetoed, estops)
     except OSError as exc:
         fail(f"cannot write the map to {png}: {exc.strerror or exc}")
-    console.print(f"map written to {png}", highlight=False)
+    console.print(f"map written to {literal(png)}", highlight=False)
 
 
 def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World | None, list[KeepOut]]:
@@ -116,14 +117,15 @@ def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World |
         try:
             world = load_world(name)
         except WorldFileError as error:
-            console.print(f"[yellow]{exc}; and --world {name}: {error}; the map shows no world[/]", highlight=False)
+            said = literal(f"{exc}; and --world {name}: {error}; the map shows no world")
+            console.print(f"[yellow]{said}[/]", highlight=False)
             return None, []
-        console.print(f"[yellow]{exc}; the map shows the world {name!r} instead[/]", highlight=False)
+        console.print(f"[yellow]{literal(f'{exc}; the map shows the world {name!r} instead')}[/]", highlight=False)
         return world, list(world.keep_out)
     try:
         return world, list(recorded_policy(recording, world).limits.keep_out)
     except RecordingError as exc:
-        console.print(f"[yellow]{exc}; the map shows the world file's keep-out zones only[/]", highlight=False)
+        console.print(f"[yellow]{literal(exc)}; the map shows the world file's keep-out zones only[/]", highlight=False)
         return world, list(world.keep_out)
 
 
@@ -166,7 +168,7 @@ def table(recording: RecordingFile, timeline: Timeline, rows: list[Row], width: 
     """The rows with the robot's state at each; the key column only when there is room for it."""
     where = f"{recording.name}: robot {recording.robot or '?'}, {timeline.duration:.1f} s, "
     where += f"{timeline.messages} messages, {len(rows)} rows"
-    result = Table(title=where, title_justify="left")
+    result = Table(title=literal(where), title_justify="left")
     result.add_column("t (s)", justify="right", no_wrap=True)
     result.add_column("kind", no_wrap=True)
     wide = width >= WIDE

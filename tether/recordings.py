@@ -36,6 +36,8 @@ from services.robotlink import KeyFileError, read_key
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 from services.worldmodel import WorldFileError, load_world
+from tether.output import literal
+from tether.progress import Bar, ProgressOpt, progress_bar
 
 console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
 QUERY_TIMEOUT = 5.0
@@ -66,7 +68,7 @@ RobotKeyOpt = Annotated[
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
-    console.print(f"[red]error:[/] {message}", highlight=False)
+    console.print(f"[red]error:[/] {literal(message)}", highlight=False)
     raise typer.Exit(code)
 
 
@@ -109,11 +111,14 @@ def key_matcher(robot: str, expr: str) -> Callable[[str], bool]:
     return match
 
 
-def open_recording(files: list[Path], expr: str | None = None, robot: str | None = None) -> RecordingFile:
+def open_recording(
+    files: list[Path], expr: str | None = None, robot: str | None = None, bar: Bar | None = None
+) -> RecordingFile:
     """The recording (the parts of a rotated one, joined), with the messages `expr` selects; errors
-    exit 2; a cut file is noted."""
+    exit 2; a cut file is noted. The bytes read are counted on `bar`."""
     try:
-        parts = [read_recording(file) for file in files]
+        with (bar or Bar()).reading(files) as watched:
+            parts = [read_recording(file) for file in watched]
         recording = join_recordings(parts)
     except RecordingError as exc:
         fail(str(exc))
@@ -123,7 +128,7 @@ def open_recording(files: list[Path], expr: str | None = None, robot: str | None
     for part in parts:
         if not part.complete:
             console.print(
-                f"[yellow]{part.path} was cut short: {part.problem}; read as far as it is whole "
+                f"[yellow]{literal(part.path)} was cut short: {literal(part.problem)}; read as far as it is whole "
                 "(`tether recover` writes a complete copy)[/]",
                 highlight=False,
             )
@@ -147,7 +152,9 @@ def record(
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).")] = None,
     config: Annotated[
         Path | None,
-        typer.Option("--config", help="TOML config: [recorder] for files, [safety] for the world and policy kept."),
+        typer.Option(
+            "--config", help=literal("TOML config: [recorder] for files, [safety] for the world and policy kept.")
+        ),
     ] = None,
 ) -> None:
     """Record the robot's traffic to MCAP until Ctrl-C, as the recorder service does (flushed every second)."""
@@ -173,15 +180,17 @@ def record(
                 while not stop.wait(min(recorder_config.flush_interval, _left(duration, started))):
                     recorder.tick()
                     status.update(
-                        f"recording {selected} to {recorder.status().path}: {recorder.messages} messages, "
-                        f"{time.monotonic() - started:.0f} s (Ctrl-C stops)"
+                        literal(
+                            f"recording {selected} to {recorder.status().path}: {recorder.messages} messages, "
+                            f"{time.monotonic() - started:.0f} s (Ctrl-C stops)"
+                        )
                     )
                     if duration is not None and time.monotonic() - started >= duration:
                         break
     finally:
         recorder.finish()
     files = ", ".join(map(str, recorder.files))
-    console.print(f"recorded {recorder.messages} messages ({recorder.dropped} dropped) to {files}")
+    console.print(f"recorded {recorder.messages} messages ({recorder.dropped} dropped) to {files}", markup=False)
 
 
 def _left(duration: float | None, started: float) -> float:
@@ -206,11 +215,25 @@ def replay(
             help="Replay onto a robot whose services are up: only its commands, through its safety, which checks them.",
         ),
     ] = False,
+    progress: ProgressOpt = None,
 ) -> None:
     """Publish a recording again with its original timing, under a separate robot name by default."""
     if not 0.01 <= speed <= 1000:
         fail(f"--speed must be between 0.01 and 1000, not {speed:g}")
-    recording = open_recording(files, key_expr)
+    with progress_bar(progress) as bar:
+        _replay(ctx, files, speed, key_expr, to, live_commands, bar)
+
+
+def _replay(
+    ctx: typer.Context,
+    files: list[Path],
+    speed: float,
+    key_expr: str | None,
+    to: str | None,
+    live_commands: bool,
+    bar: Bar,
+) -> None:
+    recording = open_recording(files, key_expr, bar=bar)
     robot = recording.robot
     target = to or default_target(robot)
     try:
@@ -241,12 +264,13 @@ def replay(
         if live_commands and "safety" not in alive:
             fail(f"--live-commands needs robot {target}'s safety up to check the commands; it is not reachable")
         for why, count in plan.skipped.items():
-            console.print(f"[dim]not replayed: {count} messages {why}[/]")
+            console.print(f"[dim]not replayed: {count} messages {literal(why)}[/]")
         console.print(
             f"replaying {len(plan.items)} messages of {robot} from {recording.name} as {target} at {speed:g}x "
-            f"({plan.duration / speed:.1f} s)"
+            f"({plan.duration / speed:.1f} s)",
+            markup=False,
         )
-        sent = Player(node).play(plan, speed)
+        sent = Player(node).play(plan, speed, bar)
     console.print(f"replayed {sent} messages")
 
 
@@ -261,19 +285,21 @@ class Player:
         self.asker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="replay-query")
         self.started: list[Item] = []  # the goals sent, to cancel if the replay is stopped
 
-    def play(self, plan: ReplayPlan, speed: float) -> int:
+    def play(self, plan: ReplayPlan, speed: float, bar: Bar | None = None) -> int:
+        """Send the items on the recorded clock, `speed` times as fast, counting the recorded seconds on `bar`."""
         sent = 0
+        played = 0.0  # recorded seconds
+        task = (bar or Bar()).task(f"replaying at {speed:g}x (recorded seconds)", plan.duration)
         start = time.monotonic()
         try:
-            with console.status("") as status:
-                for i, item in enumerate(plan.items):
-                    delay = start + item.at / speed - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)  # the recorded clock: this is the replay's pacing
-                    self._send(item)
-                    sent += 1
-                    if i % 200 == 0:
-                        status.update(f"{i + 1}/{len(plan.items)} messages, {item.at:.1f}/{plan.duration:.1f} s")
+            for item in plan.items:
+                delay = start + item.at / speed - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)  # the recorded clock: this is the replay's pacing
+                self._send(item)
+                sent += 1
+                task.advance(item.at - played)
+                played = item.at
         except KeyboardInterrupt:
             console.print("replay stopped: canceling the goals it sent")
             self.asker.shutdown(wait=True, cancel_futures=True)
@@ -310,7 +336,7 @@ class Player:
             data = answer.payload.to_bytes() if answer is not None else b""
             console.print(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}", markup=False)
             return
-        console.print(f"[yellow]{key}: no reply within {QUERY_TIMEOUT:g} s[/]")
+        console.print(f"[yellow]{literal(key)}: no reply within {QUERY_TIMEOUT:g} s[/]")
 
 
 # Recheck
@@ -328,6 +354,7 @@ def recheck_command(
     show_all: Annotated[bool, typer.Option("--all", help="List every rechecked command, not only changes.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
     robot_key_file: RobotKeyOpt = None,
+    progress: ProgressOpt = None,
 ) -> None:
     """Check the recorded commands again, offline, and list every decision that differs from the recorded one.
 
@@ -338,35 +365,37 @@ def recheck_command(
     something not safety's reached the robot's keys, 2 on bad input or when nothing could be rechecked.
     """
     robot_key = robot_key_of(robot_key_file)
-    recording = open_recording(files)
-    name = recording.name
     if policy is not None and not policy.is_file():
         fail(f"policy file {policy} does not exist")
-    try:
-        if recording.world is None:
-            if world_name is None:
-                fail(f"{name} carries no world file (recorded without one); give one with --world")
-            console.print(f"{name} carries no world file: checking in {world_name}")
-            world, label = load_world(world_name), f"the world {world_name}"
-        else:
-            if world_name is not None:
-                console.print(f"[yellow]--world {world_name} not used: {name} carries its own world file[/]")
-            world, label = recorded_world(recording), "the recorded world"
-        safety = recorded_policy(recording, world, policy, label)
-    except RecordingError as exc:
-        fail(str(exc))
-    except WorldFileError as exc:
-        fail(f"--world {world_name}: {exc}")
-    robot = recording.robot
-    root = keys.prefix(robot) + "/"
-    messages = (
-        Message(m.log_time / 1e9, m.key[len(root) :], m.data, m.attachment)
-        for m in recording.messages
-        if m.key.startswith(root)
-    )
-    kept = recording.policy
-    kept_hash = recording.metadata.get("tether", {}).get("policy_hash", "")
-    report = recheck(messages, safety, kept_hash if kept is not None else "", robot, robot_key)
+    with progress_bar(progress) as bar:
+        recording = open_recording(files, bar=bar)
+        name = recording.name
+        try:
+            if recording.world is None:
+                if world_name is None:
+                    fail(f"{name} carries no world file (recorded without one); give one with --world")
+                console.print(f"{name} carries no world file: checking in {world_name}", markup=False)
+                world, label = load_world(world_name), f"the world {world_name}"
+            else:
+                if world_name is not None:
+                    unused = f"--world {world_name} not used: {name} carries its own world file"
+                    console.print(f"[yellow]{literal(unused)}[/]")
+                world, label = recorded_world(recording), "the recorded world"
+            safety = recorded_policy(recording, world, policy, label)
+        except RecordingError as exc:
+            fail(str(exc))
+        except WorldFileError as exc:
+            fail(f"--world {world_name}: {exc}")
+        robot = recording.robot
+        root = keys.prefix(robot) + "/"
+        messages = (
+            Message(m.log_time / 1e9, m.key[len(root) :], m.data, m.attachment)
+            for m in bar.track(recording.messages, len(recording.messages), "rechecking")
+            if m.key.startswith(root)
+        )
+        kept = recording.policy
+        kept_hash = recording.metadata.get("tether", {}).get("policy_hash", "")
+        report = recheck(messages, safety, kept_hash if kept is not None else "", robot, robot_key)
     start = recording.messages[0].log_time / 1e9 if recording.messages else 0.0
     if as_json:
         print(json.dumps(_report_json(report, recording, start, show_all)))
@@ -407,20 +436,22 @@ def _report_json(report: RecheckReport, recording: RecordingFile, start: float, 
 
 def _print_report(report: RecheckReport, name: str, start: float, show_all: bool, policy: Path | None) -> None:
     for warning in report.warnings:
-        console.print(f"[yellow]warning:[/] {warning}")
+        console.print(f"[yellow]warning:[/] {literal(warning)}")
     rows = report.checked if show_all else report.differences
     if rows:
         table = Table("t (s)", "command", "recorded", "now", "why")
         for c in rows:
             colour = "red" if c.differs else "dim"
             why = c.now_reason if c.now_reason else c.recorded_reason
-            table.add_row(f"{c.stamp - start:.2f}", c.command, str(c.recorded), f"[{colour}]{c.now}[/]", why)
+            cells = (literal(c.command), literal(c.recorded), f"[{colour}]{literal(c.now)}[/]", literal(why))
+            table.add_row(f"{c.stamp - start:.2f}", *cells)
         Console().print(table)
     skipped = ", ".join(f"{n} {why}" for why, n in report.skipped.items())
     against = f"policy {policy}" if policy else "the recorded policy"
     console.print(
         f"{name}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
-        f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else "")
+        f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else ""),
+        markup=False,
     )
 
 
@@ -444,4 +475,6 @@ def recover_command(
     except OSError as exc:
         fail(f"cannot write {output}: {exc.strerror}")
     state = "was complete; copied" if done.complete else f"recovered ({done.problem})"
-    console.print(f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}")
+    console.print(
+        f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}", markup=False
+    )

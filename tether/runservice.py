@@ -16,6 +16,7 @@ from typing import Annotated
 import typer
 
 from services.runtime import ALL_SERVICES, SWITCH_INTERVAL, ConfigError, NodeSettings
+from tether.completion import complete_service
 
 RobotOpt = Annotated[str | None, typer.Option("--robot", envvar="TETHER_ROBOT", help="Robot name in the keys.")]
 PortOpt = Annotated[
@@ -48,10 +49,17 @@ def common(
 
 def run(
     ctx: typer.Context,
-    service: Annotated[str, typer.Argument(help=f"One of: {', '.join(ALL_SERVICES)}.")],
+    service: Annotated[
+        str, typer.Argument(help=f"One of: {', '.join(ALL_SERVICES)}.", autocompletion=complete_service)
+    ],
     config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [SERVICE] table.")] = None,
 ) -> None:
-    """Run one service in the foreground until SIGINT or SIGTERM."""
+    """Run one service in the foreground until SIGINT or SIGTERM.
+
+    Exit 0 when stopped by SIGINT or SIGTERM, 2 for an unknown service or a config or world file that
+    cannot be read or is invalid (the error names the file, the table and the value), 1 when the
+    service fails otherwise (its log says why).
+    """
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise typer.Exit(2)

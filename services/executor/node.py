@@ -12,7 +12,7 @@ import msgspec
 from schemas import keys
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import Pose2D, Stage
-from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
 from schemas.robot import (
     ARM_JOINTS,
@@ -23,12 +23,12 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.safety import SafetyStatus
+from schemas.safety import ApprovalRequest, ApprovalState, SafetyStatus
 from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
 from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
-from services.executor.runner import PlanRunner
+from services.executor.runner import Approval, FeedbackSink, PlanRunner
 from services.runtime import Node
 
 log = logging.getLogger(__name__)
@@ -39,6 +39,9 @@ STATE_TIMEOUT = 1.0
 HEARTBEAT_STALE = 0.5
 # The resolver answers world/scene from memory; this is generous.
 SCENE_TIMEOUT = 2.0
+# Each ask for a plan's approval waits this long in safety for an operator's decision, then asks
+# again (and sees a cancel of the plan by then).
+APPROVAL_POLL = 1.0
 
 
 class NodePlanServices:
@@ -216,6 +219,44 @@ OUTCOME_STATE = {
 }
 
 
+def approval_of(node: Node, goal_id: str, config: ExecutorConfig) -> Approval:
+    """Safety's word on whether plan goal `goal_id` may move the robot: at once outside supervised
+    mode; in it, once an operator decided (feedback `awaiting_approval` meanwhile). Safety itself refuses
+    the motion of a plan it has not approved, so this wait is the executor's courtesy, not the gate."""
+
+    def approval(plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult | None:
+        told = False
+        while not cancel.is_set():
+            request = ApprovalRequest(goal_id=goal_id, plan=plan, wait=APPROVAL_POLL if told else 0.0)
+            try:
+                reply = node.call(keys.APPROVAL_REQUEST, request, timeout=APPROVAL_POLL + config.check_timeout)
+            except CallError as exc:
+                why = f"safety did not say whether the plan may move: {exc.error.message}"
+                return ExecutePlanResult(status=PlanStatus.REJECTED, stage=Stage.SAFETY, reason=why)
+            if reply.state is ApprovalState.NOT_NEEDED:
+                return None
+            if reply.state is ApprovalState.APPROVED:
+                feedback(ExecutePlanFeedback(stage=Stage.SAFETY, message=reply.reason))
+                return None
+            if reply.state is not ApprovalState.PENDING:
+                return ExecutePlanResult(status=PlanStatus.REJECTED, stage=Stage.SAFETY, reason=reply.reason)
+            if not told:
+                checks = "; ".join(reply.checks) or "approved"
+                message = (
+                    f"awaiting an operator's approval of goal {goal_id}: `tether approve {goal_id}` or "
+                    f"`tether deny {goal_id} --reason ...`; safety's dry run: {checks}; "
+                    f"the plan: {' | '.join(reply.steps)}"
+                )
+                status = StepStatus.AWAITING_APPROVAL
+                feedback(ExecutePlanFeedback(stage=Stage.SAFETY, status=status, message=message[:4000]))
+                log.info("plan goal %s awaits an operator's approval", goal_id)
+                told = True
+        reason = "canceled while awaiting an operator's approval; nothing moved"
+        return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
+
+    return approval
+
+
 def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -> ActionServer[Any, Any, Any]:
     """One plan at a time: another is rejected while one runs, or preempts it (its own `preempt`,
     or `when_busy = "preempt"`): the running plan is canceled and stopped before the new one starts.
@@ -223,7 +264,8 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
 
     def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
         log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
-        result = runner.run(handle.goal, handle.cancel_requested, handle.feedback)
+        approval = approval_of(node, handle.goal_id, config)
+        result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, approval)
         if result.status is PlanStatus.CANCELED and handle.cancel_reason:
             result = msgspec.structs.replace(result, reason=f"{handle.cancel_reason}; {result.reason}")
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)

@@ -39,6 +39,9 @@ from services.executor.ports import PlanServices, Robot
 log = logging.getLogger(__name__)
 
 FeedbackSink = Callable[[ExecutePlanFeedback], None]
+# Asks safety whether a checked plan may move the robot now, waiting for an operator in supervised
+# mode: None to go on, or the result that ends the plan (denied, canceled while it waited).
+Approval = Callable[[GroundedPlan, threading.Event, FeedbackSink], ExecutePlanResult | None]
 
 # What a retry, after re-detecting and planning anew, can mend.
 RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDITION)
@@ -108,13 +111,25 @@ class PlanRunner:
         self.manipulator = manipulator
         self.config = config
 
-    def run(self, goal: ExecutePlanGoal, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
+    def run(
+        self,
+        goal: ExecutePlanGoal,
+        cancel: threading.Event,
+        feedback: FeedbackSink,
+        approval: Approval | None = None,
+    ) -> ExecutePlanResult:
+        """Run `goal`; `approval`, when given, is asked after the plan check and before the first motion."""
         warnings: list[str] = []
-        result = self._run(goal, cancel, feedback, warnings)
+        result = self._run(goal, cancel, feedback, warnings, approval)
         return msgspec.structs.replace(result, warnings=warnings) if warnings else result
 
     def _run(
-        self, goal: ExecutePlanGoal, cancel: threading.Event, feedback: FeedbackSink, warnings: list[str]
+        self,
+        goal: ExecutePlanGoal,
+        cancel: threading.Event,
+        feedback: FeedbackSink,
+        warnings: list[str],
+        approval: Approval | None = None,
     ) -> ExecutePlanResult:
         grounded = self._prepare(goal, feedback, warnings)
         if isinstance(grounded, ExecutePlanResult):
@@ -126,6 +141,8 @@ class PlanRunner:
                 reason="dry run: parsed, resolved and approved by safety; nothing moved",
                 steps=dry_run_steps(grounded),
             )
+        if approval is not None and (ended := approval(grounded, cancel, feedback)) is not None:
+            return ended
         return self._execute(grounded, cancel, feedback)
 
     def _prepare(

@@ -20,6 +20,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas import keys
 from schemas.common import DECODE_ERRORS
+from services.recorder import scene3d
 
 log = logging.getLogger(__name__)
 
@@ -199,6 +200,42 @@ class Recording:
                 media_type=MEDIA_TYPES.get(source.path.suffix, "application/octet-stream"),
                 data=source.data,
             )
+        # Foxglove's scene, frames and log beside the traffic (services/recorder/scene3d.py), so the file
+        # shows the incident in Foxglove's 3D and Log panels; counted apart from the traffic.
+        self.derived = 0
+        self._derived_channels: dict[str, int] = {}
+        self._derive = scene3d.Derived(robot, self._scene(provenance))
+        if self._derive.scene is not None:
+            self._write_derived(scene3d.SCENE_TOPIC, self._derive.scene.static(self.started_ns / 1e9), self.started_ns)
+
+    @staticmethod
+    def _scene(provenance: Provenance) -> scene3d.Scene | None:
+        world, policy = provenance.world, provenance.policy
+        if world is None:
+            return None
+        try:
+            return scene3d.scene_from_files(
+                world.data, world.path, policy.data if policy else None, policy.path if policy else None
+            )
+        except ValueError as exc:
+            log.warning("no 3D scene in the recording: %s", exc)
+            return None
+
+    def _write_derived(self, topic: str, message: scene3d.Message, log_time: int) -> None:
+        """With the lock held (or before any other thread has the recording)."""
+        channel = self._derived_channels.get(topic)
+        if channel is None:
+            type_ = scene3d.TOPIC_TYPES[topic]
+            name, document = scene3d.SCHEMA_NAMES[type_], scene3d.schema_document(type_)
+            schema = self._writer.register_schema(name=name, encoding=SchemaEncoding.JSONSchema, data=document)
+            channel = self._derived_channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=MessageEncoding.JSON, schema_id=schema
+            )
+        data = scene3d.encode(message)
+        self._writer.add_message(
+            channel_id=channel, log_time=log_time, publish_time=log_time, data=data, sequence=self.derived
+        )
+        self.derived += 1
 
     def record(
         self,
@@ -236,6 +273,9 @@ class Recording:
             if attachment is not None and len(attachment) <= MAX_ATTACHMENT:
                 self._record_link(self.messages, attachment, now)
             self.messages += 1
+            if self._derive.wants(key):
+                for topic, message in self._derive.messages(key, payload, now / 1e9):
+                    self._write_derived(topic, message, now)
         return True
 
     def _record_link(self, sequence: int, attachment: bytes, log_time: int) -> None:

@@ -18,6 +18,7 @@ from mcap.well_known import Profile
 from mcap.writer import Writer
 
 from schemas import keys
+from services.recorder import scene3d
 from services.recorder.mcapfile import (
     COMPRESSION,
     LIBRARY,
@@ -62,6 +63,9 @@ class RecordingFile:
 
     path: Path
     messages: list[Recorded] = field(default_factory=list)
+    # Foxglove's scene, frames and log the recorder made from the traffic (scene3d): kept apart, so
+    # nothing replays or checks them; `tether recover` copies them.
+    derived: list[Recorded] = field(default_factory=list)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     attachments: dict[str, Attachment] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
@@ -202,6 +206,9 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                     ):
                         recording.messages[-1] = replace(recording.messages[-1], attachment=attachment)
                     last_sequence = None
+                    continue
+                if scene3d.is_derived(channel.topic):
+                    recording.derived.append(Recorded(record.log_time, channel.topic, record.data))
                     continue
                 if record.channel_id not in kept:
                     kept[record.channel_id] = keep is None or keep(channel.topic)
@@ -369,6 +376,14 @@ def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
                     data=link_record(sequence, message.attachment),
                     sequence=sequence,
                 )
+        for sequence, message in enumerate(recording.derived):
+            writer.add_message(
+                channel_id=channel_ids[message.key],
+                log_time=message.log_time,
+                publish_time=message.log_time,
+                data=message.data,
+                sequence=sequence,
+            )
         writer.finish()
     return Recovered(
         source, output, len(recording.messages), len(recording.channels), recording.complete, recording.problem

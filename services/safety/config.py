@@ -22,6 +22,8 @@ class SafetyConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     forward_timeout: Annotated[float, Meta(gt=0.0, le=60.0)] = 5.0
     # Where the latch survives a restart; None: estop-<robot>.json beside the operator token.
     estop_state_file: str | None = None
+    # Where the control mode survives a restart; None: mode-<robot>.json beside the operator token.
+    mode_state_file: str | None = None
     # The key safety signs robot commands and heartbeats with, shared only with the robot backend
     # (hex, 32 bytes, mode 0600; made on first start). None: $TETHER_ROBOT_KEY_FILE, else
     # robot-<robot>.key beside the operator token.

@@ -11,9 +11,10 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 import msgspec
+from shapely.geometry import Point
 
 from schemas import keys
-from schemas.actions import GoalResponse, SendGoal
+from schemas.actions import GoalResponse, GoalStatus, SendGoal
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
 from schemas.robot import (
@@ -25,11 +26,29 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.safety import Decision, EStop, EstopSource, ResetReply, ResetRequest, Rule, SafetyStatus
+from schemas.safety import (
+    ApprovalDecision,
+    ApprovalReply,
+    ApprovalRequest,
+    ApprovalState,
+    ControlMode,
+    Decision,
+    EStop,
+    EstopSource,
+    ModeReply,
+    ModeRequest,
+    PendingPlans,
+    PlanApproval,
+    ResetReply,
+    ResetRequest,
+    Rule,
+    SafetyStatus,
+)
 from schemas.world import PerceivedHumans
 from services.robotmodel import base_to_map
 from services.safety.errors import Unauthorized, Vetoed
 from services.safety.latch import EstopLatch
+from services.safety.modes import PLANS_REFUSED, ApprovalBook, ModeFile, plan_lines
 from services.safety.monitor import (
     MotionMonitor,
     PeopleReports,
@@ -41,6 +60,7 @@ from services.safety.monitor import (
     separation,
 )
 from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict, base_moving
+from services.safety.shared import SharedFilter, SharedLimits, Surroundings, combine
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +105,9 @@ class Ruling(Generic[T]):
     latch down, then cancel every goal forwarded to the robot. `reset`: it was cleared: a heartbeat,
     and write it down. `fresh_joints_may_pass`: a trajectory refused because its first point seems to
     jump from the arm's last known position; decided again on a joint state measured since, it may pass.
+    `mode_changed`: a heartbeat, and write the mode down. `cancel_goals`: the mode no longer lets
+    the goals under way move the robot: cancel every goal forwarded. `approvals_changed`: wake whoever
+    waits for an approval.
     """
 
     forward: T
@@ -92,6 +115,9 @@ class Ruling(Generic[T]):
     latched: bool = False
     reset: bool = False
     fresh_joints_may_pass: bool = False
+    mode_changed: bool = False
+    cancel_goals: bool = False
+    approvals_changed: bool = False
 
 
 def _veto_event(key: str, exc: Vetoed, command: object) -> GateEvent:
@@ -158,9 +184,14 @@ class SafetyGate:
         clock: Callable[[], float],
         wall_clock: Callable[[], float],
         max_resets_per_minute: int = 5,
+        modes: ModeFile | None = None,
     ) -> None:
         self.policy = policy
         self.latch = latch
+        # The control mode (changed only with the operator's token) and, in supervised mode, the plans
+        # waiting for an operator or running with one's approval (guarded by the gate's lock).
+        self.modes = modes if modes is not None else ModeFile(None)
+        self._approvals = ApprovalBook()
         self._clock = clock
         # Only stamps the latch's state (when it latched, when it was reset), never a decision.
         self._wall_clock = wall_clock
@@ -183,6 +214,20 @@ class SafetyGate:
             self._rates[topic.path] = RateLimit(rules.rate.max_cmd_vel_per_second, rules.rate.burst_seconds)
         for action in (keys.CMD_NAVIGATE, keys.CMD_TRAJECTORY, keys.CMD_GRIPPER):
             self._rates[action.send_goal.path] = RateLimit(rules.rate.max_goals_per_second, rules.rate.burst_seconds)
+        # Shared mode's teleop filter, over the walls, furniture and keep-out zones (people join per twist).
+        size = policy.base_size
+        self.shared = SharedFilter(
+            SharedLimits(
+                horizon=rules.base.cmd_vel_horizon,
+                braking=rules.base.max_linear_acceleration,
+                max_angular=policy.max_angular,
+                length=size.x,
+                width=size.y,
+                radius=policy.radius,
+            )
+        )
+        self._fixed_obstacles = list(policy.obstacles)
+        self._zones = [(f"keep-out zone '{z.name}'", policy.zone_shapes[z.id]) for z in policy.limits.keep_out]
         self.monitor = MotionMonitor(
             rules.monitor,
             policy.max_linear,
@@ -315,6 +360,7 @@ class SafetyGate:
             max_linear_speed=self.policy.max_linear * sep.scale,
             max_angular_speed=self.policy.max_angular * sep.scale,
             policy_hash=self.hash,
+            mode=self.modes.mode,
         )
 
     def _find_separation(self, t: float) -> Separation:
@@ -472,7 +518,10 @@ class SafetyGate:
         def check(t: float) -> Verdict[Twist]:
             return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale)
 
-        return self._twist(keys.CMD_VEL.path, twist, check, self._time())
+        # A stop is never refused by the mode: only motion is.
+        moves = twist.linear_x != 0.0 or twist.angular_z != 0.0
+        mode_veto = self._mode_veto() if moves else None
+        return self._twist(keys.CMD_VEL.path, twist, check, self._time(), mode_veto)
 
     def teleop(self, twist: Twist) -> Ruling[Twist | None]:
         """A velocity from a person: clamped to the limits, and speeding up from what was last sent."""
@@ -485,17 +534,54 @@ class SafetyGate:
             if t - at > TELEOP_TIMEOUT:
                 previous = Twist()
             step = min(t - at, TELEOP_MAX_STEP)
+            if self.modes.mode is ControlMode.SHARED:
+                return self._shared_teleop(twist, previous, step, t)
             return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale)
 
         return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time())
 
+    def _shared_teleop(self, twist: Twist, previous: Twist, step: float, t: float) -> Verdict[Twist]:
+        """Shared mode: the person's twist slowed and steered off obstacles and people (shared.py), then
+        clamped and ramped as in direct mode, then guarded once more as it will be sent (a ramped turn
+        bends the path). The event says what the filter did (`shared` in its values)."""
+        pose, scale = self._pose(t), self.separation.scale
+        if pose is None:
+            # check_teleop refuses driving without a pose; a turn in place cannot be checked either.
+            return self.policy.check_teleop(Twist(linear_x=twist.linear_x), None, previous, step, scale)
+        radius = self.policy.policy.humans.person_radius
+        people = [(f"person {p.name}", Point(p.x, p.y).buffer(radius)) for p in self._people.people(t) or []]
+        around = Surroundings(obstacles=[*self._fixed_obstacles, *people], zones=self._zones)
+        shaped = self.shared.shape(twist, pose, around, scale)
+        verdict = self.policy.check_teleop(shaped.twist, pose, previous, step, scale)
+        guarded = self.shared.guard(verdict.command, pose, around)
+        done = combine(shaped, guarded)
+        values = {**verdict.values, **done.values, "requested_mps": twist.linear_x, "requested_rps": twist.angular_z}
+        checks = (*verdict.checks, Rule.OBSTACLE, Rule.KEEP_OUT)
+        if not done.changed:
+            return Verdict(done.twist, checks, values, verdict.clamped_by, verdict.note)
+        zone = done.nearest is not None and done.nearest.startswith("keep-out zone")
+        # Slower only by the separation scale, or also by an obstacle: the rule says which.
+        cut = abs(shaped.twist.linear_x) < abs(twist.linear_x) * scale - 1e-9
+        obstacle = guarded.changed or shaped.deflected or cut
+        rule = verdict.clamped_by or ((Rule.KEEP_OUT if zone else Rule.OBSTACLE) if obstacle else Rule.HUMAN_SEPARATION)
+        note = "; ".join(n for n in (verdict.note, done.note) if n)
+        return Verdict(done.twist, checks, values, rule, note)
+
     def _twist(
-        self, key: str, twist: Twist, check: Callable[[float], Verdict[Twist]], t: float
+        self,
+        key: str,
+        twist: Twist,
+        check: Callable[[float], Verdict[Twist]],
+        t: float,
+        mode_veto: Vetoed | None = None,
     ) -> Ruling[Twist | None]:
         """The twist to put on robot/cmd_vel, if any. The node puts it before the next twist is
-        decided: the teleop ramp starts from what was sent last."""
+        decided: the teleop ramp starts from what was sent last. `mode_veto`: the control mode refuses
+        this motion (the base is stopped)."""
         if refused := self._estop_veto():
             return Ruling(None, tuple(self._veto_repeated(key, refused, twist, t)))
+        if mode_veto is not None:
+            return Ruling(self._sent(Twist(), t), tuple(self._veto_repeated(key, mode_veto, twist, t)))
         if refused := self._rate_veto(key, t):
             events = self._veto_repeated(key, refused, twist, t)
             return Ruling(self._sent(Twist(), t), tuple(events))
@@ -544,7 +630,7 @@ class SafetyGate:
         """The goal to send to the robot, or the refusal to reply with. `again`: the same goal decided
         once more (see trajectory): not counted against the rate twice, and not offered a third try."""
         try:
-            refused = self._estop_veto()
+            refused = self._estop_veto() or self._mode_veto()
             if refused is None and not again:
                 refused = self._rate_veto(key, t)
             if refused is not None:
@@ -567,9 +653,196 @@ class SafetyGate:
         try:
             if refused := self._estop_veto():
                 raise refused
+            if (why := PLANS_REFUSED.get(self.modes.mode)) is not None:
+                raise Vetoed(why, Rule.MODE)
             checks = self.policy.check_plan(plan, self._pose(t))
         except Vetoed as exc:
             error = ServiceError(kind=_refusal_kind(exc), message=str(exc), stage=Stage.SAFETY)
             return Ruling(error, (_veto_event(key, exc, plan),))
         event = GateEvent(key, Decision.APPROVED, "; ".join(checks), plan, None, PLAN_RULES)
         return Ruling(PlanApproved(checks=checks), (event,))
+
+    # The control mode and plan approval (operator only, with the token)
+
+    @property
+    def mode(self) -> ControlMode:
+        return self.modes.mode
+
+    def _mode_veto(self) -> Vetoed | None:
+        """Why the mode refuses a program's motion (a plan's goals, cmd/cmd_vel); None when it lets it."""
+        mode = self.modes.mode
+        if (why := PLANS_REFUSED.get(mode)) is not None:
+            return Vetoed(f"{why}; a program's motion is refused", Rule.MODE)
+        if mode is ControlMode.SUPERVISED:
+            with self._lock:
+                running = self._approvals.running()
+            if running is None:
+                why = "mode supervised: no plan an operator approved is running; a program's motion is refused"
+                return Vetoed(why, Rule.APPROVAL)
+        return None
+
+    def _operator_refusal(self, key: str, what: str, operator: str, token: str, redacted: object) -> GateEvent | None:
+        """The event refusing `what` unless `token` is the operator's, held to the same limits on wrong
+        attempts as the e-stop reset (the same token, the same counts); None when it is the operator."""
+        right = self.latch.accepts(token)
+        with self._lock:
+            t = self._advance()
+            wait = self._resets.attempt(operator, t, right=right)
+        if wait > 0.0:
+            limit = self._resets.per_window
+            why = (
+                f"{what} refused for '{operator}': too many attempts (at most {limit} a minute per operator, "
+                f"{self._resets.total} for all); try again in {math.ceil(wait)} s"
+            )
+            values = {"retry_after_s": wait, "limit_per_minute": float(limit)}
+            return GateEvent(key, Decision.VETOED, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,), values)
+        if not right:
+            why = f"{what} refused for '{operator}': not the operator's token"
+            return GateEvent(key, Decision.VETOED, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,))
+        return None
+
+    def set_mode(self, req: ModeRequest) -> Ruling[ModeReply]:
+        """Change the control mode with the operator's token; the token never leaves in an event."""
+        key = keys.SET_MODE.path
+        redacted = msgspec.structs.replace(req, token="***")
+        if (refusal := self._operator_refusal(key, "mode change", req.operator, req.token, redacted)) is not None:
+            return Ruling(ModeReply(ok=False, message=refusal.reason, mode=self.modes.mode), (refusal,))
+        previous = self.modes.set(req.mode, f"operator {req.operator}", self._wall_clock()).mode
+        if previous is req.mode:
+            return Ruling(ModeReply(ok=True, message=f"mode already {req.mode}", mode=req.mode))
+        log.warning("control mode %s -> %s by operator %s", previous, req.mode, req.operator)
+        why = f"mode {previous} -> {req.mode} by operator {req.operator}"
+        event = GateEvent(key, Decision.MODE, why, redacted, Rule.MODE, (Rule.OPERATOR,))
+        # Goals under way that the new mode would refuse are ended (the next ones are refused).
+        cancel = self._mode_veto() is not None
+        return Ruling(
+            ModeReply(ok=True, message=why, mode=req.mode),
+            (event,),
+            mode_changed=True,
+            cancel_goals=cancel,
+            approvals_changed=True,
+        )
+
+    def request_approval(self, req: ApprovalRequest) -> Ruling[PlanApproval]:
+        """The executor asks, before a plan's first motion, whether it may move the robot. In supervised
+        mode the plan is checked here once more (the dry run the operator sees) and waits; asking again
+        is answered from the book."""
+        key = keys.APPROVAL_REQUEST.path
+        t = self._time()
+        mode = self.modes.mode
+        with self._lock:
+            known = self._approvals.get(req.goal_id, t)
+        if known is not None:
+            if known.state is not ApprovalState.PENDING or mode is ControlMode.SUPERVISED:
+                return Ruling(known)
+            # The mode changed while it waited: autonomous lets it run, direct and shared refuse it.
+            why = PLANS_REFUSED.get(mode)
+            state = ApprovalState.DENIED if why else ApprovalState.APPROVED
+            why = why or f"mode {mode}: no approval needed"
+            with self._lock:
+                approval = self._approvals.change(req.goal_id, state, why, t, decided=self._wall_clock(), by="mode")
+            decision = Decision.DENIED if state is ApprovalState.DENIED else Decision.APPROVED
+            event = GateEvent(key, decision, f"plan {req.goal_id}: {why}", approval, Rule.APPROVAL, (Rule.MODE,))
+            return Ruling(approval, (event,), approvals_changed=True)
+        if mode is ControlMode.AUTONOMOUS:
+            return Ruling(PlanApproval(goal_id=req.goal_id, state=ApprovalState.NOT_NEEDED, reason=f"mode {mode}"))
+        if (why := PLANS_REFUSED.get(mode)) is not None:
+            refusal = PlanApproval(goal_id=req.goal_id, state=ApprovalState.DENIED, reason=why)
+            return Ruling(refusal, (GateEvent(key, Decision.DENIED, why, refusal, Rule.MODE, (Rule.MODE,)),))
+        checked = self.check_plan(req.plan)
+        lines = plan_lines(req.plan)
+        wall = self._wall_clock()
+        if isinstance(checked.forward, ServiceError):
+            why = f"safety's check refuses it: {checked.forward.message}"
+            approval = PlanApproval(
+                goal_id=req.goal_id, state=ApprovalState.DENIED, reason=why, steps=lines, requested=wall
+            )
+        else:
+            why = f"awaiting an operator: `tether approve {req.goal_id}` or `tether deny {req.goal_id} --reason ...`"
+            approval = PlanApproval(
+                goal_id=req.goal_id,
+                state=ApprovalState.PENDING,
+                reason=why,
+                steps=lines,
+                checks=list(checked.forward.checks),
+                requested=wall,
+            )
+        with self._lock:
+            approval = self._approvals.add(approval, req.plan, t)
+        decision = Decision.AWAITING_APPROVAL if approval.state is ApprovalState.PENDING else Decision.DENIED
+        event = GateEvent(key, decision, f"plan {req.goal_id}: {approval.reason}", approval, Rule.APPROVAL)
+        return Ruling(approval, (*checked.events, event), approvals_changed=True)
+
+    def approval(self, goal_id: str) -> PlanApproval | None:
+        """What safety holds of `goal_id`'s approval now (None: nothing)."""
+        t = self._time()
+        with self._lock:
+            return self._approvals.get(goal_id, t)
+
+    def decide(self, req: ApprovalDecision) -> Ruling[ApprovalReply]:
+        """An operator approves or denies a waiting plan. An approval checks the plan once more from
+        where the robot is now: a plan safety would refuse now is denied instead."""
+        key = keys.APPROVAL_DECIDE.path
+        redacted = msgspec.structs.replace(req, token="***")
+        verb = "approval" if req.approve else "denial"
+        if (refusal := self._operator_refusal(key, verb, req.operator, req.token, redacted)) is not None:
+            return Ruling(ApprovalReply(ok=False, message=refusal.reason), (refusal,))
+        t = self._time()
+        with self._lock:
+            known = self._approvals.get(req.goal_id, t)
+            plan = self._approvals.plan(req.goal_id)
+
+        def refused(why: str, approval: PlanApproval | None = known) -> Ruling[ApprovalReply]:
+            event = GateEvent(key, Decision.VETOED, why, redacted, Rule.APPROVAL, (Rule.APPROVAL,))
+            return Ruling(ApprovalReply(ok=False, message=why, approval=approval), (event,))
+
+        if known is None or plan is None:
+            unknown = f"no plan with goal id {req.goal_id} waits for approval (unknown goal)"
+            return refused(f"{unknown}; `tether pending` lists the plans that wait")
+        if known.state is not ApprovalState.PENDING:
+            return refused(f"plan {req.goal_id} does not wait for approval: it is {known.state} ({known.reason})")
+        events: list[GateEvent] = []
+        if req.approve:
+            if (why := PLANS_REFUSED.get(self.modes.mode)) is not None:
+                return refused(f"{why}: set the mode to supervised or autonomous first")
+            checked = self.check_plan(plan)
+            events.extend(checked.events)
+            if isinstance(checked.forward, ServiceError):
+                state, why = ApprovalState.DENIED, f"safety's check refuses it now: {checked.forward.message}"
+            else:
+                state, why = ApprovalState.APPROVED, f"approved by operator {req.operator}"
+        else:
+            state = ApprovalState.DENIED
+            why = f"denied by operator {req.operator}: {req.reason or 'no reason given'}"
+        with self._lock:
+            current = self._approvals.get(req.goal_id, t)
+            if current is None or current.state is not ApprovalState.PENDING:
+                # Decided (or ended) by someone else while this one was checked.
+                state_now = current.state if current is not None else "forgotten"
+                return refused(f"plan {req.goal_id} does not wait for approval any more: it is {state_now}", current)
+            approval = self._approvals.change(
+                req.goal_id, state, why, t, decided=self._wall_clock(), by=req.operator[:200]
+            )
+        log.warning("plan %s %s", req.goal_id, why)
+        decision = Decision.APPROVED if state is ApprovalState.APPROVED else Decision.DENIED
+        events.append(GateEvent(key, decision, f"plan {req.goal_id}: {why}", redacted, Rule.APPROVAL, (Rule.OPERATOR,)))
+        ok = state is ApprovalState.APPROVED or not req.approve
+        return Ruling(ApprovalReply(ok=ok, message=why, approval=approval), tuple(events), approvals_changed=True)
+
+    def pending(self) -> PendingPlans:
+        t = self._time()
+        with self._lock:
+            return PendingPlans(mode=self.modes.mode, plans=self._approvals.waiting(t))
+
+    def plan_status(self, status: GoalStatus) -> Ruling[None]:
+        """The executor's plan goal changed state: one that ended no longer waits or moves the robot."""
+        if not status.state.terminal:
+            return Ruling(None)
+        t = self._time()
+        with self._lock:
+            known = self._approvals.get(status.goal_id, t)
+            if known is None or known.state not in (ApprovalState.PENDING, ApprovalState.APPROVED):
+                return Ruling(None)
+            why = f"the plan ended ({status.state}) after it was {known.state}"
+            self._approvals.change(status.goal_id, ApprovalState.FINISHED, why, t)
+        return Ruling(None, approvals_changed=True)

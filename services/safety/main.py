@@ -9,6 +9,7 @@ from services.robotlink import KeyFileError, Signer, robot_key
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
 from services.safety.latch import EstopLatch
+from services.safety.modes import ModeFile
 from services.safety.node import SafetyNode
 from services.safety.operator import ensure_token, token_path
 from services.safety.policy import load_safety_policy
@@ -34,6 +35,8 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     # A fresh install's first start makes the token and an unlatched latch file; after that a missing
     # latch file starts latched (fail closed; services/safety/README.md, The e-stop latch).
     latch = EstopLatch(ensure_token(token_file, state_file), state_file)
+    mode_file = Path(config.mode_state_file) if config.mode_state_file else None
+    modes = ModeFile(mode_file or token_file.parent / f"mode-{settings.robot}.json")
     try:
         key, key_file = robot_key(config.robot_key_file, token_file.parent, settings.robot)
     except (KeyFileError, OSError) as exc:
@@ -44,11 +47,12 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         # Everything safety sends to the robot (commands, heartbeats) carries a MAC under this key.
         node.signer = Signer(key)
         # The watchdog is fed from the heartbeat loop, not from here: a hung check loop is restarted.
-        safety = SafetyNode(node, policy, latch, config, keepalive=notifier.keepalive)
+        safety = SafetyNode(node, policy, latch, config, keepalive=notifier.keepalive, modes=modes)
         node.declare_alive()
         log.info(
-            "safety up for robot %s; policy %s (%s); operator token in %s; robot key in %s",
+            "safety up for robot %s in mode %s; policy %s (%s); operator token in %s; robot key in %s",
             settings.robot,
+            modes.mode,
             limits.path,
             limits.hash,
             token_file,

@@ -12,18 +12,33 @@ from typing import Any
 import msgspec
 
 from schemas import keys
-from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, SendGoal
+from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, GoalStatus, SendGoal
 from schemas.common import DECODE_ERRORS
 from schemas.keys import ActionKeys
 from schemas.plan import GroundedPlan, PlanCheckReply
 from schemas.robot import FollowJointTrajectoryGoal, JointState, Odometry, Twist
-from schemas.safety import Decision, EStop, ResetReply, ResetRequest, SafetyEvent
-from schemas.world import PerceivedHumans
+from schemas.safety import (
+    ApprovalDecision,
+    ApprovalReply,
+    ApprovalRequest,
+    ApprovalState,
+    Decision,
+    EStop,
+    ModeReply,
+    ModeRequest,
+    PendingPlans,
+    PlanApproval,
+    ResetReply,
+    ResetRequest,
+    SafetyEvent,
+)
+from schemas.world import Empty, PerceivedHumans
 from services.actionlib import MAX_RESULT_WAIT
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.gate import GateEvent, GoalRuling, Ruling, SafetyGate
 from services.safety.latch import EstopLatch
+from services.safety.modes import ModeFile
 from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy
 
 log = logging.getLogger(__name__)
@@ -48,6 +63,7 @@ class SafetyNode:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         keepalive: Callable[[], None] = lambda: None,
+        modes: ModeFile | None = None,
     ) -> None:
         self.node = node
         # Called after every beat that ticked and published (systemd's watchdog): if the checking loop
@@ -57,7 +73,9 @@ class SafetyNode:
         self.latch = latch
         self.policy_hash = policy.limits.hash
         self.wall_clock = wall_clock
-        self.gate = SafetyGate(policy, latch, clock, wall_clock, config.max_resets_per_minute)
+        self.gate = SafetyGate(policy, latch, clock, wall_clock, config.max_resets_per_minute, modes)
+        # Wakes an executor waiting for a plan's approval when an operator decides (or the mode changes).
+        self._approvals_changed = threading.Condition()
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
@@ -82,6 +100,13 @@ class SafetyNode:
         node.subscribe(keys.CMD_VEL, self._on_cmd_vel)
         node.subscribe(keys.TELEOP_CMD_VEL, self._on_teleop)
         node.serve(keys.RESET, self._on_reset)
+        node.serve(keys.SET_MODE, self._on_set_mode)
+        node.serve(keys.APPROVAL_DECIDE, self._on_decide)
+        node.serve(keys.PENDING_PLANS, self._on_pending)
+        # Waits (up to the request's `wait`) for an operator: on the pool for queries that wait.
+        node.serve(keys.APPROVAL_REQUEST, self._on_approval_request, waits=True)
+        # The plans' goals ending: an approved plan may move the robot only until it ends.
+        node.subscribe(keys.EXECUTE_PLAN.status, self._on_plan_status)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
         self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate)
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
@@ -105,9 +130,12 @@ class SafetyNode:
             self._persist()
         for event in ruling.events:
             self._publish_event(event)
-        if ruling.latched:
+        if ruling.latched or ruling.cancel_goals:
             # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
             threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
+        if ruling.approvals_changed:
+            with self._approvals_changed:
+                self._approvals_changed.notify_all()
 
     def _publish_event(self, event: GateEvent, logged: bool = False) -> None:
         """Publish `event`; a veto is logged too unless it was (`logged`)."""
@@ -199,6 +227,53 @@ class SafetyNode:
             return ruling.forward
         note = " (the state file could not be written: a restart of safety may come up latched)"
         return msgspec.structs.replace(ruling.forward, message=ruling.forward.message + note)
+
+    def _on_set_mode(self, req: ModeRequest) -> ModeReply:
+        ruling = self.gate.set_mode(req)
+        saved = True
+        if ruling.mode_changed:
+            self._publish_heartbeat()
+            try:
+                self.gate.modes.save()
+            except OSError as exc:
+                log.error("the mode could not be written (%s): a restart may not remember it", exc)
+                saved = False
+        self._carry_out(ruling)
+        if saved:
+            return ruling.forward
+        note = " (the mode state file could not be written: a restart of safety may come up in another mode)"
+        return msgspec.structs.replace(ruling.forward, message=ruling.forward.message + note)
+
+    def _on_decide(self, req: ApprovalDecision) -> ApprovalReply:
+        ruling = self.gate.decide(req)
+        self._carry_out(ruling)
+        return ruling.forward
+
+    def _on_pending(self, _req: Empty) -> PendingPlans:
+        return self.gate.pending()
+
+    def _on_approval_request(self, req: ApprovalRequest) -> PlanApproval:
+        ruling = self.gate.request_approval(req)
+        self._carry_out(ruling)
+        approval = ruling.forward
+        if approval.state is not ApprovalState.PENDING or req.wait <= 0.0:
+            return approval
+        deadline = time.monotonic() + req.wait
+
+        def decided() -> bool:
+            now = self.gate.approval(req.goal_id)
+            return now is None or now.state is not ApprovalState.PENDING
+
+        with self._approvals_changed:
+            while not decided() and (left := deadline - time.monotonic()) > 0:
+                self._approvals_changed.wait(left)
+        # Asked again: a change of mode while it waited is applied here.
+        again = self.gate.request_approval(req)
+        self._carry_out(again)
+        return again.forward
+
+    def _on_plan_status(self, status: GoalStatus) -> None:
+        self._carry_out(self.gate.plan_status(status))
 
     def _on_odom(self, msg: Odometry) -> None:
         self._carry_out(self.gate.odometry(msg))

@@ -43,7 +43,12 @@ from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy, Verdict, bas
 T = TypeVar("T")
 
 # Refusals that are not the policy's: kept as recorded.
-NOT_POLICY = {Rule.ESTOP: "refused for the e-stop", Rule.COMMAND_RATE: "refused for the command rate"}
+NOT_POLICY = {
+    Rule.ESTOP: "refused for the e-stop",
+    Rule.COMMAND_RATE: "refused for the command rate",
+    Rule.MODE: "refused for the control mode",
+    Rule.APPROVAL: "refused for want of an operator's approval",
+}
 GOALS = {
     keys.CMD_NAVIGATE.send_goal.path: NavigateToPoseGoal,
     keys.CMD_TRAJECTORY.send_goal.path: FollowJointTrajectoryGoal,

@@ -20,6 +20,7 @@ from schemas.executor import ExecutePlanFeedback
 from schemas.plan import PlanText
 from schemas.robot import NavigateToPoseFeedback, Twist
 from schemas.trace import TraceRecord
+from services.recorder import scene3d
 from services.recorder.config import RecorderConfig
 from services.recorder.mcapfile import Recording
 from services.runtime import ConfigError, encode, load_config
@@ -59,7 +60,10 @@ def read(data: bytes) -> tuple[dict[str, Any], list[tuple[Any, Any, Any]]]:
     reader = make_reader(io.BytesIO(data))
     summary = reader.get_summary()
     assert summary is not None, "finish() must write a summary"
-    return {c.topic: c for c in summary.channels.values()}, list(reader.iter_messages(log_time_order=True))
+    # The traffic only: what the recorder adds for Foxglove is tested in test_scene3d.py.
+    channels = {c.topic: c for c in summary.channels.values() if not scene3d.is_derived(c.topic)}
+    messages = [m for m in reader.iter_messages(log_time_order=True) if not scene3d.is_derived(m[1].topic)]
+    return channels, messages
 
 
 def write(messages: list[tuple[str, Any]]) -> tuple[Recording, bytes]:

@@ -88,6 +88,8 @@ ELSEWHERE = {
     Rule.ESTOP,  # the latch and the node, not a limit
     Rule.OPERATOR,
     Rule.WATCHDOG,
+    Rule.MODE,  # the control mode, not a limit: test_safety_modes.py, test_modes.py
+    Rule.APPROVAL,  # supervised plans: test_safety_modes.py, test_modes.py
 }
 
 

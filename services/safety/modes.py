@@ -1,0 +1,165 @@
+"""The control mode (held durably) and the book of plans waiting for, or running on, an operator's approval."""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import msgspec
+
+from schemas.plan import GroundedPlan, fallback_labels, step_labels
+from schemas.safety import MAX_PLAN_LINES, ApprovalState, ControlMode, ModeState, PlanApproval
+
+log = logging.getLogger(__name__)
+
+# What each mode says to a plan, or to a program's motion, it refuses (None: the mode lets plans run).
+PLANS_REFUSED = {
+    ControlMode.DIRECT: "mode direct: only the operator drives (teleop); plans are refused",
+    ControlMode.SHARED: "mode shared: the operator drives (teleop); plans are refused",
+}
+# Plans waiting longer than this for an operator are denied (the world has changed since they were checked).
+APPROVAL_EXPIRY = 900.0
+# Plans remembered after they ended or were denied (an approve of one gets a clear answer), and for how long.
+ENDED_KEPT = 256
+ENDED_FOR = 1800.0
+# At most this many plans wait at once; more are denied at once.
+MAX_WAITING = 32
+
+
+class ModeFile:
+    """The mode, written down on every change and read back at start. No file: autonomous, the
+    default (a fresh install, or `tether deploy init`, has none). A file that cannot be read:
+    supervised, so that nothing moves without a person while nobody knows what was chosen."""
+
+    def __init__(self, path: Path | None) -> None:
+        self._file = path
+        self._lock = threading.Lock()
+        self._state = self._load()
+
+    def _load(self) -> ModeState:
+        if self._file is None or not self._file.exists():
+            return ModeState(mode=ControlMode.AUTONOMOUS, source="default")
+        try:
+            state = msgspec.json.decode(self._file.read_bytes(), type=ModeState)
+        except (OSError, msgspec.DecodeError) as exc:
+            log.error("mode state file %s is unreadable (%s): starting supervised", self._file, exc)
+            return ModeState(mode=ControlMode.SUPERVISED, source=f"safety: unreadable mode state file {self._file}")
+        log.info("control mode %s (set by %s)", state.mode, state.source or "unknown")
+        return state
+
+    @property
+    def state(self) -> ModeState:
+        with self._lock:
+            return self._state
+
+    @property
+    def mode(self) -> ControlMode:
+        return self.state.mode
+
+    def set(self, mode: ControlMode, source: str, stamp: float) -> ModeState:
+        """Change it in memory; the previous state is returned. save() writes it down."""
+        with self._lock:
+            previous, self._state = self._state, ModeState(mode=mode, source=source, stamp=stamp)
+            return previous
+
+    def save(self) -> None:
+        if self._file is None:
+            return
+        with self._lock:
+            data = msgspec.json.encode(self._state)
+        self._file.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._file.with_suffix(".tmp")
+        with tmp.open("wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, self._file)
+        directory = os.open(self._file.parent, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+
+
+def plan_lines(plan: GroundedPlan) -> list[str]:
+    """The plan's steps and route, one line each, as an operator reads them before approving."""
+    labels = step_labels(plan)
+    lines = [f"{label}. {step.brief()}" for label, step in zip(labels, plan.steps, strict=True)]
+    for fallback in plan.fallbacks:
+        alternative = fallback_labels(fallback, labels)
+        lines += [f"{label}. {step.brief()}" for label, step in zip(alternative, fallback.steps, strict=True)]
+    if len(lines) > MAX_PLAN_LINES:
+        lines = [*lines[: MAX_PLAN_LINES - 1], f"... and {len(lines) - MAX_PLAN_LINES + 1} more"]
+    return [line[:4000] for line in lines]
+
+
+@dataclass(frozen=True)
+class _Entry:
+    approval: PlanApproval
+    plan: GroundedPlan
+    at: float  # the gate's clock, when it was asked or last changed
+
+
+class ApprovalBook:
+    """Plans of supervised mode by goal id: pending until an operator decides, approved until the
+    executor reports the goal ended, then remembered a while as finished (or denied). Not
+    thread-safe: the gate calls it under its lock."""
+
+    def __init__(self) -> None:
+        self._entries: dict[str, _Entry] = {}
+
+    def get(self, goal_id: str, t: float) -> PlanApproval | None:
+        self._expire(t)
+        entry = self._entries.get(goal_id)
+        return None if entry is None else entry.approval
+
+    def plan(self, goal_id: str) -> GroundedPlan | None:
+        entry = self._entries.get(goal_id)
+        return None if entry is None else entry.plan
+
+    def waiting(self, t: float) -> list[PlanApproval]:
+        self._expire(t)
+        pending = [e for e in self._entries.values() if e.approval.state is ApprovalState.PENDING]
+        return [e.approval for e in sorted(pending, key=lambda e: e.approval.requested)]
+
+    def count(self, state: ApprovalState) -> int:
+        return sum(1 for e in self._entries.values() if e.approval.state is state)
+
+    def add(self, approval: PlanApproval, plan: GroundedPlan, t: float) -> PlanApproval:
+        self._expire(t)
+        if approval.state is ApprovalState.PENDING and self.count(ApprovalState.PENDING) >= MAX_WAITING:
+            approval = replace_approval(
+                approval, ApprovalState.DENIED, f"{MAX_WAITING} plans already wait for an operator: decide those first"
+            )
+        self._entries[approval.goal_id] = _Entry(approval, plan, t)
+        return approval
+
+    def change(self, goal_id: str, state: ApprovalState, reason: str, t: float, **fields: object) -> PlanApproval:
+        entry = self._entries[goal_id]
+        approval = replace_approval(entry.approval, state, reason, **fields)
+        self._entries[goal_id] = replace(entry, approval=approval, at=t)
+        return approval
+
+    def running(self) -> str | None:
+        """The goal id of an approved plan (which may move the robot), if any."""
+        return next((g for g, e in self._entries.items() if e.approval.state is ApprovalState.APPROVED), None)
+
+    def _expire(self, t: float) -> None:
+        for goal_id, entry in list(self._entries.items()):
+            state = entry.approval.state
+            if state is ApprovalState.PENDING and t - entry.at > APPROVAL_EXPIRY:
+                why = f"no operator decided within {APPROVAL_EXPIRY / 60:g} minutes"
+                self.change(goal_id, ApprovalState.DENIED, why, t)
+            elif state in (ApprovalState.DENIED, ApprovalState.FINISHED) and t - entry.at > ENDED_FOR:
+                del self._entries[goal_id]
+        done = (ApprovalState.DENIED, ApprovalState.FINISHED)
+        ended = [g for g, e in self._entries.items() if e.approval.state in done]
+        for goal_id in ended[: max(0, len(ended) - ENDED_KEPT)]:
+            del self._entries[goal_id]
+
+
+def replace_approval(approval: PlanApproval, state: ApprovalState, reason: str, **fields: object) -> PlanApproval:
+    return msgspec.structs.replace(approval, state=state, reason=reason[:4000], **fields)

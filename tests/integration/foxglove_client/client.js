@@ -1,0 +1,119 @@
+// A Foxglove WebSocket client for tether's tests, built on Foxglove's own @foxglove/ws-protocol.
+// Prints one JSON object per line on stdout:
+//   watch URL SECONDS TOPIC...: serverInfo, every advertised channel, then up to 3 decoded messages of
+//     each channel, until each TOPIC has one or SECONDS pass; the official JSON Schemas of
+//     @foxglove/schemas first, for the test to check messages against.
+//   schemas: only the official JSON Schemas of @foxglove/schemas.
+//   hostile URL SECONDS: garbage and protocol abuse on a raw socket, then subscribes to every channel
+//     and stops reading (a viewer that does not keep up); prints what the server answered.
+"use strict";
+const { FoxgloveClient } = require("@foxglove/ws-protocol");
+const schemas = require("@foxglove/schemas/jsonschema");
+const WebSocket = require("ws");
+
+const [mode, url, seconds, ...wanted] = process.argv.slice(2);
+// foxglove-sdk's server speaks the protocol of ws-protocol's spec under the name foxglove.sdk.v1
+// (foxglove.websocket.v1 before); FoxgloveClient takes whatever subprotocol its socket negotiated.
+const SUBPROTOCOL = "foxglove.sdk.v1";
+const out = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
+const deadline = setTimeout(() => finish("timeout"), Number(seconds) * 1000);
+
+function finish(why) {
+  out({ done: why });
+  clearTimeout(deadline);
+  process.exit(0);
+}
+
+function official() {
+  out({ official: { "foxglove.SceneUpdate": schemas.SceneUpdate, "foxglove.FrameTransforms": schemas.FrameTransforms,
+    "foxglove.CompressedImage": schemas.CompressedImage, "foxglove.Log": schemas.Log } });
+}
+
+function watch() {
+  official();
+  const ws = new WebSocket(url, [SUBPROTOCOL]);
+  const client = new FoxgloveClient({ ws });
+  const bySubscription = new Map();
+  const counts = new Map();
+  const pending = new Set(wanted);
+  const decoder = new TextDecoder();
+  client.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
+  client.on("close", () => finish("closed"));
+  client.on("serverInfo", (info) => out({ serverInfo: info }));
+  client.on("status", (status) => out({ status }));
+  client.on("advertise", (channels) => {
+    for (const channel of channels) {
+      out({ channel });
+      bySubscription.set(client.subscribe(channel.id), channel);
+    }
+  });
+  client.on("message", ({ subscriptionId, data }) => {
+    const channel = bySubscription.get(subscriptionId);
+    if (!channel) return;
+    const n = counts.get(channel.topic) || 0;
+    counts.set(channel.topic, n + 1);
+    if (n >= 3) return;
+    let message;
+    try {
+      message = JSON.parse(decoder.decode(data));
+    } catch (e) {
+      out({ topic: channel.topic, undecodable: String(e) });
+      return;
+    }
+    out({ topic: channel.topic, schemaName: channel.schemaName, message });
+    pending.delete(channel.topic);
+    if (wanted.length > 0 && pending.size === 0) finish("all");
+  });
+}
+
+function hostile() {
+  const ws = new WebSocket(url, [SUBPROTOCOL]);
+  const answers = { text: 0, binary: 0, statuses: [] };
+  let channels = [];
+  ws.on("message", (data, isBinary) => {
+    if (isBinary) { answers.binary += 1; return; }
+    answers.text += 1;
+    let msg;
+    try { msg = JSON.parse(data.toString()); } catch (e) { return; }
+    if (msg.op === "status" && answers.statuses.length < 20) answers.statuses.push(msg.message);
+    if (msg.op === "advertise") channels = channels.concat(msg.channels);
+  });
+  ws.on("close", (code) => { out({ closed: code, answers }); });
+  ws.on("error", (e) => out({ error: String(e.message) }));
+  ws.on("open", () => {
+    const junk = [
+      "not json at all",
+      "{\"op\":",
+      JSON.stringify({ op: "subscribe" }),
+      JSON.stringify({ op: "subscribe", subscriptions: [{ id: "x", channelId: "y" }] }),
+      JSON.stringify({ op: "subscribe", subscriptions: [{ id: 1, channelId: 999999 }] }),
+      JSON.stringify({ op: "unsubscribe", subscriptionIds: [424242] }),
+      JSON.stringify({ op: "advertise", channels: [{ id: 1, topic: "tether/x/cmd/teleop/cmd_vel", encoding: "json", schemaName: "x" }] }),
+      JSON.stringify({ op: "setParameters", parameters: [{ name: "a", value: 1 }] }),
+      JSON.stringify({ op: "no-such-op" }),
+      "[".repeat(10000),
+    ];
+    for (const text of junk) ws.send(text);
+    ws.send(Buffer.from([0x01, 0xff, 0xff, 0xff, 0xff, 0x00]));  // client MESSAGE_DATA on a channel never advertised
+    ws.send(Buffer.from([0x7f]));  // an opcode that does not exist
+    ws.send(Buffer.alloc(2 * 1024 * 1024, 0x61), { binary: true });  // 2 MiB of nothing
+    // Then subscribe to every channel, many times over, and stop reading: the server must not wait for us.
+    setTimeout(() => {
+      const subscriptions = [];
+      let id = 1;
+      for (let round = 0; round < 50; round++) {
+        for (const channel of channels) subscriptions.push({ id: id++, channelId: channel.id });
+      }
+      ws.send(JSON.stringify({ op: "subscribe", subscriptions }));
+      out({ subscribed: subscriptions.length, channels: channels.length, answers });
+      ws._socket.pause();
+    }, 500);
+  });
+  // Held open, not read, until the deadline.
+  deadline.refresh();
+}
+
+if (mode === "schemas") { official(); process.exit(0); }
+else if (mode === "watch") watch();
+else if (mode === "hostile") hostile();
+else { out({ error: `unknown mode ${mode}` }); process.exit(2); }

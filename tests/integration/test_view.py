@@ -1,0 +1,287 @@
+"""`tether view` on a real stack, seen through Foxglove's own WebSocket client, and the recording's Foxglove channels.
+
+One stack (sim, safety, recorder) and one `tether view` for the module. The client is
+@foxglove/ws-protocol's FoxgloveClient under node (tests/integration/foxglove_client, installed
+with `npm ci` once into a cache folder); every message it decodes is checked against the official
+JSON Schemas of @foxglove/schemas, which it prints first.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import itertools
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import pytest
+from mcap.reader import make_reader
+
+from schemas import keys
+from schemas.common import Pose2D
+from schemas.robot import NavigateToPoseGoal
+from services.actionlib import ActionClient
+from services.recorder import scene3d
+from services.recorder.reader import read_recording
+from tests.integration.conftest import Stack, dump_logs, start_stack, stop_stack
+
+CLIENT_SOURCE = Path(__file__).with_name("foxglove_client")
+DEADLINE = 60.0
+FOXGLOVE_TOPICS = {
+    scene3d.SCENE_TOPIC: "foxglove.SceneUpdate",
+    scene3d.OBJECTS_TOPIC: "foxglove.SceneUpdate",
+    scene3d.PEOPLE_TOPIC: "foxglove.SceneUpdate",
+    scene3d.ROUTE_TOPIC: "foxglove.SceneUpdate",
+    scene3d.TF_TOPIC: "foxglove.FrameTransforms",
+    scene3d.CAMERA_TOPIC: "foxglove.CompressedImage",
+    scene3d.LOG_TOPIC: "foxglove.Log",
+}
+
+
+def client_script() -> Path:
+    """The client and its node_modules in a cache folder named by the hash of its files (installed once)."""
+    node, npm = shutil.which("node"), shutil.which("npm")
+    if node is None or npm is None:
+        pytest.skip("node and npm are needed to run Foxglove's WebSocket client (@foxglove/ws-protocol)")
+    files = ("package.json", "package-lock.json", "client.js")
+    digest = hashlib.sha256(b"".join((CLIENT_SOURCE / f).read_bytes() for f in files)).hexdigest()[:16]
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    home = cache / "tether-tests" / f"foxglove-client-{digest}"
+    if not (home / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        home.mkdir(parents=True, exist_ok=True)
+        for f in files:
+            shutil.copy(CLIENT_SOURCE / f, home / f)
+        subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=home, check=True, timeout=300, capture_output=True)
+    return home / "client.js"
+
+
+@dataclass
+class Client:
+    """A running client; its JSON lines as they arrive."""
+
+    proc: subprocess.Popen[str]
+    lines: list[dict[str, Any]] = field(default_factory=list)
+    _cond: threading.Condition = field(default_factory=threading.Condition)
+    _reader: threading.Thread = field(init=False)
+
+    @classmethod
+    def start(cls, script: Path, *args: str) -> Client:
+        proc = subprocess.Popen(["node", str(script), *args], stdout=subprocess.PIPE, text=True)
+        client = cls(proc)
+        client._reader = threading.Thread(target=client._read, daemon=True)
+        client._reader.start()
+        return client
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._cond:
+                self.lines.append(json.loads(line))
+                self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_for(self, test: Any, timeout: float = DEADLINE) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not test(self.lines):
+                left = deadline - time.monotonic()
+                if left <= 0 or (self.proc.poll() is not None and not test(self.lines)):
+                    return bool(test(self.lines))
+                self._cond.wait(min(left, 0.5))
+        return True
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(timeout=10)
+        self._reader.join(timeout=10)
+        assert self.proc.stdout is not None
+        self.proc.stdout.close()
+
+    def messages(self, topic: str) -> list[dict[str, Any]]:
+        return [line["message"] for line in self.lines if line.get("topic") == topic and "message" in line]
+
+    @property
+    def channels(self) -> dict[str, dict[str, Any]]:
+        return {line["channel"]["topic"]: line["channel"] for line in self.lines if "channel" in line}
+
+
+@dataclass
+class Viewed:
+    stack: Stack
+    view: subprocess.Popen[str]
+    url: str
+    script: Path
+    official: dict[str, Any]
+
+
+@pytest.fixture(scope="module")
+def viewed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Viewed]:
+    script = client_script()
+    schemas = subprocess.run(["node", str(script), "schemas"], capture_output=True, text=True, timeout=60, check=True)
+    official = json.loads(schemas.stdout.splitlines()[0])["official"]
+    tmp = tmp_path_factory.mktemp("view")
+    stack = start_stack(tmp, 4.0, services=("sim", "safety", "recorder"))
+    log_file = (tmp / "view.log").open("w")
+    view = subprocess.Popen(
+        [sys.executable, "-m", "tether", "view", "--port", "0", "--json", "--config", str(tmp / "tether.toml")],
+        env=stack.supervisor.env(),
+        stdout=subprocess.PIPE,
+        stderr=log_file,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        assert view.stdout is not None
+        started = json.loads(view.stdout.readline() or "{}")  # printed once serving; EOF if it failed
+        assert started.get("ok"), f"tether view did not start: {started}\n{(tmp / 'view.log').read_text()}"
+        yield Viewed(stack, view, started["url"], script, official)
+        assert view.poll() is None, "tether view died"
+        os.killpg(view.pid, signal.SIGINT)
+        assert view.wait(timeout=20) == 0
+    finally:
+        if view.poll() is None:
+            os.killpg(view.pid, signal.SIGKILL)
+            view.wait(timeout=10)
+        assert view.stdout is not None
+        view.stdout.close()
+        log_file.close()
+        print("----- view log -----\n" + (tmp / "view.log").read_text()[-5000:])
+        stop_stack(stack)
+
+
+def ring_radii(entity: dict[str, Any]) -> list[float]:
+    """The radius of each line loop of an entity, from its centre."""
+    radii = []
+    for line in entity["lines"]:
+        xs, ys = [p["x"] for p in line["points"]], [p["y"] for p in line["points"]]
+        cx, cy = sum(xs) / len(xs), sum(ys) / len(ys)
+        radii.append(round(math.hypot(xs[0] - cx, ys[0] - cy), 3))
+    return sorted(radii)
+
+
+def test_foxglove_client_gets_the_scene_frames_camera_route_and_log(viewed: Viewed) -> None:
+    robot = viewed.stack.settings.robot
+    client = Client.start(viewed.script, "watch", viewed.url, str(DEADLINE), *FOXGLOVE_TOPICS)
+    try:
+        assert client.wait_for(lambda lines: sum("channel" in line for line in lines) >= len(FOXGLOVE_TOPICS) + 3)
+        # A short drive with a route: safety approves it (a log line), the robot gets it (the route).
+        goal = NavigateToPoseGoal(pose=Pose2D(x=6.6, y=1.2), path=[Pose2D(x=6.3, y=1.2)])
+        ActionClient(viewed.stack.node, keys.CMD_NAVIGATE).send(goal)  # raises if safety refuses it
+        assert client.wait_for(lambda lines: any(line.get("done") for line in lines)), client.lines[-5:]
+    finally:
+        client.close()
+    assert {"done": "all"} in client.lines, [line for line in client.lines if "message" not in line]
+
+    channels = client.channels
+    for topic, name in FOXGLOVE_TOPICS.items():
+        channel = channels[topic]
+        assert (channel["schemaName"], channel["schemaEncoding"], channel["encoding"]) == (name, "jsonschema", "json")
+        assert json.loads(channel["schema"])["type"] == "object"
+    # tether's own messages as they are, for plots: the same topics as in a recording.
+    assert channels[keys.ODOM.key(robot)]["schemaName"] == "Odometry"
+    assert channels[keys.HEARTBEAT.key(robot)]["schemaName"] == "SafetyStatus"
+    for topic, name in FOXGLOVE_TOPICS.items():
+        arrived = client.messages(topic)
+        assert arrived, f"nothing on {topic}"
+        for message in arrived:
+            jsonschema.validate(message, viewed.official[name])  # Foxglove's own schema, not ours
+
+    scene = {e["id"]: e for e in client.messages(scene3d.SCENE_TOPIC)[0]["entities"]}
+    assert {"walls", "furniture/kitchen_counter", "keep_out/stairs", "robot/base", "room/kitchen"} <= set(scene)
+    assert len(scene["walls"]["cubes"]) >= 4 and scene["robot/base"]["frame_id"] == "base"
+    people = {e["id"]: e for e in client.messages(scene3d.PEOPLE_TOPIC)[0]["entities"]}
+    # The default policy: a person 0.2 m around, stop within 0.2 m of the body, slow within 1.5 m.
+    assert ring_radii(people["person/operator"]) == [0.4, 1.7]
+    objects = {e["id"] for e in client.messages(scene3d.OBJECTS_TOPIC)[0]["entities"]}
+    assert "object/blue_book" in objects
+    route = client.messages(scene3d.ROUTE_TOPIC)[0]["entities"][0]["lines"][0]["points"]
+    assert [(p["x"], p["y"]) for p in route] == [(6.3, 1.2), (6.6, 1.2)]
+    frames = {t["child_frame_id"]: t for t in client.messages(scene3d.TF_TOPIC)[0]["transforms"]}
+    assert frames["base"]["parent_frame_id"] == "map"
+    assert {"panda_link0", "panda_hand", "panda_leftfinger"} <= set(frames)
+    image = client.messages(scene3d.CAMERA_TOPIC)[0]
+    assert image["format"] == "png" and base64.b64decode(image["data"])[:8] == b"\x89PNG\r\n\x1a\n"
+    assert any(m["name"] == "safety" and "navigate_to_pose" in m["message"] for m in client.messages(scene3d.LOG_TOPIC))
+
+
+def test_a_hostile_client_neither_stops_the_view_nor_holds_up_safety(viewed: Viewed) -> None:
+    beats: list[float] = []
+    subscription = viewed.stack.node.subscribe(keys.HEARTBEAT, lambda s: beats.append(time.monotonic()))
+    hostile = Client.start(viewed.script, "hostile", viewed.url, "5")
+    try:
+        assert hostile.wait_for(lambda lines: any(line.get("done") for line in lines), 30.0)
+    finally:
+        hostile.close()
+        subscription.undeclare()
+    subscribed = next(line for line in hostile.lines if "subscribed" in line)
+    # The server read the garbage and said what was wrong with it, then took 50 subscriptions per channel.
+    assert len(subscribed["answers"]["statuses"]) >= 5, subscribed
+    assert subscribed["subscribed"] >= 50 * len(FOXGLOVE_TOPICS)
+    assert viewed.view.poll() is None, "tether view died"
+    # Safety's heartbeat went on while the client sent garbage and then stopped reading.
+    gaps = [b - a for a, b in itertools.pairwise(beats)]
+    assert len(beats) > 20 and max(gaps) < 1.0, f"{len(beats)} heartbeats, longest gap {max(gaps, default=0):.2f} s"
+    # And the view still serves a well-behaved viewer.
+    client = Client.start(viewed.script, "watch", viewed.url, "30", scene3d.SCENE_TOPIC, scene3d.TF_TOPIC)
+    try:
+        assert client.wait_for(lambda lines: any(line.get("done") for line in lines), 40.0)
+    finally:
+        client.close()
+    assert {"done": "all"} in client.lines
+
+
+def test_the_recording_carries_the_scene_frames_and_log_for_foxglove(viewed: Viewed) -> None:
+    stack = viewed.stack
+    robot = stack.settings.robot
+    try:
+        assert stack.supervisor.stop("recorder") == 0
+    except BaseException:
+        dump_logs(stack.supervisor, ("recorder",))
+        raise
+    [path] = sorted(stack.recordings.glob("*.mcap"))
+    odom_key = keys.ODOM.key(robot)
+    odometry: dict[int, bytes] = {}
+    derived: dict[str, list[tuple[int, dict[str, Any]]]] = {}
+    names: dict[str, tuple[str, str, str]] = {}
+    with path.open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            if channel.topic == odom_key:
+                odometry[message.log_time] = message.data
+            elif scene3d.is_derived(channel.topic):
+                names[channel.topic] = (schema.name, schema.encoding, channel.message_encoding)
+                derived.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+    assert names[scene3d.SCENE_TOPIC] == ("foxglove.SceneUpdate", "jsonschema", "json")
+    assert names[scene3d.TF_TOPIC] == ("foxglove.FrameTransforms", "jsonschema", "json")
+    assert names[scene3d.LOG_TOPIC] == ("foxglove.Log", "jsonschema", "json")
+    [(_, static)] = derived[scene3d.SCENE_TOPIC]
+    jsonschema.validate(static, viewed.official["foxglove.SceneUpdate"])
+    assert {"walls", "keep_out/stairs", "furniture/coffee_table"} <= {e["id"] for e in static["entities"]}
+    # One map -> base frame for each odometry message, at its time and where it put the base.
+    frames = derived[scene3d.TF_TOPIC]
+    assert len(frames) == len(odometry) > 10
+    for log_time, message in frames[:: max(1, len(frames) // 20)]:
+        jsonschema.validate(message, viewed.official["foxglove.FrameTransforms"])
+        [frame] = message["transforms"]
+        pose = json.loads(odometry[log_time])["pose"]
+        assert (frame["translation"]["x"], frame["translation"]["y"]) == (pose["x"], pose["y"])
+        assert math.isclose(2 * math.atan2(frame["rotation"]["z"], frame["rotation"]["w"]), pose["yaw"], abs_tol=1e-9)
+    for _, message in derived[scene3d.LOG_TOPIC]:
+        jsonschema.validate(message, viewed.official["foxglove.Log"])
+    # tether's own reader keeps them apart: replay and recheck see the traffic only.
+    recording = read_recording(path)
+    assert not any(scene3d.is_derived(m.key) for m in recording.messages)
+    assert len(recording.derived) == sum(len(v) for v in derived.values())

@@ -1,0 +1,194 @@
+"""`tether mode`, `tether approve`, `tether deny`, `tether pending`: the operator's say over what moves the robot.
+
+Setting the mode and deciding on a plan take the operator token (as `tether reset`); safety checks it,
+and in a secured deployment only the operator's identity may ask at all.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from typing import Annotated, Any, NoReturn
+
+import msgspec
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from schemas import keys
+from schemas.safety import ApprovalDecision, ApprovalReply, ControlMode, ModeRequest, PendingPlans
+from schemas.world import Empty
+from services.errors import CallError
+from services.runtime import Node, NodeSettings
+from services.safety.operator import read_token, token_path
+from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name
+
+# Exit codes of these commands.
+EXIT_OK = 0
+EXIT_REFUSED = 2  # safety said no: a wrong token, an unknown or finished goal; or bad input
+
+CALL_TIMEOUT = 3.0
+HEARTBEAT_WAIT = 2.0
+
+TokenFileOpt = Annotated[str | None, typer.Option("--token-file", help="The operator token file safety created.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object.")]
+
+console = Console(stderr=True, highlight=False)
+
+
+def _node(ctx: typer.Context) -> Node:
+    settings: NodeSettings = ctx.obj
+    return Node("cli", settings)
+
+
+def _emit(as_json: bool, data: dict[str, Any], text: str, code: int) -> NoReturn:
+    if as_json:
+        print(json.dumps(data))
+    elif code == EXIT_OK:
+        print(text)
+    else:
+        console.print(escape(text))
+    raise typer.Exit(code)
+
+
+def _token(token_file: str | None, as_json: bool) -> str:
+    try:
+        return read_token(token_path(token_file))
+    except OSError as exc:
+        _emit(
+            as_json,
+            {"ok": False, "error": f"cannot read the operator token: {exc}"},
+            f"error: cannot read the operator token: {exc}",
+            EXIT_REFUSED,
+        )
+
+
+def _unreachable(as_json: bool, exc: CallError) -> NoReturn:
+    why = f"safety unreachable: {exc}"
+    _emit(as_json, {"ok": False, "error": why}, why, EXIT_UNREACHABLE)
+
+
+def mode(
+    ctx: typer.Context,
+    new: Annotated[
+        str | None, typer.Argument(metavar="[MODE]", help="direct, shared, supervised or autonomous; none: show it.")
+    ] = None,
+    token_file: TokenFileOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Show the control mode, or set it (operator only: needs the operator token file).
+
+    direct: only a person drives (teleop), plans are refused. shared: a person drives, plans are
+    refused. supervised: a plan moves the robot only once `tether approve` let it. autonomous: plans
+    safety approves run (the default).
+
+    Exit 0 shown or set, 2 refused (wrong token, unknown mode), 3 safety unreachable.
+    """
+    if new is None:
+        with _node(ctx) as node:
+            waited = next_heartbeat(node, HEARTBEAT_WAIT)
+        beat = waited.status
+        if beat is None:
+            why = waited.why_not(HEARTBEAT_WAIT)
+            _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_UNREACHABLE)
+        _emit(as_json, {"ok": True, "mode": str(beat.mode)}, f"mode: {beat.mode}", EXIT_OK)
+    try:
+        wanted = ControlMode(new.strip().lower())
+    except ValueError:
+        known = ", ".join(m.value for m in ControlMode)
+        why = f"unknown mode {new!r}; modes are {known}"
+        _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_REFUSED)
+    token = _token(token_file, as_json)
+    with _node(ctx) as node:
+        try:
+            reply = node.call(
+                keys.SET_MODE, ModeRequest(operator=operator_name(), token=token, mode=wanted), timeout=CALL_TIMEOUT
+            )
+        except CallError as exc:
+            _unreachable(as_json, exc)
+    data = {"ok": reply.ok, "mode": str(reply.mode), "message": reply.message}
+    _emit(
+        as_json, data, reply.message if reply.ok else f"refused: {reply.message}", EXIT_OK if reply.ok else EXIT_REFUSED
+    )
+
+
+def _decide(
+    ctx: typer.Context, goal_id: str, approve: bool, reason: str, token_file: str | None, as_json: bool
+) -> NoReturn:
+    token = _token(token_file, as_json)
+    try:
+        request = ApprovalDecision(
+            operator=operator_name(), token=token, goal_id=goal_id, approve=approve, reason=reason
+        )
+        # Bounds (the goal id's shape, the reason's length) are the schema's: checked here as safety would.
+        request = msgspec.json.decode(msgspec.json.encode(request), type=ApprovalDecision)
+    except msgspec.ValidationError as exc:
+        why = f"bad request: {exc}"
+        _emit(as_json, {"ok": False, "goal_id": goal_id, "error": why}, f"error: {why}", EXIT_REFUSED)
+    with _node(ctx) as node:
+        try:
+            reply: ApprovalReply = node.call(keys.APPROVAL_DECIDE, request, timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            _unreachable(as_json, exc)
+    data: dict[str, Any] = {"ok": reply.ok, "goal_id": goal_id, "message": reply.message}
+    if reply.approval is not None:
+        data["state"] = str(reply.approval.state)
+    _emit(
+        as_json, data, reply.message if reply.ok else f"refused: {reply.message}", EXIT_OK if reply.ok else EXIT_REFUSED
+    )
+
+
+def approve(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="The goal id `tether send` or `tether pending` printed.")],
+    token_file: TokenFileOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Let a plan waiting in supervised mode move the robot (operator only: needs the operator token file).
+
+    Safety checks the plan once more from where the robot is now; one it would refuse now is denied.
+    Exit 0 approved, 2 refused (wrong token, unknown or finished goal, the check refuses it now),
+    3 safety unreachable.
+    """
+    _decide(ctx, goal_id, True, "", token_file, as_json)
+
+
+def deny(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="The goal id `tether send` or `tether pending` printed.")],
+    reason: Annotated[str, typer.Option("--reason", help="Why; the plan's result and the recording keep it.")] = "",
+    token_file: TokenFileOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Refuse a plan waiting in supervised mode: it never moves the robot (operator only: needs the token file).
+
+    Exit 0 denied, 2 refused (wrong token, unknown or finished goal), 3 safety unreachable.
+    """
+    _decide(ctx, goal_id, False, reason, token_file, as_json)
+
+
+def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
+    """List the plans waiting for an operator's approval, the oldest first, with their steps and route
+    and safety's dry run.
+
+    Exit 0 (also when none waits), 3 safety unreachable.
+    """
+    with _node(ctx) as node:
+        try:
+            waiting: PendingPlans = node.call(keys.PENDING_PLANS, Empty(), timeout=CALL_TIMEOUT)
+        except CallError as exc:
+            _unreachable(as_json, exc)
+    if as_json:
+        print(json.dumps({"ok": True, **msgspec.to_builtins(waiting)}))
+        raise typer.Exit(EXIT_OK)
+    lines = [f"mode: {waiting.mode}"]
+    if not waiting.plans:
+        lines.append("no plan waits for approval")
+    now = time.time()
+    for plan in waiting.plans:
+        lines.append(f"goal {plan.goal_id}, waiting {max(0.0, now - plan.requested):.0f} s:")
+        lines += [f"  {step}" for step in plan.steps]
+        lines.append(f"  safety's dry run: {'; '.join(plan.checks) or 'approved'}")
+    sys.stdout.write("\n".join(lines) + "\n")
+    raise typer.Exit(EXIT_OK)
