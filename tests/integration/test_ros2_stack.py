@@ -12,6 +12,7 @@ from mcap_ros2.decoder import DecoderFactory
 from schemas import keys
 from schemas.executor import ExecutePlanGoal, PlanStatus
 from schemas.world import Empty, GroundTruth
+from services.recorder import scene3d
 from services.runtime import stack_services
 from tests.integration.conftest import LOADED_MACHINE_HEARTBEAT, Stack, start_stack, stop_stack, tether_cli
 from tests.sessions import free_ports
@@ -59,6 +60,8 @@ def test_the_demo_plan_runs_over_ros2_keys_and_both_sides_are_recorded(tmp_path:
         topics: dict[str, int] = {}
         with open(status.path, "rb") as f:
             for _schema, channel, _message in make_reader(f).iter_messages():
+                if scene3d.is_derived(channel.topic):  # the 3D scene for Foxglove, not traffic
+                    continue
                 path = channel.topic.split("/", 2)[2]
                 topics[path] = topics.get(path, 0) + 1
         for action in ("navigate_to_pose", "follow_joint_trajectory", "gripper_command"):

@@ -24,6 +24,7 @@ from schemas.safety import EstopSource
 from schemas.trace import TraceRecord
 from schemas.world import Empty, GroundTruth
 from services.errors import CallError
+from services.recorder import scene3d
 from services.robotlink import Signer
 from services.runtime import SERVICES, Node
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
@@ -76,11 +77,15 @@ def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: 
     status_reply = stack.node.call(keys.RECORDER_STATUS, Empty(), timeout=3.0)
     stack.supervisor.stop("recorder")
     topics: dict[str, int] = {}
+    derived: set[str] = set()
     safety_decisions: list[dict[str, object]] = []
     with open(status_reply.path, "rb") as f:
         for schema, channel, message in make_reader(f).iter_messages():
             assert schema is not None and schema.encoding == "jsonschema"
             assert channel.message_encoding == "json"
+            if scene3d.is_derived(channel.topic):  # the 3D scene for Foxglove, drawn from the traffic
+                derived.add(channel.topic)
+                continue
             path = channel.topic.split("/", 2)[2]
             topics[path] = topics.get(path, 0) + 1
             if path == keys.SAFETY_EVENTS.path:
@@ -99,6 +104,8 @@ def test_demo_plan_moves_the_red_cup_to_the_coffee_table_and_is_recorded(stack: 
     decided = {(d["key"], d["decision"]) for d in safety_decisions}
     assert ("safety/check_plan", "approved") in decided
     assert ("cmd/gripper_command/_action/send_goal", "approved") in decided
+    # And the scene for Foxglove: opened there, the recording shows the flat, the base moving, the log.
+    assert {scene3d.SCENE_TOPIC, scene3d.TF_TOPIC, scene3d.LOG_TOPIC} <= derived, derived
 
     # Offline, under the policy kept in the file, every recorded decision comes out the same: the
     # plan check, each base route, arm trajectory and gripper goal, from the state recorded then.

@@ -6,6 +6,7 @@ import itertools
 import math
 import time
 import uuid
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import msgspec
@@ -399,8 +400,20 @@ def test_losing_the_heartbeat_halts_the_robot_within_the_timeout(robot: RunningB
         send(robot, keys.ROBOT_TRAJECTORY, swing(robot, 1.0))
 
     robot.safety.set()
-    again = send_once_ready(robot, keys.ROBOT_TRAJECTORY, swing(robot, 1.0))
-    assert result(again).state is GoalState.SUCCEEDED
+    assert succeeds_with_heartbeats(robot, lambda: send_once_ready(robot, keys.ROBOT_TRAJECTORY, swing(robot, 1.0)))
+
+
+def succeeds_with_heartbeats(robot: RunningBackend, start: Callable[[], ClientGoal[Any, Any, Any]]) -> bool:
+    """Whether the goal `start` sends succeeds now that the heartbeat flows again. The stand-in
+    safety's beats come from this test process: on a loaded machine one may come late and the
+    robot (rightly) aborts; such a goal is sent again, at most twice more."""
+    for _ in range(3):
+        done = result(start())
+        if done.state is GoalState.SUCCEEDED:
+            return True
+        assert "heartbeat" in done.message, done
+        robot.safety.beats(2)
+    return False
 
 
 def test_cmd_vel_drives_the_base_and_holds_only_until_its_timeout(robot: RunningBackend) -> None:
