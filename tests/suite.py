@@ -7,9 +7,10 @@ First, two pytest runs at once:
   shared stack stays on one worker; tests/conftest.py puts the longest first), at low priority
   (nice 15), its output on the terminal.
 Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
-namespaces with a router and link proxies, and the ROS 2 stand-in's, whose dead-man signal comes
-from the test process at 20 Hz) alone on the machine: with the others' load beside them, their
-robots' heartbeats or signals came late now and then.
+namespaces with a router and link proxies, the ROS 2 stand-in's, whose dead-man signal comes from
+the test process at 20 Hz, and the robot contract's, whose safety heartbeat the test process plays)
+alone on the machine: with the others' load beside them, their robots' heartbeats or signals came
+late now and then.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
