@@ -16,6 +16,24 @@ from services.safety.operator import token_matches
 log = logging.getLogger(__name__)
 
 
+def write_durably(path: Path, data: bytes) -> None:
+    """Replace `path` with `data` so that a crash or power cut leaves the old file or the new one:
+    written to a temporary file and synced, renamed over it, the directory synced (the rename itself
+    is durable only once the directory is)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as out:
+        out.write(data)
+        out.flush()
+        os.fsync(out.fileno())
+    os.replace(tmp, path)
+    directory = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
 class EstopLatch:
     """With a `state_file`, a latched e-stop is written down as soon as the robot has been told, and
     read back at start: restarting safety (by hand, systemd or `tether up`) does not clear it."""
@@ -50,20 +68,7 @@ class EstopLatch:
         if self._file is None:
             return
         with self._file_lock:
-            state = self.state
-            self._file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self._file.with_suffix(".tmp")
-            with tmp.open("wb") as out:
-                out.write(msgspec.json.encode(state))
-                out.flush()
-                os.fsync(out.fileno())
-            os.replace(tmp, self._file)
-            # The rename itself is durable only once the directory is: a power cut now keeps the latch.
-            directory = os.open(self._file.parent, os.O_RDONLY | os.O_DIRECTORY)
-            try:
-                os.fsync(directory)
-            finally:
-                os.close(directory)
+            write_durably(self._file, msgspec.json.encode(self.state))
 
     @property
     def state(self) -> EstopState:

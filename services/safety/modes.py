@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -12,6 +11,7 @@ import msgspec
 
 from schemas.plan import GroundedPlan, fallback_labels, step_labels
 from schemas.safety import MAX_PLAN_LINES, ApprovalState, ControlMode, ModeState, PlanApproval
+from services.safety.latch import write_durably
 
 log = logging.getLogger(__name__)
 
@@ -70,18 +70,7 @@ class ModeFile:
             return
         with self._lock:
             data = msgspec.json.encode(self._state)
-        self._file.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self._file.with_suffix(".tmp")
-        with tmp.open("wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, self._file)
-        directory = os.open(self._file.parent, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            os.fsync(directory)
-        finally:
-            os.close(directory)
+        write_durably(self._file, data)
 
 
 def plan_lines(plan: GroundedPlan) -> list[str]:
