@@ -30,6 +30,12 @@ default) renders in a process of the sim's own (services/sim/README.md, The came
 used to hold the sim's GIL ~20 ms a frame, most of both tails. `--objects-hz 0.2` shows the path
 without it.
 
+With `--incidents N` safety starts with a memory of N incidents (services/safety/incidents.py),
+spread at random over the flat's rooms, so caution zones and the plan check's warnings have a lot
+to go through; the goals and the plan checks (`plan_check_*`: a `safety/check_plan` query of a
+one-step plan to where the robot stands, interleaved with the relay too) are then measured against
+that store. Compare with a run without it for what the memory costs.
+
 `ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
 reason in `errors`), `failed` goals accepted whose result was not `succeeded`.
 """
@@ -38,10 +44,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import random
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from bench.service import (
@@ -62,7 +71,10 @@ from bench.service import (
 from bench.transport import raw_echo, timed_pair
 from schemas import keys
 from schemas.actions import GetResult, GoalResponse, GoalState, SendGoal
+from schemas.common import Pose2D
+from schemas.incidents import Incident, IncidentKind
 from schemas.keys import ActionKeys
+from schemas.plan import Action, GroundedPlan, NavigateStep, Plan, PlanApproved, Step
 from schemas.robot import (
     ARM_JOINTS,
     GRIPPER_MAX_GAP,
@@ -185,6 +197,58 @@ def measure(stack: Stack, state: RobotMotion, n: int, warmup: int, max_seconds: 
     return samples
 
 
+def seed_incidents(path: Path, count: int, seed: int = 19) -> None:
+    """`count` incidents at random points of the household flat's rooms, one kind after another."""
+    from services.safety.incidents import seed as write
+    from services.worldmodel import load_world
+
+    world = load_world("household")
+    boxes = [
+        (min(xs), min(ys), max(xs), max(ys)) for room in world.rooms for xs, ys in [zip(*room.polygon, strict=True)]
+    ]
+    rng = random.Random(seed)
+    kinds = list(IncidentKind)
+
+    def one(i: int) -> Incident:
+        x0, y0, x1, y1 = boxes[i % len(boxes)]
+        x, y = rng.uniform(x0, x1), rng.uniform(y0, y1)
+        return Incident(id=i, stamp=1e9 + i, kind=kinds[i % len(kinds)], reason="bench", x=x, y=y)
+
+    write(path, (one(i) for i in range(1, count + 1)))
+
+
+def plan_checks(stack: Stack, state: RobotMotion, n: int) -> tuple[list[float], list[float], int]:
+    """(relay ms, check ms, warnings in the last reply) for `n` checks of a plan to where the robot stands."""
+    node = stack.node
+    odom = state.odom.message
+    assert odom is not None
+    here = Pose2D(x=odom.pose.x, y=odom.pose.y, yaw=odom.pose.yaw)
+    source = Plan(steps=[Step(action=Action.NAVIGATE_TO, target="here")])
+    grounded = GroundedPlan(steps=[NavigateStep(target="here", goal=here)], source=source)
+    payload = runtime.encode(grounded)
+    relay_ms: list[float] = []
+    check_ms: list[float] = []
+    warnings = 0
+    replies: list[Any] = []
+
+    def check() -> None:
+        replies.append(node.call(keys.PLAN_CHECK, grounded, timeout=CALL_TIMEOUT))
+
+    for i in range(n):
+        replies.clear()
+        relay = raw_echo(node, keys.bench_relay_key(node.robot), payload)
+        try:
+            r, c = timed_pair(i, relay, check)
+        except CallError as exc:
+            raise BenchError(f"{keys.PLAN_CHECK.path}: {exc.error.message}") from None
+        if not isinstance(replies[0], PlanApproved):
+            raise BenchError(f"the plan check refused a plan to where the robot stands: {replies[0]}")
+        warnings = len(replies[0].warnings)
+        relay_ms.append(r)
+        check_ms.append(c)
+    return relay_ms, check_ms, warnings
+
+
 def summarize(samples: Samples) -> dict[str, Any]:
     everything = [[ms for k in KINDS for ms in samples.times[k.name][j]] for j in (0, 1)]
     if not everything[1]:
@@ -211,11 +275,26 @@ def summarize(samples: Samples) -> dict[str, Any]:
 def bench(args: argparse.Namespace) -> dict[str, Any]:
     n, warmup, max_seconds = args.n, args.warmup, args.max_seconds
     sim = {"realtime_factor": args.realtime_factor, "objects_hz": args.objects_hz}
-    with robot_ready("gate", progress, sim, arm=True) as (stack, state, _):
-        progress(f"measuring {n} goals of each kind against the relay (+{warmup} warm-up, <= {max_seconds:g} s)")
-        samples = measure(stack, state, n, warmup, max_seconds, args.goals_per_second)
+    with tempfile.TemporaryDirectory(prefix="bench-gate-incidents-") as tmp:
+        safety: dict[str, Any] = {}
+        if args.incidents:
+            store = Path(tmp) / "incidents.sqlite"
+            progress(f"writing {args.incidents} incidents into safety's store {store}")
+            seed_incidents(store, args.incidents)
+            safety["incident_store"] = str(store)
+        with robot_ready("gate", progress, sim, arm=True, safety=safety) as (stack, state, _):
+            progress(f"measuring {n} goals of each kind against the relay (+{warmup} warm-up, <= {max_seconds:g} s)")
+            samples = measure(stack, state, n, warmup, max_seconds, args.goals_per_second)
+            progress(f"measuring {n} plan checks against the relay")
+            relay, checks, warnings = plan_checks(stack, state, n + warmup)
+    c50, c99 = ms_summary(checks[warmup:])
     return {
         **summarize(samples),
+        "plan_check_p50_ms": c50,
+        "plan_check_p99_ms": c99,
+        "plan_check_relay_p50_ms": ms_summary(relay[warmup:])[0],
+        "plan_check_warnings": warnings,
+        "incidents": args.incidents,
         "rejected": samples.rejected,
         "failed": samples.failed,
         "errors": samples.errors,
@@ -232,6 +311,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "samples": 0,
         "kinds": {},
         **GOALS,
+        "plan_check_p50_ms": None,
+        "plan_check_p99_ms": None,
+        "plan_check_relay_p50_ms": None,
+        "plan_check_warnings": 0,
+        "incidents": args.incidents,
         "rejected": 0,
         "failed": 0,
         "warmup": args.warmup,
@@ -287,6 +371,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the sim's speed (faster than real time: results come sooner, but physics takes the CPU)",
     )
 
+    parser.add_argument(
+        "--incidents",
+        type=bounded(int, 0, 1_000_000),
+        default=0,
+        help="start safety with a memory of this many incidents (0: none)",
+    )
     parser.add_argument(
         "--objects-hz",
         type=bounded(float, 0.0, 100.0, open_low=True),

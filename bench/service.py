@@ -181,19 +181,29 @@ def standin_tables(endpoint: str, ros2: dict[str, Any] | None = None) -> dict[st
 
 @contextlib.contextmanager
 def running_robot(
-    bench: str, progress: Progress, sim: dict[str, Any], *, backend: str = "sim", ros2: dict[str, Any] | None = None
+    bench: str,
+    progress: Progress,
+    sim: dict[str, Any],
+    *,
+    backend: str = "sim",
+    ros2: dict[str, Any] | None = None,
+    safety: dict[str, Any] | None = None,
 ) -> Iterator[Stack]:
     """The robot of `backend` (a BACKENDS key) and safety, with the bench echo in each and safety's
     bare relay to the robot's backend: the sim (`[sim]` table `sim`), or the ros2 backend (`[ros2]`
     with `ros2`) and the stand-in robot (the same `[sim]`). The operator token, e-stop state file,
-    config and logs in a temporary directory."""
+    config and logs in a temporary directory; `safety`: more of safety's table."""
     settings = bench_settings(bench)
     robot = ROBOT_BACKENDS[BACKENDS[backend]]
     with tempfile.TemporaryDirectory(prefix=f"bench-{bench}-") as tmp:
         token = Path(tmp) / "operator-token"
         config = {
             "sim": sim,
-            "safety": {"operator_token_file": str(token), "estop_state_file": str(Path(tmp) / "estop-state.json")},
+            "safety": {
+                "operator_token_file": str(token),
+                "estop_state_file": str(Path(tmp) / "estop-state.json"),
+                **(safety or {}),
+            },
         }
         if "ros2" in robot:
             config |= standin_tables(robot_endpoint(settings), ros2)
@@ -409,9 +419,10 @@ def robot_ready(
     arm: bool,
     backend: str = "sim",
     ros2: dict[str, Any] | None = None,
+    safety: dict[str, Any] | None = None,
 ) -> Iterator[tuple[Stack, RobotMotion, Heartbeats]]:
     """`running_robot`, once the robot reports its state and safety beats with the e-stop clear."""
-    with running_robot(bench, progress, sim, backend=backend, ros2=ros2) as stack:
+    with running_robot(bench, progress, sim, backend=backend, ros2=ros2, safety=safety) as stack:
         state = RobotMotion(stack.node, arm=arm)
         beats = Heartbeats(stack.node)
         state.wait_ready(10.0)

@@ -103,7 +103,8 @@ class StepResult(Frozen):
 
 class ExecutePlanResult(Frozen):
     """`warnings` are the parser's and the resolver's: what they read differently from how it was
-    written (a near-miss name, ignored parameters, coordinates overruled by a named entity)."""
+    written (a near-miss name, ignored parameters, coordinates overruled by a named entity); and
+    safety's: earlier incidents near where the plan goes, caution zones it enters."""
 
     status: PlanStatus
     stage: Stage

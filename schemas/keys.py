@@ -21,8 +21,9 @@ from schemas.actions import (
     SendGoal,
 )
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult
+from schemas.incidents import ForgetIncident, ForgetReply, Incident, IncidentList, IncidentQuery, IncidentReport
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
-from schemas.planner import AskReply, AskRequest, PlannerAttempt
+from schemas.planner import AskReply, AskRequest, PlannerAttempt, Recovery
 from schemas.robot import (
     FollowJointTrajectoryFeedback,
     FollowJointTrajectoryGoal,
@@ -56,7 +57,9 @@ from schemas.trace import RecorderStatus, TraceRecord
 from schemas.world import (
     CameraImage,
     Empty,
+    FaultReply,
     GroundTruth,
+    InjectFault,
     MoveEntity,
     MoveReply,
     PerceivedHumans,
@@ -164,6 +167,8 @@ EXECUTE_PLAN = ActionKeys("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, 
 PLAN_ASK: Service[AskRequest, AskReply] = Service("plan/ask", AskRequest, AskReply)
 # Each model call and the dry run of its plan.
 PLANNER_ATTEMPTS = Topic("planner/attempts", PlannerAttempt)
+# Each recovery the planner asked the model for after a plan failed at execution, and its outcome.
+PLANNER_RECOVERIES = Topic("planner/recoveries", Recovery)
 
 # Commands to safety: the only doors towards the robot.
 PLAN_CHECK: Service[GroundedPlan, PlanCheckReply] = Service("safety/check_plan", GroundedPlan, PlanCheckReply)
@@ -193,6 +198,15 @@ APPROVAL_DECIDE: Service[ApprovalDecision, ApprovalReply] = Service(
     "safety/approval/decide", ApprovalDecision, ApprovalReply, redact=("token",)
 )
 PENDING_PLANS: Service[Empty, PendingPlans] = Service("safety/approval/pending", Empty, PendingPlans)
+# Safety's memory of incidents (written by safety alone): list them with the caution zones in force;
+# an operator forgets one or clears a zone (with the token); the executor and the sim report what only
+# they see; each new incident is published as safety records it.
+INCIDENTS: Service[IncidentQuery, IncidentList] = Service("safety/incidents", IncidentQuery, IncidentList)
+FORGET_INCIDENT: Service[ForgetIncident, ForgetReply] = Service(
+    "safety/incidents/forget", ForgetIncident, ForgetReply, redact=("token",)
+)
+INCIDENT_REPORT = Topic("safety/incidents/report", IncidentReport)
+NEW_INCIDENT = Topic("safety/incidents/new", Incident)
 
 # The robot interface: only safety writes the command keys here.
 ROBOT_NAVIGATE = ActionKeys("robot/navigate_to_pose", NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult)
@@ -221,6 +235,8 @@ SCENE: Service[Empty, SceneDescription] = Service("world/scene", Empty, SceneDes
 GROUND_TRUTH: Service[Empty, GroundTruth] = Service("sim/ground_truth", Empty, GroundTruth)
 # Moves an object or a person in the simulated world (the world changing, not the robot acting).
 SIM_MOVE: Service[MoveEntity, MoveReply] = Service("sim/move", MoveEntity, MoveReply)
+# Injects a fault in the simulated world (an object slipping, a doorway blocked, an object hidden).
+SIM_FAULT: Service[InjectFault, FaultReply] = Service("sim/fault", InjectFault, FaultReply)
 RECORDER_STATUS: Service[Empty, RecorderStatus] = Service("recorder/status", Empty, RecorderStatus)
 
 ACTIONS: tuple[ActionKeys[Any, Any, Any], ...] = (
@@ -244,6 +260,9 @@ TOPICS: tuple[Topic[Any], ...] = (
     OBJECTS,
     HUMANS,
     PLANNER_ATTEMPTS,
+    PLANNER_RECOVERIES,
+    INCIDENT_REPORT,
+    NEW_INCIDENT,
     *(a.feedback for a in ACTIONS),
     *(a.status for a in ACTIONS),
 )
@@ -256,9 +275,12 @@ SERVICES: tuple[Service[Any, Any], ...] = (
     APPROVAL_REQUEST,
     APPROVAL_DECIDE,
     PENDING_PLANS,
+    INCIDENTS,
+    FORGET_INCIDENT,
     SCENE,
     GROUND_TRUTH,
     SIM_MOVE,
+    SIM_FAULT,
     RECORDER_STATUS,
     CAMERA_IMAGE,
     ROBOT_DIAGNOSTICS,

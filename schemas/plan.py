@@ -337,7 +337,11 @@ ResolveReply = GroundedPlan | ServiceError
 
 
 class PlanApproved(Frozen, tag="approved"):
+    """`checks`: what safety checked. `warnings`: what it remembers of the places the plan goes and the
+    objects it handles (earlier incidents, caution zones): never a refusal, only something to know."""
+
     checks: list[Text] = []
+    warnings: list[Text] = []
 
 
 PlanCheckReply = PlanApproved | ServiceError

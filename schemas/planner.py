@@ -15,6 +15,8 @@ MAX_REQUEST_CHARS = 2000
 MAX_ATTEMPTS = 10
 # A model's reply and the plan text are kept up to this many characters in attempt records.
 MAX_RECORDED_CHARS = 8000
+# The most recovery plans one request may ask the model for after its plan failed at execution.
+MAX_RECOVERIES = 5
 
 RecordedText = Annotated[str, Meta(max_length=MAX_RECORDED_CHARS)]
 RequestId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
@@ -32,6 +34,10 @@ class AskStatus(enum.StrEnum):
     LLM_ERROR = "llm_error"
     UNCONFIGURED = "unconfigured"
     UNREACHABLE = "unreachable"
+    # Only when the request waited for the plan's end (`wait`): the plan, or a recovery plan, succeeded;
+    # or it failed and no recovery (or none allowed) made it succeed.
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
 
 
 class AttemptOutcome(enum.StrEnum):
@@ -50,6 +56,46 @@ class AskRequest(Frozen):
     max_attempts: Annotated[int, Meta(ge=0, le=MAX_ATTEMPTS)] = 0
     preempt: bool = False
     deadline: Annotated[float, Meta(ge=0.0)] = 0.0
+    # A plan given as is (`tether send --recover`): dry-run and sent without asking the model; the
+    # model is asked only for recoveries. `text` then says what the plan is for.
+    plan: RecordedText = ""
+    # Recovery plans the model may be asked for when the sent plan fails at execution (None: the
+    # planner's `max_recoveries`; 0: none). Each is dry-run and checked like any plan.
+    max_recoveries: Annotated[int, Meta(ge=0, le=MAX_RECOVERIES)] | None = None
+    # Answer only once the plan (and any recovery) has ended, with SUCCEEDED or FAILED.
+    wait: bool = False
+
+
+class RecoveryOutcome(enum.StrEnum):
+    """sent: the recovery plan passed its dry run and was sent; succeeded, failed: how it ended (when
+    followed); rejected: no plan the model gave passed; llm_error; stopped: not attempted, because the
+    failure was an e-stop or a veto (not something to work around), or the bound was reached."""
+
+    SENT = "sent"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    REJECTED = "rejected"
+    LLM_ERROR = "llm_error"
+    STOPPED = "stopped"
+
+
+class Recovery(Frozen):
+    """One recovery: the failure that asked for it and what became of it. Published on
+    planner/recoveries for the recorder and listed in AskReply.recoveries. `number` counts from 1
+    within the request; `failed_goal` is the goal that failed, `goal_id` the recovery plan's goal."""
+
+    request_id: RequestId
+    number: Annotated[int, Meta(ge=1, le=MAX_RECOVERIES + 1)]
+    stamp: float
+    outcome: RecoveryOutcome
+    failed_goal: Annotated[str, Meta(max_length=64)] = ""
+    failure: Annotated[str, Meta(max_length=32)] = ""
+    step: Annotated[int, Meta(ge=0)] | None = None
+    failure_reason: Text = ""
+    reason: Text = ""
+    attempts: Annotated[int, Meta(ge=0, le=MAX_ATTEMPTS)] = 0
+    plan: RecordedText = ""
+    goal_id: Annotated[str, Meta(max_length=64)] = ""
 
 
 class AskReply(Frozen):
@@ -63,6 +109,9 @@ class AskReply(Frozen):
     reason: Text = ""
     plan: RecordedText = ""
     goal_id: Annotated[str, Meta(max_length=64)] = ""
+    # The recoveries asked for after the plan failed at execution, in order (when the request waited,
+    # or as far as they got before the reply).
+    recoveries: Annotated[list[Recovery], Meta(max_length=MAX_RECOVERIES + 1)] = []
 
 
 class PlannerAttempt(Frozen):
@@ -82,3 +131,5 @@ class PlannerAttempt(Frozen):
     reply: RecordedText = ""
     plan: RecordedText = ""
     duration: Annotated[float, Meta(ge=0.0)] = 0.0
+    # 0: an attempt at the request's plan; N: an attempt at the Nth recovery plan.
+    recovery: Annotated[int, Meta(ge=0, le=MAX_RECOVERIES + 1)] = 0

@@ -178,6 +178,9 @@ class Decision(enum.StrEnum):
     # A plan waits for an operator (supervised mode); an operator denied one.
     AWAITING_APPROVAL = "awaiting_approval"
     DENIED = "denied"
+    # An operator forgot an incident, or cleared the caution zone it counted towards (safety's memory).
+    FORGOTTEN = "forgotten"
+    CLEARED = "cleared"
 
 
 class Rule(enum.StrEnum):
@@ -209,6 +212,7 @@ class Rule(enum.StrEnum):
     MONITOR_JOINT_SPEED = "monitor_joint_speed"
     MONITOR_KEEP_OUT = "monitor_keep_out"  # the measured pose out of keep-out zones
     WATCHDOG = "watchdog"  # the robot's state keeps arriving while it moves
+    CAUTION_ZONE = "caution_zone"  # slower where incidents repeated (safety's memory), until an operator clears it
 
 
 class SafetyEvent(Frozen):

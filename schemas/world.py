@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 from typing import Annotated, Literal
 
 import msgspec
@@ -233,3 +234,33 @@ class Moved(Frozen, tag="moved"):
 
 
 MoveReply = Moved | ServiceError
+
+
+class FaultKind(enum.StrEnum):
+    """Faults the sim can be told to inject (tests and demos of recovery)."""
+
+    SLIP = "slip"  # the object held now (or the next one picked) slips out of the gripper during its next carry
+    BLOCK = "block"  # a temporary obstacle in a room or a doorway (`target`: a room or door id)
+    HIDE = "hide"  # an object moved out of the camera's sight (`target`: an object id)
+    CLEAR = "clear"  # every pending fault and temporary obstacle removed
+
+
+class InjectFault(Frozen):
+    """A fault in the SIMULATED world, recorded like sim/move. `target` as FaultKind says ("" for slip
+    and clear; a slip may name the object whose carry it waits for)."""
+
+    kind: FaultKind
+    target: Annotated[str, Meta(max_length=64, pattern=r"^[A-Za-z0-9_.:-]*$")] = ""
+
+
+class FaultInjected(Frozen, tag="injected"):
+    """`message`: what the sim did ("the next carry drops what the gripper holds", "a box blocks the
+    kitchen door at (2.10, 3.00)"); `position`: where, when the fault has one."""
+
+    kind: FaultKind
+    target: str = ""
+    message: Text = ""
+    position: Vec3 | None = None
+
+
+FaultReply = FaultInjected | ServiceError

@@ -14,13 +14,15 @@ from typing import Any
 
 from schemas import keys
 from schemas.actions import CancelGoal, GetResult
-from schemas.common import Stage
+from schemas.common import Pose2D, Stage
 from schemas.executor import ExecutePlanGoal
+from schemas.incidents import IncidentList
 from schemas.planner import AskReply, AskRequest
 from schemas.safety import EstopSource
 from schemas.world import CameraImage, Empty
 from services.agent import feedback
 from services.errors import CallError, GoalRejected
+from services.planner.prompt import hazards_block, hazards_query
 from services.runtime import Node
 from tether.client import PlanSender, next_message, trigger_estop
 
@@ -28,6 +30,8 @@ from tether.client import PlanSender, next_message, trigger_estop
 # the goal id (the plan goes on after that; a model polls get_goal_status).
 START_WAIT = 10.0
 CALL_TIMEOUT = 5.0
+# describe_scene asks safety for the known hazards near the robot this long at most (the scene comes anyway).
+HAZARDS_TIMEOUT = 1.0
 # plan_and_execute asks the model up to a few times, each answer dry-run through the pipeline; it
 # answers within this (below the 60 s MCP clients commonly wait), or gives up having sent nothing.
 ASK_TIMEOUT = 50.0
@@ -137,7 +141,19 @@ class AgentAPI:
         return feedback.data_json("robot state", state)
 
     def scene(self) -> str:
-        return feedback.as_data("world model", self._scene().text)
+        """The world model's scene, then the known hazards near the robot (safety's memory of incidents),
+        each marked as data; a safety that does not answer is one line, the scene still comes."""
+        scene = self._scene()
+        return feedback.as_data("world model", scene.text) + "\n\n" + hazards_block(self._hazards(scene.robot))
+
+    def _hazards(self, robot: Pose2D | None) -> IncidentList | None:
+        """Incidents and caution zones near the robot, as the planner asks for them (prompt.hazards_query);
+        None when safety did not answer."""
+        try:
+            found: IncidentList = self.node.call(keys.INCIDENTS, hazards_query(robot), timeout=HAZARDS_TIMEOUT)
+        except CallError:
+            return None
+        return found
 
     def objects(self) -> str:
         scene = self._scene()

@@ -4,12 +4,17 @@ Where the model is called: with an endpoint configured here (TETHER_LLM_URL, or 
 --config), in this process, so the key stays in this shell's environment; else by the planner
 service (`plan/ask`) when it is running; else it says how to configure an endpoint. Either way each
 attempt is published on planner/attempts, so the recorder keeps it.
+
+A sent plan that fails at a step is recovered (the model asked for a new plan from the world as it is
+now, `--max-recoveries`). The service does that behind its reply; in this process nobody would once
+it exits, so with an endpoint here and recoveries allowed `tether ask` waits for the plan's end.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -18,9 +23,9 @@ import typer
 from rich.console import Console
 
 from schemas import keys
-from schemas.planner import MAX_ATTEMPTS, MAX_REQUEST_CHARS, AskReply, AskRequest, AskStatus
+from schemas.planner import MAX_ATTEMPTS, MAX_RECOVERIES, MAX_REQUEST_CHARS, AskReply, AskRequest, AskStatus
 from services.errors import CallError
-from services.planner.config import HOW_TO_CONFIGURE, PlannerConfig, resolve_endpoint
+from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
@@ -28,6 +33,8 @@ from tether.output import literal
 
 console = Console(stderr=True)
 
+# `tether ask`'s own: 1 is the LLM endpoint failing, so a plan that failed is 4. (`tether send --recover`
+# keeps send's codes instead: tether/sendrecover.py.)
 EXIT_CODES = {
     AskStatus.APPROVED: 0,
     AskStatus.ACCEPTED: 0,
@@ -35,7 +42,21 @@ EXIT_CODES = {
     AskStatus.REJECTED: 2,
     AskStatus.UNCONFIGURED: 2,
     AskStatus.UNREACHABLE: 3,
+    AskStatus.SUCCEEDED: 0,
+    AskStatus.FAILED: 4,
 }
+# The planner service answered with an error of its own (not an AskReply): `tether ask` exits this.
+EXIT_PLANNER_ERROR = 1
+GREEN = (AskStatus.APPROVED, AskStatus.ACCEPTED, AskStatus.SUCCEEDED)
+
+
+class PlannerFailed(Exception):
+    """The planner service did not answer `plan/ask` with a reply: `unreachable` when it was not there."""
+
+    def __init__(self, reason: str, unreachable: bool) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.unreachable = unreachable
 
 
 def show(reply: AskReply, as_json: bool) -> None:
@@ -49,7 +70,12 @@ def show(reply: AskReply, as_json: bool) -> None:
     if reply.plan:
         console.print(f"plan after {reply.attempts} attempt(s):", highlight=False)
         console.print(reply.plan, markup=False, highlight=False)
-    colour = "green" if reply.status in (AskStatus.APPROVED, AskStatus.ACCEPTED) else "red"
+    for recovery in reply.recoveries:
+        step = f" step {recovery.step + 1}" if recovery.step is not None else ""
+        failed = f"after{step} failed ({recovery.failure or 'unknown'})"
+        said = f"recovery {recovery.number} {failed}: {recovery.outcome}: {recovery.reason}"
+        console.print(said, markup=False, highlight=False)
+    colour = "green" if reply.status in GREEN else "red"
     where = f" at stage {reply.stage}" if reply.stage is not None and colour == "red" else ""
     console.print(f"[{colour}]{reply.status}[/]{where}: ", end="")
     console.print(reply.reason, markup=False, highlight=False)
@@ -70,13 +96,34 @@ def ask(
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help=literal("TOML file with a [planner] table."))] = None,
     preempt: Annotated[bool, typer.Option("--preempt", help="Cancel a plan already running for this one.")] = False,
-    timeout: Annotated[float, typer.Option(help="Seconds to wait for the planner service.")] = 900.0,
+    timeout: Annotated[
+        float, typer.Option(help="Seconds to wait for the outcome; no model call starts and no plan is sent after.")
+    ] = 900.0,
+    wait: Annotated[
+        bool, typer.Option("--wait", help="Wait until the plan and any recovery have ended (succeeded or failed).")
+    ] = False,
+    max_recoveries: Annotated[
+        int | None,
+        typer.Option(
+            "--max-recoveries",
+            min=0,
+            max=MAX_RECOVERIES,
+            help=literal("Recovery plans at most when a step fails (default: [planner], 2; 0: none)."),
+        ),
+    ] = None,
 ) -> None:
     """Ask an LLM for a plan, dry-run it (parse, resolve, safety), feed refusals back, then send it.
 
-    The endpoint: TETHER_LLM_URL, TETHER_LLM_MODEL, TETHER_LLM_API_KEY, or the config's planner table
-    (url, model, api_key_env). Exit 0 approved or sent, 1 the LLM endpoint failed, 2 rejected or no
-    endpoint configured, 3 no services reachable.
+    When the sent plan fails at a step (an object dropped, not where expected, a route blocked), the
+    model is asked for a recovery plan, checked the same way, up to --max-recoveries times; never
+    after an e-stop, a veto or a cancel. With --wait the outcome is the plan's end; with an endpoint
+    in this process (TETHER_LLM_URL) and recoveries allowed it always waits, since nothing would
+    recover the plan once this command exits. The endpoint: TETHER_LLM_URL, TETHER_LLM_MODEL,
+    TETHER_LLM_API_KEY, or the config's planner table (url, model, api_key_env). --timeout bounds it
+    all: nothing is asked of the model or sent after it. Exit 0 approved, sent or succeeded, 1 the LLM
+    endpoint (or the planner service) failed, 2 rejected or no endpoint configured, 3 no services
+    reachable, 4 the plan failed (after any recoveries; `tether send --recover` exits 1 for that, as
+    `tether send` does).
     """
     settings: NodeSettings = ctx.obj
     text = sys.stdin.read() if request == "-" else request
@@ -89,21 +136,46 @@ def ask(
     except (ConfigError, NotConfigured) as exc:
         console.print(f"[red]error:[/] {literal(exc)}", highlight=False)
         raise typer.Exit(2) from None
-    ask_request = AskRequest(text=text, dry_run=dry_run, max_attempts=max_attempts or 0, preempt=preempt)
-    with Node("cli", settings) as node:
-        if endpoint is not None:
-            planner = Planner(node, planner_config, endpoint)
-            try:
-                reply = planner.ask(ask_request)
-            finally:
-                planner.close()
-        elif "planner" in node.alive_services(timeout=2.0):
-            try:
-                reply = node.call(keys.PLAN_ASK, ask_request, timeout=timeout)
-            except CallError as exc:
-                console.print(f"[red]planner failed[/]: {literal(exc.error.message)}", highlight=False)
-                raise typer.Exit(3 if exc.error.kind == "unavailable" else 1) from None
+    recoveries = planner_config.max_recoveries if max_recoveries is None else max_recoveries
+    in_process = endpoint is not None
+    ask_request = AskRequest(
+        text=text,
+        dry_run=dry_run,
+        max_attempts=max_attempts or 0,
+        preempt=preempt,
+        max_recoveries=recoveries if in_process else max_recoveries,
+        wait=wait or (in_process and recoveries > 0 and not dry_run),
+        # A caller that stops waiting has no plan, nor recovery, sent behind its back.
+        deadline=time.time() + timeout,
+    )
+    try:
+        reply = ask_planner(settings, ask_request, planner_config, endpoint, timeout)
+    except PlannerFailed as exc:
+        code = 3 if exc.unreachable else EXIT_PLANNER_ERROR
+        if as_json:
+            print(json.dumps({"status": "unreachable" if exc.unreachable else "error", "reason": exc.reason}))
         else:
-            reply = AskReply(status=AskStatus.UNCONFIGURED, request_id="none", reason=HOW_TO_CONFIGURE)
+            console.print(f"[red]planner failed[/]: {literal(exc.reason)}", highlight=False)
+        raise typer.Exit(code) from None
     show(reply, as_json)
     raise typer.Exit(EXIT_CODES[reply.status])
+
+
+def ask_planner(
+    settings: NodeSettings, request: AskRequest, config: PlannerConfig, endpoint: Endpoint | None, timeout: float
+) -> AskReply:
+    """The planner's reply: in this process with an endpoint of its own, else from the planner service,
+    else UNCONFIGURED. PlannerFailed when the service answered with an error instead."""
+    with Node("cli", settings) as node:
+        if endpoint is not None:
+            planner = Planner(node, config, endpoint)
+            try:
+                return planner.ask(request)
+            finally:
+                planner.close()
+        if "planner" in node.alive_services(timeout=2.0):
+            try:
+                return node.call(keys.PLAN_ASK, request, timeout=timeout)
+            except CallError as exc:
+                raise PlannerFailed(exc.error.message, exc.error.kind == "unavailable") from None
+    return AskReply(status=AskStatus.UNCONFIGURED, request_id="none", reason=HOW_TO_CONFIGURE)

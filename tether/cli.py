@@ -79,6 +79,10 @@ def load_command(name: str, target: str) -> Command:
     """The command `name` made from the function `target` ("module:function"), importing its module now."""
     module, _, function = target.partition(":")
     callback = getattr(importlib.import_module(module), function)
+    if isinstance(callback, typer.Typer):  # a group of its own (`tether incidents show|forget|clear`)
+        group = typer.main.get_command(callback)
+        group.name = name
+        return group
     one = typer.Typer(add_completion=False)
     one.command(name)(callback)
     return typer.main.get_command(one)
@@ -437,13 +441,32 @@ def send(
     preempt: Annotated[
         bool, typer.Option("--preempt", help="Cancel a plan already running (the robot stops first) and run this one.")
     ] = False,
+    recover: Annotated[
+        bool,
+        typer.Option(
+            "--recover",
+            help="Through the planner: when a step fails, an LLM writes a recovery plan, checked like any "
+            "(needs the planner service, or an endpoint here: TETHER_LLM_URL or --config). Same exit codes and "
+            "--json object, plus request_id, final_goal_id and recoveries.",
+        ),
+    ] = False,
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config", help=literal("With --recover: TOML file with a [planner] table (url, max_recoveries).")
+        ),
+    ] = None,
 ) -> None:
     """Send a plan to the executor. Exit 0 succeeded, 1 failed or canceled, 2 rejected, 3 unreachable.
 
     Without --wait, returns once the plan is parsed, resolved, approved and moving (status 'accepted'),
     or, in supervised mode, waits for an operator (status 'awaiting_approval' with the goal id and
     safety's dry run; exit 0; `tether approve GOAL_ID` lets it move).
-    While another plan runs this one is rejected, unless --preempt.
+    While another plan runs this one is rejected, unless --preempt. Never replanned, unless --recover:
+    then the planner dry-runs and sends it, and asks an LLM for a recovery plan when a step fails
+    (up to the planner's max_recoveries). The exit codes stay send's: 1 is the plan failed after any
+    recoveries (`tether ask` exits 4 for that, its 1 being an LLM endpoint failure); goal_id is the
+    goal first sent, final_goal_id the last recovery's.
     """
     if fmt not in ("auto", "json", "yaml", "text"):
         console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {literal(repr(fmt))}")
@@ -456,6 +479,14 @@ def send(
         else:
             console.print(f"[red]rejected[/] at stage parse: {reason}")
         raise typer.Exit(2)
+    if recover:
+        from tether.sendrecover import send_recover
+
+        send_recover(settings_of(ctx), text, fmt, dry_run, wait, preempt, timeout, as_json, config)
+    if config is not None:
+        why = "--config is read only with --recover (the planner's [planner] table)"
+        refused: dict[str, Any] = {"status": "rejected", "stage": None, "reason": why, "steps": []}
+        conclude(console, as_json, refused, f"[red]error:[/] {literal(why)}", 2)
     with client(ctx) as node:
         if "executor" not in node.alive_services(timeout=2.0):
             unreachable(as_json, "no executor reachable: start the services with `tether up`")
@@ -837,8 +868,15 @@ def status(
 
 # The simulated world
 
+
+class WorldGroup(LazyGroup):
+    lazy: dict[str, str] = {}
+
+
 world_app = typer.Typer(
-    help="The SIMULATED world: change it under the robot's feet, for demos and tests.", no_args_is_help=True
+    help="The SIMULATED world: change it under the robot's feet, for demos and tests.",
+    no_args_is_help=True,
+    cls=WorldGroup,
 )
 app.add_typer(world_app, name="world")
 
@@ -889,6 +927,9 @@ def world_move(
     p = reply.position
     document = {"status": "moved", "id": reply.id, "position": {"x": p.x, "y": p.y, "z": p.z}}
     conclude(out, as_json, document, f"{literal(reply.id)} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
+
+
+lazy_command(world_app, "fault", "tether.worldfault:world_fault")
 
 
 @world_app.command("scene")
@@ -1007,6 +1048,8 @@ lazy_command(app, "mode", "tether.modecli:mode")
 lazy_command(app, "approve", "tether.modecli:approve")
 lazy_command(app, "deny", "tether.modecli:deny")
 lazy_command(app, "pending", "tether.modecli:pending")
+# Safety's memory of incidents (tether/incidentscli.py)
+lazy_command(app, "incidents", "tether.incidentscli:app")
 
 # Recordings
 lazy_command(app, "inspect", "tether.inspect:inspect")

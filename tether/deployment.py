@@ -337,6 +337,7 @@ def robot_config(home: Path) -> str:
         "[safety]\n"
         f"operator_token_file = {json.dumps(str(home / 'operator.token'))}\n"
         f"estop_state_file = {json.dumps(str(home / 'state' / 'estop.json'))}\n"
+        f"mode_state_file = {json.dumps(str(home / 'state' / 'mode.json'))}\n"
         f"robot_key_file = {key}\n\n"
         "# Only safety and the robot backend read the robot key.\n"
         f"[sim]\nrobot_key_file = {key}\n\n"
@@ -453,7 +454,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     serves itself (SERVES), so no service can pose as the parser or as safety's command doors; only
     safety commands the robot and publishes safety/**; only the robot backend (sim, ros2) reports the
     robot's state and people and serves robot/**; only the operator resets the e-stop, sets the control
-    mode, approves plans and drives by hand; only the executor asks safety to approve a plan;
+    mode, approves plans, forgets incidents and drives by hand; only the executor asks safety to approve a
+    plan; the executor and the robot backend report incidents; everyone may list them;
     each liveliness token and query trace only under its own name, and each service answers
     `_process/<itself>` only (the services and the operator ask `_process/*`); the agent only what an
     LLM agent needs (plans, the e-stop, the scene and the camera).
@@ -494,6 +496,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
             [
                 "safety/check_plan",
                 "safety/approval/pending",
+                "safety/incidents",
                 "robot/*/_action/get_result",
                 "robot/*/_action/get_status",
                 "robot/camera/image",
@@ -507,6 +510,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
             [
                 "plan/**",
                 "safety/check_plan",
+                "safety/incidents",
                 "world/scene",
                 "recorder/status",
                 "robot/camera/image",
@@ -517,9 +521,12 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         rule("ask-processes", ["query"], [keys.process_key(robot).removeprefix(root + "/")]),
         rule("reset", ["query"], ["safety/reset"]),
         # The control mode and the approval of plans: a person's, like the reset (safety checks the token too).
-        rule("supervise", ["query"], ["safety/mode", "safety/approval/decide"]),
+        # Forgetting an incident or clearing a caution zone: the operator's too.
+        rule("supervise", ["query"], ["safety/mode", "safety/approval/decide", "safety/incidents/forget"]),
         # Before a plan's first motion the executor asks safety whether it may move (supervised mode).
         rule("ask-approval", ["query"], ["safety/approval/request"]),
+        # What only the executor (a failed grasp, a drop) and the robot (a collision) see, for safety's memory.
+        rule("report-incidents", ["put"], ["safety/incidents/report"]),
         rule("teleop", ["put"], ["cmd/teleop/**"]),
         rule("be-safety", ["put", "delete", "declare_queryable", "reply"], ["safety/**"]),
         rule(
@@ -574,7 +581,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         policy("services-and-operator", ["planner-side", "read", "ask-processes"], people_and_services),
         policy("agent", ["agent-asks"], ["agent"]),
         policy("operator", ["reset", "supervise", "teleop"], ["operator"]),
-        policy("executor", ["ask-approval"], ["executor"]),
+        policy("executor", ["ask-approval", "report-incidents"], ["executor"]),
+        policy("report-incidents", ["report-incidents"], ROBOT_BACKEND_IDENTITIES),
         policy("safety", ["be-safety", "drive"], ["safety"]),
         policy("robot", ["be-the-robot", "serve-the-robot"], ROBOT_BACKEND_IDENTITIES),
     ]

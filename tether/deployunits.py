@@ -284,6 +284,8 @@ def systemd_paths(robot: str) -> dict[tuple[str, str], str]:
     return {
         ("safety", "operator_token_file"): credential("safety", "operator.token"),
         ("safety", "estop_state_file"): f"/var/lib/tether-{robot}-safety/estop.json",
+        # Beside the e-stop's state, not the token's default place: the credentials are read-only.
+        ("safety", "mode_state_file"): f"/var/lib/tether-{robot}-safety/mode.json",
         ("safety", "robot_key_file"): credential("safety", "robot.key"),
         ("sim", "robot_key_file"): credential("sim", "robot.key"),
         (ROS2, "robot_key_file"): credential(ROS2, "robot.key"),
@@ -295,6 +297,7 @@ def container_paths() -> dict[tuple[str, str], str]:
     return {
         ("safety", "operator_token_file"): "/run/secrets/operator.token",
         ("safety", "estop_state_file"): str(CONTAINER_HOME / "state" / "estop.json"),
+        ("safety", "mode_state_file"): str(CONTAINER_HOME / "state" / "mode.json"),
         ("safety", "robot_key_file"): "/run/secrets/robot.key",
         ("sim", "robot_key_file"): "/run/secrets/robot.key",
         (ROS2, "robot_key_file"): "/run/secrets/robot.key",

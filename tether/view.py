@@ -5,6 +5,10 @@ lines), never converted or sent on Zenoh's threads: one publishing thread turns 
 messages and hands them to the SDK, whose server keeps a bounded backlog per client and drops the
 oldest for a client that does not keep up. A slow or hostile viewer costs this process at most a
 few buffers; safety and the other services never wait for it (they do not know it is there).
+
+Teleop the other way (only with --teleop): on loopback the server takes client publish (Foxglove's
+Teleop panel) on one topic, tether/viewteleop.py decides what is taken and when to stop, and
+TeleopBridge puts each twist on cmd/teleop/cmd_vel, where safety clamps it as it clamps `tether teleop`.
 """
 
 from __future__ import annotations
@@ -24,13 +28,13 @@ from typing import Annotated, Any
 import foxglove
 import msgspec
 import typer
-from foxglove.websocket import ChannelView, Client
+from foxglove.websocket import Capability, ChannelView, Client, ClientChannel, StatusLevel
 
 from schemas import keys
 from schemas.actions import Feedback, GoalStatus, SendGoal
 from schemas.common import DECODE_ERRORS
 from schemas.executor import ExecutePlanFeedback
-from schemas.robot import JointState, NavigateToPoseGoal, Odometry
+from schemas.robot import JointState, NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from schemas.world import Empty, PerceivedHumans, PerceivedObjects
@@ -42,6 +46,7 @@ from services.recorder.mcapfile import json_schema
 from services.repeats import RepeatLog
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
+from tether.viewteleop import TELEOP_TOPIC, Refused, TeleopGate
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +57,7 @@ STATIC_PERIOD = 5.0  # s: the static scene again, for a viewer whose first copy 
 LOG_BACKLOG = 256  # log lines waiting for the publishing thread; the oldest go first
 CLIENT_BACKLOG = 64  # messages the SDK holds per viewer before dropping its oldest
 CAMERA_TIMEOUT = 2.0  # s for one camera picture
+TELEOP_TICK = 0.02  # s between two looks of the deadman: a stop goes out at most this late
 EXIT_USAGE, EXIT_UNREACHABLE, EXIT_SERVE = 2, 3, 1
 
 
@@ -354,14 +360,105 @@ class LiveView:
         self._log(scene3d.CAMERA_TOPIC, scene3d.camera_image(image))
 
 
-class Listener(foxglove.websocket.ServerListener):
-    """The SDK's callbacks (on its own threads): only a flag is set here."""
+class TeleopBridge:
+    """Client publish to cmd/teleop/cmd_vel: the gate decides (tether/viewteleop.py), this sends and logs.
 
-    def __init__(self, view: LiveView) -> None:
+    Called on the server's threads and the deadman's; one lock around each decision and its send, so
+    a stop is never overtaken by the twist decided before it. Nothing raises out of here: a bad
+    message is logged (each kind of complaint once, then counted, services/repeats.py) and dropped."""
+
+    def __init__(
+        self,
+        send: Callable[[Twist], None],
+        clock: Callable[[], float] = time.monotonic,
+        wall: Callable[[], float] = time.time,
+    ) -> None:
+        self.gate = TeleopGate()
+        self._send, self._clock, self._wall = send, clock, wall
+        self._lock = threading.Lock()
+        self.refusals = RepeatLog("teleop input refused")
+        # What a Foxglove user should see (the server's status messages), sent by the deadman's thread.
+        self.notices: collections.deque[str] = collections.deque(maxlen=16)
+
+    def _put(self, twist: Twist) -> None:
+        self._send(msgspec.structs.replace(twist, stamp=self._wall()))
+
+    def _refused(self, exc: Refused, detail: str, notify: bool = False) -> None:
+        # One line per kind of problem, then a count every few seconds: a flood does not fill the log.
+        if (line := self.refusals.note(type(exc).__name__, detail)) is not None:
+            log.warning("%s", line)
+            if notify:
+                self.notices.append(f"tether view: {detail}")
+
+    def advertise(self, client: int, channel: ClientChannel) -> None:
+        try:
+            self.gate.advertise(client, channel.id, channel.topic, channel.encoding, channel.schema_name)
+        except Refused as exc:
+            self._refused(exc, f"client {client} channel {channel.id} not taken: {exc}", notify=True)
+            return
+        log.warning("teleop: client %d drives through channel %d (%s)", client, channel.id, channel.topic)
+
+    def message(self, client: int, channel: int, data: bytes) -> None:
+        with self._lock:
+            try:
+                accepted = self.gate.message(client, channel, data, self._clock())
+            except Refused as exc:
+                self._refused(exc, f"client {client} channel {channel}: {exc}")
+                return
+            self._put(accepted.twist)
+        for axis in accepted.warn_ignored:
+            log.warning("teleop: %s is ignored (the base drives on linear.x and angular.z only)", axis)
+
+    def unadvertise(self, client: int, channel: int) -> None:
+        with self._lock:
+            if (stop := self.gate.unadvertise(client, channel)) is not None:
+                self._put(stop)
+                log.warning("teleop: client %d channel %d gone while driving: stopped", client, channel)
+
+    def tick(self) -> None:
+        """The deadman: a stop once the messages stopped coming."""
+        with self._lock:
+            if (stop := self.gate.expire(self._clock())) is not None:
+                self._put(stop)
+
+    def close(self) -> None:
+        """The view ends: a moving robot is told to stop now."""
+        with self._lock:
+            if self.gate.moving:
+                self._put(Twist())
+
+
+class Listener(foxglove.websocket.ServerListener):
+    """The SDK's callbacks (on its own threads): a flag set, or teleop's quick decision and send.
+
+    An exception here would only be logged by the SDK, but none is let out: the viewer keeps serving."""
+
+    def __init__(self, view: LiveView, teleop: TeleopBridge | None = None) -> None:
         self.view = view
+        self.teleop = teleop
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         self.view.viewer_subscribed(channel.topic)
+
+    def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
+        if self.teleop is not None:
+            self._guard(self.teleop.advertise, client.id, channel)
+
+    def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
+        if self.teleop is not None:
+            self._guard(self.teleop.message, client.id, client_channel_id, data)
+
+    def on_client_unadvertise(self, client: Client, client_channel_id: int) -> None:
+        # Also called for each of a client's channels when it disconnects.
+        if self.teleop is not None:
+            self._guard(self.teleop.unadvertise, client.id, client_channel_id)
+
+    @staticmethod
+    def _guard(call: Callable[..., None], *args: Any) -> None:
+        try:
+            call(*args)
+        except Exception:  # a failed send (Zenoh closing): logged, the server goes on
+            log.exception("teleop callback failed")
 
 
 def load_scene(config: Path | None) -> tuple[scene3d.Scene, tuple[str, tuple[float, float, float]]]:
@@ -401,7 +498,7 @@ def view(
         typer.Option(
             "--allow-remote",
             help="Bind a non-loopback address. The protocol has no authentication: whoever reaches the port "
-            "sees the robot's camera and state.",
+            "sees the robot's camera and state. Teleop from Foxglove is off then.",
         ),
     ] = False,
     config: Annotated[
@@ -412,6 +509,14 @@ def view(
         float, typer.Option(help="Camera pictures a second while a viewer watches the camera (0: none).", min=0, max=10)
     ] = 2.0,
     arm: Annotated[bool, typer.Option(help="The arm's links as frames (loads the arm's URDF).")] = True,
+    teleop: Annotated[
+        bool,
+        typer.Option(
+            help=f"Take Foxglove's Teleop panel on {TELEOP_TOPIC} (client publish), to cmd/teleop/cmd_vel. "
+            "Off unless asked: the protocol has no authentication, and any program or web page on this "
+            "computer can open a WebSocket to a loopback port. Loopback only: off when --host is not.",
+        ),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout once serving.")] = False,
 ) -> None:
     """Serve the robot live to Foxglove (Open connection > Foxglove WebSocket > ws://127.0.0.1:8765).
@@ -420,8 +525,15 @@ def view(
     route), frames map -> base -> arm links, the camera, safety events and plan progress as a log.
     Layout: deploy/foxglove-layout.json.
 
-    Runs until Ctrl-C. With --json: one object once serving, {"ok", "url", "port", "robot", "topics"},
-    or {"ok": false, "error"}.
+    Teleop (with --teleop): Foxglove's Teleop panel publishing geometry_msgs/Twist on /cmd_vel drives the base
+    through safety (cmd/teleop/cmd_vel, clamped as for `tether teleop`): linear.x and angular.z,
+    at most 50 messages a second per client. A deadman: no message for 0.5 s, or the panel's
+    channel gone, and the base is told to stop. Only when bound to loopback (client publish has no
+    authentication); in a deployment run it as the operator, the only identity that may drive:
+    `tether --zenoh-config DIR/ROBOT/operator.json5 --robot ROBOT view`.
+
+    Runs until Ctrl-C. With --json: one object once serving, {"ok", "url", "port", "robot", "topics",
+    "teleop"} (teleop: the topic taken, or null), or {"ok": false, "error"}.
 
     Exit codes: 0 stopped by Ctrl-C or SIGTERM, 1 the port cannot be served, 2 bad option or config, 3 no Zenoh session.
     """
@@ -450,23 +562,35 @@ def view(
     stop = runtime.stop_event()
     context = foxglove.Context()
     live = LiveView(settings.robot, scene, context, arm_frames)
+    teleop_off = None
+    if not teleop:
+        teleop_off = "not asked for (--teleop)"
+    elif host not in LOOPBACK:
+        teleop_off = f"--host {host} is not loopback, and client publish has no authentication"
     try:
         node = Node("view", settings)
     except Exception as exc:  # zenoh.ZError: no router, refused login
         raise fail(EXIT_UNREACHABLE, f"cannot open a Zenoh session: {exc}", as_json) from None
     with node:
+        bridge = None if teleop_off else TeleopBridge(node.publisher(keys.TELEOP_CMD_VEL).put)
         try:
             server = foxglove.start_server(
                 name=f"tether {settings.robot}",
                 host=host,
                 port=port,
                 context=context,
-                server_listener=Listener(live),
+                server_listener=Listener(live, bridge),
+                capabilities=[Capability.ClientPublish] if bridge else None,
+                supported_encodings=["json"] if bridge else None,
                 message_backlog_size=CLIENT_BACKLOG,
             )
         except Exception as exc:  # the port taken, the address not ours
             raise fail(EXIT_SERVE, f"cannot serve on {host}:{port}: {exc}", as_json) from None
         try:
+            if bridge is not None:
+                threading.Thread(
+                    target=teleop_loop, args=(bridge, server, stop), name="view-teleop", daemon=True
+                ).start()
             for source in inputs(settings.robot):
                 node.subscribe_raw(source.key_expr, lambda key, payload, s=source: live.receive(s, key, payload))
             camera = threading.Thread(
@@ -475,15 +599,39 @@ def view(
             camera.start()
             url = f"ws://{host}:{server.port}"
             if as_json:
-                started = {"ok": True, "url": url, "port": server.port, "robot": settings.robot, "topics": live.topics}
+                started = {
+                    "ok": True,
+                    "url": url,
+                    "port": server.port,
+                    "robot": settings.robot,
+                    "topics": live.topics,
+                    "teleop": TELEOP_TOPIC if bridge else None,
+                }
                 print(json.dumps(started))
                 sys.stdout.flush()
             else:
                 print(f"Foxglove: open a Foxglove WebSocket connection to {url} (Ctrl-C stops)", file=sys.stderr)
+            if bridge is not None:
+                print(f"teleop: Foxglove's Teleop panel on {TELEOP_TOPIC} drives (through safety)", file=sys.stderr)
+            elif teleop:
+                print(f"teleop from Foxglove is off: {teleop_off}", file=sys.stderr)
             while not stop.wait(PUBLISH_PERIOD):
                 live.publish_once()
         finally:
             server.stop()
+            if bridge is not None:
+                bridge.close()
+
+
+def teleop_loop(bridge: TeleopBridge, server: foxglove.WebSocketServer, stop: threading.Event) -> None:
+    """The deadman's clock, and the notices for Foxglove users (sent here, not in the SDK's callbacks)."""
+    while not stop.wait(TELEOP_TICK):
+        try:
+            bridge.tick()
+            while bridge.notices:
+                server.publish_status(bridge.notices.popleft(), StatusLevel.Warning)
+        except Exception:  # a failed send: logged, the deadman keeps looking
+            log.exception("teleop deadman")
 
 
 def camera_loop(live: LiveView, node: Node, rate: float, stop: threading.Event) -> None:

@@ -258,7 +258,9 @@ def _read_tools() -> list[ToolSpec]:
             name="describe_scene",
             description=(
                 "What the robot knows of the world, as text: rooms, furniture, and each object where it was "
-                "last seen. Use these names in actions."
+                "last seen; then the known hazards near the robot (incidents safety remembers there: e-stops, "
+                "near-misses, dropped objects; caution zones where the robot drives slower). Use these names in "
+                "actions."
             ),
             parameters=_object({}, []),
             kind="read",

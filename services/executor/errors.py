@@ -49,3 +49,12 @@ class Interrupted(ExecutionError):
     alternative runs after this."""
 
     kind = FailureKind.VETOED
+
+
+class GraspFailed(PostconditionFailed):
+    """The gripper closed and the object was not in it: reported to safety's incident memory as a
+    grasp_failed incident (services/executor/README.md, Keys: safety/incidents/report)."""
+
+    def __init__(self, message: str, object_name: str) -> None:
+        super().__init__(message)
+        self.object_name = object_name

@@ -9,7 +9,7 @@ from services.executor.armplanning import ArmPlanner, ArmPlannerConfig
 from services.executor.config import ExecutorConfig
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
-from services.executor.node import NodePlanServices, NodeRobot, serve_execute_plan
+from services.executor.node import IncidentReporter, NodePlanServices, NodeRobot, serve_execute_plan
 from services.executor.runner import PlanRunner
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
 from services.sdnotify import Notifier
@@ -29,7 +29,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     with Node("executor", settings) as node:
         robot = NodeRobot(node, config)
         manipulator = Manipulator(robot, arm, base, world, config)
-        runner = PlanRunner(NodePlanServices(node, config), robot, manipulator, config)
+        runner = PlanRunner(NodePlanServices(node, config), robot, manipulator, config, IncidentReporter(node))
         server = serve_execute_plan(node, runner, config)
         node.declare_alive()
         log.info("executor up for robot %s", settings.robot)

@@ -55,6 +55,7 @@ from services.executor.errors import (
     Canceled,
     CommandVetoed,
     ExecutionError,
+    GraspFailed,
     Interrupted,
     PlanningFailed,
     PostconditionFailed,
@@ -537,8 +538,9 @@ class Manipulator:
                 if in_hand is None
                 else (f"seen {offset_words(expected, in_hand.position, base)} the expected grasp point")
             )
-            raise PostconditionFailed(
-                f"{step.object_name} was not in the gripper after closing ({grasp.kind} grasp); it was {where}"
+            raise GraspFailed(
+                f"{step.object_name} was not in the gripper after closing ({grasp.kind} grasp); it was {where}",
+                step.object_name,
             )
         self._held = HeldObject(obj, grasp.object_in_grasp)
         self._follow(plan.lift, f"lifting {step.object_name}", cancel)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from contextvars import ContextVar
 from typing import Any
 
 import msgspec
@@ -13,6 +14,7 @@ from schemas import keys
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
+from schemas.incidents import MAX_INVOLVED, IncidentKind, IncidentReport
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
 from schemas.robot import (
     ARM_JOINTS,
@@ -211,6 +213,32 @@ class NodeRobot:
         return [by_name[n] for n in ARM_JOINTS]
 
 
+# The plan goal the calling thread runs (set by serve_execute_plan's execute), for incident reports.
+RUNNING_GOAL: ContextVar[str] = ContextVar("running_goal", default="")
+
+
+class IncidentReporter:
+    """Publishes what only the executor sees (a grasp that closed on nothing) on
+    safety/incidents/report, with the plan goal and step; safety adds where the robot was."""
+
+    def __init__(self, node: Node) -> None:
+        self._publisher = node.publisher(keys.INCIDENT_REPORT)
+
+    def __call__(self, kind: IncidentKind, reason: str, objects: list[str], step: int, label: str) -> None:
+        report = IncidentReport(
+            kind=kind,
+            reason=reason[:4000],
+            objects=[o[:200] for o in objects[:MAX_INVOLVED]],
+            goal_id=RUNNING_GOAL.get()[:64],
+            step=step,
+            label=label[:64],
+        )
+        try:
+            self._publisher.put(report)
+        except Exception:  # a report lost must not fail the plan
+            log.exception("incident report not sent: %s", reason)
+
+
 OUTCOME_STATE = {
     PlanStatus.SUCCEEDED: GoalState.SUCCEEDED,
     PlanStatus.CANCELED: GoalState.CANCELED,
@@ -264,6 +292,7 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
 
     def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
         log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
+        RUNNING_GOAL.set(handle.goal_id)
         approval = approval_of(node, handle.goal_id, config)
         result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, approval)
         if result.status is PlanStatus.CANCELED and handle.cancel_reason:

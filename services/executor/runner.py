@@ -22,6 +22,7 @@ from schemas.executor import (
     StepResult,
     StepStatus,
 )
+from schemas.incidents import IncidentKind
 from schemas.plan import (
     GroundedPlan,
     GroundedStep,
@@ -32,13 +33,15 @@ from schemas.plan import (
 )
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
-from services.executor.errors import Canceled, CommandVetoed, ExecutionError, Interrupted
+from services.executor.errors import Canceled, CommandVetoed, ExecutionError, GraspFailed, Interrupted
 from services.executor.manipulation import Manipulator, Note
 from services.executor.ports import PlanServices, Robot
 
 log = logging.getLogger(__name__)
 
 FeedbackSink = Callable[[ExecutePlanFeedback], None]
+# Reports an incident only the executor sees: kind, reason, objects involved, step index and label.
+IncidentSink = Callable[[IncidentKind, str, list[str], int, str], None]
 # Asks safety whether a checked plan may move the robot now, waiting for an operator in supervised
 # mode: None to go on, or the result that ends the plan (denied, canceled while it waited).
 Approval = Callable[[GroundedPlan, threading.Event, FeedbackSink], ExecutePlanResult | None]
@@ -105,11 +108,20 @@ class StepClock:
 
 
 class PlanRunner:
-    def __init__(self, planner: PlanServices, robot: Robot, manipulator: Manipulator, config: ExecutorConfig) -> None:
+    def __init__(
+        self,
+        planner: PlanServices,
+        robot: Robot,
+        manipulator: Manipulator,
+        config: ExecutorConfig,
+        incidents: IncidentSink | None = None,
+    ) -> None:
         self.planner = planner
         self.robot = robot
         self.manipulator = manipulator
         self.config = config
+        # Where a grasp that closed on nothing is reported (safety's incident memory), with the step.
+        self.incidents = incidents
 
     def run(
         self,
@@ -149,7 +161,7 @@ class PlanRunner:
         self, goal: ExecutePlanGoal, feedback: FeedbackSink, warnings: list[str]
     ) -> GroundedPlan | ExecutePlanResult:
         """Parse, resolve and check the whole plan before anything moves; `warnings` collects what
-        the parser and the resolver said back."""
+        the parser, the resolver and safety said back."""
         try:
             feedback(ExecutePlanFeedback(stage=Stage.PARSE, message="parsing"))
             parsed = self.planner.parse(goal.text, goal.format)
@@ -165,6 +177,8 @@ class PlanRunner:
             verdict = self.planner.check(grounded)
             if isinstance(verdict, ServiceError):
                 return rejected(Stage.SAFETY, verdict, parsed)
+            # What safety remembers of the places the plan goes (earlier incidents, caution zones).
+            warnings.extend(verdict.warnings)
         except CallError as exc:
             stage = exc.error.stage or Stage.PARSE
             return ExecutePlanResult(status=PlanStatus.REJECTED, stage=stage, reason=exc.error.message)
@@ -261,6 +275,8 @@ class PlanRunner:
                 return result(StepStatus.CANCELED, str(exc), attempt, FailureKind.CANCELED), failure
             except (ExecutionError, CallError) as exc:
                 kind = exc.kind if isinstance(exc, ExecutionError) else FailureKind.EXECUTION
+                if isinstance(exc, GraspFailed) and self.incidents is not None:
+                    self.incidents(IncidentKind.GRASP_FAILED, str(exc), [exc.object_name], index, label)
                 final = self._final(exc)
                 if final is None and kind in RETRYABLE and attempt < tries and not cancel.is_set():
                     attempt += 1

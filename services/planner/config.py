@@ -11,7 +11,7 @@ from typing import Annotated
 import msgspec
 from msgspec import Meta
 
-from schemas.planner import MAX_ATTEMPTS
+from schemas.planner import MAX_ATTEMPTS, MAX_RECOVERIES
 from services.planner.errors import NotConfigured
 
 URL_ENV = "TETHER_LLM_URL"
@@ -52,6 +52,9 @@ class PlannerConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     check_timeout: Annotated[float, Meta(gt=0.0, le=600.0)] = 60.0
     # A model reply bigger than this is refused before decoding.
     max_reply_bytes: Annotated[int, Meta(ge=1024, le=16 * 1024 * 1024)] = 1024 * 1024
+    # Recovery plans asked for when a plan sent for a request fails at a step (an object dropped, not
+    # where it was expected, a route blocked); each is dry-run and checked like any plan. 0: none.
+    max_recoveries: Annotated[int, Meta(ge=0, le=MAX_RECOVERIES)] = 2
 
 
 class Secret:

@@ -3,33 +3,40 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import uuid
+from collections.abc import Callable
+from concurrent import futures
 from typing import Any
 
 import msgspec
 
 from schemas import keys
-from schemas.common import Stage
+from schemas.common import ErrorKind, Pose2D, Stage
 from schemas.executor import ExecutePlanGoal, PlanStatus
+from schemas.incidents import IncidentList
 from schemas.planner import (
     MAX_RECORDED_CHARS,
+    MAX_RECOVERIES,
     MAX_REQUEST_CHARS,
     AskReply,
     AskRequest,
     AskStatus,
     AttemptOutcome,
     PlannerAttempt,
+    Recovery,
 )
 from schemas.safety import SafetyStatus
 from schemas.world import Empty
-from services.actionlib import PREEMPT_TIMEOUT, ActionClient
+from services.actionlib import MAX_RESULT_WAIT, PREEMPT_TIMEOUT, ActionClient, ClientGoal
 from services.errors import CallError, GoalRejected
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig
 from services.planner.errors import ExecutorUnreachable, LLMError
 from services.planner.llm import ChatClient, ChatReply
-from services.planner.loop import Attempt, DryRunVerdict, LoopStatus, plan_loop
-from services.planner.prompt import initial_messages
+from services.planner.loop import Attempt, DryRunVerdict, LoopResult, LoopStatus, plan_loop
+from services.planner.prompt import hazard_lines, hazards_block, hazards_query, initial_messages
+from services.planner.recovery import Ended, Ports, Sent, follow_and_recover
 from services.runtime import Node
 
 log = logging.getLogger(__name__)
@@ -37,6 +44,12 @@ log = logging.getLogger(__name__)
 SCENE_TIMEOUT = 5.0
 # How long the executor may take to accept a goal (longer when it preempts a running plan).
 SEND_TIMEOUT = 5.0
+INCIDENTS_TIMEOUT = 3.0
+# Plans followed behind a reply at once (each until its end); the executor runs one plan at a time,
+# so more than a few means plans preempted while their followers wait for the result.
+MAX_FOLLOWERS = 8
+# How often a follower looks whether the planner is closing while it waits for a plan's end.
+FOLLOW_POLL = 0.25
 LOOP_STATUS = {
     LoopStatus.APPROVED: AskStatus.APPROVED,
     LoopStatus.REJECTED: AskStatus.REJECTED,
@@ -82,6 +95,16 @@ class Planner:
         self._chat = client if client is not None else (ChatClient(endpoint) if endpoint is not None else None)
         self._executor: ActionClient[Any, Any, Any] = ActionClient(node, keys.EXECUTE_PLAN)
         self._attempts = node.publisher(keys.PLANNER_ATTEMPTS)
+        self._recoveries = node.publisher(keys.PLANNER_RECOVERIES)
+        self._tool_schemas: list[dict[str, Any]] | None = None
+        # Where the scene last put the robot: the recovery prompt lists the incidents near it.
+        self._last_robot: Pose2D | None = None
+        # Followers of plans sent without waiting (request id -> thread, each started before it is
+        # listed); closing stops them. `_closing` is set under `_lock`, and a recovery is sent only
+        # while holding `_lock` and seeing it unset: no recovery goes out once close() has begun.
+        self._lock = threading.Lock()
+        self._followers: dict[str, threading.Thread] = {}
+        self._closing = threading.Event()
         # The e-stop as the heartbeat last said: while it is latched no plan can pass, and asking the
         # model to "fix" one would spend attempts on what only an operator can change.
         self._heartbeat: SafetyStatus | None = None
@@ -100,13 +123,24 @@ class Planner:
             "reset it, so no plan was asked for or sent"
         )
 
-    def close(self) -> None:
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop following: no model call starts and no recovery is sent after this; the plans go on.
+        Waits (up to `timeout`) for the followers to end, and for a recovery send already under way."""
+        with self._lock:
+            self._closing.set()
+            followers = list(self._followers.values())
+        deadline = time.monotonic() + timeout
+        for thread in followers:
+            thread.join(max(0.0, deadline - time.monotonic()))
         if isinstance(self._chat, ChatClient):
             self._chat.close()
 
     def scene_text(self) -> str:
         try:
-            return self.node.call(keys.SCENE, Empty(), timeout=SCENE_TIMEOUT).text
+            scene = self.node.call(keys.SCENE, Empty(), timeout=SCENE_TIMEOUT)
+            if scene.robot is not None:
+                self._last_robot = scene.robot
+            return scene.text
         except CallError as exc:
             log.warning("no scene for the prompt: %s", exc)
             return f"(the scene is not available: {exc.error.message})"
@@ -138,21 +172,91 @@ class Planner:
             )
         if (latched := self.estop_latched()) is not None:
             return AskReply(status=AskStatus.REJECTED, request_id=request_id, stage=Stage.SAFETY, reason=latched)
+        try:
+            reply = self._given(request, request_id) if request.plan else self._asked(request, request_id)
+        except ExecutorUnreachable as exc:
+            return AskReply(status=AskStatus.UNREACHABLE, request_id=request_id, reason=str(exc))
+        if reply.status is not AskStatus.APPROVED or request.dry_run:
+            return reply
+        if past_deadline(request):
+            return msgspec.structs.replace(
+                reply, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=DEADLINE_PASSED
+            )
+        sent = self.send(reply, reply.plan, request.preempt)
+        if sent.status is not AskStatus.ACCEPTED:
+            return sent
+        recoveries = self.config.max_recoveries if request.max_recoveries is None else request.max_recoveries
+        if request.wait:
+            return self.follow(request, sent, recoveries)
+        if recoveries > 0:
+            self._follow_behind(request, sent, recoveries)
+        return sent
+
+    def _asked(self, request: AskRequest, request_id: str) -> AskReply:
+        """The model's plan for the request, dry-run checked (APPROVED), or why there is none."""
         max_attempts = request.max_attempts or self.config.max_attempts
-        tools = tool_schemas()
-        native = self.config.native_tools
-        messages = initial_messages(request.text, tools, native, self.scene_text())
-        model = self.endpoint.model if self.endpoint is not None else ""
+        scene = self.scene_text()  # first: it says where the robot is, for the hazards near it
+        hazards = hazards_block(self.incidents())
+        messages = initial_messages(request.text, self._tools(), self.config.native_tools, scene, hazards)
+        result = plan_loop(
+            messages,
+            self._model_call(request, request.deadline),
+            self.check,
+            max_attempts,
+            self._recorder(request, request_id, max_attempts, 0),
+        )
+        return AskReply(
+            status=LOOP_STATUS[result.status],
+            request_id=request_id,
+            attempts=len(result.attempts),
+            stage=result.stage,
+            reason=bounded(result.reason, 4000),
+            plan=bounded(result.plan),
+        )
+
+    def _given(self, request: AskRequest, request_id: str) -> AskReply:
+        """A plan given as is (`tether send --recover`): its dry run, with no model call."""
+        verdict = self.check(request.plan)
+        log.info("request %s: the given plan's dry run: %s %s", request_id, verdict.approved, verdict.reason)
+        return AskReply(
+            status=AskStatus.APPROVED if verdict.approved else AskStatus.REJECTED,
+            request_id=request_id,
+            stage=verdict.stage,
+            reason=bounded(verdict.reason, 4000),
+            plan=request.plan,
+        )
+
+    def _tools(self) -> list[dict[str, Any]]:
+        if self._tool_schemas is None:
+            self._tool_schemas = tool_schemas()
+        return self._tool_schemas
+
+    def _model_call(self, request: AskRequest, deadline: float) -> Callable[[list[dict[str, Any]]], ChatReply]:
+        """One model call, not started after `deadline` (0: none) nor once the planner is closing."""
         chat = self._chat
+        assert chat is not None, "asked only with an endpoint"
+        tools = self._tools() if self.config.native_tools else None
 
         def call_model(conversation: list[dict[str, Any]]) -> ChatReply:
-            if past_deadline(request):
+            if deadline > 0 and time.time() > deadline:
                 raise LLMError(DEADLINE_PASSED)
-            reply: ChatReply = chat.chat(conversation, tools if native else None)
+            if self._closing.is_set():
+                raise LLMError("the planner is shutting down")
+            reply: ChatReply = chat.chat(conversation, tools)
             return reply
 
+        return call_model
+
+    def _recorder(
+        self, request: AskRequest, request_id: str, max_attempts: int, recovery: int
+    ) -> Callable[[Attempt], None]:
+        model = self.endpoint.model if self.endpoint is not None else ""
+
         def record(attempt: Attempt) -> None:
-            log.info("request %s attempt %d: %s %s", request_id, attempt.number, attempt.status, attempt.reason)
+            which = f" (recovery {recovery})" if recovery else ""
+            log.info(
+                "request %s attempt %d%s: %s %s", request_id, attempt.number, which, attempt.status, attempt.reason
+            )
             self._attempts.put(
                 PlannerAttempt(
                     request_id=request_id,
@@ -167,28 +271,11 @@ class Planner:
                     reply=bounded(attempt.reply),
                     plan=bounded(attempt.plan),
                     duration=attempt.duration,
+                    recovery=recovery,
                 )
             )
 
-        try:
-            result = plan_loop(messages, call_model, self.check, max_attempts, record)
-        except ExecutorUnreachable as exc:
-            return AskReply(status=AskStatus.UNREACHABLE, request_id=request_id, reason=str(exc))
-        reply = AskReply(
-            status=LOOP_STATUS[result.status],
-            request_id=request_id,
-            attempts=len(result.attempts),
-            stage=result.stage,
-            reason=bounded(result.reason, 4000),
-            plan=bounded(result.plan),
-        )
-        if result.status is not LoopStatus.APPROVED or request.dry_run:
-            return reply
-        if past_deadline(request):
-            return msgspec.structs.replace(
-                reply, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=DEADLINE_PASSED
-            )
-        return self.send(reply, result.plan, request.preempt)
+        return record
 
     def send(self, approved: AskReply, plan: str, preempt: bool) -> AskReply:
         """The approved plan for real: the goal id once the executor has accepted it."""
@@ -209,6 +296,138 @@ class Planner:
             approved, status=AskStatus.ACCEPTED, goal_id=handle.goal_id, reason="approved by a dry run and sent"
         )
 
+    # Following a sent plan to its end, and recovering when it failed at a step.
+
+    def follow(self, request: AskRequest, sent: AskReply, max_recoveries: int) -> AskReply:
+        """Follow the sent plan (and any recovery) to its end: SUCCEEDED or FAILED, with the recoveries.
+        The caller's deadline, when it waits, bounds what is asked and sent after the failure."""
+        deadline = request.deadline if request.wait else 0.0
+        max_attempts = request.max_attempts or self.config.max_attempts
+        request_id = sent.request_id
+
+        def stopped() -> str | None:
+            if self._closing.is_set():
+                return "the planner is shutting down"
+            if deadline > 0 and time.time() > deadline:
+                return DEADLINE_PASSED
+            return None
+
+        def plan(messages: list[dict[str, Any]], number: int) -> LoopResult:
+            record = self._recorder(request, request_id, max_attempts, number)
+            try:
+                return plan_loop(messages, self._model_call(request, deadline), self.check, max_attempts, record)
+            except ExecutorUnreachable as exc:
+                return LoopResult(LoopStatus.REJECTED, reason=str(exc))
+
+        ports = Ports(
+            follow=self._follow_goal,
+            estop=self.estop_latched,
+            scene=self.scene_text,
+            incidents=self.incidents_text,
+            plan=plan,
+            send=self._send_recovery,
+            record=self._publish_recovery,
+            stopped=stopped,
+        )
+        followed = follow_and_recover(
+            request_id,
+            request.text,
+            sent.goal_id,
+            sent.plan,
+            max_recoveries,
+            self._tools(),
+            self.config.native_tools,
+            ports,
+        )
+        log.info("request %s: %s", request_id, followed.reason)
+        return msgspec.structs.replace(
+            sent,
+            status=AskStatus.SUCCEEDED if followed.succeeded else AskStatus.FAILED,
+            stage=Stage.EXECUTE,
+            reason=bounded(followed.reason, 4000),
+            plan=bounded(followed.plan),
+            goal_id=followed.goal_id,
+            recoveries=followed.recoveries[: MAX_RECOVERIES + 1],
+        )
+
+    def _follow_behind(self, request: AskRequest, sent: AskReply, max_recoveries: int) -> None:
+        """Follow and recover on a thread of its own, the reply having gone at acceptance: one per
+        request, at most MAX_FOLLOWERS at once (past that the plan runs, but is not recovered)."""
+        with self._lock:
+            # Every listed thread was started before it was listed: one not alive has ended.
+            self._followers = {k: t for k, t in self._followers.items() if t.is_alive()}
+            if self._closing.is_set():
+                log.warning("request %s: not followed (the planner is shutting down)", sent.request_id)
+                return
+            if len(self._followers) >= MAX_FOLLOWERS:
+                log.warning("request %s: not followed (%d followers already)", sent.request_id, len(self._followers))
+                return
+            thread = threading.Thread(
+                target=self._follow_quietly,
+                args=(request, sent, max_recoveries),
+                name=f"follow:{sent.request_id}",
+                daemon=True,
+            )
+            # Started under the lock, so that close() (which lists the followers under it) joins it.
+            thread.start()
+            self._followers[sent.request_id] = thread
+
+    def _follow_quietly(self, request: AskRequest, sent: AskReply, max_recoveries: int) -> None:
+        try:
+            self.follow(request, sent, max_recoveries)
+        except Exception:
+            log.exception("request %s: following goal %s failed", sent.request_id, sent.goal_id)
+
+    def _follow_goal(self, goal_id: str) -> Ended:
+        """Wait for the goal's end (get_result); give up when the planner closes."""
+        future = ClientGoal(self._executor, goal_id).result_future(MAX_RESULT_WAIT)
+        while not futures.wait([future], FOLLOW_POLL).done:
+            if self._closing.is_set():
+                return Ended(None, "unfollowed", "the planner stopped following the plan (shutting down)")
+        try:
+            response = future.result()
+        except CallError as exc:
+            return Ended(None, "unknown", f"no result from the executor: {exc}")
+        return Ended(response.result, str(response.state), response.message)
+
+    def _send_recovery(self, plan: str) -> Sent:
+        """A recovery plan for real; never preempting: whatever runs now was started by someone else.
+        Looked at again right before it goes, under the lock close() takes: not sent once the planner
+        is closing, nor while the e-stop is latched (the executor would refuse it; it is not asked)."""
+        with self._lock:
+            if self._closing.is_set():
+                return Sent(refused="the planner is shutting down", stop=True)
+            if (latched := self.estop_latched()) is not None:
+                return Sent(refused=latched, kind=ErrorKind.ESTOP, stop=True)
+            try:
+                handle = self._executor.send(ExecutePlanGoal(text=plan), timeout=SEND_TIMEOUT)
+            except GoalRejected as exc:
+                return Sent(refused=exc.reason, kind=exc.kind)
+            except CallError as exc:
+                return Sent(refused=f"executor unreachable: {exc}")
+        return Sent(goal_id=handle.goal_id)
+
+    def _publish_recovery(self, recovery: Recovery) -> None:
+        log.info(
+            "request %s recovery %d: %s %s", recovery.request_id, recovery.number, recovery.outcome, recovery.reason
+        )
+        self._recoveries.put(recovery)
+
+    def incidents(self) -> IncidentList | None:
+        """The incidents safety remembers near the robot (where the scene last put it; the latest
+        anywhere when it did not say); None when safety does not answer."""
+        query = hazards_query(self._last_robot)
+        try:
+            found: IncidentList = self.node.call(keys.INCIDENTS, query, timeout=INCIDENTS_TIMEOUT)
+        except CallError as exc:
+            log.warning("no incidents from safety: %s", exc)
+            return None
+        return found
+
+    def incidents_text(self) -> str:
+        return "\n".join(hazard_lines(self.incidents()))
+
 
 def declare(node: Node, planner: Planner) -> None:
-    node.serve(keys.PLAN_ASK, planner.ask)
+    # A request that waits for its plan's end takes as long as the plan runs: the pool for such waits.
+    node.serve(keys.PLAN_ASK, planner.ask, waits=True)

@@ -4,10 +4,13 @@ data, the request; and the short message a refusal goes back as. Pure logic."""
 from __future__ import annotations
 
 import json
+import time
 from typing import Any
 
-from schemas.common import Stage
+from schemas.common import Pose2D, Stage
+from schemas.incidents import IncidentList, IncidentQuery
 from services.agent.feedback import as_data
+from services.safety.hazards import incident_line, zone_line
 
 CAPABILITIES = """The robot: a mobile base carrying a 7-DOF arm with a parallel gripper, in a flat (kitchen,
 living room, bedroom, office, hallway with stairs fenced off as a keep-out zone, a charging dock).
@@ -24,6 +27,10 @@ zone, never lift what is too heavy, never reset an emergency stop."""
 
 # Scene text longer than this is cut: a prompt has room for a flat's worth of objects.
 MAX_SCENE_CHARS = 8000
+# At most this many known hazards (incidents and caution zones) go into a prompt.
+MAX_HAZARDS = 20
+# How far around the robot the planner asks safety for known hazards (metres).
+HAZARD_RADIUS = 5.0
 
 
 def scene_block(scene_text: str) -> str:
@@ -32,18 +39,60 @@ def scene_block(scene_text: str) -> str:
     return as_data("world model", scene_text.strip()[:MAX_SCENE_CHARS] or "(no scene available)")
 
 
-def system_message(tools: list[dict[str, Any]], native_tools: bool, scene_text: str) -> dict[str, Any]:
+def hazards_query(robot: Pose2D | None) -> IncidentQuery:
+    """What to ask safety (keys.INCIDENTS) for the known hazards near the robot: within HAZARD_RADIUS of
+    its pose, or the newest anywhere when its pose is unknown; at most MAX_HAZARDS. The planner's prompts
+    and the MCP scene tool ask the same."""
+    if robot is None:
+        return IncidentQuery(limit=MAX_HAZARDS)
+    return IncidentQuery(x=robot.x, y=robot.y, radius=HAZARD_RADIUS, limit=MAX_HAZARDS)
+
+
+def hazard_lines(incidents: IncidentList | None, now: float | None = None, cap: int = MAX_HAZARDS) -> list[str]:
+    """Safety's answer to an incident query (keys.INCIDENTS) as lines: each caution zone, then each
+    incident (what, where, how long ago, why), at most `cap`; None: safety did not answer."""
+    if incidents is None:
+        return ["safety did not answer: the known hazards near the robot are unknown"]
+    now = time.time() if now is None else now
+    lines = [zone_line(zone) for zone in incidents.zones]
+    lines += [incident_line(incident, now) for incident in incidents.incidents]
+    more = max(len(lines) - cap, 0) + max(incidents.total - len(incidents.incidents), 0)
+    lines = lines[:cap]
+    if more:
+        lines.append(f"and {more} more")
+    if incidents.store:
+        lines.insert(0, f"safety's incident memory has a fault ({incidents.store}): what it remembers may be missing")
+    return lines or ["no incidents remembered near the robot"]
+
+
+def hazards_block(incidents: IncidentList | None, now: float | None = None) -> str:
+    """The known hazards near the robot (safety's memory of incidents: keys.INCIDENTS queried around
+    the robot's pose, HAZARD_RADIUS), marked as data like the scene: a reason a person gave for an
+    e-stop cannot close the block or pass for an instruction."""
+    return as_data("incident memory", "\n".join(hazard_lines(incidents, now)))
+
+
+HAZARD_NOTE = """Known hazards are places where something went wrong before (an e-stop, a near-miss, a dropped
+object); a caution zone slows the robot. Prefer plans that avoid them when another way does the job."""
+
+
+def system_message(
+    tools: list[dict[str, Any]], native_tools: bool, scene_text: str, hazards: str = ""
+) -> dict[str, Any]:
+    """`hazards`: hazards_block's text ("" leaves the section out)."""
     parts = [INSTRUCTIONS, CAPABILITIES]
     if not native_tools:
         parts.append("The actions, as tool schemas (JSON):\n" + json.dumps(tools, separators=(",", ":")))
     parts.append(scene_block(scene_text))
+    if hazards:
+        parts += [HAZARD_NOTE, hazards]
     return {"role": "system", "content": "\n\n".join(parts)}
 
 
 def initial_messages(
-    request: str, tools: list[dict[str, Any]], native_tools: bool, scene_text: str
+    request: str, tools: list[dict[str, Any]], native_tools: bool, scene_text: str, hazards: str = ""
 ) -> list[dict[str, Any]]:
-    return [system_message(tools, native_tools, scene_text), {"role": "user", "content": request}]
+    return [system_message(tools, native_tools, scene_text, hazards), {"role": "user", "content": request}]
 
 
 def refusal_text(stage: Stage | None, reason: str) -> str:

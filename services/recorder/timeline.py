@@ -15,11 +15,13 @@ from schemas import keys
 from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal, goal_id_in
 from schemas.common import DECODE_ERRORS, ServiceError, fmt_pose, preview
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
+from schemas.incidents import Incident
 from schemas.plan import (
     GroundedPlan,
     Plan,
     walk,
 )
+from schemas.planner import Recovery, RecoveryOutcome
 from schemas.robot import (
     FollowJointTrajectoryGoal,
     FollowJointTrajectoryResult,
@@ -32,7 +34,7 @@ from schemas.robot import (
 )
 from schemas.safety import Decision, EStop, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
-from schemas.world import GroundTruth, Moved, MoveEntity
+from schemas.world import FaultInjected, GroundTruth, InjectFault, Moved, MoveEntity
 from services.recorder.linkaudit import Flag, Why, audit
 from services.recorder.reader import Recorded, RecordingFile
 
@@ -58,7 +60,9 @@ class EventKind(enum.StrEnum):
     ESTOP = "estop"  # an e-stop asked for, or latched
     RESET = "reset"  # the e-stop cleared
     HEARTBEAT = "heartbeat"  # safety's heartbeat missing
-    WORLD = "world"  # the simulated world changed, or was read for a check
+    WORLD = "world"  # the simulated world changed (a move, a fault injected), or was read for a check
+    INCIDENT = "incident"  # safety remembered an incident (services/safety/incidents.py)
+    RECOVERY = "recovery"  # the planner asked the model for a recovery plan after a failure, and its outcome
     BAD = "bad"  # a message that does not decode into its key's type
     SUSPECT = "suspect"  # a robot command or heartbeat that is not safety's (services/recorder/linkaudit.py)
     MESSAGE = "message"  # any other message (only with everything=True)
@@ -352,6 +356,8 @@ class _Builder:
             keys.ESTOP.path: self._estop,
             keys.EXECUTE_PLAN.feedback.path: self._plan_feedback,
             keys.EXECUTE_PLAN.status.path: self._plan_status,
+            keys.NEW_INCIDENT.path: self._incident,
+            keys.PLANNER_RECOVERIES.path: self._recovery,
             **{path: self._cmd_status for path in CMD_STATUS},
         }
 
@@ -654,6 +660,8 @@ class _Builder:
             self._told_by_event(record, service.reply)
         elif path == keys.SIM_MOVE.path:
             self._moved(record)
+        elif path == keys.SIM_FAULT.path:
+            self._fault(record)
         elif path == keys.GROUND_TRUTH.path:
             self._ground_truth(record)
 
@@ -837,12 +845,45 @@ class _Builder:
         elif (failed := _failure(reply)) is not None:
             self.row(EventKind.WORLD, record.key, f"{asked}: refused: {failed}", Level.WARN)
 
+    def _fault(self, record: TraceRecord) -> None:
+        reply = self._reply(record, keys.SIM_FAULT.reply)
+        if isinstance(reply, _Failed):
+            self.row(EventKind.WORLD, record.key, f"a fault in the simulation refused: {reply.message}", Level.WARN)
+            return
+        request: InjectFault = decode(record.query, InjectFault)
+        asked = f"fault {request.kind}{' ' + request.target if request.target else ''} injected in the simulation"
+        if isinstance(reply, FaultInjected):
+            self.row(EventKind.WORLD, record.key, f"{asked}: {reply.message}", Level.WARN)
+        elif (failed := _failure(reply)) is not None:
+            self.row(EventKind.WORLD, record.key, f"{asked}: refused: {failed}", Level.WARN)
+
+    def _incident(self, data: bytes) -> None:
+        incident: Incident = decode(data, Incident)
+        where = "" if incident.x is None or incident.y is None else f" at {fmt_point(incident.x, incident.y)}"
+        by = f" ({incident.source})" if incident.source else ""
+        summary = f"incident {incident.id} remembered: {incident.kind}{by}{where}: {incident.reason}"
+        self.row(EventKind.INCIDENT, keys.NEW_INCIDENT.path, summary, Level.WARN, target=_point(incident))
+
+    def _recovery(self, data: bytes) -> None:
+        recovery: Recovery = decode(data, Recovery)
+        failed = f" after {recovery.failure or 'a failure'}" if recovery.failed_goal else ""
+        step = f" at step {recovery.step}" if recovery.step is not None else ""
+        goal = f" as plan {short_id(recovery.goal_id)}" if recovery.goal_id else ""
+        summary = f"recovery {recovery.number}{failed}{step}: {recovery.outcome}{goal}"
+        summary += f": {recovery.reason}" if recovery.reason else ""
+        good = recovery.outcome in (RecoveryOutcome.SENT, RecoveryOutcome.SUCCEEDED)
+        self.row(EventKind.RECOVERY, keys.PLANNER_RECOVERIES.path, summary, Level.GOOD if good else Level.WARN)
+
     def _ground_truth(self, record: TraceRecord) -> None:
         truth = self._reply(record, GroundTruth)
         if isinstance(truth, GroundTruth):
             holding = truth.holding or "nothing"
             summary = f"simulator ground truth: robot at {fmt_pose(truth.robot)}, gripper holding {holding}"
             self.row(EventKind.WORLD, record.key, summary)
+
+
+def _point(incident: Incident) -> tuple[float, float] | None:
+    return None if incident.x is None or incident.y is None else (incident.x, incident.y)
 
 
 def _rule(rule: str | None) -> str:

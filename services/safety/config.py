@@ -24,6 +24,9 @@ class SafetyConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     estop_state_file: str | None = None
     # Where the control mode survives a restart; None: mode-<robot>.json beside the operator token.
     mode_state_file: str | None = None
+    # Safety's memory of incidents (SQLite, services/safety/incidents.py); None: incidents-<robot>.sqlite
+    # beside the e-stop state file. A file that cannot be used is reported, never fatal.
+    incident_store: str | None = None
     # The key safety signs robot commands and heartbeats with, shared only with the robot backend
     # (hex, 32 bytes, mode 0600; made on first start). None: $TETHER_ROBOT_KEY_FILE, else
     # robot-<robot>.key beside the operator token.

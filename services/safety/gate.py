@@ -6,16 +6,17 @@ import logging
 import math
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 import msgspec
 from shapely.geometry import Point
 
 from schemas import keys
 from schemas.actions import GoalResponse, GoalStatus, SendGoal
-from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
+from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
+from schemas.incidents import CautionZone, Incident
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
 from schemas.robot import (
     ARM_JOINTS,
@@ -47,6 +48,15 @@ from schemas.safety import (
 from schemas.world import PerceivedHumans
 from services.robotmodel import base_to_map
 from services.safety.errors import Unauthorized, Vetoed
+from services.safety.hazards import (
+    MAX_WARNINGS,
+    NEAR_LIMIT,
+    NO_ZONES,
+    ZoneMap,
+    plan_places,
+    plan_warnings,
+    zone_reason,
+)
 from services.safety.latch import EstopLatch
 from services.safety.modes import PLANS_REFUSED, ApprovalBook, ModeFile, plan_lines
 from services.safety.monitor import (
@@ -61,6 +71,7 @@ from services.safety.monitor import (
 )
 from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict, base_moving
 from services.safety.shared import SharedFilter, SharedLimits, Surroundings, combine
+from services.worldmodel import drive_route
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +89,24 @@ REPEAT_WINDOW = 1.0
 # times one identity's share (names are whatever a caller says, so one caller can use many).
 RESET_WINDOW = 60.0
 RESET_SHARES = 3
-
 GoalRuling = SendGoal[Any] | GoalResponse
+
+
+class IncidentMemory(Protocol):
+    """What the gate reads of safety's incident store (services/safety/incidents.py), none of which
+    waits for its file or computes anything: `fault`: why the store cannot be used ("" when it can);
+    `version`: grows with every change; `near`: from its memory; `caution_zones`: the zones its
+    writer last computed."""
+
+    @property
+    def fault(self) -> str: ...
+
+    @property
+    def version(self) -> int: ...
+
+    def near(self, points: Sequence[tuple[float, float]], radius: float, limit: int = NEAR_LIMIT) -> list[Incident]: ...
+
+    def caution_zones(self) -> ZoneMap: ...
 
 
 @dataclass(frozen=True)
@@ -235,6 +262,12 @@ class SafetyGate:
             {name: limit.velocity for name, limit in policy.joint_limits.items()},
             decay_per_second=rules.base.max_linear_acceleration / policy.max_linear,
         )
+        # Safety's memory of incidents (set_incidents), the caution zones last read from it, the zone
+        # the base was last in, the last failure logged.
+        self._incidents: IncidentMemory | None = None
+        self._zone_map: ZoneMap = NO_ZONES
+        self._in_zone: CautionZone | None = None
+        self._memory_error = ""
 
     def _advance(self) -> float:
         """The gate's time now; call with the lock held. The clock is read here, under the lock: a
@@ -283,8 +316,18 @@ class SafetyGate:
 
     def _hand(self, pose: Pose2D, t: float) -> tuple[float, float] | None:
         """The end effector on the floor plan (map frame)."""
-        local = self.policy.hand_in_base(self._joint_positions(t))
-        return None if local is None else base_to_map(pose, *local)
+        hand = self.hand_on_map(pose, self._joint_positions(t))
+        return None if hand is None else (hand.x, hand.y)
+
+    def hand_on_map(self, pose: Pose2D, joints: dict[str, float] | None) -> Vec3 | None:
+        """The grasp point on the map, with its height (None when a joint position is unknown)."""
+        policy = self.policy
+        names = policy.arm.joint_names
+        if joints is None or not all(n in joints for n in names):
+            return None
+        point = policy.arm.grasp_point([joints[n] for n in names])
+        x, y = base_to_map(pose, float(point[0]) + policy.mount.x, float(point[1]) + policy.mount.y)
+        return Vec3(x=x, y=y, z=float(point[2]) + policy.mount.z)
 
     def _reach(self, t: float) -> float:
         """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
@@ -336,7 +379,8 @@ class SafetyGate:
         except Exception as exc:  # the heartbeat goes on, and what cannot be computed stops the robot
             log.exception("speed and separation failed")
             found = Separation(0.0, f"speed and separation could not be computed: {exc}")
-        events.extend(self._set_separation(found))
+        found, zone = self._with_caution(found, t)
+        events.extend(self._set_separation(found, zone))
         latched = False
         try:
             for trip in self._watchdog(t):
@@ -376,7 +420,8 @@ class SafetyGate:
         nearest = nearest_person(pose, (size.x, size.y), self._hand(pose, t), people, humans.person_radius)
         return separation(nearest, True, humans, self.separation.scale)
 
-    def _set_separation(self, found: Separation) -> list[GateEvent]:
+    def _set_separation(self, found: Separation, zone: CautionZone | None = None) -> list[GateEvent]:
+        """The scale in force from now; `zone`: the caution zone that decided it, if one did."""
         with self._lock:
             previous, self._separation = self._separation, found
         if found.scale == previous.scale:
@@ -384,9 +429,142 @@ class SafetyGate:
         values = {"scale": found.scale}
         if found.distance is not None:
             values["distance_m"] = found.distance
+        rule = Rule.HUMAN_SEPARATION
+        if zone is not None:
+            rule = Rule.CAUTION_ZONE
+            values.update(zone_x=zone.x, zone_y=zone.y, zone_radius_m=zone.radius, zone_count=float(zone.count))
         reason = found.reason or "no one near: full speed"
         log.info("speed limit: %s", reason)
-        return [GateEvent(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, Rule.HUMAN_SEPARATION, (), values)]
+        return [GateEvent(keys.HEARTBEAT.path, Decision.LIMITED, reason, None, rule, (), values)]
+
+    # Safety's memory of incidents: only ever more careful
+
+    def set_incidents(self, store: IncidentMemory | None) -> None:
+        """The incident store the caution zones and the plan check's warnings come from (None: none).
+        Without one, or with one that has a fault, the gate decides exactly as it would without."""
+        with self._lock:
+            self._incidents = store
+            self._zone_map = NO_ZONES
+            self._in_zone = None
+        self.refresh_zones()
+
+    def refresh_zones(self) -> ZoneMap:
+        """The caution zones in force: the ones the store's writer last computed, read without waiting
+        (goals, plan checks and the heartbeat's tick alike; nothing here computes them). A store that
+        fails keeps the zones read last (none, if it never answered): forgetting them would loosen."""
+        with self._lock:
+            store, last = self._incidents, self._zone_map
+        if store is None:
+            return NO_ZONES
+        try:
+            zones = store.caution_zones()
+        except Exception as exc:
+            if str(exc) != self._memory_error:  # once, not at every tick
+                self._memory_error = str(exc)
+                log.exception("the caution zones could not be read; those read last stay in force")
+            return last
+        if zones is not last:
+            with self._lock:
+                if self._incidents is store:
+                    self._zone_map = zones
+            if last is not NO_ZONES or zones.zones:
+                log.info("caution zones in force: %d (incident store version %d)", len(zones), store.version)
+        return zones
+
+    def _zone_scale(self) -> float:
+        """However the store says it, a zone never slows less than the policy asks."""
+        return self.policy.policy.incidents.caution_speed_scale
+
+    def _with_caution(self, found: Separation, t: float) -> tuple[Separation, CautionZone | None]:
+        """`found`, or the caution zone's lower scale while the base (its centre within the zone's
+        radius grown by the half-diagonal) is in one; the zone, when it decided. Leaving a zone takes
+        the separation's `release_margin` more, so its edge does not flip the speed back and forth."""
+        try:
+            zones = self.refresh_zones()
+            pose = self._pose(t) if zones.zones else None
+            if pose is None:
+                with self._lock:
+                    self._in_zone = None
+                return found, None
+            half = self.policy.world.base_radius
+            with self._lock:
+                previous = self._in_zone
+            zone = zones.at(pose.x, pose.y, half, self._zone_scale())
+            if zone is None and previous is not None:
+
+                def same(z: CautionZone) -> bool:
+                    return (z.x, z.y) == (previous.x, previous.y) or z.incidents[:1] == previous.incidents[:1]
+
+                margin = half + self.policy.policy.humans.release_margin
+                zone = zones.at(pose.x, pose.y, margin, self._zone_scale(), same)
+            with self._lock:
+                self._in_zone = zone
+        except Exception:
+            log.exception("the caution zone check failed; the limits apply as without one")
+            return found, None
+        if zone is None or zone.speed_scale >= found.scale:
+            return found, None
+        return Separation(zone.speed_scale, zone_reason(zone), found.distance, found.person), zone
+
+    def _slower_through_zones(self, verdict: Verdict[NavigateToPoseGoal]) -> Verdict[NavigateToPoseGoal]:
+        """A route that passes through a caution zone is driven at its scale of the limits all the way
+        (the goal's max_speed and max_turn_rate only ever lowered): slower before the base is in it."""
+        goal = verdict.command
+        try:
+            zones = self.refresh_zones()
+            if not zones.zones or goal.start is None:
+                return verdict
+            points = [(goal.start.x, goal.start.y), *drive_route(goal.start, goal.path, goal.pose)]
+            zone = zones.on_route(points, self.policy.world.base_radius, self._zone_scale())
+        except Exception:
+            log.exception("the caution zone check of a route failed; the limits apply as without one")
+            return verdict
+        if zone is None:
+            return verdict
+        speed = min(goal.max_speed or self.policy.max_linear, self.policy.max_linear * zone.speed_scale)
+        turn = min(goal.max_turn_rate or self.policy.max_angular, self.policy.max_angular * zone.speed_scale)
+        if speed >= (goal.max_speed or math.inf) and turn >= (goal.max_turn_rate or math.inf):
+            return verdict
+        goal = msgspec.structs.replace(goal, max_speed=speed, max_turn_rate=turn)
+        values = {
+            **verdict.values,
+            "speed_mps": speed,
+            "turn_rps": turn,
+            "caution_scale": zone.speed_scale,
+            "zone_x": zone.x,
+            "zone_y": zone.y,
+        }
+        note = f"the route passes a {zone_reason(zone)}: driven at {speed:.2f} m/s, {turn:.2f} rad/s at most"
+        return Verdict(goal, (*verdict.checks, Rule.CAUTION_ZONE), values, Rule.CAUTION_ZONE, note)
+
+    def _plan_warnings(self, plan: GroundedPlan) -> list[str]:
+        """Earlier incidents near the places the plan sends the base and the hand, and the caution
+        zones they are in: never a refusal. A store with a fault says so first (what it still holds
+        in memory follows)."""
+        with self._lock:
+            store = self._incidents
+        if store is None:
+            return []
+        unread = "safety's incident memory has a fault ({}): earlier incidents may be missing here"
+        try:
+            faults = [unread.format(store.fault)] if store.fault else []
+            places = plan_places(plan)
+            if not places:
+                return faults
+            rules = self.policy.policy.incidents
+            points = [(p.x, p.y) for p in places]
+            incidents = store.near(points, rules.warn_radius, limit=NEAR_LIMIT)
+            zones = self.refresh_zones()
+            half = self.policy.world.base_radius
+            now = self._wall_clock()
+            cap = MAX_WARNINGS - len(faults)
+            return [
+                *faults,
+                *plan_warnings(places, incidents, zones, rules.warn_radius, half, now, cap, self._zone_scale()),
+            ]
+        except Exception as exc:
+            log.exception("the plan's places could not be looked up in the incident memory")
+            return [unread.format(exc)]
 
     def _watchdog(self, t: float) -> list[Trip]:
         """The robot's state stopped arriving while it moved: nothing can be monitored, so stop.
@@ -604,7 +782,7 @@ class SafetyGate:
         t = self._time()
 
         def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
-            return self.policy.check_navigation(goal, self._pose(t), self._reach(t))
+            return self._slower_through_zones(self.policy.check_navigation(goal, self._pose(t), self._reach(t)))
 
         return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, t)
 
@@ -660,7 +838,7 @@ class SafetyGate:
             error = ServiceError(kind=_refusal_kind(exc), message=str(exc), stage=Stage.SAFETY)
             return Ruling(error, (_veto_event(key, exc, plan),))
         event = GateEvent(key, Decision.APPROVED, "; ".join(checks), plan, None, PLAN_RULES)
-        return Ruling(PlanApproved(checks=checks), (event,))
+        return Ruling(PlanApproved(checks=checks, warnings=self._plan_warnings(plan)), (event,))
 
     # The control mode and plan approval (operator only, with the token)
 
@@ -681,7 +859,7 @@ class SafetyGate:
                 return Vetoed(why, Rule.APPROVAL)
         return None
 
-    def _operator_refusal(self, key: str, what: str, operator: str, token: str, redacted: object) -> GateEvent | None:
+    def operator_refusal(self, key: str, what: str, operator: str, token: str, redacted: object) -> GateEvent | None:
         """The event refusing `what` unless `token` is the operator's, held to the same limits on wrong
         attempts as the e-stop reset (the same token, the same counts); None when it is the operator."""
         right = self.latch.accepts(token)
@@ -705,7 +883,7 @@ class SafetyGate:
         """Change the control mode with the operator's token; the token never leaves in an event."""
         key = keys.SET_MODE.path
         redacted = msgspec.structs.replace(req, token="***")
-        if (refusal := self._operator_refusal(key, "mode change", req.operator, req.token, redacted)) is not None:
+        if (refusal := self.operator_refusal(key, "mode change", req.operator, req.token, redacted)) is not None:
             return Ruling(ModeReply(ok=False, message=refusal.reason, mode=self.modes.mode), (refusal,))
         previous = self.modes.set(req.mode, f"operator {req.operator}", self._wall_clock()).mode
         if previous is req.mode:
@@ -785,7 +963,7 @@ class SafetyGate:
         key = keys.APPROVAL_DECIDE.path
         redacted = msgspec.structs.replace(req, token="***")
         verb = "approval" if req.approve else "denial"
-        if (refusal := self._operator_refusal(key, verb, req.operator, req.token, redacted)) is not None:
+        if (refusal := self.operator_refusal(key, verb, req.operator, req.token, redacted)) is not None:
             return Ruling(ApprovalReply(ok=False, message=refusal.reason), (refusal,))
         t = self._time()
         with self._lock:

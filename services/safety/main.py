@@ -8,6 +8,7 @@ from pathlib import Path
 from services.robotlink import KeyFileError, Signer, robot_key
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
+from services.safety.incidents import IncidentStore
 from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
 from services.safety.node import SafetyNode
@@ -37,6 +38,11 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     latch = EstopLatch(ensure_token(token_file, state_file), state_file)
     mode_file = Path(config.mode_state_file) if config.mode_state_file else None
     modes = ModeFile(mode_file or token_file.parent / f"mode-{settings.robot}.json")
+    store_file = Path(config.incident_store) if config.incident_store else None
+    # Never fatal: a store with a fault is reported (log, `safety/incidents`) and safety checks as ever.
+    # Beside the e-stop's state file: in a deployment the token is a read-only credential, the state
+    # file is in safety's state directory.
+    incidents = IncidentStore(store_file or state_file.parent / f"incidents-{settings.robot}.sqlite")
     try:
         key, key_file = robot_key(config.robot_key_file, token_file.parent, settings.robot)
     except (KeyFileError, OSError) as exc:
@@ -47,18 +53,22 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         # Everything safety sends to the robot (commands, heartbeats) carries a MAC under this key.
         node.signer = Signer(key)
         # The watchdog is fed from the heartbeat loop, not from here: a hung check loop is restarted.
-        safety = SafetyNode(node, policy, latch, config, keepalive=notifier.keepalive, modes=modes)
+        safety = SafetyNode(node, policy, latch, config, keepalive=notifier.keepalive, modes=modes, incidents=incidents)
         node.declare_alive()
         log.info(
-            "safety up for robot %s in mode %s; policy %s (%s); operator token in %s; robot key in %s",
+            "safety up for robot %s in mode %s; policy %s (%s); operator token in %s; robot key in %s; "
+            "incidents in %s%s",
             settings.robot,
             modes.mode,
             limits.path,
             limits.hash,
             token_file,
             key_file,
+            incidents.path,
+            f" (FAULT: {incidents.fault})" if incidents.fault else "",
         )
         notifier.ready(f"checking robot {settings.robot}" + (": e-stop latched" if latch.state.latched else ""))
         stop.wait()
         notifier.stopping()
         safety.close()
+        incidents.close()

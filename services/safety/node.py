@@ -2,18 +2,32 @@
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
 
 from schemas import keys
-from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, GoalStatus, SendGoal
-from schemas.common import DECODE_ERRORS
+from schemas.actions import CancelGoal, CancelResponse, Feedback, GetResult, GoalResponse, GoalStatus, SendGoal
+from schemas.common import DECODE_ERRORS, Pose2D
+from schemas.executor import ExecutePlanFeedback
+from schemas.incidents import (
+    ForgetAction,
+    ForgetIncident,
+    ForgetReply,
+    Incident,
+    IncidentList,
+    IncidentQuery,
+    IncidentReport,
+)
 from schemas.keys import ActionKeys
 from schemas.plan import GroundedPlan, PlanCheckReply
 from schemas.robot import FollowJointTrajectoryGoal, JointState, Odometry, Twist
@@ -30,18 +44,57 @@ from schemas.safety import (
     PlanApproval,
     ResetReply,
     ResetRequest,
+    Rule,
     SafetyEvent,
 )
 from schemas.world import Empty, PerceivedHumans
 from services.actionlib import MAX_RESULT_WAIT
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
-from services.safety.gate import GateEvent, GoalRuling, Ruling, SafetyGate
+from services.safety.gate import MOVING, GateEvent, GoalRuling, Ruling, SafetyGate
+from services.safety.hazards import at
+from services.safety.incidents import Draft, IncidentStore, IncidentStoreError, IncidentWatch
 from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
+from services.safety.monitor import RateLimit
 from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy
 
 log = logging.getLogger(__name__)
+
+# Incidents noticed but not yet recorded, at most (more are dropped with an error in the log).
+MAX_NOTED = 1000
+# On close, incidents noticed are still recorded for at most this long (seconds); the rest are logged.
+CLOSE_DRAIN = 2.0
+# The recording thread looks at the store when idle this often (seconds): incidents kept in memory
+# while its file had a fault are written once it is usable again.
+IDLE_POLL = 1.0
+# New incidents are published once the caution zones include them: after every batch of at most this
+# many (or when no more wait).
+PUBLISH_BATCH = 50
+# A store holding this many incidents at start has them (and all else safety loaded) left out of the
+# garbage collector's full passes (gc.freeze): with 100 000 in memory a full pass takes about 0.2 s, on
+# whichever thread sets it off, the heartbeat's too. They live as long as safety anyway.
+FREEZE_AT = 10_000
+# A report refused is logged at most this often (seconds), however many come.
+REPORT_LOG_INTERVAL = 1.0
+# safety/incidents answers at most this many queries a second (bursts of a second's worth); the agent
+# may ask it, and each goes through the memory.
+QUERY_RATE = 20.0
+# The recorder's file is asked for at most this often (seconds), and waited for this long.
+RECORDING_TTL = 5.0
+RECORDER_WAIT = 0.5
+
+
+@dataclass(frozen=True)
+class Noted:
+    """An incident as noticed, with what safety knew then: the base pose, the arm's joints, the plan."""
+
+    draft: Draft
+    pose: Pose2D | None
+    joints: dict[str, float] | None
+    goal_id: str
+    step: int | None
+    label: str
 
 
 class SafetyNode:
@@ -64,6 +117,7 @@ class SafetyNode:
         wall_clock: Callable[[], float] = time.time,
         keepalive: Callable[[], None] = lambda: None,
         modes: ModeFile | None = None,
+        incidents: IncidentStore | None = None,
     ) -> None:
         self.node = node
         # Called after every beat that ticked and published (systemd's watchdog): if the checking loop
@@ -88,6 +142,27 @@ class SafetyNode:
         self._events = node.publisher(keys.SAFETY_EVENTS)
         self._robot_cmd_vel = node.publisher(keys.ROBOT_CMD_VEL)
         self._stop = threading.Event()
+        # Safety's memory of incidents (incidents.py): the watch says what is one; each is recorded on
+        # a thread of its own (the store's file, the recorder's name, the caution zones), never on the
+        # heartbeat's, a command's or Zenoh's. None in the queue: compute the zones again (a forget).
+        self.incidents = incidents
+        self._incident_rules = policy.policy.incidents
+        self.watch = IncidentWatch(self._incident_rules.near_miss_distance)
+        self._noted: queue.Queue[Noted | None] = queue.Queue(maxsize=MAX_NOTED)
+        self._closing = threading.Event()
+        self._drain_until = math.inf
+        self._new_incident = node.publisher(keys.NEW_INCIDENT)
+        self._recording: tuple[float, str] = (-math.inf, "")
+        self._report_warned = -math.inf
+        self._queries = RateLimit(QUERY_RATE, 1.0)
+        if incidents is not None:
+            self._refresh_zones()
+            # The caution zones and the plan check's warnings.
+            self.gate.set_incidents(incidents)
+            if incidents.size >= FREEZE_AT:
+                gc.freeze()
+        self._incident_thread = threading.Thread(target=self._record_incidents, name="incidents", daemon=True)
+        self._incident_thread.start()
         # A flood of garbage on safety's inputs: one event, then one with the count every few seconds.
         node.on_undecodable = self._on_undecodable
 
@@ -107,6 +182,12 @@ class SafetyNode:
         node.serve(keys.APPROVAL_REQUEST, self._on_approval_request, waits=True)
         # The plans' goals ending: an approved plan may move the robot only until it ends.
         node.subscribe(keys.EXECUTE_PLAN.status, self._on_plan_status)
+        # The plan and step running, for the incidents.
+        node.subscribe(keys.EXECUTE_PLAN.feedback, self._on_plan_feedback)
+        node.subscribe(keys.INCIDENT_REPORT, self._on_incident_report)
+        # On the pool of queries that may take a while, never a worker of the plan checks and goals'.
+        node.serve(keys.INCIDENTS, self._on_incidents, waits=True)
+        node.serve(keys.FORGET_INCIDENT, self._on_forget)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
         self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate)
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
@@ -114,9 +195,18 @@ class SafetyNode:
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
 
-    def close(self) -> None:
+    def close(self, drain: float = CLOSE_DRAIN) -> None:
         self._stop.set()
         self._beat_thread.join(timeout=1.0)
+        # The incidents noticed so far are recorded first, for at most `drain` seconds (a store whose
+        # file is locked may take a while for each): never waits on a full queue.
+        self._drain_until = time.monotonic() + drain
+        self._closing.set()
+        with contextlib.suppress(queue.Full):
+            self._noted.put_nowait(None)
+        self._incident_thread.join(timeout=drain + IDLE_POLL)
+        if self._incident_thread.is_alive() or not self._noted.empty():
+            log.error("closing: about %d incidents noticed were not recorded in time", self._noted.qsize())
 
     # Carrying out the gate's rulings
 
@@ -130,6 +220,8 @@ class SafetyNode:
             self._persist()
         for event in ruling.events:
             self._publish_event(event)
+        if ruling.events:
+            self._note_decided(ruling.events)
         if ruling.latched or ruling.cancel_goals:
             # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
             threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
@@ -178,6 +270,7 @@ class SafetyNode:
             except Exception:
                 ok = False
                 log.exception("carrying out the heartbeat's tick failed")
+            self._note_separation()
             try:
                 self._publish_heartbeat()
             except Exception:
@@ -273,9 +366,14 @@ class SafetyNode:
         return again.forward
 
     def _on_plan_status(self, status: GoalStatus) -> None:
+        self.watch.plan_status(status)
         self._carry_out(self.gate.plan_status(status))
 
+    def _on_plan_feedback(self, feedback: Feedback[ExecutePlanFeedback]) -> None:
+        self.watch.plan_feedback(feedback)
+
     def _on_odom(self, msg: Odometry) -> None:
+        self.watch.base_moved(abs(msg.linear_x) > MOVING or abs(msg.angular_z) > MOVING)
         self._carry_out(self.gate.odometry(msg))
 
     def _on_joints(self, msg: JointState) -> None:
@@ -363,3 +461,182 @@ class SafetyNode:
         status = self.node.publisher(cmd.status)
         self.node.subscribe(robot.feedback, feedback.put)
         self.node.subscribe(robot.status, status.put)
+
+    # Safety's memory of incidents
+
+    def _note(self, draft: Draft) -> None:
+        """Hand an incident to the recording thread with the pose, joints and plan known now."""
+        if self.incidents is None:
+            return
+        goal_id, step, label = self.watch.context()
+        if draft.goal_id:
+            goal_id, step, label = draft.goal_id, draft.step, draft.label
+        noted = Noted(draft, self.gate.pose(), self.gate.joint_positions(), goal_id, step, label)
+        try:
+            self._noted.put_nowait(noted)
+        except queue.Full:
+            log.error("incident not recorded (%d wait already): %s: %s", MAX_NOTED, draft.kind, draft.reason)
+
+    def _note_decided(self, events: tuple[GateEvent, ...]) -> None:
+        try:
+            for draft in self.watch.decided(events, self.latch.state):
+                self._note(draft)
+        except Exception:  # never in the way of carrying out a ruling
+            log.exception("noting an incident failed")
+
+    def _note_separation(self) -> None:
+        try:
+            if (draft := self.watch.separation(self.gate.separation)) is not None:
+                self._note(draft)
+        except Exception:
+            log.exception("noting a near-miss failed")
+
+    def _on_incident_report(self, report: IncidentReport) -> None:
+        taken = self.watch.report(report, source="reported")
+        if isinstance(taken, str):
+            now = time.monotonic()
+            if now - self._report_warned >= REPORT_LOG_INTERVAL:
+                self._report_warned = now
+                log.warning("%s", taken)
+            return
+        self._note(taken)
+
+    def _record_incidents(self) -> None:
+        """The recording thread: each incident into the store, then (with no more waiting, or every
+        PUBLISH_BATCH) the caution zones computed again and the incidents published, so whoever hears
+        of one finds the zones counting it. Idle, it lets the store write what it kept in memory. On
+        close it drains the queue until close's deadline has passed."""
+        recorded: list[Incident] = []
+        rezone = False
+        while True:
+            if self._closing.is_set() and (self._noted.empty() or time.monotonic() > self._drain_until):
+                break
+            try:
+                noted = self._noted.get(timeout=IDLE_POLL)
+            except queue.Empty:
+                self._retry_store()
+                continue
+            rezone = True
+            if noted is not None:
+                try:
+                    recorded.append(self._record(noted))
+                except Exception:
+                    log.exception("recording an incident failed")
+            if self._noted.empty() or len(recorded) >= PUBLISH_BATCH:
+                self._refresh_zones()
+                rezone = False
+                for incident in recorded:
+                    self._new_incident.put(incident)
+                recorded.clear()
+        if rezone:
+            self._refresh_zones()
+        for incident in recorded:
+            self._new_incident.put(incident)
+
+    def _retry_store(self) -> None:
+        store = self.incidents
+        if store is None or not (store.fault or store.pending):
+            return
+        try:
+            store.flush()
+        except Exception:
+            log.exception("writing the incidents kept in memory failed")
+
+    def _record(self, noted: Noted) -> Incident:
+        store = self.incidents
+        assert store is not None
+        draft, pose = noted.draft, noted.pose
+        x, y = (draft.x, draft.y) if draft.x is not None and draft.y is not None else (None, None)
+        if x is None and pose is not None:
+            x, y = pose.x, pose.y
+        incident = store.add(
+            draft.kind,
+            draft.reason,
+            x=x,
+            y=y,
+            yaw=pose.yaw if pose is not None else None,
+            hand=self.gate.hand_on_map(pose, noted.joints) if pose is not None else None,
+            source=draft.source,
+            rule=draft.rule,
+            goal_id=noted.goal_id,
+            step=noted.step,
+            label=noted.label,
+            objects=draft.objects,
+            people=draft.people,
+            recording=self._recording_now(),
+        )
+        x, y = incident.x, incident.y
+        where = "where unknown" if x is None or y is None else f"at {at(x, y)}"
+        kept = f" (kept in memory: {store.fault})" if store.fault else ""
+        log.warning("incident %d, %s %s: %s%s", incident.id, incident.kind, where, incident.reason, kept)
+        return incident
+
+    def _recording_now(self) -> str:
+        """The recorder's file now ("" with no recorder), asked at most every RECORDING_TTL seconds."""
+        at, name = self._recording
+        if time.monotonic() - at < RECORDING_TTL:
+            return name
+        try:
+            name = self.node.call(keys.RECORDER_STATUS, Empty(), timeout=RECORDER_WAIT).path
+        except Exception:
+            name = ""
+        self._recording = (time.monotonic(), name)
+        return name
+
+    def _refresh_zones(self) -> None:
+        """Compute the caution zones again (the store's writer: on this thread or, at start, before
+        the gate takes the store); the gate reads them as they are swapped in."""
+        if self.incidents is None:
+            return
+        rules = self._incident_rules
+        try:
+            self.incidents.refresh_zones(rules.caution_count, rules.caution_radius, rules.caution_speed_scale)
+        except Exception:
+            log.exception("the caution zones could not be computed; those computed last stay in force")
+
+    def _on_incidents(self, query: IncidentQuery) -> IncidentList:
+        if not self._queries.allow(time.monotonic()):
+            return IncidentList(
+                store=f"too many queries of safety's incident memory (at most {QUERY_RATE:g} a second): ask again"
+            )
+        if self.incidents is None:
+            return IncidentList(store="safety runs without an incident store")
+        return self.incidents.query(query)
+
+    def _on_forget(self, req: ForgetIncident) -> ForgetReply:
+        """Forget an incident or clear its caution zone: the operator's token only (counted against
+        the same limit on wrong attempts as the reset), recorded as a safety event."""
+        key = keys.FORGET_INCIDENT.path
+        redacted = msgspec.structs.replace(req, token="***")
+        forget = req.action is ForgetAction.FORGET
+        what = f"forgetting incident {req.id}" if forget else f"clearing the caution zone of incident {req.id}"
+        refusal = self.gate.operator_refusal(key, what, req.operator, req.token, redacted)
+        if refusal is not None:
+            self._publish_event(refusal)
+            return ForgetReply(ok=False, message=refusal.reason)
+        if self.incidents is None:
+            return ForgetReply(ok=False, message="safety runs without an incident store")
+        try:
+            changed = self.incidents.forget(
+                req.id, req.action, req.operator, req.reason, self._incident_rules.caution_radius
+            )
+        except KeyError as exc:
+            return ForgetReply(ok=False, message=str(exc.args[0]) if exc.args else str(exc))
+        except IncidentStoreError as exc:
+            return ForgetReply(ok=False, message=f"{what} failed: {exc}")
+        # The zones again, on the recording thread (a full queue computes them after its batch anyway).
+        with contextlib.suppress(queue.Full):
+            self._noted.put_nowait(None)
+        if forget:
+            why = f"incident {req.id} forgotten by operator {req.operator}: {req.reason}"
+        elif changed:
+            zone = f"caution zone of incident {req.id} ({len(changed)} incidents)"
+            why = f"{zone} cleared by operator {req.operator}: {req.reason}"
+        else:
+            why = f"incident {req.id} counts towards no caution zone now: nothing to clear"
+        if changed:
+            log.warning("%s", why)
+            decision = Decision.FORGOTTEN if forget else Decision.CLEARED
+            values = {"incidents": float(len(changed))}
+            self._publish_event(GateEvent(key, decision, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,), values))
+        return ForgetReply(ok=True, message=why, changed=changed)

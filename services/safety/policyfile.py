@@ -127,6 +127,20 @@ class MonitorPolicy(Section):
     state_max_age: Annotated[float, Meta(gt=0.0, le=10.0)] = 0.5  # s
 
 
+class IncidentPolicy(Section):
+    """What safety does with its memory of incidents (services/safety/incidents.py): only ever more
+    careful. A pause for a person closer than `near_miss_distance` is a near-miss; `caution_count`
+    incidents (not cleared) within `caution_radius` of one another make a caution zone, where the
+    robot keeps to `caution_speed_scale` of its limits until an operator clears it; a plan check warns
+    of incidents within `warn_radius` of a place the plan goes or an object it handles."""
+
+    near_miss_distance: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.15  # m
+    caution_count: Annotated[int, Meta(ge=1, le=1000)] = 3
+    caution_radius: Annotated[float, Meta(gt=0.0, le=20.0)] = 1.0  # m
+    caution_speed_scale: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.5
+    warn_radius: Annotated[float, Meta(gt=0.0, le=20.0)] = 1.0  # m
+
+
 class KeepOutPolicy(Section):
     id: Id
     name: Name
@@ -143,6 +157,7 @@ class Policy(Section):
     humans: HumanPolicy
     rate: RatePolicy
     monitor: MonitorPolicy = MonitorPolicy()
+    incidents: IncidentPolicy = IncidentPolicy()
     # In addition to the world file's zones, which a policy cannot remove.
     keep_out: list[KeepOutPolicy] = []
 

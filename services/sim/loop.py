@@ -12,7 +12,7 @@ from typing import Any, Protocol, TypeVar
 
 from schemas.actions import GoalState
 from schemas.common import ErrorKind, ServiceError
-from schemas.world import Empty, GroundTruth, MoveEntity, MoveReply
+from schemas.world import Empty, FaultReply, GroundTruth, InjectFault, MoveEntity, MoveReply
 from services.actionlib import Outcome
 from services.errors import CallError
 from services.robotrules import FEEDBACK_PERIOD
@@ -146,6 +146,10 @@ class SimLoop:
             raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
         assert moved.result is not None
         return moved.result
+
+    def fault(self, request: InjectFault) -> FaultReply:
+        """sim/fault: the fault injected (services/sim/faults.py), or why not."""
+        return self.answer(lambda sim: sim.faults.inject(request))
 
     # Goals
 

@@ -80,6 +80,9 @@ class SimNode:
         self._odom = node.publisher(keys.ODOM)
         self._objects = node.publisher(keys.OBJECTS)
         self._humans = node.publisher(keys.HUMANS)
+        # What only the sim feels (a collision, an object dropped), reported to safety's incident memory.
+        incidents = node.publisher(keys.INCIDENT_REPORT)
+        sim.faults.report = incidents.put
         # The camera renders and detects in a process of its own, never on the sim thread.
         self.renderer = Renderer(sim.world, config.camera)
         reports = (
@@ -115,6 +118,7 @@ class SimNode:
         node.serve(keys.ROBOT_DIAGNOSTICS, self._on_diagnostics, inline=True)
         node.serve(keys.GROUND_TRUTH, self.loop.ground_truth)
         node.serve(keys.SIM_MOVE, self.loop.move)
+        node.serve(keys.SIM_FAULT, self.loop.fault)
         node.serve(keys.CAMERA_IMAGE, self._on_camera_image)
 
     # Safety: fail closed (services/robotrules.py)

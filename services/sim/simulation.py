@@ -8,6 +8,7 @@ from schemas.actions import GoalState
 from schemas.world import World
 from services.sim.config import CameraConfig
 from services.sim.controllers import Controllers
+from services.sim.faults import Faults
 from services.sim.sensors import Sensors
 from services.sim.world import Motion, RobotBody, SimWorld
 
@@ -18,9 +19,10 @@ R = TypeVar("R")
 class Simulation:
     """One world, its robot's controllers and sensors, stepped by whoever owns this object (one thread).
 
-    Nothing here but the order of a step: `controllers` set the motors, then `scene` steps physics.
-    Ask the parts for the rest: `controllers` for goals, cmd_vel and the speed scale, `sensors` for
-    what the robot reports, `scene` for ground truth and moving things, `robot` for its joints.
+    Nothing here but the order of a step: `controllers` set the motors, then `scene` steps physics,
+    then `faults` looks at what happened. Ask the parts for the rest: `controllers` for goals,
+    cmd_vel and the speed scale, `sensors` for what the robot reports, `scene` for ground truth and
+    moving things, `faults` for injected faults and incidents, `robot` for its joints.
     """
 
     def __init__(
@@ -38,6 +40,8 @@ class Simulation:
         self.robot: RobotBody = self.scene.robot
         self.controllers = Controllers(self.scene)
         self.sensors = Sensors(self.scene, camera)
+        # Faults injected (sim/fault) and the incidents only the sim feels: collisions, drops.
+        self.faults = Faults(self.scene)
 
     @property
     def sim_time(self) -> float:
@@ -52,6 +56,7 @@ class Simulation:
         for _ in range(steps):
             self.controllers.tick()
             self.scene.step()
+            self.faults.tick()
 
     def run(self, motion: Motion[F, R], timeout: float) -> Motion[F, R]:
         """Step until `motion` ends, or abort it after `timeout` sim seconds. For tests and scripts."""

@@ -44,6 +44,7 @@ ARM_POSITION_GAIN = 0.3
 FINGER_SPEED = 0.1  # m/s per finger
 
 WALL_RGBA = [0.92, 0.9, 0.86, 1.0]
+BLOCK_RGBA = [0.95, 0.55, 0.1, 1.0]  # a temporary obstacle (sim/fault block): orange, to be seen
 HUMAN_RADIUS = 0.2
 HUMAN_HEIGHT = 1.7
 
@@ -94,6 +95,18 @@ Orientation = tuple[float, float, float, float]  # a quaternion (x, y, z, w), as
 
 
 @dataclass(frozen=True)
+class BlockShape:
+    """A temporary obstacle (sim/fault block): a static box `half` its sides (x, y, z) around
+    `centre`, turned `yaw` about the vertical; `name` for people ("a box in the kitchen doorway")."""
+
+    id: str
+    name: str
+    centre: Position
+    half: Position
+    yaw: float = 0.0
+
+
+@dataclass(frozen=True)
 class Poses:
     """Where everything that moves stood at one moment (`stamp`, wall clock): what another pybullet
     client with the same world loaded needs to draw the same scene (services/sim/renderer.py)."""
@@ -103,6 +116,8 @@ class Poses:
     objects: dict[str, tuple[Position, Orientation]]
     humans: dict[str, tuple[Position, Orientation]]
     holding: str | None
+    # The temporary obstacles standing now: the renderer adds and removes its copies to match.
+    blocks: tuple[BlockShape, ...] = ()
 
 
 def without_visuals(urdf: str) -> str:
@@ -265,6 +280,8 @@ class SimWorld:
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
         # Where people stand now: they move (sim/move), the world file only says where they start.
         self.human_poses = {h.id: h.pose for h in world.humans}
+        # Temporary obstacles (sim/fault block), by id, with their bodies.
+        self.blocks: dict[str, tuple[BlockShape, int]] = {}
         self.robot = RobotBody(self.bullet, world, visuals=visuals)
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
@@ -314,6 +331,19 @@ class SimWorld:
         body: int = self.bullet.createMultiBody(0.0, -1, visual, [pose.x, pose.y, HUMAN_HEIGHT / 2])
         return body
 
+    def add_block(self, block: BlockShape) -> int:
+        """A static box the base cannot drive through and the camera sees, until remove_block."""
+        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(block.half))
+        visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=list(block.half), rgbaColor=BLOCK_RGBA)
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, block.yaw])
+        body: int = self.bullet.createMultiBody(0.0, shape, visual, list(block.centre), orientation)
+        self.blocks[block.id] = (block, body)
+        return body
+
+    def remove_block(self, block_id: str) -> None:
+        _, body = self.blocks.pop(block_id)
+        self.bullet.removeBody(body)
+
     def close(self) -> None:
         self.bullet.disconnect()
 
@@ -362,6 +392,11 @@ class SimWorld:
         self.bullet.changeConstraint(self._grasp_constraint, maxForce=200.0)
         self.holding = object_id
         return None
+
+    def hand_position(self) -> Position:
+        """Where the hand is on the map (its link frame)."""
+        x, y, z = self.bullet.getLinkState(self.robot.id, self.robot.hand)[0]
+        return (float(x), float(y), float(z))
 
     def release(self) -> None:
         if self._grasp_constraint is not None:
@@ -425,7 +460,8 @@ class SimWorld:
         joints = tuple(s[0] for s in bullet.getJointStates(robot.id, robot.movable))
         objects = {name: bullet.getBasePositionAndOrientation(b) for name, b in self.object_bodies.items()}
         humans = {name: bullet.getBasePositionAndOrientation(b) for name, b in self.human_bodies.items()}
-        return Poses(stamp=stamp, joints=joints, objects=objects, humans=humans, holding=self.holding)
+        blocks = tuple(block for block, _ in self.blocks.values())
+        return Poses(stamp=stamp, joints=joints, objects=objects, humans=humans, holding=self.holding, blocks=blocks)
 
     def pose_as(self, poses: Poses) -> None:
         """Put every movable body where `poses` says, and hold what it holds: for a copy of the world
@@ -437,6 +473,13 @@ class SimWorld:
             for name, (position, orientation) in where.items():
                 bullet.resetBasePositionAndOrientation(bodies[name], position, orientation)
         self.holding = poses.holding
+        wanted = {block.id: block for block in poses.blocks}
+        for block_id, (block, _) in list(self.blocks.items()):
+            if wanted.get(block_id) != block:
+                self.remove_block(block_id)
+        for block_id, block in wanted.items():
+            if block_id not in self.blocks:
+                self.add_block(block)
 
     # The world changing under the robot's feet (sim/move)
 
@@ -491,6 +534,17 @@ class SimWorld:
         )
         log.info("moved %s to (%.2f, %.2f)", request.id, request.x, request.y)
         return Moved(id=request.id, position=Vec3(x=request.x, y=request.y, z=0.0))
+
+    def set_down(self, object_id: str, x: float, y: float, bottom: float | None = None) -> Drop:
+        """Put an object upright at (x, y) with its bottom at `bottom` (None: on the furniture there,
+        else the floor) and let it settle: for faults, which choose the spot themselves."""
+        return self._drop_object(MoveEntity(id=object_id, x=x, y=y, z=bottom))
+
+    def settle(self, object_id: str) -> Drop:
+        """Watch an object that is falling where it is until it comes to rest."""
+        drop = Drop(self, object_id)
+        self._drops.append(drop)
+        return drop
 
     def _drop_object(self, request: MoveEntity) -> Drop:
         """Upright at (x, y) with its bottom at z, or on whatever furniture is there, else the floor."""

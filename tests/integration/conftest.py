@@ -51,10 +51,11 @@ def write_config(
     extra: str = "",
     strict_timing: bool = False,
     sim_options: str = "",
+    safety_options: str = "",
 ) -> Path:
     """The stack's config file; `extra`: more tables, appended; `strict_timing`: the robot's
-    heartbeat bounds at their defaults (else LOADED_MACHINE_HEARTBEAT); `sim_options`: more lines
-    of the [sim] table."""
+    heartbeat bounds at their defaults (else LOADED_MACHINE_HEARTBEAT); `sim_options`, `safety_options`:
+    more lines of the [sim] and [safety] tables."""
     path.write_text(
         f"[sim]\nrealtime_factor = {realtime_factor}\n"
         + ("" if strict_timing else LOADED_MACHINE_HEARTBEAT)
@@ -63,6 +64,7 @@ def write_config(
         f'[recorder]\noutput_dir = "{path.parent / "recordings"}"\n\n'
         f'[safety]\noperator_token_file = "{path.parent / "operator-token"}"\n'
         + (f'policy = "{policy}"\n' if policy else "")
+        + safety_options
         + (f"\n{extra}" if extra else "")
     )
     return path
@@ -81,9 +83,12 @@ def start_stack(
     extra_config: str = "",
     strict_timing: bool = False,
     sim_options: str = "",
+    safety_options: str = "",
 ) -> Stack:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(ALL_SERVICES)))
-    config = write_config(tmp / "tether.toml", realtime_factor, policy, extra_config, strict_timing, sim_options)
+    config = write_config(
+        tmp / "tether.toml", realtime_factor, policy, extra_config, strict_timing, sim_options, safety_options
+    )
     token = tmp / "operator-token"
     supervisor = Supervisor(settings, tmp / "logs", config, extra_env={"TETHER_OPERATOR_TOKEN_FILE": str(token)})
     node: Node | None = None

@@ -187,6 +187,22 @@ def test_only_the_operator_resets_and_only_the_robot_reports_people(fleet: Fleet
     assert not put_passes(fleet, fleet.s("r1", "planner"), "tether/r1/world/humans", "tether/r1/plan/marker")
 
 
+def test_only_the_operator_forgets_an_incident_and_only_the_robot_side_reports_one(fleet: Fleet) -> None:
+    forget, report, listing = (
+        "tether/r1/safety/incidents/forget",
+        "tether/r1/safety/incidents/report",
+        "tether/r1/safety/incidents",
+    )
+    assert query_passes(fleet, fleet.s("r1", "operator"), forget, "tether/r1/plan/marker")
+    agent, agent_marker = fleet.s("r1", "agent"), marker_of("r1", "agent")
+    assert not query_passes(fleet, agent, forget, agent_marker)
+    assert query_passes(fleet, agent, listing, agent_marker)  # the agent may read what is remembered
+    assert not put_passes(fleet, agent, report, agent_marker)  # but not make up an incident
+    for identity in ("executor", "sim"):
+        assert put_passes(fleet, fleet.s("r1", identity), report, "tether/r1/plan/marker"), identity
+    assert not query_passes(fleet, fleet.s("r1", "planner"), forget, "tether/r1/plan/marker")
+
+
 def test_each_liveliness_token_only_from_its_own_service(fleet: Fleet) -> None:
     assert token_passes(fleet, fleet.s("r1", "safety"), "tether/r1/alive/safety", "tether/r1/plan/marker")
     assert token_passes(fleet, fleet.s("r1", "executor"), "tether/r1/alive/executor", "tether/r1/plan/marker")

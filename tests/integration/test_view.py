@@ -3,7 +3,8 @@
 One stack (sim, safety, recorder) and one `tether view` for the module. The client is
 @foxglove/ws-protocol's FoxgloveClient under node (tests/integration/foxglove_client, installed
 with `npm ci` once into a cache folder); every message it decodes is checked against the official
-JSON Schemas of @foxglove/schemas, which it prints first.
+JSON Schemas of @foxglove/schemas, which it prints first. The same client publishes twists as
+Foxglove's Teleop panel does, and the robot drives through safety.
 """
 
 from __future__ import annotations
@@ -31,11 +32,13 @@ from mcap.reader import make_reader
 
 from schemas import keys
 from schemas.common import Pose2D
-from schemas.robot import NavigateToPoseGoal
+from schemas.robot import NavigateToPoseGoal, Odometry, Twist
+from schemas.safety import Decision, Rule, SafetyEvent
 from services.actionlib import ActionClient
 from services.recorder import scene3d
 from services.recorder.reader import read_recording
 from tests.integration.conftest import Stack, dump_logs, start_stack, stop_stack
+from tether.viewteleop import BURST, DEADMAN, RATE_HZ, TELEOP_TOPIC
 
 CLIENT_SOURCE = Path(__file__).with_name("foxglove_client")
 DEADLINE = 60.0
@@ -77,8 +80,13 @@ class Client:
     _reader: threading.Thread = field(init=False)
 
     @classmethod
-    def start(cls, script: Path, *args: str) -> Client:
-        proc = subprocess.Popen(["node", str(script), *args], stdout=subprocess.PIPE, text=True)
+    def start(cls, script: Path, *args: str, stdin: bool = False) -> Client:
+        proc = subprocess.Popen(
+            ["node", str(script), *args],
+            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         client = cls(proc)
         client._reader = threading.Thread(target=client._read, daemon=True)
         client._reader.start()
@@ -103,13 +111,23 @@ class Client:
                 self._cond.wait(min(left, 0.5))
         return True
 
+    def step(self, op: str, expect: str, timeout: float = 20.0, **args: Any) -> dict[str, Any]:
+        """One step of the teleop mode, and the line that answers it (it has the key `expect`)."""
+        assert self.proc.stdin is not None
+        seen = len(self.lines)
+        self.proc.stdin.write(json.dumps({"op": op, **args}) + "\n")
+        self.proc.stdin.flush()
+        assert self.wait_for(lambda lines: any(expect in line for line in lines[seen:]), timeout), self.lines[seen:]
+        return next(line for line in self.lines[seen:] if expect in line)
+
     def close(self) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(timeout=10)
         self._reader.join(timeout=10)
-        assert self.proc.stdout is not None
-        self.proc.stdout.close()
+        for stream in (self.proc.stdin, self.proc.stdout):
+            if stream is not None:
+                stream.close()
 
     def messages(self, topic: str) -> list[dict[str, Any]]:
         return [line["message"] for line in self.lines if line.get("topic") == topic and "message" in line]
@@ -126,6 +144,7 @@ class Viewed:
     url: str
     script: Path
     official: dict[str, Any]
+    log: Path
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +156,18 @@ def viewed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Viewed]:
     stack = start_stack(tmp, 4.0, services=("sim", "safety", "recorder"))
     log_file = (tmp / "view.log").open("w")
     view = subprocess.Popen(
-        [sys.executable, "-m", "tether", "view", "--port", "0", "--json", "--config", str(tmp / "tether.toml")],
+        [
+            sys.executable,
+            "-m",
+            "tether",
+            "view",
+            "--teleop",
+            "--port",
+            "0",
+            "--json",
+            "--config",
+            str(tmp / "tether.toml"),
+        ],
         env=stack.supervisor.env(),
         stdout=subprocess.PIPE,
         stderr=log_file,
@@ -148,7 +178,8 @@ def viewed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Viewed]:
         assert view.stdout is not None
         started = json.loads(view.stdout.readline() or "{}")  # printed once serving; EOF if it failed
         assert started.get("ok"), f"tether view did not start: {started}\n{(tmp / 'view.log').read_text()}"
-        yield Viewed(stack, view, started["url"], script, official)
+        assert started["teleop"] == TELEOP_TOPIC
+        yield Viewed(stack, view, started["url"], script, official, tmp / "view.log")
         assert view.poll() is None, "tether view died"
         os.killpg(view.pid, signal.SIGINT)
         assert view.wait(timeout=20) == 0
@@ -242,6 +273,176 @@ def test_a_hostile_client_neither_stops_the_view_nor_holds_up_safety(viewed: Vie
     finally:
         client.close()
     assert {"done": "all"} in client.lines
+
+
+class Heard:
+    """What one key carried, each message with its arrival time (Unix seconds)."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[float, Any]] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, message: Any) -> None:
+        with self._cond:
+            self.items.append((time.time(), message))
+            self._cond.notify_all()
+
+    def first(self, test: Any, timeout: float = 10.0) -> tuple[float, Any]:
+        """The first (arrival, message) that passes `test`, waiting for it up to `timeout` seconds."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                found = next(((at, m) for at, m in self.items if test(at, m)), None)
+                left = deadline - time.monotonic()
+                if found is not None or left <= 0:
+                    assert found is not None, f"not heard within {timeout} s; the last: {self.items[-3:]}"
+                    return found
+                self._cond.wait(min(left, 0.5))
+
+
+def twist(lx: float = 0.0, az: float = 0.0) -> dict[str, dict[str, float]]:
+    return {"linear": {"x": lx, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": az}}
+
+
+# Bounds a halt in wall seconds (the deadman): with the realtime tests, at normal priority.
+@pytest.mark.realtime
+def test_foxglove_teleop_drives_through_safety_and_the_deadman_stops_it(viewed: Viewed) -> None:
+    node = viewed.stack.node
+    odom, teleop, events = Heard(), Heard(), Heard()
+
+    def on_event(event: SafetyEvent) -> None:
+        # What reached safety on cmd/teleop/cmd_vel (each twist is decided and reported), as sent.
+        events(event)
+        if event.key == keys.TELEOP_CMD_VEL.path and "requested_mps" in event.values:
+            teleop(Twist(linear_x=event.values["requested_mps"], angular_z=event.values["requested_rps"]))
+
+    subscriptions = [node.subscribe(keys.ODOM, odom), node.subscribe(keys.SAFETY_EVENTS, on_event)]
+    client = Client.start(viewed.script, "teleop", viewed.url, "120", stdin=True)
+    try:
+        assert client.wait_for(lambda lines: any("serverInfo" in line for line in lines), 20.0), client.lines
+        info = next(line["serverInfo"] for line in client.lines if "serverInfo" in line)
+        assert "clientPublish" in info["capabilities"] and info["supportedEncodings"] == ["json"]
+
+        def still(at: float, o: Odometry) -> bool:
+            return abs(o.linear_x) < 0.01 and abs(o.angular_z) < 0.01
+
+        # The base stands still first (the first test's drive has ended).
+        odom.first(lambda at, o: still(at, o) and at > time.time() - 0.2, 20.0)
+
+        # A channel on another topic is refused, and the Foxglove user is told why.
+        twist_type = {"encoding": "json", "schemaName": "geometry_msgs/Twist"}
+        other = client.step("advertise", "advertised", topic="/other", **twist_type)["advertised"]
+        assert client.wait_for(lambda lines: any("/other" in str(line.get("status")) for line in lines), 10.0)
+        channel = client.step("advertise", "advertised", topic=TELEOP_TOPIC, **twist_type)["advertised"]
+        # Garbage, a NaN-ish number, a string, an absurd speed, and a twist on the refused channel.
+        for text in ("not json", '{"linear":{"x":1e999}}', '{"linear":{"x":"fast"}}', '{"linear":{"x":1e6}}'):
+            client.step("raw", "raw", channel=channel, text=text)
+        client.step("raw", "raw", channel=other, text=json.dumps(twist(0.5)))
+        start = odom.items[-1][1]
+
+        # The panel's forward button held 1.5 s at 10 Hz: the view, still serving, passes each on.
+        client.step("publish", "published", timeout=30.0, channel=channel, message=twist(0.1), hz=10, seconds=1.5)
+        driven = [(at, t) for at, t in teleop.items if t.linear_x != 0.0]
+        assert teleop.items[0][1].linear_x == 0.1, "something of the refused input reached the robot"
+        assert len(driven) >= 12 and all(t == Twist(linear_x=0.1) for _, t in driven)
+        last_driven = driven[-1][0]
+        # The deadman: the view's stop, DEADMAN after the last twist, and the base standing soon after.
+        stop_at, _ = teleop.first(lambda at, t: at > last_driven and t.linear_x == 0.0 and t.angular_z == 0.0)
+        assert DEADMAN - 0.05 <= stop_at - last_driven <= DEADMAN + 0.25, stop_at - last_driven
+        stood_at, stood = odom.first(lambda at, o: at > last_driven and still(at, o))
+        assert stood_at - last_driven <= DEADMAN + 0.4, stood_at - last_driven
+        moved = math.hypot(stood.pose.x - start.pose.x, stood.pose.y - start.pose.y)
+        assert 0.2 < moved < 2.0, f"moved {moved:.2f} m from {start.pose} to {stood.pose}"
+
+        # A flood: a burst of the client's budget is passed on, the rest dropped.
+        flood_from = time.time()
+        client.step("burst", "burst", channel=channel, message=twist(), count=500)
+        # Over the speed limit, held 0.6 s: safety clamps it and says so; then the panel's channel goes
+        # away (as when the panel closes or Foxglove disconnects): a stop at once, not after the deadman.
+        client.step("publish", "published", channel=channel, message=twist(-5.0), hz=10, seconds=0.6)
+        client.step("unadvertise", "unadvertised", channel=channel)
+        fast = [(at, t) for at, t in teleop.items if t.linear_x == -5.0]
+        flooded = [at for at, t in teleop.items if flood_from < at < fast[0][0]]
+        # The bucket's own bound: its burst, and what it refilled while the flood arrived (a loaded
+        # machine spreads the 500 messages out); nowhere near all 500.
+        spread = flooded[-1] - flooded[0] if flooded else 0.0
+        assert 1 <= len(flooded) <= BURST + RATE_HZ * spread + 3, (len(flooded), spread)
+        assert len(flooded) < 100, len(flooded)
+        gone_at, _ = teleop.first(lambda at, t: at > fast[-1][0] and t.linear_x == 0.0)
+        assert gone_at - fast[-1][0] < DEADMAN - 0.15, gone_at - fast[-1][0]
+        _, clamp = events.first(
+            lambda at, e: e.key == keys.TELEOP_CMD_VEL.path and e.values.get("requested_mps") == -5.0
+        )
+        assert (clamp.decision, clamp.rule) == (Decision.CLAMPED, Rule.BASE_SPEED), clamp
+        assert -0.6 <= clamp.values["speed_mps"] < 0.0
+        client.step("close", "done")
+    finally:
+        client.close()
+        for subscription in subscriptions:
+            subscription.undeclare()
+    assert viewed.view.poll() is None, "tether view died"
+    log = viewed.log.read_text()
+    for reason in (
+        "not taken: topic '/other'",
+        "not a geometry_msgs/Twist in JSON",
+        f"channel {other} was not taken",
+        "more than 50 messages a second from this client: dropped",
+        "gone while driving: stopped",
+    ):
+        assert reason in log, reason
+
+
+def test_teleop_is_off_when_the_view_binds_beyond_loopback(viewed: Viewed) -> None:
+    stack = viewed.stack
+    events = Heard()
+    subscription = stack.node.subscribe(keys.SAFETY_EVENTS, events)
+    args = [
+        "--teleop",
+        "--host",
+        "0.0.0.0",
+        "--allow-remote",
+        "--port",
+        "0",
+        "--json",
+        "--no-arm",
+        "--camera-rate",
+        "0",
+    ]
+    view = subprocess.Popen(
+        [sys.executable, "-m", "tether", "view", *args, "--config", str(stack.tmp / "tether.toml")],
+        env=stack.supervisor.env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    client = None
+    try:
+        assert view.stdout is not None and view.stderr is not None
+        started = json.loads(view.stdout.readline() or "{}")
+        assert started.get("ok") and started["teleop"] is None, started
+        client = Client.start(viewed.script, "teleop", f"ws://127.0.0.1:{started['port']}", "60", stdin=True)
+        assert client.wait_for(lambda lines: any("serverInfo" in line for line in lines), 20.0), client.lines
+        info = next(line["serverInfo"] for line in client.lines if "serverInfo" in line)
+        assert "clientPublish" not in info["capabilities"]
+        channel = client.step("advertise", "advertised", topic=TELEOP_TOPIC, encoding="json", schemaName="x")
+        client.step("publish", "published", channel=channel["advertised"], message=twist(0.2), hz=10, seconds=0.5)
+        client.step("close", "done")
+        os.killpg(view.pid, signal.SIGINT)
+        assert view.wait(timeout=20) == 0
+        assert "teleop from Foxglove is off: --host 0.0.0.0 is not loopback" in view.stderr.read()
+        # Nothing of it reached safety (each twist there is decided and reported on safety/events).
+        assert not [e for _, e in events.items if e.key == keys.TELEOP_CMD_VEL.path]
+    finally:
+        subscription.undeclare()
+        if client is not None:
+            client.close()
+        if view.poll() is None:
+            os.killpg(view.pid, signal.SIGKILL)
+            view.wait(timeout=10)
+        for stream in (view.stdout, view.stderr):
+            if stream is not None:
+                stream.close()
 
 
 def test_the_recording_carries_the_scene_frames_and_log_for_foxglove(viewed: Viewed) -> None:

@@ -291,3 +291,31 @@ def test_each_service_may_serve_only_its_own_keys(tmp_path: Path) -> None:
         # Each service answers `tether status` for its own process, and for no other's.
         process = {k for k in served_by(identity) if k.startswith("tether/r1/_process/")}
         assert process == ({f"tether/r1/_process/{identity}"} if identity in deployment.SERVICE_IDENTITIES else set())
+
+
+def test_only_the_operator_forgets_incidents_everyone_lists_them_and_executor_and_robot_report(
+    tmp_path: Path,
+) -> None:
+    deployment.init(tmp_path, ["r1"])
+    control = acl(tmp_path)
+    rules = {r["id"]: r for r in control["rules"]}  # type: ignore[union-attr]
+
+    def may(identity: str, message: str) -> set[str]:
+        return {
+            k
+            for p in control["policies"]  # type: ignore[union-attr]
+            if f"r1-{identity}" in p["subjects"]
+            for name in p["rules"]
+            if message in rules[name]["messages"] and rules[name]["flows"] == ["ingress"]
+            for k in rules[name]["key_exprs"]
+        }
+
+    forget, listing, report = (
+        "tether/r1/safety/incidents/forget",
+        "tether/r1/safety/incidents",
+        "tether/r1/safety/incidents/report",
+    )
+    assert [i for i in deployment.IDENTITIES if forget in may(i, "query")] == ["operator"]
+    assert all(listing in may(i, "query") for i in deployment.IDENTITIES)
+    reporters = [i for i in deployment.IDENTITIES if report in may(i, "put") or "tether/r1/safety/**" in may(i, "put")]
+    assert sorted(reporters) == ["executor", "ros2", "safety", "sim"]

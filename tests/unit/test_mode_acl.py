@@ -42,7 +42,7 @@ def control(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[dict[str
     return loaded
 
 
-OPERATOR_ONLY = (keys.SET_MODE, keys.APPROVAL_DECIDE, keys.RESET)
+OPERATOR_ONLY = (keys.SET_MODE, keys.APPROVAL_DECIDE, keys.RESET, keys.FORGET_INCIDENT)
 
 
 @pytest.mark.parametrize("service", OPERATOR_ONLY, ids=lambda s: s.path)
@@ -87,7 +87,18 @@ def test_no_agent_path_names_the_mode_or_the_approval_keys() -> None:
     root = Path(__file__).resolve().parents[2]
     files = [root / "tether" / "agentapi.py", root / "tether" / "mcpserver.py", root / "tether" / "ask.py"]
     files += sorted((root / "services" / "planner").glob("*.py")) + sorted((root / "services" / "agent").glob("*.py"))
-    names = ("SET_MODE", "APPROVAL_DECIDE", "ApprovalDecision", "ModeRequest", "safety/mode", "approval/decide")
+    names = (
+        "SET_MODE",
+        "APPROVAL_DECIDE",
+        "ApprovalDecision",
+        "ModeRequest",
+        "safety/mode",
+        "approval/decide",
+        # Nor forget an incident or clear a caution zone.
+        "FORGET_INCIDENT",
+        "ForgetIncident",
+        "incidents/forget",
+    )
     for path in files:
         source = path.read_text()
         for name in names:

@@ -6,6 +6,7 @@ the stale one alone."""
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
 import uuid
@@ -20,6 +21,7 @@ import pytest
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, GoalResponse, GoalState, SendGoal
 from schemas.common import Pose2D
+from schemas.incidents import IncidentKind, IncidentQuery
 from schemas.robot import (
     ARM_JOINTS,
     FollowJointTrajectoryFeedback,
@@ -38,9 +40,10 @@ from services.errors import GoalRejected
 from services.robotmodel import ArmModel
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
+from services.safety.incidents import Draft, IncidentStore
 from services.safety.latch import EstopLatch
 from services.safety.monitor import Separation
-from services.safety.node import SafetyNode
+from services.safety.node import MAX_NOTED, QUERY_RATE, SafetyNode
 from services.safety.policy import START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
@@ -131,12 +134,21 @@ def start(tmp_path: Path) -> Iterator[Start]:
         clock: Callable[[], float] = time.monotonic,
         state_file: Path = tmp_path / "estop.json",
         keepalive: Callable[[], None] = lambda: None,
+        incidents: IncidentStore | None = None,
     ) -> tuple[Recorder, SafetyNode]:
         node = Recorder(state_file)
         if state_file.parent.is_dir() and not state_file.exists():
             state_file.write_bytes(msgspec.json.encode(EstopState(latched=False)))  # as a fresh install's
         latch = EstopLatch("token", state_file)
-        safety = SafetyNode(node, policy, latch, SafetyConfig(), clock, keepalive=keepalive)  # type: ignore[arg-type]
+        safety = SafetyNode(
+            node,  # type: ignore[arg-type]
+            policy,
+            latch,
+            SafetyConfig(),
+            clock,
+            keepalive=keepalive,
+            incidents=incidents,
+        )
         started.append(safety)
         return node, safety
 
@@ -399,3 +411,42 @@ def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_
     assert stand(humans.slow_distance - 0.05).scale == reduced
     assert stand(humans.slow_distance + humans.release_margin / 2).scale == reduced, "the speed went up too soon"
     assert stand(humans.slow_distance + humans.release_margin + 0.05).scale == 1.0
+
+
+def test_close_returns_with_the_queue_full_and_the_store_stuck_on_a_locked_file(start: Start, tmp_path: Path) -> None:
+    """The recording thread is stuck adding an incident to a file another process holds locked (for up
+    to a minute) and the queue of incidents noticed is full: close still returns, after its drain."""
+    path = tmp_path / "incidents.sqlite"
+    store = IncidentStore(path, busy_timeout=60.0)
+    _node, safety = start(incidents=store)
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")
+    closed = threading.Event()
+    try:
+        for n in range(MAX_NOTED + 2):
+            safety._note(Draft(IncidentKind.VETO, f"veto {n}"))
+        assert safety._noted.full(), "one taken by the stuck thread at most: the queue is full"
+        threading.Thread(target=lambda: (safety.close(drain=0.2), closed.set()), daemon=True).start()
+        assert closed.wait(30.0), "close waited for the store"
+        assert safety._incident_thread.is_alive(), "the recording thread was stuck in the file all along"
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    safety._incident_thread.join(30.0)
+    assert not safety._incident_thread.is_alive(), "once the file is free the thread ends: past its drain"
+    assert store.query(IncidentQuery(limit=1000)).total < MAX_NOTED, "the rest were not waited for"
+    store.close()
+
+
+def test_incident_queries_are_answered_from_memory_at_a_bounded_rate(start: Start, tmp_path: Path) -> None:
+    store = IncidentStore(tmp_path / "incidents.sqlite")
+    node, _safety = start(incidents=store)
+    store.add(IncidentKind.DROPPED, "the cup slipped", x=1.0, y=1.0)
+    ask = node.callbacks[keys.INCIDENTS.path]
+    answers = [ask(IncidentQuery()) for _ in range(100)]  # far more than a second's worth, at once
+    served = [a for a in answers if not a.store]
+    refused = [a for a in answers if a.store]
+    assert served and all(a.total == 1 for a in served)
+    assert len(served) <= QUERY_RATE + 1, "a burst of at most a second's worth"
+    assert refused and all("too many queries" in a.store and not a.incidents for a in refused)
+    store.close()

@@ -90,6 +90,7 @@ ELSEWHERE = {
     Rule.WATCHDOG,
     Rule.MODE,  # the control mode, not a limit: test_safety_modes.py, test_modes.py
     Rule.APPROVAL,  # supervised plans: test_safety_modes.py, test_modes.py
+    Rule.CAUTION_ZONE,  # safety's memory of incidents: test_gate_incidents.py, test_caution_zone.py
 }
 
 

@@ -470,3 +470,39 @@ def test_inspect_reads_the_parts_of_a_rotated_recording_as_one(
     assert document["rows"] == json.loads(whole.stdout)["rows"]
     twice = CliRunner().invoke(cli, [str(first), str(first)])
     assert twice.exit_code == 2 and "given twice" in flat(twice.stderr)
+
+
+def test_faults_incidents_and_recoveries_are_rows(tmp_path: Path) -> None:
+    from schemas.incidents import Incident, IncidentKind
+    from schemas.planner import Recovery, RecoveryOutcome
+    from schemas.world import FaultInjected, FaultKind, InjectFault
+
+    w = Writer(tmp_path / "recovered.mcap")
+    slip = InjectFault(kind=FaultKind.SLIP, target="red_cup")
+    w.trace(0.1, "sim", keys.SIM_FAULT.path, slip, FaultInjected(kind=FaultKind.SLIP, message="red cup slips next"))
+    w.trace(0.2, "sim", keys.SIM_FAULT.path, InjectFault(kind=FaultKind.HIDE, target="ghost"), error="no ghost")
+    dropped = Incident(id=4, stamp=1.8e9, kind=IncidentKind.DROPPED, reason="red cup fell", x=2.5, y=0.63)
+    w.topic(0.3, keys.NEW_INCIDENT, dropped)
+    recovery = Recovery(
+        request_id="r1",
+        number=1,
+        stamp=1.8e9,
+        outcome=RecoveryOutcome.SUCCEEDED,
+        failed_goal="a" * 32,
+        failure="precondition",
+        step=3,
+        goal_id="b" * 32,
+    )
+    w.topic(0.4, keys.PLANNER_RECOVERIES, recovery)
+    rows = timeline_of(w.finish()).rows
+    assert [(r.kind, r.level) for r in rows] == [
+        (EventKind.WORLD, Level.WARN),
+        (EventKind.WORLD, Level.WARN),
+        (EventKind.INCIDENT, Level.WARN),
+        (EventKind.RECOVERY, Level.GOOD),
+    ]
+    assert "fault slip red_cup injected in the simulation: red cup slips next" in rows[0].text
+    assert "refused: no ghost" in rows[1].text
+    assert rows[2].text == "incident 4 remembered: dropped at (2.50, 0.63): red cup fell"
+    assert rows[2].target == (2.5, 0.63)
+    assert rows[3].text.startswith("recovery 1 after precondition at step 3: succeeded as plan ")

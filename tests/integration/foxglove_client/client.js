@@ -6,6 +6,11 @@
 //   schemas: only the official JSON Schemas of @foxglove/schemas.
 //   hostile URL SECONDS: garbage and protocol abuse on a raw socket, then subscribes to every channel
 //     and stops reading (a viewer that does not keep up); prints what the server answered.
+//   teleop URL SECONDS: client publish as Foxglove's Teleop panel does it, step by step as the test
+//     asks on stdin, one JSON object a line: {op: "advertise", topic, encoding, schemaName} -> {advertised: id},
+//     {op: "publish", channel, message, hz, seconds} (the panel holding a button) -> {published: n, last: s},
+//     {op: "burst", channel, message, count} (a flood) -> {burst: n}, {op: "raw", channel, text} -> {raw: n},
+//     {op: "unadvertise", channel} -> {unadvertised: id, at: s}, {op: "close"}; times are Unix seconds.
 "use strict";
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const schemas = require("@foxglove/schemas/jsonschema");
@@ -113,7 +118,51 @@ function hostile() {
   deadline.refresh();
 }
 
+function teleop() {
+  const ws = new WebSocket(url, [SUBPROTOCOL]);
+  const client = new FoxgloveClient({ ws });
+  const encoder = new TextEncoder();
+  const now = () => Date.now() / 1000;
+  client.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
+  client.on("close", () => finish("closed"));
+  client.on("serverInfo", (info) => out({ serverInfo: info }));
+  client.on("status", (status) => out({ status }));
+  const steps = {
+    advertise: (s) => out({ advertised: client.advertise({ topic: s.topic, encoding: s.encoding, schemaName: s.schemaName }) }),
+    publish: (s) => {
+      // As the panel does: one at once, then one every 1/hz seconds while the button is held.
+      const data = encoder.encode(JSON.stringify(s.message));
+      let n = 0;
+      const send = () => { client.sendMessage(s.channel, data); n += 1; };
+      send();
+      const timer = setInterval(send, 1000 / s.hz);
+      setTimeout(() => { clearInterval(timer); out({ published: n, last: now() }); }, s.seconds * 1000);
+    },
+    burst: (s) => {
+      const data = encoder.encode(JSON.stringify(s.message));
+      for (let i = 0; i < s.count; i++) client.sendMessage(s.channel, data);
+      out({ burst: s.count, at: now() });
+    },
+    raw: (s) => { client.sendMessage(s.channel, encoder.encode(s.text)); out({ raw: s.text.length }); },
+    unadvertise: (s) => { client.unadvertise(s.channel); out({ unadvertised: s.channel, at: now() }); },
+    close: () => ws.close(),
+  };
+  let pending = "";
+  process.stdin.setEncoding("utf8");
+  process.stdin.on("data", (chunk) => {
+    pending += chunk;
+    let newline;
+    while ((newline = pending.indexOf("\n")) >= 0) {
+      const step = JSON.parse(pending.slice(0, newline));
+      pending = pending.slice(newline + 1);
+      steps[step.op](step);
+    }
+  });
+  process.stdin.on("end", () => ws.close());
+}
+
 if (mode === "schemas") { official(); process.exit(0); }
 else if (mode === "watch") watch();
 else if (mode === "hostile") hostile();
+else if (mode === "teleop") teleop();
 else { out({ error: `unknown mode ${mode}` }); process.exit(2); }

@@ -1,0 +1,286 @@
+"""Teleop from Foxglove through `tether view`: what a client message becomes, what is refused, the deadman."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from schemas.robot import Twist
+from tether.view import Listener, TeleopBridge
+from tether.viewteleop import (
+    BURST,
+    DEADMAN,
+    MAX_CHANNELS,
+    MAX_CHANNELS_PER_CLIENT,
+    RATE_HZ,
+    TELEOP_TOPIC,
+    RateLimited,
+    Refused,
+    TeleopGate,
+    check_channel,
+    to_twist,
+)
+
+
+def twist_json(lx: Any = 0.0, az: Any = 0.0, **more: Any) -> bytes:
+    message: dict[str, dict[str, Any]] = {"linear": {"x": lx, "y": 0, "z": 0}, "angular": {"x": 0, "y": 0, "z": az}}
+    for name, value in more.items():
+        part, axis = name.split("_")
+        message[part][axis] = value
+    return json.dumps(message).encode()
+
+
+def test_a_twist_from_the_teleop_panel_becomes_linear_x_and_angular_z() -> None:
+    assert to_twist(twist_json(0.3, -0.8)) == (Twist(linear_x=0.3, angular_z=-0.8), [])
+    # Integers, missing parts, unknown extra fields: as the panel or a hand-written client sends them.
+    assert to_twist(b'{"linear":{"x":1}}') == (Twist(linear_x=1.0), [])
+    assert to_twist(b"{}") == (Twist(), [])
+    # A value between the robot's limits and the schema's bound passes: safety clamps and reports it.
+    assert to_twist(twist_json(5.0))[0].linear_x == 5.0
+
+
+def test_the_axes_a_ground_robot_lacks_are_ignored_and_named() -> None:
+    twist, ignored = to_twist(twist_json(0.2, 0.0, linear_y=0.5, angular_x=-1.0))
+    assert twist == Twist(linear_x=0.2)
+    assert ignored == ["linear.y", "angular.x"]
+
+
+@pytest.mark.parametrize(
+    ("data", "why"),
+    [
+        (b"not json", "not a geometry_msgs/Twist in JSON"),
+        (b'{"linear":', "not a geometry_msgs/Twist in JSON"),
+        (b'{"linear":{"x":"fast"}}', "not a geometry_msgs/Twist in JSON"),
+        (b'{"linear":{"x":null}}', "not a geometry_msgs/Twist in JSON"),  # JSON.stringify(NaN)
+        (b'{"linear":{"x":NaN}}', "not a geometry_msgs/Twist in JSON"),
+        (b'{"linear":{"x":1e999}}', "not a geometry_msgs/Twist in JSON"),
+        (b'{"linear":[1,2,3]}', "not a geometry_msgs/Twist in JSON"),
+        (b"[" * 2000, "not a geometry_msgs/Twist in JSON"),
+        (b"[" * 5000, "5000 bytes"),
+        (b"\xff\xfe", "not a geometry_msgs/Twist in JSON"),
+        (twist_json(1e6), "linear.x is 1e+06, beyond +-100"),
+        (twist_json(0.0, -101.0), "angular.z is -101, beyond +-100"),
+        (twist_json(0.0, 0.0, linear_z=1e300), "linear.z is 1e+300, beyond +-100"),
+        (b" " * 4096, "4096 bytes"),
+    ],
+)
+def test_anything_but_a_sane_twist_is_refused_with_its_reason(data: bytes, why: str) -> None:
+    with pytest.raises(Refused, match=why.replace("+", r"\+")):
+        to_twist(data)
+
+
+def test_only_a_json_twist_on_the_teleop_topic_is_taken() -> None:
+    check_channel(TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    check_channel(TELEOP_TOPIC, "json", "geometry_msgs/msg/Twist")
+    with pytest.raises(Refused, match="teleop is taken on '/cmd_vel' only"):
+        check_channel("tether/robot1/cmd/teleop/cmd_vel", "json", "geometry_msgs/Twist")
+    with pytest.raises(Refused, match="encoding 'cdr'"):
+        check_channel(TELEOP_TOPIC, "cdr", "geometry_msgs/Twist")
+    with pytest.raises(Refused, match="schema 'std_msgs/String'"):
+        check_channel(TELEOP_TOPIC, "json", "std_msgs/String")
+
+
+def test_a_message_on_a_channel_not_taken_is_refused() -> None:
+    gate = TeleopGate()
+    with pytest.raises(Refused, match="channel 7 was not taken"):
+        gate.message(1, 7, twist_json(0.2), 0.0)
+    with pytest.raises(Refused):
+        gate.advertise(1, 8, "/elsewhere", "json", "geometry_msgs/Twist")
+    with pytest.raises(Refused, match="channel 8 was not taken"):
+        gate.message(1, 8, twist_json(0.2), 0.0)
+    # Another client cannot use a channel id that a first one was given.
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    with pytest.raises(Refused, match="channel 1 was not taken"):
+        gate.message(2, 1, twist_json(0.2), 0.0)
+    assert gate.accepted == 0 and gate.refused == 4
+
+
+def test_a_client_advertising_many_channels_gets_a_few() -> None:
+    gate = TeleopGate()
+    refused = 0
+    for channel in range(100):
+        try:
+            gate.advertise(1, channel, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+        except Refused as exc:
+            assert "at most 4" in str(exc)
+            refused += 1
+    assert gate.channels == MAX_CHANNELS_PER_CLIENT and refused == 100 - MAX_CHANNELS_PER_CLIENT
+    for client in range(2, 100):
+        for channel in range(MAX_CHANNELS_PER_CLIENT):
+            try:
+                gate.advertise(client, channel, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+            except Refused as exc:
+                assert f"at most {MAX_CHANNELS}" in str(exc)
+    assert gate.channels == MAX_CHANNELS
+    # A channel given back makes room.
+    gate.unadvertise(1, 0)
+    gate.advertise(99, 9, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+
+
+def test_a_flood_is_cut_to_the_rate_and_counted() -> None:
+    gate = TeleopGate()
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.advertise(2, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    taken = dropped = 0
+    for i in range(2000):  # 1000 a second for two seconds
+        try:
+            gate.message(1, 1, twist_json(0.1), i / 1000)
+            taken += 1
+        except RateLimited:
+            dropped += 1
+    assert taken == pytest.approx(BURST + 2 * RATE_HZ, abs=2)
+    assert gate.rate_dropped == dropped == 2000 - taken
+    # Each client has its own budget: the flood of one does not silence another.
+    gate.message(2, 1, twist_json(0.1), 2.0)
+
+
+def test_the_deadman_stops_once_half_a_second_after_the_last_message() -> None:
+    gate = TeleopGate()
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    for i in range(10):  # the panel at 10 Hz
+        gate.message(1, 1, twist_json(0.3), i / 10)
+        assert gate.expire(i / 10 + 0.09) is None
+    assert gate.expire(0.9 + DEADMAN - 0.01) is None
+    assert gate.expire(0.9 + DEADMAN + 1e-9) == Twist()
+    assert gate.expire(5.0) is None  # one stop, not a stream of them
+    # A stop sent by the client itself needs none from the view.
+    gate.message(1, 1, twist_json(0.3), 6.0)
+    gate.message(1, 1, twist_json(0.0), 6.1)
+    assert gate.expire(10.0) is None and gate.stops == 1
+
+
+def test_the_driving_channel_gone_stops_at_once_another_does_not() -> None:
+    gate = TeleopGate()
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.advertise(2, 5, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.message(1, 1, twist_json(0.3), 0.0)
+    assert gate.unadvertise(2, 5) is None  # not the one driving
+    assert gate.unadvertise(1, 1) == Twist()
+    assert gate.expire(1.0) is None
+    with pytest.raises(Refused):
+        gate.message(1, 1, twist_json(0.3), 1.0)
+
+
+def test_refused_messages_do_not_hold_the_deadman_off() -> None:
+    gate = TeleopGate()
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.message(1, 1, twist_json(0.3), 0.0)
+    for i in range(1, 10):
+        with pytest.raises(Refused):
+            gate.message(1, 1, b"garbage", i / 20)
+    assert gate.expire(DEADMAN + 1e-9) == Twist()
+
+
+@dataclass
+class Fakes:
+    sent: list[Twist]
+    now: list[float]
+
+
+@pytest.fixture
+def bridge() -> tuple[TeleopBridge, Fakes]:
+    fakes = Fakes([], [0.0])
+    return TeleopBridge(fakes.sent.append, clock=lambda: fakes.now[0], wall=lambda: 1000.0 + fakes.now[0]), fakes
+
+
+@dataclass
+class Channel:
+    """What the SDK hands the listener for a client channel."""
+
+    id: int
+    topic: str = TELEOP_TOPIC
+    encoding: str = "json"
+    schema_name: str = "geometry_msgs/Twist"
+
+
+@dataclass
+class Client:
+    id: int
+
+
+def test_the_bridge_sends_stamped_twists_and_the_deadmans_stop(
+    bridge: tuple[TeleopBridge, Fakes], caplog: pytest.LogCaptureFixture
+) -> None:
+    teleop, fakes = bridge
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    listener.on_client_advertise(Client(3), Channel(1))  # type: ignore[arg-type]
+    with caplog.at_level(logging.WARNING, "tether.view"):
+        for i in range(3):
+            fakes.now[0] = i / 10
+            listener.on_message_data(Client(3), 1, twist_json(0.3, 0.1, linear_y=0.2))  # type: ignore[arg-type]
+    assert fakes.sent == [Twist(linear_x=0.3, angular_z=0.1, stamp=1000.0 + i / 10) for i in range(3)]
+    assert sum("linear.y is ignored" in r.message for r in caplog.records) == 1
+    fakes.now[0] = 0.2 + DEADMAN + 1e-9
+    teleop.tick()
+    assert fakes.sent[-1] == Twist(stamp=1000.0 + fakes.now[0]) and len(fakes.sent) == 4
+    teleop.tick()
+    assert len(fakes.sent) == 4
+
+
+def test_the_listener_never_raises_and_says_why_it_refused(
+    bridge: tuple[TeleopBridge, Fakes], caplog: pytest.LogCaptureFixture
+) -> None:
+    teleop, fakes = bridge
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    with caplog.at_level(logging.WARNING, "tether.view"):
+        listener.on_client_advertise(Client(1), Channel(1, topic="/other"))  # type: ignore[arg-type]
+        listener.on_message_data(Client(1), 1, b"garbage")  # type: ignore[arg-type]
+        listener.on_client_advertise(Client(1), Channel(2))  # type: ignore[arg-type]
+        listener.on_message_data(Client(1), 2, b"{{{")  # type: ignore[arg-type]
+        listener.on_message_data(Client(1), 2, twist_json(float("nan")).replace(b"NaN", b"null"))  # type: ignore[arg-type]
+    text = "\n".join(r.message for r in caplog.records)
+    assert "client 1 channel 1 not taken: topic '/other'" in text
+    assert "client 1 channel 1: channel 1 was not taken" in text
+    assert "client 1 channel 2: not a geometry_msgs/Twist in JSON" in text
+    assert fakes.sent == []
+    # Foxglove's user is told why the panel's channel was refused.
+    assert list(teleop.notices) == [
+        "tether view: client 1 channel 1 not taken: topic '/other': teleop is taken on '/cmd_vel' only"
+    ]
+
+    # A send that fails (Zenoh closing) is logged, not raised into the server.
+    def broken(twist: Twist) -> None:
+        raise RuntimeError("session closed")
+
+    listener.teleop = TeleopBridge(broken)
+    listener.on_client_advertise(Client(2), Channel(1))  # type: ignore[arg-type]
+    with caplog.at_level(logging.ERROR, "tether.view"):
+        listener.on_message_data(Client(2), 1, twist_json(0.2))  # type: ignore[arg-type]
+    assert "teleop callback failed" in caplog.text
+
+
+def test_a_disconnect_while_driving_stops_at_once(bridge: tuple[TeleopBridge, Fakes]) -> None:
+    teleop, fakes = bridge
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    listener.on_client_advertise(Client(4), Channel(1))  # type: ignore[arg-type]
+    listener.on_message_data(Client(4), 1, twist_json(0.3))  # type: ignore[arg-type]
+    fakes.now[0] = 0.05
+    listener.on_client_unadvertise(Client(4), 1)  # type: ignore[arg-type]  # the SDK's call on disconnect
+    assert fakes.sent[-1] == Twist(stamp=1000.05)
+    teleop.close()  # not moving: no second stop
+    assert len(fakes.sent) == 2
+
+
+def test_closing_the_view_stops_a_moving_robot(bridge: tuple[TeleopBridge, Fakes]) -> None:
+    teleop, fakes = bridge
+    teleop.advertise(1, Channel(1))  # type: ignore[arg-type]
+    teleop.message(1, 1, twist_json(0.0, 0.5))
+    teleop.close()
+    assert fakes.sent[-1] == Twist(stamp=1000.0)
+
+
+def test_the_shipped_layouts_teleop_panel_drives_through_the_view() -> None:
+    layout = json.loads((Path(__file__).resolve().parents[2] / "deploy" / "foxglove-layout.json").read_text())
+    [panel] = [config for name, config in layout["configById"].items() if name.startswith("Teleop!")]
+    assert panel["topic"] == TELEOP_TOPIC
+    # A held button repeats often enough that the deadman never stops a drive in between.
+    assert 1 / panel["publishRate"] < DEADMAN / 2
+    assert {panel[b]["field"] for b in ("upButton", "downButton", "leftButton", "rightButton")} == {
+        "linear-x",
+        "angular-z",
+    }
