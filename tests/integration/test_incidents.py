@@ -1,14 +1,17 @@
 """Safety's incident store on the real stack: an e-stop is remembered with where the robot was and the
 recording it is in, survives a restart of safety and warns the dry run of a later plan going there
 (`tether incidents` lists it and shows its timeline); only the operator's token forgets an incident
-(and the forgetting is a safety event); a store file that is not a database does not stop safety from
-checking plans, and `safety/incidents` names the fault."""
+(and the forgetting is a safety event); a store another program holds locked, or a file that is not
+a database, does not stop safety from checking plans, and `safety/incidents` names the fault (what
+happened meanwhile is kept, and written once the file is free)."""
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator
+import sqlite3
+import time
+from collections.abc import Callable, Iterator
 
 import pytest
 
@@ -136,6 +139,38 @@ def test_only_the_operators_token_forgets_an_incident_and_the_forgetting_is_an_e
         keys.FORGET_INCIDENT, ForgetIncident(operator="alice", token=token, id=incident.id, reason="x"), timeout=5.0
     )
     assert not again.ok and "already forgotten" in again.message
+
+
+def test_a_locked_store_does_not_stop_safety_from_checking_and_is_written_once_free(stack: Stack) -> None:
+    path = stack.tmp / f"incidents-{stack.settings.robot}.sqlite"
+    holder = sqlite3.connect(path, timeout=0.0)
+    try:
+        holder.execute("BEGIN EXCLUSIVE")  # another program holds the file
+        kept = report(stack, "dropped while another program held the store")
+        assert wait_until(lambda: "locked" in listed(stack).store, 10.0), listed(stack).store
+        assert kept in listed(stack).incidents  # kept in memory, listed with the fault
+        stairs = json.dumps({"plan": [{"action": "navigate_to", "target": "stairs"}]})
+        refused = PlanSender(stack.node).run(ExecutePlanGoal(text=stairs, dry_run=True), PLAN_TIMEOUT).result
+        assert refused is not None and (refused.status, refused.stage) == (PlanStatus.REJECTED, "safety"), refused
+        kitchen = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen"}]})
+        approved = PlanSender(stack.node).run(ExecutePlanGoal(text=kitchen, dry_run=True), PLAN_TIMEOUT).result
+        assert approved is not None and approved.status is PlanStatus.SUCCEEDED, approved
+    finally:
+        holder.rollback()
+        holder.close()
+    # Once free, safety writes what it kept (it retries a faulted file every few seconds).
+    assert wait_until(lambda: listed(stack).store == "", 30.0), listed(stack).store
+    rows = sqlite3.connect(path).execute("SELECT reason FROM incidents").fetchall()
+    assert (kept.reason,) in rows
+
+
+def wait_until(condition: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)  # a poll with a deadline
+    return True
 
 
 def test_a_store_file_that_is_not_a_database_does_not_stop_safety_from_checking(stack: Stack) -> None:
