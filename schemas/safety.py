@@ -109,6 +109,7 @@ class ApprovalState(enum.StrEnum):
     NOT_NEEDED = "not_needed"  # the mode is autonomous: safety's plan check is enough
     PENDING = "pending"  # supervised: waits for an operator
     APPROVED = "approved"  # an operator approved it; it may move the robot until it ends
+    PAUSED = "paused"  # an operator paused it while it ran: a program's motion is refused until resumed
     DENIED = "denied"  # an operator denied it, or the mode or safety's check refuses it: it never moves
     FINISHED = "finished"  # it ended (ran, was canceled) and is remembered for a while
 
@@ -119,7 +120,8 @@ MAX_PLAN_LINES = 64
 class PlanApproval(Frozen):
     """Where a plan stands with safety's approval. `steps`: the plan's steps and route as safety read
     them; `checks`: safety's dry run of the whole plan (what it checked); `requested`, `decided`: wall
-    clock seconds; `by`: the operator who decided."""
+    clock seconds; `by`: the operator who decided; `pauses`: how often an operator paused it (the
+    executor tells a failure a pause caused from one of its own by it)."""
 
     goal_id: GoalId
     state: ApprovalState
@@ -129,6 +131,7 @@ class PlanApproval(Frozen):
     requested: float = 0.0
     decided: float = 0.0
     by: Annotated[str, Meta(max_length=200)] = ""
+    pauses: Annotated[int, Meta(ge=0)] = 0
 
 
 class ApprovalRequest(Frozen):
@@ -141,14 +144,24 @@ class ApprovalRequest(Frozen):
     wait: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.0
 
 
+class ApprovalAction(enum.StrEnum):
+    APPROVE = "approve"  # a pending plan may move the robot
+    DENY = "deny"  # a pending or paused plan ends; it moves no more
+    PAUSE = "pause"  # an approved, running plan stops; teleop drives meanwhile
+    RESUME = "resume"  # a paused plan moves again (checked once more from where the robot is)
+
+
 class ApprovalDecision(Frozen):
-    """An operator approves or denies a waiting plan, with the operator's token."""
+    """An operator decides on a plan of supervised mode, with the operator's token: `action`, or
+    (older callers, and recordings made before pause) `approve`: true approve, false deny. Exactly
+    one of the two is given."""
 
     operator: Name
     token: OperatorToken
     goal_id: GoalId
-    approve: bool
+    approve: bool | None = None
     reason: Text = ""
+    action: ApprovalAction | None = None
 
 
 class ApprovalReply(Frozen):
@@ -158,10 +171,11 @@ class ApprovalReply(Frozen):
 
 
 class PendingPlans(Frozen):
-    """The plans waiting for an operator, the oldest first."""
+    """The plans waiting for an operator, the oldest first; `paused`: those an operator paused."""
 
     mode: ControlMode
     plans: list[PlanApproval] = []
+    paused: list[PlanApproval] = []
 
 
 class Decision(enum.StrEnum):
@@ -178,6 +192,9 @@ class Decision(enum.StrEnum):
     # A plan waits for an operator (supervised mode); an operator denied one.
     AWAITING_APPROVAL = "awaiting_approval"
     DENIED = "denied"
+    # An operator paused a running plan (teleop may take over), or resumed it.
+    PAUSED = "paused"
+    RESUMED = "resumed"
     # An operator forgot an incident, or cleared the caution zone it counted towards (safety's memory).
     FORGOTTEN = "forgotten"
     CLEARED = "cleared"

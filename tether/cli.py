@@ -1047,6 +1047,8 @@ def verify_demo(node: Node) -> bool:
 lazy_command(app, "mode", "tether.modecli:mode")
 lazy_command(app, "approve", "tether.modecli:approve")
 lazy_command(app, "deny", "tether.modecli:deny")
+lazy_command(app, "pause", "tether.modecli:pause")
+lazy_command(app, "resume", "tether.modecli:resume")
 lazy_command(app, "pending", "tether.modecli:pending")
 # Safety's memory of incidents (tether/incidentscli.py)
 lazy_command(app, "incidents", "tether.incidentscli:app")

@@ -1,4 +1,5 @@
-"""`tether mode`, `tether approve`, `tether deny`, `tether pending`: the operator's say over what moves the robot.
+"""`tether mode`, `tether approve`, `tether deny`, `tether pause`, `tether resume`, `tether pending`: the
+operator's say over what moves the robot.
 
 Setting the mode and deciding on a plan take the operator token (as `tether reset`); safety checks it,
 and in a secured deployment only the operator's identity may ask at all.
@@ -17,7 +18,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from schemas import keys
-from schemas.safety import ApprovalDecision, ApprovalReply, ControlMode, ModeRequest, PendingPlans
+from schemas.safety import ApprovalAction, ApprovalDecision, ApprovalReply, ControlMode, ModeRequest, PendingPlans
 from schemas.world import Empty
 from services.errors import CallError
 from services.runtime import Node, NodeSettings
@@ -114,13 +115,15 @@ def mode(
 
 
 def _decide(
-    ctx: typer.Context, goal_id: str, approve: bool, reason: str, token_file: str | None, as_json: bool
+    ctx: typer.Context, goal_id: str, action: ApprovalAction, reason: str, token_file: str | None, as_json: bool
 ) -> NoReturn:
     token = _token(token_file, as_json)
+    # Approve and deny as safety has always read them; pause and resume by name.
+    decision: dict[str, Any] = {"action": action}
+    if action in (ApprovalAction.APPROVE, ApprovalAction.DENY):
+        decision = {"approve": action is ApprovalAction.APPROVE}
     try:
-        request = ApprovalDecision(
-            operator=operator_name(), token=token, goal_id=goal_id, approve=approve, reason=reason
-        )
+        request = ApprovalDecision(operator=operator_name(), token=token, goal_id=goal_id, reason=reason, **decision)
         # Bounds (the goal id's shape, the reason's length) are the schema's: checked here as safety would.
         request = msgspec.json.decode(msgspec.json.encode(request), type=ApprovalDecision)
     except msgspec.ValidationError as exc:
@@ -151,7 +154,7 @@ def approve(
     Exit 0 approved, 2 refused (wrong token, unknown or finished goal, the check refuses it now),
     3 safety unreachable.
     """
-    _decide(ctx, goal_id, True, "", token_file, as_json)
+    _decide(ctx, goal_id, ApprovalAction.APPROVE, "", token_file, as_json)
 
 
 def deny(
@@ -161,16 +164,48 @@ def deny(
     token_file: TokenFileOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Refuse a plan waiting in supervised mode: it never moves the robot (operator only: needs the token file).
+    """Refuse a plan waiting in supervised mode, or end a paused one: it moves the robot no more
+    (operator only: needs the token file).
 
     Exit 0 denied, 2 refused (wrong token, unknown or finished goal), 3 safety unreachable.
     """
-    _decide(ctx, goal_id, False, reason, token_file, as_json)
+    _decide(ctx, goal_id, ApprovalAction.DENY, reason, token_file, as_json)
+
+
+def pause(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="The goal id of the approved plan that runs.")],
+    reason: Annotated[str, typer.Option("--reason", help="Why; the events and the plan's feedback keep it.")] = "",
+    token_file: TokenFileOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Pause an approved plan while it runs (supervised mode; operator only: needs the token file).
+
+    Safety cancels the plan's goals under way and refuses its motion until `tether resume`; the plan
+    waits (it does not fail) and teleop drives meanwhile. Exit 0 paused, 2 refused (wrong token, not
+    supervised mode, a goal that is unknown, finished, pending or already paused), 3 safety unreachable.
+    """
+    _decide(ctx, goal_id, ApprovalAction.PAUSE, reason, token_file, as_json)
+
+
+def resume(
+    ctx: typer.Context,
+    goal_id: Annotated[str, typer.Argument(help="The goal id of the paused plan.")],
+    token_file: TokenFileOpt = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Hand a paused plan back (supervised mode; operator only: needs the token file).
+
+    Safety checks the plan once more from where the robot is now (one it would refuse now is denied);
+    the step that was paused runs again from there. Exit 0 resumed, 2 refused (wrong token, not
+    supervised mode, a goal that is not paused, the check refuses it now), 3 safety unreachable.
+    """
+    _decide(ctx, goal_id, ApprovalAction.RESUME, "", token_file, as_json)
 
 
 def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
     """List the plans waiting for an operator's approval, the oldest first, with their steps and route
-    and safety's dry run.
+    and safety's dry run, and the plans an operator paused.
 
     Exit 0 (also when none waits), 3 safety unreachable.
     """
@@ -185,6 +220,8 @@ def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
     lines = [f"mode: {waiting.mode}"]
     if not waiting.plans:
         lines.append("no plan waits for approval")
+    for plan in waiting.paused:
+        lines.append(f"goal {plan.goal_id} is paused ({plan.reason}): `tether resume {plan.goal_id}` hands back")
     now = time.time()
     for plan in waiting.plans:
         lines.append(f"goal {plan.goal_id}, waiting {max(0.0, now - plan.requested):.0f} s:")

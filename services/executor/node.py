@@ -25,12 +25,12 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.safety import ApprovalRequest, ApprovalState, SafetyStatus
+from schemas.safety import ApprovalRequest, ApprovalState, PlanApproval, SafetyStatus
 from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
 from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
-from services.executor.runner import Approval, FeedbackSink, PlanRunner
+from services.executor.runner import FeedbackSink, Held, PlanRunner
 from services.runtime import Node
 
 log = logging.getLogger(__name__)
@@ -247,23 +247,46 @@ OUTCOME_STATE = {
 }
 
 
-def approval_of(node: Node, goal_id: str, config: ExecutorConfig) -> Approval:
-    """Safety's word on whether plan goal `goal_id` may move the robot: at once outside supervised
-    mode; in it, once an operator decided (feedback `awaiting_approval` meanwhile). Safety itself refuses
-    the motion of a plan it has not approved, so this wait is the executor's courtesy, not the gate."""
+class Supervision:
+    """Safety's word on whether plan goal `goal_id` may move the robot (supervised mode).
 
-    def approval(plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult | None:
+    `approve`: asked before the first motion: at once outside supervised mode; in it, once an
+    operator decided (feedback `awaiting_approval` meanwhile). Safety itself refuses the motion of a
+    plan it has not approved, so this wait is the executor's courtesy, not the gate.
+
+    `hold`: asked after a step's attempt failed. An operator who pauses the plan makes safety cancel
+    its goals and refuse its motion; that is no failure: the pause is reported (feedback
+    `awaiting_approval` on the step) and waited out, and the step runs again once resumed. Told apart
+    from a failure of the plan's own by safety's approval: paused now, or paused more often than
+    this plan has seen (a pause resumed before it was asked)."""
+
+    def __init__(self, node: Node, goal_id: str, config: ExecutorConfig) -> None:
+        self.node = node
+        self.goal_id = goal_id
+        self.config = config
+        self._plan: GroundedPlan | None = None  # set once an operator approved it
+        self._pauses = 0  # the pauses of it this executor has seen
+
+    def _ask(self, plan: GroundedPlan, wait: float) -> PlanApproval:
+        request = ApprovalRequest(goal_id=self.goal_id, plan=plan, wait=wait)
+        reply: PlanApproval = self.node.call(
+            keys.APPROVAL_REQUEST, request, timeout=APPROVAL_POLL + self.config.check_timeout
+        )
+        return reply
+
+    def approve(self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult | None:
+        goal_id = self.goal_id
         told = False
         while not cancel.is_set():
-            request = ApprovalRequest(goal_id=goal_id, plan=plan, wait=APPROVAL_POLL if told else 0.0)
             try:
-                reply = node.call(keys.APPROVAL_REQUEST, request, timeout=APPROVAL_POLL + config.check_timeout)
+                reply = self._ask(plan, APPROVAL_POLL if told else 0.0)
             except CallError as exc:
                 why = f"safety did not say whether the plan may move: {exc.error.message}"
                 return ExecutePlanResult(status=PlanStatus.REJECTED, stage=Stage.SAFETY, reason=why)
             if reply.state is ApprovalState.NOT_NEEDED:
                 return None
             if reply.state is ApprovalState.APPROVED:
+                self._plan, self._pauses = plan, reply.pauses
                 feedback(ExecutePlanFeedback(stage=Stage.SAFETY, message=reply.reason))
                 return None
             if reply.state is not ApprovalState.PENDING:
@@ -282,7 +305,41 @@ def approval_of(node: Node, goal_id: str, config: ExecutorConfig) -> Approval:
         reason = "canceled while awaiting an operator's approval; nothing moved"
         return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
 
-    return approval
+    def hold(self, cancel: threading.Event, feedback: FeedbackSink) -> Held | ExecutePlanResult:
+        plan, goal_id = self._plan, self.goal_id
+        if plan is None:  # not a plan an operator approved: no one can pause it
+            return Held.NOT_PAUSED
+        told = False
+        while not cancel.is_set():
+            try:
+                reply = self._ask(plan, APPROVAL_POLL if told else 0.0)
+            except CallError as exc:
+                if not told:
+                    log.warning("plan goal %s: safety did not say whether it is paused: %s", goal_id, exc)
+                    return Held.NOT_PAUSED
+                why = f"safety did not say whether the paused plan may go on: {exc.error.message}"
+                return ExecutePlanResult(status=PlanStatus.FAILED, stage=Stage.SAFETY, reason=why)
+            paused_since = reply.pauses > self._pauses
+            self._pauses = max(self._pauses, reply.pauses)
+            if reply.state is ApprovalState.PAUSED:
+                if not told:
+                    message = (
+                        f"{reply.reason}: the plan waits, teleop drives meanwhile; `tether resume {goal_id}` "
+                        f"hands back (the step runs again from where the robot is then), `tether deny {goal_id}` "
+                        "ends the plan"
+                    )
+                    waiting = StepStatus.AWAITING_APPROVAL
+                    feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, status=waiting, message=message[:4000]))
+                    log.info("plan goal %s paused by an operator", goal_id)
+                    told = True
+                continue
+            if reply.state in (ApprovalState.APPROVED, ApprovalState.NOT_NEEDED):
+                return Held.RESUMED if told or paused_since else Held.NOT_PAUSED
+            if reply.state is ApprovalState.DENIED:
+                return ExecutePlanResult(status=PlanStatus.FAILED, stage=Stage.SAFETY, reason=reply.reason)
+            return Held.NOT_PAUSED
+        reason = "canceled while paused by an operator"
+        return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
 
 
 def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -> ActionServer[Any, Any, Any]:
@@ -293,8 +350,10 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
     def execute(handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
         log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
         RUNNING_GOAL.set(handle.goal_id)
-        approval = approval_of(node, handle.goal_id, config)
-        result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, approval)
+        supervision = Supervision(node, handle.goal_id, config)
+        result = runner.run(
+            handle.goal, handle.cancel_requested, handle.feedback, supervision.approve, supervision.hold
+        )
         if result.status is PlanStatus.CANCELED and handle.cancel_reason:
             result = msgspec.structs.replace(result, reason=f"{handle.cancel_reason}; {result.reason}")
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)

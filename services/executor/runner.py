@@ -3,6 +3,7 @@ within its time, retried after a failure a retry can mend."""
 
 from __future__ import annotations
 
+import enum
 import logging
 import threading
 import time
@@ -45,6 +46,20 @@ IncidentSink = Callable[[IncidentKind, str, list[str], int, str], None]
 # Asks safety whether a checked plan may move the robot now, waiting for an operator in supervised
 # mode: None to go on, or the result that ends the plan (denied, canceled while it waited).
 Approval = Callable[[GroundedPlan, threading.Event, FeedbackSink], ExecutePlanResult | None]
+
+
+class Held(enum.Enum):
+    """What a step's failure was, asked of safety's approval (supervised mode): not an operator's
+    pause (the failure stands), or a pause the operator has since resumed (run the step again)."""
+
+    NOT_PAUSED = "not_paused"
+    RESUMED = "resumed"
+
+
+# Asked after a step's attempt failed: did an operator pause the plan? If so it reports the pause
+# (feedback `awaiting_approval`) and waits for the resume; the result that ends the plan when the
+# operator denies it meanwhile or it is canceled.
+PauseHold = Callable[[threading.Event, FeedbackSink], Held | ExecutePlanResult]
 
 # What a retry, after re-detecting and planning anew, can mend.
 RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDITION)
@@ -129,10 +144,12 @@ class PlanRunner:
         cancel: threading.Event,
         feedback: FeedbackSink,
         approval: Approval | None = None,
+        hold: PauseHold | None = None,
     ) -> ExecutePlanResult:
-        """Run `goal`; `approval`, when given, is asked after the plan check and before the first motion."""
+        """Run `goal`; `approval`, when given, is asked after the plan check and before the first
+        motion; `hold` after a step's attempt failed (an operator's pause is no failure)."""
         warnings: list[str] = []
-        result = self._run(goal, cancel, feedback, warnings, approval)
+        result = self._run(goal, cancel, feedback, warnings, approval, hold)
         return msgspec.structs.replace(result, warnings=warnings) if warnings else result
 
     def _run(
@@ -142,6 +159,7 @@ class PlanRunner:
         feedback: FeedbackSink,
         warnings: list[str],
         approval: Approval | None = None,
+        hold: PauseHold | None = None,
     ) -> ExecutePlanResult:
         grounded = self._prepare(goal, feedback, warnings)
         if isinstance(grounded, ExecutePlanResult):
@@ -155,7 +173,7 @@ class PlanRunner:
             )
         if approval is not None and (ended := approval(grounded, cancel, feedback)) is not None:
             return ended
-        return self._execute(grounded, cancel, feedback)
+        return self._execute(grounded, cancel, feedback, hold)
 
     def _prepare(
         self, goal: ExecutePlanGoal, feedback: FeedbackSink, warnings: list[str]
@@ -184,20 +202,22 @@ class PlanRunner:
             return ExecutePlanResult(status=PlanStatus.REJECTED, stage=stage, reason=exc.error.message)
         return grounded
 
-    def _execute(self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink) -> ExecutePlanResult:
+    def _execute(
+        self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink, hold: PauseHold | None = None
+    ) -> ExecutePlanResult:
         labels = step_labels(plan)
         results: list[StepResult] = []
         reported: set[int] = set()  # steps of the plan itself (not alternatives) with a result
         recovered: list[str] = []
         i = 0
         while i < len(plan.steps):
-            result, failure = self._run_one(i, plan.steps[i], labels[i], cancel, feedback)
+            result, failure = self._run_one(i, plan.steps[i], labels[i], cancel, feedback, hold)
             results.append(result)
             reported.add(i)
             if failure is None:
                 i += 1
                 continue
-            outcome = self._on_failure(plan, i, failure, results, cancel, feedback)
+            outcome = self._on_failure(plan, i, failure, results, cancel, feedback, hold)
             if isinstance(outcome, _Failure):
                 return self._finish(plan, results, reported, outcome)
             outcome = min(outcome, len(plan.steps))
@@ -219,10 +239,18 @@ class PlanRunner:
         )
 
     def _run_one(
-        self, index: int, step: GroundedStep, label: str, cancel: threading.Event, feedback: FeedbackSink
+        self,
+        index: int,
+        step: GroundedStep,
+        label: str,
+        cancel: threading.Event,
+        feedback: FeedbackSink,
+        hold: PauseHold | None = None,
     ) -> tuple[StepResult, _Failure | None]:
         """Run one step, retrying as configured, and report it; the failure, if any, says whether
-        an on_failure may follow."""
+        an on_failure may follow. An attempt that failed because an operator paused the plan
+        (`hold`) is no failure: once resumed the step runs again from where the robot is then,
+        not counted as an attempt."""
         action = step_kind(step)
         timeout = self.config.timeouts.of(step)
         tries = 1 + self.config.retries.of(step)
@@ -264,16 +292,36 @@ class PlanRunner:
         def note(message: str) -> None:
             report(StepStatus.RUNNING, message, attempt)
 
+        def paused(fb: ExecutePlanFeedback) -> None:
+            report(fb.status, fb.message, attempt)
+
         earlier: list[str] = []  # why the tries before the last failed
+        resumed = False  # the next try follows an operator's pause: the robot is where teleop left it
         while True:
             try:
-                message = self._attempt(step, timeout, cancel, attempt, note, searched)
+                message = self._attempt(step, timeout, cancel, attempt, note, searched, recover=resumed)
             except Canceled as exc:
                 failure = _Failure(
                     f"step {label} ({action}) canceled", PlanStatus.CANCELED, "canceled", FailureKind.CANCELED
                 )
                 return result(StepStatus.CANCELED, str(exc), attempt, FailureKind.CANCELED), failure
             except (ExecutionError, CallError) as exc:
+                held = Held.NOT_PAUSED if hold is None else hold(cancel, paused)
+                if held is Held.RESUMED:
+                    log.info("step %s (%s) resumed after an operator's pause (%s)", label, action, exc)
+                    note(f"resumed by the operator: {step.describe()} again from where the robot is now")
+                    resumed = True
+                    continue
+                if isinstance(held, ExecutePlanResult):
+                    if held.status is PlanStatus.CANCELED:
+                        failure = _Failure(
+                            f"step {label} ({action}) canceled while paused", PlanStatus.CANCELED, "canceled"
+                        )
+                        return result(StepStatus.CANCELED, held.reason, attempt, FailureKind.CANCELED), failure
+                    why = f"step {label} ({action}) stopped while paused: {held.reason}"
+                    report(StepStatus.FAILED, held.reason, attempt, FailureKind.VETOED)
+                    failure = _Failure(why, held.status, held.reason, FailureKind.VETOED)
+                    return result(StepStatus.FAILED, held.reason, attempt, FailureKind.VETOED), failure
                 kind = exc.kind if isinstance(exc, ExecutionError) else FailureKind.EXECUTION
                 if isinstance(exc, GraspFailed) and self.incidents is not None:
                     self.incidents(IncidentKind.GRASP_FAILED, str(exc), [exc.object_name], index, label)
@@ -302,18 +350,25 @@ class PlanRunner:
             return result(StepStatus.SUCCEEDED, message, attempt), None
 
     def _attempt(
-        self, step: GroundedStep, timeout: float, cancel: threading.Event, attempt: int, note: Note, searched: list[str]
+        self,
+        step: GroundedStep,
+        timeout: float,
+        cancel: threading.Event,
+        attempt: int,
+        note: Note,
+        searched: list[str],
+        recover: bool = False,
     ) -> str:
-        """One try at a step within its time; a retry first brings the robot back to where a step
-        can start (hand empty and open, or holding, with the arm stowed). `searched` starts empty
-        and gets the places the try looks for its object."""
+        """One try at a step within its time; a retry (or, with `recover`, a try after a pause) first
+        brings the robot back to where a step can start (hand empty and open, or holding, with the
+        arm stowed). `searched` starts empty and gets the places the try looks for its object."""
         searched.clear()
         if cancel.is_set():
             raise Canceled("canceled before the step started")
         clock = StepClock(timeout, cancel, self.robot.speed_scale)
         try:
             with clock.running() as step_cancel:
-                if attempt > 1:
+                if attempt > 1 or recover:
                     self.manipulator.recover(step, step_cancel)
                 return self.manipulator.run(step, step_cancel, attempt, note, searched)
         except Canceled as exc:
@@ -343,6 +398,7 @@ class PlanRunner:
         results: list[StepResult],
         cancel: threading.Event,
         feedback: FeedbackSink,
+        hold: PauseHold | None = None,
     ) -> int | _Failure:
         """Run the on_failure alternatives covering step `failed`, innermost first, each one taking
         over when the one inside it fails too. The index to go on from, or the plan's failure."""
@@ -360,7 +416,7 @@ class PlanRunner:
         for fallback in sorted(covering, key=lambda f: (f.last - f.first, -f.first)):
             alternative_labels = fallback_labels(fallback, labels)
             for k, step in enumerate(fallback.steps):
-                result, alt_failure = self._run_one(k, step, alternative_labels[k], cancel, feedback)
+                result, alt_failure = self._run_one(k, step, alternative_labels[k], cancel, feedback, hold)
                 results.append(result)
                 if alt_failure is not None:
                     break

@@ -28,6 +28,7 @@ from schemas.robot import (
     Twist,
 )
 from schemas.safety import (
+    ApprovalAction,
     ApprovalDecision,
     ApprovalReply,
     ApprovalRequest,
@@ -90,6 +91,15 @@ REPEAT_WINDOW = 1.0
 RESET_WINDOW = 60.0
 RESET_SHARES = 3
 GoalRuling = SendGoal[Any] | GoalResponse
+# A plan in these states waits for an operator: pending before its first motion, paused while it ran.
+WAITING = (ApprovalState.PENDING, ApprovalState.PAUSED)
+# The state a plan must be in for each of an operator's decisions, and the word for it in messages.
+DECIDES = {
+    ApprovalAction.APPROVE: ((ApprovalState.PENDING,), "approval", "wait for approval"),
+    ApprovalAction.DENY: (WAITING, "denial", "wait for an operator"),
+    ApprovalAction.PAUSE: ((ApprovalState.APPROVED,), "pause", "run with an approval"),
+    ApprovalAction.RESUME: ((ApprovalState.PAUSED,), "resume", "wait paused"),
+}
 
 
 class IncidentMemory(Protocol):
@@ -854,6 +864,14 @@ class SafetyGate:
         if mode is ControlMode.SUPERVISED:
             with self._lock:
                 running = self._approvals.running()
+                paused = self._approvals.paused()
+            if running is None and paused:
+                held = paused[0]
+                why = (
+                    f"mode supervised: plan {held.goal_id} {held.reason}; a program's motion is refused until "
+                    f"`tether resume {held.goal_id}` (teleop drives meanwhile)"
+                )
+                return Vetoed(why, Rule.APPROVAL)
             if running is None:
                 why = "mode supervised: no plan an operator approved is running; a program's motion is refused"
                 return Vetoed(why, Rule.APPROVAL)
@@ -911,9 +929,10 @@ class SafetyGate:
         with self._lock:
             known = self._approvals.get(req.goal_id, t)
         if known is not None:
-            if known.state is not ApprovalState.PENDING or mode is ControlMode.SUPERVISED:
+            if known.state not in WAITING or mode is ControlMode.SUPERVISED:
                 return Ruling(known)
-            # The mode changed while it waited: autonomous lets it run, direct and shared refuse it.
+            # The mode changed while it waited (or was paused): autonomous lets it run, direct and
+            # shared refuse it.
             why = PLANS_REFUSED.get(mode)
             state = ApprovalState.DENIED if why else ApprovalState.APPROVED
             why = why or f"mode {mode}: no approval needed"
@@ -958,11 +977,20 @@ class SafetyGate:
             return self._approvals.get(goal_id, t)
 
     def decide(self, req: ApprovalDecision) -> Ruling[ApprovalReply]:
-        """An operator approves or denies a waiting plan. An approval checks the plan once more from
-        where the robot is now: a plan safety would refuse now is denied instead."""
+        """An operator approves, denies, pauses or resumes a plan. An approval or a resume checks the
+        plan once more from where the robot is now: a plan safety would refuse now is denied instead.
+        A pause cancels every goal forwarded (the plan's motion is refused until it is resumed;
+        teleop drives meanwhile)."""
         key = keys.APPROVAL_DECIDE.path
         redacted = msgspec.structs.replace(req, token="***")
-        verb = "approval" if req.approve else "denial"
+        action = req.action
+        if action is None and req.approve is not None:
+            action = ApprovalAction.APPROVE if req.approve else ApprovalAction.DENY
+        if action is None or (req.action is not None and req.approve is not None):
+            why = "a decision names either `action` (approve, deny, pause, resume) or the older `approve`, exactly one"
+            event = GateEvent(key, Decision.VETOED, why, redacted, Rule.APPROVAL, (Rule.APPROVAL,))
+            return Ruling(ApprovalReply(ok=False, message=why), (event,))
+        states, verb, waits = DECIDES[action]
         if (refusal := self.operator_refusal(key, verb, req.operator, req.token, redacted)) is not None:
             return Ruling(ApprovalReply(ok=False, message=refusal.reason), (refusal,))
         t = self._time()
@@ -975,42 +1003,66 @@ class SafetyGate:
             return Ruling(ApprovalReply(ok=False, message=why, approval=approval), (event,))
 
         if known is None or plan is None:
-            unknown = f"no plan with goal id {req.goal_id} waits for approval (unknown goal)"
+            unknown = f"no plan with goal id {req.goal_id} is known to safety's approvals (unknown goal)"
+            if action is ApprovalAction.APPROVE:
+                unknown = f"no plan with goal id {req.goal_id} waits for approval (unknown goal)"
             return refused(f"{unknown}; `tether pending` lists the plans that wait")
-        if known.state is not ApprovalState.PENDING:
-            return refused(f"plan {req.goal_id} does not wait for approval: it is {known.state} ({known.reason})")
+        if known.state not in states:
+            return refused(f"plan {req.goal_id} does not {waits}: it is {known.state} ({known.reason})")
+        mode = self.modes.mode
+        if action in (ApprovalAction.PAUSE, ApprovalAction.RESUME) and mode is not ControlMode.SUPERVISED:
+            why = f"{verb} is for supervised mode; the mode is {mode}"
+            if known.state is ApprovalState.PAUSED:
+                why += " (the mode decides the paused plan at the executor's next ask)"
+            return refused(why)
         events: list[GateEvent] = []
-        if req.approve:
-            if (why := PLANS_REFUSED.get(self.modes.mode)) is not None:
-                return refused(f"{why}: set the mode to supervised or autonomous first")
+        by = f"operator {req.operator}"
+        said = f": {req.reason}" if req.reason else ""
+        fields: dict[str, object] = {"decided": self._wall_clock(), "by": req.operator[:200]}
+        if action in (ApprovalAction.APPROVE, ApprovalAction.RESUME):
+            if (refusing := PLANS_REFUSED.get(mode)) is not None:
+                return refused(f"{refusing}: set the mode to supervised or autonomous first")
             checked = self.check_plan(plan)
             events.extend(checked.events)
             if isinstance(checked.forward, ServiceError):
                 state, why = ApprovalState.DENIED, f"safety's check refuses it now: {checked.forward.message}"
+            elif action is ApprovalAction.APPROVE:
+                state, why = ApprovalState.APPROVED, f"approved by {by}"
             else:
-                state, why = ApprovalState.APPROVED, f"approved by operator {req.operator}"
+                state, why = ApprovalState.APPROVED, f"resumed by {by}"
+        elif action is ApprovalAction.PAUSE:
+            state, why = ApprovalState.PAUSED, f"paused by {by}{said}"
+            fields["pauses"] = known.pauses + 1
         else:
             state = ApprovalState.DENIED
-            why = f"denied by operator {req.operator}: {req.reason or 'no reason given'}"
+            why = f"denied by {by}: {req.reason or 'no reason given'}"
         with self._lock:
             current = self._approvals.get(req.goal_id, t)
-            if current is None or current.state is not ApprovalState.PENDING:
+            if current is None or current.state is not known.state:
                 # Decided (or ended) by someone else while this one was checked.
                 state_now = current.state if current is not None else "forgotten"
-                return refused(f"plan {req.goal_id} does not wait for approval any more: it is {state_now}", current)
-            approval = self._approvals.change(
-                req.goal_id, state, why, t, decided=self._wall_clock(), by=req.operator[:200]
-            )
+                return refused(f"plan {req.goal_id} does not {waits} any more: it is {state_now}", current)
+            approval = self._approvals.change(req.goal_id, state, why, t, **fields)
         log.warning("plan %s %s", req.goal_id, why)
-        decision = Decision.APPROVED if state is ApprovalState.APPROVED else Decision.DENIED
+        decision = {
+            ApprovalState.PAUSED: Decision.PAUSED,
+            ApprovalState.DENIED: Decision.DENIED,
+        }.get(state, Decision.RESUMED if action is ApprovalAction.RESUME else Decision.APPROVED)
         events.append(GateEvent(key, decision, f"plan {req.goal_id}: {why}", redacted, Rule.APPROVAL, (Rule.OPERATOR,)))
-        ok = state is ApprovalState.APPROVED or not req.approve
-        return Ruling(ApprovalReply(ok=ok, message=why, approval=approval), tuple(events), approvals_changed=True)
+        ok = state is not ApprovalState.DENIED or action is ApprovalAction.DENY
+        # A pause ends the goals under way, as a change to a mode that refuses them does; a denial of
+        # a paused plan has nothing under way (the pause ended it).
+        return Ruling(
+            ApprovalReply(ok=ok, message=why, approval=approval),
+            tuple(events),
+            cancel_goals=state is ApprovalState.PAUSED,
+            approvals_changed=True,
+        )
 
     def pending(self) -> PendingPlans:
         t = self._time()
         with self._lock:
-            return PendingPlans(mode=self.modes.mode, plans=self._approvals.waiting(t))
+            return PendingPlans(mode=self.modes.mode, plans=self._approvals.waiting(t), paused=self._approvals.paused())
 
     def plan_status(self, status: GoalStatus) -> Ruling[None]:
         """The executor's plan goal changed state: one that ended no longer waits or moves the robot."""
@@ -1019,7 +1071,7 @@ class SafetyGate:
         t = self._time()
         with self._lock:
             known = self._approvals.get(status.goal_id, t)
-            if known is None or known.state not in (ApprovalState.PENDING, ApprovalState.APPROVED):
+            if known is None or known.state not in (*WAITING, ApprovalState.APPROVED):
                 return Ruling(None)
             why = f"the plan ended ({status.state}) after it was {known.state}"
             self._approvals.change(status.goal_id, ApprovalState.FINISHED, why, t)

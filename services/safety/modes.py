@@ -93,9 +93,9 @@ class _Entry:
 
 
 class ApprovalBook:
-    """Plans of supervised mode by goal id: pending until an operator decides, approved until the
-    executor reports the goal ended, then remembered a while as finished (or denied). Not
-    thread-safe: the gate calls it under its lock."""
+    """Plans of supervised mode by goal id: pending until an operator decides, approved (or paused
+    by an operator meanwhile) until the executor reports the goal ended, then remembered a while as
+    finished (or denied). Not thread-safe: the gate calls it under its lock."""
 
     def __init__(self) -> None:
         self._entries: dict[str, _Entry] = {}
@@ -135,6 +135,10 @@ class ApprovalBook:
     def running(self) -> str | None:
         """The goal id of an approved plan (which may move the robot), if any."""
         return next((g for g, e in self._entries.items() if e.approval.state is ApprovalState.APPROVED), None)
+
+    def paused(self) -> list[PlanApproval]:
+        """The plans an operator paused while they ran (their motion refused until resumed)."""
+        return [e.approval for e in self._entries.values() if e.approval.state is ApprovalState.PAUSED]
 
     def _expire(self, t: float) -> None:
         for goal_id, entry in list(self._entries.items()):

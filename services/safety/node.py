@@ -349,13 +349,15 @@ class SafetyNode:
         ruling = self.gate.request_approval(req)
         self._carry_out(ruling)
         approval = ruling.forward
-        if approval.state is not ApprovalState.PENDING or req.wait <= 0.0:
+        # Pending (before the first motion) or paused (while it ran): waits for an operator.
+        waiting = (ApprovalState.PENDING, ApprovalState.PAUSED)
+        if approval.state not in waiting or req.wait <= 0.0:
             return approval
         deadline = time.monotonic() + req.wait
 
         def decided() -> bool:
             now = self.gate.approval(req.goal_id)
-            return now is None or now.state is not ApprovalState.PENDING
+            return now is None or now.state is not approval.state
 
         with self._approvals_changed:
             while not decided() and (left := deadline - time.monotonic()) > 0:

@@ -1,7 +1,8 @@
 """The control modes on the real stack, judged by the sim: direct refuses plans while teleop drives;
 in supervised mode nothing moves before an operator approves (not even a goal sent to safety past the
-executor), the approved plan succeeds, a denied one never moves; only the operator's token sets the
-mode or decides, and deciding on an unknown or finished goal is a clear error."""
+executor), the approved plan succeeds, a denied one never moves, a running one paused by the operator
+stops and waits while teleop drives, and resumed it finishes; only the operator's token sets the mode
+or decides, and deciding on an unknown or finished goal is a clear error."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from schemas.actions import GoalState
 from schemas.common import Pose2D
 from schemas.executor import ExecutePlanGoal, PlanStatus, StepStatus
 from schemas.robot import NavigateToPoseGoal, Twist
-from schemas.safety import ControlMode, Decision, ModeRequest
+from schemas.safety import ApprovalAction, ApprovalDecision, ApprovalReply, ControlMode, Decision, ModeRequest
 from schemas.world import Empty, GroundTruth
 from services.actionlib import ActionClient
 from services.errors import GoalRejected
@@ -230,3 +231,99 @@ def test_shared_stops_short_of_a_wall_driving_at_it_and_slides_along_it_at_an_an
     assert any(abs(t.robot.yaw) < 0.1 and t.robot.y < 0.7 for t in seen), "it never drove along the wall"
     deflected = events.wait_for(lambda e: e.values.get("shared_steer_rps", 0.0) > 0.0, 5.0)
     assert deflected is not None and "slide along" in deflected.reason, deflected
+
+
+def settle(stack: Stack, limit: float) -> Pose2D | None:
+    """Where the base stands still (ground truth unchanged over 0.2 s of sim time), waiting up to
+    `limit` seconds; None if it keeps moving."""
+    deadline = time.monotonic() + limit
+    last = truth(stack)
+    while time.monotonic() < deadline:
+        now = truth(stack)
+        if now.sim_time - last.sim_time < 0.2:
+            continue
+        if still(last, now):
+            return now.robot
+        last = now
+    return None
+
+
+def test_supervised_a_running_plan_paused_stops_and_waits_teleop_drives_and_resumed_it_finishes(
+    stack: Stack,
+) -> None:
+    """Pause mid-drive: the base stops (odometry, ground truth) and the plan waits (not failed); a
+    person turns the robot with teleop; `tether resume` hands back and the plan drives on from there
+    to its goal (ground truth). An agent's request with a made-up token cannot pause."""
+    here = truth(stack).robot
+    # Whichever of two tables is farther: a drive of at least 2.8 m, across rooms.
+    target = max(
+        ("kitchen_table", "coffee_table"),
+        key=lambda t: math.dist((here.x, here.y), (WORLD.furniture[t].approach.x, WORLD.furniture[t].approach.y)),
+    )
+    goal = WORLD.furniture[target].approach
+    set_mode(stack, "supervised")
+    statuses = Watch(stack.node, keys.EXECUTE_PLAN.status)
+    steps = Watch(stack.node, keys.EXECUTE_PLAN.feedback)
+    odometry = Watch(stack.node, keys.ODOM)
+    sender = PlanSender(stack.node)
+    handle = sender.send(ExecutePlanGoal(text=plan(target.replace("_", " "))))
+    goal_id = handle.goal_id
+    assert sender.wait(handle, 60.0, until_started=True).awaiting_approval is not None
+    token = read_token(stack.token_file)
+
+    def decide(action: ApprovalAction, operator: str = "test", secret: str = token) -> ApprovalReply:
+        request = ApprovalDecision(operator=operator, token=secret, goal_id=goal_id, action=action)
+        reply: ApprovalReply = stack.node.call(keys.APPROVAL_DECIDE, request, timeout=5.0)
+        return reply
+
+    assert decide(ApprovalAction.APPROVE).ok
+    agent = decide(ApprovalAction.PAUSE, operator="agent", secret="0" * 48)
+    assert not agent.ok and "not the operator's token" in agent.message, agent
+    moving = odometry.wait_for(lambda o: abs(o.linear_x) > 0.1, 60.0)
+    assert moving is not None, "the approved plan never drove"
+    paused = decide(ApprovalAction.PAUSE)
+    assert paused.ok and paused.approval is not None and paused.approval.state == "paused", paused
+    at_pause = truth(stack).robot
+    # The base stops within a braking distance and stays still; the plan waits on its step.
+    stopped = odometry.wait_for(
+        lambda o: abs(o.linear_x) < 0.01 and abs(o.angular_z) < 0.01, 5.0, after=max(0, len(odometry) - 1)
+    )
+    assert stopped is not None, "the base did not stop when paused"
+    settled = settle(stack, 5.0)
+    assert settled is not None, "the base keeps moving while paused"
+    # The cancel reaches the sim within a few of its (10x) seconds at the plan's speed (0.24 m/s).
+    assert math.dist((settled.x, settled.y), (at_pause.x, at_pause.y)) < 1.0, (at_pause, settled)
+    waiting = steps.wait_for(
+        lambda f: f.goal_id == goal_id and f.feedback.status is StepStatus.AWAITING_APPROVAL and f.feedback.step == 0,
+        10.0,
+    )
+    assert waiting is not None and f"tether resume {goal_id}" in waiting.feedback.message, waiting
+    assert not any(s.goal_id == goal_id and s.state.terminal for s in statuses.messages), "the pause ended the plan"
+    code, listed = cli_json(stack, "pending")
+    assert code == 0 and [p["goal_id"] for p in listed["paused"]] == [goal_id], listed  # type: ignore[attr-defined]
+    navigate = ActionClient(stack.node, keys.CMD_NAVIGATE)
+    with pytest.raises(GoalRejected, match="paused by operator test"):
+        navigate.send(NavigateToPoseGoal(pose=goal))
+    # The person takes over: a turn on the spot with teleop, until it turned 0.1 rad (ground truth).
+    before = truth(stack).robot
+
+    def turned() -> float:
+        return abs(math.remainder(truth(stack).robot.yaw - before.yaw, math.tau))
+
+    deadline = time.monotonic() + 30.0
+    try:
+        while turned() < 0.1 and time.monotonic() < deadline:
+            stack.node.publish(keys.TELEOP_CMD_VEL, Twist(angular_z=0.5))
+            odometry.wait_for(lambda o: o.angular_z > 0.1, 0.02, after=max(0, len(odometry) - 1))
+    finally:
+        stack.node.publish(keys.TELEOP_CMD_VEL, Twist())
+    assert turned() >= 0.1, "teleop did not turn the robot while the plan was paused"
+    # Handed back: the step drives again from where the person left the robot, to the plan's goal.
+    code, resumed = cli_json(stack, "resume", goal_id, "--token-file", str(stack.token_file))
+    assert (code, resumed["ok"], resumed["state"]) == (0, True, "approved"), resumed
+    ended = statuses.wait_for(lambda s: s.goal_id == goal_id and s.state.terminal, PLAN_TIMEOUT)
+    assert ended is not None and ended.state is GoalState.SUCCEEDED, ended
+    there = truth(stack).robot
+    assert math.hypot(there.x - goal.x, there.y - goal.y) < 0.05, (there, goal)
+    code, late = cli_json(stack, "pause", goal_id, "--token-file", str(stack.token_file))
+    assert code == 2 and "it is finished" in str(late["message"]), late
