@@ -1,7 +1,8 @@
 """Action goals through the safety gate: send_goal from a client, through safety's checks, to the sim and back.
 
-    python -m bench.gate --json        one JSON object on stdout, progress on stderr
-    python -m bench.gate               a short table
+    python -m bench.gate --json                one JSON object on stdout, progress on stderr
+    python -m bench.gate                       a short table
+    python -m bench.gate --viewer --json       the same, then again with a hostile Foxglove viewer connected
 
 Measured: the round trip of a `cmd/<action>/_action/send_goal` query from this process (standing in
 for the executor) to safety, which checks the goal, forwards it on
@@ -38,6 +39,25 @@ that store. Compare with a run without it for what the memory costs.
 
 `ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
 reason in `errors`), `failed` goals accepted whose result was not `succeeded`.
+
+With `--viewer`, after that measurement (the baseline, from the same run and stack), the bench
+starts `tether view` on the stack's robot, ports and config file (a free loopback port, learnt from
+its `--json` line; teleop off, the camera at its default 2 pictures a second to a viewer that
+watches it) and connects Foxglove's own WebSocket client to it (@foxglove/ws-protocol under node, the
+`subscribe-all` mode of tests/integration/foxglove_client, installed once with `npm ci` into a cache
+folder: bench/viewer.py). The client subscribes to every channel the view advertises and reads all
+of it, and sends on the same socket `--viewer-garbage-hz` rounds a second (default 20, 0: none) of
+garbage frames and bogus client messages (18 frames a round: text that is no JSON, requests with
+wrong types or ids that exist nowhere, an advertise the server does not take, binary frames with no
+such channel or opcode, 64 KiB of nothing). Once it has received messages, the same goals and plan
+checks, interleaved with the relay in the same way, are measured again while it stays connected,
+into `viewer`: `gate_p50_ms`, `gate_p99_ms`, `relay_p50_ms`, `ratio_p50`, `plan_check_p50_ms`,
+`plan_check_p99_ms`, `samples`, `rejected`, `failed`, `goals_met`, and the client's counts over its
+whole connection: `messages_received`, `garbage_sent` (frames), `channels` (subscribed) and
+`server_statuses` (the server's answers to the garbage). `viewer` is null without `--viewer`; when
+node, npm or the client is missing (or `npm ci` fails), the viewer part is skipped and
+`viewer_note` (otherwise null) says why; the rest is measured as usual. Trouble with the viewer part
+itself goes into `errors`, prefixed "with the viewer:", and leaves the baseline's results in place.
 """
 
 from __future__ import annotations
@@ -69,6 +89,7 @@ from bench.service import (
     show,
 )
 from bench.transport import raw_echo, timed_pair
+from bench.viewer import ViewerMissing, client_script, running_view, running_viewer
 from schemas import keys
 from schemas.actions import GetResult, GoalResponse, GoalState, SendGoal
 from schemas.common import Pose2D
@@ -93,6 +114,8 @@ REALTIME_FACTOR = 1.0
 CALL_TIMEOUT = 5.0
 RESULT_TIMEOUT = 30.0
 HOLD_TIME = 0.3  # the trajectory's one point, seconds from start
+VIEWER_READY_TIMEOUT = 30.0  # s for the viewer's first messages
+GARBAGE_HZ = 20.0
 progress = reporter(PROG)
 
 
@@ -272,7 +295,53 @@ def summarize(samples: Samples) -> dict[str, Any]:
     }
 
 
-def bench(args: argparse.Namespace) -> dict[str, Any]:
+def with_viewer(stack: Stack, state: RobotMotion, script: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """The goals and plan checks again, while Foxglove's client, subscribed to everything (and sending
+    garbage), is connected to `tether view` on the stack."""
+    n, warmup = args.n, args.warmup
+    logs = stack.supervisor.log_dir
+    with (
+        running_view(stack, progress) as (url, view, _),
+        running_viewer(script, url, args.viewer_garbage_hz, logs / "viewer.log", progress) as viewer,
+    ):
+        first = viewer.wait_flowing(VIEWER_READY_TIMEOUT)
+        progress(
+            f"the viewer subscribed to {first['channels']} channels; measuring {n} goals of each kind again "
+            f"(+{warmup} warm-up, <= {args.max_seconds:g} s)"
+        )
+        samples = measure(stack, state, n, warmup, args.max_seconds, args.goals_per_second)
+        progress(f"measuring {n} plan checks again")
+        relay, checks, _ = plan_checks(stack, state, n + warmup)
+        if view.poll() is not None:
+            raise BenchError(f"tether view exited with code {view.returncode} during the measurement")
+        counts = viewer.stop()
+    progress(f"the viewer received {counts['messages']} messages and sent {counts['garbage']} garbage frames")
+    summary = summarize(samples)
+    c50, c99 = ms_summary(checks[warmup:])
+    errors = [f"with the viewer: {error}" for error in samples.errors]
+    if counts["done"] != "stdin":
+        errors.append(f"with the viewer: its connection ended before the measurement did ({counts['done']})")
+    return {
+        "gate_p50_ms": summary["gate_p50_ms"],
+        "gate_p99_ms": summary["gate_p99_ms"],
+        "relay_p50_ms": summary["relay_p50_ms"],
+        "ratio_p50": summary["ratio_p50"],
+        "plan_check_p50_ms": c50,
+        "plan_check_p99_ms": c99,
+        "plan_check_relay_p50_ms": ms_summary(relay[warmup:])[0],
+        "samples": summary["samples"],
+        "rejected": samples.rejected,
+        "failed": samples.failed,
+        "goals_met": summary["goals_met"],
+        "messages_received": counts["messages"],
+        "garbage_sent": counts["garbage"],
+        "channels": counts["channels"],
+        "server_statuses": counts["statuses"],
+        "errors": errors,
+    }
+
+
+def bench(args: argparse.Namespace, viewer_script: Path | None) -> dict[str, Any]:
     n, warmup, max_seconds = args.n, args.warmup, args.max_seconds
     sim = {"realtime_factor": args.realtime_factor, "objects_hz": args.objects_hz}
     with tempfile.TemporaryDirectory(prefix="bench-gate-incidents-") as tmp:
@@ -287,7 +356,16 @@ def bench(args: argparse.Namespace) -> dict[str, Any]:
             samples = measure(stack, state, n, warmup, max_seconds, args.goals_per_second)
             progress(f"measuring {n} plan checks against the relay")
             relay, checks, warnings = plan_checks(stack, state, n + warmup)
+            viewed: dict[str, Any] | None = None
+            if viewer_script is not None:
+                try:
+                    viewed = with_viewer(stack, state, viewer_script, args)
+                except BenchError as exc:  # the baseline stands
+                    samples.errors.append(f"with the viewer: {exc}")
+                    progress(f"error: with the viewer: {exc}")
     c50, c99 = ms_summary(checks[warmup:])
+    if viewed is not None:
+        samples.errors += viewed.pop("errors")
     return {
         **summarize(samples),
         "plan_check_p50_ms": c50,
@@ -298,10 +376,23 @@ def bench(args: argparse.Namespace) -> dict[str, Any]:
         "rejected": samples.rejected,
         "failed": samples.failed,
         "errors": samples.errors,
+        "viewer": viewed,
     }
 
 
+def viewer_client(args: argparse.Namespace) -> tuple[Path | None, str | None]:
+    """(the Foxglove client's script, None) with --viewer, (None, why not) when it cannot run, (None, None) without."""
+    if not args.viewer:
+        return None, None
+    try:
+        return client_script(), None
+    except (ViewerMissing, BenchError) as exc:
+        progress(f"the viewer part is skipped: {exc}")
+        return None, str(exc)
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    script, viewer_note = viewer_client(args)
     defaults: dict[str, Any] = {
         "gate_p50_ms": None,
         "gate_p99_ms": None,
@@ -319,8 +410,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "rejected": 0,
         "failed": 0,
         "warmup": args.warmup,
+        "viewer": None,
+        "viewer_note": viewer_note,
     }
-    result = measured(defaults, lambda: bench(args), progress)
+    result = measured(defaults, lambda: bench(args, script), progress)
     result["notes"] = notes(
         gate="send_goal on cmd/<action> to safety: decode, e-stop and policy checks, a safety event, then "
         "send_goal on robot/<action> to the sim (signed, checked there) and its reply back; safety serves it "
@@ -332,16 +425,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         goals_per_second_per_kind=args.goals_per_second,
         sim={"realtime_factor": args.realtime_factor, "objects_hz": args.objects_hz},
     )
+    if args.viewer:
+        result["notes"]["viewer"] = (
+            "after the baseline, the same goals and plan checks while tether view (loopback, teleop off) "
+            "serves Foxglove's ws-protocol client, subscribed to every channel and reading it all, sending "
+            f"{args.viewer_garbage_hz:g} rounds of 18 garbage frames a second on the same socket"
+        )
     return result
 
 
-def print_table(result: dict[str, Any]) -> None:
-    def pair(prefix: str) -> str:
-        return f"{show(result[f'{prefix}_p50_ms'])} / {show(result[f'{prefix}_p99_ms'])}"
+def pair_of(result: dict[str, Any], prefix: str) -> str:
+    return f"{show(result[f'{prefix}_p50_ms'])} / {show(result[f'{prefix}_p99_ms'])}"
 
+
+def print_table(result: dict[str, Any]) -> None:
     rows = [
-        ("gate p50 / p99 ms", pair("gate"), f"- / {show(GOALS['goal_p99_ms'])}"),
-        ("relay p50 / p99 ms", pair("relay"), ""),
+        ("gate p50 / p99 ms", pair_of(result, "gate"), f"- / {show(GOALS['goal_p99_ms'])}"),
+        ("relay p50 / p99 ms", pair_of(result, "relay"), ""),
         ("ratio p50", show(result["ratio_p50"], "x"), show(GOALS["goal_ratio_p50"], "x")),
         *(
             (f"  {name} p50 / p99 ms", f"{show(k['p50_ms'])} / {show(k['p99_ms'])}", "")
@@ -349,6 +449,16 @@ def print_table(result: dict[str, Any]) -> None:
         ),
         ("rejected / failed goals", f"{result['rejected']} / {result['failed']}", "0 / 0"),
     ]
+    if (viewed := result.get("viewer")) is not None:
+        rows += [
+            ("with a viewer: gate p50 / p99 ms", pair_of(viewed, "gate"), f"- / {show(GOALS['goal_p99_ms'])}"),
+            ("with a viewer: relay p50 ms", show(viewed["relay_p50_ms"]), ""),
+            ("with a viewer: ratio p50", show(viewed["ratio_p50"], "x"), show(GOALS["goal_ratio_p50"], "x")),
+            ("with a viewer: plan check p50 / p99 ms", pair_of(viewed, "plan_check"), ""),
+            ("viewer: messages in / garbage out", f"{viewed['messages_received']} / {viewed['garbage_sent']}", ""),
+        ]
+    elif result.get("viewer_note"):
+        rows.append(("with a viewer", f"skipped: {result['viewer_note']}", ""))
     print_rows(f"goals through safety ({result['samples']} samples)", rows, result["errors"])
 
 
@@ -382,6 +492,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=bounded(float, 0.0, 100.0, open_low=True),
         default=5.0,
         help="the sim's camera rate (frames are rendered in a process of the sim's own)",
+    )
+    parser.add_argument(
+        "--viewer",
+        action="store_true",
+        help="then measure again while tether view serves a Foxglove client subscribed to everything (needs node)",
+    )
+    parser.add_argument(
+        "--viewer-garbage-hz",
+        type=bounded(float, 0.0, 1000.0),
+        default=GARBAGE_HZ,
+        help="rounds of garbage frames and bogus messages the viewer sends a second (0: none)",
     )
 
 

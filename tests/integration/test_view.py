@@ -10,12 +10,10 @@ Foxglove's Teleop panel does, and the robot drives through safety.
 from __future__ import annotations
 
 import base64
-import hashlib
 import itertools
 import json
 import math
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -30,6 +28,8 @@ import jsonschema
 import pytest
 from mcap.reader import make_reader
 
+from bench.viewer import ViewerMissing
+from bench.viewer import client_script as install_client
 from schemas import keys
 from schemas.common import Pose2D
 from schemas.robot import NavigateToPoseGoal, Odometry, Twist
@@ -40,7 +40,6 @@ from services.recorder.reader import read_recording
 from tests.integration.conftest import Stack, dump_logs, start_stack, stop_stack
 from tether.viewteleop import BURST, DEADMAN, RATE_HZ, TELEOP_TOPIC
 
-CLIENT_SOURCE = Path(__file__).with_name("foxglove_client")
 DEADLINE = 60.0
 FOXGLOVE_TOPICS = {
     scene3d.SCENE_TOPIC: "foxglove.SceneUpdate",
@@ -54,20 +53,12 @@ FOXGLOVE_TOPICS = {
 
 
 def client_script() -> Path:
-    """The client and its node_modules in a cache folder named by the hash of its files (installed once)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    if node is None or npm is None:
-        pytest.skip("node and npm are needed to run Foxglove's WebSocket client (@foxglove/ws-protocol)")
-    files = ("package.json", "package-lock.json", "client.js")
-    digest = hashlib.sha256(b"".join((CLIENT_SOURCE / f).read_bytes() for f in files)).hexdigest()[:16]
-    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    home = cache / "tether-tests" / f"foxglove-client-{digest}"
-    if not (home / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
-        home.mkdir(parents=True, exist_ok=True)
-        for f in files:
-            shutil.copy(CLIENT_SOURCE / f, home / f)
-        subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=home, check=True, timeout=300, capture_output=True)
-    return home / "client.js"
+    """The client and its node_modules in a cache folder named by the hash of its files (installed once,
+    bench/viewer.py); skipped without node and npm."""
+    try:
+        return install_client()
+    except ViewerMissing as exc:
+        pytest.skip(str(exc))
 
 
 @dataclass

@@ -6,6 +6,13 @@
 //   schemas: only the official JSON Schemas of @foxglove/schemas.
 //   hostile URL SECONDS: garbage and protocol abuse on a raw socket, then subscribes to every channel
 //     and stops reading (a viewer that does not keep up); prints what the server answered.
+//   subscribe-all URL SECONDS [GARBAGE_HZ]: a viewer that subscribes to every channel advertised and reads
+//     all of it; with GARBAGE_HZ > 0 it also sends, that many times a second on the same socket, a round of
+//     garbage frames and bogus client messages (GARBAGE below; a round is skipped while more than 1 MiB is
+//     still unsent). {subscribed: n} after each advertisement, {stats: {...}} every second, and the same
+//     counts with {done: why} when stdin ends (how bench.gate --viewer stops it), SECONDS pass or the
+//     server closes: messages (received), bytes, channels (subscribed), garbage (frames sent), skipped
+//     (rounds), statuses (the server's status messages).
 //   teleop URL SECONDS: client publish as Foxglove's Teleop panel does it, step by step as the test
 //     asks on stdin, one JSON object a line: {op: "advertise", topic, encoding, schemaName} -> {advertised: id},
 //     {op: "publish", channel, message, hz, seconds} (the panel holding a button) -> {published: n, last: s},
@@ -23,8 +30,8 @@ const SUBPROTOCOL = "foxglove.sdk.v1";
 const out = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const deadline = setTimeout(() => finish("timeout"), Number(seconds) * 1000);
 
-function finish(why) {
-  out({ done: why });
+function finish(why, counts = {}) {
+  out({ done: why, ...counts });
   clearTimeout(deadline);
   process.exit(0);
 }
@@ -118,6 +125,60 @@ function hostile() {
   deadline.refresh();
 }
 
+// One round of garbage for subscribe-all: frames the protocol cannot parse and well-formed requests
+// that make no sense (ids that exist nowhere, ops this server does not offer), all answered by a status
+// at most. No subscription to a real channel: the viewer's own subscriptions stay as they are.
+const NOWHERE = 1000000;  // subscription and channel ids above this are never the viewer's own
+const GARBAGE = [
+  "not json at all",
+  "{\"op\":",
+  JSON.stringify({ op: "subscribe" }),
+  JSON.stringify({ op: "subscribe", subscriptions: [{ id: "x", channelId: "y" }] }),
+  JSON.stringify({ op: "subscribe", subscriptions: [{ id: NOWHERE + 1, channelId: NOWHERE + 1 }] }),
+  JSON.stringify({ op: "unsubscribe", subscriptionIds: [NOWHERE + 2] }),
+  JSON.stringify({ op: "advertise", channels: [{ id: 1, topic: "/cmd_vel", encoding: "json", schemaName: "x" }] }),
+  JSON.stringify({ op: "unadvertise", channelIds: [NOWHERE + 3] }),
+  JSON.stringify({ op: "setParameters", parameters: [{ name: "a", value: 1 }] }),
+  JSON.stringify({ op: "getParameters", parameterNames: ["a"] }),
+  JSON.stringify({ op: "subscribeConnectionGraph" }),
+  JSON.stringify({ op: "fetchAsset", uri: "file:///etc/passwd", requestId: 7 }),
+  JSON.stringify({ op: "no-such-op" }),
+  "[".repeat(10000),
+  Buffer.from([0x01, 0xff, 0xff, 0xff, 0xff, 0x00]),  // client MESSAGE_DATA on a channel never advertised
+  Buffer.from([0x02, 0x01, 0x00, 0x00, 0x00]),  // a service call request, cut short
+  Buffer.from([0x7f]),  // an opcode that does not exist
+  Buffer.alloc(64 * 1024, 0x61),  // 64 KiB of nothing
+];
+
+function subscribeAll() {
+  const [garbageHz = "0"] = wanted;
+  const ws = new WebSocket(url, [SUBPROTOCOL]);
+  const client = new FoxgloveClient({ ws });
+  const counts = { messages: 0, bytes: 0, channels: 0, garbage: 0, skipped: 0, statuses: 0 };
+  const stop = (why) => finish(why, counts);
+  client.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
+  client.on("close", (event) => stop(`closed ${event && event.code}`));
+  client.on("status", () => { counts.statuses += 1; });
+  client.on("advertise", (channels) => {
+    for (const channel of channels) client.subscribe(channel.id);
+    counts.channels += channels.length;
+    out({ subscribed: counts.channels });
+  });
+  client.on("message", ({ data }) => { counts.messages += 1; counts.bytes += data.byteLength; });
+  client.on("open", () => {
+    if (Number(garbageHz) > 0) {
+      setInterval(() => {
+        if (ws.bufferedAmount > 1024 * 1024) { counts.skipped += 1; return; }
+        for (const frame of GARBAGE) ws.send(frame);
+        counts.garbage += GARBAGE.length;
+      }, 1000 / Number(garbageHz));
+    }
+  });
+  setInterval(() => out({ stats: { ...counts } }), 1000);
+  process.stdin.on("data", () => {});
+  process.stdin.on("end", () => stop("stdin"));
+}
+
 function teleop() {
   const ws = new WebSocket(url, [SUBPROTOCOL]);
   const client = new FoxgloveClient({ ws });
@@ -165,4 +226,5 @@ if (mode === "schemas") { official(); process.exit(0); }
 else if (mode === "watch") watch();
 else if (mode === "hostile") hostile();
 else if (mode === "teleop") teleop();
+else if (mode === "subscribe-all") subscribeAll();
 else { out({ error: `unknown mode ${mode}` }); process.exit(2); }
