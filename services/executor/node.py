@@ -75,8 +75,10 @@ class NodeRobot:
 
     After each motion, the pose and joint positions it reports are ones that arrived after the
     motion ended: planning the next move from a state read mid-motion would start it from where
-    the robot no longer is. A motion's time is bounded by its step's clock (runner.StepClock),
-    which cancels it; the wait for its result here is only a backstop.
+    the robot no longer is. What perception reports must also have been taken after it ended, by
+    the robot's clock (`look`): a camera frame arrives well after it was taken. A motion's time is
+    bounded by its step's clock (runner.StepClock), which cancels it; the wait for its result here
+    is only a backstop.
     """
 
     def __init__(self, node: Node, config: ExecutorConfig) -> None:
@@ -90,6 +92,9 @@ class NodeRobot:
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
         self._motion_ended = 0.0
+        # The robot's clock once the last motion had ended: the stamp of the first joint state that
+        # arrived after it (None until one has; 0 before any motion).
+        self._ended_stamp: float | None = 0.0
         self._objects: tuple[float, PerceivedObjects] | None = None
         self._heartbeat: tuple[float, SafetyStatus] | None = None
         self._humans: PerceivedHumans | None = None
@@ -143,6 +148,8 @@ class NodeRobot:
     def _set_joints(self, msg: JointState) -> None:
         with self._changed:
             self._joints = (time.monotonic(), msg)
+            if self._ended_stamp is None:
+                self._ended_stamp = msg.stamp
             self._changed.notify_all()
 
     def _set_objects(self, msg: PerceivedObjects) -> None:
@@ -153,6 +160,7 @@ class NodeRobot:
     def _motion_end(self) -> None:
         with self._changed:
             self._motion_ended = time.monotonic()
+            self._ended_stamp = None
 
     def _fresh(self, attribute: str, timeout: float = STATE_TIMEOUT, since: float | None = None) -> Any:
         """The latest message of `attribute` received after `since` (default: the end of the last
@@ -172,11 +180,24 @@ class NodeRobot:
         return next((o.id for o in latest[1].objects if o.on == "gripper"), None)
 
     def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
-        """What perception reported last, once that report came after the last motion ended:
-        asked again without a motion between, the same frame answers at once. With `new`, the
-        next report from now on."""
-        objects: PerceivedObjects | None = self._fresh("_objects", timeout, time.monotonic() if new else None)
-        return None if objects is None else list(objects.objects)
+        """What perception reported last, once that report came after the last motion ended and was
+        taken after it too: its stamp (the robot's clock) no earlier than the first joint state that
+        arrived after the end. A camera frame arrives a good while after it was taken (rendered,
+        detected, sent: a tenth of a second or more on a busy machine, seconds of a sim running
+        ten times faster); one taken while the base still drove in has what the hand holds where
+        the hand no longer is. Asked again without a motion between, the same frame answers at
+        once. With `new`, the next such report from now on."""
+        after = time.monotonic() if new else self._motion_ended
+
+        def taken_after() -> bool:
+            latest, ended = self._objects, self._ended_stamp
+            return latest is not None and latest[0] > after and ended is not None and latest[1].stamp >= ended
+
+        with self._changed:
+            if not self._changed.wait_for(taken_after, timeout):
+                return None
+            assert self._objects is not None
+            return list(self._objects[1].objects)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         try:
