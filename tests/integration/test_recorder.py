@@ -199,13 +199,15 @@ def test_the_recording_holds_every_message_published_in_order(incident: Incident
     for path in (keys.ODOM.path, keys.SAFETY_EVENTS.path, keys.CMD_VEL.path, keys.ESTOP.path, keys.HEARTBEAT.path):
         assert f"{prefix}/{path}" in seen, f"nothing seen on {path}"
     for key, messages in seen.items():
-        # The test subscribed after the recorder and counted until shortly before it stopped: what
-        # it saw is one unbroken run of what the file holds.
-        held = recorded.get(key, [])
-        start = next((i for i in range(len(held)) if held[i : i + len(messages)] == messages), None)
-        assert start is not None, (
-            f"{key}: {len(messages)} seen, {len(held)} recorded, not one unbroken run:\n"
-            f"seen {[m[:60] for m in messages]}\nheld {[m[:60] for m in held]}"
+        # The test subscribed after the recorder and counted until shortly before it stopped: all it
+        # saw is in the file, in the order it saw it. The file may hold more between them: Zenoh may
+        # drop a message on its way to this test's session (a full queue towards a loaded process)
+        # that reached the recorder's.
+        held = iter(recorded.get(key, []))
+        missing = [m[:60] for m in messages if not any(h == m for h in held)]
+        assert not missing, (
+            f"{key}: {len(messages)} seen, {len(recorded.get(key, []))} recorded; not in the file in order: "
+            f"{missing}\nheld {[m[:60] for m in recorded.get(key, [])]}"
         )
 
 
