@@ -180,10 +180,14 @@ def test_the_robot_refuses_a_signed_goal_into_a_keep_out_zone_on_its_own(stack: 
 def test_inspect_and_recheck_flag_what_was_not_safetys(stack: Stack) -> None:
     # One command through safety, so recheck has a decision to check beside the flags.
     sent = Watch(stack.node, keys.ROBOT_CMD_VEL)
+    decided = Watch(stack.node, keys.SAFETY_EVENTS)
     deadline = time.monotonic() + 10.0
     while sent.latest(0.1) is None:
         assert time.monotonic() < deadline, "safety passed no cmd_vel on"
         stack.node.publish(keys.CMD_VEL, Twist(angular_z=0.2))
+    # Safety publishes its decision just after the twist it passed on: the recorder is stopped only
+    # once the decision is out too, so the file holds it.
+    assert decided.wait_for(lambda e: e.key == keys.CMD_VEL.path, timeout=10.0) is not None, "no decision heard"
     assert stack.supervisor.stop("recorder") == 0
     [file] = stack.recordings.glob("*.mcap")
     inspected = tether_cli(stack, "inspect", "--json", str(file))
