@@ -40,6 +40,11 @@ def fmt_pose(pose: Pose2D) -> str:
     return f"({pose.x:.2f}, {pose.y:.2f}, {math.degrees(pose.yaw):.0f}°)"
 
 
+def fmt_point(x: float, y: float) -> str:
+    """A point on the floor for people to read: `(x, y)`, metres to the centimetre."""
+    return f"({x:.2f}, {y:.2f})"
+
+
 def preview(text: str, limit: int) -> str:
     """`text` on one line, cut to `limit` characters with an ellipsis."""
     flat = " ".join(text.split())

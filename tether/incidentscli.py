@@ -21,6 +21,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from schemas import keys
+from schemas.common import fmt_point
 from schemas.incidents import (
     ForgetAction,
     ForgetIncident,
@@ -32,7 +33,7 @@ from schemas.incidents import (
 )
 from services.errors import CallError
 from services.runtime import Node, NodeSettings
-from services.safety.hazards import ago, at, zone_reason
+from services.safety.hazards import ago, zone_reason
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, operator_name
 
@@ -99,7 +100,7 @@ def parse_since(text: str, now: float) -> float:
 
 
 def where(incident: Incident) -> str:
-    return "where unknown" if incident.x is None or incident.y is None else at(incident.x, incident.y)
+    return "where unknown" if incident.x is None or incident.y is None else fmt_point(incident.x, incident.y)
 
 
 def incident_json(incident: Incident) -> dict[str, Any]:

@@ -13,7 +13,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import Feedback, GoalState, GoalStatus, ResultResponse, SendGoal, goal_id_in
-from schemas.common import DECODE_ERRORS, ServiceError, fmt_pose, preview
+from schemas.common import DECODE_ERRORS, ServiceError, fmt_point, fmt_pose, preview
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.incidents import Incident
 from schemas.plan import (
@@ -167,10 +167,6 @@ def build_timeline(recording: RecordingFile, everything: bool = False, robot_key
 
 
 # Formatting
-
-
-def fmt_point(x: float, y: float) -> str:
-    return f"({x:.2f}, {y:.2f})"
 
 
 def short_id(goal_id: str) -> str:

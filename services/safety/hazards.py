@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import msgspec
 
+from schemas.common import fmt_point
 from schemas.incidents import CautionZone, Incident, IncidentKind
 from schemas.plan import GroundedPlan, GroundedStep, NavigateStep, PickStep, PlaceStep, fallback_labels, step_labels
 
@@ -45,10 +46,6 @@ def ago(stamp: float, now: float) -> str:
     return f"{n} {unit}{'' if n == 1 else 's'} ago"
 
 
-def at(x: float, y: float) -> str:
-    return f"({x:.2f}, {y:.2f})"
-
-
 def why(incident: Incident) -> str:
     """Who triggered it and why, as far as the store knows: "operator: person in the way"."""
     parts = [p for p in (incident.source, incident.reason.strip()) if p]
@@ -58,7 +55,9 @@ def why(incident: Incident) -> str:
 def incident_line(incident: Incident, now: float) -> str:
     """One incident for a person or a model: "e-stop at (2.10, 3.00) 2 days ago (operator: person in
     the way)"."""
-    where = " (where unknown)" if incident.x is None or incident.y is None else f" at {at(incident.x, incident.y)}"
+    where = (
+        " (where unknown)" if incident.x is None or incident.y is None else f" at {fmt_point(incident.x, incident.y)}"
+    )
     reason = f" ({why(incident)})" if why(incident) else ""
     cleared = "; its caution zone was cleared" if incident.cleared else ""
     return f"{KIND_WORDS[incident.kind]}{where} {ago(incident.stamp, now)}{reason}{cleared} [incident {incident.id}]"
@@ -68,7 +67,7 @@ def zone_summary(zone: CautionZone) -> str:
     """ "3 incidents within 1.0 m of (2.10, 3.00) (near_miss, estop)"."""
     kinds = f" ({', '.join(zone.kinds)})" if zone.kinds else ""
     plural = "" if zone.count == 1 else "s"
-    return f"{zone.count} incident{plural} within {zone.radius:g} m of {at(zone.x, zone.y)}{kinds}"
+    return f"{zone.count} incident{plural} within {zone.radius:g} m of {fmt_point(zone.x, zone.y)}{kinds}"
 
 
 def clear_hint(zone: CautionZone) -> str:
@@ -85,7 +84,7 @@ def zone_line(zone: CautionZone) -> str:
     """One caution zone for a person or a model."""
     return (
         f"caution zone: {zone_summary(zone)}: the robot keeps to {zone.speed_scale:.0%} of its speed limits "
-        f"within {zone.radius:g} m of {at(zone.x, zone.y)} until an operator clears it"
+        f"within {zone.radius:g} m of {fmt_point(zone.x, zone.y)} until an operator clears it"
     )
 
 
@@ -331,7 +330,7 @@ def plan_warnings(
         if zone is not None and (zone.x, zone.y) not in seen_zones:
             seen_zones.add((zone.x, zone.y))
             lines.append(
-                f"{place.what} {at(place.x, place.y)} is in a caution zone ({zone_summary(zone)}): the robot "
+                f"{place.what} {fmt_point(place.x, place.y)} is in a caution zone ({zone_summary(zone)}): the robot "
                 f"keeps to {zone.speed_scale:.0%} of its speed limits there; {clear_hint(zone)}"
             )
     near: list[tuple[float, str]] = []
@@ -344,7 +343,7 @@ def plan_warnings(
         reason = f" ({why(incident)})" if why(incident) else ""
         line = (
             f"{KIND_WORDS[incident.kind]} {ago(incident.stamp, now)}{reason}, {distance:.1f} m from {place.what} "
-            f"{at(place.x, place.y)} [incident {incident.id}]"
+            f"{fmt_point(place.x, place.y)} [incident {incident.id}]"
         )
         near.append((distance, line))
     near.sort(key=lambda d: d[0])

@@ -17,7 +17,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, Feedback, GetResult, GoalResponse, GoalStatus, SendGoal
-from schemas.common import DECODE_ERRORS, Pose2D
+from schemas.common import DECODE_ERRORS, Pose2D, fmt_point
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
     ForgetAction,
@@ -52,7 +52,6 @@ from services.actionlib import MAX_RESULT_WAIT
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.gate import MOVING, GateEvent, GoalRuling, Ruling, SafetyGate
-from services.safety.hazards import at
 from services.safety.incidents import Draft, IncidentStore, IncidentStoreError, IncidentWatch
 from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
@@ -568,7 +567,7 @@ class SafetyNode:
             recording=self._recording_now(),
         )
         x, y = incident.x, incident.y
-        where = "where unknown" if x is None or y is None else f"at {at(x, y)}"
+        where = "where unknown" if x is None or y is None else f"at {fmt_point(x, y)}"
         kept = f" (kept in memory: {store.fault})" if store.fault else ""
         log.warning("incident %d, %s %s: %s%s", incident.id, incident.kind, where, incident.reason, kept)
         return incident
