@@ -22,3 +22,5 @@ class ProcessStatus(Frozen):
     peak_rss_bytes: Bytes  # the most it has held resident (VmHWM)
     cpu_seconds: Duration  # user + system, all its threads, since it started
     uptime_seconds: Duration  # since the service's runtime was loaded
+    # What the processes it started hold resident (VmRSS summed): the sim's camera renderer.
+    children_rss_bytes: Bytes = 0

@@ -37,6 +37,30 @@ def memory(status_file: Path = PROC_STATUS) -> tuple[int, int]:
     return rss, max(rss, fields.get("VmHWM", rss))
 
 
+def children_memory(proc: Path = Path("/proc")) -> int:
+    """What this process's children and their children hold resident, in bytes (0 without /proc)."""
+    total = 0
+    pending = [os.getpid()]
+    while pending:
+        try:
+            tasks = list((proc / str(pending.pop()) / "task").iterdir())
+        except OSError:
+            continue  # gone meanwhile, or no /proc
+        for task in tasks:
+            try:
+                children = [int(pid) for pid in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            for child in children:
+                try:
+                    status = (proc / str(child) / "status").read_text()
+                except OSError:
+                    continue  # it ended meanwhile
+                total += sum(int(line.split()[1]) * 1024 for line in status.splitlines() if line.startswith("VmRSS:"))
+                pending.append(child)
+    return total
+
+
 def process_status(service: str) -> ProcessStatus:
     rss, peak = memory()
     times = os.times()
@@ -48,4 +72,5 @@ def process_status(service: str) -> ProcessStatus:
         peak_rss_bytes=peak,
         cpu_seconds=times.user + times.system,
         uptime_seconds=time.monotonic() - STARTED,
+        children_rss_bytes=children_memory(),
     )

@@ -13,15 +13,20 @@ import pytest
 LONGEST_FIRST = (
     "tests/integration/test_tours.py",
     "tests/integration/test_executor.py",
-    "tests/integration/test_ros2_stack.py",
+    "tests/integration/test_modes.py",
     "tests/integration/test_agents.py",
     "tests/integration/test_system.py",
     "tests/integration/test_recorder.py",
-    "tests/integration/test_safety.py",
+    "tests/integration/test_recovery.py",
+    "tests/integration/test_incidents.py",
+    "tests/integration/test_ros2_stack.py",
+    "tests/integration/test_view.py",
     "tests/integration/test_deploy_acl.py",
-    "tests/integration/test_resolver_world.py",
+    "tests/integration/test_caution_zone.py",
+    "tests/integration/test_sim_faults.py",
     "tests/integration/test_ros2_hostile.py",
-    "tests/integration/test_recorder_ros2.py",
+    "tests/integration/test_sim.py",
+    "tests/integration/test_robot_link.py",
 )
 
 

@@ -786,8 +786,10 @@ def health(node: Node, services: list[str], timeout: float = 1.5) -> dict[str, A
 
 def memory_line(processes: dict[str, dict[str, Any]]) -> str:
     """The services' resident memory in MB, their total first (status_dict's `processes`)."""
-    total = sum(p["rss_bytes"] for p in processes.values())
-    each = ", ".join(f"{name} {p['rss_bytes'] / MB:.0f}" for name, p in processes.items())
+    # A service's own and its children's (the sim's camera renderer).
+    held = {name: p["rss_bytes"] + p.get("children_rss_bytes", 0) for name, p in processes.items()}
+    total = sum(held.values())
+    each = ", ".join(f"{name} {rss / MB:.0f}" for name, rss in held.items())
     return f"memory: {total / MB:.0f} MB resident ({each})"
 
 

@@ -3,11 +3,14 @@
 `python -m tether run ...` (how the Supervisor starts each service) and the `tether` script's
 `tether run ...` (how systemd units and containers do) come here through tether/__main__.py without
 importing tether.cli, whose other commands pull in pinocchio, shapely, cryptography, mcap and rich.
+A well-formed command line is read here without typer's parsing too: typer checks each value with
+pydantic, some 7 MB in every service process for four flags (`read_command_line`).
 """
 
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -60,12 +63,16 @@ def run(
     cannot be read or is invalid (the error names the file, the table and the value), 1 when the
     service fails otherwise (its log says why).
     """
+    run_service(ctx.obj, service, config)
+
+
+def run_service(settings: NodeSettings, service: str, config: Path | None) -> None:
+    """`run`'s work, once the command line is read (by typer or by `read_command_line`)."""
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise typer.Exit(2)
     sys.setswitchinterval(SWITCH_INTERVAL)
     module = importlib.import_module(f"services.{service}.main")
-    settings: NodeSettings = ctx.obj
     try:
         module.main(settings, config)
     except ConfigError as exc:
@@ -92,6 +99,69 @@ def runs_a_service(argv: Sequence[str]) -> bool:
     return False
 
 
-app = typer.Typer(help=HELP, no_args_is_help=True)
-app.callback()(common)
-app.command()(run)
+def read_command_line(argv: Sequence[str]) -> tuple[dict[str, str], str, Path | None] | None:
+    """`[--robot R] [--base-port N] [--zenoh-config F] run SERVICE [--config FILE]` (a flag's value
+    after `=` or as the next word) as (the shared flags given, the service, the config file); None for
+    anything else, for typer to answer as ever: help, an unknown flag, a flag twice, a value that is
+    empty or starts with `-`, a base port that is no number (also in $TETHER_BASE_PORT)."""
+    words = list(argv)
+
+    def take_flag() -> tuple[str, str] | None:
+        flag, joined, value = words.pop(0).partition("=")
+        if not joined:
+            value = words.pop(0) if words else ""
+        return (flag, value) if value and not value.startswith("-") else None
+
+    shared: dict[str, str] = {}
+    while words and words[0] != "run":
+        taken = take_flag()
+        if taken is None or taken[0] not in VALUE_FLAGS or taken[0] in shared:
+            return None
+        shared[taken[0]] = taken[1]
+    if not words:
+        return None
+    words.pop(0)
+    service: str | None = None
+    config: str | None = None
+    while words:
+        if not words[0].startswith("-"):
+            if service is not None:
+                return None
+            service = words.pop(0)
+            continue
+        taken = take_flag()
+        if taken is None or taken[0] != "--config" or config is not None:
+            return None
+        config = taken[1]
+    port = shared.get("--base-port", os.environ.get("TETHER_BASE_PORT") or "0")
+    if service is None or not port.isdecimal():
+        return None
+    return shared, service, None if config is None else Path(config)
+
+
+def app() -> None:
+    """`tether run ...` as the `tether` script and `python -m tether` give it: see `read_command_line`."""
+    line = read_command_line(sys.argv[1:])
+    if line is None:
+        typer_app()
+        return
+    shared, service, config = line
+    try:
+        settings = NodeSettings.from_env(
+            robot=shared.get("--robot"),
+            base_port=int(shared["--base-port"]) if "--base-port" in shared else None,
+            zenoh_config=Path(shared["--zenoh-config"]) if "--zenoh-config" in shared else None,
+        )
+    except ValueError as exc:
+        error(str(exc))
+        sys.exit(2)
+    try:
+        run_service(settings, service, config)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    sys.exit(0)
+
+
+typer_app = typer.Typer(help=HELP, no_args_is_help=True)
+typer_app.callback()(common)
+typer_app.command()(run)

@@ -11,6 +11,7 @@ from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
 from services.executor.node import IncidentReporter, NodePlanServices, NodeRobot, serve_execute_plan
 from services.executor.runner import PlanRunner
+from services.heap import release_free_memory
 from services.runtime import Node, NodeSettings, configure_logging, load_config, stop_event
 from services.sdnotify import Notifier
 from services.worldmodel import WorldModel, load_world
@@ -25,6 +26,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     # Both planners build their models once, here, before the executor says it is alive.
     arm = ArmPlanner(world, ArmPlannerConfig(planning_time=config.planning_time))
     base = BasePlanner(world, clearance=config.base_clearance, time_limit=config.planning_time)
+    release_free_memory()  # what loading the meshes and building the models freed (services/heap.py)
     stop = stop_event()
     with Node("executor", settings) as node:
         robot = NodeRobot(node, config)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from services.heap import release_free_memory
 from services.robotlink import KeyFileError, Signer, robot_key
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.config import SafetyConfig
@@ -30,6 +31,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     except PolicyError as exc:
         raise ConfigError(str(exc)) from None
     limits = policy.limits
+    release_free_memory()  # what loading the arm's model freed (services/heap.py)
     token_file = token_path(config.operator_token_file)
     state_file = Path(config.estop_state_file) if config.estop_state_file else None
     state_file = state_file or token_file.parent / f"estop-{settings.robot}.json"

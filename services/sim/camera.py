@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 import pybullet
-from PIL import Image
 
 from schemas.common import Pose2D
 from services.sim.config import CameraConfig
@@ -20,6 +19,9 @@ from services.sim.detection import Detection, Intrinsics, Target, camera_pose, d
 
 def png(pixels: np.ndarray) -> bytes:
     """An RGB image (height x width x 3, uint8) as PNG."""
+    # Here, not at the top: only the process that draws pictures (the sim's renderer) loads Pillow.
+    from PIL import Image
+
     out = io.BytesIO()
     Image.fromarray(pixels, mode="RGB").save(out, format="PNG", optimize=False)
     return out.getvalue()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from services.heap import release_free_memory
 from services.robotlink import KeyFileError, robot_key
 from services.runtime import ConfigError, Node, NodeSettings, configure_logging, load_config, stop_event
 from services.safety.operator import token_path
@@ -28,6 +29,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     stop = stop_event()
     # Its camera renders in a process of its own (SimNode.renderer): no visual meshes here.
     sim = Simulation(world, physics_hz=config.physics_hz, camera=config.camera, visuals=False)
+    release_free_memory()  # what loading the world into pybullet freed (services/heap.py)
     try:
         with Node("sim", settings) as node:
             sim_node = SimNode(node, sim, config, robot_key=key)

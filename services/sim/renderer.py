@@ -264,6 +264,7 @@ def _watch_parent(parent: int) -> None:
 
 def serve(conn: Connection, parent: int) -> None:
     """The child's loop: load the world it is sent, then draw each request until the pipe closes."""
+    from services.heap import release_free_memory
     from services.sim.camera import png
     from services.sim.sensors import Sensors
     from services.sim.world import SimWorld
@@ -273,6 +274,7 @@ def serve(conn: Connection, parent: int) -> None:
         _, world, camera = conn.recv()
         scene = SimWorld(world)
         sensors = Sensors(scene, camera)
+        release_free_memory()  # what loading the meshes freed (services/heap.py)
     except EOFError:
         return
     except Exception as exc:

@@ -321,8 +321,21 @@ class SimWorld:
             visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=obj.rgba)
         where = self.model.initial_position(obj)
         body: int = self.bullet.createMultiBody(obj.mass, shape, visual, [where.x, where.y, where.z])
-        self.bullet.changeDynamics(body, -1, lateralFriction=1.0, spinningFriction=0.01, rollingFriction=0.001)
+        # An object at rest sleeps (Bullet stops solving its contacts) until something active touches
+        # it or it is moved (`_wake`): a dozen resting objects made each step three times dearer.
+        self.bullet.changeDynamics(
+            body,
+            -1,
+            lateralFriction=1.0,
+            spinningFriction=0.01,
+            rollingFriction=0.001,
+            activationState=pybullet.ACTIVATION_STATE_ENABLE_SLEEPING,
+        )
         return body
+
+    def _wake(self, body: int) -> None:
+        """Back into the solver: a sleeping body would hang where it was put, or ignore the grip."""
+        self.bullet.changeDynamics(body, -1, activationState=pybullet.ACTIVATION_STATE_WAKE_UP)
 
     def _add_human(self, pose: Pose2D) -> int:
         visual = self.bullet.createVisualShape(
@@ -372,6 +385,7 @@ class SimWorld:
         if obj.mass > payload:
             return f"{object_id} weighs {obj.mass:g} kg, over the {payload:g} kg payload; it slips out"
         body, robot = self.object_bodies[object_id], self.robot
+        self._wake(body)
         hand_com = self.bullet.getLinkState(robot.id, robot.hand)[0:2]
         object_pose = self.bullet.getBasePositionAndOrientation(body)
         inverse = self.bullet.invertTransform(*hand_com)
@@ -401,6 +415,8 @@ class SimWorld:
     def release(self) -> None:
         if self._grasp_constraint is not None:
             self.bullet.removeConstraint(self._grasp_constraint)
+        if self.holding is not None:
+            self._wake(self.object_bodies[self.holding])
         self._grasp_constraint = None
         self.holding = None
 
@@ -560,6 +576,7 @@ class SimWorld:
         centre = [request.x, request.y, bottom + obj.size.z / 2 + DROP_HEIGHT]
         self.bullet.resetBasePositionAndOrientation(body, centre, self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw]))
         self.bullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        self._wake(body)
         log.info("moved %s to (%.2f, %.2f, %.2f); letting it settle", request.id, *centre)
         drop = Drop(self, request.id)
         self._drops.append(drop)

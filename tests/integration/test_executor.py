@@ -23,7 +23,7 @@ from services.errors import GoalRejected
 from services.footprint import footprint
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST, FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 
@@ -39,10 +39,6 @@ SURFACES = ["kitchen_counter", "kitchen_table", "coffee_table", "chair", "shelf"
 
 # Every service but the recorder (its tests are elsewhere).
 WITHOUT_RECORDER = tuple(s for s in SERVICES if s not in ("recorder", "planner"))
-# The sim up to ten times faster than real time (as fast as the machine lets it), its physics at
-# 120 Hz (half the default: half the CPU, and these tests judge where things end up, not how).
-FAST = 10.0
-FAST_SIM = "physics_hz = 120.0\n"
 
 
 @pytest.fixture

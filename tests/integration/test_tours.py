@@ -11,14 +11,16 @@ import pytest
 
 from schemas.executor import PlanStatus
 from schemas.world import WorldObject
-from tests.integration.conftest import Stack, start_stack, stop_stack
-from tests.integration.test_executor import FAST, GRASPABLE, WITHOUT_RECORDER, WORLD, chain, execute, plan, truth
+from tests.integration.conftest import FAST, FAST_SIM, Stack, start_stack, stop_stack
+from tests.integration.test_executor import GRASPABLE, WITHOUT_RECORDER, WORLD, chain, execute, plan, truth
 
 
 @pytest.fixture(scope="module")
 def tour_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     """One stack for the objects' tours of the surfaces: each tour leaves the world as it found it."""
-    s = start_stack(tmp_path_factory.mktemp("tours"), realtime_factor=FAST, services=WITHOUT_RECORDER)
+    s = start_stack(
+        tmp_path_factory.mktemp("tours"), realtime_factor=FAST, services=WITHOUT_RECORDER, sim_options=FAST_SIM
+    )
     try:
         yield s
     finally:

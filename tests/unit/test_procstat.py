@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import os
 import resource
+import subprocess
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -105,3 +107,16 @@ def test_status_takes_each_process_from_its_own_key_and_drops_one_claiming_anoth
             queryable.undeclare()
     assert set(found) == {"sim"} and found["sim"].pid == os.getpid()
     assert "dropped a process status for 'safety'" in caplog.text
+
+
+def test_a_service_counts_what_its_children_hold() -> None:
+    # A real child holding some 64 MB resident (as the sim's renderer holds its meshes) and waiting.
+    code = "import sys; held = b'x' * (64 << 20); print('up', flush=True); sys.stdin.read()"
+    alone = process_status("sim").children_rss_bytes
+    child = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert child.stdout is not None and child.stdout.readline() == b"up\n"
+        assert process_status("sim").children_rss_bytes >= alone + 64 * MB
+    finally:
+        child.communicate(timeout=10)
+    assert process_status("sim").children_rss_bytes <= alone

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tether.runservice import runs_a_service
+from tether.runservice import read_command_line, runs_a_service
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -61,15 +61,22 @@ def test_a_pure_module_does_not_load_zenoh(module: str) -> None:
 # Steps in one interpreter, each adding to what the ones before loaded, so each forbids a subset of
 # what the step before it did.
 HEAVY = ("pinocchio", "pybullet", "ompl", "cryptography", "matplotlib", "mcp")
-LIGHT = (*HEAVY, "shapely", "numpy", "rich", "tether.cli")
+# pydantic: typer checks its parameters with it, some 7 MB a process; `tether run` reads its own line.
+LIGHT = (*HEAVY, "shapely", "numpy", "rich", "tether.cli", "pydantic")
 LOAD_STEPS = {
     "module": [
         ("`tether run` with the parser and the planner", "services.parser.main, services.planner.main", LIGHT),
-        ("the resolver", "services.resolver.main", (*HEAVY, "mcap", "rosbags")),
+        ("the resolver", "services.resolver.main", (*HEAVY, "mcap", "rosbags", "pydantic")),
         ("tether.cli (status, send, ...)", "tether.cli", HEAVY),
     ],
     # The recorder keeps the world and policy files, by their paths only (services/bundled.py).
-    "script": [("`tether run` with the recorder", "services.recorder.main", LIGHT)],
+    "script": [
+        ("`tether run` with the recorder", "services.recorder.main", LIGHT),
+        # The sim's camera draws in its renderer process (services/sim/renderer.py), which alone loads Pillow.
+        ("the sim", "services.sim.main", ("pinocchio", "ompl", "mcp", "matplotlib", "PIL", "pydantic", "tether.cli")),
+        # Safety's arm model is pinocchio's; the planners (OMPL) are the executor's.
+        ("safety", "services.safety.main", ("ompl", "mcp", "matplotlib", "PIL", "pydantic", "tether.cli")),
+    ],
 }
 
 STEPS_CHILD = """
@@ -114,3 +121,46 @@ def test_a_service_process_and_the_cli_load_no_heavy_package_they_do_not_use(ent
 )
 def test_only_run_goes_to_the_small_module(argv: list[str], alone: bool) -> None:
     assert runs_a_service(argv) is alone
+
+
+@pytest.mark.parametrize(
+    ("argv", "line"),
+    [
+        (["run", "parser"], ({}, "parser", None)),
+        (
+            ["--robot", "r1", "--base-port", "7500", "run", "sim", "--config", "x.toml"],
+            ({"--robot": "r1", "--base-port": "7500"}, "sim", Path("x.toml")),
+        ),
+        (
+            ["--robot=r1", "--zenoh-config", "z.json5", "run", "--config=c.toml", "safety"],
+            ({"--robot": "r1", "--zenoh-config": "z.json5"}, "safety", Path("c.toml")),
+        ),
+        (["run", "no-such-service"], ({}, "no-such-service", None)),  # run_service names the services
+        # typer's: help, errors, anything not plainly one service
+        (["run", "--help"], None),
+        (["--help", "run"], None),
+        (["run"], None),
+        (["run", "parser", "safety"], None),
+        (["run", "parser", "--config"], None),
+        (["run", "parser", "--config", ""], None),
+        (["run", "parser", "--config", "a", "--config", "b"], None),
+        (["run", "parser", "--verbose"], None),
+        (["--robot", "r1", "--robot", "r2", "run", "parser"], None),
+        (["--robot", "--base-port", "7500", "run", "parser"], None),
+        (["--base-port", "abc", "run", "parser"], None),
+        (["--config", "x.toml", "run", "parser"], None),
+        (["run", "parser", "--", "--config"], None),
+    ],
+)
+def test_tether_run_reads_a_plain_command_line_itself_and_leaves_the_rest_to_typer(
+    argv: list[str], line: tuple[dict[str, str], str, Path | None] | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("TETHER_BASE_PORT", raising=False)
+    assert read_command_line(argv) == line
+
+
+def test_a_base_port_in_the_environment_that_is_no_number_is_left_to_typer(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TETHER_BASE_PORT", "seventy")
+    assert read_command_line(["run", "parser"]) is None
+    monkeypatch.setenv("TETHER_BASE_PORT", "7500")
+    assert read_command_line(["run", "parser"]) == ({}, "parser", None)
