@@ -130,6 +130,40 @@ def without_visuals(urdf: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+# The Panda's visual meshes share one 1024 x 1024 colour palette (colors.png), which pybullet decodes
+# again for every mesh: some 33 MB in the camera's process. A copy at this size keeps the colours
+# (each is a patch of the palette) for 1/64 of that.
+TEXTURE_SIZE = 128
+
+
+def with_small_textures(urdf: str, into: Path) -> str:
+    """The URDF with its visual OBJ meshes copied into `into`, their textures scaled down to
+    TEXTURE_SIZE (nearest pixel, so no colour is blended): the same robot, drawn the same, in less memory."""
+    from PIL import Image  # only the camera's process draws, and only it needs Pillow
+
+    root = ET.fromstring(urdf)
+    copied: dict[Path, Path] = {}
+    for visual in root.iter("visual"):
+        for mesh in visual.iter("mesh"):
+            source = Path(mesh.get("filename", ""))
+            if source.suffix != ".obj" or not source.is_file():
+                continue
+            if source.parent not in copied:
+                target = into / f"meshes{len(copied)}"
+                target.mkdir()
+                for item in source.parent.iterdir():
+                    if item.suffix in (".obj", ".mtl"):
+                        (target / item.name).write_bytes(item.read_bytes())
+                    elif item.suffix == ".png":
+                        with Image.open(item) as image:
+                            image.resize((TEXTURE_SIZE, TEXTURE_SIZE), Image.Resampling.NEAREST).save(
+                                target / item.name
+                            )
+                copied[source.parent] = target
+            mesh.set("filename", str(copied[source.parent] / source.name))
+    return ET.tostring(root, encoding="unicode")
+
+
 class RobotBody:
     """The robot's joints in pybullet: its motors take targets, its encoders are read here."""
 
@@ -139,7 +173,7 @@ class RobotBody:
         urdf = mobile_manipulator_urdf(spec)
         with tempfile.TemporaryDirectory(prefix="tether-sim-") as tmp:
             path = Path(tmp) / "mobile_panda.urdf"
-            path.write_text(urdf if visuals else without_visuals(urdf))
+            path.write_text(with_small_textures(urdf, Path(tmp)) if visuals else without_visuals(urdf))
             self.id: int = bullet.loadURDF(str(path), useFixedBase=True)
         self.joint_index: dict[str, int] = {}
         self.link_index: dict[str, int] = {}

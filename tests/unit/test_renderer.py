@@ -166,3 +166,42 @@ def test_the_renderer_exits_when_its_parent_is_killed() -> None:
             host.stdout.close()
         if child is not None and not gone(child):
             os.kill(child, signal.SIGKILL)
+
+
+def test_the_arm_drawn_with_its_small_palette_looks_as_with_the_full_one(tmp_path: Path) -> None:
+    """The renderer's copy of the Panda's colour palette (with_small_textures) changes no colour the
+    camera can see: the arm drawn both ways, close up, differs in almost no pixel."""
+    import numpy as np
+    import pybullet
+    from PIL import Image
+
+    from services.sim.robot_urdf import mobile_manipulator_urdf
+    from services.sim.world import TEXTURE_SIZE, with_small_textures
+
+    full = mobile_manipulator_urdf(WORLD.robot)
+    small = with_small_textures(full, tmp_path)
+    sizes = []
+    for palette in tmp_path.glob("*/*.png"):
+        with Image.open(palette) as image:
+            sizes.append(image.size)
+    assert sizes and set(sizes) == {(TEXTURE_SIZE, TEXTURE_SIZE)}, sizes
+    assert str(tmp_path) in small and str(tmp_path) not in full
+
+    def draw(urdf: str, name: str) -> np.ndarray:
+        client = pybullet.connect(pybullet.DIRECT)
+        try:
+            path = tmp_path / name
+            path.write_text(urdf)
+            pybullet.loadURDF(str(path), useFixedBase=True, physicsClientId=client)
+            view = pybullet.computeViewMatrix([1.0, 0.9, 1.2], [0.2, 0.0, 0.8], [0, 0, 1], physicsClientId=client)
+            projection = pybullet.computeProjectionMatrixFOV(60, 1.0, 0.05, 10, physicsClientId=client)
+            image = pybullet.getCameraImage(200, 200, view, projection, physicsClientId=client)[2]
+            return np.asarray(image, dtype=int).reshape(200, 200, 4)[..., :3]
+        finally:
+            pybullet.disconnect(client)
+
+    before, after = draw(full, "full.urdf"), draw(small, "small.urdf")
+    robot = (before != before[0, 0]).any(-1)  # pixels that are not the background
+    assert robot.mean() > 0.05, "the arm is in the picture"
+    changed = (np.abs(before - after).max(-1) > 10).mean()
+    assert changed < 0.005, f"{changed:.2%} of the pixels changed colour"
