@@ -23,7 +23,7 @@ from services.errors import GoalRejected
 from services.footprint import footprint
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST, FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 
@@ -41,9 +41,14 @@ SURFACES = ["kitchen_counter", "kitchen_table", "coffee_table", "chair", "shelf"
 WITHOUT_RECORDER = tuple(s for s in SERVICES if s not in ("recorder", "planner"))
 
 
+# Ten times real time here, not conftest's FAST (twenty): putting an object back where the camera saw
+# it checks the spot to 5 cm, and at twenty times it once landed 14 cm off on a loaded run (issue 21).
+PRECISE = 10.0
+
+
 @pytest.fixture
 def fast_stack(tmp_path: Path) -> Iterator[Stack]:
-    s = start_stack(tmp_path, realtime_factor=FAST, services=WITHOUT_RECORDER, sim_options=FAST_SIM)
+    s = start_stack(tmp_path, realtime_factor=PRECISE, services=WITHOUT_RECORDER, sim_options=FAST_SIM)
     try:
         yield s
     finally:
@@ -241,7 +246,7 @@ NARROW_SEARCH = '[executor.search]\nscope = "room"\nmax_places = 2\n'
 
 def test_an_object_out_of_view_is_searched_for_and_one_nowhere_fails_naming_where_it_looked(tmp_path: Path) -> None:
     stack = start_stack(
-        tmp_path, realtime_factor=FAST, services=WITHOUT_RECORDER, sim_options=FAST_SIM, extra_config=NARROW_SEARCH
+        tmp_path, realtime_factor=PRECISE, services=WITHOUT_RECORDER, sim_options=FAST_SIM, extra_config=NARROW_SEARCH
     )
     try:
         # Along the kitchen table, beside the camera's left edge as the base stands at the kitchen's
