@@ -33,7 +33,7 @@ from schemas.planner import AskRequest, AskStatus, AttemptOutcome
 from schemas.world import Empty, GroundTruth
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST, FAST_SIM, Stack, run_tether, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import Stack, run_tether, start_stack, stop_stack, tether_cli
 from tests.sessions import free_port
 from tests.watch import Watch
 from tether.client import reset_estop
@@ -159,7 +159,7 @@ def agent_stack(tmp_path_factory: pytest.TempPathFactory, llm_server: ScriptedLL
     at `llm_server` with its key in an environment variable named by `[planner] api_key_env`."""
     tmp = tmp_path_factory.mktemp("agents")
     without_planner = tuple(s for s in AGENT_SERVICES if s != "planner")
-    stack = start_stack(tmp, realtime_factor=FAST, services=without_planner, sim_options=FAST_SIM)
+    stack = start_stack(tmp, realtime_factor=10.0, services=without_planner)
     try:
         config = tmp / "tether.toml"
         config.write_text(

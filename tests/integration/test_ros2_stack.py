@@ -14,15 +14,7 @@ from schemas.executor import ExecutePlanGoal, PlanStatus
 from schemas.world import Empty, GroundTruth
 from services.recorder import scene3d
 from services.runtime import stack_services
-from tests.integration.conftest import (
-    FAST,
-    FAST_SIM,
-    LOADED_MACHINE_HEARTBEAT,
-    Stack,
-    start_stack,
-    stop_stack,
-    tether_cli,
-)
+from tests.integration.conftest import LOADED_MACHINE_HEARTBEAT, Stack, start_stack, stop_stack, tether_cli
 from tests.sessions import free_ports
 from tether.cli import DEMO_PLAN
 from tether.client import PlanSender
@@ -45,9 +37,7 @@ def ros2_config(endpoint: str) -> str:
 
 def test_the_demo_plan_runs_over_ros2_keys_and_both_sides_are_recorded(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_ports()}"
-    stack = start_stack(
-        tmp_path, realtime_factor=FAST, services=SERVICES, extra_config=ros2_config(endpoint), sim_options=FAST_SIM
-    )
+    stack = start_stack(tmp_path, realtime_factor=2.0, services=SERVICES, extra_config=ros2_config(endpoint))
     try:
         cup = next(o for o in truth(stack).objects if o.id == "red_cup")
         assert cup.on == "kitchen_counter"

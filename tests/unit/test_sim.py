@@ -465,3 +465,27 @@ def test_pick_red_cup_from_counter_and_place_it_on_the_coffee_table(
     assert (cup_now.on, cup_now.room) == ("coffee_table", "living_room")
     # The fingers centre the cup as they close, so it may sit up to the finger gap off the spot.
     assert math.hypot(cup_now.position.x - spot.x, cup_now.position.y - spot.y) < 0.045
+
+
+def test_a_held_object_kept_still_for_seconds_still_goes_with_the_hand(
+    sim: Simulation, world: World, kin: ArmKinematics
+) -> None:
+    """Objects at rest sleep in the physics (world.py); one in the gripper must not, however long the
+    arm waits (Bullet puts a body to sleep after 2 s still), or the hand would move on without it."""
+    drive(sim, approach(world, "kitchen_counter"))
+    cup = sim.scene.object_position("red_cup")
+    reach(sim, kin, above(cup, PREGRASP_HEIGHT))
+    reach(sim, kin, cup)
+    assert gripper(sim, 0.0).holding == "red_cup"
+    sim.settle(5.0)  # the arm waits, still, well past Bullet's 2 s
+    reach(sim, kin, above(cup, PREGRASP_HEIGHT))
+    sim.settle(5.0)
+    move_arm(sim, world.robot.home_joints)
+    hand = np.array(sim.scene.hand_position())
+    held = sim.scene.object_position("red_cup")
+    assert np.linalg.norm(hand - np.array([held.x, held.y, held.z])) < 0.15, "the cup stayed behind"
+    released = gripper(sim, 0.08)
+    assert released.holding is None
+    sim.settle(3.0)
+    landed = sim.scene.object_position("red_cup")
+    assert landed.z < held.z - 0.05, "let go, the cup falls"
