@@ -27,14 +27,20 @@ def memory(status_file: Path = PROC_STATUS) -> tuple[int, int]:
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         peak *= 1 if sys.platform == "darwin" else 1024  # bytes on macOS, kB elsewhere
         return peak, peak
+    fields = resident_fields(text)
+    rss = fields.get("VmRSS", 0)
+    return rss, max(rss, fields.get("VmHWM", rss))
+
+
+def resident_fields(status: str) -> dict[str, int]:
+    """VmRSS and VmHWM, in bytes, from the text of a /proc/PID/status (those it holds)."""
     fields: dict[str, int] = {}
-    for line in text.splitlines():
+    for line in status.splitlines():
         name, _, value = line.partition(":")
         if name in ("VmRSS", "VmHWM"):
             number, *unit = value.split()
             fields[name] = int(number) * (1024 if unit == ["kB"] else 1)
-    rss = fields.get("VmRSS", 0)
-    return rss, max(rss, fields.get("VmHWM", rss))
+    return fields
 
 
 def children_memory(proc: Path = Path("/proc")) -> int:
@@ -56,7 +62,7 @@ def children_memory(proc: Path = Path("/proc")) -> int:
                     status = (proc / str(child) / "status").read_text()
                 except OSError:
                     continue  # it ended meanwhile
-                total += sum(int(line.split()[1]) * 1024 for line in status.splitlines() if line.startswith("VmRSS:"))
+                total += resident_fields(status).get("VmRSS", 0)
                 pending.append(child)
     return total
 

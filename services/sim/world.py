@@ -356,7 +356,7 @@ class SimWorld:
         where = self.model.initial_position(obj)
         body: int = self.bullet.createMultiBody(obj.mass, shape, visual, [where.x, where.y, where.z])
         # An object at rest sleeps (Bullet stops solving its contacts) until something active touches
-        # it or it is moved (`_wake`): a dozen resting objects made each step three times dearer.
+        # it or it is moved (`_wake`): a dozen resting objects made each step two to three times dearer.
         self.bullet.changeDynamics(
             body,
             -1,

@@ -141,6 +141,13 @@ class Run:
         assert fb is not None
         return fb
 
+    def approved_and_driving(self) -> None:
+        """Start the plan, approve it when it asks, and wait until its first step drives."""
+        self.thread.start()
+        self.wait_feedback(StepStatus.AWAITING_APPROVAL, None)
+        assert self.safety.decide("p1", ApprovalAction.APPROVE)
+        assert self.robot.started.wait(WAIT)
+
     def ended(self) -> Any:
         self.thread.join(WAIT)
         assert not self.thread.is_alive(), "the plan did not end"
@@ -151,11 +158,8 @@ class Run:
 def paused_run(gate: SafetyGate) -> Iterator[Run]:
     """A plan approved, driving its first step, then paused by the operator."""
     run = Run(gate)
-    run.thread.start()
     try:
-        run.wait_feedback(StepStatus.AWAITING_APPROVAL, None)
-        assert run.safety.decide("p1", ApprovalAction.APPROVE)
-        assert run.robot.started.wait(WAIT)
+        run.approved_and_driving()
         assert run.safety.decide("p1", ApprovalAction.PAUSE, "someone in the hall")
         yield run
     finally:
@@ -199,11 +203,8 @@ def test_canceled_while_paused_the_plan_ends_canceled(paused_run: Run) -> None:
 
 def test_an_e_stop_after_the_approval_fails_the_step_as_before(gate: SafetyGate) -> None:
     run = Run(gate)
-    run.thread.start()
     try:
-        run.wait_feedback(StepStatus.AWAITING_APPROVAL, None)
-        assert run.safety.decide("p1", ApprovalAction.APPROVE)
-        assert run.robot.started.wait(WAIT)
+        run.approved_and_driving()
         # Safety cancels the goal on the e-stop (no pause): the step fails at once, no waiting.
         gate.latch.trigger("operator", "test", 0.0)
         run.safety.canceled.set()
