@@ -26,6 +26,7 @@ from schemas.keys import Service, Topic
 from schemas.process import ProcessStatus
 from schemas.trace import TraceRecord
 from services.errors import CallError
+from services.listening import listening_ports
 from services.procstat import process_status
 from services.querypool import QueryPool
 from services.repeats import RepeatLog
@@ -80,6 +81,16 @@ WAITING_WORKERS = 64
 # 4 ms Python loop, queried from another process: p99 10-11 ms at 5 ms, 5 ms at 0.5 ms, p50 alike.
 # The cost is a switch (a few us) at most every 0.5 ms, and only while two threads want the GIL.
 SWITCH_INTERVAL = 0.0005
+# Opening a Zenoh session on the loopback stack. Zenoh's open waits up to `scouting/delay` (500 ms) for
+# every configured peer to have sent its declarations, and on loopback it always waited all of it: a
+# port with no service behind it (the planner, the ROS 2 backends) never answers, and a peer that answers
+# can be missed (zenoh 1.10 counts its declarations before it has noted who it linked to). Every service
+# start, every `tether` command and every test session paid that half second. So a Node opens at once,
+# waits (at most LINK_TIMEOUT) for a link to each service port that is listening, and for DISCOVERY
+# seconds after that a query or a one-off publication first waits for Zenoh to know a queryable or
+# subscriber for its key (Zenoh's matching status; declarations follow a link within milliseconds).
+LINK_TIMEOUT = 0.5
+DISCOVERY = 1.0
 
 
 @dataclass(frozen=True)
@@ -140,6 +151,34 @@ class NodeSettings:
         # (bench.memory), to spare copies of messages that cross loopback TCP in microseconds anyway.
         conf.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
         return conf
+
+
+def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Session, float]:
+    """A session for `service` (None: a client such as the CLI) and until when it is still discovering
+    its peers (see DISCOVERY). A config file's session opens as Zenoh opens it, and so does one on a host
+    whose listening ports cannot be read."""
+    conf = settings.zenoh(service)
+    ports = None if settings.zenoh_config is not None else listening_ports()
+    if ports is None:
+        return zenoh.open(conf), 0.0
+    conf.insert_json5("scouting/delay", "0")
+    up = {settings.endpoint(s) for i, s in enumerate(ALL_SERVICES) if s != service and settings.base_port + i in ports}
+    session = zenoh.open(conf)
+    linked: set[str] = set()
+    changed = threading.Condition()
+
+    def on_link(event: zenoh.LinkEvent) -> None:
+        with changed:
+            linked.add(str(event.link.dst))
+            changed.notify_all()
+
+    links = session.info.declare_link_events_listener(on_link, history=True)
+    try:
+        with changed:
+            changed.wait_for(lambda: up <= linked, timeout=LINK_TIMEOUT)
+    finally:
+        links.undeclare()
+    return session, time.monotonic() + DISCOVERY
 
 
 # The file paths a Zenoh config may hold: TLS keys, certificates and CA, and the router's password list.
@@ -214,7 +253,7 @@ class Node:
         self.service = service
         self.settings = settings
         self.robot = settings.robot
-        self.session = zenoh.open(settings.zenoh(service))
+        self.session, self._discovering_until = open_session(settings, service)
         self._declared: list[Any] = []
         self._trace_publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
@@ -238,6 +277,7 @@ class Node:
 
     def publish(self, topic: Topic[T], message: T) -> None:
         key = topic.key(self.robot)
+        self._until_matched(lambda: self.session.declare_publisher(key), DISCOVERY)
         self._send(key, encode(message), lambda payload, **signature: self.session.put(key, payload, **signature))
 
     def _send(self, key: str, payload: bytes, put: Callable[..., object]) -> None:
@@ -448,6 +488,7 @@ class Node:
         """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
         key, payload = service.key(self.robot), encode(request)
         asked = time.monotonic()
+        self._until_matched(lambda: self.session.declare_querier(key), timeout)
         signer = self.signer
         if signer is None or not signed(key):
             replies = self.session.get(key, payload=payload, timeout=timeout)
@@ -506,6 +547,23 @@ class Node:
             pub.put(encode(record))
         except zenoh.ZError:
             log.debug("trace for %s not published: session closing", path)
+
+    def _until_matched(self, declare: Callable[[], zenoh.Publisher | zenoh.Querier], longest: float) -> None:
+        """In a session opened moments ago, wait (until DISCOVERY has passed, `longest` at most) for
+        Zenoh to know a subscriber or queryable for what `declare` declares; at once when it does."""
+        left = min(self._discovering_until - time.monotonic(), longest)
+        if left <= 0:
+            return
+        entity = declare()
+        try:
+            matched = threading.Event()
+            listener = entity.declare_matching_listener(lambda status: matched.set() if status.matching else None)
+            # zenoh's stub says a bool; it is a MatchingStatus, as the listener is given
+            if not cast(zenoh.MatchingStatus, entity.matching_status).matching:
+                matched.wait(left)
+            listener.undeclare()
+        finally:
+            entity.undeclare()
 
     # Liveliness
 
