@@ -89,7 +89,7 @@ SWITCH_INTERVAL = 0.0005
 # waits (at most LINK_TIMEOUT) for a link to each service port that is listening, and for DISCOVERY
 # seconds after that a query or a one-off publication first waits for Zenoh to know a queryable or
 # subscriber for its key (Zenoh's matching status; declarations follow a link within milliseconds).
-LINK_TIMEOUT = 0.5
+LINK_TIMEOUT = 2.0
 DISCOVERY = 1.0
 
 
@@ -175,7 +175,8 @@ def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Ses
     links = session.info.declare_link_events_listener(on_link, history=True)
     try:
         with changed:
-            changed.wait_for(lambda: up <= linked, timeout=LINK_TIMEOUT)
+            if not changed.wait_for(lambda: up <= linked, timeout=LINK_TIMEOUT):
+                log.debug("no link within %g s to %s", LINK_TIMEOUT, ", ".join(sorted(up - linked)))
     finally:
         links.undeclare()
     return session, time.monotonic() + DISCOVERY

@@ -139,6 +139,9 @@ class SafetyNode:
         self._joints_arrived = threading.Condition()
         self._heartbeat = node.publisher(keys.HEARTBEAT)
         self._events = node.publisher(keys.SAFETY_EVENTS)
+        # Events are decided on several threads (Zenoh's, the query workers'); one stamps and sends at a
+        # time, so every subscriber (the recorder, a viewer, a test) gets them in the order of their stamps.
+        self._events_lock = threading.Lock()
         self._robot_cmd_vel = node.publisher(keys.ROBOT_CMD_VEL)
         self._stop = threading.Event()
         # Safety's memory of incidents (incidents.py): the watch says what is one; each is recorded on
@@ -232,19 +235,20 @@ class SafetyNode:
         """Publish `event`; a veto is logged too unless it was (`logged`)."""
         finite = {k: float(v) for k, v in event.values.items() if math.isfinite(v)}
         command = msgspec.Raw(encode(event.command) if event.command is not None else b"null")
-        self._events.put(
-            SafetyEvent(
-                stamp=self.wall_clock(),
-                key=event.key,
-                decision=event.decision,
-                reason=event.reason,
-                rule=event.rule,
-                checks=list(event.checks),
-                values=finite,
-                policy_hash=self.policy_hash,
-                command=command,
+        with self._events_lock:
+            self._events.put(
+                SafetyEvent(
+                    stamp=self.wall_clock(),
+                    key=event.key,
+                    decision=event.decision,
+                    reason=event.reason,
+                    rule=event.rule,
+                    checks=list(event.checks),
+                    values=finite,
+                    policy_hash=self.policy_hash,
+                    command=command,
+                )
             )
-        )
         if event.decision is Decision.VETOED and not logged:
             log.warning("vetoed %s: %s", event.key, event.reason)
 

@@ -56,12 +56,25 @@ class Camera:
         )
         self._projection = self.intrinsics.projection_matrix()
         self._noise = np.random.default_rng(config.seed)
+        # The last frame, for a camera told when the scene moves (keep_frames): services/sim/renderer.py.
+        self._kept: Frame | None = None
+        self._keeps = False
+
+    def keep_frames(self) -> None:
+        """From now on, draw a frame only after `scene_moved` (else the last one is used again): for an
+        owner that tells this camera whenever anything in the world, the robot included, may have moved."""
+        self._keeps = True
+
+    def scene_moved(self) -> None:
+        self._kept = None
 
     def pose(self, base: Pose2D) -> np.ndarray:
         c = self.config
         return camera_pose(base.x, base.y, base.yaw, c.mount_x, c.mount_z, math.radians(c.pitch_deg))
 
     def render(self, base: Pose2D) -> Frame:
+        if self._kept is not None:
+            return self._kept
         pose = self.pose(base)
         shape = (self.intrinsics.height, self.intrinsics.width)
         _, _, _, depth, segmentation = self.bullet.getCameraImage(
@@ -72,7 +85,10 @@ class Camera:
             shadow=0,
             renderer=pybullet.ER_TINY_RENDERER,
         )
-        return Frame(pose=pose, segmentation=np.reshape(segmentation, shape), depth_buffer=np.reshape(depth, shape))
+        frame = Frame(pose=pose, segmentation=np.reshape(segmentation, shape), depth_buffer=np.reshape(depth, shape))
+        if self._keeps:
+            self._kept = frame
+        return frame
 
     def picture(self, base: Pose2D, scale: int = 2) -> np.ndarray:
         """A colour image (height x width x 3, uint8) from a base at `base`, `scale` times the

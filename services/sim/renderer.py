@@ -274,6 +274,10 @@ def serve(conn: Connection, parent: int) -> None:
         _, world, camera = conn.recv()
         scene = SimWorld(world)
         sensors = Sensors(scene, camera)
+        # Most frames are asked for while nothing in view moves (a robot at rest, waiting for its next
+        # goal): the last drawing is detected on again, with fresh noise, rather than drawn again.
+        sensors.camera.keep_frames()
+        shown: Poses | None = None
         release_free_memory()  # what loading the meshes freed (services/heap.py)
     except EOFError:
         return
@@ -288,7 +292,11 @@ def serve(conn: Connection, parent: int) -> None:
         except (EOFError, OSError):
             return  # the sim closed its end, or died
         kind, poses = request[0], request[1]
-        scene.pose_as(poses)
+        if shown is None or not poses.stands_as(shown):
+            scene.pose_as(poses)
+            sensors.camera.scene_moved()
+            shown = poses
+        scene.holding = poses.holding
         if kind == "objects":
             reply: tuple[Any, ...] = ("objects", sensors.perceived_objects(poses.stamp))
         else:

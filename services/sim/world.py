@@ -106,6 +106,14 @@ class BlockShape:
     yaw: float = 0.0
 
 
+# How far a body may be from where it was drawn and still count as standing there (metres, radians,
+# quaternion components). A base at rest creeps (its yaw about 2e-5 rad a sim second under the arm's
+# motors), so exact equality would always draw again. A millimetre or a milliradian moves what the
+# camera sees by a tenth of one of its pixels (87 degrees over 160) at a metre: less than the
+# detector's own noise (3 mm by default).
+STILL = 1e-3
+
+
 @dataclass(frozen=True)
 class Poses:
     """Where everything that moves stood at one moment (`stamp`, wall clock): what another pybullet
@@ -118,6 +126,21 @@ class Poses:
     holding: str | None
     # The temporary obstacles standing now: the renderer adds and removes its copies to match.
     blocks: tuple[BlockShape, ...] = ()
+
+    def stands_as(self, other: Poses, tolerance: float = STILL) -> bool:
+        """Whether everything stands where it stood in `other`: every joint, position and quaternion
+        component within `tolerance`, the same obstacles. A camera there sees the same picture."""
+        if self.blocks != other.blocks or self.objects.keys() != other.objects.keys():
+            return False
+        if self.humans.keys() != other.humans.keys() or len(self.joints) != len(other.joints):
+            return False
+        here = [*self.joints, *_flat(self.objects), *_flat(self.humans)]
+        there = [*other.joints, *_flat(other.objects), *_flat(other.humans)]
+        return all(abs(a - b) <= tolerance for a, b in zip(here, there, strict=True))
+
+
+def _flat(bodies: dict[str, tuple[Position, Orientation]]) -> list[float]:
+    return [v for name in sorted(bodies) for part in bodies[name] for v in part]
 
 
 def without_visuals(urdf: str) -> str:

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -21,7 +22,7 @@ from services.sim.camera import png_base64
 from services.sim.config import CameraConfig
 from services.sim.renderer import Renderer
 from services.sim.simulation import Simulation
-from services.sim.world import Drop
+from services.sim.world import STILL, Drop
 from services.worldmodel import load_world
 from tests.procs import gone, wait_until
 
@@ -88,6 +89,36 @@ def test_detections_and_pictures_are_the_ones_the_sims_own_process_would_render(
     image = renderer.camera_image(sim.scene.poses(9.0), scale=2, timeout=DEADLINE)
     assert (image.width, image.height, image.stamp) == (2 * CAMERA.width, 2 * CAMERA.height, 9.0)
     assert image.data == png_base64(reference.sensors.camera_picture(2))
+
+
+def test_a_frame_is_drawn_again_once_anything_moved_and_kept_while_nothing_did(
+    sims: tuple[Simulation, Simulation], renderer: Renderer
+) -> None:
+    sim, _ = sims
+    frames = Frames()
+
+    def red_cup_seen_at(stamp: float) -> tuple[float, float]:
+        renderer.detect(sim.scene.poses(stamp), frames.deliver)
+        assert frames.wait(len(frames.objects) + 1), "no detections from the renderer"
+        (cup,) = (o for o in frames.objects[-1].objects if o.id == "red_cup")
+        return cup.position.x, cup.position.y
+
+    drawn = renderer.frames
+    for x, y in ((7.8, 2.4), (7.65, 2.6)):
+        assert isinstance(sim.scene.move(MoveEntity(id="red_cup", x=x, y=y)), Drop)
+        sim.settle(1.0)
+        for stamp in (300.0, 301.0):  # the second with nothing moved: the same drawing, fresh noise
+            seen = red_cup_seen_at(stamp)
+            assert abs(seen[0] - x) < 0.02 and abs(seen[1] - y) < 0.02, (x, y, seen)
+    assert renderer.frames - drawn == 4
+
+    # Where things stand, to the tolerance: a creep of a micrometre is standing still, a centimetre is not.
+    still = sim.scene.poses(0.0)
+    crept = replace(still, joints=(still.joints[0] + STILL / 10, *still.joints[1:]))
+    moved = replace(still, joints=(still.joints[0] + 0.01, *still.joints[1:]))
+    cup = still.objects["red_cup"]
+    lifted = replace(still, objects=still.objects | {"red_cup": ((cup[0][0], cup[0][1], cup[0][2] + 0.01), cup[1])})
+    assert crept.stands_as(still) and not moved.stands_as(still) and not lifted.stands_as(still)
 
 
 def test_a_sim_without_visuals_refuses_to_render_in_its_own_process(sims: tuple[Simulation, Simulation]) -> None:
