@@ -86,10 +86,12 @@ SWITCH_INTERVAL = 0.0005
 # port with no service behind it (the planner, the ROS 2 backends) never answers, and a peer that answers
 # can be missed (zenoh 1.10 counts its declarations before it has noted who it linked to). Every service
 # start, every `tether` command and every test session paid that half second. So a Node opens at once,
-# waits (at most LINK_TIMEOUT) for a link to each service port that is listening, and for DISCOVERY
-# seconds after that a query or a one-off publication first waits for Zenoh to know a queryable or
-# subscriber for its key (Zenoh's matching status; declarations follow a link within milliseconds).
+# waits (at most LINK_TIMEOUT) for a link to each service port that is listening, a client then (at
+# most HEARD_TIMEOUT) for those services to answer a question (open_session says why), and for
+# DISCOVERY seconds after that a query or a one-off publication first waits for Zenoh to know a
+# queryable or subscriber for its key (Zenoh's matching status).
 LINK_TIMEOUT = 2.0
+HEARD_TIMEOUT = 2.0
 DISCOVERY = 1.0
 
 
@@ -154,16 +156,17 @@ class NodeSettings:
 
 
 def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Session, float]:
-    """A session for `service` (None: a client such as the CLI) and until when it is still discovering
-    its peers (see DISCOVERY). A config file's session opens as Zenoh opens it, and so does one on a host
-    whose listening ports cannot be read."""
+    """A session for `service` (None, or a name not in ALL_SERVICES: a client such as the CLI) and until
+    when it is still discovering its peers (see DISCOVERY). A config file's session opens as Zenoh opens
+    it, and so does one on a host whose listening ports cannot be read."""
     conf = settings.zenoh(service)
     ports = None if settings.zenoh_config is not None else listening_ports()
     if ports is None:
         return zenoh.open(conf), 0.0
     conf.insert_json5("scouting/delay", "0")
-    up = {settings.endpoint(s) for i, s in enumerate(ALL_SERVICES) if s != service and settings.base_port + i in ports}
+    listening = {s for i, s in enumerate(ALL_SERVICES) if s != service and settings.base_port + i in ports}
     session = zenoh.open(conf)
+    endpoints = {settings.endpoint(s) for s in listening}
     linked: set[str] = set()
     changed = threading.Condition()
 
@@ -175,10 +178,19 @@ def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Ses
     links = session.info.declare_link_events_listener(on_link, history=True)
     try:
         with changed:
-            if not changed.wait_for(lambda: up <= linked, timeout=LINK_TIMEOUT):
-                log.debug("no link within %g s to %s", LINK_TIMEOUT, ", ".join(sorted(up - linked)))
+            if not changed.wait_for(lambda: endpoints <= linked, timeout=LINK_TIMEOUT):
+                log.debug("no link within %g s to %s", LINK_TIMEOUT, ", ".join(sorted(endpoints - linked)))
     finally:
         links.undeclare()
+    if service not in ALL_SERVICES and endpoints & linked:
+        # A client asks at once (who is alive, a call). A liveliness query ends once every linked peer
+        # has answered it, and a peer answers in the order it was asked, a link's first question being
+        # for all its declarations: at its end those are in, and later questions are answered from them.
+        started = time.monotonic()
+        for _ in session.liveliness().get(keys.alive_key(settings.robot, "*"), timeout=HEARD_TIMEOUT):
+            pass
+        if time.monotonic() - started >= HEARD_TIMEOUT:
+            log.debug("not every service linked to answered within %g s", HEARD_TIMEOUT)
     return session, time.monotonic() + DISCOVERY
 
 

@@ -75,6 +75,7 @@ def test_a_session_just_opened_reaches_the_service_with_its_first_query_and_publ
             server.subscribe_raw(f"{settings.robot}/test/other/{n}", lambda key, payload: None)
         server.serve(ECHO, lambda request: PlanText(text=f"echo {request.text}"))
         server.subscribe(NEWS, on_news)
+        server.declare_alive()
         for attempt in range(8):
             with Node("cli", settings) as client:
                 assert client.call(ECHO, PlanText(text=str(attempt)), timeout=WAIT).text == f"echo {attempt}"
