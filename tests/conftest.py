@@ -11,6 +11,7 @@ import pytest
 
 # The slowest modules (wall seconds on this 2-core machine, 2026-11), longest first.
 LONGEST_FIRST = (
+    "tests/integration/test_multihost.py",  # only in the run of the tests marked alone (tests/suite.py)
     "tests/integration/test_tours.py",
     "tests/integration/test_executor.py",
     "tests/integration/test_ros2_stack.py",
