@@ -267,6 +267,7 @@ class Node:
         self.settings = settings
         self.robot = settings.robot
         self.session, self._discovering_until = open_session(settings, service)
+        self._matched: set[str] = set()  # keys found served or subscribed while discovering
         self._declared: list[Any] = []
         self._trace_publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
@@ -290,7 +291,7 @@ class Node:
 
     def publish(self, topic: Topic[T], message: T) -> None:
         key = topic.key(self.robot)
-        self._until_matched(lambda: self.session.declare_publisher(key), DISCOVERY)
+        self._until_matched(key, lambda: self.session.declare_publisher(key), DISCOVERY)
         self._send(key, encode(message), lambda payload, **signature: self.session.put(key, payload, **signature))
 
     def _send(self, key: str, payload: bytes, put: Callable[..., object]) -> None:
@@ -501,7 +502,7 @@ class Node:
         """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
         key, payload = service.key(self.robot), encode(request)
         asked = time.monotonic()
-        self._until_matched(lambda: self.session.declare_querier(key), timeout)
+        self._until_matched(key, lambda: self.session.declare_querier(key), timeout)
         signer = self.signer
         if signer is None or not signed(key):
             replies = self.session.get(key, payload=payload, timeout=timeout)
@@ -561,19 +562,20 @@ class Node:
         except zenoh.ZError:
             log.debug("trace for %s not published: session closing", path)
 
-    def _until_matched(self, declare: Callable[[], zenoh.Publisher | zenoh.Querier], longest: float) -> None:
+    def _until_matched(self, key: str, declare: Callable[[], zenoh.Publisher | zenoh.Querier], longest: float) -> None:
         """In a session opened moments ago, wait (until DISCOVERY has passed, `longest` at most) for
-        Zenoh to know a subscriber or queryable for what `declare` declares; at once when it does."""
+        Zenoh to know a subscriber or queryable for `key`, which `declare` declares; at once when it
+        does, and not again for a key it once did."""
         left = min(self._discovering_until - time.monotonic(), longest)
-        if left <= 0:
+        if left <= 0 or key in self._matched:
             return
         entity = declare()
         try:
             matched = threading.Event()
             listener = entity.declare_matching_listener(lambda status: matched.set() if status.matching else None)
             # zenoh's stub says a bool; it is a MatchingStatus, as the listener is given
-            if not cast(zenoh.MatchingStatus, entity.matching_status).matching:
-                matched.wait(left)
+            if cast(zenoh.MatchingStatus, entity.matching_status).matching or matched.wait(left):
+                self._matched.add(key)
             listener.undeclare()
         finally:
             entity.undeclare()
