@@ -501,8 +501,8 @@ class Node:
     def call(self, service: Service[Q, A], request: Q, *, timeout: float = 5.0) -> A:
         """Ask `service` and return its reply; raise CallError on an error reply or none at all."""
         key, payload = service.key(self.robot), encode(request)
-        asked = time.monotonic()
         self._until_matched(key, lambda: self.session.declare_querier(key), timeout)
+        asked = time.monotonic()  # after any wait for a queryable: `waited` below is the query's own
         signer = self.signer
         if signer is None or not signed(key):
             replies = self.session.get(key, payload=payload, timeout=timeout)

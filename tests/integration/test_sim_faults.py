@@ -18,7 +18,7 @@ from schemas.executor import ExecutePlanGoal, ExecutePlanResult, FailureKind, Pl
 from schemas.incidents import IncidentKind, IncidentReport
 from schemas.world import Empty, FaultInjected, FaultKind, GroundTruth, InjectFault, PerceivedObjects
 from services.runtime import SERVICES
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 
@@ -29,7 +29,7 @@ PLAN_TIMEOUT = 300.0
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     tmp: Path = tmp_path_factory.mktemp("faults")
-    s = start_stack(tmp, realtime_factor=10.0, services=SERVICES_USED, sim_options="physics_hz = 120.0\n")
+    s = start_stack(tmp, realtime_factor=10.0, services=SERVICES_USED, sim_options=FAST_SIM)
     try:
         yield s
     finally:

@@ -112,7 +112,7 @@ def test_a_frame_is_drawn_again_once_anything_moved_and_kept_while_nothing_did(
             assert abs(seen[0] - x) < 0.02 and abs(seen[1] - y) < 0.02, (x, y, seen)
     assert renderer.frames - drawn == 4
 
-    # Where things stand, to the tolerance: a creep of a micrometre is standing still, a centimetre is not.
+    # Where things stand, to the tolerance: a creep of a tenth of it is standing still, a centimetre is not.
     still = sim.scene.poses(0.0)
     crept = replace(still, joints=(still.joints[0] + STILL / 10, *still.joints[1:]))
     moved = replace(still, joints=(still.joints[0] + 0.01, *still.joints[1:]))
