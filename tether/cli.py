@@ -385,19 +385,46 @@ def read_plan(plan: str) -> str:
     return plan
 
 
+ENDED = (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
+
+
 def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
         console.print(f"[dim]{fb.stage}[/]: {literal(fb.message)}")
         return
-    failed = f"[red]failed ({literal(fb.failure)})[/]" if fb.failure else "[red]failed[/]"
-    mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(fb.status, "...")
-    if fb.status is StepStatus.RUNNING and fb.attempt > 1:
+    print_step(fb.step, fb.label, fb.action, fb.message, fb.status, fb.failure, fb.searched, fb.attempt)
+
+
+def print_step(
+    index: int,
+    label: str | None,
+    action: str,
+    message: str,
+    status: StepStatus,
+    failure: str | None,
+    searched: list[str],
+    attempt: int = 1,
+) -> None:
+    failed = f"[red]failed ({literal(failure)})[/]" if failure else "[red]failed[/]"
+    mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(status, "...")
+    if status is StepStatus.RUNNING and attempt > 1:
         mark = "[yellow]retrying[/]"
     # Where a detect or pick searched, once the step has ended (the notes said it as it went).
-    ended = fb.status in (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
-    searched = f" [dim](searched: {literal(', '.join(fb.searched))})[/]" if fb.searched and ended else ""
-    said = literal(f"step {fb.label or fb.step + 1} {fb.action}: {fb.message}")
-    console.print(f"{said} {mark}{searched}")
+    where = f" [dim](searched: {literal(', '.join(searched))})[/]" if searched and status in ENDED else ""
+    said = literal(f"step {label or index + 1} {action}: {message}")
+    console.print(f"{said} {mark}{where}")
+
+
+def print_unseen_ends(run: PlanRun) -> None:
+    """The ends of steps the result holds and no feedback showed. Feedback is a publication and the
+    result a reply: the last step's end can reach the client after the result (it is then dropped,
+    the run being done), or never, and the result is the record of how each step ended."""
+    if run.result is None:
+        return
+    shown = {(fb.step, fb.label) for fb in run.feedback if fb.status in ENDED}
+    for step in run.result.steps:
+        if step.status in ENDED and (step.index, step.label) not in shown:
+            print_step(step.index, step.label, step.action, step.message, step.status, step.failure, step.searched)
 
 
 def print_result(run: PlanRun, as_json: bool) -> None:
@@ -412,6 +439,7 @@ def print_result(run: PlanRun, as_json: bool) -> None:
         goal = literal(run.goal_id)
         console.print(f"plan accepted (goal {goal}); executing. `tether goal {goal}` follows it.")
         return
+    print_unseen_ends(run)
     for warning in result.warnings:
         console.print(f"[yellow]warning[/]: {literal(warning)}")
     colour = "green" if result.status is PlanStatus.SUCCEEDED else "red"

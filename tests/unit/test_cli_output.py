@@ -21,10 +21,11 @@ from rich.errors import MarkupError
 from typer.testing import CliRunner
 
 from schemas.common import ErrorKind, ServiceError, Stage
-from schemas.executor import ExecutePlanFeedback, StepStatus
+from schemas.executor import ExecutePlanFeedback, ExecutePlanResult, FailureKind, PlanStatus, StepResult, StepStatus
 from services.runtime import ALL_SERVICES
 from tests.unit.test_timeline import write_incident
 from tether import cli
+from tether.client import PlanRun
 from tether.completion import complete_plan_format, complete_service, complete_services, one_of
 from tether.output import literal
 
@@ -77,6 +78,33 @@ def test_step_feedback_and_a_failure_reason_from_a_service_print_literally(said:
     lines = said.getvalue().splitlines()
     assert lines[0] == f"step [sim] pick: {HOSTILE} failed"
     assert lines[1:] == [f"invalid_request: {HOSTILE}", "known: [safety]"]
+
+
+def test_a_steps_end_the_feedback_did_not_bring_is_printed_from_the_result(said: io.StringIO) -> None:
+    """A fresh-clone run lost the last step's line: its feedback reached `tether send --wait` after the
+    result. The result says how every step ended; a step whose end was shown is not shown twice."""
+    looked = ["around in the kitchen", "on the kitchen table"]
+    ended = [
+        StepResult(index=0, action="navigate_to", status=StepStatus.SUCCEEDED, message="at the kitchen"),
+        StepResult(
+            index=1,
+            action="detect",
+            status=StepStatus.FAILED,
+            message="apple not found",
+            failure=FailureKind.PRECONDITION,
+            searched=looked,
+        ),
+    ]
+    result = ExecutePlanResult(status=PlanStatus.FAILED, stage=Stage.EXECUTE, reason="step 2 failed", steps=ended)
+    seen = [
+        ExecutePlanFeedback(stage=Stage.EXECUTE, step=0, action="navigate_to", status=StepStatus.SUCCEEDED),
+        ExecutePlanFeedback(stage=Stage.EXECUTE, step=1, action="detect", message="looking", searched=looked),
+    ]
+    cli.print_result(PlanRun(goal_id="g", feedback=seen, result=result), as_json=False)
+    assert said.getvalue().splitlines() == [
+        f"step 2 detect: apple not found failed (precondition) (searched: {', '.join(looked)})",
+        "failed at stage execute: step 2 failed",
+    ]
 
 
 def test_a_config_error_keeps_the_table_it_names(tmp_path: Path) -> None:
