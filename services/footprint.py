@@ -47,6 +47,17 @@ def footprint(x: float, y: float, yaw: float, length: float, width: float, margi
     return Polygon([(x + c * a - s * b, y + s * a + c * b) for a, b in corners])
 
 
+def distance_to_footprint(
+    x: float, y: float, yaw: float, length: float, width: float, point: tuple[float, float]
+) -> float:
+    """How far `point` is from `footprint(x, y, yaw, length, width)`, 0 inside it: the same as
+    shapely's distance, without building the polygon (the sim asks it many times a second)."""
+    dx, dy = point[0] - x, point[1] - y
+    c, s = math.cos(yaw), math.sin(yaw)
+    along, across = abs(c * dx + s * dy) - length / 2, abs(-s * dx + c * dy) - width / 2
+    return math.hypot(max(along, 0.0), max(across, 0.0))
+
+
 def turn_angle(yaw_from: float, yaw_to: float) -> float:
     """The signed shortest turn from one heading to another, as the sim turns."""
     return math.remainder(yaw_to - yaw_from, math.tau)

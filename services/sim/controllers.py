@@ -473,6 +473,12 @@ class Controllers:
         self._cmd_vel_until = 0.0
         self.motions: dict[str, GoalMotion[Any, Any]] = {}
 
+    @property
+    def idle(self) -> bool:
+        """No goal running, no cmd_vel in force, the base neither asked to move nor moving as commanded."""
+        base = self.base
+        return not self.motions and self._cmd_vel is None and base.wanted == base.actual == (0.0, 0.0)
+
     def tick(self) -> None:
         """Before each physics step: expire cmd_vel, run every goal, set the base's motors."""
         if self._cmd_vel is not None and self.world.sim_time >= self._cmd_vel_until:

@@ -19,7 +19,7 @@ from shapely.ops import nearest_points, unary_union
 from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
 from schemas.incidents import IncidentKind, IncidentReport
 from schemas.world import FaultInjected, FaultKind, FaultReply, InjectFault, World
-from services.footprint import footprint
+from services.footprint import distance_to_footprint, footprint
 from services.sim.world import HUMAN_RADIUS, BlockShape, Drop, SimWorld
 from services.worldmodel import WorldModel
 
@@ -368,6 +368,11 @@ class Faults:
 
     # After every physics step
 
+    @property
+    def idle(self) -> bool:
+        """No object falling that an incident is still to be reported for."""
+        return not self._falls
+
     def tick(self) -> None:
         world = self.world
         for fall in [f for f in self._falls if not f.drop.running]:
@@ -448,11 +453,10 @@ class Faults:
             if name is not None:
                 things.setdefault(name, "base" if point[3] == robot.base_link else "arm")
         base, size = robot.base_pose(), world.spec.robot.base_size
-        shape = footprint(base.x, base.y, base.yaw, size.x, size.y)
         people = [
             world.spec.humans[i].name
             for i, pose in enumerate(world.human_poses.values())
-            if shape.distance(Point(pose.x, pose.y)) < HUMAN_RADIUS
+            if distance_to_footprint(base.x, base.y, base.yaw, size.x, size.y, (pose.x, pose.y)) < HUMAN_RADIUS
         ]
         new_things = [t for t in things if now - self._touched.get(t, -math.inf) > CONTACT_GAP]
         new_people = [p for p in people if now - self._touched.get(f"person:{p}", -math.inf) > CONTACT_GAP]

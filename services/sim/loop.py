@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import threading
@@ -29,6 +30,8 @@ START_TIMEOUT = 5.0
 ANSWER_TIMEOUT = 2.0
 # If the sim falls this far behind the wall clock (sim seconds), it stops trying to catch up.
 MAX_LAG = 0.5
+# The sim thread looks at the heartbeat at least this often (seconds), even with nothing to step.
+MAX_WAIT = 0.05
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,11 @@ class Report:
     publish: Callable[[float], None]
     # Also while physics catches up with the wall clock: what safety's watchdog must never miss.
     while_catching_up: bool = False
+
+
+def _woken(command: Command, sim: Simulation) -> None:
+    sim.wake()
+    command(sim)
 
 
 class ReportSchedule:
@@ -61,6 +69,10 @@ class ReportSchedule:
             self._due[i] = scheduled if scheduled > now else now + period
             due.append(report)
         return due
+
+    def next_due(self) -> float:
+        """When the next report is due (monotonic seconds); far off when there are none."""
+        return min(self._due, default=float("inf"))
 
 
 class GoalPort(Protocol):
@@ -103,12 +115,13 @@ class SimLoop:
 
     # From other threads
 
-    def submit(self, command: Command) -> None:
-        """Run `command` on the sim thread."""
-        self._commands.put(command)
+    def submit(self, command: Command, changes: bool = True) -> None:
+        """Run `command` on the sim thread. One that may change the world (`changes`, unless it only
+        reads) wakes a resting sim first (Simulation.wake)."""
+        self._commands.put(functools.partial(_woken, command) if changes else command)
         self._wake.set()
 
-    def ask(self, query: Callable[[Simulation], T], timeout: float) -> T | None:
+    def ask(self, query: Callable[[Simulation], T], timeout: float, changes: bool = True) -> T | None:
         """Run `query` on the sim thread and wait for its value; None if the thread does not answer."""
         box: list[T] = []
         answered = threading.Event()
@@ -119,13 +132,13 @@ class SimLoop:
             finally:
                 answered.set()
 
-        self.submit(run)
+        self.submit(run, changes)
         answered.wait(timeout)
         return box[0] if box else None
 
-    def answer(self, query: Callable[[Simulation], T]) -> T:
+    def answer(self, query: Callable[[Simulation], T], changes: bool = True) -> T:
         """`query`'s value from the sim thread, for a queryable: an unavailable error if it does not answer."""
-        value = self.ask(query, ANSWER_TIMEOUT)
+        value = self.ask(query, ANSWER_TIMEOUT, changes)
         if value is None:
             message = f"the simulator did not answer within {ANSWER_TIMEOUT:g} s"
             raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=message))
@@ -133,7 +146,7 @@ class SimLoop:
 
     def ground_truth(self, _request: Empty) -> GroundTruth:
         """sim/ground_truth: every object exactly where it is."""
-        return self.answer(lambda sim: sim.scene.ground_truth())
+        return self.answer(lambda sim: sim.scene.ground_truth(), changes=False)
 
     def move(self, request: MoveEntity) -> MoveReply:
         """sim/move: the reply once the moved thing is at rest, or why it was not moved."""
@@ -237,7 +250,9 @@ class SimLoop:
                     wall_start, sim_start = now, sim.sim_time
                     target = sim.sim_time
                 while sim.sim_time + sim.dt <= target and not stop.is_set():
-                    sim.step()
+                    # At rest (Simulation.step), the ticks due pass at once: nothing but a command
+                    # could end the rest, and commands are drained between passes.
+                    sim.step(max(1, int((target - sim.sim_time) / sim.dt)) if sim.resting else 1)
                     self._drain()
                     self._obey()
                     # Also while catching up: on a busy machine physics runs behind, but odometry
@@ -247,8 +262,10 @@ class SimLoop:
                 self._publish()
                 if not self.failing:
                     keepalive()
-                next_step = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
-                self._wake.wait(max(0.0, min(next_step - time.monotonic(), 0.05)))
+                wake_at = wall_start + (sim.sim_time + sim.dt - sim_start) / factor
+                if sim.resting:  # no tick to take before a report is due or a command comes
+                    wake_at = max(wake_at, self.schedule.next_due())
+                self._wake.wait(max(0.0, min(wake_at - time.monotonic(), MAX_WAIT)))
                 self._wake.clear()
         finally:
             sim.controllers.stop("the simulator is shutting down")

@@ -139,7 +139,7 @@ class SimNode:
         # From where safety checked it (the sim refuses it if the base stands elsewhere), else from here.
         here = None
         if goal.start is None:
-            here = self.loop.ask(lambda sim: sim.scene.robot.base_pose(), ANSWER_TIMEOUT)
+            here = self.loop.ask(lambda sim: sim.scene.robot.base_pose(), ANSWER_TIMEOUT, changes=False)
         if (reason := self.keep_out.goal(goal, here)) is not None:
             self.problems.note(f"refused a navigate_to_pose goal: {reason}", keys.ROBOT_NAVIGATE.path)
         return reason
@@ -213,7 +213,7 @@ class SimNode:
 
     def _on_camera_image(self, _request: Empty) -> CameraImage:
         # Where things stand read on the sim thread; rendered and encoded by the renderer process.
-        poses = self.loop.answer(lambda sim: sim.scene.poses(time.time()))
+        poses = self.loop.answer(lambda sim: sim.scene.poses(time.time()), changes=False)
         return self.renderer.camera_image(poses, scale=2, timeout=PICTURE_TIMEOUT)
 
     # Goals

@@ -15,6 +15,10 @@ from services.sim.world import Motion, RobotBody, SimWorld
 F = TypeVar("F")
 R = TypeVar("R")
 
+# Sim seconds everything must stand still, with nothing commanded, before a resting sim stops
+# stepping physics (see Simulation.step).
+REST_AFTER = 0.5
+
 
 class Simulation:
     """One world, its robot's controllers and sensors, stepped by whoever owns this object (one thread).
@@ -32,9 +36,12 @@ class Simulation:
         physics_hz: float = 240.0,
         camera: CameraConfig | None = None,
         visuals: bool = True,
+        rest: bool = False,
     ) -> None:
         """`visuals=False` for a sim whose camera renders in a process of its own (services/sim/renderer.py):
-        the robot's visual meshes are not loaded, and `sensors` cannot render."""
+        the robot's visual meshes are not loaded, and `sensors` cannot render. `rest=True` lets a world
+        at rest go unstepped (see step); whoever changes the world other than through the controllers
+        then calls `wake` first."""
         self.world = world
         self.scene = SimWorld(world, physics_hz=physics_hz, visuals=visuals)
         self.robot: RobotBody = self.scene.robot
@@ -42,6 +49,9 @@ class Simulation:
         self.sensors = Sensors(self.scene, camera)
         # Faults injected (sim/fault) and the incidents only the sim feels: collisions, drops.
         self.faults = Faults(self.scene)
+        self.rest = rest
+        self.resting = False  # physics not stepped: see step
+        self._still_since: float | None = None
 
     @property
     def sim_time(self) -> float:
@@ -52,11 +62,41 @@ class Simulation:
         return self.scene.dt
 
     def step(self, steps: int = 1) -> None:
-        """Advance physics by `steps` ticks, running every controller before each."""
+        """Advance physics by `steps` ticks, running every controller before each.
+
+        With `rest`, a world that has stood still for REST_AFTER sim seconds with nothing commanded
+        (no goal, no cmd_vel, nothing settling or falling) is not stepped: time passes and nothing
+        moves, as Bullet lets a resting body sleep, here with the robot too. Left to itself, Bullet
+        would spend the same step on it (an idle sim at 20x real time used about 45 % of a core) and
+        let a base standing under its motors creep (about 2e-5 rad a second). The first tick that
+        has a goal or a cmd_vel again, or any tick after `wake`, steps physics."""
         for _ in range(steps):
-            self.controllers.tick()
-            self.scene.step()
+            if self.rest and self._at_rest():
+                self.scene.rest_step()
+            else:
+                self.controllers.tick()
+                self.scene.step()
             self.faults.tick()
+
+    def wake(self) -> None:
+        """Step physics again until the world has stood still for REST_AFTER once more: the world
+        was changed other than through a goal (an object or person moved, a fault injected)."""
+        self.resting = False
+        self._still_since = None
+
+    def _at_rest(self) -> bool:
+        if not (self.controllers.idle and self.faults.idle) or self.scene.settling:
+            self.wake()
+            return False
+        if self.resting:
+            return True
+        if not self.scene.still():
+            self._still_since = None
+            return False
+        if self._still_since is None:
+            self._still_since = self.sim_time
+        self.resting = self.sim_time - self._still_since >= REST_AFTER
+        return self.resting
 
     def run(self, motion: Motion[F, R], timeout: float) -> Motion[F, R]:
         """Step until `motion` ends, or abort it after `timeout` sim seconds. For tests and scripts."""

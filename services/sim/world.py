@@ -112,6 +112,8 @@ class BlockShape:
 # camera sees by a tenth of one of its pixels (87 degrees over 160) at a metre: less than the
 # detector's own noise (3 mm by default).
 STILL = 1e-3
+# A joint, or an object's base, slower than this (m/s, rad/s) counts as at rest (Simulation.step).
+REST_SPEED = 1e-3
 
 
 @dataclass(frozen=True)
@@ -424,6 +426,28 @@ class SimWorld:
         self._drops = [d for d in self._drops if d.running]
         self.bullet.stepSimulation()
         self.sim_time += self.dt
+
+    def rest_step(self) -> None:
+        """A tick of a world at rest (Simulation.step): time passes, physics is not stepped."""
+        self.sim_time += self.dt
+
+    @property
+    def settling(self) -> bool:
+        """An object moved (sim/move) is still let go to settle."""
+        return bool(self._drops)
+
+    def still(self) -> bool:
+        """Nothing settles and nothing moves faster than REST_SPEED: no robot joint, no object."""
+        if self._drops:
+            return False
+        bullet = self.bullet
+        if any(abs(s[1]) > REST_SPEED for s in bullet.getJointStates(self.robot.id, self.robot.movable)):
+            return False
+        for body in self.object_bodies.values():
+            linear, angular = bullet.getBaseVelocity(body)
+            if max(map(abs, linear)) > REST_SPEED or max(map(abs, angular)) > REST_SPEED:
+                return False
+        return True
 
     # Grasping
 
