@@ -17,11 +17,12 @@ demo: $(STAMP)
 
 # The suite sized for two cores (tests/suite.py): the wall-clock tests (`-m realtime`) one at a time
 # at normal priority, beside the rest on two pytest-xdist workers at low priority; then the
-# tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) without the rest, on two workers. The bytecode is
-# compiled once up front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again.
-test: $(STAMP) lint typecheck
+# tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) without the rest, on two workers,
+# with mypy (`make typecheck`) beside them on the CPU they leave. The bytecode is compiled once up
+# front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again.
+test: $(STAMP) lint
 	$(BIN)/python -m compileall -q -j 0 schemas services tether tests bench
-	$(BIN)/python -m tests.suite tests
+	$(BIN)/python -m tests.suite --typecheck tests
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

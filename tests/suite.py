@@ -1,4 +1,4 @@
-"""`make test`'s pytest run, sized for a 2-core machine: `python -m tests.suite [PYTEST ARGS]`.
+"""`make test`'s pytest run, sized for a 2-core machine: `python -m tests.suite [--typecheck] [PYTEST ARGS]`.
 
 First, two pytest runs at once:
 - the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
@@ -13,12 +13,15 @@ without the rest: with the others' load beside them, their robots' heartbeats or
 now and then. They run on two workers, module by module: the multi-host module (the longest, about
 two minutes, tests/conftest.py puts it first) on one, the stand-in's and the contract's on the
 other; together they use about one core of the two (3 min 12 s on one worker, 2 min 17-24 s on two).
+With --typecheck, mypy runs beside them on the core they leave, under SCHED_IDLE (it gets only
+what nothing else wants: about 17 s of CPU, off the suite's critical path), its output shown after
+theirs.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
 wall-clock tests' processes the moment they wake. Stacks of the parallel part run with a looser
 heartbeat bound (tests/integration/conftest.py, LOADED_MACHINE_HEARTBEAT) for the same reason.
-The exit status is the first failing run's (pytest's codes), or 0.
+The exit status is the first failing run's (pytest's codes, then mypy's), or 0.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from pathlib import Path
 NICE = 15
 # pytest's exit status when a selection holds no test: a run of files without such tests is fine.
 NO_TESTS = 5
+# `make typecheck`'s check (its settings in pyproject.toml).
+MYPY = [sys.executable, "-m", "mypy"]
 
 
 def pytest(*args: str) -> list[str]:
@@ -40,8 +45,15 @@ def pytest(*args: str) -> list[str]:
     return [sys.executable, "-m", "pytest", "-q", "--durations=15", *args]
 
 
+def idle() -> None:
+    """In a child before exec: run only on CPU nothing else wants."""
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
 def main(argv: list[str]) -> int:
-    extra = argv or ["tests"]
+    typecheck = argv[:1] == ["--typecheck"]
+    extra = argv[1:] if typecheck else argv
+    extra = extra or ["tests"]
     # Three bands of ports (tests/sessions.py): one per worker, the last for the realtime runs.
     env = os.environ | {"TETHER_TEST_PORT_BANDS": "3"}
     alone = env | {"TETHER_TEST_PORT_BAND": "2"}
@@ -71,12 +83,27 @@ def main(argv: list[str]) -> int:
         sys.stdout.buffer.write(Path(log.name).read_bytes())
         sys.stdout.flush()
     print("\n== tests marked alone ==", flush=True)
-    by_itself = subprocess.run(
-        pytest("-n", "2", "--dist", "loadscope", "-m", "alone", "-p", "no:cacheprovider", *extra), env=alone
-    ).returncode
-    codes = (parallel, realtime.returncode, by_itself)
-    failed = [code for code in codes if code not in (0, NO_TESTS)]
-    return failed[0] if failed else (0 if 0 in codes else NO_TESTS)
+    with tempfile.TemporaryFile("w+b") as typecheck_log:
+        mypy = None
+        if typecheck:
+            mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
+        try:
+            by_itself = subprocess.run(
+                pytest("-n", "2", "--dist", "loadscope", "-m", "alone", "-p", "no:cacheprovider", *extra), env=alone
+            ).returncode
+            typed = mypy.wait() if mypy is not None else 0
+        finally:
+            if mypy is not None and mypy.poll() is None:
+                mypy.kill()
+                mypy.wait()
+        if mypy is not None:
+            print("\n== mypy ==", flush=True)
+            typecheck_log.seek(0)
+            sys.stdout.buffer.write(typecheck_log.read())
+            sys.stdout.flush()
+    runs = (parallel, realtime.returncode, by_itself)
+    failed = [code for code in runs if code not in (0, NO_TESTS)] + ([typed] if typed else [])
+    return failed[0] if failed else (0 if 0 in runs else NO_TESTS)
 
 
 if __name__ == "__main__":

@@ -25,13 +25,14 @@ class FakeSim:
     """Steps time only: what SimLoop.run needs of a Simulation."""
 
     dt = 0.01
+    resting = False
 
     def __init__(self) -> None:
         self.sim_time = 0.0
         self.controllers = Controllers()
 
-    def step(self) -> None:
-        self.sim_time += self.dt
+    def step(self, steps: int = 1) -> None:
+        self.sim_time += steps * self.dt
 
 
 class Counted:
