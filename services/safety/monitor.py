@@ -11,12 +11,9 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from shapely.affinity import rotate, translate
-from shapely.geometry import Point, box
-from shapely.geometry.base import BaseGeometry
-
 from schemas.common import Pose2D
 from schemas.safety import Rule
+from services.footprint import distance_to_footprint
 from services.safety.policyfile import HumanPolicy, MonitorPolicy
 
 
@@ -59,12 +56,6 @@ class Separation:
     person: str | None = None
 
 
-def footprint(pose: Pose2D, length: float, width: float) -> BaseGeometry:
-    """The base's rectangle on the floor at `pose`."""
-    shape = box(-length / 2, -width / 2, length / 2, width / 2)
-    return translate(rotate(shape, pose.yaw, origin=(0, 0), use_radians=True), pose.x, pose.y)
-
-
 def nearest_person(
     pose: Pose2D,
     size: tuple[float, float],
@@ -73,11 +64,11 @@ def nearest_person(
     radius: float = 0.0,
 ) -> tuple[float, Person] | None:
     """The nearest person and the distance from the base's footprint or the hand, whichever is
-    nearer, to their body (`radius` around where they stand; 0 when touching)."""
-    base = footprint(pose, *size)
+    nearer, to their body (`radius` around where they stand; 0 when touching). Asked at every
+    heartbeat: the footprint's distance is measured without building a polygon."""
     best: tuple[float, Person] | None = None
     for person in people:
-        distance = base.distance(Point(person.x, person.y))
+        distance = distance_to_footprint(pose.x, pose.y, pose.yaw, *size, (person.x, person.y))
         if hand is not None:
             distance = min(distance, math.dist(hand, (person.x, person.y)))
         distance = max(0.0, distance - radius)

@@ -109,6 +109,7 @@ def test_a_command_wakes_a_resting_loop_and_a_read_does_not() -> None:
 
 
 def test_the_distance_to_the_footprint_is_shapelys() -> None:
+    # The sim's contact check and safety's separation from people both measure with it.
     rng = np.random.default_rng(7)
     for _ in range(500):
         x, y, yaw = rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-math.pi, math.pi)
