@@ -10,9 +10,9 @@ Then the tests marked `alone` (realtime too: the multi-host tests, two robots' s
 namespaces with a router and link proxies, the ROS 2 stand-in's, whose dead-man signal comes from
 the test process at 20 Hz, and the robot contract's, whose safety heartbeat the test process plays)
 without the rest: with the others' load beside them, their robots' heartbeats or signals came late
-now and then. They run on two workers, module by module: the multi-host module (the longest, about
-two minutes, tests/conftest.py puts it first) on one, the stand-in's and the contract's on the
-other; together they use about one core of the two (3 min 12 s on one worker, 2 min 17-24 s on two).
+now and then. They run on two workers, module by module: the multi-host module (the longest, 114 s,
+tests/conftest.py puts it first) on one, the stand-in's and the contract's (70 s) on the other;
+together they use about one core of the two (about two minutes on two workers, three on one).
 With --typecheck, mypy runs beside them on the core they leave, under SCHED_IDLE (it gets only
 what nothing else wants: about 17 s of CPU, off the suite's critical path), its output shown after
 theirs.
