@@ -1,8 +1,9 @@
 """Test order for `make test`'s parallel run (pytest-xdist, `--dist loadscope`).
 
-Each worker takes whole modules, in collection order, as it frees up. The longest modules go first,
-so that the two workers do not end with one of them alone on a long module. Within a module, tests
-keep the order they are written in (some share a stack and depend on it).
+Each worker takes whole modules, in collection order, as it frees up (tests/suite.py passes
+--no-loadscope-reorder: pytest-xdist would otherwise sort the modules by how many tests they hold).
+The longest modules go first, so that the two workers do not end with one of them alone on a long
+module. Within a module, tests keep the order they are written in (some share a stack and depend on it).
 """
 
 from __future__ import annotations

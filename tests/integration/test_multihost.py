@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 
 from schemas.executor import PlanStatus
+from services.worldmodel import load_world
 from tests.multihost import netns
 from tests.multihost.intruder import MARKER_NAME, MARKER_SPEED
 from tests.multihost.stack import EDGE_SERVICES, ROBOT_SERVICES, STILL, MultiHost, Watch, clean_env, wait_for
@@ -30,9 +31,13 @@ from tests.multihost.stack import EDGE_SERVICES, ROBOT_SERVICES, STILL, MultiHos
 pytestmark = [pytest.mark.multihost, pytest.mark.realtime, pytest.mark.alone, pytest.mark.timeout(600)]
 
 # The robots drive between two spots 2 m apart in the kitchen, far from the person in the living room (a
-# drive of about 7 s there; the first, from the start in the living room, about 4 m).
-TABLE_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen table"}]})
-COUNTER_PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen counter"}]})
+# drive of about 7 s there; the first, from the start in the living room, about 4 m): each plan with
+# the approach pose it leaves the base at, in the default world the deployment runs.
+APPROACH = {furniture.name: furniture.approach for furniture in load_world().furniture}
+PLANS = {
+    json.dumps({"plan": [{"action": "navigate_to", "target": name}]}): APPROACH[name]
+    for name in ("kitchen table", "kitchen counter")
+}
 SIM = {"realtime_factor": 1.0, "odom_hz": 100.0}
 HEARTBEAT_TIMEOUT = 0.2  # the sim's default [sim] heartbeat_timeout, which the deployment keeps
 SIM_TICK = 1 / 240  # the sim's default physics_hz: it obeys the heartbeat guard once a step
@@ -134,14 +139,10 @@ def succeeded(mh: MultiHost, robot: str, plan: str) -> None:
     assert run.result.status is PlanStatus.SUCCEEDED, run.result.reason
 
 
-# Where each plan leaves the base: the furniture's approach poses in the bundled world.
-ENDS = {TABLE_PLAN: (2.5, 3.05), COUNTER_PLAN: (2.5, 1.05)}
-
-
 def away(mh: MultiHost, robot: str) -> str:
     """The plan whose end is farther from where `robot` stands now, so that it surely drives."""
     pose = mh.truth(robot).robot
-    return max(ENDS, key=lambda plan: math.hypot(pose.x - ENDS[plan][0], pose.y - ENDS[plan][1]))
+    return max(PLANS, key=lambda plan: math.hypot(pose.x - PLANS[plan].x, pose.y - PLANS[plan].y))
 
 
 def test_a_cut_link_halts_the_robot_within_the_watchdog_bound_and_the_stack_recovers(stack: MultiHost) -> None:
