@@ -4,10 +4,8 @@ First, two pytest runs at once:
 - the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
   time at normal priority; their output goes to a file and is shown when they end;
 - everything else on two pytest-xdist workers (`--dist loadscope`: whole modules, so a module's
-  shared stack stays on one worker; tests/conftest.py puts the longest first, and
-  `--no-loadscope-reorder` keeps that order: pytest-xdist 3.8 would otherwise start with the modules
-  of the most tests, leaving the long ones of few tests, the tours' 118 s, to the end), at low
-  priority (nice 15), its output on the terminal.
+  shared stack stays on one worker; tests/conftest.py puts the longest first), at low priority
+  (nice 15), its output on the terminal.
 Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
 namespaces with a router and link proxies, the ROS 2 stand-in's, whose dead-man signal comes from
 the test process at 20 Hz, and the robot contract's, whose safety heartbeat the test process plays)
@@ -71,7 +69,7 @@ def main(argv: list[str]) -> int:
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                pytest("-n", "2", "--dist", "loadscope", "--no-loadscope-reorder", "-m", "not realtime", *extra),
+                pytest("-n", "2", "--dist", "loadscope", "-m", "not realtime", *extra),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
