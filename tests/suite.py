@@ -4,7 +4,7 @@ First, two pytest runs at once:
 - the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
   time at normal priority; their output goes to a file and is shown when they end;
 - everything else on two pytest-xdist workers (`--dist loadscope`: whole modules, so a module's
-  shared stack stays on one worker; tests/conftest.py puts the longest first), at low priority
+  shared stack stays on one worker, in the order tests/conftest.py explains), at low priority
   (nice 15), its output on the terminal.
 Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
 namespaces with a router and link proxies, the ROS 2 stand-in's, whose dead-man signal comes from
