@@ -5,31 +5,26 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import threading
-import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from schemas import keys
 from schemas.actions import CANCEL_ALL, CancelGoal
 from schemas.robot import JointState, Odometry
-from schemas.safety import EstopState, SafetyStatus
 from schemas.world import PerceivedHumans, PerceivedObjects
 from services.errors import CallError
 from services.robotlink import Signer
 from services.runtime import ALL_SERVICES, Node, NodeSettings
-from services.safety.config import SafetyConfig
 from services.sim.config import SimConfig
+from tests.robot_contract.played_safety import PlayedSafety
 from tests.sessions import free_ports
 from tests.watch import Watch
 from tether.supervisor import Supervisor
 
-HEARTBEAT_PERIOD = 1.0 / SafetyConfig().heartbeat_hz  # as often as safety beats by default
 STARTUP_TIMEOUT = 90.0
 
 
@@ -120,79 +115,6 @@ CONTRACT_SIM = SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0)
 BACKENDS = [sim_backend(CONTRACT_SIM), ros2_backend(CONTRACT_SIM)]
 
 
-class PlayedSafety:
-    """The test in safety's place: the only writer of the heartbeat and of robot/**.
-
-    The heartbeat goes out every HEARTBEAT_PERIOD, carrying whatever `set` last said; `silence`
-    stops it as a crashed safety would. Times are wall (Unix) seconds, as the robot's stamps are.
-    """
-
-    def __init__(self, node: Node, *, beating: bool = True) -> None:
-        self._node = node
-        self._changed = threading.Condition()
-        self._state: dict[str, Any] = {"beating": beating, "latched": False, "speed_scale": 1.0}
-        self._limits: dict[str, float | None] = {"max_linear_speed": None, "max_angular_speed": None}
-        self.sent = 0
-        self.last_sent = 0.0  # the stamp of the latest heartbeat
-        self.applied = 0.0  # the stamp of the first heartbeat carrying what `set` last said
-        self._fresh = False
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="played-safety", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.wait(HEARTBEAT_PERIOD):
-            with self._changed:
-                if not self._state["beating"]:
-                    continue
-                estop = EstopState(latched=self._state["latched"], source="operator", reason="contract test")
-                status = SafetyStatus(
-                    seq=self.sent,
-                    stamp=time.time(),
-                    estop=estop,
-                    speed_scale=self._state["speed_scale"],
-                    speed_reason="contract test",
-                    **self._limits,
-                )
-                self._node.publish(keys.HEARTBEAT, status)
-                self.sent += 1
-                self.last_sent = status.stamp
-                if self._fresh:
-                    self.applied, self._fresh = status.stamp, False
-                self._changed.notify_all()
-
-    def set(
-        self,
-        *,
-        beating: bool = True,
-        latched: bool = False,
-        speed_scale: float = 1.0,
-        max_linear_speed: float | None = None,
-        max_angular_speed: float | None = None,
-    ) -> None:
-        """From the next heartbeat on (none at all when not `beating`)."""
-        with self._changed:
-            self._state = {"beating": beating, "latched": latched, "speed_scale": speed_scale}
-            self._limits = {"max_linear_speed": max_linear_speed, "max_angular_speed": max_angular_speed}
-            self._fresh = True
-
-    def silence(self) -> float:
-        """Stop the heartbeat; the stamp of the last one that went out."""
-        with self._changed:
-            self._state = {**self._state, "beating": False}
-            return self.last_sent
-
-    def beats(self, count: int, timeout: float = 5.0) -> bool:
-        """Wait until `count` more heartbeats have gone out with the state as now set."""
-        with self._changed:
-            target = self.sent + count
-            return self._changed.wait_for(lambda: self.sent >= target, timeout)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(5.0)
-
-
 @dataclass
 class RunningBackend:
     """One running backend, the test's node next to it, and what the robot has reported so far."""
@@ -236,7 +158,7 @@ def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBa
         objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
         missing = node.wait_alive(services, STARTUP_TIMEOUT)
         assert not missing, "\n".join(f"{s} not up:\n{supervisor.log_tail(s)}" for s in sorted(missing))
-        safety = PlayedSafety(node, beating=beating)
+        safety = PlayedSafety(settings, supervisor.robot_key(), beating=beating)
         yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
     finally:
         if safety is not None:
