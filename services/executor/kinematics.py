@@ -27,6 +27,7 @@ SEED_RNG = 7
 # A restart still this far off after so many iterations will not converge: give up on it.
 STALLED = ((60, 0.05), (100, 0.01))
 DAMPING = 1e-4
+DAMPED_IDENTITY = DAMPING * np.eye(6)
 
 # A test a solution must pass: collision-free, for the planner.
 Accept = Callable[[np.ndarray], bool]
@@ -153,16 +154,17 @@ class ArmKinematics(ArmModel):
             # The Jacobian's forward kinematics also gives the pose: one pass per iteration.
             pin.computeJointJacobians(self.model, data, q)
             current = pin.updateFramePlacement(self.model, data, self.frame_id)
-            residual = float(np.linalg.norm(current.translation - desired.translation))
-            angle = float(np.linalg.norm(pin.log3(current.rotation.T @ desired.rotation)))
-            if residual < POSITION_TOLERANCE and angle < ORIENTATION_TOLERANCE:
+            # The desired pose seen from the current one: its translation is as long as the gap
+            # between the two positions, and its log's angular part is the rotation between them.
+            local = current.actInv(desired)
+            error = pin.log6(local).vector
+            residual = math.hypot(*local.translation)
+            if residual < POSITION_TOLERANCE and math.hypot(*error[3:]) < ORIENTATION_TOLERANCE:
                 return q, residual, True
             if iteration == max_iterations or any(iteration >= n and residual > off for n, off in STALLED):
                 break
-            local = current.actInv(desired)
-            error = pin.log6(local).vector
             jacobian = pin.Jlog6(local.inverse()) @ pin.getFrameJacobian(self.model, data, self.frame_id, pin.LOCAL)
-            dq = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + DAMPING * np.eye(6), error)
+            dq = jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + DAMPED_IDENTITY, error)
             q = np.clip(pin.integrate(self.model, q, step * dq), lower, upper)
         return q, residual, False
 

@@ -86,7 +86,7 @@ def manipulator_for(robot: SimRobot, planners: tuple[ArmPlanner, BasePlanner]) -
 
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
-    simulation = Simulation(load_world())
+    simulation = Simulation(load_world(), physics_hz=120.0)  # as the integration stacks run it
     yield simulation
     simulation.close()
 

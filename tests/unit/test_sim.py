@@ -54,7 +54,10 @@ def world() -> World:
 
 @pytest.fixture
 def sim(world: World) -> Iterator[Simulation]:
-    simulation = Simulation(world)
+    # Physics at 120 Hz, as the integration stacks run it (FAST_SIM), and no visual meshes (nothing
+    # here renders): a third of the time. The default 240 Hz is the robot contract's and the
+    # wall-clock tests'.
+    simulation = Simulation(world, physics_hz=120.0, visuals=False)
     yield simulation
     simulation.close()
 

@@ -50,8 +50,8 @@ class Rig:
 @pytest.fixture
 def rig() -> Iterator[Rig]:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
-    config = SimConfig(realtime_factor=4.0, first_heartbeat_wait=0.5)
-    sim = Simulation(load_world(config.world), physics_hz=config.physics_hz)
+    config = SimConfig(realtime_factor=4.0, first_heartbeat_wait=0.5, physics_hz=120.0)
+    sim = Simulation(load_world(config.world), physics_hz=config.physics_hz, visuals=False)
     stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
     key = secrets.token_bytes(32)
     with Node("sim", settings) as sim_session, Node("test", settings) as client:
