@@ -23,6 +23,13 @@ Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the 
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
 wall-clock tests' processes the moment they wake. Stacks of the parallel part run with a looser
 heartbeat bound (tests/integration/conftest.py, LOADED_MACHINE_HEARTBEAT) for the same reason.
+Nice 15 holds back the parallel part's pytest workers only: Linux's autogroup scheduling makes each
+service, started in a session of its own (tether.supervisor), a group of its own at nice 0, whatever
+its process's nice. Tried on 2026-11-27 and dropped: the tests marked alone beside the parallel
+part, with and without the parallel part's services' groups at nice 15 too. Both runs were red: a
+multi-host watchdog bound and contract tests failed beside the parallel part, and with the groups
+at nice 15 its own timed tests starved (a deployment's 0.2 s heartbeat, a 1 s arm plan). They took
+555 and 584 s, against about 600 s for the parts one after the other.
 The exit status is the first failing run's (pytest's codes, then mypy's), or 0.
 """
 
