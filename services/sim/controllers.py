@@ -74,6 +74,7 @@ class BaseController:
         self.wanted = (0.0, 0.0)  # what the controllers ask: linear_x, angular_z
         self.actual = (0.0, 0.0)  # after the speed limits and the acceleration limits
         self.limits = (self.spec.max_linear_speed, self.spec.max_angular_speed)
+        self._stopped = False  # the motors were last told to stand still
         self.apply()
 
     def command(self, linear_x: float, angular_z: float) -> None:
@@ -93,7 +94,12 @@ class BaseController:
         v = have_v + max(-dv, min(dv, want_v - have_v))
         w = have_w + max(-dw, min(dw, want_w - have_w))
         self.actual = (v, w)
-        self.world.robot.drive_base(v, w)
+        # Standing still needs telling once: the motors hold zero velocity until told otherwise
+        # (only this controller drives the base), whatever the heading.
+        stopped = v == 0.0 and w == 0.0
+        if not (stopped and self._stopped):
+            self.world.robot.drive_base(v, w)
+        self._stopped = stopped
 
 
 class ArmController:
