@@ -10,8 +10,7 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import pytest
 
@@ -28,6 +27,7 @@ from schemas.incidents import (
 from schemas.safety import Decision, EstopSource
 from services.safety.operator import read_token
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.procs import wait_until
 from tests.watch import Watch
 from tether.client import PlanSender, reset_estop, trigger_estop
 
@@ -162,15 +162,6 @@ def test_a_locked_store_does_not_stop_safety_from_checking_and_is_written_once_f
     assert wait_until(lambda: listed(stack).store == "", 30.0), listed(stack).store
     rows = sqlite3.connect(path).execute("SELECT reason FROM incidents").fetchall()
     assert (kept.reason,) in rows
-
-
-def wait_until(condition: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.1)  # a poll with a deadline
-    return True
 
 
 def test_a_store_file_that_is_not_a_database_does_not_stop_safety_from_checking(stack: Stack) -> None:
