@@ -25,6 +25,7 @@ from schemas.actions import SendGoal
 from schemas.common import ErrorKind, Pose2D
 from schemas.robot import NavigateToPoseGoal, Twist
 from schemas.safety import EstopSource, EstopState, SafetyStatus
+from schemas.trace import RecorderStatus
 from schemas.world import Empty, GroundTruth
 from services.errors import CallError
 from services.robotlink import BAD_MAC, NOT_SIGNED, REPLAYED, Signer
@@ -177,6 +178,12 @@ def test_the_robot_refuses_a_signed_goal_into_a_keep_out_zone_on_its_own(stack: 
     wait_reported(stack, "refused a navigate_to_pose goal", "'stairs'")
 
 
+def recorded(stack: Stack) -> int:
+    """How many messages the recorder has taken so far (each status query adds one, its trace)."""
+    status: RecorderStatus = stack.node.call(keys.RECORDER_STATUS, Empty(), timeout=5.0)
+    return status.messages
+
+
 def test_inspect_and_recheck_flag_what_was_not_safetys(stack: Stack) -> None:
     # One command through safety, so recheck has a decision to check beside the flags.
     sent = Watch(stack.node, keys.ROBOT_CMD_VEL)
@@ -185,9 +192,16 @@ def test_inspect_and_recheck_flag_what_was_not_safetys(stack: Stack) -> None:
     while sent.latest(0.1) is None:
         assert time.monotonic() < deadline, "safety passed no cmd_vel on"
         stack.node.publish(keys.CMD_VEL, Twist(angular_z=0.2))
-    # Safety publishes its decision just after the twist it passed on: the recorder is stopped only
-    # once the decision is out too, so the file holds it.
+    # Safety publishes its decision just after the twist it passed on. Heard here, it may still be on
+    # its way to the recorder, or in its queue (a make test run stopped the recorder that soon and
+    # lost it): the recorder is stopped only once it has taken another 200 messages after that, over
+    # a second of the stack's own traffic (odometry, joint states, heartbeats at 50 Hz each).
     assert decided.wait_for(lambda e: e.key == keys.CMD_VEL.path, timeout=10.0) is not None, "no decision heard"
+    heard = recorded(stack)
+    deadline = time.monotonic() + 20.0
+    while recorded(stack) < heard + 200:
+        assert time.monotonic() < deadline, f"the recorder took {recorded(stack) - heard} messages in 20 s"
+        time.sleep(0.05)  # a poll with a deadline: the recorder's count
     assert stack.supervisor.stop("recorder") == 0
     [file] = stack.recordings.glob("*.mcap")
     inspected = tether_cli(stack, "inspect", "--json", str(file))
