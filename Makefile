@@ -20,7 +20,7 @@ demo: $(STAMP)
 
 # The suite sized for two cores (tests/suite.py): the wall-clock tests (`-m realtime`) one at a time
 # at normal priority, beside the rest on two pytest-xdist workers at low priority; then the
-# tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) on two workers, without the rest,
+# tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) one at a time, without the rest,
 # with mypy (`make typecheck`) beside them on the CPU they leave. The bytecode is compiled once up
 # front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again.
 test: $(STAMP) lint
