@@ -259,7 +259,9 @@ def test_a_dead_camera_renderer_stops_detections_and_pictures_but_not_the_robot(
     with caplog.at_level(logging.ERROR, logger="services.sim.renderer"):
         os.kill(renderer.pid, signal.SIGKILL)
         assert wait_until(lambda: renderer.failure is not None, 10.0), "the sim never noticed"
-    assert any(str(renderer.pid) in r.getMessage() for r in caplog.records), "not logged"
+        # Logged once the failure is set, on the thread that noticed it: waited for too.
+        logged = wait_until(lambda: any(str(renderer.pid) in r.getMessage() for r in caplog.records), 10.0)
+    assert logged, "not logged"
     with pytest.raises(CallError) as refused:
         rig.client.call(keys.CAMERA_IMAGE, Empty(), timeout=5.0)
     assert refused.value.error.kind is ErrorKind.UNAVAILABLE
