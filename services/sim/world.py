@@ -68,7 +68,7 @@ def has_heading(obj: WorldObject) -> bool:
 
 class _Client(bullet_client.BulletClient):  # type: ignore[misc]
     """pybullet_utils' client with each pybullet function looked up once. Its own lookup makes a
-    functools.partial on every call: 3 us a call, about a tenth of a tick moving the arm."""
+    functools.partial on every call: 3 us a call, and the sim makes several calls a tick."""
 
     def __getattr__(self, name: str) -> Any:
         attribute = super().__getattr__(name)

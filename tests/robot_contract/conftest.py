@@ -158,7 +158,7 @@ def running(backend: Backend, tmp: Path, *, beating: bool) -> Iterator[RunningBa
         objects, humans = Watch(node, keys.OBJECTS), Watch(node, keys.HUMANS)
         missing = node.wait_alive(services, STARTUP_TIMEOUT)
         assert not missing, "\n".join(f"{s} not up:\n{supervisor.log_tail(s)}" for s in sorted(missing))
-        safety = PlayedSafety(settings, supervisor.robot_key(), beating=beating)
+        safety = PlayedSafety(settings, supervisor.robot_key_file, beating=beating)
         yield RunningBackend(backend, settings, supervisor, node, safety, odom, joint_states, objects, humans)
     finally:
         if safety is not None:

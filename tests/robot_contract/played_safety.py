@@ -5,9 +5,9 @@ the test's GIL, and a goal sent over Zenoh on two loaded cores held it for over 
 for the robot to stop as it should when safety goes quiet. So the beating is done here, and the test
 drives it over this process's stdin and hears every beat on its stdout, one JSON object a line.
 
-    python -m tests.robot_contract.played_safety ROBOT BASE_PORT (beating|silent)
+    python -m tests.robot_contract.played_safety ROBOT BASE_PORT KEY_FILE (beating|silent)
 
-The first line on stdin is the robot key in hex (what safety signs with). Then, from the test:
+KEY_FILE holds the robot key safety signs with (services/robotlink.read_key). From the test:
 {"set": {...}} (the heartbeat's fields from the next beat on), {"silence": true}, {"close": true}.
 To the test: {"ready": true}, {"acked": N} for the Nth command, {"beat": sent, "stamp": s,
 "applied": N or null} for each heartbeat sent, N when it is the first to carry command N, a "set".
@@ -27,7 +27,7 @@ from typing import IO, Any
 
 from schemas import keys
 from schemas.safety import EstopState, SafetyStatus
-from services.robotlink import Signer
+from services.robotlink import Signer, read_key
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
 
@@ -42,7 +42,7 @@ class PlayedSafety:
     whatever `set` last said; `silence` stops it as a crashed safety would. Times are wall (Unix)
     seconds, as the robot's stamps are. The beats come from a child process (see the module)."""
 
-    def __init__(self, settings: NodeSettings, key: bytes, *, beating: bool = True) -> None:
+    def __init__(self, settings: NodeSettings, key_file: Path, *, beating: bool = True) -> None:
         self._changed = threading.Condition()
         self.sent = 0
         self.last_sent = 0.0  # the stamp of the latest heartbeat
@@ -50,9 +50,9 @@ class PlayedSafety:
         self._latest_set = 0  # the number of the latest "set" command
         self._commands = 0  # sent to the child
         self._acked = 0  # of those, how many it has taken
-        self._replies: list[dict[str, Any]] = []
+        self._replies: dict[int, dict[str, Any]] = {}  # by command number, until _command takes it
         self._ready = False
-        argv = [sys.executable, "-m", __name__, settings.robot, str(settings.base_port)]
+        argv = [sys.executable, "-m", __name__, settings.robot, str(settings.base_port), str(key_file)]
         argv.append("beating" if beating else "silent")
         self._proc = subprocess.Popen(argv, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         assert self._proc.stdin is not None and self._proc.stdout is not None
@@ -60,7 +60,6 @@ class PlayedSafety:
         self._reader = threading.Thread(target=self._read, args=(self._proc.stdout,), name="played-safety", daemon=True)
         self._reader.start()
         try:
-            self._write(key.hex())
             with self._changed:
                 if not self._changed.wait_for(lambda: self._ready or self._proc.poll() is not None, START_TIMEOUT):
                     raise RuntimeError(f"the played safety did not start within {START_TIMEOUT:g} s")
@@ -84,7 +83,7 @@ class PlayedSafety:
                         self._applied = message["stamp"]
                 elif "acked" in message:
                     self._acked = message["acked"]
-                    self._replies.append(message)
+                    self._replies[self._acked] = message
                 elif "ready" in message:
                     self._ready = True
                 self._changed.notify_all()
@@ -99,7 +98,7 @@ class PlayedSafety:
             self._write(json.dumps(command))
             if not self._changed.wait_for(lambda: self._acked >= number, REPLY_TIMEOUT):
                 raise RuntimeError(f"the played safety did not take {command} within {REPLY_TIMEOUT:g} s")
-            return next(r for r in self._replies if r["acked"] == number)
+            return self._replies.pop(number)
 
     def set(
         self,
@@ -203,19 +202,12 @@ def _say(message: dict[str, Any]) -> None:
 
 
 def main(argv: list[str]) -> int:
-    robot, base_port, mode = argv
+    robot, base_port, key_file, mode = argv
     fd = sys.stdin.fileno()
     pending = b""
-    while b"\n" not in pending:  # the key, read as the commands are: past stdin's own buffer
-        chunk = os.read(fd, 4096)
-        if not chunk:
-            return 1
-        pending += chunk
-    line, pending = pending.split(b"\n", 1)
-    key = bytes.fromhex(line.decode())
     node = Node("cli", NodeSettings(robot=robot, base_port=int(base_port)))
     try:
-        node.signer = Signer(key)
+        node.signer = Signer(read_key(Path(key_file)))
         beating = _Beating(node, mode == "beating")
         _say({"ready": True})
         due = time.monotonic() + HEARTBEAT_PERIOD
