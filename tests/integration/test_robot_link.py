@@ -31,6 +31,7 @@ from services.errors import CallError
 from services.robotlink import BAD_MAC, NOT_SIGNED, REPLAYED, Signer
 from services.runtime import Node, encode
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.procs import wait_until
 from tests.watch import Watch
 from tether.client import reset_estop, trigger_estop
 
@@ -198,10 +199,8 @@ def test_inspect_and_recheck_flag_what_was_not_safetys(stack: Stack) -> None:
     # a second of the stack's own traffic (odometry, joint states, heartbeats at 50 Hz each).
     assert decided.wait_for(lambda e: e.key == keys.CMD_VEL.path, timeout=10.0) is not None, "no decision heard"
     heard = recorded(stack)
-    deadline = time.monotonic() + 20.0
-    while recorded(stack) < heard + 200:
-        assert time.monotonic() < deadline, f"the recorder took {recorded(stack) - heard} messages in 20 s"
-        time.sleep(0.05)  # a poll with a deadline: the recorder's count
+    taken = wait_until(lambda: recorded(stack) >= heard + 200, 20.0)
+    assert taken, f"the recorder took {recorded(stack) - heard} messages in 20 s"
     assert stack.supervisor.stop("recorder") == 0
     [file] = stack.recordings.glob("*.mcap")
     inspected = tether_cli(stack, "inspect", "--json", str(file))
