@@ -44,9 +44,14 @@ class Frame:
 class Camera:
     """A camera on the mobile base, rendered with the CPU renderer (pybullet DIRECT has no GPU)."""
 
-    def __init__(self, bullet: Any, config: CameraConfig) -> None:
+    def __init__(self, bullet: Any, config: CameraConfig, floor: int | None = None) -> None:
+        """`floor`: the body the world stands on, drawn only in pictures. It hides nothing the
+        detector looks for, yet fills half a frame, and pybullet's CPU renderer pays per pixel drawn:
+        about 7.5 ms a frame with it, 3 without."""
         self.bullet = bullet
         self.config = config
+        self._floor = floor
+        self.show_floor(False)
         self.intrinsics = Intrinsics(
             width=config.width,
             height=config.height,
@@ -67,6 +72,12 @@ class Camera:
 
     def scene_moved(self) -> None:
         self._kept = None
+
+    def show_floor(self, shown: bool) -> None:
+        """Draw the floor in what is rendered next, or not (pictures draw it; see __init__)."""
+        # The CPU renderer skips a body that is wholly transparent.
+        if self._floor is not None:
+            self.bullet.changeVisualShape(self._floor, -1, rgbaColor=[1.0, 1.0, 1.0, 1.0 if shown else 0.0])
 
     def pose(self, base: Pose2D) -> np.ndarray:
         c = self.config
@@ -95,14 +106,18 @@ class Camera:
         detector's resolution: what a person or a model looks at, not what perception uses."""
         pose = self.pose(base)
         width, height = self.intrinsics.width * scale, self.intrinsics.height * scale
-        _, _, rgba, _, _ = self.bullet.getCameraImage(
-            width,
-            height,
-            viewMatrix=view_matrix(pose),
-            projectionMatrix=self._projection,
-            shadow=1,
-            renderer=pybullet.ER_TINY_RENDERER,
-        )
+        self.show_floor(True)
+        try:
+            _, _, rgba, _, _ = self.bullet.getCameraImage(
+                width,
+                height,
+                viewMatrix=view_matrix(pose),
+                projectionMatrix=self._projection,
+                shadow=1,
+                renderer=pybullet.ER_TINY_RENDERER,
+            )
+        finally:
+            self.show_floor(False)
         return np.reshape(np.asarray(rgba, dtype=np.uint8), (height, width, 4))[:, :, :3].copy()
 
     def look(self, base: Pose2D, targets: Mapping[int, Target]) -> dict[str, Detection]:

@@ -25,12 +25,15 @@ class CameraConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     mount_x: Annotated[float, Meta(ge=-1.0, le=1.0)] = 0.3
     mount_z: Annotated[float, Meta(ge=0.1, le=2.5)] = 1.35
     pitch_deg: Annotated[float, Meta(ge=0.0, le=90.0)] = 45.0  # down from horizontal
-    # A RealSense D435's depth field of view is 87 degrees across. The CPU renderer's cost is
-    # mostly per triangle (the arm's meshes), about 20 ms a frame at 160 x 120; 4:3 gives 70
-    # degrees vertically, enough to see both the near edge of a table and the room ahead.
+    # A RealSense D435's depth field of view is 87 degrees across. The CPU renderer pays per
+    # triangle and per pixel drawn: about 3 ms a frame at 160 x 120 with the arm's hulls; 4:3 gives
+    # 70 degrees vertically, enough to see both the near edge of a table and the room ahead.
     # It renders in a process of its own (services/sim/renderer.py), never on the sim thread.
     width: Pixels = 160
     height: Pixels = 120
+    # The arm drawn with the Panda's detailed meshes (about 20 ms more a frame, 40 MB more in the
+    # renderer) instead of its collision hulls, which hide the same from the camera: for pictures.
+    detailed_arm: bool = False
     hfov_deg: Annotated[float, Meta(ge=20.0, le=150.0)] = 87.0
     near: Annotated[float, Meta(ge=0.01, le=0.4)] = 0.1  # metres; nearer is not drawn
     # Metres; depth beyond this is no reading, as with a real depth sensor.
@@ -65,7 +68,7 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     cmd_vel_timeout: WallSeconds = 0.5
     joint_states_hz: Hz = 50.0
     odom_hz: Hz = 50.0
-    # Each report of objects renders a camera frame (about 20 ms of CPU, in the renderer process,
+    # Each report of objects renders a camera frame (about 3 ms of CPU, in the renderer process,
     # services/sim/renderer.py); a frame not drawn before the next is due is dropped, not queued.
     objects_hz: Hz = 5.0
     humans_hz: Hz = 5.0

@@ -272,7 +272,7 @@ def serve(conn: Connection, parent: int) -> None:
     threading.Thread(target=_watch_parent, args=(parent,), name="parent-watch", daemon=True).start()
     try:
         _, world, camera = conn.recv()
-        scene = SimWorld(world)
+        scene = SimWorld(world, detailed_arm=camera.detailed_arm)
         sensors = Sensors(scene, camera)
         # Most frames are asked for while nothing in view moves (a robot at rest, waiting for its next
         # goal): the last drawing is detected on again, with fresh noise, rather than drawn again.

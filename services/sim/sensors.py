@@ -24,7 +24,7 @@ class Sensors:
 
     def __init__(self, world: SimWorld, camera: CameraConfig | None = None) -> None:
         self.world = world
-        self.camera = Camera(world.bullet, camera or CameraConfig())
+        self.camera = Camera(world.bullet, camera or CameraConfig(), floor=world.floor)
         self._camera_targets = {world.object_bodies[o.id]: _target(o) for o in world.spec.objects}
 
     def _can_render(self) -> None:

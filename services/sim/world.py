@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import math
@@ -167,6 +168,31 @@ def without_visuals(urdf: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+# The arm as the camera draws it by default: its collision hulls (about 3,400 triangles) in the
+# Panda's white. Its visual meshes have about 100,000, and pybullet's CPU renderer pays per
+# triangle: 20 to 30 ms a frame with them, about 3 without (160 x 120, the floor not drawn).
+HULL_RGBA = "0.9 0.9 0.9 1"
+
+
+def hulls_as_visuals(urdf: str) -> str:
+    """The URDF with each link's visual meshes replaced by its collision shapes, in HULL_RGBA: what
+    hides what from the camera stays (the hulls wrap the meshes closely), at a thirtieth of the
+    triangles. The boxes and primitives drawn as such are kept as they are."""
+    root = ET.fromstring(urdf)
+    for link in root.iter("link"):
+        visuals = link.findall("visual")
+        if not any(visual.find("geometry/mesh") is not None for visual in visuals):
+            continue
+        for visual in visuals:
+            link.remove(visual)
+        for collision in link.findall("collision"):
+            drawn = ET.SubElement(link, "visual")
+            drawn.extend(copy.deepcopy(child) for child in collision if child.tag in ("origin", "geometry"))
+            material = ET.SubElement(drawn, "material", name="hull")
+            ET.SubElement(material, "color", rgba=HULL_RGBA)
+    return ET.tostring(root, encoding="unicode")
+
+
 # The Panda's visual meshes share one 1024 x 1024 colour palette (colors.png), which pybullet decodes
 # again for every mesh: some 33 MB in the camera's process. A copy at this size keeps the colours
 # (each is a patch of the palette) for 1/64 of that.
@@ -204,13 +230,20 @@ def with_small_textures(urdf: str, into: Path) -> str:
 class RobotBody:
     """The robot's joints in pybullet: its motors take targets, its encoders are read here."""
 
-    def __init__(self, bullet: Any, world: World, *, visuals: bool = True) -> None:
+    def __init__(self, bullet: Any, world: World, *, visuals: bool = True, detailed_arm: bool = False) -> None:
+        """`visuals=False`: nothing to draw; else the arm drawn as its hulls, or with `detailed_arm` its meshes."""
         self.bullet = bullet
         spec = world.robot
         urdf = mobile_manipulator_urdf(spec)
         with tempfile.TemporaryDirectory(prefix="tether-sim-") as tmp:
             path = Path(tmp) / "mobile_panda.urdf"
-            path.write_text(with_small_textures(urdf, Path(tmp)) if visuals else without_visuals(urdf))
+            if not visuals:
+                urdf = without_visuals(urdf)
+            elif detailed_arm:
+                urdf = with_small_textures(urdf, Path(tmp))
+            else:
+                urdf = hulls_as_visuals(urdf)
+            path.write_text(urdf)
             self.id: int = bullet.loadURDF(str(path), useFixedBase=True)
         self.joint_index: dict[str, int] = {}
         self.link_index: dict[str, int] = {}
@@ -328,7 +361,9 @@ class Drop(Motion[None, Moved]):
 class SimWorld:
     """The household and the robot's body in one pybullet client, stepped by whoever owns it (one thread)."""
 
-    def __init__(self, world: World, *, physics_hz: float = 240.0, visuals: bool = True) -> None:
+    def __init__(
+        self, world: World, *, physics_hz: float = 240.0, visuals: bool = True, detailed_arm: bool = False
+    ) -> None:
         self.spec = world
         # Without the robot's visual meshes (visuals=False) nothing here can be rendered: the sim's
         # camera then renders in a process of its own (services/sim/renderer.py).
@@ -344,7 +379,7 @@ class SimWorld:
         self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
         self.bullet.setGravity(0.0, 0.0, GRAVITY)
         self.bullet.setTimeStep(self.dt)
-        self.bullet.loadURDF("plane.urdf")
+        self.floor: int = self.bullet.loadURDF("plane.urdf")
         self.wall_bodies = {w.id: self._add_wall(w) for w in world.walls}
         self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
         self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
@@ -353,7 +388,7 @@ class SimWorld:
         self.human_poses = {h.id: h.pose for h in world.humans}
         # Temporary obstacles (sim/fault block), by id, with their bodies.
         self.blocks: dict[str, tuple[BlockShape, int]] = {}
-        self.robot = RobotBody(self.bullet, world, visuals=visuals)
+        self.robot = RobotBody(self.bullet, world, visuals=visuals, detailed_arm=detailed_arm)
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
     # Building

@@ -176,6 +176,26 @@ def test_an_object_moved_onto_furniture_rests_on_it_and_the_camera_sees_it_there
     assert error(book.position, moved.position) < GRASP_TOLERANCE
 
 
+def test_the_floor_is_drawn_in_pictures_only_and_hides_nothing_the_detector_looks_for(sim: Simulation) -> None:
+    """Detection frames leave the floor out (it fills much of the frame, and pybullet's CPU renderer pays
+    per pixel drawn); what the camera sees is the same with it, and pictures, for people, draw it."""
+    camera, base, floor = sim.sensors.camera, sim.robot.base_pose(), sim.scene.floor
+    assert not (camera.render(base).segmentation == floor).any()
+    without = seen(sim)
+    camera.show_floor(True)
+    try:
+        covered = camera.render(base).segmentation == floor
+        with_floor = seen(sim)
+    finally:
+        camera.show_floor(False)
+    assert covered.mean() > 0.3, "from the start pose the floor fills much of the frame"
+    assert without and with_floor == without
+    picture = sim.sensors.camera_picture(1)
+    background = (picture[covered] == 255).all(-1).mean()  # the renderer's clear colour is white
+    assert background < 0.01, f"{background:.1%} of the floor's pixels are not drawn in the picture"
+    assert not (camera.render(base).segmentation == floor).any(), "a picture leaves the floor out again"
+
+
 def test_camera_config_comes_from_the_sim_table_and_bad_values_are_named(tmp_path: Path) -> None:
     config = tmp_path / "tether.toml"
     config.write_text("[sim]\nrealtime_factor = 2\n\n[sim.camera]\nnoise = 0.0\nseed = 3\n")

@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+import pybullet
 import pytest
 
 from schemas.common import ErrorKind
@@ -21,8 +23,9 @@ from services.errors import CallError
 from services.sim.camera import png_base64
 from services.sim.config import CameraConfig
 from services.sim.renderer import Renderer
+from services.sim.robot_urdf import mobile_manipulator_urdf
 from services.sim.simulation import Simulation
-from services.sim.world import STILL, Drop
+from services.sim.world import STILL, TEXTURE_SIZE, Drop, hulls_as_visuals, with_small_textures
 from services.worldmodel import load_world
 from tests.procs import gone, wait_until
 
@@ -199,15 +202,25 @@ def test_the_renderer_exits_when_its_parent_is_killed() -> None:
             os.kill(child, signal.SIGKILL)
 
 
-def test_the_arm_drawn_with_its_small_palette_looks_as_with_the_full_one(tmp_path: Path) -> None:
-    """The renderer's copy of the Panda's colour palette (with_small_textures) changes no colour the
-    camera can see: the arm drawn both ways, close up, differs in almost no pixel."""
-    import numpy as np
-    import pybullet
-    from PIL import Image
+def _drawn(urdf: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The robot alone, close up from beside it: each pixel's colour, and whether the robot covers it."""
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        path.write_text(urdf)
+        pybullet.loadURDF(str(path), useFixedBase=True, physicsClientId=client)
+        view = pybullet.computeViewMatrix([1.0, 0.9, 1.2], [0.2, 0.0, 0.8], [0, 0, 1], physicsClientId=client)
+        projection = pybullet.computeProjectionMatrixFOV(60, 1.0, 0.05, 10, physicsClientId=client)
+        _, _, rgba, _, segmentation = pybullet.getCameraImage(200, 200, view, projection, physicsClientId=client)
+        colours = np.asarray(rgba, dtype=int).reshape(200, 200, 4)[..., :3]
+        return colours, np.asarray(segmentation).reshape(200, 200) >= 0
+    finally:
+        pybullet.disconnect(client)
 
-    from services.sim.robot_urdf import mobile_manipulator_urdf
-    from services.sim.world import TEXTURE_SIZE, with_small_textures
+
+def test_the_arm_drawn_with_its_small_palette_looks_as_with_the_full_one(tmp_path: Path) -> None:
+    """The renderer's copy of the Panda's colour palette (with_small_textures, for `detailed_arm`)
+    changes no colour the camera can see: the arm drawn both ways, close up, differs in almost no pixel."""
+    from PIL import Image
 
     full = mobile_manipulator_urdf(WORLD.robot)
     small = with_small_textures(full, tmp_path)
@@ -218,21 +231,22 @@ def test_the_arm_drawn_with_its_small_palette_looks_as_with_the_full_one(tmp_pat
     assert sizes and set(sizes) == {(TEXTURE_SIZE, TEXTURE_SIZE)}, sizes
     assert str(tmp_path) in small and str(tmp_path) not in full
 
-    def draw(urdf: str, name: str) -> np.ndarray:
-        client = pybullet.connect(pybullet.DIRECT)
-        try:
-            path = tmp_path / name
-            path.write_text(urdf)
-            pybullet.loadURDF(str(path), useFixedBase=True, physicsClientId=client)
-            view = pybullet.computeViewMatrix([1.0, 0.9, 1.2], [0.2, 0.0, 0.8], [0, 0, 1], physicsClientId=client)
-            projection = pybullet.computeProjectionMatrixFOV(60, 1.0, 0.05, 10, physicsClientId=client)
-            image = pybullet.getCameraImage(200, 200, view, projection, physicsClientId=client)[2]
-            return np.asarray(image, dtype=int).reshape(200, 200, 4)[..., :3]
-        finally:
-            pybullet.disconnect(client)
-
-    before, after = draw(full, "full.urdf"), draw(small, "small.urdf")
-    robot = (before != before[0, 0]).any(-1)  # pixels that are not the background
+    (before, robot), (after, _) = _drawn(full, tmp_path / "full.urdf"), _drawn(small, tmp_path / "small.urdf")
     assert robot.mean() > 0.05, "the arm is in the picture"
     changed = (np.abs(before - after).max(-1) > 10).mean()
     assert changed < 0.005, f"{changed:.2%} of the pixels changed colour"
+
+
+def test_the_arm_drawn_as_its_hulls_hides_all_its_meshes_hide_and_little_more(tmp_path: Path) -> None:
+    """The camera's arm by default (hulls_as_visuals): every pixel the detailed meshes cover, the
+    hulls cover too, so nothing behind the arm is seen that the meshes would hide; they add a few
+    percent round the edges, and the arm has no mesh left to draw."""
+    full = mobile_manipulator_urdf(WORLD.robot)
+    hulls = hulls_as_visuals(full)
+    assert "meshes/visual" in full and "meshes/visual" not in hulls
+    (_, meshes), (_, hulled) = _drawn(full, tmp_path / "full.urdf"), _drawn(hulls, tmp_path / "hulls.urdf")
+    assert meshes.mean() > 0.05, "the arm is in the picture"
+    missed = (meshes & ~hulled).sum() / meshes.sum()
+    added = (hulled & ~meshes).sum() / meshes.sum()
+    assert missed < 0.002, f"{missed:.2%} of the arm's pixels are not covered by its hulls"
+    assert added < 0.06, f"the hulls cover {added:.2%} more than the arm"
