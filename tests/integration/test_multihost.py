@@ -38,17 +38,20 @@ PLANS = {
     json.dumps({"plan": [{"action": "navigate_to", "target": name}]}): APPROACH[name]
     for name in ("kitchen table", "kitchen counter")
 }
-SIM = {"realtime_factor": 1.0, "odom_hz": 100.0}
+# The sim four times faster than real time: the drives these tests wait for take a quarter of the
+# wall time (the module took about 115 s at real time, 70 s so). What they bound is in wall time and
+# unchanged by it: the robot's heartbeat guard, the link's outage, the odometry's rate and stamps.
+SIM = {"realtime_factor": 4.0, "odom_hz": 100.0}
 HEARTBEAT_TIMEOUT = 0.2  # the sim's default [sim] heartbeat_timeout, which the deployment keeps
-SIM_TICK = 1 / 240  # the sim's default physics_hz: it obeys the heartbeat guard once a step
+SIM_TICK = 1 / 240  # sim s: the default physics_hz; it obeys the heartbeat guard once a step
 # What these tests assert a halt against, measured on the sim's stamped odometry from the fault: the
-# heartbeat timeout (the guard's), two sim ticks (the stale guard seen at the next step, the base at
+# heartbeat timeout (the guard's), two sim ticks in wall time (the stale guard seen at the next step, the base at
 # rest after the one following), one odometry period (the first still sample), and scheduling slack
 # for this 2-core machine, loaded by the rest of the suite: the sim's and safety's threads may start
 # late. Measured here: 191-271 ms. The goal, 250 ms, is what bench.partition reports and
 # checks (goals_met); a test failing on a goal the machine meets only when idle would be flaky.
 SCHEDULING_SLACK = 0.15
-HALT_BOUND = HEARTBEAT_TIMEOUT + 2 * SIM_TICK + 1 / SIM["odom_hz"] + SCHEDULING_SLACK
+HALT_BOUND = HEARTBEAT_TIMEOUT + 2 * SIM_TICK / SIM["realtime_factor"] + 1 / SIM["odom_hz"] + SCHEDULING_SLACK
 # A halt is seen once this many odometry samples, all still, followed it (1.5 s at odom_hz).
 HALT_SAMPLES = 150
 RECOVERY = 10.0  # every service alive again after a link returns

@@ -37,7 +37,7 @@ def ros2_config(endpoint: str) -> str:
 
 def test_the_demo_plan_runs_over_ros2_keys_and_both_sides_are_recorded(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_ports()}"
-    stack = start_stack(tmp_path, realtime_factor=2.0, services=SERVICES, extra_config=ros2_config(endpoint))
+    stack = start_stack(tmp_path, realtime_factor=5.0, services=SERVICES, extra_config=ros2_config(endpoint))
     try:
         cup = next(o for o in truth(stack).objects if o.id == "red_cup")
         assert cup.on == "kitchen_counter"

@@ -1,23 +1,30 @@
-"""Every graspable object picked and placed on every surface, over real processes, judged by the sim.
+"""Tours over real processes, judged by the sim: the base through every pair of rooms, and every
+graspable object picked and placed on every surface.
 
-Its own module (apart from tests/integration/test_executor.py) so that its fast sim lives only while
+Its own module (apart from tests/integration/test_executor.py) so that its fast sim (conftest's FAST,
+twice the executor's: neither tour puts an object back to a spot seen by the camera) lives only while
 the tours run, and a parallel worker can take it while another runs the executor's other tests."""
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections.abc import Iterator
 
 import pytest
 
+from schemas import keys
 from schemas.executor import PlanStatus
 from schemas.world import WorldObject
+from services.footprint import footprint
 from tests.integration.conftest import FAST, FAST_SIM, Stack, start_stack, stop_stack
-from tests.integration.test_executor import GRASPABLE, WITHOUT_RECORDER, WORLD, chain, execute, plan, truth
+from tests.integration.test_executor import GRASPABLE, ROBOT, WITHOUT_RECORDER, WORLD, chain, execute, plan, truth
+from tests.watch import Watch
 
 
 @pytest.fixture(scope="module")
 def tour_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    """One stack for the objects' tours of the surfaces: each tour leaves the world as it found it."""
+    """One stack for the tours: each leaves the world as it found it, the robot aside."""
     s = start_stack(
         tmp_path_factory.mktemp("tours"), realtime_factor=FAST, services=WITHOUT_RECORDER, sim_options=FAST_SIM
     )
@@ -25,6 +32,35 @@ def tour_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         yield s
     finally:
         stop_stack(s)
+
+
+def test_the_base_goes_between_every_pair_of_rooms_round_walls_and_furniture(tour_stack: Stack) -> None:
+    """First, from the start pose: the tours of the objects below begin wherever it ends."""
+    stack = tour_stack
+    rooms = [room.id for room in WORLD.world.rooms]
+    # A round trip through every pair of the five rooms once (each room has four others: even degree).
+    tour = ["kitchen", "living_room", "hallway", "office", "bedroom", "kitchen"]
+    tour += ["hallway", "bedroom", "living_room", "office", "kitchen"]
+    pairs = {frozenset(p) for p in itertools.pairwise(tour)}
+    assert pairs == {frozenset(p) for p in itertools.combinations(rooms, 2)}
+    odom = Watch(stack.node, keys.ODOM)
+    names = {room.id: room.name for room in WORLD.world.rooms}
+    result = execute(stack, plan(*({"action": "navigate_to", "target": names[room]} for room in tour)))
+    assert result.status is PlanStatus.SUCCEEDED, result.reason
+    assert [s.status for s in result.steps] == ["succeeded"] * len(tour)
+    end = truth(stack).robot
+    goal = WORLD.room_pose("kitchen")
+    assert math.hypot(end.x - goal.x, end.y - goal.y) < 0.05
+    # Never touching a wall or a piece of furniture on the way: the base where odometry measured it.
+    size = ROBOT.base_size
+    poses = [m.pose for m in odom.messages]
+    assert len(poses) > 100
+    for pose in poses:
+        shape = footprint(pose.x, pose.y, pose.yaw, size.x, size.y)
+        hit = next((o for o in WORLD.obstacles if shape.intersects(o.shape)), None)
+        assert hit is None, f"at ({pose.x:.2f}, {pose.y:.2f}) the base touched the {hit.name}"
+    visited = {WORLD.room_of(p.x, p.y) for p in poses}
+    assert visited == set(rooms)
 
 
 @pytest.mark.parametrize("obj", GRASPABLE, ids=[o.id for o in GRASPABLE])
