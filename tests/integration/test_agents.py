@@ -33,7 +33,7 @@ from schemas.planner import AskRequest, AskStatus, AttemptOutcome
 from schemas.world import Empty, GroundTruth
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import Stack, run_tether, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, run_tether, start_stack, stop_stack, tether_cli
 from tests.sessions import free_port
 from tests.watch import Watch
 from tether.client import reset_estop
@@ -155,11 +155,12 @@ AGENT_SERVICES = tuple(s for s in SERVICES if s != "recorder")
 
 @pytest.fixture(scope="module")
 def agent_stack(tmp_path_factory: pytest.TempPathFactory, llm_server: ScriptedLLM) -> Iterator[Stack]:
-    """Every service but the recorder, the sim ten times faster than real time, the planner pointed
+    """Every service but the recorder, the sim ten times faster than real time (physics at FAST_SIM's
+    120 Hz, as the tours run it), the planner pointed
     at `llm_server` with its key in an environment variable named by `[planner] api_key_env`."""
     tmp = tmp_path_factory.mktemp("agents")
     without_planner = tuple(s for s in AGENT_SERVICES if s != "planner")
-    stack = start_stack(tmp, realtime_factor=10.0, services=without_planner)
+    stack = start_stack(tmp, realtime_factor=10.0, services=without_planner, sim_options=FAST_SIM)
     try:
         config = tmp / "tether.toml"
         config.write_text(

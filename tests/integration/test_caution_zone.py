@@ -21,7 +21,7 @@ from schemas.world import MoveEntity
 from services.runtime import SERVICES
 from services.safety.policyfile import IncidentPolicy
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.agentapi import AgentAPI
 from tether.client import PlanSender
@@ -53,7 +53,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
         tmp,
         realtime_factor=10.0,
         services=SERVICES_HERE,
-        sim_options="physics_hz = 120.0\n",
+        sim_options=FAST_SIM,
         safety_options=f'incident_store = "{tmp / "incidents.sqlite"}"\n',
     )
     try:

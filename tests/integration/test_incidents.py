@@ -26,7 +26,7 @@ from schemas.incidents import (
 )
 from schemas.safety import Decision, EstopSource
 from services.safety.operator import read_token
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.procs import wait_until
 from tests.watch import Watch
 from tether.client import PlanSender, reset_estop, trigger_estop
@@ -36,7 +36,7 @@ PLAN_TIMEOUT = 120.0
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    s = start_stack(tmp_path_factory.mktemp("incidents"), realtime_factor=10.0)
+    s = start_stack(tmp_path_factory.mktemp("incidents"), realtime_factor=10.0, sim_options=FAST_SIM)
     try:
         yield s
     finally:

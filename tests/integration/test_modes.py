@@ -27,7 +27,7 @@ from services.footprint import footprint
 from services.runtime import SERVICES
 from services.safety.operator import read_token
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
+from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 
@@ -39,7 +39,9 @@ DIRECT_REASON = "mode direct: only the operator drives (teleop); plans are refus
 
 @pytest.fixture(scope="module")
 def modes_stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    s = start_stack(tmp_path_factory.mktemp("modes"), realtime_factor=10.0, services=SERVICES_HERE)
+    s = start_stack(
+        tmp_path_factory.mktemp("modes"), realtime_factor=10.0, services=SERVICES_HERE, sim_options=FAST_SIM
+    )
     try:
         yield s
     finally:
