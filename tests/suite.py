@@ -15,7 +15,8 @@ modules beside each other too (two workers: the multi-host module on one, the st
 contract's on the other). With the contract's heartbeat a thread of the test process, each of six
 such runs on 2026-11-27 lost a contract test to a late heartbeat. Played by a child process, five
 of six runs passed (about 140 s each) and one lost a contract test the same way: the robot saw no
-heartbeat for 200 ms. One at a time they take about three minutes and use about half a core.
+heartbeat for 200 ms. One at a time they take about two and a half minutes (the multi-host sims at four
+times real time) and use about half a core.
 With --typecheck, mypy runs beside them on the core they leave, under SCHED_IDLE (it gets only
 what nothing else wants: about 17 s of CPU, off the suite's critical path), its output shown after
 theirs.

@@ -46,8 +46,8 @@ class Camera:
 
     def __init__(self, bullet: Any, config: CameraConfig, floor: int | None = None) -> None:
         """`floor`: the body the world stands on, drawn only in pictures. It hides nothing the
-        detector looks for, yet fills half a frame, and pybullet's CPU renderer pays per pixel drawn:
-        about 7.5 ms a frame with it, 3 without."""
+        detector looks for, yet fills about two thirds of a frame from the start pose, and pybullet's
+        CPU renderer pays per pixel drawn: about 7.5 ms a frame with it, 3 without."""
         self.bullet = bullet
         self.config = config
         self._floor = floor

@@ -155,9 +155,9 @@ AGENT_SERVICES = tuple(s for s in SERVICES if s != "recorder")
 
 @pytest.fixture(scope="module")
 def agent_stack(tmp_path_factory: pytest.TempPathFactory, llm_server: ScriptedLLM) -> Iterator[Stack]:
-    """Every service but the recorder, the sim ten times faster than real time (physics at FAST_SIM's
-    120 Hz, as the tours run it), the planner pointed
-    at `llm_server` with its key in an environment variable named by `[planner] api_key_env`."""
+    """Every service but the recorder, the sim ten times faster than real time (its physics at
+    FAST_SIM's 120 Hz, as the tours run it), the planner pointed at `llm_server` with its key in an
+    environment variable named by `[planner] api_key_env`."""
     tmp = tmp_path_factory.mktemp("agents")
     without_planner = tuple(s for s in AGENT_SERVICES if s != "planner")
     stack = start_stack(tmp, realtime_factor=10.0, services=without_planner, sim_options=FAST_SIM)
