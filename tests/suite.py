@@ -68,10 +68,11 @@ def main(argv: list[str]) -> int:
     extra = argv[1:] if typecheck else argv
     extra = extra or ["tests"]
     # Three bands of ports (tests/sessions.py): one per worker, the last for the realtime runs.
-    # pytest keeps each test module as it rewrote its asserts in __pycache__, unless bytecode is not
-    # to be written (PYTHONDONTWRITEBYTECODE, set on this machine): then every pytest process rewrites
-    # every module again: collecting the suite took 13 s of CPU instead of 6. `make test` compiles the
-    # bytecode anyway (compileall); the runs after the first reuse what it wrote.
+    # pytest keeps each test module as it rewrote its asserts in __pycache__ (beside Python's own
+    # bytecode, which compileall writes; pytest's is its own), unless bytecode is not to be written
+    # (PYTHONDONTWRITEBYTECODE, set on this machine): then every pytest process rewrites every
+    # module again, and collecting the suite took 13 s of CPU instead of 6. The first pytest
+    # processes of a fresh clone write it; those after them, and every later `make test`, reuse it.
     env = {name: value for name, value in os.environ.items() if name != WRITE_NO_BYTECODE}
     env |= {"TETHER_TEST_PORT_BANDS": "3"}
     alone = env | {"TETHER_TEST_PORT_BAND": "2"}

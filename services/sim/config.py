@@ -31,9 +31,6 @@ class CameraConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # It renders in a process of its own (services/sim/renderer.py), never on the sim thread.
     width: Pixels = 160
     height: Pixels = 120
-    # The arm drawn with the Panda's detailed meshes (about 20 ms more a frame, 40 MB more in the
-    # renderer) instead of its collision hulls, which hide the same from the camera: for pictures.
-    detailed_arm: bool = False
     hfov_deg: Annotated[float, Meta(ge=20.0, le=150.0)] = 87.0
     near: Annotated[float, Meta(ge=0.01, le=0.4)] = 0.1  # metres; nearer is not drawn
     # Metres; depth beyond this is no reading, as with a real depth sensor.
@@ -44,6 +41,9 @@ class CameraConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fie
     # Seeded, so a run can be repeated exactly.
     noise: Annotated[float, Meta(ge=0.0, le=0.1)] = 0.003
     seed: Annotated[int, Meta(ge=0)] = 0
+    # The arm drawn with the Panda's detailed meshes (about 20 ms more a frame, 40 MB more in the
+    # renderer) instead of its collision hulls, which hide a little more from the camera: for pictures.
+    detailed_arm: bool = False
 
 
 class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -1,8 +1,9 @@
 """The robot's camera in a process of its own: a second pybullet client draws what the sim thread hands it.
 
-A frame costs some 20 ms of CPU with the GIL held (pybullet's CPU renderer, then the detector in
-numpy and shapely; a picture also its PNG encoding). On the sim's thread that held back physics,
-odometry, joint states and the action servers for as long. Instead the sim thread reads where every
+A frame cost some 20 ms of CPU with the GIL held when the camera drew the arm's detailed meshes
+(pybullet's CPU renderer, then the detector in numpy and shapely; a picture also its PNG encoding);
+about 3 ms now, a picture more. On the sim's thread that held back physics, odometry, joint states
+and the action servers for as long. Instead the sim thread reads where every
 movable body stands (`SimWorld.poses`, tens of microseconds) and hands that to `Renderer`; the
 child (`python -m services.sim.renderer`) has the same world loaded, puts its bodies there,
 renders, detects with the same seeded noise (`Sensors.perceived_objects`, as in one process) and

