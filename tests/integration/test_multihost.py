@@ -49,7 +49,7 @@ SIM_TICK = 1 / 240  # sim s: the default physics_hz; it obeys the heartbeat guar
 # heartbeat timeout (the guard's), two sim ticks in wall time (the stale guard seen at the next step,
 # the base at rest after the one following), one odometry period (the first still sample), and
 # scheduling slack for this 2-core machine, loaded by the rest of the suite: the sim's and safety's
-# threads may start late. Measured here: 191-271 ms at real time, 97-204 ms at four times. The
+# threads may start late. Measured here: 191-271 ms at real time, 97-199 ms at four times. The
 # issue's goal, 250 ms, is what bench.partition reports and checks (goals_met); a test failing on a
 # goal the machine meets only when idle would be flaky.
 SCHEDULING_SLACK = 0.15
