@@ -43,8 +43,8 @@ class Simulation:
         at rest go unstepped (see step); whoever changes the world other than through the controllers
         then calls `wake` first."""
         self.world = world
-        detailed_arm = camera is not None and camera.detailed_arm
-        self.scene = SimWorld(world, physics_hz=physics_hz, visuals=visuals, detailed_arm=detailed_arm)
+        camera = camera or CameraConfig()
+        self.scene = SimWorld(world, physics_hz=physics_hz, visuals=visuals, detailed_arm=camera.detailed_arm)
         self.robot: RobotBody = self.scene.robot
         self.controllers = Controllers(self.scene)
         self.sensors = Sensors(self.scene, camera)
