@@ -56,8 +56,8 @@ def test_every_graspable_object_is_picked_and_placed_on_every_surface(tour_stack
 
 
 def test_the_base_goes_between_every_pair_of_rooms_round_walls_and_furniture(tour_stack: Stack) -> None:
-    """Last, from wherever the objects' tours left the robot: they each begin as on a fresh stack, from
-    the start pose (the red cup's, begun from the kitchen instead, lost the cup on its first place)."""
+    """Last, from wherever the objects' tours left the robot, so that they run as on a stack of their own,
+    the first from the start pose (the red cup's, begun from the kitchen instead, lost the cup on its first place)."""
     stack = tour_stack
     rooms = [room.id for room in WORLD.world.rooms]
     # A round trip through every pair of the five rooms once (each room has four others: even degree).
