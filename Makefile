@@ -19,10 +19,11 @@ demo: $(STAMP)
 	$(BIN)/tether demo
 
 # The suite sized for two cores (tests/suite.py): the wall-clock tests (`-m realtime`) one at a time
-# at normal priority, beside the rest on two pytest-xdist workers at low priority; then the
-# tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) one at a time, without the rest,
-# with mypy (`make typecheck`) beside them on the CPU they leave. The bytecode is compiled once up
-# front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again (and the suite
+# at normal priority, beside the tests that start services on two pytest-xdist workers at low
+# priority; then the tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) one at a time,
+# without other stacks, with the unit tests (`-m unit`, all of tests/unit) on two workers at the lowest
+# priority and mypy (`make typecheck`) beside them on the CPU they leave. The bytecode is compiled once
+# up front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again (and the suite
 # lets pytest keep its assert-rewritten test modules, tests/suite.py).
 test: $(STAMP) lint
 	$(BIN)/python -m compileall -q -j 0 schemas services tether tests bench

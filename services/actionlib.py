@@ -301,13 +301,14 @@ class ClientGoal(Generic[G, F, R]):
         )
 
     def result_future(self, timeout: float) -> Future[ResultResponse[R]]:
-        """The result, fetched on a thread of its own; the future fails with CallError if none comes."""
+        """The result, fetched on a thread of its own; the future fails with CallError if none comes, or with
+        whatever else ended the call (the node closed meanwhile)."""
         future: Future[ResultResponse[R]] = Future()
 
         def fetch() -> None:
             try:
                 future.set_result(self.result(timeout))
-            except CallError as exc:
+            except Exception as exc:  # CallError, or the node closed under the call: the waiter learns which
                 future.set_exception(exc)
 
         threading.Thread(target=fetch, name=f"result:{self.goal_id}", daemon=True).start()

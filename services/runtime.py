@@ -713,7 +713,9 @@ class Node:
 
     def close(self) -> None:
         for item in reversed(self._declared):
-            with contextlib.suppress(zenoh.ZError):
+            # RuntimeError ("Already borrowed"): another thread is in a call on it (a publisher's put,
+            # say). The session's close below takes it down with the rest.
+            with contextlib.suppress(zenoh.ZError, RuntimeError):
                 item.undeclare()
         self._declared.clear()
         self.session.close()

@@ -13,6 +13,10 @@ from __future__ import annotations
 
 import pytest
 
+# Every test under it is marked `unit`: it runs in the pytest process, without a stack of its own
+# (`make test` runs these beside the tests marked alone, tests/suite.py).
+UNIT = "tests/unit"
+
 # The slowest modules (wall seconds on this 2-core machine, 2026-11), longest first.
 LONGEST_FIRST = (
     "tests/integration/test_multihost.py",  # only in the run of the tests marked alone (tests/suite.py)
@@ -43,3 +47,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         return rank.get(item.path.relative_to(root).as_posix(), len(rank))
 
     items.sort(key=key)  # stable: the rest keep their order
+    unit = root / UNIT
+    for item in items:
+        if item.path.is_relative_to(unit):
+            item.add_marker(pytest.mark.unit)

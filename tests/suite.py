@@ -3,23 +3,29 @@
 First, two pytest runs at once:
 - the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
   time at normal priority; their output goes to a file and is shown when they end;
-- everything else on two pytest-xdist workers (`--dist loadscope`: whole modules, so a module's
-  shared stack stays on one worker, in the order tests/conftest.py explains), at low priority
-  (nice 15), its output on the terminal.
+- the tests that start services (tests/integration, all but those marked realtime or alone) on two
+  pytest-xdist workers (`--dist loadscope`: whole modules, so a module's shared stack stays on one
+  worker, in the order tests/conftest.py explains), at low priority (nice 15), their output on the
+  terminal.
 Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
 namespaces with a router and link proxies, the ROS 2 stand-in's, whose dead-man signal comes from
 the test process at 20 Hz, and the robot contract's, whose safety heartbeat a child process plays,
-tests/robot_contract/played_safety.py) one at a time, without the rest: with the others' load
+tests/robot_contract/played_safety.py) one at a time, without other stacks: with the parallel part
 beside them, their robots' heartbeats or signals came late now and then. That held for these
 modules beside each other too (two workers: the multi-host module on one, the stand-in's and the
-contract's on the other). With the contract's heartbeat a thread of the test process, each of six
-such runs on 2026-11-27 lost a contract test to a late heartbeat. Played by a child process, five
-of six runs passed (about 140 s each) and one lost a contract test the same way: the robot saw no
-heartbeat for 200 ms. One at a time they take about two and a half minutes (the multi-host sims at four
-times real time) and use about half a core.
-With --typecheck, mypy runs beside them on the core they leave, under SCHED_IDLE (it gets only
-what nothing else wants: about 17 s of CPU, off the suite's critical path), its output shown after
-theirs.
+contract's on the other): five of six such runs passed, one lost a contract test (no heartbeat for
+200 ms). One at a time they take about two and a half minutes (the multi-host sims at four times
+real time) and leave more than a core idle (59 % of the machine, measured with vmstat).
+That idle CPU runs the tests marked `unit` (every test under tests/unit, tests/conftest.py: in one
+process, no stack of their own; about 130 s of CPU) on two workers, in a scheduling group of their own
+at the lowest weight (their own session, its autogroup at nice 19), so that whatever the tests marked
+alone and their services want comes first. Measured on 2026-11-27 in three runs: the tests marked
+alone took 132 to 144 s beside them (132 to 142 s without), and the unit tests ended about when they
+did (134 to 137 s). Before, the unit tests ran in the parallel part, on the two cores its stacks
+keep busy (85 % of the machine): that part took 347 s, and 275 s without them. The whole suite in a
+working tree: 411 and 414 s, against about 490 s.
+With --typecheck, mypy runs beside them too, under SCHED_IDLE (about 17 s of CPU), its output shown
+after theirs.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
@@ -37,20 +43,34 @@ The exit status is the first failing run's (pytest's codes, then mypy's), or 0.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import IO
 
+# pytest-xdist workers of the parallel part and of the unit tests' run.
+# Three for the parallel part were tried on 2026-11-27: 275.0 s against 276.1, the realtime run 126 s
+# against 98. Its two cores are busy, not waiting.
+WORKERS = 2
 # Low priority for the parallel part: at nice 15 a process weighs 1/28 of one at nice 0.
 NICE = 15
+# The unit tests' group, beside the tests marked alone: at nice 19 it weighs 15 against a service's 1024.
+LOWEST = 19
 # pytest's exit status when a selection holds no test: a run of files without such tests is fine.
 NO_TESTS = 5
 # Set, Python and pytest write no bytecode, so pytest's assertion rewriting is not kept.
 WRITE_NO_BYTECODE = "PYTHONDONTWRITEBYTECODE"
 # `make typecheck`'s check (its settings in pyproject.toml).
 MYPY = [sys.executable, "-m", "mypy"]
+# The four selections (the markers are in pyproject.toml; tests/conftest.py marks tests/unit `unit`).
+STACKS = "not realtime and not unit"
+REALTIME = "realtime and not alone"
+UNIT = "unit and not realtime"
+ALONE = "alone"
 
 
 def pytest(*args: str) -> list[str]:
@@ -63,30 +83,55 @@ def idle() -> None:
     os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
+def lowest() -> None:
+    """In a child before exec: a session, and so an autogroup, of its own at the lowest weight. A process's
+    own nice counts only inside its group; without autogroup scheduling it is all there is."""
+    os.setsid()
+    with contextlib.suppress(OSError):  # no /proc/self/autogroup: the kernel schedules no autogroups
+        Path("/proc/self/autogroup").write_text(str(LOWEST))
+    os.nice(LOWEST)
+
+
+def shown(title: str, log: IO[bytes]) -> None:
+    """A run's output, kept in `log` while it ran beside another, under `title`."""
+    print(f"\n== {title} ==", flush=True)
+    log.seek(0)
+    sys.stdout.buffer.write(log.read())
+    sys.stdout.flush()
+
+
+def stopped(process: subprocess.Popen[bytes] | None, group: bool = False) -> None:
+    """`process` (with `group`, its whole session) told to stop if it still runs, and waited for."""
+    if process is None or process.poll() is not None:
+        return
+    if group:
+        os.killpg(process.pid, signal.SIGTERM)
+    else:
+        process.terminate()
+    process.wait()
+
+
 def main(argv: list[str]) -> int:
     typecheck = argv[:1] == ["--typecheck"]
     extra = argv[1:] if typecheck else argv
     extra = extra or ["tests"]
-    # Three bands of ports (tests/sessions.py): one per worker, the last for the realtime runs.
+    # A band of ports (tests/sessions.py) for each worker, and one after theirs for the realtime runs.
     # pytest keeps each test module as it rewrote its asserts in __pycache__ (beside Python's own
     # bytecode, which compileall writes; pytest's is its own), unless bytecode is not to be written
     # (PYTHONDONTWRITEBYTECODE, set on this machine): then every pytest process rewrites every
     # module again, and collecting the suite took 13 s of CPU instead of 6. The first pytest
     # processes of a fresh clone write it; those after them, and every later `make test`, reuse it.
     env = {name: value for name, value in os.environ.items() if name != WRITE_NO_BYTECODE}
-    env |= {"TETHER_TEST_PORT_BANDS": "3"}
-    alone = env | {"TETHER_TEST_PORT_BAND": "2"}
+    env |= {"TETHER_TEST_PORT_BANDS": str(WORKERS + 1)}
+    alone = env | {"TETHER_TEST_PORT_BAND": str(WORKERS)}
     with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
         realtime = subprocess.Popen(
-            pytest("-m", "realtime and not alone", "-p", "no:cacheprovider", *extra),
-            stdout=log,
-            stderr=log,
-            env=alone,
+            pytest("-m", REALTIME, "-p", "no:cacheprovider", *extra), stdout=log, stderr=log, env=alone
         )
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                pytest("-n", "2", "--dist", "loadscope", "-m", "not realtime", *extra),
+                pytest("-n", str(WORKERS), "--dist", "loadscope", "-m", STACKS, *extra),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
@@ -95,30 +140,35 @@ def main(argv: list[str]) -> int:
                 print("waiting for the tests marked realtime ...", flush=True)
             realtime.wait()
         finally:
-            if realtime.poll() is None:
-                realtime.terminate()
-                realtime.wait()
-        print("\n== tests marked realtime ==", flush=True)
-        sys.stdout.buffer.write(Path(log.name).read_bytes())
-        sys.stdout.flush()
+            stopped(realtime)
+        shown("tests marked realtime", log)
     print("\n== tests marked alone ==", flush=True)
-    with tempfile.TemporaryFile("w+b") as typecheck_log:
-        mypy = None
-        if typecheck:
-            mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
+    with (
+        tempfile.NamedTemporaryFile("w+b", prefix="tether-unit-", suffix=".log") as unit_log,
+        tempfile.TemporaryFile("w+b") as typecheck_log,
+    ):
+        unit = mypy = None
         try:
-            by_itself = subprocess.run(pytest("-m", "alone", "-p", "no:cacheprovider", *extra), env=alone).returncode
+            unit = subprocess.Popen(
+                pytest("-n", str(WORKERS), "--dist", "loadscope", "-m", UNIT, "-p", "no:cacheprovider", *extra),
+                stdout=unit_log,
+                stderr=unit_log,
+                preexec_fn=lowest,
+                env=env,
+            )
+            print(f"tests marked unit: running alongside at the lowest priority, output in {unit_log.name}", flush=True)
+            if typecheck:
+                mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
+            by_itself = subprocess.run(pytest("-m", ALONE, "-p", "no:cacheprovider", *extra), env=alone).returncode
+            units = unit.wait()
             typed = mypy.wait() if mypy is not None else 0
         finally:
-            if mypy is not None and mypy.poll() is None:
-                mypy.kill()
-                mypy.wait()
+            stopped(unit, group=True)
+            stopped(mypy)
+        shown("tests marked unit", unit_log)
         if mypy is not None:
-            print("\n== mypy ==", flush=True)
-            typecheck_log.seek(0)
-            sys.stdout.buffer.write(typecheck_log.read())
-            sys.stdout.flush()
-    runs = (parallel, realtime.returncode, by_itself)
+            shown("mypy", typecheck_log)
+    runs = (parallel, realtime.returncode, by_itself, units)
     failed = [code for code in runs if code not in (0, NO_TESTS)] + ([typed] if typed else [])
     return failed[0] if failed else (0 if 0 in runs else NO_TESTS)
 

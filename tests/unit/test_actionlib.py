@@ -19,7 +19,7 @@ from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanRe
 from schemas.keys import Service
 from schemas.plan import PlanText
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
-from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
+from services.actionlib import ActionClient, ActionServer, ClientGoal, GoalHandle, Outcome
 from services.errors import CallError, GoalRejected
 from services.querypool import QueryPool
 from services.runtime import Node, NodeSettings
@@ -316,3 +316,12 @@ def test_a_plan_sender_hears_only_its_own_plans_and_keeps_nothing_once_they_end(
             assert ended.result is not None and ended.result.status is PlanStatus.SUCCEEDED
             assert sender.following() == [], "a sender kept a plan that ended"
         assert {name: [fb.message for fb in fbs] for name, fbs in heard.items()} == {"a": ["a"], "b": ["b"]}
+
+
+def test_a_result_future_whose_node_closes_fails_with_the_reason_instead_of_raising_on_its_thread() -> None:
+    node = Node("test", NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port()))
+    client = ActionClient(node, keys.ROBOT_NAVIGATE)
+    node.close()
+    future = ClientGoal(client, "nosuchgoal").result_future(WAIT)
+    error = future.exception(WAIT)
+    assert error is not None and "closed" in str(error), error

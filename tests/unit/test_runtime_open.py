@@ -97,3 +97,36 @@ def test_a_session_from_a_config_file_opens_as_zenoh_opens_it(tmp_path: Path) ->
     session, discovering_until = open_session(NodeSettings(zenoh_config=config), None)
     session.close()
     assert discovering_until == 0.0
+
+
+def test_a_node_closes_while_another_thread_publishes_on_it(settings: NodeSettings) -> None:
+    """zenoh refuses to undeclare a publisher another thread is putting on ("Already borrowed"): the
+    node's close goes on, and the session's close takes it down; the next put says the session closed."""
+    node = Node("test", settings)
+    publisher = node.publisher(NEWS)
+    sent = threading.Semaphore(0)
+    closing = threading.Event()
+    given_up = threading.Event()  # the test is over (the close may have raised): stop putting
+    ended: list[tuple[bool, BaseException]] = []
+
+    def publish() -> None:
+        while not given_up.is_set():
+            try:
+                publisher.put(PlanText(text="news"))
+            except BaseException as exc:
+                ended.append((closing.is_set(), exc))
+                return
+            sent.release()
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        assert sent.acquire(timeout=WAIT), "nothing was published"
+        closing.set()
+        node.close()
+        thread.join(WAIT)
+    finally:
+        given_up.set()
+    assert not thread.is_alive(), "puts went on after the close"
+    ((after_close, error),) = ended
+    assert after_close and "session closed" in str(error), error
