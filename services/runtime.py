@@ -269,6 +269,7 @@ class Node:
         self.session, self._discovering_until = open_session(settings, service)
         self._matched: set[str] = set()  # keys found served or subscribed while discovering
         self._declared: list[Any] = []
+        self.closed = False  # set first thing in close: what is published after it is dropped
         self._trace_publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         # Threads start with the first query that needs one (services/querypool.py).
@@ -298,11 +299,17 @@ class Node:
         """`put(payload)` for `key`, with safety's MAC as its attachment when this node signs and the
         key needs one (services/robotlink.py): signed and sent in one step, so the counters go out in order."""
         signer = self.signer
-        if signer is None or not signed(key):
-            put(payload)
-            return
-        with signer.lock:
-            put(payload, attachment=signer.sign(key, payload))
+        try:
+            if signer is None or not signed(key):
+                put(payload)
+                return
+            with signer.lock:
+                put(payload, attachment=signer.sign(key, payload))
+        except zenoh.ZError:
+            if not self.closed:
+                raise
+            # A thread of the service still at work while it shuts down: nothing can be sent any more.
+            log.debug("%s not published: the node is closed", key)
 
     def _undecodable(self, key: object, what: str, exc: Exception) -> None:
         """A flood of bad bytes is one line, then a count every few seconds (services/repeats.py)."""
@@ -712,6 +719,7 @@ class Node:
                 item.undeclare()
 
     def close(self) -> None:
+        self.closed = True
         for item in reversed(self._declared):
             # RuntimeError ("Already borrowed"): another thread is in a call on it (a publisher's put,
             # say). The session's close below takes it down with the rest.

@@ -101,20 +101,20 @@ def test_a_session_from_a_config_file_opens_as_zenoh_opens_it(tmp_path: Path) ->
 
 def test_a_node_closes_while_another_thread_publishes_on_it(settings: NodeSettings) -> None:
     """zenoh refuses to undeclare a publisher another thread is putting on ("Already borrowed"): the
-    node's close goes on, and the session's close takes it down; the next put says the session closed."""
+    node's close goes on, and the session's close takes it down. What the thread publishes after the
+    close is dropped (zenoh: "Undeclared publisher", "session closed"), not raised on it."""
     node = Node("test", settings)
     publisher = node.publisher(NEWS)
     sent = threading.Semaphore(0)
-    closing = threading.Event()
-    given_up = threading.Event()  # the test is over (the close may have raised): stop putting
-    ended: list[tuple[bool, BaseException]] = []
+    done = threading.Event()
+    errors: list[BaseException] = []
 
     def publish() -> None:
-        while not given_up.is_set():
+        while not done.is_set():
             try:
                 publisher.put(PlanText(text="news"))
             except BaseException as exc:
-                ended.append((closing.is_set(), exc))
+                errors.append(exc)
                 return
             sent.release()
 
@@ -122,11 +122,10 @@ def test_a_node_closes_while_another_thread_publishes_on_it(settings: NodeSettin
     thread.start()
     try:
         assert sent.acquire(timeout=WAIT), "nothing was published"
-        closing.set()
         node.close()
-        thread.join(WAIT)
+        for _ in range(MANY):  # puts after the close, each dropped
+            assert sent.acquire(timeout=WAIT), f"the publishing thread stopped: {errors}"
     finally:
-        given_up.set()
-    assert not thread.is_alive(), "puts went on after the close"
-    ((after_close, error),) = ended
-    assert after_close and "session closed" in str(error), error
+        done.set()
+        thread.join(WAIT)
+    assert not errors and not thread.is_alive()
