@@ -139,7 +139,12 @@ def tether_cli(stack: Stack, *args: str, stdin: str | None = None) -> subprocess
 
 
 def run_tether(supervisor: Supervisor, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    """The `tether` command line with the robot name and ports of `supervisor`'s services."""
+    """The `tether` command line with the robot name and ports of `supervisor`'s services.
+
+    In a session of its own, as from an operator's terminal, and so (autogroup scheduling) in a
+    scheduling group of its own, as each service is (tether.supervisor). In the pytest worker's, at
+    `make test`'s low priority beside its busy workers (tests/suite.py), a command shared their CPU,
+    and `tether world move` once found no simulator alive within its 2 s."""
     return subprocess.run(
         [sys.executable, "-m", "tether", *args],
         env=supervisor.env(),
@@ -147,6 +152,7 @@ def run_tether(supervisor: Supervisor, *args: str, stdin: str | None = None) -> 
         capture_output=True,
         text=True,
         timeout=120,
+        start_new_session=True,
     )
 
 
