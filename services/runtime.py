@@ -93,6 +93,9 @@ SWITCH_INTERVAL = 0.0005
 LINK_TIMEOUT = 2.0
 HEARD_TIMEOUT = 2.0
 DISCOVERY = 1.0
+# zenoh-python (PyO3) refuses a call on an entity another thread is in a call on: an undeclare during
+# a put raises "Already borrowed", a put during an undeclare "Already mutably borrowed" (RuntimeError).
+CLOSE_RACE = "borrowed"
 
 
 @dataclass(frozen=True)
@@ -305,7 +308,7 @@ class Node:
                 return
             with signer.lock:
                 put(payload, attachment=signer.sign(key, payload))
-        except zenoh.ZError:
+        except (zenoh.ZError, RuntimeError):  # RuntimeError: the put met close's undeclare (CLOSE_RACE)
             if not self.closed:
                 raise
             # A thread of the service still at work while it shuts down: nothing can be sent any more.
@@ -721,10 +724,15 @@ class Node:
     def close(self) -> None:
         self.closed = True
         for item in reversed(self._declared):
-            # RuntimeError ("Already borrowed"): another thread is in a call on it (a publisher's put,
-            # say). The session's close below takes it down with the rest.
-            with contextlib.suppress(zenoh.ZError, RuntimeError):
+            try:
                 item.undeclare()
+            except zenoh.ZError:
+                pass
+            except RuntimeError as exc:
+                if CLOSE_RACE not in str(exc):
+                    raise
+                # Another thread is in a call on it (a publisher's put, say): the session's close
+                # below takes it down with the rest.
         self._declared.clear()
         self.session.close()
 

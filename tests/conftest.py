@@ -1,4 +1,6 @@
-"""Test order for `make test`'s parallel run (pytest-xdist, `--dist loadscope`).
+"""Test order for `make test`'s parallel runs (pytest-xdist, `--dist loadscope`), and the `unit` marker.
+
+Every test under tests/unit is marked `unit`, for tests/suite.py to select.
 
 Each worker takes whole modules as it frees up. pytest-xdist's loadscope (3.5 and later) hands them
 out by how many tests they hold, most first, and this order decides only among modules of equal
@@ -13,8 +15,9 @@ from __future__ import annotations
 
 import pytest
 
-# Every test under it is marked `unit`: it runs in the pytest process, without a stack of its own
-# (`make test` runs these beside the tests marked alone, tests/suite.py).
+# Every test under it is marked `unit`: its work is done in the pytest process or in children it
+# starts itself, without a stack of services (`make test` runs these beside the tests marked alone,
+# tests/suite.py).
 UNIT = "tests/unit"
 
 # The slowest modules (wall seconds on this 2-core machine, 2026-11), longest first.

@@ -16,14 +16,16 @@ modules beside each other too (two workers: the multi-host module on one, the st
 contract's on the other): five of six such runs passed, one lost a contract test (no heartbeat for
 200 ms). One at a time they take about two and a half minutes (the multi-host sims at four times
 real time) and leave more than a core idle (59 % of the machine, measured with vmstat).
-That idle CPU runs the tests marked `unit` (every test under tests/unit, tests/conftest.py: in one
-process, no stack of their own; about 130 s of CPU) on two workers, in a scheduling group of their own
-at the lowest weight (their own session, its autogroup at nice 19), so that whatever the tests marked
-alone and their services want comes first. Measured on 2026-11-27 in three runs: the tests marked
-alone took 132 to 144 s beside them (132 to 142 s without), and the unit tests ended about when they
-did (134 to 137 s). Before, the unit tests ran in the parallel part, on the two cores its stacks
-keep busy (85 % of the machine): that part took 347 s, and 275 s without them. The whole suite in a
-working tree: 411 and 414 s, against about 490 s.
+That idle CPU runs the tests marked `unit` (every test under tests/unit but those marked realtime,
+tests/conftest.py: in the test process, without a stack of services; about 130 s of CPU) on two
+workers, in a scheduling group of their own at the lowest weight (their own session, its autogroup at
+nice 19), so that whatever the tests marked alone and their services want comes first. Measured on
+2026-11-27 in three runs: the tests marked alone took 132 to 144 s beside them (132 to 142 s without),
+and the unit tests ended about when they did (134 to 137 s). Before, the unit tests ran in the
+parallel part, on the two cores its stacks keep busy (85 % of the machine): that part took 347 s, and
+275 s without them. The whole suite in a working tree: 411 and 414 s, against about 490 s. A unit
+test that bounds wall time is marked realtime; one that bounds work measures CPU time
+(time.thread_time).
 With --typecheck, mypy runs beside them too, under SCHED_IDLE (about 17 s of CPU), its output shown
 after theirs.
 
@@ -53,8 +55,8 @@ from pathlib import Path
 from typing import IO
 
 # pytest-xdist workers of the parallel part and of the unit tests' run.
-# Three for the parallel part were tried on 2026-11-27: 275.0 s against 276.1, the realtime run 126 s
-# against 98. Its two cores are busy, not waiting.
+# Three workers for the parallel part were tried on 2026-11-27: it took 275.0 s (276.1 s on two), and
+# the realtime run beside it 126 s (98 s). Its two cores are busy, not waiting.
 WORKERS = 2
 # Low priority for the parallel part: at nice 15 a process weighs 1/28 of one at nice 0.
 NICE = 15
@@ -66,10 +68,11 @@ NO_TESTS = 5
 WRITE_NO_BYTECODE = "PYTHONDONTWRITEBYTECODE"
 # `make typecheck`'s check (its settings in pyproject.toml).
 MYPY = [sys.executable, "-m", "mypy"]
-# The four selections (the markers are in pyproject.toml; tests/conftest.py marks tests/unit `unit`).
-STACKS = "not realtime and not unit"
+# The four selections, each test in one (the markers are in pyproject.toml; tests/conftest.py marks
+# tests/unit `unit`).
+STACKS = "not realtime and not unit and not alone"
 REALTIME = "realtime and not alone"
-UNIT = "unit and not realtime"
+UNIT = "unit and not realtime and not alone"
 ALONE = "alone"
 
 
@@ -78,15 +81,19 @@ def pytest(*args: str) -> list[str]:
     return [sys.executable, "-m", "pytest", "-q", "--durations=15", *args]
 
 
+def on_workers(*args: str) -> list[str]:
+    """pytest on WORKERS pytest-xdist workers, each taking whole modules (tests/conftest.py)."""
+    return pytest("-n", str(WORKERS), "--dist", "loadscope", *args)
+
+
 def idle() -> None:
     """In a child before exec: run only on CPU nothing else wants."""
     os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 def lowest() -> None:
-    """In a child before exec: a session, and so an autogroup, of its own at the lowest weight. A process's
-    own nice counts only inside its group; without autogroup scheduling it is all there is."""
-    os.setsid()
+    """In a child of its own session before exec: that session's autogroup at the lowest weight. A
+    process's own nice counts only inside its group; without autogroup scheduling it is all there is."""
     with contextlib.suppress(OSError):  # no /proc/self/autogroup: the kernel schedules no autogroups
         Path("/proc/self/autogroup").write_text(str(LOWEST))
     os.nice(LOWEST)
@@ -111,7 +118,15 @@ def stopped(process: subprocess.Popen[bytes] | None, group: bool = False) -> Non
     process.wait()
 
 
+def interrupted(signum: int, frame: object) -> None:
+    """SIGTERM or SIGHUP (a CI job cancelled, a terminal closed): the runs are stopped as on Ctrl-C. The
+    unit tests' run has a session of its own, and no signal sent to this one reaches it."""
+    raise SystemExit(128 + signum)
+
+
 def main(argv: list[str]) -> int:
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, interrupted)
     typecheck = argv[:1] == ["--typecheck"]
     extra = argv[1:] if typecheck else argv
     extra = extra or ["tests"]
@@ -131,7 +146,7 @@ def main(argv: list[str]) -> int:
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                pytest("-n", str(WORKERS), "--dist", "loadscope", "-m", STACKS, *extra),
+                on_workers("-m", STACKS, *extra),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
@@ -142,7 +157,6 @@ def main(argv: list[str]) -> int:
         finally:
             stopped(realtime)
         shown("tests marked realtime", log)
-    print("\n== tests marked alone ==", flush=True)
     with (
         tempfile.NamedTemporaryFile("w+b", prefix="tether-unit-", suffix=".log") as unit_log,
         tempfile.TemporaryFile("w+b") as typecheck_log,
@@ -150,13 +164,17 @@ def main(argv: list[str]) -> int:
         unit = mypy = None
         try:
             unit = subprocess.Popen(
-                pytest("-n", str(WORKERS), "--dist", "loadscope", "-m", UNIT, "-p", "no:cacheprovider", *extra),
+                on_workers("-m", UNIT, *extra),
                 stdout=unit_log,
                 stderr=unit_log,
+                start_new_session=True,
                 preexec_fn=lowest,
                 env=env,
             )
-            print(f"tests marked unit: running alongside at the lowest priority, output in {unit_log.name}", flush=True)
+            print(
+                f"\ntests marked unit: running alongside at the lowest priority, output in {unit_log.name}", flush=True
+            )
+            print("\n== tests marked alone ==", flush=True)
             if typecheck:
                 mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
             by_itself = subprocess.run(pytest("-m", ALONE, "-p", "no:cacheprovider", *extra), env=alone).returncode

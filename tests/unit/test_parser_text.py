@@ -808,10 +808,10 @@ HOSTILE = {
 @pytest.mark.parametrize("name", list(HOSTILE))
 def test_hostile_input_is_refused_promptly(name: str) -> None:
     text = HOSTILE[name][: 256 * 1024]
-    started = time.perf_counter()
+    started = time.thread_time()  # the work done, whatever the scheduler does (make test runs these at low priority)
     with pytest.raises(ParseError):
         read_text(text, GRAMMAR)
-    assert time.perf_counter() - started < 1.0
+    assert time.thread_time() - started < 1.0
 
 
 WORDS = [

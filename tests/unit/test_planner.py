@@ -316,6 +316,7 @@ def test_an_answer_past_the_size_limit_is_refused_before_the_rest_is_read() -> N
     assert sum(sent) <= 1024 * 1024 + 65536, f"{sum(sent)} bytes were read"
 
 
+@pytest.mark.realtime  # the timeout within 3 s of wall time: at normal priority, not beside the rest (tests/suite.py)
 def test_an_answer_that_trickles_in_ends_at_the_timeout() -> None:
     def trickle() -> Iterator[bytes]:
         for _ in range(200):  # 10 s at one byte every 50 ms; each read is well within the timeout

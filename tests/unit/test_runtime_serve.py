@@ -195,6 +195,7 @@ def test_a_blocked_handler_holds_up_neither_quick_queries_nor_zenoh(rig: Rig) ->
     assert result.result(WAIT) == HELLO
 
 
+@pytest.mark.realtime  # busy within WAIT/2 of wall time: at normal priority, not beside the rest (tests/suite.py)
 def test_a_full_pool_answers_busy_at_once_and_runs_what_it_queued(rig: Rig) -> None:
     running = [rig.call_later(SLOW) for _ in range(2)]
     rig.slow.wait_inside(2)

@@ -34,7 +34,7 @@ from services.sim.node import SimNode
 from services.sim.simulation import Simulation
 from services.worldmodel import load_world
 from tests.procs import wait_until
-from tests.sessions import free_port
+from tests.sessions import LOADED_HEARTBEAT_MAX_AGE, LOADED_HEARTBEAT_TIMEOUT, free_port
 from tests.watch import Watch
 
 
@@ -50,12 +50,15 @@ class Rig:
 @pytest.fixture
 def rig() -> Iterator[Rig]:
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
-    # The heartbeat's bounds loosened as for the integration stacks (LOADED_MACHINE_HEARTBEAT): `make test`
-    # runs these tests at the lowest priority beside others (tests/suite.py), and a process held off
-    # the CPU for 0.5 s once lost its heartbeat (this thread's) mid-drive. The bounds are the
-    # robot contract's to test (tests/robot_contract), at their defaults.
+    # The heartbeat's bounds for a loaded machine (tests/sessions.py): `make test` runs these tests at
+    # the lowest priority beside others (tests/suite.py), and this process, held off the CPU for 0.5 s,
+    # once lost its own heartbeat mid-drive. The bounds are the robot contract's to test, at their defaults.
     config = SimConfig(
-        realtime_factor=4.0, first_heartbeat_wait=0.5, physics_hz=120.0, heartbeat_timeout=1.0, heartbeat_max_age=1.5
+        realtime_factor=4.0,
+        first_heartbeat_wait=0.5,
+        physics_hz=120.0,
+        heartbeat_timeout=LOADED_HEARTBEAT_TIMEOUT,
+        heartbeat_max_age=LOADED_HEARTBEAT_MAX_AGE,
     )
     sim = Simulation(load_world(config.world), physics_hz=config.physics_hz, visuals=False)
     stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
