@@ -98,6 +98,12 @@ DISCOVERY = 1.0
 CLOSE_RACE = "borrowed"
 
 
+def closing_error(exc: Exception) -> bool:
+    """Whether `exc` is what zenoh raises about a node being closed: its error for an entity undeclared or a
+    session closed (ZError), or a call that met another thread's (CLOSE_RACE)."""
+    return isinstance(exc, zenoh.ZError) or (isinstance(exc, RuntimeError) and CLOSE_RACE in str(exc))
+
+
 @dataclass(frozen=True)
 class NodeSettings:
     """Where a process finds the others: the robot's key prefix and the Zenoh configuration."""
@@ -308,8 +314,8 @@ class Node:
                 return
             with signer.lock:
                 put(payload, attachment=signer.sign(key, payload))
-        except (zenoh.ZError, RuntimeError):  # RuntimeError: the put met close's undeclare (CLOSE_RACE)
-            if not self.closed:
+        except (zenoh.ZError, RuntimeError) as exc:
+            if not (self.closed and closing_error(exc)):
                 raise
             # A thread of the service still at work while it shuts down: nothing can be sent any more.
             log.debug("%s not published: the node is closed", key)
@@ -726,13 +732,11 @@ class Node:
         for item in reversed(self._declared):
             try:
                 item.undeclare()
-            except zenoh.ZError:
-                pass
-            except RuntimeError as exc:
-                if CLOSE_RACE not in str(exc):
+            except (zenoh.ZError, RuntimeError) as exc:
+                if not closing_error(exc):
                     raise
-                # Another thread is in a call on it (a publisher's put, say): the session's close
-                # below takes it down with the rest.
+                # Undeclared already, or another thread is in a call on it (a publisher's put, say):
+                # the session's close below takes it down with the rest.
         self._declared.clear()
         self.session.close()
 
