@@ -413,7 +413,9 @@ class GripperMotion(GoalMotion[GripperCommandFeedback, GripperCommandResult]):
         world = ctl.world
         self.goal = goal
         self.closing = goal.position < world.robot.gripper_gap() - 1e-4
-        if not self.closing and world.holding is not None:
+        if self.closing:
+            world.fingers_touch_all()
+        elif world.holding is not None:
             world.release()
         ctl.fingers.command(goal.position, goal.max_effort)
         # The gripper's own clock stands still while paused (speed scale 0: a person is too close

@@ -44,6 +44,9 @@ BASE_TORQUE = 2000.0
 ARM_FORCES = (300.0, 300.0, 300.0, 300.0, 100.0, 100.0, 100.0)
 ARM_POSITION_GAIN = 0.3
 FINGER_SPEED = 0.1  # m/s per finger
+# An object the hand let go of and the fingers collide again once the fingers are this far from it
+# (SimWorld.release).
+LET_GO_CLEARANCE = 0.005
 
 WALL_RGBA = [0.92, 0.9, 0.86, 1.0]
 BLOCK_RGBA = [0.95, 0.55, 0.1, 1.0]  # a temporary obstacle (sim/fault block): orange, to be seen
@@ -374,6 +377,8 @@ class SimWorld:
         # What the hand holds: a fixed constraint stands in for the grip (see grasp).
         self.holding: str | None = None
         self._grasp_constraint: int | None = None
+        # Bodies the hand let go of that the fingers pass through until they are clear of them (release).
+        self._let_go: set[int] = set()
         self._drops: list[Drop] = []
         self.bullet: Any = _Client(connection_mode=pybullet.DIRECT)
         self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
@@ -473,6 +478,8 @@ class SimWorld:
         self._drops = [d for d in self._drops if d.running]
         self.bullet.stepSimulation()
         self.sim_time += self.dt
+        if self._let_go:
+            self._touch_when_clear()
 
     def rest_step(self) -> None:
         """A tick of a world at rest (Simulation.step): time passes, physics is not stepped."""
@@ -541,12 +548,40 @@ class SimWorld:
         return (float(x), float(y), float(z))
 
     def release(self) -> None:
+        """Let go of what the hand holds. The fingers pass through it until they are clear of it: a
+        finger that had squeezed into it kept, now and then, a contact whose friction held it in the
+        air after the grip went (one place in about forty on a loaded machine: a cup left hanging
+        1.8 cm over the table, then carried off as the arm drew back)."""
         if self._grasp_constraint is not None:
             self.bullet.removeConstraint(self._grasp_constraint)
         if self.holding is not None:
-            self._wake(self.object_bodies[self.holding])
+            body = self.object_bodies[self.holding]
+            self._wake(body)
+            self._set_finger_contact(body, enabled=False)
+            self._let_go.add(body)
         self._grasp_constraint = None
         self.holding = None
+
+    def _set_finger_contact(self, body: int, *, enabled: bool) -> None:
+        for finger in self.robot.fingers:
+            self.bullet.setCollisionFilterPair(self.robot.id, body, finger, -1, int(enabled))
+
+    def fingers_touch_all(self) -> None:
+        """Every object let go of collides with the fingers again, clear of them or not: they close."""
+        for body in self._let_go:
+            self._set_finger_contact(body, enabled=True)
+        self._let_go.clear()
+
+    def _touch_when_clear(self) -> None:
+        """The fingers collide again with each object let go of that they are LET_GO_CLEARANCE from."""
+        robot = self.robot
+        for body in list(self._let_go):
+            near = (
+                self.bullet.getClosestPoints(robot.id, body, LET_GO_CLEARANCE, finger, -1) for finger in robot.fingers
+            )
+            if not any(near):
+                self._set_finger_contact(body, enabled=True)
+                self._let_go.discard(body)
 
     # Ground truth
 
