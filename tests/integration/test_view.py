@@ -67,6 +67,9 @@ class Client:
 
     proc: subprocess.Popen[str]
     lines: list[dict[str, Any]] = field(default_factory=list)
+    # Every line it wrote has been read: its stdout ended. Not when the process ends: lines it wrote
+    # before exiting may still be in the pipe, waiting for a reader a loaded machine holds up.
+    ended: bool = False
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _reader: threading.Thread = field(init=False)
 
@@ -90,6 +93,7 @@ class Client:
                 self.lines.append(json.loads(line))
                 self._cond.notify_all()
         with self._cond:
+            self.ended = True
             self._cond.notify_all()
 
     def wait_for(self, test: Any, timeout: float = DEADLINE) -> bool:
@@ -97,7 +101,7 @@ class Client:
         with self._cond:
             while not test(self.lines):
                 left = deadline - time.monotonic()
-                if left <= 0 or (self.proc.poll() is not None and not test(self.lines)):
+                if left <= 0 or self.ended:
                     return bool(test(self.lines))
                 self._cond.wait(min(left, 0.5))
         return True

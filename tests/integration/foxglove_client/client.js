@@ -27,22 +27,30 @@ const [mode, url, seconds, ...wanted] = process.argv.slice(2);
 // foxglove-sdk's server speaks the protocol of ws-protocol's spec under the name foxglove.sdk.v1
 // (foxglove.websocket.v1 before); FoxgloveClient takes whatever subprotocol its socket negotiated.
 const SUBPROTOCOL = "foxglove.sdk.v1";
-const out = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
+const out = (obj, then) => process.stdout.write(JSON.stringify(obj) + "\n", then);
 const deadline = setTimeout(() => finish("timeout"), Number(seconds) * 1000);
+let finishing = false;
+
+// Writes to a pipe are asynchronous on POSIX: process.exit() right after one drops whatever the
+// reader has not taken yet (a full pipe, a test on a loaded machine). Exit once the last line is out.
+function exitAfter(obj, code) {
+  out(obj, () => process.exit(code));
+}
 
 function finish(why, counts = {}) {
-  out({ done: why, ...counts });
+  if (finishing) return;
+  finishing = true;
   clearTimeout(deadline);
-  process.exit(0);
+  exitAfter({ done: why, ...counts }, 0);
 }
 
 function official() {
-  out({ official: { "foxglove.SceneUpdate": schemas.SceneUpdate, "foxglove.FrameTransforms": schemas.FrameTransforms,
-    "foxglove.CompressedImage": schemas.CompressedImage, "foxglove.Log": schemas.Log } });
+  return { official: { "foxglove.SceneUpdate": schemas.SceneUpdate, "foxglove.FrameTransforms": schemas.FrameTransforms,
+    "foxglove.CompressedImage": schemas.CompressedImage, "foxglove.Log": schemas.Log } };
 }
 
 function watch() {
-  official();
+  out(official());
   const ws = new WebSocket(url, [SUBPROTOCOL]);
   const client = new FoxgloveClient({ ws });
   const bySubscription = new Map();
@@ -222,9 +230,9 @@ function teleop() {
   process.stdin.on("end", () => ws.close());
 }
 
-if (mode === "schemas") { official(); process.exit(0); }
+if (mode === "schemas") exitAfter(official(), 0);
 else if (mode === "watch") watch();
 else if (mode === "hostile") hostile();
 else if (mode === "teleop") teleop();
 else if (mode === "subscribe-all") subscribeAll();
-else { out({ error: `unknown mode ${mode}` }); process.exit(2); }
+else exitAfter({ error: `unknown mode ${mode}` }, 2);
