@@ -44,8 +44,7 @@ BASE_TORQUE = 2000.0
 ARM_FORCES = (300.0, 300.0, 300.0, 300.0, 100.0, 100.0, 100.0)
 ARM_POSITION_GAIN = 0.3
 FINGER_SPEED = 0.1  # m/s per finger
-# An object the hand let go of and the fingers collide again once the fingers are this far from it
-# (SimWorld.release).
+# The fingers pass through an object the hand let go of until they are this far from it (SimWorld.release).
 LET_GO_CLEARANCE = 0.005
 
 WALL_RGBA = [0.92, 0.9, 0.86, 1.0]
