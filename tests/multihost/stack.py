@@ -15,6 +15,7 @@ test breaks. The router's certificate names localhost, so TLS holds on the tap a
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import re
@@ -108,6 +109,18 @@ class Watch:
     def fresh_beat(self, after: float) -> bool:
         with self.lock:
             return any(b.arrived > after for b in self.beats)
+
+    def steady(self, since: float, gap: float) -> bool:
+        """Odometry and heartbeats arrived from `since` until now (Unix seconds) never more than `gap` apart:
+        neither the robot's stack nor the link held them up."""
+        now = time.time()
+        with self.lock:
+            streams = ([s.arrived for s in self.odom], [b.arrived for b in self.beats])
+        for arrivals in streams:
+            times = [since, *(t for t in arrivals if t > since), now]
+            if any(b - a > gap for a, b in itertools.pairwise(times)):
+                return False
+        return True
 
 
 @dataclass
