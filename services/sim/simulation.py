@@ -74,10 +74,11 @@ class Simulation:
         for _ in range(steps):
             if self.rest and self._at_rest():
                 self.scene.rest_step()
+                self.faults.rest_tick()
             else:
                 self.controllers.tick()
                 self.scene.step()
-            self.faults.tick()
+                self.faults.tick()
 
     def wake(self) -> None:
         """Step physics again until the world has stood still for REST_AFTER once more: the world

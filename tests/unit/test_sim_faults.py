@@ -22,8 +22,8 @@ from services.executor.errors import GraspFailed
 from services.executor.manipulation import Manipulator
 from services.executor.ports import Robot
 from services.executor.runner import PlanRunner
-from services.sim.faults import SLIP_DISTANCE, block_for, doorways, find_doorway, landing_spot
-from services.sim.simulation import Simulation
+from services.sim.faults import CONTACT_GAP, SLIP_DISTANCE, block_for, doorways, find_doorway, landing_spot
+from services.sim.simulation import REST_AFTER, Simulation
 from services.sim.world import BlockShape
 from services.worldmodel import WorldModel, load_world
 
@@ -207,6 +207,28 @@ def test_a_block_stops_the_base_and_the_touch_is_reported_once(sim: Simulation) 
     sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=4.0)
     sim.settle(4.0)
     assert sim.robot.base_pose().x > 5.3, "cleared, it drives through"
+
+
+def test_a_touch_that_lasts_while_the_world_rests_is_reported_once() -> None:
+    """At rest physics is not stepped and the contact checks are not run (Simulation.step): a base
+    standing against a block through the rest, then pushing on, is still the touch already reported."""
+    sim = Simulation(WORLD, physics_hz=120.0, visuals=False, rest=True)
+    try:
+        got = reports(sim)
+        place(sim, 3.9, 2.1)
+        inject(sim, FaultKind.BLOCK, "kitchen-living_room")
+        sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=3.0)
+        sim.settle(3.0)
+        assert sim.scene.bullet.getContactPoints(bodyA=sim.robot.id), "the base does not stand against the box"
+        sim.settle(REST_AFTER + 3 * CONTACT_GAP)
+        assert sim.resting, "the world did not come to rest"
+        sim.controllers.set_cmd_vel(Twist(linear_x=0.4), hold_for=1.0)
+        sim.settle(1.0)
+        assert not sim.resting
+        collisions = [r for r in got if r.kind is IncidentKind.COLLISION]
+        assert len(collisions) == 1, collisions
+    finally:
+        sim.close()
 
 
 # The executor's half: a grasp that closed on nothing is its to report (the sim reports drops).
