@@ -40,7 +40,9 @@ part, with and without the parallel part's services' groups at nice 15 too. Both
 multi-host watchdog bound and contract tests failed beside the parallel part, and with the groups
 at nice 15 its own timed tests starved (a deployment's 0.2 s heartbeat, a 1 s arm plan). They took
 555 and 584 s, against about 600 s for the parts one after the other.
-The exit status is the first failing run's (pytest's codes, then mypy's), or 0.
+The exit status is the first failing run's (pytest's codes, then mypy's), or 0. Last comes a summary: each
+run's status and the tests that failed, read from the JUnit XML each pytest run writes; CI keeps the end of
+the output, and a failure shown only in the first run's part was not in it.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ import sys
 import tempfile
 from pathlib import Path
 from typing import IO
+from xml.etree import ElementTree
 
 # pytest-xdist workers of the parallel part and of the unit tests' run.
 # Three workers for the parallel part were tried on 2026-11-27: it took 275.0 s (276.1 s on two), and
@@ -124,9 +127,41 @@ def interrupted(signum: int, frame: object) -> None:
     raise SystemExit(128 + signum)
 
 
+def failures(report: Path) -> list[str]:
+    """`CLASS::NAME: MESSAGE` of each test that failed or errored in the JUnit XML `report`, which pytest
+    wrote (nothing if it did not)."""
+    try:
+        root = ElementTree.parse(report).getroot()
+    except (OSError, ElementTree.ParseError):
+        return []
+    found = []
+    for case in root.iter("testcase"):
+        for bad in [*case.iter("failure"), *case.iter("error")]:
+            message = " ".join((bad.get("message") or "").split())[:300]
+            found.append(f"{case.get('classname')}::{case.get('name')}: {message}")
+    return found
+
+
+def summary(results: list[tuple[str, int, Path | None]]) -> None:
+    """Each run's (title, exit status, JUnit XML report or None) and the tests that failed in it."""
+    print("\n== summary ==", flush=True)
+    for title, code, report in results:
+        status = {0: "passed", NO_TESTS: "no tests"}.get(code, f"failed (exit {code})")
+        print(f"{title}: {status}")
+        for line in failures(report) if report is not None else []:
+            print(f"  FAILED {line}")
+    sys.stdout.flush()
+
+
 def main(argv: list[str]) -> int:
     for signum in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, interrupted)
+    with tempfile.TemporaryDirectory(prefix="tether-suite-") as reports:
+        return run(argv, Path(reports))
+
+
+def run(argv: list[str], reports: Path) -> int:
+    """The runs, their JUnit XML reports in `reports`."""
     typecheck = argv[:1] == ["--typecheck"]
     extra = argv[1:] if typecheck else argv
     extra = extra or ["tests"]
@@ -139,14 +174,18 @@ def main(argv: list[str]) -> int:
     env = {name: value for name, value in os.environ.items() if name != WRITE_NO_BYTECODE}
     env |= {"TETHER_TEST_PORT_BANDS": str(WORKERS + 1)}
     alone = env | {"TETHER_TEST_PORT_BAND": str(WORKERS)}
+    junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit")}
     with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
         realtime = subprocess.Popen(
-            pytest("-m", REALTIME, "-p", "no:cacheprovider", *extra), stdout=log, stderr=log, env=alone
+            pytest("-m", REALTIME, "-p", "no:cacheprovider", f"--junitxml={junit['realtime']}", *extra),
+            stdout=log,
+            stderr=log,
+            env=alone,
         )
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                on_workers("-m", STACKS, *extra),
+                on_workers("-m", STACKS, f"--junitxml={junit['parallel']}", *extra),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
@@ -164,7 +203,7 @@ def main(argv: list[str]) -> int:
         unit = mypy = None
         try:
             unit = subprocess.Popen(
-                on_workers("-m", UNIT, *extra),
+                on_workers("-m", UNIT, f"--junitxml={junit['unit']}", *extra),
                 stdout=unit_log,
                 stderr=unit_log,
                 start_new_session=True,
@@ -177,7 +216,9 @@ def main(argv: list[str]) -> int:
             print("\n== tests marked alone ==", flush=True)
             if typecheck:
                 mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
-            by_itself = subprocess.run(pytest("-m", ALONE, "-p", "no:cacheprovider", *extra), env=alone).returncode
+            by_itself = subprocess.run(
+                pytest("-m", ALONE, "-p", "no:cacheprovider", f"--junitxml={junit['alone']}", *extra), env=alone
+            ).returncode
             units = unit.wait()
             typed = mypy.wait() if mypy is not None else 0
         finally:
@@ -187,6 +228,15 @@ def main(argv: list[str]) -> int:
         if mypy is not None:
             shown("mypy", typecheck_log)
     runs = (parallel, realtime.returncode, by_itself, units)
+    results: list[tuple[str, int, Path | None]] = [
+        ("tests that start services", parallel, junit["parallel"]),
+        ("tests marked realtime", realtime.returncode, junit["realtime"]),
+        ("tests marked alone", by_itself, junit["alone"]),
+        ("tests marked unit", units, junit["unit"]),
+    ]
+    if mypy is not None:
+        results.append(("mypy", typed, None))
+    summary(results)
     failed = [code for code in runs if code not in (0, NO_TESTS)] + ([typed] if typed else [])
     return failed[0] if failed else (0 if 0 in runs else NO_TESTS)
 
