@@ -432,10 +432,16 @@ class IncidentStore:
             self._fail("cannot be opened", exc)
             return None
         self._db = db
+        if not self._pending:
+            self._usable()
+        return db
+
+    def _usable(self) -> None:
+        """The file is open and nothing waits in memory any more: no fault. Not before what waited is
+        written (`_flush`): a store that says it has no fault has what it kept in the file."""
         if self.fault:
             log.warning("incident store %s is usable again", self.path)
         self.fault = ""
-        return db
 
     def _read_newer(self, version: int) -> None:
         """A file of a newer version: its incidents (the columns this version knows) into memory, read
@@ -553,6 +559,7 @@ class IncidentStore:
             self._trim()
             return False
         if not self._pending:
+            self._usable()
             return True
         try:
             db.execute("BEGIN IMMEDIATE")
@@ -589,6 +596,7 @@ class IncidentStore:
         self._next_id = max(self._next_id, top + 1)
         self._pending.clear()
         self._keep.clear()
+        self._usable()
         return True
 
     def _trim(self) -> None:

@@ -231,6 +231,47 @@ def test_a_locked_file_is_a_fault_and_the_kept_incidents_are_written_once_it_is_
     again.close()
 
 
+def test_the_fault_stays_until_the_incidents_kept_in_memory_are_in_the_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A store listed without a fault has its incidents in the file: the fault goes once what waited in
+    memory is written, not when the file opens again (a test that read the file as soon as the fault
+    went found the kept incident missing)."""
+    path = tmp_path / "incidents.sqlite"
+    steady = Steady()
+    store = IncidentStore(path, monotonic=steady)
+    other = sqlite3.connect(path, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")
+    try:
+        store.add(IncidentKind.VETO, "while locked", x=0.0, y=0.1)
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    assert "locked" in store.fault
+    # What a listing says while the kept incident is written: the store's own (real) connection
+    # reports each statement it runs.
+    listed_while_writing: list[str] = []
+    connect = sqlite3.connect
+
+    def traced(*args: Any, **kwargs: Any) -> sqlite3.Connection:
+        db = connect(*args, **kwargs)
+
+        def statement(sql: str) -> None:
+            if sql.lstrip().upper().startswith("INSERT"):
+                listed_while_writing.append(store.query(IncidentQuery()).store)
+
+        db.set_trace_callback(statement)
+        return db
+
+    monkeypatch.setattr(sqlite3, "connect", traced)
+    steady.retry()
+    assert store.flush()
+    assert listed_while_writing, "the kept incident was not written"
+    assert all("locked" in fault for fault in listed_while_writing), listed_while_writing
+    assert store.query(IncidentQuery()).store == ""
+    store.close()
+
+
 def test_an_incident_numbered_while_the_file_was_unreadable_gets_a_free_number(tmp_path: Path) -> None:
     path = tmp_path / "incidents.sqlite"
     good = IncidentStore(path)
