@@ -432,13 +432,11 @@ class IncidentStore:
             self._fail("cannot be opened", exc)
             return None
         self._db = db
-        if not self._pending:
-            self._usable()
         return db
 
     def _usable(self) -> None:
-        """The file is open and nothing waits in memory any more: no fault. Not before what waited is
-        written (`_flush`): a store that says it has no fault has what it kept in the file."""
+        """The file is open and nothing waits in memory any more: no fault. Only `_flush` says so, once
+        what waited is written: a store that says it has no fault has what it kept in the file."""
         if self.fault:
             log.warning("incident store %s is usable again", self.path)
         self.fault = ""
