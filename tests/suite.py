@@ -227,7 +227,6 @@ def run(argv: list[str], reports: Path) -> int:
         shown("tests marked unit", unit_log)
         if mypy is not None:
             shown("mypy", typecheck_log)
-    runs = (parallel, realtime.returncode, by_itself, units)
     results: list[tuple[str, int, Path | None]] = [
         ("tests that start services", parallel, junit["parallel"]),
         ("tests marked realtime", realtime.returncode, junit["realtime"]),
@@ -237,6 +236,7 @@ def run(argv: list[str], reports: Path) -> int:
     if mypy is not None:
         results.append(("mypy", typed, None))
     summary(results)
+    runs = [code for _, code, report in results if report is not None]  # pytest's, in the order above
     failed = [code for code in runs if code not in (0, NO_TESTS)] + ([typed] if typed else [])
     return failed[0] if failed else (0 if 0 in runs else NO_TESTS)
 
