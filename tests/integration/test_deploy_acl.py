@@ -29,6 +29,7 @@ import zenoh
 from services.bundled import DEFAULT_POLICY
 from services.runtime import zenoh_config_file
 from tests.integration.conftest import LOADED_MACHINE_HEARTBEAT
+from tests.logs import print_tails
 from tests.sessions import LOADED_HEARTBEAT_MAX_AGE, free_port
 from tether import deployment
 
@@ -440,13 +441,6 @@ def clean_env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if k not in drop}
 
 
-def print_logs(directory: Path, lines: int = 40) -> None:
-    """The last lines of each service's log in `directory` (shown if the test fails)."""
-    for log in sorted(directory.glob("*.log")):
-        tail = "\n".join(log.read_text(errors="replace").splitlines()[-lines:])
-        print(f"----- {log.name} -----\n{tail}")
-
-
 @contextlib.contextmanager
 def background(args: list[str], log: Path) -> Iterator[subprocess.Popen[bytes]]:
     with open(log, "wb") as out:
@@ -526,7 +520,7 @@ def test_a_deployment_runs_a_plan_through_its_router_with_an_identity_per_servic
         sent = tether(*agent, "send", plan, "--wait", "--json", timeout=STACK_TIMEOUT)
         result = json.loads(sent.stdout)
         if result["status"] != "succeeded":
-            print_logs(tmp_path / "logs")
+            print_tails(tmp_path / "logs")
         assert (sent.returncode, result["status"]) == (0, "succeeded"), sent.stdout + sent.stderr
 
     down = tether(*operator, "status", "--check")

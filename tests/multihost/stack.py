@@ -35,6 +35,7 @@ from schemas.robot import Odometry
 from schemas.safety import SafetyStatus
 from schemas.world import Empty, GroundTruth
 from services.runtime import Node, NodeSettings
+from tests.logs import print_tails
 from tests.multihost.linkproxy import ProxyControl
 from tests.multihost.netns import ROUTER_ALT_IP, ROUTER_IP, ROUTER_PORT, Proc, Topology, sh
 from tests.sessions import free_port
@@ -295,9 +296,7 @@ class MultiHost:
 
     def print_logs(self, lines: int = 40) -> None:
         """Every log's tail: pytest shows them when a test failed."""
-        for log in sorted((self.workdir / "logs").rglob("*.log")):
-            text = "\n".join(log.read_text(errors="replace").splitlines()[-lines:])
-            print(f"----- {log.relative_to(self.workdir)} -----\n{text}")
+        print_tails(self.workdir / "logs", lines)
 
     def close(self) -> None:
         for robot in self.robots.values():
