@@ -53,4 +53,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     unit = root / UNIT
     for item in items:
         if item.path.is_relative_to(unit):
+            if item.get_closest_marker("alone") is not None:
+                # `make test` runs the tests marked alone without collecting tests/unit (tests/suite.py ROOTS).
+                raise pytest.UsageError(f"{item.nodeid}: a test under {UNIT} is never marked alone")
             item.add_marker(pytest.mark.unit)

@@ -77,6 +77,18 @@ STACKS = "not realtime and not unit and not alone"
 REALTIME = "realtime and not alone"
 UNIT = "unit and not realtime and not alone"
 ALONE = "alone"
+# Where each selection's tests are, when the suite runs them all (`python -m tests.suite` with no
+# paths): a pytest process imports every module it is given to collect it, about 8 s of CPU for all
+# of tests, of which tests/unit's modules take 5 (mcp, matplotlib, hypothesis, the ROS 2 typestores,
+# the worlds). No test under tests/unit is marked alone (tests/conftest.py refuses one), and none
+# outside it is marked unit; the realtime selection has tests in both.
+EVERYTHING = ["tests"]
+ROOTS = {
+    STACKS: ["tests", "--ignore=tests/unit"],
+    REALTIME: EVERYTHING,
+    UNIT: ["tests/unit"],
+    ALONE: ["tests", "--ignore=tests/unit"],
+}
 
 
 def pytest(*args: str) -> list[str]:
@@ -164,7 +176,11 @@ def run(argv: list[str], reports: Path) -> int:
     """The runs, their JUnit XML reports in `reports`."""
     typecheck = argv[:1] == ["--typecheck"]
     extra = argv[1:] if typecheck else argv
-    extra = extra or ["tests"]
+
+    def given(selection: str) -> list[str]:
+        """What pytest is told to collect for `selection`: what the command line gave, or its ROOTS."""
+        return extra or ROOTS[selection]
+
     # A band of ports (tests/sessions.py) for each worker, and one after theirs for the realtime runs.
     # pytest keeps each test module as it rewrote its asserts in __pycache__ (beside Python's own
     # bytecode, which compileall writes; pytest's is its own), unless bytecode is not to be written
@@ -177,7 +193,7 @@ def run(argv: list[str], reports: Path) -> int:
     junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit")}
     with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
         realtime = subprocess.Popen(
-            pytest("-m", REALTIME, "-p", "no:cacheprovider", f"--junitxml={junit['realtime']}", *extra),
+            pytest("-m", REALTIME, "-p", "no:cacheprovider", f"--junitxml={junit['realtime']}", *given(REALTIME)),
             stdout=log,
             stderr=log,
             env=alone,
@@ -185,7 +201,7 @@ def run(argv: list[str], reports: Path) -> int:
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                on_workers("-m", STACKS, f"--junitxml={junit['parallel']}", *extra),
+                on_workers("-m", STACKS, f"--junitxml={junit['parallel']}", *given(STACKS)),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
@@ -203,7 +219,7 @@ def run(argv: list[str], reports: Path) -> int:
         unit = mypy = None
         try:
             unit = subprocess.Popen(
-                on_workers("-m", UNIT, f"--junitxml={junit['unit']}", *extra),
+                on_workers("-m", UNIT, f"--junitxml={junit['unit']}", *given(UNIT)),
                 stdout=unit_log,
                 stderr=unit_log,
                 start_new_session=True,
@@ -217,7 +233,7 @@ def run(argv: list[str], reports: Path) -> int:
             if typecheck:
                 mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
             by_itself = subprocess.run(
-                pytest("-m", ALONE, "-p", "no:cacheprovider", f"--junitxml={junit['alone']}", *extra), env=alone
+                pytest("-m", ALONE, "-p", "no:cacheprovider", f"--junitxml={junit['alone']}", *given(ALONE)), env=alone
             ).returncode
             units = unit.wait()
             typed = mypy.wait() if mypy is not None else 0

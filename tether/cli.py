@@ -2,7 +2,8 @@
 
 A command imports what only it needs when it runs (the recordings' mcap and matplotlib, the
 deployment's cryptography, the world model's shapely, pinocchio), so `tether status` or `tether send`
-starts without them; `run` is tether.runservice's, which `tether run` (tether/__main__.py) reaches alone.
+starts without them; `run` is tether.runcommand's, whose work `tether run` (tether/__main__.py) does in
+tether.runservice alone.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ from tether.client import (
 )
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
 from tether.output import conclude, literal
-from tether.runservice import HELP, common, run
+from tether.runcommand import HELP, common, run
 from tether.supervisor import Supervisor, free_base_port
 
 if TYPE_CHECKING:

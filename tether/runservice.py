@@ -1,10 +1,12 @@
-"""`tether run SERVICE`, and the flags every command shares: a service process loads this and its service only.
+"""`tether run SERVICE`: a service process loads this, the runtime and its service, and nothing of the CLI.
 
 `python -m tether run ...` (how the Supervisor starts each service) and the `tether` script's
 `tether run ...` (how systemd units and containers do) come here through tether/__main__.py without
 importing tether.cli, whose other commands pull in pinocchio, shapely, cryptography, mcap and rich.
-A well-formed command line is read here without typer's parsing too: typer checks each value with
-pydantic, some 7 MB in every service process for four flags (`read_command_line`).
+A well-formed command line is read here without typer (`read_command_line`): typer and the click it
+brings cost a service process some 0.1 s of CPU to import, and typer 0.29 and later check every value
+with pydantic (some 7 MB more). Anything else (help, a bad flag) goes to the typer command
+(tether.runcommand), which answers it as the whole CLI does.
 """
 
 from __future__ import annotations
@@ -14,70 +16,37 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
-
-import typer
 
 from services.runtime import ALL_SERVICES, SWITCH_INTERVAL, ConfigError, NodeSettings
-from tether.completion import complete_service
 
-RobotOpt = Annotated[str | None, typer.Option("--robot", envvar="TETHER_ROBOT", help="Robot name in the keys.")]
-PortOpt = Annotated[
-    int | None, typer.Option("--base-port", envvar="TETHER_BASE_PORT", help="First of the services' loopback ports.")
-]
-ZenohOpt = Annotated[
-    Path | None, typer.Option("--zenoh-config", envvar="TETHER_ZENOH_CONFIG", help="A Zenoh config file.")
-]
 # The shared flags, each followed by its value: all that may stand before `run` for it to come here.
 VALUE_FLAGS = ("--robot", "--base-port", "--zenoh-config")
-HELP = "tether: LLM plans to safe robot actions over Zenoh."
+# `error:` in red, as typer's secho and the CLI's rich console show it on a terminal.
+RED = "\x1b[31m"
+PLAIN = "\x1b[0m"
+# A config or world file that cannot be read or is invalid, or an unknown service (the CLI's usage code).
+EXIT_USAGE = 2
 
 
 def error(message: str) -> None:
-    """`error: ...` on stderr, the word in red on a terminal (as tether.cli's rich console shows it)."""
-    typer.secho("error:", fg="red", err=True, nl=False)
-    typer.echo(f" {message}", err=True)
-
-
-def common(
-    ctx: typer.Context, robot: RobotOpt = None, base_port: PortOpt = None, zenoh_config: ZenohOpt = None
-) -> None:
-    """Flags every command shares, written once."""
-    try:
-        ctx.obj = NodeSettings.from_env(robot=robot, base_port=base_port, zenoh_config=zenoh_config)
-    except ValueError as exc:
-        error(str(exc))
-        raise typer.Exit(2) from None
-
-
-def run(
-    ctx: typer.Context,
-    service: Annotated[
-        str, typer.Argument(help=f"One of: {', '.join(ALL_SERVICES)}.", autocompletion=complete_service)
-    ],
-    config: Annotated[Path | None, typer.Option("--config", help="TOML file with a [SERVICE] table.")] = None,
-) -> None:
-    """Run one service in the foreground until SIGINT or SIGTERM.
-
-    Exit 0 when stopped by SIGINT or SIGTERM, 2 for an unknown service or a config or world file that
-    cannot be read or is invalid (the error names the file, the table and the value), 1 when the
-    service fails otherwise (its log says why).
-    """
-    run_service(ctx.obj, service, config)
+    """`error: ...` on stderr, the word in red on a terminal."""
+    word = f"{RED}error:{PLAIN}" if sys.stderr.isatty() else "error:"
+    print(f"{word} {message}", file=sys.stderr, flush=True)
 
 
 def run_service(settings: NodeSettings, service: str, config: Path | None) -> None:
-    """`run`'s work, once the command line is read (by typer or by `read_command_line`)."""
+    """`run`'s work, once the command line is read (by typer or by `read_command_line`); exits with
+    EXIT_USAGE for an unknown service or a config or world file that cannot be used."""
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
-        raise typer.Exit(2)
+        raise SystemExit(EXIT_USAGE)
     sys.setswitchinterval(SWITCH_INTERVAL)
     module = importlib.import_module(f"services.{service}.main")
     try:
         module.main(settings, config)
     except ConfigError as exc:
         error(str(exc))
-        raise typer.Exit(2) from None
+        raise SystemExit(EXIT_USAGE) from None
     except Exception as exc:
         # Only a service that loads a world raises this, and has imported its module (and shapely) by then.
         from services.worldmodel import WorldFileError
@@ -85,7 +54,7 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
         if not isinstance(exc, WorldFileError):
             raise
         error(str(exc))
-        raise typer.Exit(2) from None
+        raise SystemExit(EXIT_USAGE) from None
 
 
 def runs_a_service(argv: Sequence[str]) -> bool:
@@ -143,6 +112,8 @@ def app() -> None:
     """`tether run ...` as the `tether` script and `python -m tether` give it: see `read_command_line`."""
     line = read_command_line(sys.argv[1:])
     if line is None:
+        from tether.runcommand import typer_app
+
         typer_app()
         return
     shared, service, config = line
@@ -154,14 +125,6 @@ def app() -> None:
         )
     except ValueError as exc:
         error(str(exc))
-        sys.exit(2)
-    try:
-        run_service(settings, service, config)
-    except typer.Exit as exc:
-        sys.exit(exc.exit_code)
+        sys.exit(EXIT_USAGE)
+    run_service(settings, service, config)
     sys.exit(0)
-
-
-typer_app = typer.Typer(help=HELP, no_args_is_help=True)
-typer_app.callback()(common)
-typer_app.command()(run)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -61,21 +62,25 @@ def test_a_pure_module_does_not_load_zenoh(module: str) -> None:
 # Steps in one interpreter, each adding to what the ones before loaded, so each forbids a subset of
 # what the step before it did.
 HEAVY = ("pinocchio", "pybullet", "ompl", "cryptography", "matplotlib", "mcp")
-# pydantic: typer checks its parameters with it, some 7 MB a process; `tether run` reads its own line.
-LIGHT = (*HEAVY, "shapely", "numpy", "rich", "tether.cli", "pydantic")
+# typer (and its click) and pydantic, which typer 0.29 checks values with: `tether run` reads its own line.
+LIGHT = (*HEAVY, "shapely", "numpy", "rich", "tether.cli", "typer", "pydantic")
 LOAD_STEPS = {
     "module": [
         ("`tether run` with the parser and the planner", "services.parser.main, services.planner.main", LIGHT),
-        ("the resolver", "services.resolver.main", (*HEAVY, "mcap", "rosbags", "pydantic")),
+        ("the resolver", "services.resolver.main", (*HEAVY, "mcap", "rosbags", "typer", "pydantic")),
         ("tether.cli (status, send, ...)", "tether.cli", HEAVY),
     ],
     # The recorder keeps the world and policy files, by their paths only (services/bundled.py).
     "script": [
         ("`tether run` with the recorder", "services.recorder.main", LIGHT),
         # The sim's camera draws in its renderer process (services/sim/renderer.py), which alone loads Pillow.
-        ("the sim", "services.sim.main", ("pinocchio", "ompl", "mcp", "matplotlib", "PIL", "pydantic", "tether.cli")),
+        (
+            "the sim",
+            "services.sim.main",
+            ("pinocchio", "ompl", "mcp", "matplotlib", "PIL", "typer", "pydantic", "tether.cli"),
+        ),
         # Safety's arm model is pinocchio's; the planners (OMPL) are the executor's.
-        ("safety", "services.safety.main", ("ompl", "mcp", "matplotlib", "PIL", "pydantic", "tether.cli")),
+        ("safety", "services.safety.main", ("ompl", "mcp", "matplotlib", "PIL", "typer", "pydantic", "tether.cli")),
     ],
 }
 
@@ -164,3 +169,30 @@ def test_a_base_port_in_the_environment_that_is_no_number_is_left_to_typer(monke
     assert read_command_line(["run", "parser"]) is None
     monkeypatch.setenv("TETHER_BASE_PORT", "7500")
     assert read_command_line(["run", "parser"]) == ({}, "parser", None)
+
+
+@pytest.mark.parametrize(
+    ("argv", "code", "shown"),
+    [
+        # Read by tether.runservice: the error its own, in the CLI's words.
+        (["run", "no-such-service"], 2, "error: unknown service 'no-such-service'; services are sim, "),
+        # Left to typer (tether.runcommand): its help, and its usage errors.
+        (["run", "--help"], 0, "Run one service in the foreground until SIGINT or SIGTERM."),
+        (["--base-port", "abc", "run", "parser"], 2, "Invalid value"),
+        (["run", "parser", "--verbose"], 2, "No such option: --verbose"),
+    ],
+)
+def test_tether_run_answers_a_line_it_cannot_run_with_help_or_a_usage_error(
+    argv: list[str], code: int, shown: str, tmp_path: Path
+) -> None:
+    child = subprocess.run(
+        [sys.executable, "-m", "tether", *argv],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        env={name: value for name, value in os.environ.items() if not name.startswith("TETHER_")},
+    )
+    assert child.returncode == code, child.stderr
+    assert shown in " ".join((child.stdout + child.stderr).split()), child.stdout + child.stderr
