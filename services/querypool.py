@@ -54,6 +54,12 @@ class QueryPool:
             threading.Thread(target=self._work, name=f"{self.name}-{self._threads}", daemon=True).start()
         return True
 
+    @property
+    def busy(self) -> int:
+        """Tasks running now (a worker is busy until its task has returned, its reply long sent)."""
+        with self._lock:
+            return self._busy
+
     def load(self) -> str:
         """How full the pool is, for a "busy" reply."""
         with self._lock:

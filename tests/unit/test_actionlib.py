@@ -23,6 +23,7 @@ from services.actionlib import ActionClient, ActionServer, ClientGoal, GoalHandl
 from services.errors import CallError, GoalRejected
 from services.querypool import QueryPool
 from services.runtime import Node, NodeSettings
+from tests.procs import wait_until
 from tests.sessions import free_port
 from tether.client import PlanSender
 
@@ -85,6 +86,8 @@ class Rig:
     script: Script
     held: threading.Event = field(default_factory=threading.Event)
     release_worker: threading.Event = field(default_factory=threading.Event)
+    # The server's quick queries' pool (with `accept_waits`).
+    pool: QueryPool | None = None
 
     def hold_the_worker(self, callers: ThreadPoolExecutor) -> Future[PlanText]:
         """The server's only worker blocked (the pool has no backlog): a goal sent to a worker is answered busy."""
@@ -102,7 +105,7 @@ def serving(accept_waits: Callable[[NavigateToPoseGoal], bool] | None = None) ->
     with Node("sim", settings) as server_node, Node("test", settings) as client_node:
         rig = Rig(ActionClient(client_node, keys.ROBOT_NAVIGATE, cancel_grace=0.5), client_node, script)
         if accept_waits is not None:
-            server_node.queries = QueryPool("q:test", workers=1)
+            server_node.queries = rig.pool = QueryPool("q:test", workers=1)
 
             def hold(request: PlanText) -> PlanText:
                 rig.held.set()
@@ -283,6 +286,10 @@ def test_a_goal_that_preempts_or_whose_accept_waits_is_decided_on_a_worker(quick
     assert on_a_worker(quick.script.accepted_on[1])
     quick.script.release.set()
     assert second.result(WAIT).state is GoalState.SUCCEEDED
+    # The worker that accepted the second goal is free once its task has returned, which on a loaded
+    # machine may be after the goal itself ended (the pool has no backlog: a goal sent now is busy).
+    pool = quick.pool
+    assert pool is not None and wait_until(lambda: pool.busy == 0, WAIT), "the worker never came free"
     # Nothing running, but its `accept` waits: on a worker too.
     third = quick.client.send(NavigateToPoseGoal(pose=HERE))
     assert third.result(WAIT).state is GoalState.SUCCEEDED
