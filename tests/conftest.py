@@ -20,6 +20,12 @@ import pytest
 # tests/suite.py).
 UNIT = "tests/unit"
 
+# Where `make test`'s run of the tests marked realtime (and not alone) looks for them (tests/suite.py
+# ROOTS): the modules of tests/unit that have some, and the integration tests. A test marked so
+# anywhere else is refused here, not left out of that run.
+REALTIME_UNIT = ("tests/unit/test_planner.py", "tests/unit/test_runtime_serve.py")
+INTEGRATION = "tests/integration"
+
 # The slowest modules (wall seconds on this 2-core machine, 2026-11), longest first.
 LONGEST_FIRST = (
     "tests/integration/test_multihost.py",  # only in the run of the tests marked alone (tests/suite.py)
@@ -52,8 +58,18 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=key)  # stable: the rest keep their order
     unit = root / UNIT
     for item in items:
+        alone = item.get_closest_marker("alone") is not None
+        realtime = item.get_closest_marker("realtime") is not None and not alone
+        looked_at = item.path.relative_to(root).as_posix() in REALTIME_UNIT or item.path.is_relative_to(
+            root / INTEGRATION
+        )
+        if realtime and not looked_at:
+            raise pytest.UsageError(
+                f"{item.nodeid}: a test marked realtime lives in {INTEGRATION} or in a module of REALTIME_UNIT"
+                " (tests/conftest.py), where `make test` looks for them"
+            )
         if item.path.is_relative_to(unit):
-            if item.get_closest_marker("alone") is not None:
+            if alone:
                 # `make test` runs the tests marked alone without collecting tests/unit (tests/suite.py ROOTS).
                 raise pytest.UsageError(f"{item.nodeid}: a test under {UNIT} is never marked alone")
             item.add_marker(pytest.mark.unit)

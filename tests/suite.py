@@ -57,6 +57,8 @@ from pathlib import Path
 from typing import IO
 from xml.etree import ElementTree
 
+from tests.conftest import INTEGRATION, REALTIME_UNIT
+
 # pytest-xdist workers of the parallel part and of the unit tests' run.
 # Three workers for the parallel part were tried on 2026-11-27: it took 275.0 s (276.1 s on two), and
 # the realtime run beside it 126 s (98 s). Its two cores are busy, not waiting.
@@ -79,13 +81,13 @@ UNIT = "unit and not realtime and not alone"
 ALONE = "alone"
 # Where each selection's tests are, when the suite runs them all (`python -m tests.suite` with no
 # paths): a pytest process imports every module it is given to collect it, about 8 s of CPU for all
-# of tests, of which tests/unit's modules take 5 (mcp, matplotlib, hypothesis, the ROS 2 typestores,
-# the worlds). No test under tests/unit is marked alone (tests/conftest.py refuses one), and none
-# outside it is marked unit; the realtime selection has tests in both.
-EVERYTHING = ["tests"]
+# of tests (20 on a fresh clone, rewriting the asserts), of which tests/unit's modules take 5 (mcp,
+# matplotlib, hypothesis, the ROS 2 typestores, the worlds). No test under tests/unit is marked alone,
+# and the tests marked realtime but not alone are in tests/integration or REALTIME_UNIT's modules
+# (tests/conftest.py refuses others); none outside tests/unit is marked unit.
 ROOTS = {
     STACKS: ["tests", "--ignore=tests/unit"],
-    REALTIME: EVERYTHING,
+    REALTIME: [INTEGRATION, *REALTIME_UNIT],
     UNIT: ["tests/unit"],
     ALONE: ["tests", "--ignore=tests/unit"],
 }
