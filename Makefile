@@ -24,10 +24,11 @@ demo: $(STAMP)
 # without other stacks, with the unit tests (`-m unit`, all of tests/unit) on two workers at the lowest
 # priority and mypy (`make typecheck`) beside them on the CPU they leave. The bytecode is compiled once
 # up front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again (and the suite
-# lets pytest keep its assert-rewritten test modules, tests/suite.py).
+# lets pytest keep its assert-rewritten test modules, tests/suite.py). Given no paths, each run collects
+# only the directories its tests can be in (tests/suite.py ROOTS).
 test: $(STAMP) lint
 	$(BIN)/python -m compileall -q -j 0 schemas services tether tests bench
-	$(BIN)/python -m tests.suite --typecheck tests
+	$(BIN)/python -m tests.suite --typecheck
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
