@@ -49,9 +49,10 @@ class QueryPool:
             start = self._waiting > self._idle and self._threads < self.workers
             if start:
                 self._threads += 1
+            number = self._threads  # read under the lock: two submits at once give their threads two names
         self._tasks.put(task)
         if start:
-            threading.Thread(target=self._work, name=f"{self.name}-{self._threads}", daemon=True).start()
+            threading.Thread(target=self._work, name=f"{self.name}-{number}", daemon=True).start()
         return True
 
     @property
