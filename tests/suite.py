@@ -58,6 +58,7 @@ from typing import IO
 from xml.etree import ElementTree
 
 from tests.conftest import INTEGRATION, REALTIME_UNIT
+from tests.conftest import UNIT as UNIT_TESTS
 
 # pytest-xdist workers of the parallel part and of the unit tests' run.
 # Three workers for the parallel part were tried on 2026-11-27: it took 275.0 s (276.1 s on two), and
@@ -85,11 +86,12 @@ ALONE = "alone"
 # matplotlib, hypothesis, the ROS 2 typestores, the worlds). No test under tests/unit is marked alone,
 # and the tests marked realtime but not alone are in tests/integration or REALTIME_UNIT's modules
 # (tests/conftest.py refuses others); none outside tests/unit is marked unit.
+BUT_UNIT = ["tests", f"--ignore={UNIT_TESTS}"]
 ROOTS = {
-    STACKS: ["tests", "--ignore=tests/unit"],
+    STACKS: BUT_UNIT,
     REALTIME: [INTEGRATION, *REALTIME_UNIT],
-    UNIT: ["tests/unit"],
-    ALONE: ["tests", "--ignore=tests/unit"],
+    UNIT: [UNIT_TESTS],
+    ALONE: BUT_UNIT,
 }
 
 
