@@ -26,8 +26,9 @@ parallel part, on the two cores its stacks keep busy (85 % of the machine): that
 275 s without them. The whole suite in a working tree: 411 and 414 s, against about 490 s. A unit
 test that bounds wall time is marked realtime; one that bounds work measures CPU time
 (time.thread_time).
-With --typecheck, mypy runs beside them too, under SCHED_IDLE (about 17 s of CPU), its output shown
-after theirs.
+With --typecheck, mypy runs from the start, beside all of them, under SCHED_IDLE (about 17 s of CPU
+that nothing waits for: it takes only CPU the runs leave idle, of which the parallel part leaves about
+15 %), its output shown after theirs. Started with the unit tests, as before, it took that CPU from them.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
@@ -53,6 +54,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 from xml.etree import ElementTree
@@ -195,6 +197,29 @@ def run(argv: list[str], reports: Path) -> int:
     env |= {"TETHER_TEST_PORT_BANDS": str(WORKERS + 1)}
     alone = env | {"TETHER_TEST_PORT_BAND": str(WORKERS)}
     junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit")}
+    with tempfile.TemporaryFile("w+b") as typecheck_log:
+        # From the start, on the CPU the stacks leave idle: none of its work waits on the clock.
+        mypy = (
+            subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle) if typecheck else None
+        )
+        try:
+            results = runs(given, env, alone, junit)
+            typed = mypy.wait() if mypy is not None else 0
+        finally:
+            stopped(mypy)
+        if mypy is not None:
+            shown("mypy", typecheck_log)
+            results.append(("mypy", typed, None))
+    summary(results)
+    ran = [code for _, code, report in results if report is not None]  # pytest's, in the order above
+    failed = [code for code in ran if code not in (0, NO_TESTS)] + ([typed] if typed else [])
+    return failed[0] if failed else (0 if 0 in ran else NO_TESTS)
+
+
+def runs(
+    given: Callable[[str], list[str]], env: dict[str, str], alone: dict[str, str], junit: dict[str, Path]
+) -> list[tuple[str, int, Path | None]]:
+    """The four pytest runs, as the module's docstring says: each one's title, exit status and report."""
     with tempfile.NamedTemporaryFile("w+b", prefix="tether-realtime-", suffix=".log") as log:
         realtime = subprocess.Popen(
             pytest("-m", REALTIME, "-p", "no:cacheprovider", f"--junitxml={junit['realtime']}", *given(REALTIME)),
@@ -216,11 +241,8 @@ def run(argv: list[str], reports: Path) -> int:
         finally:
             stopped(realtime)
         shown("tests marked realtime", log)
-    with (
-        tempfile.NamedTemporaryFile("w+b", prefix="tether-unit-", suffix=".log") as unit_log,
-        tempfile.TemporaryFile("w+b") as typecheck_log,
-    ):
-        unit = mypy = None
+    with tempfile.NamedTemporaryFile("w+b", prefix="tether-unit-", suffix=".log") as unit_log:
+        unit = None
         try:
             unit = subprocess.Popen(
                 on_workers("-m", UNIT, f"--junitxml={junit['unit']}", *given(UNIT)),
@@ -234,31 +256,19 @@ def run(argv: list[str], reports: Path) -> int:
                 f"\ntests marked unit: running alongside at the lowest priority, output in {unit_log.name}", flush=True
             )
             print("\n== tests marked alone ==", flush=True)
-            if typecheck:
-                mypy = subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle)
             by_itself = subprocess.run(
                 pytest("-m", ALONE, "-p", "no:cacheprovider", f"--junitxml={junit['alone']}", *given(ALONE)), env=alone
             ).returncode
             units = unit.wait()
-            typed = mypy.wait() if mypy is not None else 0
         finally:
             stopped(unit, group=True)
-            stopped(mypy)
         shown("tests marked unit", unit_log)
-        if mypy is not None:
-            shown("mypy", typecheck_log)
-    results: list[tuple[str, int, Path | None]] = [
+    return [
         ("tests that start services", parallel, junit["parallel"]),
         ("tests marked realtime", realtime.returncode, junit["realtime"]),
         ("tests marked alone", by_itself, junit["alone"]),
         ("tests marked unit", units, junit["unit"]),
     ]
-    if mypy is not None:
-        results.append(("mypy", typed, None))
-    summary(results)
-    runs = [code for _, code, report in results if report is not None]  # pytest's, in the order above
-    failed = [code for code in runs if code not in (0, NO_TESTS)] + ([typed] if typed else [])
-    return failed[0] if failed else (0 if 0 in runs else NO_TESTS)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ class Simulation:
         world: World,
         *,
         physics_hz: float = 240.0,
+        solver_iterations: int = 50,
         camera: CameraConfig | None = None,
         visuals: bool = True,
         rest: bool = False,
@@ -44,7 +45,13 @@ class Simulation:
         then calls `wake` first."""
         self.world = world
         camera = camera or CameraConfig()
-        self.scene = SimWorld(world, physics_hz=physics_hz, visuals=visuals, detailed_arm=camera.detailed_arm)
+        self.scene = SimWorld(
+            world,
+            physics_hz=physics_hz,
+            solver_iterations=solver_iterations,
+            visuals=visuals,
+            detailed_arm=camera.detailed_arm,
+        )
         self.robot: RobotBody = self.scene.robot
         self.controllers = Controllers(self.scene)
         self.sensors = Sensors(self.scene, camera)

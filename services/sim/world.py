@@ -364,7 +364,13 @@ class SimWorld:
     """The household and the robot's body in one pybullet client, stepped by whoever owns it (one thread)."""
 
     def __init__(
-        self, world: World, *, physics_hz: float = 240.0, visuals: bool = True, detailed_arm: bool = False
+        self,
+        world: World,
+        *,
+        physics_hz: float = 240.0,
+        solver_iterations: int = 50,
+        visuals: bool = True,
+        detailed_arm: bool = False,
     ) -> None:
         self.spec = world
         # Without the robot's visual meshes (visuals=False) nothing here can be rendered: the sim's
@@ -383,6 +389,7 @@ class SimWorld:
         self.bullet.setAdditionalSearchPath(pybullet_data.getDataPath())
         self.bullet.setGravity(0.0, 0.0, GRAVITY)
         self.bullet.setTimeStep(self.dt)
+        self.bullet.setPhysicsEngineParameter(numSolverIterations=solver_iterations)
         self.floor: int = self.bullet.loadURDF("plane.urdf")
         self.wall_bodies = {w.id: self._add_wall(w) for w in world.walls}
         self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}

@@ -15,6 +15,7 @@ import pytest
 from schemas import keys
 from schemas.robot import Odometry
 from services.runtime import ALL_SERVICES, SERVICES, Node, NodeSettings
+from tests.fastsim import FAST_SIM
 from tests.sessions import LOADED_HEARTBEAT_MAX_AGE, LOADED_HEARTBEAT_TIMEOUT, free_ports
 from tether.supervisor import Supervisor
 
@@ -164,10 +165,10 @@ def dump_logs(supervisor: Supervisor, services: tuple[str, ...]) -> None:
 
 # For tests that judge where things end up, not how or when: the sim up to twenty times faster than
 # real time (the most `[sim] realtime_factor` allows; as fast as the machine lets it), its physics at
-# 120 Hz (half the default: half the CPU per sim second). Profiled (py-spy) on the tours: pybullet's
-# step was about two thirds of the sim's CPU, so 120 Hz at 20x costs what 240 Hz at 10x did.
+# 120 Hz (half the default: half the CPU per sim second) with fewer solver passes (tests/fastsim.py).
+# Profiled (py-spy) on the tours: pybullet's step was about two thirds of the sim's CPU, so 120 Hz at
+# 20x costs what 240 Hz at 10x did.
 FAST = 20.0
-FAST_SIM = "physics_hz = 120.0\n"
 
 
 @pytest.fixture

@@ -33,7 +33,8 @@ from schemas.planner import AskRequest, AskStatus, AttemptOutcome
 from schemas.world import Empty, GroundTruth
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST_SIM, Stack, run_tether, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, run_tether, start_stack, stop_stack, tether_cli
 from tests.sessions import free_port
 from tests.watch import Watch
 from tether.client import reset_estop

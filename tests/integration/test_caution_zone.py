@@ -21,7 +21,8 @@ from schemas.world import MoveEntity
 from services.runtime import SERVICES
 from services.safety.policyfile import IncidentPolicy
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.agentapi import AgentAPI
 from tether.client import PlanSender

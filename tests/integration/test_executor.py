@@ -21,7 +21,8 @@ from schemas.world import Empty, GroundTruth, Moved, MoveEntity
 from services.errors import GoalRejected
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 

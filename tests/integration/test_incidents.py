@@ -26,7 +26,8 @@ from schemas.incidents import (
 )
 from schemas.safety import Decision, EstopSource
 from services.safety.operator import read_token
-from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.procs import wait_until
 from tests.watch import Watch
 from tether.client import PlanSender, reset_estop, trigger_estop

@@ -27,7 +27,8 @@ from services.footprint import footprint
 from services.runtime import SERVICES
 from services.safety.operator import read_token
 from services.worldmodel import WorldModel, load_world
-from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 

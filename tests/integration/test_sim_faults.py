@@ -18,7 +18,8 @@ from schemas.executor import ExecutePlanGoal, ExecutePlanResult, FailureKind, Pl
 from schemas.incidents import IncidentKind, IncidentReport
 from schemas.world import Empty, FaultInjected, FaultKind, GroundTruth, InjectFault, PerceivedObjects
 from services.runtime import SERVICES
-from tests.integration.conftest import FAST_SIM, Stack, start_stack, stop_stack, tether_cli
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
 from tests.watch import Watch
 from tether.client import PlanSender
 

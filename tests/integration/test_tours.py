@@ -17,7 +17,8 @@ from schemas import keys
 from schemas.executor import PlanStatus
 from schemas.world import WorldObject
 from services.footprint import footprint
-from tests.integration.conftest import FAST, FAST_SIM, Stack, start_stack, stop_stack
+from tests.fastsim import FAST_SIM
+from tests.integration.conftest import FAST, Stack, start_stack, stop_stack
 from tests.integration.test_executor import GRASPABLE, ROBOT, WITHOUT_RECORDER, WORLD, chain, execute, plan, truth
 from tests.watch import Watch
 

@@ -23,6 +23,7 @@ from services.resolver.resolver import Resolver
 from services.sim.simulation import Simulation
 from services.sim.world import Motion
 from services.worldmodel import WorldModel, load_world
+from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
 
 
 class SimRobot:
@@ -86,7 +87,8 @@ def manipulator_for(robot: SimRobot, planners: tuple[ArmPlanner, BasePlanner]) -
 
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
-    simulation = Simulation(load_world(), physics_hz=120.0)  # as the integration stacks run it
+    # As the integration stacks run it.
+    simulation = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS)
     yield simulation
     simulation.close()
 
@@ -190,7 +192,8 @@ LATE_GOALS = [HELD_IN_THE_AIR, HELD_IN_THE_AIR[:7]]
 def test_a_cup_put_down_with_goals_coming_late_stays_on_the_table(
     planners: tuple[ArmPlanner, BasePlanner], delays: list[float]
 ) -> None:
-    sim = Simulation(load_world(), physics_hz=120.0, rest=True)  # as the integration stacks run it
+    # As the integration stacks run it.
+    sim = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, rest=True)
     try:
         world = WorldModel(sim.world)
         manipulator = manipulator_for(LateSimRobot(sim, delays), planners)

@@ -36,6 +36,7 @@ from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME
 from services.sim.simulation import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
+from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
 # household.yaml is to adopt these as home_joints; until then the tests put them in.
@@ -57,7 +58,7 @@ def sim(world: World) -> Iterator[Simulation]:
     # Physics at 120 Hz, as the integration stacks run it (FAST_SIM), and no visual meshes (nothing
     # here renders): a third of the time. The default 240 Hz is the robot contract's and the
     # wall-clock tests'.
-    simulation = Simulation(world, physics_hz=120.0, visuals=False)
+    simulation = Simulation(world, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False)
     yield simulation
     simulation.close()
 
@@ -119,6 +120,19 @@ def test_config_defaults_and_unknown_fields_are_errors(tmp_path: Path) -> None:
     bad.write_text("[sim]\nrealtime_factor = 3\nphysic_hz = 100\n")
     with pytest.raises(ConfigError, match="physic_hz"):
         load_config(SimConfig, bad, "sim")
+    bad.write_text("[sim]\nsolver_iterations = 0\n")
+    with pytest.raises(ConfigError, match="solver_iterations"):
+        load_config(SimConfig, bad, "sim")
+
+
+def test_the_solver_makes_the_passes_configured(sim: Simulation) -> None:
+    default = Simulation(load_world("household"), physics_hz=FAST_PHYSICS_HZ, visuals=False)
+    try:
+        assert default.scene.bullet.getPhysicsEngineParameters()["numSolverIterations"] == 50
+        assert SimConfig().solver_iterations == 50
+    finally:
+        default.close()
+    assert sim.scene.bullet.getPhysicsEngineParameters()["numSolverIterations"] == FAST_SOLVER_ITERATIONS
 
 
 def test_base_drives_to_the_kitchen_counter_approach(sim: Simulation, world: World) -> None:
