@@ -209,17 +209,29 @@ def test_plans_around_a_board_between_start_and_goal(planner: ArmPlanner) -> Non
     assert len(again) == len(path) and all(np.array_equal(a, b) for a, b in zip(again, path, strict=True))
 
 
+# Searches of a millisecond of wall time, at most, until one gets the CPU long enough to try a configuration.
+SEARCHES = 50
+
+
 def test_a_path_not_found_in_time_is_refused_naming_what_blocks() -> None:
-    # A millisecond: RRTConnect gets no further than its first few configurations.
+    # A millisecond: RRTConnect gets no further than its first few configurations. `make test` runs
+    # the unit tests at the lowest priority (tests/suite.py), where the millisecond can pass with the
+    # process off the CPU and nothing tried (CI saw it once): such a refusal names the direct motion's
+    # contact only, and the search is run again.
     scene, left, right = board_scene(ArmPlanner(WORLD, ArmPlannerConfig(planning_time=0.001)))
-    with pytest.raises(PlanningFailed) as failed:
-        scene.plan(left, right, what="moving the hand across")
-    message = str(failed.value)
-    assert message.startswith("moving the hand across: no collision-free path found in 0.001 s: ")
-    assert re.search(r"the direct motion is blocked where panda_\w+ touches board", message), message
+    messages = []
+    for _ in range(SEARCHES):
+        with pytest.raises(PlanningFailed) as failed:
+            scene.plan(left, right, what="moving the hand across")
+        message = str(failed.value)
+        assert message.startswith("moving the hand across: no collision-free path found in 0.001 s: ")
+        assert re.search(r"the direct motion is blocked where panda_\w+ touches board", message), message
+        messages.append(message)
+        if "configurations it tried" in message:
+            break
     assert re.search(
         r"configurations it tried and rejected, the commonest contacts were panda_\w+ touches board \(\d+%\)", message
-    ), message
+    ), messages
 
 
 def test_ik_whose_solutions_all_collide_names_what_they_collide_with(planner: ArmPlanner, counter: ArmScene) -> None:
