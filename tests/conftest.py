@@ -1,6 +1,7 @@
 """Test order for `make test`'s parallel runs (pytest-xdist, `--dist loadscope`), and the `unit` marker.
 
-Every test under tests/unit is marked `unit`, for tests/suite.py to select.
+Every test under tests/unit is marked `unit`, and those of IDLE_UNIT's modules `idle` too, for
+tests/suite.py to select.
 
 Each worker takes whole modules as it frees up. pytest-xdist's loadscope (3.5 and later) hands them
 out by how many tests they hold, most first, and this order decides only among modules of equal
@@ -25,6 +26,26 @@ UNIT = "tests/unit"
 # anywhere else is refused here, not left out of that run.
 REALTIME_UNIT = ("tests/unit/test_planner.py", "tests/unit/test_runtime_serve.py")
 INTEGRATION = "tests/integration"
+
+# Modules of tests/unit whose tests only compute: no wall-clock bound or deadline (a bound on work is
+# on CPU time, time.thread_time), no planner's time limit, no service, thread or clock to wait on.
+# Their tests are marked `idle` too: `make test` runs them from the start under SCHED_IDLE, on the CPU
+# the stacks leave (tests/suite.py), however long they wait for it. A module that starts to wait on
+# the clock leaves this list.
+IDLE_UNIT = (
+    "tests/unit/test_parser_properties.py",
+    "tests/unit/test_parser_text.py",
+    "tests/unit/test_parser_shapes.py",
+    "tests/unit/test_parser_corpus.py",
+    "tests/unit/test_parser.py",
+    "tests/unit/test_linkaudit.py",
+    "tests/unit/test_shared_filter.py",
+    "tests/unit/test_timeline.py",
+    "tests/unit/test_tool_schemas.py",
+    "tests/unit/test_ros2_wire.py",
+    "tests/unit/test_robot_keepout.py",
+    "tests/unit/test_deployment.py",
+)
 
 # The slowest modules (wall seconds on this 2-core machine, 2026-11), longest first.
 LONGEST_FIRST = (
@@ -73,3 +94,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                 # `make test` runs the tests marked alone without collecting tests/unit (tests/suite.py ROOTS).
                 raise pytest.UsageError(f"{item.nodeid}: a test under {UNIT} is never marked alone")
             item.add_marker(pytest.mark.unit)
+            if item.path.relative_to(root).as_posix() in IDLE_UNIT:
+                item.add_marker(pytest.mark.idle)

@@ -26,9 +26,16 @@ parallel part, on the two cores its stacks keep busy (85 % of the machine): that
 275 s without them. The whole suite in a working tree: 411 and 414 s, against about 490 s. A unit
 test that bounds wall time is marked realtime; one that bounds work measures CPU time
 (time.thread_time).
-With --typecheck, mypy runs from the start, beside all of them, under SCHED_IDLE (about 17 s of CPU
-that nothing waits for: it takes only CPU the runs leave idle, of which the parallel part leaves about
-15 %), its output shown after theirs. Started with the unit tests, as before, it took that CPU from them.
+From the start, beside all of these, the tests marked `idle` (the modules of tests/unit that only
+compute, tests/conftest.py IDLE_UNIT: the parser's properties and corpora, the link audit, ...; about
+45 s of CPU) run in one pytest process under SCHED_IDLE: only on CPU nothing else wants, of which
+the parallel part leaves plenty (vmstat, 2026-11-28: 10.6 % of the machine idle on average with these
+tests beside it, none for a minute at its start, up to half near its end). Measured with the parser's
+modules, the link audit and the incident store (44 s of CPU; the store waits on the clock in one test
+and stays in the unit tests' run): they ran in 82 s beside the parallel part, which took 283 s (272
+to 294 s without them); in the unit tests' run, their CPU had made that run outlast the tests marked
+alone by 30 to 50 s. With --typecheck, mypy runs from
+the start too, under SCHED_IDLE (about 17 s of CPU), its output shown after theirs.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the
@@ -59,7 +66,7 @@ from pathlib import Path
 from typing import IO
 from xml.etree import ElementTree
 
-from tests.conftest import INTEGRATION, REALTIME_UNIT
+from tests.conftest import IDLE_UNIT, INTEGRATION, REALTIME_UNIT
 from tests.conftest import UNIT as UNIT_TESTS
 
 # pytest-xdist workers of the parallel part and of the unit tests' run.
@@ -76,11 +83,12 @@ NO_TESTS = 5
 WRITE_NO_BYTECODE = "PYTHONDONTWRITEBYTECODE"
 # `make typecheck`'s check (its settings in pyproject.toml).
 MYPY = [sys.executable, "-m", "mypy"]
-# The four selections, each test in one (the markers are in pyproject.toml; tests/conftest.py marks
-# tests/unit `unit`).
+# The five selections, each test in one (the markers are in pyproject.toml; tests/conftest.py marks
+# tests/unit `unit`, and its modules that only compute `idle` too).
 STACKS = "not realtime and not unit and not alone"
 REALTIME = "realtime and not alone"
-UNIT = "unit and not realtime and not alone"
+IDLE = "idle and not realtime"
+UNIT = "unit and not realtime and not alone and not idle"
 ALONE = "alone"
 # Where each selection's tests are, when the suite runs them all (`python -m tests.suite` with no
 # paths): a pytest process imports every module it is given to collect it, about 8 s of CPU for all
@@ -92,6 +100,7 @@ BUT_UNIT = ["tests", f"--ignore={UNIT_TESTS}"]
 ROOTS = {
     STACKS: BUT_UNIT,
     REALTIME: [INTEGRATION, *REALTIME_UNIT],
+    IDLE: list(IDLE_UNIT),
     UNIT: [UNIT_TESTS],
     ALONE: BUT_UNIT,
 }
@@ -196,17 +205,33 @@ def run(argv: list[str], reports: Path) -> int:
     env = {name: value for name, value in os.environ.items() if name != WRITE_NO_BYTECODE}
     env |= {"TETHER_TEST_PORT_BANDS": str(WORKERS + 1)}
     alone = env | {"TETHER_TEST_PORT_BAND": str(WORKERS)}
-    junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit")}
-    with tempfile.TemporaryFile("w+b") as typecheck_log:
-        # From the start, on the CPU the stacks leave idle: none of its work waits on the clock.
+    junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit", "idle")}
+    with (
+        tempfile.NamedTemporaryFile("w+b", prefix="tether-idle-", suffix=".log") as idle_log,
+        tempfile.TemporaryFile("w+b") as typecheck_log,
+    ):
+        # From the start, on the CPU the stacks leave idle: none of their work waits on the clock.
+        computing = subprocess.Popen(
+            pytest("-m", IDLE, "-p", "no:cacheprovider", f"--junitxml={junit['idle']}", *given(IDLE)),
+            stdout=idle_log,
+            stderr=idle_log,
+            preexec_fn=idle,
+            env=env,
+        )
+        print(f"tests marked idle: running alongside on idle CPU, output in {idle_log.name}", flush=True)
         mypy = (
             subprocess.Popen(MYPY, stdout=typecheck_log, stderr=typecheck_log, preexec_fn=idle) if typecheck else None
         )
         try:
             results = runs(given, env, alone, junit)
+            if computing.poll() is None:
+                print("waiting for the tests marked idle ...", flush=True)
+            results.append(("tests marked idle", computing.wait(), junit["idle"]))
             typed = mypy.wait() if mypy is not None else 0
         finally:
+            stopped(computing)
             stopped(mypy)
+        shown("tests marked idle", idle_log)
         if mypy is not None:
             shown("mypy", typecheck_log)
             results.append(("mypy", typed, None))

@@ -40,8 +40,9 @@ PROPERTIES = settings(
     max_examples=200,
     suppress_health_check=[HealthCheck.too_slow],
 )
-# A true hang never returns to Hypothesis's deadline check; pytest-timeout ends it instead.
-pytestmark = pytest.mark.timeout(120)
+# A true hang never returns to Hypothesis's deadline check; pytest-timeout ends it instead, after
+# pyproject.toml's 300 s: `make test` runs these on idle CPU only (tests/conftest.py IDLE_UNIT), and
+# beside the busiest stacks a test of 13 s of CPU can wait minutes for it.
 
 
 # What every outcome must satisfy
@@ -607,10 +608,15 @@ for fmt in FORMATS:
 """
 
 
+# A child that has not answered in this long (wall seconds) hangs: it runs on idle CPU only, as its
+# test does (tests/conftest.py IDLE_UNIT), and needs about 3 s of it.
+HANG = 240.0
+
+
 @pytest.mark.parametrize("name", DEEP)
 def test_deep_nesting_is_refused_without_crashing_the_process(name: str) -> None:
     child = subprocess.run(
-        [sys.executable, "-c", DEEP_CHILD, name], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False
+        [sys.executable, "-c", DEEP_CHILD, name], cwd=ROOT, capture_output=True, text=True, timeout=HANG, check=False
     )
     lines = child.stdout.splitlines()
     if child.returncode != 0:
