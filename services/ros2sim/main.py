@@ -28,14 +28,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
     world = load_world(sim_config.world)
     stop = stop_event()
     # Its camera renders in a process of its own (StandIn.renderer): no visual meshes here.
-    sim = Simulation(
-        world,
-        physics_hz=sim_config.physics_hz,
-        solver_iterations=sim_config.solver_iterations,
-        camera=sim_config.camera,
-        visuals=False,
-        rest=True,
-    )
+    sim = Simulation.served(world, sim_config)
     try:
         with (
             Node("ros2sim", settings) as node,

@@ -28,14 +28,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         raise ConfigError(f"[sim] robot_key_file: {exc}") from None
     stop = stop_event()
     # Its camera renders in a process of its own (SimNode.renderer): no visual meshes here.
-    sim = Simulation(
-        world,
-        physics_hz=config.physics_hz,
-        solver_iterations=config.solver_iterations,
-        camera=config.camera,
-        visuals=False,
-        rest=True,
-    )
+    sim = Simulation.served(world, config)
     release_free_memory()  # what loading the world into pybullet freed (services/heap.py)
     try:
         with Node("sim", settings) as node:

@@ -6,7 +6,7 @@ from typing import TypeVar
 
 from schemas.actions import GoalState
 from schemas.world import World
-from services.sim.config import CameraConfig
+from services.sim.config import CameraConfig, SimConfig
 from services.sim.controllers import Controllers
 from services.sim.faults import Faults
 from services.sim.sensors import Sensors
@@ -60,6 +60,19 @@ class Simulation:
         self.rest = rest
         self.resting = False  # physics not stepped: see step
         self._still_since: float | None = None
+
+    @classmethod
+    def served(cls, world: World, config: SimConfig) -> Simulation:
+        """The simulation a service runs (the sim, the ROS 2 stand-in) as `[sim]` configures it: without
+        visual meshes, its camera rendering in a process of its own; a world at rest left unstepped."""
+        return cls(
+            world,
+            physics_hz=config.physics_hz,
+            solver_iterations=config.solver_iterations,
+            camera=config.camera,
+            visuals=False,
+            rest=True,
+        )
 
     @property
     def sim_time(self) -> float:
