@@ -165,7 +165,7 @@ def dump_logs(supervisor: Supervisor, services: tuple[str, ...]) -> None:
 
 # For tests that judge where things end up, not how or when: the sim up to twenty times faster than
 # real time (the most `[sim] realtime_factor` allows; as fast as the machine lets it), its physics at
-# 120 Hz (half the default: half the CPU per sim second) with fewer solver passes (tests/fastsim.py).
+# 120 Hz (half the default: half the CPU per sim second; tests/fastsim.py).
 # Profiled (py-spy) on the tours: pybullet's step was about two thirds of the sim's CPU, so 120 Hz at
 # 20x costs what 240 Hz at 10x did.
 FAST = 20.0
