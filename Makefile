@@ -23,10 +23,10 @@ demo: $(STAMP)
 # priority; then the tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) one at a time,
 # without other stacks, with the unit tests (`-m unit`, all of tests/unit) on two workers at the lowest
 # priority; from the start, on idle CPU, the unit tests that only compute (`-m idle`) and mypy
-# (`make typecheck`). The bytecode is compiled once
-# up front: with PYTHONDONTWRITEBYTECODE set, every service process would compile again (and the suite
-# lets pytest keep its assert-rewritten test modules, tests/suite.py). Given no paths, each run collects
-# only the directories its tests can be in (tests/suite.py ROOTS).
+# (`make typecheck`). The bytecode is compiled once up front: with PYTHONDONTWRITEBYTECODE set, every
+# service process would compile again (and the suite lets pytest keep its assert-rewritten test
+# modules, tests/suite.py). Given no paths, each run collects only the directories its tests can be in
+# (tests/suite.py ROOTS).
 test: $(STAMP) lint
 	$(BIN)/python -m compileall -q -j 0 schemas services tether tests bench
 	$(BIN)/python -m tests.suite --typecheck

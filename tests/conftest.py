@@ -29,8 +29,9 @@ INTEGRATION = "tests/integration"
 
 # Modules of tests/unit whose tests only compute: no wall-clock bound or deadline (a bound on work is
 # on CPU time, time.thread_time), no planner's time limit, no service, thread or clock to wait on.
-# Their tests are marked `idle` too: `make test` runs them from the start under SCHED_IDLE, on the CPU
-# the stacks leave (tests/suite.py), however long they wait for it. A module that starts to wait on
+# Their tests are marked `idle` too: `make test` runs them from the start in a scheduling group of the
+# lowest weight, under SCHED_IDLE in it, on the CPU the stacks leave (tests/suite.py), however long
+# they wait for it. A module that starts to wait on
 # the clock leaves this list.
 IDLE_UNIT = (
     "tests/unit/test_parser_properties.py",

@@ -9,6 +9,5 @@ contract's and the wall-clock tests' sims run the defaults."""
 from __future__ import annotations
 
 FAST_PHYSICS_HZ = 120.0
-FAST_SOLVER_ITERATIONS = 50
-# The same as a `[sim]` table's lines, for a stack's config file.
-FAST_SIM = f"physics_hz = {FAST_PHYSICS_HZ}\nsolver_iterations = {FAST_SOLVER_ITERATIONS}\n"
+# The same as a `[sim]` table's line, for a stack's config file.
+FAST_SIM = f"physics_hz = {FAST_PHYSICS_HZ}\n"

@@ -27,20 +27,20 @@ parallel part, on the two cores its stacks keep busy (85 % of the machine): that
 test that bounds wall time is marked realtime; one that bounds work measures CPU time
 (time.thread_time).
 From the start, beside all of these, the tests marked `idle` (the modules of tests/unit that only
-compute, tests/conftest.py IDLE_UNIT: the parser's properties and corpora, the link audit, ...; about
-45 s of CPU) run in one pytest process, in a scheduling group of its own at the lowest weight and
-under SCHED_IDLE in it: only on CPU nothing else wants, of which
-the parallel part leaves plenty (vmstat, 2026-11-28: 10.6 % of the machine idle on average with these
-tests beside it, none for a minute at its start, up to half near its end). Measured with the parser's
-modules, the link audit and the incident store (44 s of CPU; the store waits on the clock in one test
-and stays in the unit tests' run): they ran in 82 s beside the parallel part, which took 283 s (272
-to 294 s without them); in the unit tests' run, their CPU had made that run outlast the tests marked
-alone by 30 to 50 s (a fresh clone's CI run then: the tests marked idle done after 176 s, the unit
-tests after 126 s, before the tests marked alone, 138 s). That run and the next had them (and mypy)
-under SCHED_IDLE in the suite's own group: idle only within it, and when pytest waited the group's
-share, as much as a service's, went to them. The parallel part took 330 and 341 s (305 before), and a
-realtime test's goal was once aborted. With --typecheck, mypy runs from the start too, in a group of
-its own like them (about 17 s of CPU), its output shown after theirs.
+compute, tests/conftest.py IDLE_UNIT: the parser's properties and corpora, the link audit, ...;
+about 45 s of CPU) run in one pytest process, in a scheduling group of its own at the lowest weight
+and under SCHED_IDLE in it: only on CPU nothing else wants, of which the parallel part leaves plenty
+(vmstat, 2026-11-28: 10.6 % of the machine idle on average with these tests beside it, none for a
+minute at its start, up to half near its end). Measured with the parser's modules, the link audit
+and the incident store (44 s of CPU; the store waits on the clock in one test and stays in the unit
+tests' run): they ran in 82 s beside the parallel part, which took 283 s (272 to 294 s without
+them); in the unit tests' run, their CPU had made that run outlast the tests marked alone by 30 to
+50 s (a fresh clone's CI run then: the tests marked idle done after 176 s, the unit tests after 126
+s, before the tests marked alone, 138 s). That run and the next had them (and mypy) under SCHED_IDLE
+in the suite's own group: idle only within it, and when pytest waited the group's share, as much as
+a service's, went to them. The parallel part took 330 and 341 s (305 before), and a realtime test's
+goal was once aborted. With --typecheck, mypy runs from the start too, in a group of its own like
+them (about 17 s of CPU), its output shown after theirs.
 
 Most wall-clock tests mostly wait (a real-time sim, an outage, a watchdog); the rest mostly compute.
 Run side by side, the waiting fills the computing's idle time, and the scheduler hands the CPU to the

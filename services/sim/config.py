@@ -55,7 +55,7 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     physics_hz: Annotated[float, Meta(ge=60.0, le=2000.0)] = 240.0
     # The most passes Bullet's constraint solver makes over the joints' motors and the contacts each
     # step (pybullet's default, 50); it stops sooner once they agree. Fewer cost less CPU and hold the
-    # motors and contacts a little less stiffly (the tests' fast stacks use 20).
+    # motors and contacts a little less stiffly (tests/fastsim.py: why the tests keep 50).
     solver_iterations: Annotated[int, Meta(ge=5, le=500)] = 50
     heartbeat_timeout: WallSeconds = 0.2
     # A heartbeat counts for heartbeat_timeout from its arrival, but never once its stamp (safety's

@@ -21,7 +21,7 @@ from services.sim.config import CameraConfig, SimConfig
 from services.sim.simulation import Simulation
 from services.sim.world import Drop
 from services.worldmodel import WorldModel, load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 
 WORLD = load_world("household")
 GRASP_TOLERANCE = 0.015
@@ -31,7 +31,7 @@ EXACT = CameraConfig(noise=0.0)
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
     # Physics at 120 Hz, as the integration stacks run it: the drives to each top take half the steps.
-    simulation = Simulation(WORLD, camera=EXACT, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS)
+    simulation = Simulation(WORLD, camera=EXACT, physics_hz=FAST_PHYSICS_HZ)
     yield simulation
     simulation.close()
 
@@ -223,9 +223,7 @@ def test_the_camera_draws_the_arms_hulls_unless_the_config_asks_for_its_meshes(t
 
     def drawn(camera: CameraConfig) -> set[Path]:
         """The directories of the meshes the robot is drawn with."""
-        simulation = Simulation(
-            WORLD, camera=camera, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS
-        )
+        simulation = Simulation(WORLD, camera=camera, physics_hz=FAST_PHYSICS_HZ)
         try:
             shapes = simulation.scene.bullet.getVisualShapeData(simulation.robot.id)
             return {Path(shape[4].decode()).parent for shape in shapes if shape[4]}

@@ -23,7 +23,7 @@ from services.resolver.resolver import Resolver
 from services.sim.simulation import Simulation
 from services.sim.world import Motion
 from services.worldmodel import WorldModel, load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 
 
 class SimRobot:
@@ -88,7 +88,7 @@ def manipulator_for(robot: SimRobot, planners: tuple[ArmPlanner, BasePlanner]) -
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
     # As the integration stacks run it.
-    simulation = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS)
+    simulation = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ)
     yield simulation
     simulation.close()
 
@@ -193,7 +193,7 @@ def test_a_cup_put_down_with_goals_coming_late_stays_on_the_table(
     planners: tuple[ArmPlanner, BasePlanner], delays: list[float]
 ) -> None:
     # As the integration stacks run it.
-    sim = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, rest=True)
+    sim = Simulation(load_world(), physics_hz=FAST_PHYSICS_HZ, rest=True)
     try:
         world = WorldModel(sim.world)
         manipulator = manipulator_for(LateSimRobot(sim, delays), planners)

@@ -36,7 +36,7 @@ from services.sim.config import SimConfig
 from services.sim.controllers import STALL_TIME
 from services.sim.simulation import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 
 # A stowed arm that carries the hand (and what it holds) high above the base, clear of counters.
 # household.yaml is to adopt these as home_joints; until then the tests put them in.
@@ -58,7 +58,7 @@ def sim(world: World) -> Iterator[Simulation]:
     # Physics at 120 Hz, as the integration stacks run it (FAST_SIM), and no visual meshes (nothing
     # here renders): a third of the time. The default 240 Hz is the robot contract's and the
     # wall-clock tests'.
-    simulation = Simulation(world, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False)
+    simulation = Simulation(world, physics_hz=FAST_PHYSICS_HZ, visuals=False)
     yield simulation
     simulation.close()
 

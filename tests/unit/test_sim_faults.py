@@ -26,7 +26,7 @@ from services.sim.faults import CONTACT_GAP, SLIP_DISTANCE, block_for, doorways,
 from services.sim.simulation import REST_AFTER, Simulation
 from services.sim.world import BlockShape
 from services.worldmodel import WorldModel, load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 
 WORLD = load_world("household")
 MODEL = WorldModel(WORLD)
@@ -93,7 +93,7 @@ def test_an_object_slipping_in_the_open_lands_on_free_floor_beside_the_base() ->
 
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
-    simulation = Simulation(WORLD, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False)
+    simulation = Simulation(WORLD, physics_hz=FAST_PHYSICS_HZ, visuals=False)
     yield simulation
     simulation.close()
 
@@ -213,9 +213,7 @@ def test_a_block_stops_the_base_and_the_touch_is_reported_once(sim: Simulation) 
 def test_a_touch_that_lasts_while_the_world_rests_is_reported_once() -> None:
     """At rest physics is not stepped and the contact checks are not run (Simulation.step): a base
     standing against a block through the rest, then pushing on, is still the touch already reported."""
-    sim = Simulation(
-        WORLD, physics_hz=FAST_PHYSICS_HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False, rest=True
-    )
+    sim = Simulation(WORLD, physics_hz=FAST_PHYSICS_HZ, visuals=False, rest=True)
     try:
         got = reports(sim)
         place(sim, 3.9, 2.1)

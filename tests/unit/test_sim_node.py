@@ -33,7 +33,7 @@ from services.sim.controllers import STALL_TIME, Controllers
 from services.sim.node import SimNode
 from services.sim.simulation import Simulation
 from services.worldmodel import load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 from tests.procs import wait_until
 from tests.sessions import LOADED_HEARTBEAT_MAX_AGE, LOADED_HEARTBEAT_TIMEOUT, free_port
 from tests.watch import Watch
@@ -58,16 +58,10 @@ def rig() -> Iterator[Rig]:
         realtime_factor=4.0,
         first_heartbeat_wait=0.5,
         physics_hz=FAST_PHYSICS_HZ,
-        solver_iterations=FAST_SOLVER_ITERATIONS,
         heartbeat_timeout=LOADED_HEARTBEAT_TIMEOUT,
         heartbeat_max_age=LOADED_HEARTBEAT_MAX_AGE,
     )
-    sim = Simulation(
-        load_world(config.world),
-        physics_hz=config.physics_hz,
-        solver_iterations=config.solver_iterations,
-        visuals=False,
-    )
+    sim = Simulation(load_world(config.world), physics_hz=config.physics_hz, visuals=False)
     stop, beating, latched = threading.Event(), threading.Event(), threading.Event()
     key = secrets.token_bytes(32)
     with Node("sim", settings) as sim_session, Node("test", settings) as client:

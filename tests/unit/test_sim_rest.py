@@ -21,7 +21,7 @@ from services.sim.loop import SimLoop
 from services.sim.simulation import REST_AFTER, Simulation
 from services.sim.world import Drop
 from services.worldmodel import load_world
-from tests.fastsim import FAST_PHYSICS_HZ, FAST_SOLVER_ITERATIONS
+from tests.fastsim import FAST_PHYSICS_HZ
 
 WORLD = load_world("household")
 HZ = FAST_PHYSICS_HZ
@@ -29,7 +29,7 @@ HZ = FAST_PHYSICS_HZ
 
 @pytest.fixture
 def sim() -> Iterator[Simulation]:
-    simulation = Simulation(WORLD, physics_hz=HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False, rest=True)
+    simulation = Simulation(WORLD, physics_hz=HZ, visuals=False, rest=True)
     yield simulation
     simulation.close()
 
@@ -82,7 +82,7 @@ def test_an_object_moved_falls_and_settles_though_nobody_woke_the_sim(sim: Simul
 
 
 def test_a_command_wakes_a_resting_loop_and_a_read_does_not() -> None:
-    simulation = Simulation(WORLD, physics_hz=HZ, solver_iterations=FAST_SOLVER_ITERATIONS, visuals=False, rest=True)
+    simulation = Simulation(WORLD, physics_hz=HZ, visuals=False, rest=True)
     obeyed = [0]
 
     def obey() -> str | None:
