@@ -7,7 +7,7 @@ import math
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Generic, Protocol, TypeVar
 
 import msgspec
@@ -70,7 +70,7 @@ from services.safety.monitor import (
     nearest_person,
     separation,
 )
-from services.safety.policy import PLAN_RULES, SafetyPolicy, Verdict, base_moving
+from services.safety.policy import JOINTS_STAMP, PLAN_RULES, SafetyPolicy, Verdict, base_moving
 from services.safety.shared import SharedFilter, SharedLimits, Surroundings, combine
 from services.worldmodel import drive_route
 
@@ -318,11 +318,16 @@ class SafetyGate:
         return odom[1].pose
 
     def _joint_positions(self, t: float) -> dict[str, float] | None:
+        joints = self._joint_state(t)
+        return None if joints is None else dict(zip(joints.name, joints.position, strict=False))
+
+    def _joint_state(self, t: float) -> JointState | None:
+        """The latest joint state, or None when it is missing or stale."""
         with self._lock:
             joints = self._joints
         if joints is None or t - joints[0] > self.policy.policy.monitor.state_max_age:
             return None
-        return dict(zip(joints[1].name, joints[1].position, strict=False))
+        return joints[1]
 
     def _hand(self, pose: Pose2D, t: float) -> tuple[float, float] | None:
         """The end effector on the floor plan (map frame)."""
@@ -803,9 +808,19 @@ class SafetyGate:
         `again` once a joint state measured since came. Asked again, the e-stop is checked once more
         (it may have latched during the wait), the rate is not (the goal was counted the first time)."""
         t = self._time()
+        joints = self._joint_state(t)
+        positions = None if joints is None else dict(zip(joints.name, joints.position, strict=False))
+        # Which joint state the check rested on, in the decision's values: `tether recheck` checks the
+        # recorded goal from that very state (services/safety/recheck.py).
+        measured = {} if joints is None else {JOINTS_STAMP: joints.stamp}
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
-            return self.policy.check_trajectory(goal, self._joint_positions(t), self._pose(t), self._base_moving())
+            try:
+                verdict = self.policy.check_trajectory(goal, positions, self._pose(t), self._base_moving())
+            except Vetoed as exc:
+                exc.values.update(measured)
+                raise
+            return replace(verdict, values={**verdict.values, **measured})
 
         return self._goal(keys.CMD_TRAJECTORY.send_goal.path, req, check, t, again=again)
 

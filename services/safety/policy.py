@@ -61,6 +61,8 @@ STILL_BELOW = 0.1
 # How long a trajectory whose start seems to jump waits for a fresher joint state (joint states
 # come at 50 Hz).
 FRESH_JOINTS_WAIT = 0.1
+# In a trajectory decision's values: the stamp of the joint state it was checked from.
+JOINTS_STAMP = "joints_stamp_s"
 ROUTE_CHECKS = (Rule.POSE_KNOWN, Rule.MAP, Rule.KEEP_OUT, Rule.OBSTACLE)
 # What the whole-plan check (check_plan, with the e-stop in the node) applies.
 PLAN_RULES = (

@@ -3,7 +3,9 @@
 A recording holds every command safety decided on, with the decision, and the robot's state at the
 time (odometry, joint states, the heartbeat's speed scale). Each command is checked again with a
 policy (the recorded one, or a new one) from the state recorded just before it, as safety would have
-seen it, and the new decision is compared with the recorded one.
+seen it, and the new decision is compared with the recorded one. A trajectory is checked from the
+joint state safety names in its decision (JOINTS_STAMP) when the recording holds it: a goal sent as
+the previous motion ends meets an arm that moves while the query travels.
 
 Rechecked: plan checks (`safety/check_plan`), navigation, trajectory and gripper goals (their
 `send_goal` queries as safety received them, from `_trace/safety/**`) and program velocity
@@ -38,7 +40,7 @@ from schemas.trace import TraceRecord
 from services.recorder.linkaudit import Flag, audit
 from services.recorder.reader import Recorded
 from services.safety.errors import Vetoed
-from services.safety.policy import FRESH_JOINTS_WAIT, SafetyPolicy, Verdict, base_moving
+from services.safety.policy import FRESH_JOINTS_WAIT, JOINTS_STAMP, SafetyPolicy, Verdict, base_moving
 
 T = TypeVar("T")
 
@@ -137,6 +139,12 @@ class RobotHistory:
     odom: History[Odometry] = field(default_factory=History)
     joints: History[JointState] = field(default_factory=History)
     heartbeat: History[SafetyStatus] = field(default_factory=History)
+    # Each joint state by its own stamp, which safety names in a trajectory decision (JOINTS_STAMP).
+    joints_stamped: dict[float, JointState] = field(default_factory=dict)
+
+    def add_joints(self, time: float, joints: JointState) -> None:
+        self.joints.add(time, joints)
+        self.joints_stamped.setdefault(joints.stamp, joints)
 
 
 def _short(value: float) -> str:
@@ -188,8 +196,12 @@ class Rechecker:
         found = self.state.heartbeat.at(time, math.inf)
         return 1.0 if found is None else found[1].speed_scale
 
-    def check(self, path: str, command: Any, time: float) -> Verdict[Any] | list[str]:
-        """The check safety runs for `command` on `path`, from the state at `time`; raises Vetoed."""
+    def check(
+        self, path: str, command: Any, time: float, joints_stamp: float | None = None
+    ) -> Verdict[Any] | list[str]:
+        """The check safety runs for `command` on `path`, from the state at `time`; raises Vetoed. A
+        trajectory with `joints_stamp` (the joint state safety named in its decision) is checked from
+        that joint state when the recording holds it."""
         policy = self.policy
         if isinstance(command, GroundedPlan):
             return policy.check_plan(command, self.pose(time))
@@ -197,14 +209,23 @@ class Rechecker:
             joints = self.joints(time)
             return policy.check_navigation(command, self.pose(time), policy.reach(joints[1] if joints else None))
         if isinstance(command, FollowJointTrajectoryGoal):
-            return self._check_trajectory(command, time)
+            return self._check_trajectory(command, time, joints_stamp)
         if isinstance(command, GripperCommandGoal):
             return policy.check_gripper(command)
         if isinstance(command, Twist):
             return policy.check_cmd_vel(command, self.pose(time), self.scale(time))
         raise TypeError(f"no check for {type(command).__name__} on {path}")
 
-    def _check_trajectory(self, goal: FollowJointTrajectoryGoal, time: float) -> Verdict[Any]:
+    def _check_trajectory(
+        self, goal: FollowJointTrajectoryGoal, time: float, joints_stamp: float | None
+    ) -> Verdict[Any]:
+        named = self.state.joints_stamped.get(joints_stamp) if joints_stamp is not None else None
+        if named is not None:
+            # The very state safety checked from: what the recorder received when is no guess at it.
+            # (A goal sent as a motion ends, at 20 times real time, saw the recorded state before the
+            # query 0.13 rad from the one safety had.) The pose as at `time`.
+            positions = dict(zip(named.name, named.position, strict=False))
+            return self.policy.check_trajectory(goal, positions, self.pose(time), self.moving(time))
         # As safety does: a first point that seems to jump is checked again with the next joint state.
         joints = self.joints(time)
         try:
@@ -217,9 +238,17 @@ class Rechecker:
         joints = self.joints(later)
         return self.policy.check_trajectory(goal, joints[1] if joints else None, self.pose(later), self.moving(later))
 
-    def recheck(self, path: str, command: Any, time: float, recorded: RecheckOutcome, reason: str) -> Rechecked:
+    def recheck(
+        self,
+        path: str,
+        command: Any,
+        time: float,
+        recorded: RecheckOutcome,
+        reason: str,
+        joints_stamp: float | None = None,
+    ) -> Rechecked:
         try:
-            self.check(path, command, time)
+            self.check(path, command, time, joints_stamp)
         except Vetoed as exc:
             return Rechecked(
                 time, path, describe(path, command), recorded, reason, RecheckOutcome.VETOED, str(exc), exc.rule
@@ -261,7 +290,7 @@ def recheck(
     flagged = found.at()
     state_topics: dict[str, tuple[type[Any], Callable[[float, Any], None]]] = {
         keys.ODOM.path: (Odometry, rechecker.state.odom.add),
-        keys.JOINT_STATES.path: (JointState, rechecker.state.joints.add),
+        keys.JOINT_STATES.path: (JointState, rechecker.state.add_joints),
         keys.HEARTBEAT.path: (SafetyStatus, rechecker.state.heartbeat.add),
     }
     # The state first, all of it: a command is checked from the state just before it, and a
@@ -363,12 +392,13 @@ def _add(
     time: float,
     recorded: RecheckOutcome,
     reason: str,
+    joints_stamp: float | None = None,
 ) -> None:
     if not isinstance(command, GripperCommandGoal) and not rechecker.has_state_before(time):
         # The file starts after it (a rotation, a recorder started late): safety saw a state it does not hold.
         report.skipped["no robot state recorded before it"] += 1
         return
-    out.append(rechecker.recheck(key, command, time, recorded, reason))
+    out.append(rechecker.recheck(key, command, time, recorded, reason, joints_stamp))
 
 
 def _recheck_goal(
@@ -386,10 +416,12 @@ def _recheck_goal(
         # Not decided: the request did not decode, or safety failed to answer (forwarding failed).
         report.skipped["a goal without a recorded decision"] += 1
         return
-    # The event about this goal nearest the query (a goal id may come again later).
-    candidates = events.get((trace.key, request.goal_id), [])
-    event = min(candidates, key=lambda c: abs(c[0] - time))[1] if candidates else None
     refused = not response.accepted and response.kind in (ErrorKind.VETOED, ErrorKind.ESTOP)
+    # The event about this goal nearest the query (a goal id may come again later), one that decided
+    # as the reply says if there is one: a trajectory refused at first may pass on a fresher joint state.
+    candidates = events.get((trace.key, request.goal_id), [])
+    agreeing = [c for c in candidates if (c[1].decision is Decision.VETOED) == refused] or candidates
+    event = min(agreeing, key=lambda c: abs(c[0] - time))[1] if agreeing else None
     if refused and response.kind is ErrorKind.ESTOP:
         report.skipped[NOT_POLICY[Rule.ESTOP]] += 1
         return
@@ -397,4 +429,5 @@ def _recheck_goal(
         report.skipped[NOT_POLICY[event.rule]] += 1
         return
     recorded = RecheckOutcome.VETOED if refused else RecheckOutcome.APPROVED
-    _add(rechecker, report, out, trace.key, request.goal, time, recorded, response.reason if refused else "")
+    stamp = event.values.get(JOINTS_STAMP) if event is not None else None
+    _add(rechecker, report, out, trace.key, request.goal, time, recorded, response.reason if refused else "", stamp)

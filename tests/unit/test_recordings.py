@@ -19,7 +19,15 @@ from mcap.records import Chunk
 from schemas import keys
 from schemas.actions import CANCEL_ALL, CancelGoal, GoalResponse, SendGoal
 from schemas.common import ErrorKind, Pose2D
-from schemas.robot import NavigateToPoseGoal, Odometry, Twist
+from schemas.robot import (
+    ARM_JOINTS,
+    FollowJointTrajectoryGoal,
+    JointState,
+    NavigateToPoseGoal,
+    Odometry,
+    TrajectoryPoint,
+    Twist,
+)
 from schemas.safety import Decision, EstopState, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from services.recorder import scene3d
@@ -37,7 +45,7 @@ from services.recorder.reader import (
 from services.recorder.recorder import Recorder
 from services.recorder.replay import ReplayKind, default_target, plan_replay
 from services.runtime import encode
-from services.safety.policy import SafetyPolicy, load_safety_policy
+from services.safety.policy import JOINTS_STAMP, SafetyPolicy, load_safety_policy
 from services.safety.policyfile import DEFAULT_POLICY
 from services.safety.recheck import Message, RecheckOutcome, recheck
 from services.worldmodel import load_world, world_path
@@ -383,6 +391,70 @@ def test_recheck_checks_a_command_from_the_state_recorded_before_it(world_policy
     report = recheck(messages, world_policy)
     goal = next(c for c in report.checked if c.command.startswith("navigate to (6.40"))
     assert goal.now is RecheckOutcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
+
+
+# A trajectory sent the moment the previous motion ended, from where that motion ended (END), and
+# what the recorder heard meanwhile: the arm still moving, and the joint state safety decided from
+# (stamped 1.98, at END) only after the goal. The goal's query came at 2.0.
+HOME = list(load_world().robot.home_joints)
+END = [HOME[0] + 0.5, *HOME[1:]]
+
+
+def arm(stamp: float, lag: float) -> JointState:
+    return JointState(stamp=stamp, name=list(ARM_JOINTS), position=[END[0] - lag, *END[1:]])
+
+
+def trajectory_sent_as_the_motion_ends(named: float | None) -> list[Message]:
+    """`named`: the stamp of the joint state safety's approval names (None: it names none)."""
+    goal = FollowJointTrajectoryGoal(
+        joint_names=list(ARM_JOINTS),
+        points=[
+            TrajectoryPoint(positions=END, time_from_start=0.0),
+            TrajectoryPoint(positions=HOME, time_from_start=4.0),
+        ],
+    )
+    sent = SendGoal(goal_id="t", goal=goal)
+    values = {} if named is None else {JOINTS_STAMP: named}
+    approval = SafetyEvent(
+        stamp=2.0,
+        key=keys.CMD_TRAJECTORY.send_goal.path,
+        decision=Decision.APPROVED,
+        values=values,
+        command=msgspec.Raw(encode(sent)),
+    )
+    record = TraceRecord(
+        stamp=2.0,
+        service="safety",
+        key=keys.CMD_TRAJECTORY.send_goal.path,
+        duration=0.001,
+        query=msgspec.Raw(encode(sent)),
+        reply=msgspec.Raw(encode(GoalResponse(goal_id="t", accepted=True))),
+    )
+    still = Pose2D(x=6.0, y=1.2)
+    out = [
+        msg(t / 50, keys.ODOM.path, Odometry(stamp=t / 50, sim_time=t / 50, pose=still, linear_x=0.0, angular_z=0.0))
+        for t in range(200)
+    ]
+    out += [
+        msg(1.90, keys.JOINT_STATES.path, arm(1.90, 0.3)),
+        msg(1.96, keys.JOINT_STATES.path, arm(1.94, 0.13)),
+        msg(2.0005, keys.SAFETY_EVENTS.path, approval),
+        msg(2.002, f"_trace/safety/{keys.CMD_TRAJECTORY.send_goal.path}", record),
+        msg(2.15, keys.JOINT_STATES.path, arm(1.98, 0.0)),  # the recorder heard it late
+    ]
+    return sorted(out, key=lambda m: m.time)
+
+
+def test_recheck_checks_a_trajectory_from_the_joint_state_safety_named(world_policy: SafetyPolicy) -> None:
+    [named] = recheck(trajectory_sent_as_the_motion_ends(1.98), world_policy).checked
+    assert (named.recorded, named.now) == (RecheckOutcome.APPROVED, RecheckOutcome.APPROVED), named.now_reason
+    # Named the state 0.13 rad behind, it would have refused as recheck does: the name is what counts.
+    [behind] = recheck(trajectory_sent_as_the_motion_ends(1.94), world_policy).checked
+    assert behind.now is RecheckOutcome.VETOED and "would jump 0.130 rad" in behind.now_reason
+    # Without a name (or one not in the file): the state before the query, then the next within 0.1 s.
+    for stamp in (None, 1.97):
+        [guessed] = recheck(trajectory_sent_as_the_motion_ends(stamp), world_policy).checked
+        assert guessed.now is RecheckOutcome.VETOED and "would jump 0.130 rad" in guessed.now_reason
 
 
 def test_recheck_warns_when_the_kept_policy_is_not_the_one_safety_ran_with(world_policy: SafetyPolicy) -> None:

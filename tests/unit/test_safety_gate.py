@@ -30,7 +30,7 @@ from services.safety.gate import (
     SafetyGate,
 )
 from services.safety.latch import EstopLatch
-from services.safety.policy import START_TOLERANCE, SafetyPolicy
+from services.safety.policy import JOINTS_STAMP, START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
 
@@ -534,8 +534,8 @@ HOME = list(WORLD.robot.home_joints)
 STOPPED = [HOME[0], HOME[1] + 2 * START_TOLERANCE, *HOME[2:]]
 
 
-def arm_at(q: list[float]) -> JointState:
-    return JointState(stamp=0.0, name=list(ARM_JOINTS), position=q)
+def arm_at(q: list[float], stamp: float = 0.0) -> JointState:
+    return JointState(stamp=stamp, name=list(ARM_JOINTS), position=q)
 
 
 def from_stopped() -> SendGoal[FollowJointTrajectoryGoal]:
@@ -548,17 +548,20 @@ def from_stopped() -> SendGoal[FollowJointTrajectoryGoal]:
 
 def test_a_start_that_seems_to_jump_passes_on_fresh_joints_without_a_second_rate_token(gate: SafetyGate) -> None:
     gate.odometry(odom())
-    gate.joint_state(arm_at(HOME))
+    gate.joint_state(arm_at(HOME, stamp=10.0))
     first = gate.trajectory(from_stopped())
     assert isinstance(first.forward, GoalResponse) and not first.forward.accepted
     assert first.fresh_joints_may_pass and "jump_rad" in first.events[0].values
+    # Each decision names the joint state it rested on (`tether recheck` checks from that one).
+    assert first.events[0].values[JOINTS_STAMP] == 10.0
     rate = gate.policy.policy.rate
     for _ in range(int(max(1.0, rate.max_goals_per_second * rate.burst_seconds)) - 1):
         gate.trajectory(from_stopped())  # the rest of the burst, on the same instant: no token left
-    gate.joint_state(arm_at(STOPPED))
+    gate.joint_state(arm_at(STOPPED, stamp=10.02))
     again = gate.trajectory(from_stopped(), again=True)
     assert isinstance(again.forward, SendGoal) and again.forward.goal_id == "t1"
     assert again.events[0].decision is Decision.APPROVED and not again.fresh_joints_may_pass
+    assert again.events[0].values[JOINTS_STAMP] == 10.02
     over = gate.trajectory(from_stopped())
     assert over.events[0].rule is Rule.COMMAND_RATE, "the bucket was empty: asking again took no token"
 
