@@ -13,8 +13,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
+import numpy as np
 import shapely
+from numpy.typing import NDArray
 from shapely.geometry import Polygon
 from shapely.geometry.base import BaseGeometry
 
@@ -41,10 +44,17 @@ EPSILON = 1e-9
 def footprint(x: float, y: float, yaw: float, length: float, width: float, margin: float = 0.0) -> Polygon:
     """The rectangle the base covers at (x, y, yaw): `length` along its heading, `width` across,
     grown by `margin` on every side."""
+    # shapely.polygons: the same polygon as Polygon(...), in two thirds of the time (the planner makes
+    # one for every motion it considers).
+    shape: Polygon = shapely.polygons(_corners(x, y, yaw, length, width, margin))
+    return shape
+
+
+def _corners(x: float, y: float, yaw: float, length: float, width: float, margin: float) -> list[tuple[float, float]]:
     half_l, half_w = length / 2 + margin, width / 2 + margin
     c, s = math.cos(yaw), math.sin(yaw)
     corners = [(half_l, half_w), (-half_l, half_w), (-half_l, -half_w), (half_l, -half_w)]
-    return Polygon([(x + c * a - s * b, y + s * a + c * b) for a, b in corners])
+    return [(x + c * a - s * b, y + s * a + c * b) for a, b in corners]
 
 
 def distance_to_footprint(
@@ -102,22 +112,46 @@ def route_legs(start: Pose2D, points: Sequence[tuple[float, float]]) -> list[Leg
 
 @dataclass(frozen=True)
 class Sweep:
-    """One piece of a route: the floor the base covers while doing `what`, ending at (x, y)."""
+    """One piece of a route: the floor the base covers while doing `what`, ending at (x, y); `parts`
+    cover it together (a turn's footprints, turn_footprints; a leg's drive_sweep alone)."""
 
     what: str
-    shape: Polygon
+    parts: tuple[Polygon, ...]
     x: float
     y: float
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """The box around it: (min x, min y, max x, max y)."""
+        low_x, low_y, high_x, high_y = shapely.total_bounds(_array(self.parts))
+        return float(low_x), float(low_y), float(high_x), float(high_y)
+
+    @cached_property
+    def shape(self) -> Polygon:
+        """The floor covered, as one polygon: the union of `parts`, made when first asked for (a
+        turn's union costs more than every check on the parts; clearance_problem needs none)."""
+        shape: Polygon = self.parts[0] if len(self.parts) == 1 else shapely.union_all(self.parts)
+        return shape
+
+
+def turn_footprints(
+    x: float, y: float, yaw_from: float, yaw_to: float, length: float, width: float, margin: float
+) -> NDArray[np.object_]:
+    """The footprints a turn in place at (x, y) from `yaw_from` to `yaw_to` the short way is drawn
+    as, one every TURN_STEP at most, both ends included; made in one call (each the same polygon
+    footprint() makes)."""
+    angle = turn_angle(yaw_from, yaw_to)
+    count = max(1, math.ceil(abs(angle) / TURN_STEP))
+    rings = [_corners(x, y, yaw_from + angle * k / count, length, width, margin) for k in range(count + 1)]
+    return shapely.polygons(np.array(rings))
 
 
 def turn_sweep(
     x: float, y: float, yaw_from: float, yaw_to: float, length: float, width: float, margin: float
 ) -> Polygon:
-    """The floor covered turning in place at (x, y) from `yaw_from` to `yaw_to` the short way."""
-    angle = turn_angle(yaw_from, yaw_to)
-    count = max(1, math.ceil(abs(angle) / TURN_STEP))
-    shapes = [footprint(x, y, yaw_from + angle * k / count, length, width, margin) for k in range(count + 1)]
-    return shapely.union_all(shapes) if len(shapes) > 1 else shapes[0]
+    """The floor covered turning in place at (x, y) from `yaw_from` to `yaw_to` the short way: the
+    union of its turn_footprints."""
+    return shapely.union_all(turn_footprints(x, y, yaw_from, yaw_to, length, width, margin))
 
 
 def drive_sweep(
@@ -148,15 +182,15 @@ def route_sweeps(
     here = (start.x, start.y)
     for leg in route_legs(start, points):
         if abs(turn_angle(yaw, leg.heading)) > MIN_TURN:
-            shape = turn_sweep(leg.start[0], leg.start[1], yaw, leg.heading, length, width, margin)
-            sweeps.append(Sweep(f"turning at {_at(leg.start)}", shape, leg.start[0], leg.start[1]))
+            parts = tuple(turn_footprints(leg.start[0], leg.start[1], yaw, leg.heading, length, width, margin))
+            sweeps.append(Sweep(f"turning at {_at(leg.start)}", parts, leg.start[0], leg.start[1]))
         shape = drive_sweep(leg.start, leg.end, leg.heading, length, width, margin)
         verb = "backing" if leg.backwards else "driving"
-        sweeps.append(Sweep(f"{verb} from {_at(leg.start)} to {_at(leg.end)}", shape, leg.end[0], leg.end[1]))
+        sweeps.append(Sweep(f"{verb} from {_at(leg.start)} to {_at(leg.end)}", (shape,), leg.end[0], leg.end[1]))
         here, yaw = leg.end, leg.heading
     if abs(turn_angle(yaw, final_yaw)) > MIN_TURN:
-        shape = turn_sweep(here[0], here[1], yaw, final_yaw, length, width, margin)
-        sweeps.append(Sweep(f"turning at {_at(here)}", shape, here[0], here[1]))
+        parts = tuple(turn_footprints(here[0], here[1], yaw, final_yaw, length, width, margin))
+        sweeps.append(Sweep(f"turning at {_at(here)}", parts, here[0], here[1]))
     return sweeps
 
 
@@ -166,7 +200,23 @@ def _cm(metres: float) -> str:
 
 def nearest(shape: BaseGeometry, obstacles: Sequence[tuple[str, BaseGeometry]]) -> tuple[str, float]:
     """The name of the obstacle nearest `shape`, and how far it is (0 touching or inside)."""
-    return min(((name, shape.distance(outline)) for name, outline in obstacles), key=lambda item: item[1])
+    return nearest_to_parts((shape,), obstacles)
+
+
+def nearest_to_parts(parts: Sequence[BaseGeometry], obstacles: Sequence[tuple[str, BaseGeometry]]) -> tuple[str, float]:
+    """nearest() for the union of `parts` without making it: every part's distance to every
+    obstacle in one call, the least of them (the first obstacle of the least, as min() gives)."""
+    distances = shapely.distance(_array(parts)[:, np.newaxis], _array([outline for _, outline in obstacles]))
+    distances = distances.min(axis=0)
+    best = int(np.argmin(distances))
+    return obstacles[best][0], float(distances[best])
+
+
+def _array(geometries: Sequence[BaseGeometry]) -> NDArray[np.object_]:
+    """Geometries as a flat array of them, for shapely's functions that take many at once."""
+    array = np.empty(len(geometries), dtype=object)
+    array[:] = geometries
+    return array
 
 
 def clearance_problem(
@@ -187,7 +237,7 @@ def clearance_problem(
     start_distance = min(at_start.distance(shape) for _, shape in obstacles)
     leaving = True
     for sweep in sweeps:
-        name, distance = nearest(sweep.shape, obstacles)
+        name, distance = nearest_to_parts(sweep.parts, obstacles)
         required = min(margin, start_distance) if leaving else margin
         leaving = leaving and (sweep.x, sweep.y) == (start.x, start.y)
         if distance >= required - EPSILON:

@@ -39,7 +39,7 @@ from services.footprint import (
     route_legs,
     route_sweeps,
     turn_angle,
-    turn_sweep,
+    turn_footprints,
 )
 from services.worldmodel import PRE_GOAL_DISTANCE, PRE_GOAL_MIN_LEG, WorldModel, drive_route
 
@@ -149,11 +149,13 @@ class _Floorplan:
         return not self.blocked.intersects(footprint(x, y, yaw, self.length, self.width, margin))
 
     def turn_clear(self, x: float, y: float, yaw_from: float, yaw_to: float) -> bool:
-        """Turning in place keeps the margin: footprint.turn_sweep, grown by it, touches nothing."""
+        """Turning in place keeps the margin: footprint.turn_sweep, grown by it, touches nothing. Its
+        footprints are tested each (one call): the sweep is their union, and building the union took
+        most of the planner's time (a turn of half a circle is 37 footprints)."""
         if abs(turn_angle(yaw_from, yaw_to)) <= MIN_TURN or self.roomy(x, y):
             return True
-        sweep = turn_sweep(x, y, yaw_from, yaw_to, self.length, self.width, self.margin)
-        return not self.blocked.intersects(sweep)
+        footprints = turn_footprints(x, y, yaw_from, yaw_to, self.length, self.width, self.margin)
+        return not shapely.intersects(self.blocked, footprints).any()
 
     def drive_shape(self, a: tuple[float, float], b: tuple[float, float], heading: float, margin: float) -> Polygon:
         """footprint.drive_sweep(a, b, heading, ..., margin), fast when `heading` is along the leg
@@ -175,7 +177,7 @@ class _Floorplan:
             return True
         if self.blocked.intersects(self.drive_shape(a, b, heading, self.margin)):
             return False
-        line = LineString([a, b])
+        line: LineString = shapely.linestrings([a, b])  # LineString([a, b]) in a third of the time
         return not self.zones_grown.intersects(line) and self.floor.covers(line)
 
     # What is near, for messages
