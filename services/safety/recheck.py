@@ -139,12 +139,13 @@ class RobotHistory:
     odom: History[Odometry] = field(default_factory=History)
     joints: History[JointState] = field(default_factory=History)
     heartbeat: History[SafetyStatus] = field(default_factory=History)
-    # Each joint state by its own stamp, which safety names in a trajectory decision (JOINTS_STAMP).
-    joints_stamped: dict[float, JointState] = field(default_factory=dict)
+    # Each joint state by its own stamp, which safety names in a trajectory decision (JOINTS_STAMP),
+    # with when it was received.
+    joints_stamped: dict[float, tuple[float, JointState]] = field(default_factory=dict)
 
     def add_joints(self, time: float, joints: JointState) -> None:
         self.joints.add(time, joints)
-        self.joints_stamped.setdefault(joints.stamp, joints)
+        self.joints_stamped.setdefault(joints.stamp, (time, joints))
 
 
 def _short(value: float) -> str:
@@ -220,11 +221,13 @@ class Rechecker:
         self, goal: FollowJointTrajectoryGoal, time: float, joints_stamp: float | None
     ) -> Verdict[Any]:
         named = self.state.joints_stamped.get(joints_stamp) if joints_stamp is not None else None
-        if named is not None:
-            # The very state safety checked from: what the recorder received when is no guess at it.
-            # (A goal sent as a motion ends, at 20 times real time, saw the recorded state before the
-            # query 0.13 rad from the one safety had.) The pose as at `time`.
-            positions = dict(zip(named.name, named.position, strict=False))
+        # The very state safety checked from, when the recorder heard it within state_max_age of the
+        # query (safety checks from none older; a decision naming one far off is not taken at its
+        # word): when the recorder received what is no guess at it. (A goal sent as a motion ends, at
+        # 20 times real time, met the recorded state before the query 0.13 rad from the one safety
+        # had.) The pose as at `time`.
+        if named is not None and abs(named[0] - time) <= self.max_age:
+            positions = dict(zip(named[1].name, named[1].position, strict=False))
             return self.policy.check_trajectory(goal, positions, self.pose(time), self.moving(time))
         # As safety does: a first point that seems to jump is checked again with the next joint state.
         joints = self.joints(time)

@@ -436,6 +436,7 @@ def trajectory_sent_as_the_motion_ends(named: float | None) -> list[Message]:
         for t in range(200)
     ]
     out += [
+        msg(1.2, keys.JOINT_STATES.path, arm(1.2, 0.0)),  # at END too, but 0.8 s before the query
         msg(1.90, keys.JOINT_STATES.path, arm(1.90, 0.3)),
         msg(1.96, keys.JOINT_STATES.path, arm(1.94, 0.13)),
         msg(2.0005, keys.SAFETY_EVENTS.path, approval),
@@ -451,8 +452,9 @@ def test_recheck_checks_a_trajectory_from_the_joint_state_safety_named(world_pol
     # Named the state 0.13 rad behind, it would have refused as recheck does: the name is what counts.
     [behind] = recheck(trajectory_sent_as_the_motion_ends(1.94), world_policy).checked
     assert behind.now is RecheckOutcome.VETOED and "would jump 0.130 rad" in behind.now_reason
-    # Without a name (or one not in the file): the state before the query, then the next within 0.1 s.
-    for stamp in (None, 1.97):
+    # Without a name, one not in the file, or one the recorder heard more than state_max_age (0.5 s)
+    # from the query: the state before the query, then the next within 0.1 s.
+    for stamp in (None, 1.97, 1.2):
         [guessed] = recheck(trajectory_sent_as_the_motion_ends(stamp), world_policy).checked
         assert guessed.now is RecheckOutcome.VETOED and "would jump 0.130 rad" in guessed.now_reason
 
