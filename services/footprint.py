@@ -205,9 +205,11 @@ def nearest(shape: BaseGeometry, obstacles: Sequence[tuple[str, BaseGeometry]]) 
 
 def nearest_to_parts(parts: Sequence[BaseGeometry], obstacles: Sequence[tuple[str, BaseGeometry]]) -> tuple[str, float]:
     """nearest() for the union of `parts` without making it: every part's distance to every
-    obstacle in one call, the least of them (the first obstacle of the least, as min() gives)."""
-    distances = shapely.distance(_array(parts)[:, np.newaxis], _array([outline for _, outline in obstacles]))
-    distances = distances.min(axis=0)
+    obstacle in one call, the least of them (the first obstacle of the least, as min() gives). An
+    empty outline (a wall of no length) is infinitely far, not NaN away."""
+    outlines = _array([outline for _, outline in obstacles])
+    distances = shapely.distance(_array(parts)[:, np.newaxis], outlines).min(axis=0)
+    distances[shapely.is_empty(outlines)] = np.inf
     best = int(np.argmin(distances))
     return obstacles[best][0], float(distances[best])
 

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import msgspec
 import pytest
-from shapely.geometry import LineString, Point
+from shapely.geometry import LineString, Point, Polygon
 from shapely.ops import unary_union
 
 from schemas.common import Pose2D
@@ -18,7 +18,7 @@ from schemas.robot import NavigateToPoseGoal
 from schemas.world import Extent, Furniture, Room, Wall, World
 from services.executor.errors import PlanningFailed
 from services.executor.navigation import PERSON_COMFORT, PERSON_RADIUS, BasePlanner, route_clearance_problem
-from services.footprint import MAX_REVERSE, TRACKING_TOLERANCE, footprint, route_sweeps
+from services.footprint import MAX_REVERSE, TRACKING_TOLERANCE, footprint, nearest_to_parts, route_sweeps
 from services.robotmodel import ArmModel
 from services.safety.errors import Vetoed
 from services.safety.policy import SafetyPolicy
@@ -331,3 +331,16 @@ def test_a_plan_is_a_list_of_poses(planner: BasePlanner) -> None:
     path = planner.plan(START, ROOMS["office"])
     assert all(isinstance(p, Pose2D) for p in path)
     msgspec.json.encode(path)  # goes on the wire in NavigateToPoseGoal.path
+
+
+def test_a_sweeps_parts_are_as_near_an_obstacle_as_their_union_and_an_empty_one_is_nowhere() -> None:
+    # A turn in place of half a circle beside the kitchen counter: each part's least distance to each
+    # obstacle (safety's clearance check) is the union's, obstacle for obstacle.
+    turn = next(s for s in route_sweeps(COUNTER, [(COUNTER.x, COUNTER.y - 1.0)], 0.0, 0.6, 0.5) if len(s.parts) > 1)
+    obstacles = [(o.name, o.shape) for o in WORLD.obstacles]
+    for name, outline in obstacles:
+        assert nearest_to_parts(turn.parts, [(name, outline)])[1] == pytest.approx(
+            turn.shape.distance(outline), abs=1e-12
+        )
+    # A wall of no length has an empty outline: it is never the nearest (not NaN away).
+    assert nearest_to_parts(turn.parts, [("nothing", Polygon()), *obstacles]) == nearest_to_parts(turn.parts, obstacles)
