@@ -120,7 +120,7 @@ class Sweep:
     x: float
     y: float
 
-    @property
+    @cached_property
     def bounds(self) -> tuple[float, float, float, float]:
         """The box around it: (min x, min y, max x, max y)."""
         low_x, low_y, high_x, high_y = shapely.total_bounds(_array(self.parts))
@@ -144,14 +144,6 @@ def turn_footprints(
     count = max(1, math.ceil(abs(angle) / TURN_STEP))
     rings = [_corners(x, y, yaw_from + angle * k / count, length, width, margin) for k in range(count + 1)]
     return shapely.polygons(np.array(rings))
-
-
-def turn_sweep(
-    x: float, y: float, yaw_from: float, yaw_to: float, length: float, width: float, margin: float
-) -> Polygon:
-    """The floor covered turning in place at (x, y) from `yaw_from` to `yaw_to` the short way: the
-    union of its turn_footprints."""
-    return shapely.union_all(turn_footprints(x, y, yaw_from, yaw_to, length, width, margin))
 
 
 def drive_sweep(

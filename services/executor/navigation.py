@@ -149,9 +149,9 @@ class _Floorplan:
         return not self.blocked.intersects(footprint(x, y, yaw, self.length, self.width, margin))
 
     def turn_clear(self, x: float, y: float, yaw_from: float, yaw_to: float) -> bool:
-        """Turning in place keeps the margin: footprint.turn_sweep, grown by it, touches nothing. Its
-        footprints are tested each (one call): the sweep is their union, and building the union took
-        most of the planner's time (a turn of half a circle is 37 footprints)."""
+        """Turning in place keeps the margin: the turn's footprints (footprint.turn_footprints), grown
+        by it, touch nothing. Each is tested (one call): the turn's sweep is their union, and building
+        the union took most of the planner's time (a turn of half a circle is 37 footprints)."""
         if abs(turn_angle(yaw_from, yaw_to)) <= MIN_TURN or self.roomy(x, y):
             return True
         footprints = turn_footprints(x, y, yaw_from, yaw_to, self.length, self.width, self.margin)

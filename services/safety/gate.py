@@ -166,6 +166,11 @@ def _approval(key: str, verdict: Verdict[Any], command: object) -> GateEvent:
     return GateEvent(key, decision, verdict.note, command, verdict.clamped_by, verdict.checks, verdict.values)
 
 
+def _positions(joints: JointState | None) -> dict[str, float] | None:
+    """Each joint's position by name (None without a joint state)."""
+    return None if joints is None else dict(zip(joints.name, joints.position, strict=False))
+
+
 def _refusal_kind(exc: Vetoed) -> ErrorKind:
     return ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
 
@@ -318,8 +323,7 @@ class SafetyGate:
         return odom[1].pose
 
     def _joint_positions(self, t: float) -> dict[str, float] | None:
-        joints = self._joint_state(t)
-        return None if joints is None else dict(zip(joints.name, joints.position, strict=False))
+        return _positions(self._joint_state(t))
 
     def _joint_state(self, t: float) -> JointState | None:
         """The latest joint state, or None when it is missing or stale."""
@@ -809,7 +813,7 @@ class SafetyGate:
         (it may have latched during the wait), the rate is not (the goal was counted the first time)."""
         t = self._time()
         joints = self._joint_state(t)
-        positions = None if joints is None else dict(zip(joints.name, joints.position, strict=False))
+        positions = _positions(joints)
         # Which joint state the check rested on, in the decision's values: `tether recheck` checks the
         # recorded goal from that very state (services/safety/recheck.py).
         measured = {} if joints is None else {JOINTS_STAMP: joints.stamp}

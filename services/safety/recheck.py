@@ -5,8 +5,8 @@ time (odometry, joint states, the heartbeat's speed scale). Each command is chec
 policy (the recorded one, or a new one) from the state recorded just before it, as safety would have
 seen it, and the new decision is compared with the recorded one. A trajectory is checked from the
 joint state safety names in its decision (JOINTS_STAMP) when the recording holds it, heard within
-state_max_age of the goal: a goal sent as
-the previous motion ends meets an arm that moves while the query travels.
+state_max_age of the goal: a goal sent as the previous motion ends meets an arm that moves while the
+query travels.
 
 Rechecked: plan checks (`safety/check_plan`), navigation, trajectory and gripper goals (their
 `send_goal` queries as safety received them, from `_trace/safety/**`) and program velocity
