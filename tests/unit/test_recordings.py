@@ -393,6 +393,26 @@ def test_recheck_checks_a_command_from_the_state_recorded_before_it(world_policy
     assert goal.now is RecheckOutcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
 
 
+def test_recheck_takes_no_decision_of_an_earlier_goal_sent_with_the_same_id(world_policy: SafetyPolicy) -> None:
+    # Goal "b" (to the stairs, refused by the policy at 2.5, its own event not in the file) had been
+    # sent once before, at 0.2, and refused then for the command rate: that refusal is not this one's.
+    earlier = SendGoal(goal_id="b", goal=NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2)))
+    messages = sorted(
+        [*incident(), event(0.2, keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, earlier, Rule.COMMAND_RATE)],
+        key=lambda m: m.time,
+    )
+    report = recheck(messages, world_policy)
+    stairs = next(c for c in report.checked if c.command.startswith("navigate to (11.20"))
+    assert (stairs.recorded, stairs.now) == (RecheckOutcome.VETOED, RecheckOutcome.VETOED)
+    assert stairs.now_rule is Rule.KEEP_OUT
+    assert report.skipped == {"refused for the e-stop": 2}
+    # Its own event, heard as it was answered, is taken: refused for the rate, it is kept as recorded.
+    own = event(2.5005, keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, earlier, Rule.COMMAND_RATE)
+    report = recheck(sorted([*incident(), own], key=lambda m: m.time), world_policy)
+    assert not any(c.command.startswith("navigate to (11.20") for c in report.checked)
+    assert report.skipped == {"refused for the e-stop": 2, "refused for the command rate": 1}
+
+
 # A trajectory sent the moment the previous motion ended, from where that motion ended (END), and
 # what the recorder heard meanwhile: the arm still moving, and the joint state safety decided from
 # (stamped 1.98, at END) only after the goal. The goal's query came at 2.0.
