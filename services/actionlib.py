@@ -6,6 +6,7 @@ import logging
 import threading
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable
 from concurrent import futures
 from concurrent.futures import Future
@@ -128,7 +129,13 @@ class ActionServer(Generic[G, F, R]):
         self._preempt_timeout = preempt_timeout
         self._concurrent = concurrent or (lambda _goal: False)
         self._accept_waits = accept_waits or (lambda _goal: accept is not None)
+        # Every goal accepted and not yet forgotten, by id; of them, those running (accepted, not yet
+        # ended), and those ended, oldest first (when, id). A goal is decided on by looking at the
+        # running ones only: with every result kept RESULT_RETENTION, scanning all of them cost the
+        # sim's send_goal some 0.1 ms each time at 24 goals a second (bench.gate).
         self._goals: dict[str, GoalHandle[G, F]] = {}
+        self._running: dict[str, GoalHandle[G, F]] = {}
+        self._ended: deque[tuple[float, str]] = deque()
         self._lock = threading.Lock()
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
@@ -145,7 +152,7 @@ class ActionServer(Generic[G, F, R]):
 
     def active(self) -> list[GoalHandle[G, F]]:
         with self._lock:
-            return [g for g in self._goals.values() if not g.done.is_set()]
+            return [g for g in self._running.values() if not g.done.is_set()]
 
     def abort_all(self, reason: str) -> None:
         """Stop every running goal (e-stop, lost heartbeat); each ends as aborted with `reason`."""
@@ -186,7 +193,7 @@ class ActionServer(Generic[G, F, R]):
                 log.info("rejected goal %s on %s: %s", request.goal_id, self._action.path, reason)
                 return GoalResponse(goal_id=request.goal_id, accepted=False, reason=reason)
             handle: GoalHandle[G, F] = GoalHandle(request.goal_id, request.goal, self._publish_feedback)
-            self._goals[request.goal_id] = handle
+            self._goals[request.goal_id] = self._running[request.goal_id] = handle
         return GoalResponse(goal_id=request.goal_id, accepted=True)
 
     def _start(self, request: SendGoal[G], response: GoalResponse) -> None:
@@ -199,7 +206,7 @@ class ActionServer(Generic[G, F, R]):
 
     def _blocking(self) -> list[GoalHandle[G, F]]:
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
-        return [g for g in self._goals.values() if not g.done.is_set() and not self._concurrent(g.goal)]
+        return [g for g in self._running.values() if not g.done.is_set() and not self._concurrent(g.goal)]
 
     def _preempt(self, goal_id: str) -> str | None:
         """Cancel every running goal for `goal_id` and wait for them to end; the reason to reject
@@ -236,8 +243,11 @@ class ActionServer(Generic[G, F, R]):
         ):
             outcome = Outcome(outcome.state, outcome.result, f"{handle.cancel_reason}; {outcome.message}")
         handle.outcome = outcome
-        handle.finished_at = time.monotonic()
-        handle.done.set()
+        with self._lock:
+            handle.finished_at = time.monotonic()
+            handle.done.set()
+            self._running.pop(handle.goal_id, None)
+            self._ended.append((handle.finished_at, handle.goal_id))
         self._publish_status(handle.goal_id, outcome.state, outcome.message)
 
     def _on_cancel(self, request: CancelGoal) -> CancelResponse:
@@ -284,9 +294,11 @@ class ActionServer(Generic[G, F, R]):
         )
 
     def _forget_old(self) -> None:
+        """Forget the goals that ended more than RESULT_RETENTION ago. With the lock held."""
         cutoff = time.monotonic() - RESULT_RETENTION
-        for goal_id in [g for g, h in self._goals.items() if h.done.is_set() and h.finished_at < cutoff]:
-            del self._goals[goal_id]
+        ended = self._ended
+        while ended and ended[0][0] < cutoff:
+            self._goals.pop(ended.popleft()[1], None)
 
 
 class ClientGoal(Generic[G, F, R]):

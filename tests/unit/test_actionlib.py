@@ -19,6 +19,7 @@ from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanRe
 from schemas.keys import Service
 from schemas.plan import PlanText
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
+from services import actionlib
 from services.actionlib import ActionClient, ActionServer, ClientGoal, GoalHandle, Outcome
 from services.errors import CallError, GoalRejected
 from services.querypool import QueryPool
@@ -238,6 +239,42 @@ def test_a_goal_that_moves_nothing_runs_beside_the_running_one_and_preempts_noth
     rig.script.release.set()
     assert first.result(WAIT).state is GoalState.SUCCEEDED
     assert beside.result(WAIT).state is GoalState.SUCCEEDED
+
+
+def test_a_result_is_kept_for_the_retention_then_forgotten_and_a_running_goal_never(
+    rig: Rig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(actionlib, "RESULT_RETENTION", 0.5)
+    looked = NavigateToPoseGoal(pose=HERE, max_turn_rate=MOVES_NOTHING)  # ends at once, keeps nobody out
+    ended = rig.client.send(looked)
+    assert ended.result(WAIT).state is GoalState.SUCCEEDED
+    running = rig.client.send(NavigateToPoseGoal(pose=HERE))
+    assert rig.script.running.wait(WAIT)
+
+    def status(goal_id: str) -> GoalState | None:
+        try:
+            return rig.node.call(keys.ROBOT_NAVIGATE.get_status, GetResult(goal_id=goal_id), timeout=WAIT).state
+        except CallError:
+            return None
+
+    # Kept: its result is there, and its id is not taken again.
+    assert status(ended.goal_id) is GoalState.SUCCEEDED
+    with pytest.raises(GoalRejected, match="already used"):
+        rig.client.send(looked, goal_id=ended.goal_id)
+
+    def forgotten() -> bool:
+        rig.client.send(looked).result(WAIT)  # old results are forgotten as a goal comes
+        return status(ended.goal_id) is None
+
+    assert wait_until(forgotten, WAIT), "a result outlived its retention"
+    # The goal running all along is not forgotten, and still keeps others out; the old id is free.
+    assert status(running.goal_id) is GoalState.EXECUTING
+    with pytest.raises(GoalRejected, match="busy"):
+        rig.client.send(NavigateToPoseGoal(pose=HERE))
+    again = rig.client.send(looked, goal_id=ended.goal_id)
+    assert again.result(WAIT).state is GoalState.SUCCEEDED
+    rig.script.release.set()
+    assert running.result(WAIT).state is GoalState.SUCCEEDED
 
 
 def test_a_goal_that_waits_for_nothing_is_decided_on_zenohs_thread_with_no_worker_free(quick: Rig) -> None:
