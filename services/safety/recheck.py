@@ -58,11 +58,11 @@ GOALS = {
     keys.CMD_GRIPPER.send_goal.path: GripperCommandGoal,
 }
 
-# How far (seconds) from a goal query's answering a safety event about its goal id may have been
-# heard and still be about it: the recorder hears the event and the query's trace over different
-# keys, each late by its own delivery (milliseconds; up to seconds on a loaded machine). A goal
-# sent again with the same id seconds later is another goal, whose decision says nothing of this one.
-EVENT_SLACK = 2.0
+# How far (seconds) outside a goal query's answering, by safety's stamps, a safety event about its
+# goal id may be stamped and still be about it: both stamps are safety's wall clock, read in one
+# process, so only a step of that clock moves one from the other. A goal sent again with the same id
+# later is another goal, whose decision says nothing of this one.
+EVENT_SLACK = 0.01
 
 # Where safety's runtime traces each goal query it answered.
 GOAL_TRACES = frozenset(f"_trace/safety/{path}" for path in GOALS)
@@ -427,12 +427,13 @@ def _recheck_goal(
         report.skipped["a goal without a recorded decision"] += 1
         return
     refused = not response.accepted and response.kind in (ErrorKind.VETOED, ErrorKind.ESTOP)
-    # Safety's events about this goal: those the recorder heard while the query was answered (within
-    # EVENT_SLACK), not those of an earlier or later goal sent with the same id. Of them, the nearest
-    # the query that decided as the reply says, if one did: a trajectory refused at first may pass on
-    # a fresher joint state.
-    earliest, latest = time - EVENT_SLACK, time + max(0.0, trace.duration) + EVENT_SLACK
-    candidates = [c for c in events.get((trace.key, request.goal_id), []) if earliest <= c[0] <= latest]
+    # Safety's events about this goal: those it stamped while it answered the query (the trace's
+    # stamp and duration, on the same clock of the same process), not those of an earlier or later
+    # goal sent with the same id, however close, nor the recorder's delays. Of them, the nearest the
+    # query that decided as the reply says, if one did: a trajectory refused at first may pass on a
+    # fresher joint state.
+    earliest, latest = trace.stamp - EVENT_SLACK, trace.stamp + max(0.0, trace.duration) + EVENT_SLACK
+    candidates = [c for c in events.get((trace.key, request.goal_id), []) if earliest <= c[1].stamp <= latest]
     agreeing = [c for c in candidates if (c[1].decision is Decision.VETOED) == refused] or candidates
     event = min(agreeing, key=lambda c: abs(c[0] - time))[1] if agreeing else None
     if refused and response.kind is ErrorKind.ESTOP:

@@ -393,21 +393,29 @@ def test_recheck_checks_a_command_from_the_state_recorded_before_it(world_policy
     assert goal.now is RecheckOutcome.VETOED and goal.now_rule is Rule.POSE_KNOWN
 
 
-def test_recheck_takes_no_decision_of_an_earlier_goal_sent_with_the_same_id(world_policy: SafetyPolicy) -> None:
-    # Goal "b" (to the stairs, refused by the policy at 2.5, its own event not in the file) had been
-    # sent once before, at 0.2, and refused then for the command rate: that refusal is not this one's.
-    earlier = SendGoal(goal_id="b", goal=NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2)))
-    messages = sorted(
-        [*incident(), event(0.2, keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, earlier, Rule.COMMAND_RATE)],
-        key=lambda m: m.time,
-    )
-    report = recheck(messages, world_policy)
+def test_recheck_takes_a_goals_decision_only_from_what_safety_stamped_as_it_answered(
+    world_policy: SafetyPolicy,
+) -> None:
+    # Goal "b" (to the stairs, refused by the policy at 2.5, its own event not in the file) was also
+    # sent before it and after it with the same id, and refused for the command rate each time:
+    # those refusals are not this one's, however close (safety answered it from 2.5 to 2.501).
+    other = SendGoal(goal_id="b", goal=NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2)))
+    rate = [event(t, keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, other, Rule.COMMAND_RATE) for t in (2.45, 2.55)]
+    report = recheck(sorted([*incident(), *rate], key=lambda m: m.time), world_policy)
     stairs = next(c for c in report.checked if c.command.startswith("navigate to (11.20"))
     assert (stairs.recorded, stairs.now) == (RecheckOutcome.VETOED, RecheckOutcome.VETOED)
     assert stairs.now_rule is Rule.KEEP_OUT
     assert report.skipped == {"refused for the e-stop": 2}
-    # Its own event, heard as it was answered, is taken: refused for the rate, it is kept as recorded.
-    own = event(2.5005, keys.CMD_NAVIGATE.send_goal.path, Decision.VETOED, earlier, Rule.COMMAND_RATE)
+    # Its own event, stamped as it was answered, is taken however late the recorder heard it (here 2.5 s
+    # late): refused for the rate, it is kept as recorded.
+    decided = SafetyEvent(
+        stamp=2.5005,
+        key=keys.CMD_NAVIGATE.send_goal.path,
+        decision=Decision.VETOED,
+        rule=Rule.COMMAND_RATE,
+        command=msgspec.Raw(encode(other)),
+    )
+    own = msg(5.0, keys.SAFETY_EVENTS.path, decided)
     report = recheck(sorted([*incident(), own], key=lambda m: m.time), world_policy)
     assert not any(c.command.startswith("navigate to (11.20") for c in report.checked)
     assert report.skipped == {"refused for the e-stop": 2, "refused for the command rate": 1}
