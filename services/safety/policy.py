@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Generic, TypeVar, assert_never
 
 import msgspec
 import numpy as np
+import shapely
 from shapely.geometry import LineString, Point, Polygon
 from shapely.geometry.base import BaseGeometry
 from shapely.ops import unary_union
@@ -41,10 +43,18 @@ from schemas.world import KeepOut, World
 from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, nearest, route_sweeps
 from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
-from services.safety.policyfile import Limits, PolicyError, load_policy, parse_policy
+from services.safety.policyfile import JointLimit, Limits, PolicyError, load_policy, parse_policy
 from services.worldmodel import WorldModel, drive_route
 
 T = TypeVar("T")
+
+# Up to this many trajectory points, or end effector positions along the arm's path, are checked one
+# by one; more, all at once (numpy, shapely), then one by one only to name what fails. One by one costs
+# less for a few (numpy's calls cost more than a few floats' arithmetic). A 25-point trajectory's
+# check in process, against the point-by-point code before: 0.65 ms against 1.38, 1.07 against 2.33
+# in a slower minute; 100 points, 2.8 times faster (2026-11-28, this machine).
+FEW_POINTS = 4
+FEW_ARM_POINTS = 4
 
 # Joint positions may not come closer than this to the limits.
 JOINT_LIMIT_MARGIN = 0.01
@@ -108,6 +118,39 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+def _joint_checks_pass(
+    goal: FollowJointTrajectoryGoal, start: list[float], limits: list[JointLimit]
+) -> tuple[float, np.ndarray] | None:
+    """The joint checks of SafetyPolicy._joint_checks over all points at once: when every point
+    passes, (the fastest joint speed, the points' positions as rows); None when one may not, for the
+    point-by-point checks to find and name the first. The same comparisons of the same doubles."""
+    width = len(goal.joint_names)
+    if any(len(point.positions) != width for point in goal.points):
+        return None
+    positions = (
+        np.array([point.positions for point in goal.points], dtype=float) if goal.points else np.empty((0, width))
+    )
+    times = np.array([point.time_from_start for point in goal.points], dtype=float)
+    if not (np.isfinite(positions).all() and np.isfinite(times).all()):
+        return None
+    lower = np.array([lim.lower for lim in limits]) + JOINT_LIMIT_MARGIN
+    upper = np.array([lim.upper for lim in limits]) - JOINT_LIMIT_MARGIN
+    if not ((lower <= positions) & (positions <= upper)).all():
+        return None
+    dt = np.diff(times, prepend=0.0)
+    # Only the first point may be at time zero, and it where the arm already is.
+    if (dt < 0).any() or (dt[1:] == 0).any():
+        return None
+    moved = np.abs(np.diff(positions, axis=0, prepend=np.array([start], dtype=float)))
+    if dt.size and dt[0] == 0 and (moved[0] > START_TOLERANCE).any():
+        return None
+    timed = dt > 0
+    speeds = moved[timed] / dt[timed][:, np.newaxis]
+    if (speeds > np.array([lim.velocity for lim in limits]) + STILL).any():
+        return None
+    return (float(speeds.max()) if speeds.size else 0.0), positions
+
+
 def base_moving(odom: Odometry) -> bool:
     """Whether the base moves too fast for the arm to start (it may still be settling)."""
     return abs(odom.linear_x) > STILL_BELOW or abs(odom.angular_z) > STILL_BELOW
@@ -162,9 +205,17 @@ class SafetyPolicy:
                 return zone
         return None
 
+    def _zone_at_point(self, x: float, y: float, grown: bool = True) -> KeepOut | None:
+        """`_zone_hit` of the point (x, y), without making a Point of it (shapely.intersects_xy)."""
+        shapes = self.zones if grown else self.zone_shapes
+        for zone in self.limits.keep_out:
+            if shapely.intersects_xy(shapes[zone.id], x, y):
+                return zone
+        return None
+
     def zone_at(self, x: float, y: float) -> KeepOut | None:
         """The keep-out zone the base's centre stands in (not grown), for the monitors."""
-        return self._zone_hit(Point(x, y), grown=False)
+        return self._zone_at_point(x, y, grown=False)
 
     def check_spot(self, pose: Pose2D) -> None:
         """Where a plan sends the base: on the map, its footprint out of keep-out zones and as far
@@ -433,64 +484,19 @@ class SafetyPolicy:
         if base is None:
             raise Vetoed("the robot's pose is unknown (no recent odometry)", Rule.POSE_KNOWN)
         index = [self.arm.joint_names.index(n) for n in goal.joint_names]
-        full = np.array([current[n] for n in self.arm.joint_names])
-        previous, previous_time = full[index], 0.0
-        fastest = 0.0
-        path = [full.copy()]
-        for i, point in enumerate(goal.points):
-            if len(point.positions) != len(goal.joint_names):
-                raise Vetoed(
-                    f"point {i}: {len(point.positions)} positions for {len(goal.joint_names)} joints", Rule.JOINT_LIMITS
-                )
-            positions = np.array(point.positions, dtype=float)
-            if not np.all(np.isfinite(positions)) or not math.isfinite(point.time_from_start):
-                raise Vetoed(f"point {i}: a position is not finite", Rule.JOINT_LIMITS)
-            for name, q in zip(goal.joint_names, positions, strict=True):
-                lim = self.joint_limits[name]
-                lower, upper = lim.lower + JOINT_LIMIT_MARGIN, lim.upper - JOINT_LIMIT_MARGIN
-                if not lower <= q <= upper:
-                    raise Vetoed(
-                        f"point {i}: {name} = {q:.4f} rad is outside its limits [{lower:.4f}, {upper:.4f}] rad "
-                        f"(the joint's range less {JOINT_LIMIT_MARGIN:g} rad)",
-                        Rule.JOINT_LIMITS,
-                        position_rad=float(q),
-                        lower_rad=lower,
-                        upper_rad=upper,
-                    )
-            dt = point.time_from_start - previous_time
-            if dt < 0 or (dt == 0 and i > 0):
-                # Only the first point may be at time zero (where the arm already is): points at
-                # equal times would be jumps, however small each one.
-                raise Vetoed(
-                    f"point {i}: time_from_start {point.time_from_start:g} s does not increase "
-                    f"from {previous_time:g} s",
-                    Rule.JOINT_SPEED,
-                )
-            for name, q0, q1 in zip(goal.joint_names, previous, positions, strict=True):
-                if dt == 0:
-                    # A point at the start time must be where the arm already is.
-                    if abs(q1 - q0) > START_TOLERANCE:
-                        raise Vetoed(
-                            f"point {i}: {name} would jump {abs(q1 - q0):.3f} rad at once",
-                            Rule.JOINT_SPEED,
-                            jump_rad=float(abs(q1 - q0)),
-                        )
-                    continue
-                speed = float(abs(q1 - q0) / dt)
-                fastest = max(fastest, speed)
-                limit = self.joint_limits[name].velocity
-                if speed > limit + STILL:
-                    raise Vetoed(
-                        f"point {i}: {name} would move at {speed:.3f} rad/s, over its limit of {limit:.3f} rad/s; "
-                        f"slow the trajectory down",
-                        Rule.JOINT_SPEED,
-                        speed_rps=speed,
-                        limit_rps=limit,
-                    )
-            q = path[-1].copy()
-            q[index] = positions
-            path.append(q)
-            previous, previous_time = positions, point.time_from_start
+        full = np.array([current[n] for n in self.arm.joint_names], dtype=float)
+        start = [float(current[n]) for n in goal.joint_names]
+        limits = [self.joint_limits[name] for name in goal.joint_names]
+        # All points at once; point by point only when that finds something, to name the first.
+        passed = _joint_checks_pass(goal, start, limits) if len(goal.points) > FEW_POINTS else None
+        path: Sequence[np.ndarray]
+        if passed is None:
+            fastest, path = self._joint_checks(goal, start, limits, full, index)
+        else:
+            fastest, rows = passed
+            table = np.tile(full, (len(rows) + 1, 1))
+            table[1:, index] = rows
+            path = list(table)
         reach = self._check_arm_path(path, base)
         values = {"points": float(len(goal.points)), "fastest_rps": fastest, **reach}
         checks = (
@@ -503,18 +509,120 @@ class SafetyPolicy:
         )
         return Verdict(goal, checks, values)
 
-    def _check_arm_path(self, path: list[np.ndarray], base: Pose2D) -> dict[str, float]:
-        """Forward kinematics along the joint path, interpolated finely; raises at the first point out."""
+    def _joint_checks(
+        self,
+        goal: FollowJointTrajectoryGoal,
+        start: list[float],
+        limits: list[JointLimit],
+        full: np.ndarray,
+        index: list[int],
+    ) -> tuple[float, list[np.ndarray]]:
+        """The joint checks point by point, raising at the first point and joint that fails: the
+        fastest joint speed and the joint path (every arm joint, from `full`). In plain floats (a numpy
+        scalar's arithmetic costs several times a float's): the same IEEE doubles."""
+        previous, previous_time = start, 0.0
+        fastest = 0.0
+        path = [full.copy()]
+        for i, point in enumerate(goal.points):
+            if len(point.positions) != len(goal.joint_names):
+                raise Vetoed(
+                    f"point {i}: {len(point.positions)} positions for {len(goal.joint_names)} joints", Rule.JOINT_LIMITS
+                )
+            positions = [float(q) for q in point.positions]
+            if not all(map(math.isfinite, positions)) or not math.isfinite(point.time_from_start):
+                raise Vetoed(f"point {i}: a position is not finite", Rule.JOINT_LIMITS)
+            for name, q, lim in zip(goal.joint_names, positions, limits, strict=True):
+                lower, upper = lim.lower + JOINT_LIMIT_MARGIN, lim.upper - JOINT_LIMIT_MARGIN
+                if not lower <= q <= upper:
+                    raise Vetoed(
+                        f"point {i}: {name} = {q:.4f} rad is outside its limits [{lower:.4f}, {upper:.4f}] rad "
+                        f"(the joint's range less {JOINT_LIMIT_MARGIN:g} rad)",
+                        Rule.JOINT_LIMITS,
+                        position_rad=q,
+                        lower_rad=lower,
+                        upper_rad=upper,
+                    )
+            dt = point.time_from_start - previous_time
+            if dt < 0 or (dt == 0 and i > 0):
+                # Only the first point may be at time zero (where the arm already is): points at
+                # equal times would be jumps, however small each one.
+                raise Vetoed(
+                    f"point {i}: time_from_start {point.time_from_start:g} s does not increase "
+                    f"from {previous_time:g} s",
+                    Rule.JOINT_SPEED,
+                )
+            for name, q0, q1, lim in zip(goal.joint_names, previous, positions, limits, strict=True):
+                if dt == 0:
+                    # A point at the start time must be where the arm already is.
+                    if abs(q1 - q0) > START_TOLERANCE:
+                        raise Vetoed(
+                            f"point {i}: {name} would jump {abs(q1 - q0):.3f} rad at once",
+                            Rule.JOINT_SPEED,
+                            jump_rad=abs(q1 - q0),
+                        )
+                    continue
+                speed = abs(q1 - q0) / dt
+                fastest = max(fastest, speed)
+                limit = lim.velocity
+                if speed > limit + STILL:
+                    raise Vetoed(
+                        f"point {i}: {name} would move at {speed:.3f} rad/s, over its limit of {limit:.3f} rad/s; "
+                        f"slow the trajectory down",
+                        Rule.JOINT_SPEED,
+                        speed_rps=speed,
+                        limit_rps=limit,
+                    )
+            row = path[-1].copy()
+            row[index] = positions
+            path.append(row)
+            previous, previous_time = positions, point.time_from_start
+        return fastest, path
+
+    def _check_arm_path(self, path: Sequence[np.ndarray], base: Pose2D) -> dict[str, float]:
+        """Forward kinematics along the joint path, interpolated finely; raises at the first point out.
+        Past a few points, the workspace and the zones are checked for every point at once, and point
+        by point only when that finds one out, to name the first."""
+        segments = list(itertools.pairwise(path))
+        steps = [
+            max(1, math.ceil(float(np.max(np.abs(q1 - q0), initial=0.0)) / INTERPOLATION_STEP)) for q0, q1 in segments
+        ]
+        if sum(steps) <= FEW_ARM_POINTS:
+            return self._arm_path_point_by_point(segments, steps, base)
+        # The same configurations, in order, as q0 + (q1 - q0) * k / n for k = 1 .. n on each segment.
+        configurations = np.concatenate(
+            [
+                q0 + (q1 - q0) * np.arange(1, n + 1)[:, np.newaxis] / n
+                for (q0, q1), n in zip(segments, steps, strict=True)
+            ]
+        )
+        hand = np.array([self.arm.grasp_point(q) for q in configurations])
+        x, y, z = hand[:, 0] + self.mount.x, hand[:, 1] + self.mount.y, hand[:, 2] + self.mount.z
+        low, high = self.policy.workspace.min, self.policy.workspace.max
+        inside = (low.x <= x) & (x <= high.x) & (low.y <= y) & (y <= high.y) & (low.z <= z) & (z <= high.z)
+        c, s = math.cos(base.yaw), math.sin(base.yaw)  # base_to_map, for every point
+        world_x, world_y = base.x + c * x - s * y, base.y + s * x + c * y
+        if not inside.all() or any(
+            shapely.intersects_xy(self.zone_shapes[zone.id], world_x, world_y).any() for zone in self.limits.keep_out
+        ):
+            self._arm_path_point_by_point(segments, steps, base)
+            # Not reached while the two agree (the same points, the same comparisons): refused if not.
+            raise Vetoed("the end effector would leave the workspace or reach into a keep-out zone", Rule.WORKSPACE)
+        return {"lowest_m": float(z.min()), "farthest_m": max(0.0, float(x.max()))}
+
+    def _arm_path_point_by_point(
+        self, segments: list[tuple[np.ndarray, np.ndarray]], steps: list[int], base: Pose2D
+    ) -> dict[str, float]:
+        """`_check_arm_path` one point at a time: raises for the first whose end effector leaves the
+        workspace or reaches into a keep-out zone."""
         lowest, farthest = math.inf, 0.0
-        for q0, q1 in itertools.pairwise(path):
-            steps = max(1, math.ceil(float(np.max(np.abs(q1 - q0), initial=0.0)) / INTERPOLATION_STEP))
-            for k in range(1, steps + 1):
-                point = self.arm.grasp_point(q0 + (q1 - q0) * k / steps)
-                x, y, z = point[0] + self.mount.x, point[1] + self.mount.y, point[2] + self.mount.z
+        for (q0, q1), n in zip(segments, steps, strict=True):
+            for k in range(1, n + 1):
+                px, py, pz = self.arm.grasp_point(q0 + (q1 - q0) * k / n).tolist()
+                x, y, z = px + self.mount.x, py + self.mount.y, pz + self.mount.z
                 self.check_in_workspace(x, y, z, "the end effector")
                 lowest, farthest = min(lowest, z), max(farthest, x)
                 world = base_to_map(base, x, y)
-                if zone := self._zone_hit(Point(world), grown=False):
+                if zone := self._zone_at_point(*world, grown=False):
                     raise Vetoed(
                         f"the end effector would reach into keep-out zone '{zone.name}' at "
                         f"({_fmt(world[0])}, {_fmt(world[1])}){_why(zone)}",

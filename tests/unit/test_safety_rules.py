@@ -33,6 +33,7 @@ from schemas.safety import Rule
 from schemas.world import World
 from services.footprint import MAX_REVERSE, TRACKING_TOLERANCE
 from services.robotmodel import ArmModel
+from services.safety import policy as policy_module
 from services.safety.errors import Vetoed
 from services.safety.policy import JOINT_LIMIT_MARGIN, START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import Limits, PayloadPolicy, load_policy, resolve
@@ -853,6 +854,49 @@ def test_a_trajectory_reaching_just_short_of_the_stairs_passes_and_just_over_is_
     exc = refused(lambda: policy.check_trajectory(goal, NOW, over), Rule.ARM_KEEP_OUT)
     assert "reach into keep-out zone 'stairs'" in str(exc)
     assert exc.values == {"x": pytest.approx(STAIRS_WEST + EPS), "y": pytest.approx(STAIRS_MID_Y, abs=1e-6)}
+
+
+def random_trajectory(rng: np.random.Generator, policy: SafetyPolicy) -> tuple[FollowJointTrajectoryGoal, Pose2D]:
+    """A trajectory of 1 to 30 points from NOW, some to a random configuration in the limits (the hand
+    in or out of the workspace), some wandering (a joint over its limit or its speed now and then), a
+    few with a point at a time already passed; from a spot near the stairs or in the open."""
+    n = int(rng.integers(1, 31))
+    q = np.array(HOME)
+    if rng.random() < 0.5:
+        lower = np.array([policy.joint_limits[name].lower for name in ARM]) + 0.02
+        upper = np.array([policy.joint_limits[name].upper for name in ARM]) - 0.02
+        target = rng.uniform(lower, upper)
+        rows = [q + (target - q) * k / n for k in range(1, n + 1)]
+        times = np.cumsum(rng.uniform(3.0, 6.0, n))
+    else:
+        rows = list(q + np.cumsum(rng.normal(0.0, rng.choice([0.05, 0.3]), (n, 7)), axis=0))
+        times = np.cumsum(rng.choice([0.0, 0.2, 1.0], n, p=[0.05, 0.25, 0.7]))
+    base = START if rng.random() < 0.5 else Pose2D(x=STAIRS_WEST - rng.uniform(0.2, 1.2), y=STAIRS_MID_Y)
+    return trajectory(*((list(row), float(t)) for row, t in zip(rows, times, strict=True))), base
+
+
+def decision(policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, base: Pose2D) -> tuple[object, ...]:
+    try:
+        verdict = policy.check_trajectory(goal, NOW, base)
+    except Vetoed as exc:
+        return ("vetoed", str(exc), exc.rule, exc.values)
+    return ("approved", verdict.values)
+
+
+def test_a_long_trajectory_checked_all_at_once_is_decided_as_point_by_point(
+    policy: SafetyPolicy, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Past FEW_POINTS points (FEW_ARM_POINTS hand positions), the checks run on all of them at once and
+    # point by point only to name the first that fails: the same decisions, messages and values.
+    rng = np.random.default_rng(21)
+    cases = [random_trajectory(rng, policy) for _ in range(300)]
+    at_once = [decision(policy, goal, base) for goal, base in cases]
+    monkeypatch.setattr(policy_module, "FEW_POINTS", 10**9)
+    monkeypatch.setattr(policy_module, "FEW_ARM_POINTS", 10**9)
+    assert [decision(policy, goal, base) for goal, base in cases] == at_once
+    rules = {d[2] for d in at_once if d[0] == "vetoed"}
+    assert sum(d[0] == "approved" for d in at_once) > 50
+    assert {Rule.JOINT_LIMITS, Rule.JOINT_SPEED, Rule.WORKSPACE, Rule.ARM_KEEP_OUT} <= rules, rules
 
 
 # payload
