@@ -205,17 +205,9 @@ class SafetyPolicy:
                 return zone
         return None
 
-    def _zone_at_point(self, x: float, y: float, grown: bool = True) -> KeepOut | None:
-        """`_zone_hit` of the point (x, y), without making a Point of it (shapely.intersects_xy)."""
-        shapes = self.zones if grown else self.zone_shapes
-        for zone in self.limits.keep_out:
-            if shapely.intersects_xy(shapes[zone.id], x, y):
-                return zone
-        return None
-
     def zone_at(self, x: float, y: float) -> KeepOut | None:
         """The keep-out zone the base's centre stands in (not grown), for the monitors."""
-        return self._zone_at_point(x, y, grown=False)
+        return self._zone_hit(Point(x, y), grown=False)
 
     def check_spot(self, pose: Pose2D) -> None:
         """Where a plan sends the base: on the map, its footprint out of keep-out zones and as far
@@ -600,9 +592,12 @@ class SafetyPolicy:
         low, high = self.policy.workspace.min, self.policy.workspace.max
         inside = (low.x <= x) & (x <= high.x) & (low.y <= y) & (y <= high.y) & (low.z <= z) & (z <= high.z)
         c, s = math.cos(base.yaw), math.sin(base.yaw)  # base_to_map, for every point
-        world_x, world_y = base.x + c * x - s * y, base.y + s * x + c * y
+        world = shapely.points(base.x + c * x - s * y, base.y + s * x + c * y)
+        # The points first, as Point(...).intersects(zone) has them: shapely.intersects_xy would prepare
+        # the shared zone in place, and GEOS builds a prepared geometry's index lazily, unlocked, while
+        # safety checks from several threads (libgeos/geos#825).
         if not inside.all() or any(
-            shapely.intersects_xy(self.zone_shapes[zone.id], world_x, world_y).any() for zone in self.limits.keep_out
+            shapely.intersects(world, self.zone_shapes[zone.id]).any() for zone in self.limits.keep_out
         ):
             self._arm_path_point_by_point(segments, steps, base)
             # Not reached while the two agree (the same points, the same comparisons): refused if not.
@@ -622,7 +617,7 @@ class SafetyPolicy:
                 self.check_in_workspace(x, y, z, "the end effector")
                 lowest, farthest = min(lowest, z), max(farthest, x)
                 world = base_to_map(base, x, y)
-                if zone := self._zone_at_point(*world, grown=False):
+                if zone := self._zone_hit(Point(world), grown=False):
                     raise Vetoed(
                         f"the end effector would reach into keep-out zone '{zone.name}' at "
                         f"({_fmt(world[0])}, {_fmt(world[1])}){_why(zone)}",

@@ -857,22 +857,33 @@ def test_a_trajectory_reaching_just_short_of_the_stairs_passes_and_just_over_is_
 
 
 def random_trajectory(rng: np.random.Generator, policy: SafetyPolicy) -> tuple[FollowJointTrajectoryGoal, Pose2D]:
-    """A trajectory of 1 to 30 points from NOW, some to a random configuration in the limits (the hand
-    in or out of the workspace), some wandering (a joint over its limit or its speed now and then), a
-    few with a point at a time already passed; from a spot near the stairs or in the open."""
+    """A trajectory of 1 to 30 points from NOW over all the arm's joints or some of them in any order,
+    some to a random configuration in the limits (the hand in or out of the workspace), some wandering
+    (a joint over its limit or its speed now and then, a time repeated or going back); some start with
+    a point at time 0 where the arm is. From a spot near the stairs or in the open, facing any way."""
+    names = list(ARM) if rng.random() < 0.7 else [ARM[i] for i in rng.permutation(7)[: int(rng.integers(1, 8))]]
     n = int(rng.integers(1, 31))
-    q = np.array(HOME)
+    q = np.array([NOW[name] for name in names])
     if rng.random() < 0.5:
-        lower = np.array([policy.joint_limits[name].lower for name in ARM]) + 0.02
-        upper = np.array([policy.joint_limits[name].upper for name in ARM]) - 0.02
+        lower = np.array([policy.joint_limits[name].lower for name in names]) + 0.02
+        upper = np.array([policy.joint_limits[name].upper for name in names]) - 0.02
         target = rng.uniform(lower, upper)
         rows = [q + (target - q) * k / n for k in range(1, n + 1)]
         times = np.cumsum(rng.uniform(3.0, 6.0, n))
     else:
-        rows = list(q + np.cumsum(rng.normal(0.0, rng.choice([0.05, 0.3]), (n, 7)), axis=0))
-        times = np.cumsum(rng.choice([0.0, 0.2, 1.0], n, p=[0.05, 0.25, 0.7]))
-    base = START if rng.random() < 0.5 else Pose2D(x=STAIRS_WEST - rng.uniform(0.2, 1.2), y=STAIRS_MID_Y)
-    return trajectory(*((list(row), float(t)) for row, t in zip(rows, times, strict=True))), base
+        rows = list(q + np.cumsum(rng.normal(0.0, rng.choice([0.05, 0.3]), (n, len(names))), axis=0))
+        times = np.cumsum(rng.choice([-0.1, 0.0, 0.2, 1.0], n, p=[0.02, 0.03, 0.25, 0.7]))
+    if rng.random() < 0.3:  # first where the arm is, at time 0
+        rows, times = [q + rng.normal(0.0, 0.02, len(names)), *rows], np.concatenate(([0.0], times))
+    yaw = float(rng.uniform(-math.pi, math.pi))
+    spot = (START.x, START.y) if rng.random() < 0.5 else (STAIRS_WEST - rng.uniform(0.2, 1.2), STAIRS_MID_Y)
+    goal = FollowJointTrajectoryGoal(
+        joint_names=names,
+        points=[
+            TrajectoryPoint(positions=list(row), time_from_start=float(t)) for row, t in zip(rows, times, strict=True)
+        ],
+    )
+    return goal, Pose2D(x=spot[0], y=spot[1], yaw=yaw)
 
 
 def decision(policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, base: Pose2D) -> tuple[object, ...]:
