@@ -130,9 +130,10 @@ class ActionServer(Generic[G, F, R]):
         self._concurrent = concurrent or (lambda _goal: False)
         self._accept_waits = accept_waits or (lambda _goal: accept is not None)
         # Every goal accepted and not yet forgotten, by id; of them, those running (accepted, not yet
-        # ended), and those ended, oldest first (when, id). A goal is decided on by looking at the
-        # running ones only: with every result kept RESULT_RETENTION, scanning all of them cost the
-        # sim's send_goal some 0.1 ms each time at 24 goals a second (bench.gate).
+        # ended: a goal leaves as its `done` is set, under the lock), and those ended, oldest first
+        # (when, id). A goal is decided on by looking at the running ones only: with every result kept
+        # RESULT_RETENTION, scanning all of them cost the sim's send_goal some 0.1 ms each time at 24
+        # goals a second (bench.gate).
         self._goals: dict[str, GoalHandle[G, F]] = {}
         self._running: dict[str, GoalHandle[G, F]] = {}
         self._ended: deque[tuple[float, str]] = deque()
@@ -152,7 +153,7 @@ class ActionServer(Generic[G, F, R]):
 
     def active(self) -> list[GoalHandle[G, F]]:
         with self._lock:
-            return [g for g in self._running.values() if not g.done.is_set()]
+            return list(self._running.values())
 
     def abort_all(self, reason: str) -> None:
         """Stop every running goal (e-stop, lost heartbeat); each ends as aborted with `reason`."""
@@ -206,7 +207,7 @@ class ActionServer(Generic[G, F, R]):
 
     def _blocking(self) -> list[GoalHandle[G, F]]:
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
-        return [g for g in self._running.values() if not g.done.is_set() and not self._concurrent(g.goal)]
+        return [g for g in self._running.values() if not self._concurrent(g.goal)]
 
     def _preempt(self, goal_id: str) -> str | None:
         """Cancel every running goal for `goal_id` and wait for them to end; the reason to reject
