@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import mmap
 import os
 import resource
 import subprocess
@@ -53,10 +54,13 @@ def test_without_proc_the_peak_stands_for_both(tmp_path: Path) -> None:
 
 
 def test_this_process_reports_itself_and_the_report_crosses_the_wire() -> None:
-    held = bytearray(BUFFER)
-    held[::PAGE] = b"\x01" * len(range(0, BUFFER, PAGE))  # every page touched, so resident
+    # A mapping of its own, not a bytearray: whether malloc hands a freed buffer back to the kernel
+    # depends on what the process did before (a CI run's worker kept one resident), munmap does not.
+    held = mmap.mmap(-1, BUFFER)
+    for offset in range(0, BUFFER, PAGE):
+        held[offset] = 1  # every page touched, so resident
     holding, _ = memory()
-    del held  # a buffer this size is its own mapping: freed, it leaves the process at once
+    held.close()  # unmapped: it leaves the process at once
     status = process_status("parser")
     assert (status.service, status.pid) == ("parser", os.getpid())
     assert 0 < status.rss_bytes <= status.peak_rss_bytes
