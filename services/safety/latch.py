@@ -17,16 +17,20 @@ log = logging.getLogger(__name__)
 
 
 def write_durably(path: Path, data: bytes) -> None:
-    """Replace `path` with `data` so that a crash or power cut leaves the old file or the new one:
-    written to a temporary file and synced, renamed over it, the directory synced (the rename itself
-    is durable only once the directory is)."""
+    """Replace `path` with `data`, renamed into place before it is synced: a crash of this process
+    at any point after the rename leaves the new file (the page cache outlives the process), so the
+    window in which a written state can be lost that way is the write into the page cache, not the
+    sync. A power cut before the syncs finish leaves the old file, the new one or (on a file system
+    that does not order a renamed file's data first; ext4 and btrfs do) an unreadable one, which the
+    readers take the fail-closed way (the latch latched, the mode supervised). On return the file,
+    then the directory holding its name (the rename is durable only once it is), are on disk."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     with tmp.open("wb") as out:
         out.write(data)
         out.flush()
+        os.replace(tmp, path)
         os.fsync(out.fileno())
-    os.replace(tmp, path)
     directory = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
     try:
         os.fsync(directory)
@@ -80,7 +84,8 @@ class EstopLatch:
         (False if it already was).
 
         The caller tells the robot first and then calls save() (as after a reset): a slow disk must
-        not delay a stop.
+        not delay a stop. save() renames the file into place before syncing it, so a crash of safety
+        between the two still leaves it latched on restart.
         """
         with self._lock:
             if self._state.latched:

@@ -1,13 +1,19 @@
-"""The e-stop latch file is on disk before save() returns: the file, then the directory holding its name."""
+"""The e-stop latch file is on disk before save() returns (the file, then the directory holding its
+name), and a safety process that dies while syncing it restarts latched."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 
-from services.safety.latch import EstopLatch
+from schemas.safety import ControlMode, EstopState
+from services.safety.latch import EstopLatch, write_durably
+from services.safety.modes import ModeFile
 
 
 def test_save_fsyncs_the_file_before_the_rename_and_the_directory_after(
@@ -32,6 +38,44 @@ def test_save_fsyncs_the_file_before_the_rename_and_the_directory_after(
     monkeypatch.setattr(os, "replace", replace)
     latch.trigger("operator", "test", 1.0)
     latch.save()
-    assert events == ["fsync estop.tmp", "replace", "fsync state"]
+    assert events == ["replace", "fsync estop.json", "fsync state"]
     monkeypatch.undo()
     assert EstopLatch("secret", state).state.latched
+
+
+# A safety process that latches (or changes the mode) and dies in the sync that follows: the robot
+# was told before the file was written, so the file must read as what was told once the process is
+# gone, or a restarted safety would let the robot move again without an operator.
+DIES_WHILE_SYNCING = """
+import os, sys
+from pathlib import Path
+from schemas.safety import ControlMode
+from services.safety.latch import EstopLatch, write_durably
+from services.safety.modes import ModeFile
+
+state, mode = Path(sys.argv[1]), Path(sys.argv[2])
+latch, modes = EstopLatch("secret", state), ModeFile(mode)
+assert not latch.state.latched and modes.mode is ControlMode.AUTONOMOUS
+latch.trigger("operator", "test", 1.0)
+modes.set(ControlMode.SUPERVISED, "operator", 1.0)
+os.fsync = lambda fd: os._exit(9)  # killed while the disk syncs
+latch.save() if sys.argv[3] == "latch" else modes.save()
+"""
+
+
+@pytest.mark.parametrize("what", ["latch", "mode"])
+def test_safety_dying_while_it_syncs_the_state_restarts_in_the_state_it_told(tmp_path: Path, what: str) -> None:
+    state, mode = tmp_path / "estop.json", tmp_path / "mode.json"
+    write_durably(state, msgspec.json.encode(EstopState(latched=False)))  # an install's first file
+    ModeFile(mode).save()  # autonomous, written down
+    run = subprocess.run(
+        [sys.executable, "-c", DIES_WHILE_SYNCING, str(state), str(mode), what],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 9, run.stderr
+    if what == "latch":
+        assert EstopLatch("secret", state).state.latched
+    else:
+        assert ModeFile(mode).mode is ControlMode.SUPERVISED
