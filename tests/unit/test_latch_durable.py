@@ -16,7 +16,7 @@ from services.safety.latch import EstopLatch, write_durably
 from services.safety.modes import ModeFile
 
 
-def test_save_fsyncs_the_file_before_the_rename_and_the_directory_after(
+def test_save_renames_the_file_into_place_then_syncs_it_and_the_directory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     state = tmp_path / "state" / "estop.json"
@@ -50,7 +50,7 @@ DIES_WHILE_SYNCING = """
 import os, sys
 from pathlib import Path
 from schemas.safety import ControlMode
-from services.safety.latch import EstopLatch, write_durably
+from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
 
 state, mode = Path(sys.argv[1]), Path(sys.argv[2])
