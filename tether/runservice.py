@@ -12,10 +12,13 @@ with pydantic (some 7 MB more). Anything else (help, a bad flag) goes to the typ
 from __future__ import annotations
 
 import importlib
+import logging
 import os
 import sys
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from services.runtime import ALL_SERVICES, SWITCH_INTERVAL, ConfigError, NodeSettings
 
@@ -34,9 +37,11 @@ def error(message: str) -> None:
     print(f"{word} {message}", file=sys.stderr, flush=True)
 
 
-def run_service(settings: NodeSettings, service: str, config: Path | None) -> None:
-    """`run`'s work, once the command line is read (by typer or by `read_command_line`); exits with
-    EXIT_USAGE for an unknown service or a config or world file that cannot be used."""
+def run_service(settings: NodeSettings, service: str, config: Path | None) -> NoReturn:
+    """`run`'s work, once the command line is read (by typer or by `read_command_line`): the service
+    until it stops, then the process ends (see `leave`) with 0 once stopped by SIGINT or SIGTERM,
+    EXIT_USAGE for an unknown service or a config or world file that cannot be used, and 1 (the
+    traceback on stderr) for a service that fails."""
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise SystemExit(EXIT_USAGE)
@@ -46,15 +51,34 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
         module.main(settings, config)
     except ConfigError as exc:
         error(str(exc))
-        raise SystemExit(EXIT_USAGE) from None
+        leave(EXIT_USAGE)
+    except SystemExit as exc:
+        leave(exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1)
     except Exception as exc:
         # Only a service that loads a world raises this, and has imported its module (and shapely) by then.
         from services.worldmodel import WorldFileError
 
-        if not isinstance(exc, WorldFileError):
-            raise
-        error(str(exc))
-        raise SystemExit(EXIT_USAGE) from None
+        if isinstance(exc, WorldFileError):
+            error(str(exc))
+            leave(EXIT_USAGE)
+        traceback.print_exc()
+        leave(1)
+    leave(0)
+
+
+def leave(code: int) -> NoReturn:
+    """The service process ends here, its logs and output flushed, without the interpreter's
+    finalization. A service's threads outlive its main (the query pool's workers are daemon threads,
+    one may wait an hour on a goal); one still inside a Zenoh call when Python finalizes is made to exit
+    by the interpreter as it takes the GIL back, and that thread exit unwinds through zenoh's Rust
+    frames, which catch it: glibc aborts the process ("FATAL: exception not rethrown", SIGABRT). A
+    recorder stopped just after answering a status query died so, its recording complete, with -6 for
+    its supervisor (or systemd) to see as a crash. By now the service has closed its session and
+    files; nothing else registered at exit has work to do."""
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def runs_a_service(argv: Sequence[str]) -> bool:
@@ -127,4 +151,3 @@ def app() -> None:
         error(str(exc))
         sys.exit(EXIT_USAGE)
     run_service(settings, service, config)
-    sys.exit(0)
