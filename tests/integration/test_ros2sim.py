@@ -107,10 +107,15 @@ class Robot:
         self.gripper = ros.action_client(standin.NAMES.gripper, messages.GRIPPER_COMMAND)
 
     def pose(self) -> tuple[float, float]:
+        x, y, _ = self.heading()
+        return x, y
+
+    def heading(self) -> tuple[float, float, float]:
+        """Where the base stands and which way it faces (x, y, yaw), from the latest odometry."""
         latest = self.odom.wait_for(lambda _m: True, 5.0, after=max(0, len(self.odom) - 1))
         assert latest is not None, "no odometry"
         p = latest.pose.pose.position
-        return float(p.x), float(p.y)
+        return float(p.x), float(p.y), messages.yaw_of(latest.pose.pose.orientation)
 
     def _send_estop(self) -> None:
         while not self._closed.wait(ESTOP_PERIOD):
@@ -131,11 +136,12 @@ class Robot:
             self._sending.clear()
 
     def wait_free(self, timeout: float = 10.0) -> None:
-        """Until the stand-in takes goals: a navigation to where the base stands is accepted."""
+        """Until the stand-in takes goals: a navigation to where the base stands, facing the way it
+        faces (a turn back to yaw 0 took some 3 s), is accepted and succeeds."""
         deadline = time.monotonic() + timeout
         while True:
             try:
-                goal = self.navigate(*self.pose())
+                goal = self.navigate(*self.heading())
             except RosGoalRejected:
                 assert time.monotonic() < deadline, "the stand-in still rejects goals"
                 self._closed.wait(ESTOP_PERIOD)  # a poll between two replies, bounded by the deadline
@@ -153,12 +159,12 @@ class Robot:
         self._closed.set()
         self._signal.join(5.0)
 
-    def navigate(self, x: float, y: float, frame: str = "odom") -> Any:
+    def navigate(self, x: float, y: float, yaw: float = 0.0, frame: str = "odom") -> Any:
         types = self.types
         stamped = types.new(
             "geometry_msgs/msg/PoseStamped",
             header=messages.header(types, 0.0, frame),
-            pose=messages.pose(types, x, y),
+            pose=messages.pose(types, x, y, yaw=yaw),
         )
         goal = types.new(f"{messages.NAVIGATE_TO_POSE}_Goal", pose=stamped)
         return self._navigate.send_goal(goal, timeout=GOAL_TIMEOUT)

@@ -115,6 +115,10 @@ CONTRACT_SIM = SimConfig(realtime_factor=1.0, first_heartbeat_wait=1.0)
 BACKENDS = [sim_backend(CONTRACT_SIM), ros2_backend(CONTRACT_SIM)]
 
 
+# What a robot reports, each at the rate its Backend gives (`odom_hz`, ...), each watched by a RunningBackend.
+REPORTS = ("odom", "joint_states", "objects", "humans")
+
+
 @dataclass
 class RunningBackend:
     """One running backend, the test's node next to it, and what the robot has reported so far."""
@@ -128,6 +132,16 @@ class RunningBackend:
     joint_states: Watch[JointState]
     objects: Watch[PerceivedObjects]
     humans: Watch[PerceivedHumans]
+    # Where each report's rate is measured from (an index into its Watch), set for all at once.
+    rate_windows: dict[str, int] = dataclasses.field(default_factory=dict)
+
+    def rate_window(self, topic: str) -> int:
+        """Where `topic`'s rate is measured from: for all four reports the moment the first test of
+        their rates asked, so that their windows run side by side and not one after another (about
+        4 s less per backend in `make test`'s part that runs alone)."""
+        if not self.rate_windows:
+            self.rate_windows.update({name: len(getattr(self, name)) for name in REPORTS})
+        return self.rate_windows[topic]
 
     def cancel_everything(self) -> None:
         for action in (keys.ROBOT_NAVIGATE, keys.ROBOT_TRAJECTORY, keys.ROBOT_GRIPPER):

@@ -30,7 +30,7 @@ from schemas.robot import (
 from services.actionlib import ActionClient, ClientGoal
 from services.errors import GoalRejected
 from services.safety.policyfile import MonitorPolicy
-from tests.robot_contract.conftest import RunningBackend
+from tests.robot_contract.conftest import REPORTS, RunningBackend
 from tests.watch import Watch
 
 # Bounds in wall-clock time: `make test` runs these one at a time at normal priority (tests/suite.py).
@@ -188,12 +188,12 @@ def stream(robot: RunningBackend, twist: Twist, beats: int) -> None:
 # Reports
 
 
-@pytest.mark.parametrize("topic", ["odom", "joint_states", "objects", "humans"])
+@pytest.mark.parametrize("topic", REPORTS)
 def test_the_robots_reports_come_at_their_configured_rates(robot: RunningBackend, topic: str) -> None:
     watch: Watch[Any] = getattr(robot, topic)
     hz: float = getattr(robot.backend, f"{topic}_hz")
     count = max(10, int(hz))  # a second's worth, or ten
-    start = len(watch)
+    start = robot.rate_window(topic)  # the same moment for the four reports: measured side by side
     assert watch.wait_for(lambda _: True, timeout=10.0, after=start + count - 1), f"fewer than {count} {topic}"
     samples = watch.messages[start : start + count]
     stamps = [m.stamp for m in samples]
