@@ -4,16 +4,20 @@
 
 ATTEMPTs: cmd_vel (puts robot/cmd_vel), navigate (asks robot/navigate_to_pose for a goal), reset
 (asks safety/reset with the operator token), humans (puts a made-up person on world/humans),
-alive (declares alive/safety and alive/sim), listen (subscribes to tether/** for LISTEN_S).
-Prints one JSON object: "opened" (false with "error" when the router would not let the session
-in), and per attempt what came back. Puts and tokens have no answer here: the tests check what the
-router passed on from their own session. Each put carries MARKER, so they can tell it apart.
+alive (declares alive/safety and alive/sim, prints HOLDING on a line of its own, and holds them
+until its stdin closes, HOLD_MAX at most: the test looks for them meanwhile), listen (subscribes to
+tether/** for LISTEN_S). Prints one JSON object last: "opened" (false with "error" when the router
+would not let the session in), and per attempt what came back. Puts and tokens have no answer here:
+the tests check what the router passed on from their own session. Each put carries MARKER, so they
+can tell it apart.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import select
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -32,7 +36,13 @@ from services.runtime import encode, zenoh_config_file
 MARKER_SPEED = 0.4321  # m/s: no one else sends this
 MARKER_NAME = "intruder"
 QUERY_TIMEOUT = 2.0
-LISTEN_S = 2.0
+# The heartbeat alone comes 50 times a second: a listener that may hear the robot hears it within this.
+LISTEN_S = 1.0
+# Puts of cmd_vel (each would move the robot were it let through) and the pause between them.
+PUTS = 20
+PUT_GAP = 0.01
+HOLDING = "holding"
+HOLD_MAX = 15.0
 
 
 def answers(session: zenoh.Session, key: str, payload: bytes) -> dict[str, Any]:
@@ -47,10 +57,10 @@ def answers(session: zenoh.Session, key: str, payload: bytes) -> dict[str, Any]:
 
 def attempt(session: zenoh.Session, robot: str, what: str, token_file: Path | None) -> dict[str, Any]:
     if what == "cmd_vel":
-        for _ in range(20):
+        for _ in range(PUTS):
             session.put(keys.ROBOT_CMD_VEL.key(robot), encode(Twist(linear_x=MARKER_SPEED, stamp=time.time())))
-            time.sleep(0.05)
-        return {"sent": 20}
+            time.sleep(PUT_GAP)
+        return {"sent": PUTS}
     if what == "navigate":
         goal = SendGoal(goal_id=uuid.uuid4().hex, goal=NavigateToPoseGoal(pose=Pose2D(x=2.0, y=2.0, yaw=0.0)))
         return answers(session, f"tether/{robot}/robot/navigate_to_pose/_action/send_goal", encode(goal))
@@ -65,7 +75,8 @@ def attempt(session: zenoh.Session, robot: str, what: str, token_file: Path | No
         return {"sent": 5}
     if what == "alive":
         tokens = [session.liveliness().declare_token(keys.alive_key(robot, name)) for name in ("safety", "sim")]
-        time.sleep(LISTEN_S)  # held while the test looks for them
+        print(HOLDING, flush=True)
+        select.select([sys.stdin], [], [], HOLD_MAX)  # held while the test looks for them
         for held in tokens:
             held.undeclare()
         return {"declared": 2}
