@@ -39,9 +39,11 @@ def error(message: str) -> None:
 
 def run_service(settings: NodeSettings, service: str, config: Path | None) -> NoReturn:
     """`run`'s work, once the command line is read (by typer or by `read_command_line`): the service
-    until it stops, then the process ends (see `leave`) with 0 once stopped by SIGINT or SIGTERM,
-    EXIT_USAGE for an unknown service or a config or world file that cannot be used, and 1 (the
-    traceback on stderr) for a service that fails."""
+    until its main returns (stopped by SIGINT or SIGTERM), then the process ends (see `leave`) with 0;
+    with EXIT_USAGE for an unknown service or a config or world file that cannot be used, with 1 and
+    the traceback on stderr for a service that fails, with a SystemExit's own code for one that exits.
+    A Ctrl-C before the service takes SIGINT over (while it imports) ends it as Python does: no Zenoh
+    session is open yet to abort it."""
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise SystemExit(EXIT_USAGE)
@@ -53,7 +55,7 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
         error(str(exc))
         leave(EXIT_USAGE)
     except SystemExit as exc:
-        leave(exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1)
+        leave(exit_status(exc))
     except Exception as exc:
         # Only a service that loads a world raises this, and has imported its module (and shapely) by then.
         from services.worldmodel import WorldFileError
@@ -66,6 +68,14 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
     leave(0)
 
 
+def exit_status(exc: SystemExit) -> int:
+    """The status Python exits with for `exc`: its number, 0 for none, else 1 with its text on stderr."""
+    if exc.code is None or isinstance(exc.code, int):
+        return exc.code or 0
+    print(exc.code, file=sys.stderr)
+    return 1
+
+
 def leave(code: int) -> NoReturn:
     """The service process ends here, its logs and output flushed, without the interpreter's
     finalization. A service's threads outlive its main (the query pool's workers are daemon threads,
@@ -74,11 +84,17 @@ def leave(code: int) -> NoReturn:
     frames, which catch it: glibc aborts the process ("FATAL: exception not rethrown", SIGABRT). A
     recorder stopped just after answering a status query died so, its recording complete, with -6 for
     its supervisor (or systemd) to see as a crash. By now the service has closed its session and
-    files; nothing else registered at exit has work to do."""
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
+    files; nothing else registered at exit has work to do. Output that can no longer go anywhere (a
+    closed pipe, no stdout at all) does not change the exit status."""
+    try:
+        logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None:
+                stream.flush()
+    except (OSError, ValueError):
+        pass  # the output is gone; the status still tells the supervisor how the service ended
+    finally:
+        os._exit(code)
 
 
 def runs_a_service(argv: Sequence[str]) -> bool:

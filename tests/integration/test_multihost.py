@@ -302,13 +302,14 @@ def intrude(stack: MultiHost, config: Path, robot: str, *attempts: str, token: P
     return result
 
 
-# How long the services seen alive are watched while an intruder holds forged tokens.
-FORGED_WATCH = 1.0
+# How long the services seen alive are watched while an intruder holds forged tokens, at most.
+FORGED_WATCH = 2.0
 
 
-def alive_while_forged(stack: MultiHost, node: Node, config: Path, robot: str) -> set[str]:
-    """The services `node` sees alive while an intruder with identity `config` holds forged
-    alive/safety and alive/sim tokens for `robot` (from when it holds them, for FORGED_WATCH seconds)."""
+def alive_while_forged(stack: MultiHost, node: Node, config: Path, robot: str, until_seen: str = "") -> set[str]:
+    """The services `node` sees alive while an intruder with identity `config` holds alive/safety and
+    alive/sim tokens for `robot`: from when it holds them, for FORGED_WATCH seconds or until
+    `until_seen` is among them."""
     argv = intruder(stack, config, robot, "alive")
     with subprocess.Popen(argv, env=clean_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True) as proc:
         assert proc.stdin is not None and proc.stdout is not None
@@ -316,10 +317,10 @@ def alive_while_forged(stack: MultiHost, node: Node, config: Path, robot: str) -
             ready, _, _ = select.select([proc.stdout], [], [], 60.0)
             line = proc.stdout.readline().strip() if ready else ""
             assert line == HOLDING, f"the intruder did not hold its tokens: {line or 'no answer within 60 s'}"
-            # Asked again and again for a while: a token let through reaches the router a moment after it is declared.
+            # Asked again and again: a token let through reaches the router a moment after it is declared.
             seen: set[str] = set()
             until = time.monotonic() + FORGED_WATCH
-            while time.monotonic() < until:
+            while time.monotonic() < until and until_seen not in seen:
                 seen |= node.alive_services()
             proc.stdin.close()  # the intruder lets go of its tokens and ends
             assert proc.wait(timeout=60.0) == 0, "the intruder failed"
@@ -388,6 +389,9 @@ def test_d_the_agent_robot2_and_strangers_are_refused_and_the_robot_does_not_mov
         sigkill(stack, "safety")
         wait_for(lambda: "safety" not in node.alive_services(), 15.0, "safety's token gone")
         # Looked for while the agent holds them (asked after, they were gone whatever the router did).
+        # The positive control first: safety's own identity may declare alive/safety, and is seen to.
+        control = alive_while_forged(stack, node, stack.deploy / "r1" / "safety.json5", "r1", until_seen="safety")
+        assert "safety" in control, f"safety's own identity's alive/safety was not seen within {FORGED_WATCH} s"
         seen = alive_while_forged(stack, node, agent, "r1")
         assert "safety" not in seen, "the agent's forged alive/safety reached the router's others"
         assert "executor" in seen, f"the node saw none of the live services either: {seen}"

@@ -107,10 +107,10 @@ class Robot:
         self.gripper = ros.action_client(standin.NAMES.gripper, messages.GRIPPER_COMMAND)
 
     def pose(self) -> tuple[float, float]:
-        x, y, _ = self.heading()
+        x, y, _ = self.odom_pose()
         return x, y
 
-    def heading(self) -> tuple[float, float, float]:
+    def odom_pose(self) -> tuple[float, float, float]:
         """Where the base stands and which way it faces (x, y, yaw), from the latest odometry."""
         latest = self.odom.wait_for(lambda _m: True, 5.0, after=max(0, len(self.odom) - 1))
         assert latest is not None, "no odometry"
@@ -141,7 +141,7 @@ class Robot:
         deadline = time.monotonic() + timeout
         while True:
             try:
-                goal = self.navigate(*self.heading())
+                goal = self.navigate(*self.odom_pose())
             except RosGoalRejected:
                 assert time.monotonic() < deadline, "the stand-in still rejects goals"
                 self._closed.wait(ESTOP_PERIOD)  # a poll between two replies, bounded by the deadline

@@ -133,15 +133,15 @@ class RunningBackend:
     objects: Watch[PerceivedObjects]
     humans: Watch[PerceivedHumans]
     # Where each report's rate is measured from (an index into its Watch), set for all at once.
-    rate_windows: dict[str, int] = dataclasses.field(default_factory=dict)
+    rate_starts: dict[str, int] = dataclasses.field(default_factory=dict)
 
-    def rate_window(self, topic: str) -> int:
+    def rate_start(self, topic: str) -> int:
         """Where `topic`'s rate is measured from: for all four reports the moment the first test of
         their rates asked, so that their windows run side by side and not one after another (about
         4 s less per backend in `make test`'s part that runs alone)."""
-        if not self.rate_windows:
-            self.rate_windows.update({name: len(getattr(self, name)) for name in REPORTS})
-        return self.rate_windows[topic]
+        if not self.rate_starts:
+            self.rate_starts.update({name: len(getattr(self, name)) for name in REPORTS})
+        return self.rate_starts[topic]
 
     def cancel_everything(self) -> None:
         for action in (keys.ROBOT_NAVIGATE, keys.ROBOT_TRAJECTORY, keys.ROBOT_GRIPPER):

@@ -193,7 +193,7 @@ def test_the_robots_reports_come_at_their_configured_rates(robot: RunningBackend
     watch: Watch[Any] = getattr(robot, topic)
     hz: float = getattr(robot.backend, f"{topic}_hz")
     count = max(10, int(hz))  # a second's worth, or ten
-    start = robot.rate_window(topic)  # the same moment for the four reports: measured side by side
+    start = robot.rate_start(topic)  # the same moment for the four reports: measured side by side
     assert watch.wait_for(lambda _: True, timeout=10.0, after=start + count - 1), f"fewer than {count} {topic}"
     samples = watch.messages[start : start + count]
     stamps = [m.stamp for m in samples]
