@@ -37,6 +37,9 @@ class ModeFile:
     def __init__(self, path: Path | None) -> None:
         self._file = path
         self._lock = threading.Lock()
+        # One save at a time, each writing the state current when its turn comes (as EstopLatch.save):
+        # two at once shared the temporary file, and an older state could be renamed in over a newer.
+        self._file_lock = threading.Lock()
         self._state = self._load()
 
     def _load(self) -> ModeState:
@@ -66,11 +69,11 @@ class ModeFile:
             return previous
 
     def save(self) -> None:
+        """Write the current state down (the latest wins when several write at once)."""
         if self._file is None:
             return
-        with self._lock:
-            data = msgspec.json.encode(self._state)
-        write_durably(self._file, data)
+        with self._file_lock:
+            write_durably(self._file, msgspec.json.encode(self.state))
 
 
 def plan_lines(plan: GroundedPlan) -> list[str]:

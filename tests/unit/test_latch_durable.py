@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import msgspec
@@ -79,3 +80,33 @@ def test_safety_dying_while_it_syncs_the_state_restarts_in_the_state_it_told(tmp
         assert EstopLatch("secret", state).state.latched
     else:
         assert ModeFile(mode).mode is ControlMode.SUPERVISED
+
+
+# Mode changes saved from this many threads at once (the safety node answers set_mode on its workers).
+SAVERS = 8
+SAVES = 150
+
+
+def test_modes_set_and_saved_from_many_threads_at_once_leave_the_latest_on_disk(tmp_path: Path) -> None:
+    path = tmp_path / "mode.json"
+    modes = ModeFile(path)
+    start = threading.Barrier(SAVERS)
+    failures: list[BaseException] = []
+
+    def operator(number: int) -> None:
+        start.wait()
+        for i in range(SAVES):
+            modes.set(list(ControlMode)[(number + i) % len(ControlMode)], f"operator {number}", float(i))
+            try:
+                modes.save()
+            except OSError as exc:  # one save's rename finding the shared temporary file gone
+                failures.append(exc)
+
+    savers = [threading.Thread(target=operator, args=(n,)) for n in range(SAVERS)]
+    for saver in savers:
+        saver.start()
+    for saver in savers:
+        saver.join()
+    assert not failures, failures[:3]
+    # What a restart reads is the last state set, not an older one written after it.
+    assert ModeFile(path).state == modes.state
