@@ -58,6 +58,7 @@ LOG_BACKLOG = 256  # log lines waiting for the publishing thread; the oldest go 
 CLIENT_BACKLOG = 64  # messages the SDK holds per viewer before dropping its oldest
 CAMERA_TIMEOUT = 2.0  # s for one camera picture
 TELEOP_TICK = 0.02  # s between two looks of the deadman: a stop goes out at most this late
+HELPER_JOIN = CAMERA_TIMEOUT + 1.0  # s to wait for the teleop and camera threads to end at exit
 EXIT_USAGE, EXIT_UNREACHABLE, EXIT_SERVE = 2, 3, 1
 
 
@@ -586,17 +587,19 @@ def view(
             )
         except Exception as exc:  # the port taken, the address not ours
             raise fail(EXIT_SERVE, f"cannot serve on {host}:{port}: {exc}", as_json) from None
+        helpers: list[threading.Thread] = []
+
+        def start_helper(name: str, target: Callable[..., None], *args: object) -> None:
+            helper = threading.Thread(target=target, args=args, name=name, daemon=True)
+            helper.start()
+            helpers.append(helper)
+
         try:
             if bridge is not None:
-                threading.Thread(
-                    target=teleop_loop, args=(bridge, server, stop), name="view-teleop", daemon=True
-                ).start()
+                start_helper("view-teleop", teleop_loop, bridge, server, stop)
             for source in inputs(settings.robot):
                 node.subscribe_raw(source.key_expr, lambda key, payload, s=source: live.receive(s, key, payload))
-            camera = threading.Thread(
-                target=camera_loop, args=(live, node, camera_rate, stop), name="view-camera", daemon=True
-            )
-            camera.start()
+            start_helper("view-camera", camera_loop, live, node, camera_rate, stop)
             url = f"ws://{host}:{server.port}"
             if as_json:
                 started = {
@@ -618,6 +621,12 @@ def view(
             while not stop.wait(PUBLISH_PERIOD):
                 live.publish_once()
         finally:
+            # The helpers end before the server and the session do, and before Python finalizes: one
+            # still in a Zenoh or Foxglove call then (both Rust) would abort the process as it exits
+            # (tether/runservice.py, leave).
+            stop.set()
+            for helper in helpers:
+                helper.join(timeout=HELPER_JOIN)
             server.stop()
             if bridge is not None:
                 bridge.close()
