@@ -587,6 +587,10 @@ class RosActionClient:
         self._goals: dict[bytes, RosClientGoal] = {}
         self._feedback_callbacks: dict[bytes, Callable[[Any], None]] = {}
         self._abandoned: dict[bytes, float] = {}  # goal id -> when its send_goal failed (monotonic)
+        # Goals whose send_goal is under way -> the latest status heard for them meanwhile (or None): the
+        # server publishes EXECUTING as it starts the goal, which may be before the answer is read here,
+        # and says nothing more until the goal ends.
+        self._sending: dict[bytes, GoalStatus | None] = {}
         self._lock = threading.Lock()
         self._send_goal = node._client(self.keys.send_goal)
         self._cancel_goal = node._client(self.keys.cancel_goal)
@@ -615,9 +619,10 @@ class RosActionClient:
             goal_id = uuid.uuid4().bytes
         elif len(goal_id) != 16:
             raise ValueError(f"a goal id is 16 bytes, not {len(goal_id)}")
-        if feedback is not None:
-            with self._lock:
+        with self._lock:
+            if feedback is not None:
                 self._feedback_callbacks[goal_id] = feedback
+            self._sending[goal_id] = None
         request = types.new(self._type("SendGoal_Request"), goal_id=_uuid(types, goal_id), goal=goal)
         try:
             response = self._send_goal.call(request, timeout)
@@ -631,6 +636,9 @@ class RosActionClient:
         stamp = int(response.stamp.sec) * 1_000_000_000 + int(response.stamp.nanosec)
         handle = RosClientGoal(self, goal_id, stamp)
         with self._lock:
+            heard = self._sending.pop(goal_id, None)
+            if heard is not None:  # before anyone else sees the handle: a later status always comes after it
+                handle._set_status(heard)
             self._goals[goal_id] = handle
         return handle
 
@@ -663,6 +671,7 @@ class RosActionClient:
         with self._lock:
             self._feedback_callbacks.pop(goal_id, None)
             self._goals.pop(goal_id, None)
+            self._sending.pop(goal_id, None)
 
     def _on_feedback(self, message: Any) -> None:
         goal_id = bytes(message.goal_id.uuid)
@@ -690,13 +699,18 @@ class RosActionClient:
         self.node.report(self.name, f"{what}; canceled it", "late goal")
 
     def _on_status(self, message: Any) -> None:
-        with self._lock:
-            goals = dict(self._goals)
         for status in message.status_list:
             goal_id = bytes(status.goal_info.goal_id.uuid)
-            goal = goals.get(goal_id)
             code = int(status.status)
-            if goal is not None and code in GoalStatus._value2member_map_:
+            known = code in GoalStatus._value2member_map_
+            with self._lock:  # with send_goal's hand-over from _sending to _goals: no status falls between
+                goal = self._goals.get(goal_id)
+                sending = goal is None and goal_id in self._sending
+                if sending and known:
+                    self._sending[goal_id] = GoalStatus(code)
+            if sending:
+                continue
+            if goal is not None and known:
                 goal._set_status(GoalStatus(code))
             elif goal is None and code in (GoalStatus.ACCEPTED, GoalStatus.EXECUTING):
                 with self._lock:

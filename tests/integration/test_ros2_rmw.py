@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 import zenoh
 
+from services.ros2 import rmw
 from services.ros2.rmw import (
     GoalStatus,
     RosActionClient,
@@ -321,6 +322,25 @@ def test_action_goal_feedback_status_result(pair: Pair, navigation: tuple[Naviga
     assert goal.wait_status(lambda status: status is GoalStatus.SUCCEEDED, DEADLINE)
     assert not goal.cancel(DEADLINE)  # a finished goal cannot be canceled
     assert not pair.robot_errors.items and not pair.tether_errors.items
+
+
+def test_a_status_that_comes_before_send_goal_returns_is_not_lost(
+    pair: Pair, navigation: tuple[Navigator, RosActionClient], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server says EXECUTING (and says nothing more until the goal ends) before this client has made
+    the goal's handle, as on a loaded machine: the handle still knows it (a CI run waited 10 s for it)."""
+    _, client = navigation
+    feedback = Collected()
+    make_handle = rmw.RosClientGoal.__init__
+
+    def late(handle: rmw.RosClientGoal, *args: Any, **kwargs: Any) -> None:
+        # Feedback follows the EXECUTING status on the server's goal thread: the status has come by now.
+        assert feedback.wait(lambda items: len(items) >= 2)
+        make_handle(handle, *args, **kwargs)
+
+    monkeypatch.setattr(rmw.RosClientGoal, "__init__", late)
+    goal = client.send_goal(nav_goal(pair.types, 2.0), feedback=feedback, timeout=DEADLINE)
+    assert goal.wait_status(lambda status: status is GoalStatus.EXECUTING, DEADLINE)
 
 
 def test_action_cancel_one_goal(pair: Pair, navigation: tuple[Navigator, RosActionClient]) -> None:
