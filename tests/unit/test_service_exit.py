@@ -19,7 +19,7 @@ import pytest
 
 # The service's main as the child imports it: a thread in Zenoh calls all along, then the ending given.
 CHILD = """
-import sys, threading, time, types
+import sys, threading, types
 import logging
 import zenoh
 from services import runtime
@@ -47,7 +47,6 @@ def main(settings, config):
 
     threading.Thread(target=spin, daemon=True).start()
     started.wait()
-    time.sleep(0.05)
     session.close()
     # Neither flushed here: leave() must (stdout to a pipe is block-buffered).
     logging.getLogger("exit-test").info("the service logged this")
