@@ -208,6 +208,11 @@ class Parser:
             ]
             for action, spec in vocabulary.actions.items()
         }
+        # The unit of each parameter of each action that has one.
+        self._unit_of = {
+            action: {name: pspec.unit for name, pspec in spec.params.items() if pspec.unit}
+            for action, spec in vocabulary.actions.items()
+        }
         # Required parameters of each action, in the vocabulary's order.
         self._required = {
             action: [name for name, pspec in spec.params.items() if pspec.required]
@@ -479,11 +484,12 @@ class Parser:
         description: Any = ""
         steps: Any = None
         if isinstance(value, dict):
+            plan_key: str | None = None
             for key, item in value.items():
                 if key == "description":
                     description = item
-                elif steps is None and key in self.plan_keys:
-                    steps = item
+                elif plan_key is None and key in self.plan_keys:
+                    plan_key, steps = key, item
                 else:  # a second plan key, or a key the general mapping warns about or reads further
                     return None
         elif isinstance(value, list):
@@ -497,29 +503,31 @@ class Parser:
         except msgspec.ValidationError:
             return None
         limit = self.config.max_string_chars
+        actions, known_params, signed, required = self.actions, self.params, self._signed, self._required
+        name_fields, control = self._plain_name_fields, _CONTROL.search
         out: list[Step] = []
         try:
             for raw in plain:
-                named = self.actions.get(raw.action)
+                named = actions.get(raw.action)
                 if named is None:
                     return None
                 action, preset = named
                 names: dict[str, str] = {}
-                for name in self._plain_name_fields:
+                for name in name_fields:
                     item = getattr(raw, name)
                     if item is None or not (text := item.strip()):
                         continue
-                    if _CONTROL.search(item):
+                    if control(item):
                         return None
                     names[name] = text
                 text = raw.description
                 if text is None:
                     text = ""
-                elif len(text) > limit or _CONTROL.search(text):
+                elif len(text) > limit or control(text):
                     return None
                 params: dict[str, ParamValue] = {}
                 if raw.parameters:
-                    known = self.params[action]
+                    known = known_params[action]
                     for key, item in raw.parameters.items():
                         entry = known.get(key)
                         if entry is None or entry[0] in params:
@@ -529,20 +537,22 @@ class Parser:
                 for name, preset_value in preset.items():
                     if params.setdefault(name, preset_value) != preset_value:
                         return None
-                self._apply_signs(_PLAIN, action, params)
+                if signed[action]:
+                    self._apply_signs(_PLAIN, action, params)
                 warnings: list[str] = []
                 target, location = self._names(_PLAIN, action, names, params, warnings)
-                if warnings or any(name not in params for name in self._required[action]):
+                if warnings:
                     return None
-                specs = self.vocabulary.actions[action].params
-                units = {n: specs[n].unit for n, v in params.items() if specs[n].unit and not isinstance(v, str | bool)}
+                for name in required[action]:
+                    if name not in params:
+                        return None
                 out.append(
                     Step(
                         action=action,
                         target=target,
                         location=location,
                         params=params,
-                        units=units,
+                        units=self._units(action, params) if params else {},
                         description=text,
                     )
                 )
@@ -652,17 +662,20 @@ class Parser:
                     else ""
                 )
                 raise where.refuse(f"{action.value} needs parameter '{name}'{unit}")
-        specs = self.vocabulary.actions[action].params
-        units = {n: specs[n].unit for n, v in params.items() if specs[n].unit and not isinstance(v, str | bool)}
         return Step(
             action=action,
             target=target,
             location=location,
             params=params,
-            units=units,
+            units=self._units(action, params),
             description=description,
             coordinates=coordinates,
         )
+
+    def _units(self, action: Action, params: dict[str, ParamValue]) -> dict[str, str]:
+        """The unit of each number among `params` whose parameter has one."""
+        unit_of = self._unit_of[action]
+        return {name: unit_of[name] for name, value in params.items() if name in unit_of and _is_number(value)}
 
     def _fields(self, value: dict[Any, Any], where: _Where, warnings: list[str]) -> _RawStep:
         raw = _RawStep()
@@ -1080,9 +1093,10 @@ class Parser:
             params["duration"] = self._value(
                 where, "duration", self.params[action]["duration"][1], names["target"], None
             )
-        for f in _NAME_FIELDS:
-            if f in names and f not in used:
-                warnings.append(f"{where.label}: {f} {echo(names[f])} ignored: {action.value} does not use it")
+        if len(used) < len(names):  # `used` holds only names given
+            for f in _NAME_FIELDS:
+                if f in names and f not in used:
+                    warnings.append(f"{where.label}: {f} {echo(names[f])} ignored: {action.value} does not use it")
         for value, label in ((target, "target"), (location, "location")):
             if value is not None and len(value) > MAX_NAME_CHARS:
                 raise where.refuse(f"{label} is {len(value)} characters; a name has at most {MAX_NAME_CHARS}")
@@ -1147,6 +1161,10 @@ def _plain_step_type(fields: dict[str, str], ignored: set[str]) -> type[msgspec.
     kinds += [(f"ignored_{i}", Any, None) for i in range(len(skipped))]
     rename = {f"ignored_{i}": word for i, word in enumerate(skipped)}
     return msgspec.defstruct("PlainStep", kinds, kw_only=True, forbid_unknown_fields=True, rename=rename)
+
+
+def _is_number(value: ParamValue) -> bool:
+    return not isinstance(value, str | bool)
 
 
 def _no_objects(value: Any) -> bool:

@@ -680,6 +680,13 @@ plain_plans = st.one_of(
         st.lists(plain_steps, max_size=4),
         st.fixed_dictionaries({}, optional={"description": st.one_of(st.text(max_size=20), json_values)}),
     ),
+    # Two plan keys, either perhaps null, in either order: the general mapping reads the first it knows.
+    st.builds(
+        lambda keys, first, second: {keys[0]: first, keys[1]: second},
+        st.permutations(["plan", "steps"]),
+        st.one_of(st.none(), st.lists(plain_steps, max_size=2)),
+        st.one_of(st.none(), st.lists(plain_steps, min_size=1, max_size=2)),
+    ),
 )
 
 
@@ -716,6 +723,13 @@ def test_plain_plans_take_the_plain_path() -> None:
         assert parser._plain_steps(value) is not None, value
         text = json.dumps(value)
         assert both_ways(text, "json")[0] == both_ways(text, "json")[1]
+    # A second plan key hands the plan over, even when the first is null: the general mapping refuses
+    # {"plan": null, "steps": [...]} ('plan' must be an array), and the plain path once read "steps".
+    for value in ({"plan": None, "steps": STEPS[:1]}, {"plan": STEPS[:1], "steps": None}):
+        assert parser._plain_steps(value) is None, value
+        text = json.dumps(value)
+        assert both_ways(text, "json")[0] == both_ways(text, "json")[1]
+    assert isinstance(both_ways(json.dumps({"plan": None, "steps": STEPS[:1]}), "json")[0], ServiceError)
     # A sub-step, a synonym spelled otherwise, or a point hand the plan over.
     for step in ({"substeps": [STEPS[0]]}, {"action": "Pick Up", "target": "cup"}, STEPS[6], STEPS[7]):
         assert parser._plain_steps([step]) is None, step
