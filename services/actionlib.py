@@ -104,6 +104,11 @@ class ActionServer(Generic[G, F, R]):
     the base is); without it, an `accept` is taken to wait and every goal goes to a worker. A goal
     started between that look and its turn is still preempted, on the callback thread: rare, and
     over once the preempted goal has ended (its motion stops at the next step).
+
+    Canceling every goal (CANCEL_ALL) or aborting them all (`abort_all`) also reaches a goal being
+    decided meanwhile (one waiting for the goal it preempts to end): it is rejected with the reason,
+    not started after the cancel. A goal still on its way to a worker when the cancel is answered
+    (microseconds) is decided as if it came after it.
     """
 
     def __init__(
@@ -138,6 +143,10 @@ class ActionServer(Generic[G, F, R]):
         self._running: dict[str, GoalHandle[G, F]] = {}
         self._ended: deque[tuple[float, str]] = deque()
         self._lock = threading.Lock()
+        # How many times every goal was canceled or aborted, and why the last time: a goal decided
+        # across one is rejected (see the class's docstring).
+        self._sweeps = 0
+        self._swept_because = ""
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
         # An accepted goal starts once its acceptance has gone back (`_start`): the sender does not
@@ -156,10 +165,19 @@ class ActionServer(Generic[G, F, R]):
             return list(self._running.values())
 
     def abort_all(self, reason: str) -> None:
-        """Stop every running goal (e-stop, lost heartbeat); each ends as aborted with `reason`."""
-        for handle in self.active():
+        """Stop every running goal (e-stop, lost heartbeat); each ends as aborted with `reason`. A goal
+        being decided meanwhile is rejected with it."""
+        for handle in self._sweep(reason):
             handle.abort_reason = reason
             handle.cancel_requested.set()
+
+    def _sweep(self, reason: str) -> list[GoalHandle[G, F]]:
+        """The running goals, for canceling or aborting all of them; a goal being decided now will be
+        rejected with `reason`."""
+        with self._lock:
+            self._sweeps += 1
+            self._swept_because = reason
+            return list(self._running.values())
 
     def _publish_status(self, goal_id: str, state: GoalState, message: str = "") -> None:
         self._status.put(GoalStatus(goal_id=goal_id, state=state, message=message, stamp=time.time()))
@@ -175,6 +193,8 @@ class ActionServer(Generic[G, F, R]):
             return not self._blocking()
 
     def _on_send_goal(self, request: SendGoal[G]) -> GoalResponse:
+        with self._lock:
+            sweeps = self._sweeps
         reason = self._accept(request.goal) if self._accept else None
         with self._lock:
             if reason is None and request.goal_id in self._goals:
@@ -188,6 +208,8 @@ class ActionServer(Generic[G, F, R]):
             self._forget_old()
             if reason is None and request.goal_id in self._goals:
                 reason = f"goal id {request.goal_id} was already used"
+            if reason is None and self._sweeps != sweeps:
+                reason = f"{self._swept_because} (while this goal was being decided)"
             if reason is None and exclusive and self._blocking():
                 reason = f"{self._action.path} is busy with another goal"
             if reason is not None:
@@ -253,7 +275,7 @@ class ActionServer(Generic[G, F, R]):
 
     def _on_cancel(self, request: CancelGoal) -> CancelResponse:
         if request.goal_id == CANCEL_ALL:
-            running = self.active()
+            running = self._sweep("every goal was canceled")
             for each in running:
                 each.cancel_requested.set()
                 self._publish_status(each.goal_id, GoalState.CANCELING)

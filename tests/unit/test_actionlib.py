@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import pytest
 
 from schemas import keys
-from schemas.actions import GetResult, GoalState
+from schemas.actions import CANCEL_ALL, CancelGoal, GetResult, GoalState
 from schemas.common import ErrorKind, Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.keys import Service
@@ -89,6 +89,7 @@ class Rig:
     release_worker: threading.Event = field(default_factory=threading.Event)
     # The server's quick queries' pool (with `accept_waits`).
     pool: QueryPool | None = None
+    server: ActionServer[NavigateToPoseGoal, NavigateToPoseFeedback, NavigateToPoseResult] | None = None
 
     def hold_the_worker(self, callers: ThreadPoolExecutor) -> Future[PlanText]:
         """The server's only worker blocked (the pool has no backlog): a goal sent to a worker is answered busy."""
@@ -98,7 +99,9 @@ class Rig:
 
 
 @contextlib.contextmanager
-def serving(accept_waits: Callable[[NavigateToPoseGoal], bool] | None = None) -> Iterator[Rig]:
+def serving(
+    accept_waits: Callable[[NavigateToPoseGoal], bool] | None = None, preempt_timeout: float = 1.0
+) -> Iterator[Rig]:
     """A navigation server whose `accept` is the script's, and a client; with `accept_waits`, the
     server's quick queries have one worker and no backlog."""
     settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
@@ -114,13 +117,13 @@ def serving(accept_waits: Callable[[NavigateToPoseGoal], bool] | None = None) ->
                 return request
 
             server_node.serve(HOLD, hold)
-        ActionServer(
+        rig.server = ActionServer(
             server_node,
             keys.ROBOT_NAVIGATE,
             script.execute,
             accept=script.accept,
             preempts=lambda goal: goal.max_speed == PREEMPTS,
-            preempt_timeout=1.0,
+            preempt_timeout=preempt_timeout,
             concurrent=lambda goal: goal.max_turn_rate == MOVES_NOTHING,
             accept_waits=accept_waits,
         )
@@ -210,6 +213,37 @@ def test_a_goal_that_will_not_stop_keeps_a_preempting_one_out(rig: Rig) -> None:
     with pytest.raises(GoalRejected, match=rf"goal {first.goal_id} did not stop within 1 s of being preempted"):
         rig.client.send(NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS), timeout=WAIT)
     assert rig.script.started == [first.goal_id]
+
+
+@pytest.mark.parametrize("sweep", ["cancel all", "abort all"])
+def test_a_goal_waiting_for_the_one_it_preempts_is_rejected_when_every_goal_is_canceled(sweep: str) -> None:
+    """`tether cancel` (every goal) or an e-stop (abort_all) while a preempting goal waits for the
+    running one to end: the waiting goal is rejected, not started once the old one has ended."""
+    with serving(preempt_timeout=WAIT) as rig, ThreadPoolExecutor(1) as callers:
+        assert rig.server is not None
+        rig.script.ignore_cancel = True  # the first goal ends only once released: the second waits for it
+        first = rig.client.send(NavigateToPoseGoal(pose=HERE))
+        assert rig.script.running.wait(WAIT)
+        second = callers.submit(rig.client.send, NavigateToPoseGoal(pose=HERE, max_speed=PREEMPTS), timeout=WAIT)
+        status = GetResult(goal_id=first.goal_id)
+
+        def preempting() -> bool:  # the second has asked the first to stop, and waits for it to end
+            return rig.node.call(keys.ROBOT_NAVIGATE.get_status, status, timeout=WAIT).state is GoalState.CANCELING
+
+        assert wait_until(preempting, WAIT), "the second goal never asked the first to stop"
+        if sweep == "cancel all":
+            canceled = rig.node.call(keys.ROBOT_NAVIGATE.cancel_goal, CancelGoal(goal_id=CANCEL_ALL), timeout=WAIT)
+            assert (canceled.accepted, canceled.reason) == (True, "1 canceled")
+            why = "every goal was canceled"
+        else:
+            rig.server.abort_all("e-stop latched by test")
+            why = "e-stop latched by test"
+        assert not second.done(), "the second goal was decided before the first ended"
+        rig.script.release.set()
+        with pytest.raises(GoalRejected, match=rf"{why} \(while this goal was being decided\)"):
+            second.result(WAIT)
+        assert first.result(WAIT).state is GoalState.SUCCEEDED  # it ignored every cancel
+        assert rig.script.started == [first.goal_id], "a goal started after every goal was canceled"
 
 
 def test_a_client_gives_up_on_a_goal_that_ignores_its_cancel(rig: Rig) -> None:
