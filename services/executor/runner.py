@@ -81,18 +81,33 @@ class StepTimedOut(ExecutionError):
     """The step used up its time (motion time: pauses for people do not count)."""
 
 
+class StepCancel(threading.Event):
+    """The cancel a step's motions obey. The step's clock sets it on its rounds (every CLOCK_PERIOD);
+    a look (`is_set`) also sees the goal's own cancel at once, so a motion about to be sent after the
+    goal was canceled is not sent (ActionClient.run looks first), even before the clock's next round.
+    A `wait` wakes on that round."""
+
+    def __init__(self, goal_cancel: threading.Event) -> None:
+        super().__init__()
+        self.goal_cancel = goal_cancel
+
+    def is_set(self) -> bool:
+        return super().is_set() or self.goal_cancel.is_set()
+
+
 class StepClock:
     """A step's time, counted in motion time, and the cancel its motions obey.
 
-    `cancel` is set when the goal is canceled or when `timeout` seconds of motion have passed:
-    each period adds its wall time times the speed scale safety allows (0 while paused for a person).
+    `cancel` is set when the goal is canceled (for a look at once, see StepCancel) or when `timeout`
+    seconds of motion have passed: each period adds its wall time times the speed scale safety allows
+    (0 while paused for a person).
     """
 
     def __init__(self, timeout: float, goal_cancel: threading.Event, speed_scale: Callable[[], float]) -> None:
         self.timeout = timeout
         self.goal_cancel = goal_cancel
         self.speed_scale = speed_scale
-        self.cancel = threading.Event()
+        self.cancel = StepCancel(goal_cancel)
         self.elapsed = 0.0
         self.expired = False
         self._done = threading.Event()
@@ -295,17 +310,25 @@ class PlanRunner:
         def paused(fb: ExecutePlanFeedback) -> None:
             report(fb.status, fb.message, attempt)
 
+        def canceled(message: str) -> tuple[StepResult, _Failure]:
+            failure = _Failure(
+                f"step {label} ({action}) canceled", PlanStatus.CANCELED, "canceled", FailureKind.CANCELED
+            )
+            return result(StepStatus.CANCELED, message, attempt, FailureKind.CANCELED), failure
+
         earlier: list[str] = []  # why the tries before the last failed
         resumed = False  # the next try follows an operator's pause: the robot is where teleop left it
         while True:
             try:
                 message = self._attempt(step, timeout, cancel, attempt, note, searched, recover=resumed)
             except Canceled as exc:
-                failure = _Failure(
-                    f"step {label} ({action}) canceled", PlanStatus.CANCELED, "canceled", FailureKind.CANCELED
-                )
-                return result(StepStatus.CANCELED, str(exc), attempt, FailureKind.CANCELED), failure
+                return canceled(str(exc))
             except (ExecutionError, CallError) as exc:
+                if cancel.is_set():
+                    # Canceled while the try failed for a reason of its own (its route could not be
+                    # planned): the plan was canceled, so no pause is waited out, no retry or on_failure
+                    # runs, and no one plans a recovery for a failure.
+                    return canceled(f"canceled (the try had failed: {exc})")
                 held = Held.NOT_PAUSED if hold is None else hold(cancel, paused)
                 if held is Held.RESUMED:
                     log.info("step %s (%s) resumed after an operator's pause (%s)", label, action, exc)

@@ -8,6 +8,8 @@ import threading
 import time
 from typing import Any
 
+import pytest
+
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, FailureKind, PlanStatus, StepStatus
@@ -32,11 +34,12 @@ from schemas.robot import (
 )
 from schemas.world import PerceivedObject
 from services.errors import CallError, GoalRejected
+from services.executor import runner as runner_module
 from services.executor.armplanning import ArmPlanner
 from services.executor.config import ExecutorConfig, StepRetries, StepTimeouts
 from services.executor.manipulation import Manipulator
 from services.executor.navigation import BasePlanner
-from services.executor.runner import PlanRunner
+from services.executor.runner import PlanRunner, StepClock
 from services.worldmodel import WorldModel, load_world
 
 PLAN = Plan(steps=[Step(action="navigate_to", target="kitchen"), Step(action="say", target="hi")])  # type: ignore[arg-type]
@@ -255,6 +258,8 @@ def test_the_plan_side_knows_no_robot_command_key_and_no_reset() -> None:
 
 KITCHEN = Pose2D(x=2.5, y=2.5)
 HALLWAY = Pose2D(x=10.0, y=7.0)
+# Inside the living room's coffee table: no route reaches it.
+INSIDE_COFFEE_TABLE = Pose2D(x=8.0, y=2.5)
 DOCK = Pose2D(x=11.2, y=0.8)
 
 
@@ -506,3 +511,41 @@ def test_time_paused_for_a_person_does_not_count() -> None:
     worker.join(5.0)
     result, _ = box[0]
     assert result.failure is FailureKind.EXECUTION and "timed out" in result.reason
+
+
+class CanceledWhilePlanning(ScriptedRobot):
+    """The plan's cancel lands as the step plans its route (people are asked for just before)."""
+
+    def __init__(self, cancel: threading.Event) -> None:
+        super().__init__()
+        self.cancel = cancel
+
+    def people(self) -> list[Pose2D]:
+        self.cancel.set()
+        return []
+
+
+@pytest.mark.parametrize("retries", [0, 2])
+def test_a_plan_canceled_while_a_try_fails_ends_canceled_not_failed(retries: int) -> None:
+    """A cancel, then the try fails on its own (no route into a table): the plan ends canceled, with
+    no retry, so nothing (the planner's recovery) takes it for a failure to mend after the cancel."""
+    cancel = threading.Event()
+    robot = CanceledWhilePlanning(cancel)
+    plan = grounded([go(INSIDE_COFFEE_TABLE, "coffee table"), go(KITCHEN)])
+    result, _ = run(ScriptedPlanServices(resolve=plan), robot, cancel, retrying(retries))
+    assert (result.status, result.failure) == (PlanStatus.CANCELED, FailureKind.CANCELED), result.reason
+    assert [s.status for s in result.steps] == [StepStatus.CANCELED, StepStatus.SKIPPED]
+    assert "the try had failed" in result.steps[0].message and result.steps[0].attempts == 1
+    assert robot.goals == [], "nothing was sent to the robot"
+
+
+def test_a_steps_cancel_is_set_the_moment_the_goal_is_canceled(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A motion is sent only if the step's cancel is not set: it must not wait for the clock's round."""
+    monkeypatch.setattr(runner_module, "CLOCK_PERIOD", 60.0)  # no round of the clock comes in this test
+    goal_cancel = threading.Event()
+    clock = StepClock(10.0, goal_cancel, lambda: 1.0)
+    with clock.running() as step_cancel:
+        assert not step_cancel.is_set()
+        goal_cancel.set()
+        assert step_cancel.is_set(), "a motion sent now would go out after the cancel"
+        assert not clock.expired
