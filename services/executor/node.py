@@ -279,7 +279,9 @@ class Supervision:
     its goals and refuse its motion; that is no failure: the pause is reported (feedback
     `awaiting_approval` on the step) and waited out, and the step runs again once resumed. Told apart
     from a failure of the plan's own by safety's approval: paused now, or paused more often than
-    this plan has seen (a pause resumed before it was asked)."""
+    when the attempt began (a pause resumed before it was asked). `attempting`, as each attempt
+    begins, notes how often the plan has been paused so far: a pause resumed while no motion ran (a
+    wait step, planning) explains no later failure."""
 
     def __init__(self, node: Node, goal_id: str, config: ExecutorConfig) -> None:
         self.node = node
@@ -325,6 +327,17 @@ class Supervision:
                 told = True
         reason = "canceled while awaiting an operator's approval; nothing moved"
         return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
+
+    def attempting(self) -> None:
+        plan = self._plan
+        if plan is None:  # not a plan an operator approved: no one can pause it
+            return
+        try:
+            reply = self._ask(plan, 0.0)
+        except CallError as exc:  # the count stays: a pause before now may then be taken for this attempt's
+            log.warning("plan goal %s: safety did not say how often it was paused: %s", self.goal_id, exc)
+            return
+        self._pauses = max(self._pauses, reply.pauses)
 
     def hold(self, cancel: threading.Event, feedback: FeedbackSink) -> Held | ExecutePlanResult:
         plan, goal_id = self._plan, self.goal_id
@@ -372,9 +385,7 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
         log.info("executing plan goal %s (%d bytes)", handle.goal_id, len(handle.goal.text))
         RUNNING_GOAL.set(handle.goal_id)
         supervision = Supervision(node, handle.goal_id, config)
-        result = runner.run(
-            handle.goal, handle.cancel_requested, handle.feedback, supervision.approve, supervision.hold
-        )
+        result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, supervision.approve, supervision)
         if result.status is PlanStatus.CANCELED and handle.cancel_reason:
             result = msgspec.structs.replace(result, reason=f"{handle.cancel_reason}; {result.reason}")
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Protocol
 
 import msgspec
 
@@ -56,10 +57,18 @@ class Held(enum.Enum):
     RESUMED = "resumed"
 
 
-# Asked after a step's attempt failed: did an operator pause the plan? If so it reports the pause
-# (feedback `awaiting_approval`) and waits for the resume; the result that ends the plan when the
-# operator denies it meanwhile or it is canceled.
-PauseHold = Callable[[threading.Event, FeedbackSink], Held | ExecutePlanResult]
+class PauseWatch(Protocol):
+    """Whether an operator paused the plan (supervised mode; the node's Supervision asks safety)."""
+
+    def attempting(self) -> None:
+        """A step's attempt starts: a pause resumed before now explains no failure of this attempt."""
+
+    def hold(self, cancel: threading.Event, feedback: FeedbackSink) -> Held | ExecutePlanResult:
+        """Asked after an attempt failed: did an operator pause the plan since the attempt began? If so
+        the pause is reported (feedback `awaiting_approval`) and waited out: RESUMED; or the result that
+        ends the plan when the operator denies it meanwhile or it is canceled. NOT_PAUSED: the failure
+        stands."""
+
 
 # What a retry, after re-detecting and planning anew, can mend.
 RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDITION)
@@ -159,12 +168,12 @@ class PlanRunner:
         cancel: threading.Event,
         feedback: FeedbackSink,
         approval: Approval | None = None,
-        hold: PauseHold | None = None,
+        pauses: PauseWatch | None = None,
     ) -> ExecutePlanResult:
         """Run `goal`; `approval`, when given, is asked after the plan check and before the first
-        motion; `hold` after a step's attempt failed (an operator's pause is no failure)."""
+        motion; `pauses` whether a step's attempt that failed was paused by an operator (no failure)."""
         warnings: list[str] = []
-        result = self._run(goal, cancel, feedback, warnings, approval, hold)
+        result = self._run(goal, cancel, feedback, warnings, approval, pauses)
         return msgspec.structs.replace(result, warnings=warnings) if warnings else result
 
     def _run(
@@ -174,7 +183,7 @@ class PlanRunner:
         feedback: FeedbackSink,
         warnings: list[str],
         approval: Approval | None = None,
-        hold: PauseHold | None = None,
+        pauses: PauseWatch | None = None,
     ) -> ExecutePlanResult:
         grounded = self._prepare(goal, feedback, warnings)
         if isinstance(grounded, ExecutePlanResult):
@@ -188,7 +197,7 @@ class PlanRunner:
             )
         if approval is not None and (ended := approval(grounded, cancel, feedback)) is not None:
             return ended
-        return self._execute(grounded, cancel, feedback, hold)
+        return self._execute(grounded, cancel, feedback, pauses)
 
     def _prepare(
         self, goal: ExecutePlanGoal, feedback: FeedbackSink, warnings: list[str]
@@ -218,7 +227,7 @@ class PlanRunner:
         return grounded
 
     def _execute(
-        self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink, hold: PauseHold | None = None
+        self, plan: GroundedPlan, cancel: threading.Event, feedback: FeedbackSink, pauses: PauseWatch | None = None
     ) -> ExecutePlanResult:
         labels = step_labels(plan)
         results: list[StepResult] = []
@@ -226,13 +235,13 @@ class PlanRunner:
         recovered: list[str] = []
         i = 0
         while i < len(plan.steps):
-            result, failure = self._run_one(i, plan.steps[i], labels[i], cancel, feedback, hold)
+            result, failure = self._run_one(i, plan.steps[i], labels[i], cancel, feedback, pauses)
             results.append(result)
             reported.add(i)
             if failure is None:
                 i += 1
                 continue
-            outcome = self._on_failure(plan, i, failure, results, cancel, feedback, hold)
+            outcome = self._on_failure(plan, i, failure, results, cancel, feedback, pauses)
             if isinstance(outcome, _Failure):
                 return self._finish(plan, results, reported, outcome)
             outcome = min(outcome, len(plan.steps))
@@ -260,11 +269,11 @@ class PlanRunner:
         label: str,
         cancel: threading.Event,
         feedback: FeedbackSink,
-        hold: PauseHold | None = None,
+        pauses: PauseWatch | None = None,
     ) -> tuple[StepResult, _Failure | None]:
         """Run one step, retrying as configured, and report it; the failure, if any, says whether
         an on_failure may follow. An attempt that failed because an operator paused the plan
-        (`hold`) is no failure: once resumed the step runs again from where the robot is then,
+        (`pauses`) is no failure: once resumed the step runs again from where the robot is then,
         not counted as an attempt."""
         action = step_kind(step)
         timeout = self.config.timeouts.of(step)
@@ -319,6 +328,8 @@ class PlanRunner:
         earlier: list[str] = []  # why the tries before the last failed
         resumed = False  # the next try follows an operator's pause: the robot is where teleop left it
         while True:
+            if pauses is not None:
+                pauses.attempting()
             try:
                 message = self._attempt(step, timeout, cancel, attempt, note, searched, recover=resumed)
             except Canceled as exc:
@@ -329,7 +340,7 @@ class PlanRunner:
                     # planned): the plan was canceled, so no pause is waited out, no retry or on_failure
                     # runs, and no one plans a recovery for a failure.
                     return canceled(f"canceled (the try had failed: {exc})")
-                held = Held.NOT_PAUSED if hold is None else hold(cancel, paused)
+                held = Held.NOT_PAUSED if pauses is None else pauses.hold(cancel, paused)
                 if held is Held.RESUMED:
                     log.info("step %s (%s) resumed after an operator's pause (%s)", label, action, exc)
                     note(f"resumed by the operator: {step.describe()} again from where the robot is now")
@@ -421,7 +432,7 @@ class PlanRunner:
         results: list[StepResult],
         cancel: threading.Event,
         feedback: FeedbackSink,
-        hold: PauseHold | None = None,
+        pauses: PauseWatch | None = None,
     ) -> int | _Failure:
         """Run the on_failure alternatives covering step `failed`, innermost first, each one taking
         over when the one inside it fails too. The index to go on from, or the plan's failure."""
@@ -439,7 +450,7 @@ class PlanRunner:
         for fallback in sorted(covering, key=lambda f: (f.last - f.first, -f.first)):
             alternative_labels = fallback_labels(fallback, labels)
             for k, step in enumerate(fallback.steps):
-                result, alt_failure = self._run_one(k, step, alternative_labels[k], cancel, feedback, hold)
+                result, alt_failure = self._run_one(k, step, alternative_labels[k], cancel, feedback, pauses)
                 results.append(result)
                 if alt_failure is not None:
                     break

@@ -18,7 +18,7 @@ import pytest
 from schemas import keys
 from schemas.actions import GoalResponse, GoalState, ResultResponse, SendGoal
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, FailureKind, PlanStatus, StepStatus
-from schemas.plan import SayStep
+from schemas.plan import GroundedPlan, SayStep, WaitStep
 from schemas.robot import NavigateToPoseGoal
 from schemas.safety import ApprovalAction, ApprovalDecision, ApprovalRequest, ApprovalState, ControlMode, PlanApproval
 from services.errors import GoalRejected
@@ -108,15 +108,17 @@ def gate(policy: SafetyPolicy, tmp_path: Path) -> SafetyGate:
 class Run:
     """One plan run in a thread of its own, approved by the operator once it waits."""
 
-    def __init__(self, gate: SafetyGate) -> None:
+    def __init__(
+        self, gate: SafetyGate, plan: GroundedPlan = PLAN, robot: type[RobotBehindSafety] | None = None
+    ) -> None:
         self.safety = SafetyInMemory(gate)
-        self.robot = RobotBehindSafety(gate, self.safety)
+        self.robot = (robot or RobotBehindSafety)(gate, self.safety)
         self.cancel = threading.Event()
         self.feedback: list[ExecutePlanFeedback] = []
         self.heard = threading.Condition()
         self.result: Any = None
         self.supervision = Supervision(self.safety, "p1", NO_RETRIES)  # type: ignore[arg-type]
-        planner = ScriptedPlanServices(resolve=PLAN)
+        planner = ScriptedPlanServices(resolve=plan)
         self.runner = runner(planner, self.robot)
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -127,9 +129,7 @@ class Run:
 
     def _run(self) -> None:
         goal = ExecutePlanGoal(text="...")
-        self.result = self.runner.run(
-            goal, self.cancel, self._on_feedback, self.supervision.approve, self.supervision.hold
-        )
+        self.result = self.runner.run(goal, self.cancel, self._on_feedback, self.supervision.approve, self.supervision)
 
     def wait_feedback(self, status: StepStatus, step: int | None) -> ExecutePlanFeedback:
         def found() -> ExecutePlanFeedback | None:
@@ -215,3 +215,61 @@ def test_an_e_stop_after_the_approval_fails_the_step_as_before(gate: SafetyGate)
     assert "canceled by the robot side" in result.reason
     assert not any(f.status is StepStatus.AWAITING_APPROVAL for f in run.feedback if f.step is not None)
     assert run.robot.forwarded == 1
+
+
+# A wait first: an operator may pause and resume the plan while no motion runs.
+WAIT_FIRST = grounded([WaitStep(duration=1.0), go(NEAR, "near")])
+
+
+class AbortedFirst(RobotBehindSafety):
+    """The first navigation goal safety forwards ends aborted by the robot (a failure of its own)."""
+
+    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        self.goals.append(goal)
+        ruled = self.gate.navigate(SendGoal(goal_id=f"n{len(self.goals)}", goal=goal)).forward
+        if isinstance(ruled, GoalResponse):
+            raise GoalRejected(ruled.reason, ruled.kind)
+        self.forwarded += 1
+        self.started.set()
+        if self.forwarded == 1:
+            return ResultResponse(goal_id="g", state=GoalState.ABORTED, message="navigation aborted: stalled")
+        return ResultResponse(goal_id="g", state=GoalState.SUCCEEDED)
+
+
+def paused_and_resumed_while_waiting(run: Run) -> None:
+    """Approve the plan, then pause and resume it while its first step waits: nothing was canceled."""
+    run.thread.start()
+    run.wait_feedback(StepStatus.AWAITING_APPROVAL, None)
+    assert run.safety.decide("p1", ApprovalAction.APPROVE)
+    run.wait_feedback(StepStatus.RUNNING, 0)
+    assert run.safety.decide("p1", ApprovalAction.PAUSE, "a look")
+    assert run.safety.decide("p1", ApprovalAction.RESUME)
+    run.safety.canceled.clear()
+
+
+def test_a_pause_resumed_while_nothing_moved_is_not_taken_for_a_later_e_stop(gate: SafetyGate) -> None:
+    """The e-stop fails the next step as it would without the pause: no second goal is sent."""
+    run = Run(gate, WAIT_FIRST)
+    try:
+        paused_and_resumed_while_waiting(run)
+        assert run.robot.started.wait(WAIT)
+        gate.latch.trigger("operator", "test", 0.0)
+        run.safety.canceled.set()
+        result = run.ended()
+    finally:
+        run.cancel.set()
+    assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.VETOED), result
+    assert len(run.robot.goals) == 1, "a navigation goal was sent after the e-stop latched"
+
+
+def test_a_pause_resumed_while_nothing_moved_is_not_taken_for_a_later_failure(gate: SafetyGate) -> None:
+    """A step that fails on its own later is not run again as if the pause had stopped it (no retries here)."""
+    run = Run(gate, WAIT_FIRST, AbortedFirst)
+    try:
+        paused_and_resumed_while_waiting(run)
+        result = run.ended()
+    finally:
+        run.cancel.set()
+    assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.EXECUTION), result
+    assert [(s.status, s.attempts) for s in result.steps] == [(StepStatus.SUCCEEDED, 1), (StepStatus.FAILED, 1)]
+    assert run.robot.forwarded == 1, "the failed step drove again"
