@@ -39,6 +39,8 @@ _Candidate = tuple[Any, list[str], int, SourceFormat]
 
 FORMATS = ("auto", "json", "yaml", "text")
 MAX_NAME_CHARS = 200
+# A number written as text, with its unit ("90 degrees").
+MAX_NUMBER_CHARS = 100
 MAX_TEXT_CHARS = 4000
 # Names echoed back in messages are cut to this, so hostile input cannot bloat a reply.
 ECHO_CHARS = 60
@@ -68,6 +70,10 @@ MAX_POINT_NESTING = 2
 POINT_SHAPES = '{"x": 3.5, "y": 2.0}, [3.5, 2.0] or \'3.5, 2.0\' (metres, map frame)'
 # A ROS PoseStamped keeps its frame in "header".
 _HEADER = "header"
+LONE_SURROGATE = (
+    "the plan holds text that is not valid Unicode: a lone surrogate (an escape such as \\ud800 without "
+    "its pair); write the character itself, or both halves of its escape"
+)
 NO_PLAN = (
     "no plan found: expected a JSON object with a 'plan' array, a JSON array of steps, YAML, "
     "tool calls, or numbered/bulleted steps in English"
@@ -500,7 +506,7 @@ class Parser:
             return None
         try:
             plain = msgspec.convert(steps, self._plain_steps_type)
-        except msgspec.ValidationError:
+        except (msgspec.ValidationError, UnicodeEncodeError):  # a key with a lone surrogate: not ours
             return None
         limit = self.config.max_string_chars
         actions, known_params, signed, required = self.actions, self.params, self._signed, self._required
@@ -1030,7 +1036,11 @@ class Parser:
             if unit_word is not None:
                 return number * factors[unit_word], False
             return number, True
-        match = _NUMBER_WITH_UNIT.match(value[:100])
+        if len(value) > MAX_NUMBER_CHARS:  # cut, "5 <99 spaces> mm" would lose its unit
+            raise where.refuse(
+                f"{what} is {len(value)} characters; a number with its unit has at most {MAX_NUMBER_CHARS}"
+            )
+        match = _NUMBER_WITH_UNIT.match(value)
         if match is None:
             raise where.refuse(f"{what} must be a number, got {echo(value)}")
         number = float(match.group(1))
@@ -1192,6 +1202,21 @@ def _validated(plan: Plan) -> Plan:
         return _PLAN_DECODER.decode(_ENCODER.encode(plan))
     except msgspec.ValidationError as exc:
         raise ParseError(f"the plan does not fit the schema: {exc}") from None
+    except UnicodeEncodeError:
+        raise ParseError(LONE_SURROGATE) from None
+
+
+def _encodable(error: ServiceError) -> ServiceError:
+    """The refusal, its words as UTF-8 can carry them: a name it quotes from the plan may hold a lone
+    surrogate (JSON's "\\ud800"), which no reply can encode; it is shown escaped."""
+    texts = [error.message, *error.candidates]
+    try:
+        for text in texts:
+            text.encode("utf-8")
+    except UnicodeEncodeError:
+        message, *candidates = [text.encode("utf-8", "backslashreplace").decode("utf-8") for text in texts]
+        return msgspec.structs.replace(error, message=message, candidates=candidates)
+    return error
 
 
 @functools.cache
@@ -1209,6 +1234,6 @@ def answer(parser: Parser, request: PlanText) -> ParseReply:
     try:
         return parser.parse(request.text, request.format)
     except ParseError as exc:
-        return exc.error
+        return _encodable(exc.error)
     except RecursionError:
         return ServiceError(kind=ErrorKind.INVALID_REQUEST, message="plan text is nested too deeply", stage=Stage.PARSE)

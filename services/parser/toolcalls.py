@@ -345,7 +345,8 @@ def _gemini_parts(parts: list[Any]) -> ToolCalls:
             found.text.append(part["text"])
             continue
         skipped = next((name for name in _GEMINI_SKIPPED if _get(part, name) is not None), None)
-        if skipped is None and all(_get(part, k) is None for k in part if k not in _GEMINI_METADATA):
+        # The part's own keys, as given: any of them (even a YAML number) may be there.
+        if skipped is None and all(value is None for k, value in part.items() if k not in _GEMINI_METADATA):
             continue  # only metadata (a thought signature): nothing to run or read
         if skipped is None:
             keys = ", ".join(_shown(k) for k in list(part)[:MAX_LABELS]) or "none"

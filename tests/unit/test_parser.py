@@ -742,3 +742,54 @@ def test_vocabulary_expansions_and_hints_are_checked(tmp_path: Path, change: dic
     with pytest.raises(VocabularyError, match=str(path)) as caught:
         load_vocabulary(path)
     assert problem in str(caught.value)
+
+
+# JSON's \ud800 escape decodes to a lone surrogate, which no reply can encode as UTF-8.
+LONE_SURROGATES = [
+    r'[{"action": "navigate_to", "target": "\ud800"}]',
+    r'{"plan": [{"action": "say", "parameters": {"text": "hi \udfff"}}], "description": "x"}',
+    r'[{"action": "\ud800 dance"}]',
+    r'[{"type": "tool_use", "name": "wait", "input": {"duration": 1}}, {"type": "\ud800"}]',
+]
+
+
+@pytest.mark.parametrize("text", LONE_SURROGATES)
+def test_a_lone_surrogate_escape_is_refused_in_words_the_reply_can_carry(text: str) -> None:
+    reply = answer(default_parser(), PlanText(text=text, format="auto"))
+    assert isinstance(reply, ServiceError), reply
+    encoded = msgspec.json.encode(reply)  # raised UnicodeEncodeError before: the service answered "internal"
+    assert msgspec.json.decode(encoded, type=ServiceError).stage is Stage.PARSE
+
+
+def test_a_lone_surrogate_in_a_plan_is_named() -> None:
+    with pytest.raises(ParseError, match="not valid Unicode: a lone surrogate"):
+        parse(LONE_SURROGATES[0], "json")
+    # A pair of escapes is one character (an emoji): read as it is.
+    assert parse(r'[{"action": "say", "target": "hi \ud83d\ude00"}]', "json").steps[0].params["text"] == "hi \U0001f600"
+
+
+def test_a_step_key_with_a_lone_surrogate_is_an_ignored_field_on_every_path() -> None:
+    """The plain path's conversion raised UnicodeEncodeError on such a key (a crash); the general mapping warns."""
+    plan = parse(r'[{"action": "wait", "target": "1", "\ud800": 0}]', "json")
+    assert plan.steps[0].params == {"duration": 1.0}
+    assert len(plan.warnings) == 1 and "ignored" in plan.warnings[0]
+
+
+def test_a_gemini_part_with_a_key_that_is_not_text_is_read() -> None:
+    """YAML keys may be numbers or null: a part holding only `1: null` is skipped, not a TypeError."""
+    for text in (
+        "- functionCall:\n    name: wait\n    args: {duration: 1}\n- 1: null\n",
+        "parts:\n- functionCall: {name: wait, args: {duration: 1}}\n- ~: ~\n",
+    ):
+        assert parse(text, "yaml").steps[0].params == {"duration": 1.0}
+
+
+def test_a_number_with_its_unit_is_never_cut_before_the_unit() -> None:
+    """Cut at 100 characters, "5 <99 spaces> mm" was read as 5 m; over 100 it is refused, naming the length."""
+    drive = {"action": "drive", "parameters": {"distance": "5" + " " * 99 + "mm", "direction": "forward"}}
+    with pytest.raises(
+        ParseError, match=r"parameter 'distance' is 102 characters; a number with its unit has at most 100"
+    ):
+        parse(json.dumps([drive]), "json")
+    drive["parameters"]["distance"] = "5" + " " * 50 + "mm"  # type: ignore[index]
+    assert parse(json.dumps([drive]), "json").steps[0].params["distance"] == pytest.approx(0.005)
