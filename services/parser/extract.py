@@ -22,11 +22,34 @@ MAX_PROSE_STARTS = 64
 
 @dataclass(frozen=True)
 class _Span:
-    """An opening bracket and where its match closes it; `end` is None when the text ends first."""
+    """An opening bracket and where its match closes it; `end` is None when the text ends first.
+    `deepest`: how many brackets were open at once, at most."""
 
     start: int
     end: int | None
     open_brackets: int
+    deepest: int = 0
+
+
+# Malformed JSON one parse may repair, in characters times nesting levels, per character of
+# `max_repair_chars`: json-repair's time grows with both (60 KB of text 30 levels deep took 3 s on
+# this 2-core machine, 8 KB 0.3 s; a 48 KB plan with trailing commas, 4 levels, 12 ms).
+REPAIR_LEVELS = 4
+
+
+@dataclass
+class RepairBudget:
+    """How much malformed JSON a parse may still have repaired (characters times levels), over all its
+    candidates and tool-call arguments: a text of many small, deep candidates is bounded too."""
+
+    left: int
+
+    def take(self, chars: int, levels: int) -> bool:
+        work = chars * max(1, levels)
+        if work > self.left:
+            return False
+        self.left -= work
+        return True
 
 
 def line_col(text: str, pos: int) -> str:
@@ -38,6 +61,7 @@ def line_col(text: str, pos: int) -> str:
 def _scan(text: str, start: int, max_depth: int) -> _Span:
     """Match the bracket at `start`, skipping strings; refuse nesting deeper than `max_depth`."""
     stack: list[str] = []
+    deepest = 0
     in_string = False
     skip_to = -1
     for match in _STRUCTURAL.finditer(text, start):
@@ -55,6 +79,7 @@ def _scan(text: str, start: int, max_depth: int) -> _Span:
             in_string = True
         elif char in _CLOSERS:
             stack.append(char)
+            deepest = max(deepest, len(stack))
             if len(stack) > max_depth:
                 raise ParseError(
                     f"JSON is nested more than {max_depth} levels deep at {line_col(text, pos)}; "
@@ -65,8 +90,8 @@ def _scan(text: str, start: int, max_depth: int) -> _Span:
                 raise ParseError(f"malformed JSON at {line_col(text, pos)}: unexpected {char!r}")
             stack.pop()
             if not stack:
-                return _Span(start, pos + 1, 0)
-    return _Span(start, None, len(stack))
+                return _Span(start, pos + 1, 0, deepest)
+    return _Span(start, None, len(stack), deepest)
 
 
 # Code blocks tried at most; a plan is in the first few, and a text of thousands is an attack.
@@ -139,8 +164,14 @@ class JsonFinder:
         self.lenient = lenient
         self.max_repair_chars = max_repair_chars
 
-    def find(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Found:
-        """The plan-like values: the bare text or fenced blocks if any start with a bracket, else prose."""
+    def budget(self) -> RepairBudget:
+        """What one parse may have repaired (see REPAIR_LEVELS)."""
+        return RepairBudget(self.max_repair_chars * REPAIR_LEVELS)
+
+    def find(self, text: str, looks_like_plan: Callable[[Any], bool], repairs: RepairBudget | None = None) -> Found:
+        """The plan-like values: the bare text or fenced blocks if any start with a bracket, else prose.
+        Repairs are taken from `repairs` (the parse's), or from a budget of this call's own."""
+        repairs = repairs if repairs is not None else self.budget()
         starts: dict[int, None] = {}  # ordered and O(1) to test
         stripped = text.lstrip()
         if stripped[:1] in _CLOSERS:
@@ -150,11 +181,11 @@ class JsonFinder:
             if text[offset : offset + 1] in _CLOSERS:
                 starts[offset] = None
         if not starts:
-            return self._search_prose(text, looks_like_plan)
+            return self._search_prose(text, looks_like_plan, repairs)
         found = Found(plans=[])
         for start in starts:
             try:
-                decoded = self._decode(text, start)
+                decoded = self._decode(text, start, repairs)
             except ParseError as exc:
                 found.error = found.error or exc
                 continue
@@ -164,7 +195,7 @@ class JsonFinder:
                 found.other = decoded.value
         return found
 
-    def _decode(self, text: str, start: int) -> Candidate:
+    def _decode(self, text: str, start: int, repairs: RepairBudget) -> Candidate:
         """The JSON value that starts at `start`; text after its closing bracket is ignored."""
         fast = self._decode_whole(text, start)
         if fast is not None:
@@ -186,6 +217,11 @@ class JsonFinder:
             raise ParseError(f"JSON could not be read at line {line}: {exc}") from None
         if not self.lenient or len(chunk) > self.max_repair_chars:
             raise ParseError(f"malformed JSON: {detail}")
+        if not repairs.take(len(chunk), span.deepest):
+            raise ParseError(
+                f"malformed JSON: {detail} (not repaired: the plan's malformed JSON is too large or too "
+                f"deeply nested to repair; {len(chunk)} characters {span.deepest} levels deep)"
+            )
         try:
             value = self._repair(chunk)
         except (RecursionError, ValueError, TypeError) as exc:
@@ -233,7 +269,7 @@ class JsonFinder:
             return str(exc)
         return "unexpected end"
 
-    def _search_prose(self, text: str, looks_like_plan: Callable[[Any], bool]) -> Found:
+    def _search_prose(self, text: str, looks_like_plan: Callable[[Any], bool], repairs: RepairBudget) -> Found:
         found = Found(plans=[], in_prose=True)
         resume = 0
         for tries, match in enumerate(re.finditer(r"[\[{]", text)):
@@ -242,7 +278,7 @@ class JsonFinder:
             if match.start() < resume:
                 continue
             try:
-                decoded = self._decode(text, match.start())
+                decoded = self._decode(text, match.start(), repairs)
             except TruncatedJson as exc:
                 if _PLAN_WORDS.search(text, match.start(), match.start() + 2000):
                     # A plan cut off: the complete steps inside it are not a plan of their own.

@@ -25,7 +25,7 @@ from schemas.plan import (
 from services.parser.config import ParserConfig
 from services.parser.errors import ParseError
 from services.parser.expand import Expansions
-from services.parser.extract import JsonFinder, fenced_blocks
+from services.parser.extract import JsonFinder, RepairBudget, fenced_blocks
 from services.parser.hints import Hints
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
 from services.parser.toolcalls import ToolCalls, call_arguments, find_tool_calls
@@ -117,9 +117,10 @@ class _Where:
 
 @dataclass
 class _Context:
-    """One parse: its warnings and how many steps it has seen."""
+    """One parse: its warnings, how many steps it has seen, and the JSON repairs it may still make."""
 
     config: ParserConfig
+    repairs: RepairBudget
     warnings: list[str] = field(default_factory=list)
     steps: int = 0
 
@@ -241,12 +242,12 @@ class Parser:
         if fmt not in FORMATS:
             raise ParseError(f"unknown format {echo(fmt)}; expected one of {', '.join(FORMATS)}")
         self._check_text(text)
-        ctx = _Context(self.config)
+        ctx = _Context(self.config, self.finder.budget())
         if fmt == "text":
             return self._from_text(text, ctx)
         if fmt == "yaml":
             return self._from_candidates(self._yaml_candidates(text, strict=True), ctx)
-        found = self.finder.find(text, self._looks_like_plan)
+        found = self.finder.find(text, self._looks_like_plan, ctx.repairs)
         if found.plans and found.in_prose and fmt == "auto":
             # `- {action: pick}` lines of a YAML plan are JSON objects too: YAML reads them as one plan.
             candidates = self._yaml_candidates(text, strict=False)
@@ -358,7 +359,7 @@ class Parser:
         plans: list[tuple[int, Plan]] = []
         failures: list[tuple[int, ParseError]] = []
         for value, warnings, line, fmt in sorted(candidates, key=lambda c: c[2]):
-            one = _Context(self.config, list(warnings))
+            one = _Context(self.config, ctx.repairs, list(warnings))
             try:
                 plans.append((line, self._from_value(value, fmt, one)))
             except ParseError as exc:
@@ -443,7 +444,7 @@ class Parser:
         for call in calls.calls:
             if not isinstance(call.name, str) or not call.name.strip():
                 raise ParseError(f"{call.where} has no tool name")
-            arguments, warnings = call_arguments(call, self._decode_arguments)
+            arguments, warnings = call_arguments(call, functools.partial(self._decode_arguments, repairs=ctx.repairs))
             ctx.warnings.extend(warnings)
             name = normalise_word(call.name)
             if name in self.plan_tools or (name not in self.actions and self._looks_like_plan(arguments)):
@@ -463,8 +464,8 @@ class Parser:
                 raise ParseError(f"the tool calls hold more than {self.config.max_steps} steps")
         return steps
 
-    def _decode_arguments(self, text: str, where: str) -> tuple[Any, list[str]]:
-        found = self.finder.find(text, lambda v: isinstance(v, dict))
+    def _decode_arguments(self, text: str, where: str, repairs: RepairBudget) -> tuple[Any, list[str]]:
+        found = self.finder.find(text, lambda v: isinstance(v, dict), repairs)
         if found.plans:
             return found.plans[0].value, [f"{where}: {w}" for w in found.plans[0].warnings]
         if found.error is not None:

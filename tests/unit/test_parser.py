@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import msgspec
@@ -793,3 +794,29 @@ def test_a_number_with_its_unit_is_never_cut_before_the_unit() -> None:
         parse(json.dumps([drive]), "json")
     drive["parameters"]["distance"] = "5" + " " * 50 + "mm"  # type: ignore[index]
     assert parse(json.dumps([drive]), "json").steps[0].params["distance"] == pytest.approx(0.005)
+
+
+def test_malformed_json_too_large_and_deep_to_repair_is_refused_at_once() -> None:
+    """json-repair's time grows with length times depth: 60 KB of text 30 levels deep took 3 s of CPU."""
+    deep = "{" * 30 + "x" * 61_000 + "}" * 30
+    started = time.thread_time()
+    with pytest.raises(ParseError, match=r"not repaired: .* 61060 characters 30 levels deep"):
+        parse(deep, "auto")
+    assert time.thread_time() - started < 0.5
+
+
+def test_a_parse_shares_one_repair_budget_over_all_its_candidates() -> None:
+    """Four fenced blocks, each one repaired alone (0.3 s of CPU each): in one text, only the first is."""
+    block = "```json\n" + "{" * 30 + "x" * 8_000 + "}" * 30 + "\n```\n"
+    with pytest.raises(ParseError) as alone:
+        parse(block, "auto")
+    assert "not repaired" not in str(alone.value)
+    with pytest.raises(ParseError, match="not repaired: the plan's malformed JSON is too large or too deeply nested"):
+        parse(block * 4, "auto")
+
+
+def test_a_plan_with_trailing_commas_is_still_repaired() -> None:
+    steps = [{"action": "navigate_to", "target": "kitchen", "parameters": {"speed": 0.5}}] * 40
+    broken = json.dumps({"plan": steps}).replace("}", ",}")
+    plan = parse(broken, "json")
+    assert len(plan.steps) == 40 and "read leniently" in plan.warnings[0]
