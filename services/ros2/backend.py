@@ -14,7 +14,7 @@ import math
 import re
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -117,9 +117,16 @@ def to_seconds(stamp: Any) -> float:
 
 
 def yaw_of(q: Any) -> float:
-    """The rotation about z of a quaternion (x, y, z, w)."""
+    """The rotation about z of a quaternion (x, y, z, w) of any length, as ROS tools take one that is
+    not quite unit (rviz normalises it); RobotReportError when its length is 0 or not a number, as
+    then it is no rotation at all."""
     x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    norm = math.hypot(x, y, z, w)
+    if norm == 0.0 or not math.isfinite(norm):
+        raise RobotReportError(f"orientation (x, y, z, w) = ({x}, {y}, {z}, {w}) has norm {norm}: it is no rotation")
+    # Normalised first: the squares of a very short or very long quaternion would underflow or overflow.
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
 
 
 def _finite(*values: float) -> bool:
@@ -303,7 +310,11 @@ def odometry(message: Any, frame: str, stamp: float) -> Odometry:
             "transform from it to its map frame"
         )
     position, twist = message.pose.pose.position, message.twist.twist
-    x, y, yaw = float(position.x), float(position.y), yaw_of(message.pose.pose.orientation)
+    try:
+        yaw = yaw_of(message.pose.pose.orientation)
+    except RobotReportError as exc:
+        raise RobotReportError(f"odometry whose {exc}") from None
+    x, y = float(position.x), float(position.y)
     linear, angular = float(twist.linear.x), float(twist.angular.z)
     if not _finite(x, y, yaw, linear, angular):
         raise RobotReportError(f"odometry with values that are not numbers: x={x}, y={y}, v={linear}, w={angular}")
@@ -313,7 +324,8 @@ def odometry(message: Any, frame: str, stamp: float) -> Odometry:
 class JointMerger:
     """sensor_msgs/JointState messages as tether's JointState: the arm's seven joints then the two
     fingers, merged over messages (a robot may publish its arm and gripper apart), velocities
-    estimated from positions when the robot sends none."""
+    estimated from positions when the robot sends none. The merged state carries the stamp of the
+    message that completed it; a message naming none of its joints adds nothing and is not passed on."""
 
     def __init__(self, names: Sequence[str] = (*ARM_JOINTS, *FINGER_JOINTS)) -> None:
         self.names = tuple(names)
@@ -322,25 +334,40 @@ class JointMerger:
         self._heard: dict[str, float] = {}
 
     def update(self, message: Any, stamp: float) -> JointState | None:
-        """The joint state with `message` merged in; None until every joint has been heard."""
+        """The joint state with `message` merged in; None until every joint has been heard, and
+        None for a message holding none of them (nothing new to say)."""
         names = list(message.name)
         positions = [float(p) for p in message.position]
         velocities = [float(v) for v in message.velocity]
         if len(positions) != len(names):
             raise RobotReportError(f"joint states with {len(names)} names and {len(positions)} positions")
+        if velocities and len(velocities) != len(names):
+            raise RobotReportError(f"joint states with {len(names)} names and {len(velocities)} velocities")
+        if len(set(names)) != len(names):
+            twice = [name for name, count in Counter(names).items() if count > 1]
+            raise RobotReportError(f"joint states naming {', '.join(map(repr, twice[:3]))} more than once")
         if not _finite(*positions, *velocities):
             raise RobotReportError("joint states with positions or velocities that are not numbers")
-        given = len(velocities) == len(names)
+        heard: dict[str, tuple[float, float]] = {}  # ours in the message: position, velocity
         for k, name in enumerate(names):
             if name not in self.names:
                 continue
-            if given:
+            if velocities:
                 velocity = velocities[k]
             elif name in self._heard and stamp > self._heard[name]:
                 velocity = (positions[k] - self._position[name]) / (stamp - self._heard[name])
             else:
                 velocity = 0.0
-            self._position[name], self._velocity[name], self._heard[name] = positions[k], velocity, stamp
+            if not math.isfinite(velocity):
+                raise RobotReportError(
+                    f"joint states moving {name} from {self._position[name]} to {positions[k]} in "
+                    f"{stamp - self._heard[name]:.3g} s: a speed that is not a number"
+                )
+            heard[name] = positions[k], velocity
+        if not heard:
+            return None
+        for name, (position, velocity) in heard.items():  # only once the whole message is taken
+            self._position[name], self._velocity[name], self._heard[name] = position, velocity, stamp
         if len(self._position) < len(self.names):
             return None
         return JointState(
@@ -407,7 +434,13 @@ class Perception:
                 if frame != _frame(self.frames.odom):
                     problems.append(f"person {ident or k} in frame {frame!r}, expected {self.frames.odom!r}")
                     continue
-                humans.append(self._person(ident, k, x, y, yaw_of(pose.orientation), len(humans)))
+                try:
+                    yaw = yaw_of(pose.orientation)
+                except RobotReportError as exc:
+                    # Kept, where it stands: a person left out would be one safety keeps no distance from.
+                    problems.append(f"person {ident or k}: its {exc}; taken as facing along x")
+                    yaw = 0.0
+                humans.append(self._person(ident, k, x, y, yaw, len(humans)))
                 continue
             people_only = False
             seen = self._object(ident, class_id, x, y, z, pose.orientation, frame, stamp, problems)
@@ -425,7 +458,7 @@ class Perception:
         return PerceivedHuman(
             id=person_id,
             name=known.name if known is not None else "person",
-            pose=Pose2D(x=x, y=y, yaw=yaw if math.isfinite(yaw) else 0.0),
+            pose=Pose2D(x=x, y=y, yaw=yaw),
             room=self.model.room_of(x, y),
         )
 
@@ -458,8 +491,12 @@ class Perception:
         position = Vec3(x=x, y=y, z=z)
         on = "gripper" if held else self.model.support_under(position, obj.size.z / 2)
         yaw = None
-        if obj.shape == "box" and abs(obj.size.x - obj.size.y) > 1e-3 and float(orientation.w) != 1.0:
-            heading = yaw_of(orientation)
+        if obj.shape == "box" and abs(obj.size.x - obj.size.y) > 1e-3 and not _identity(orientation):
+            try:
+                heading = yaw_of(orientation)
+            except RobotReportError as exc:
+                problems.append(f"{object_id} detected, but its {exc}")
+                return None
             # A rectangle looks the same turned half round: its heading modulo a half turn.
             yaw = math.atan(math.tan(heading)) if abs(math.cos(heading)) > 1e-9 else math.pi / 2
         return PerceivedObject(
@@ -473,6 +510,11 @@ class Perception:
             stamp=stamp,
             yaw=yaw,
         )
+
+
+def _identity(q: Any) -> bool:
+    """The quaternion a detector leaves when it saw no orientation (ROS 2's default)."""
+    return float(q.w) == 1.0 and float(q.x) == float(q.y) == float(q.z) == 0.0
 
 
 def _is_id(text: str) -> bool:

@@ -322,6 +322,12 @@ class _Flight:
         """Whether the robot ended the goal: its result, or its status, says so."""
         return (self.ended.is_set() and self.outcome[0] in TERMINAL) or int(self.goal.status) in TERMINAL
 
+    @property
+    def result_read(self) -> bool:
+        """Whether the goal's own result says it ended. Its status alone does not settle it: anyone
+        on the robot's network can publish one, and a lost or forged one would leave the goal running."""
+        return self.ended.is_set() and self.outcome[0] in TERMINAL and not self.outcome[2]
+
     def abandon(self) -> None:
         self._abandoned = True
 
@@ -394,7 +400,7 @@ class GoalRun:
             log.exception("the %s goal run failed", self.label)
             message = f"the ros2 backend failed carrying out the {self.label} goal: {exc!r}"
             try:
-                if self.flight is not None and not self.flight.over:
+                if self.flight is not None and not self.flight.result_read:
                     self._cancel(self.flight)
             finally:
                 self.make_safe()
@@ -585,8 +591,8 @@ class GoalRun:
         status, result, unreadable = flight.outcome
         if status == GoalStatus.SUCCEEDED and not unreadable:
             return self.succeeded(result)
-        if not flight.over:
-            self._cancel(flight)  # its result could not be fetched: it may run still
+        if not flight.result_read:
+            self._cancel(flight)  # its result could not be fetched: it may run still, whatever its status says
         self.make_safe()
         blocked = self.ctx.safety().blocked
         if blocked is not None:

@@ -527,7 +527,9 @@ class Ros2Backend:
             self._complain(what, str(exc))
             return
         if joints is None:
-            self._complain("joint states", f"waiting for joints {self._joints.missing()}")
+            # Also a message of none of tether's joints (a base's wheels on the same topic): nothing new.
+            if missing := self._joints.missing():
+                self._complain("joint states", f"waiting for joints {missing}")
             return
         self.robot.heard_joints(joints)
         if self._rates["joint_states"].allow(time.monotonic()):

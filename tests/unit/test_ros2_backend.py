@@ -105,16 +105,33 @@ def header(stamp: float, frame: str) -> Any:
     return MESSAGES.header(stamp, frame)
 
 
-def ros_pose(x: float, y: float, z: float = 0.0, yaw: float | None = None) -> Any:
+def ros_pose(
+    x: float,
+    y: float,
+    z: float = 0.0,
+    yaw: float | None = None,
+    quaternion: tuple[float, float, float, float] | None = None,
+) -> Any:
+    """`quaternion` (x, y, z, w), when given, is the orientation as it is, whatever `yaw` says."""
     w, qz = (1.0, 0.0) if yaw is None else (math.cos(yaw / 2), math.sin(yaw / 2))
+    qx, qy, qz, w = quaternion or (0.0, 0.0, qz, w)
     return TYPES.new(
         "geometry_msgs/msg/Pose",
         position=TYPES.new("geometry_msgs/msg/Point", x=x, y=y, z=z),
-        orientation=TYPES.new("geometry_msgs/msg/Quaternion", z=qz, w=w),
+        orientation=TYPES.new("geometry_msgs/msg/Quaternion", x=qx, y=qy, z=qz, w=w),
     )
 
 
-def ros_odometry(x: float, y: float, yaw: float, *, frame: str = "odom", v: float = 0.0, w: float = 0.0) -> Any:
+def ros_odometry(
+    x: float,
+    y: float,
+    yaw: float,
+    *,
+    frame: str = "odom",
+    v: float = 0.0,
+    w: float = 0.0,
+    quaternion: tuple[float, float, float, float] | None = None,
+) -> Any:
     twist = TYPES.new(
         "geometry_msgs/msg/Twist",
         linear=TYPES.new("geometry_msgs/msg/Vector3", x=v),
@@ -124,7 +141,7 @@ def ros_odometry(x: float, y: float, yaw: float, *, frame: str = "odom", v: floa
         "nav_msgs/msg/Odometry",
         header=header(NOW, frame),
         child_frame_id="base_link",
-        pose=TYPES.new("geometry_msgs/msg/PoseWithCovariance", pose=ros_pose(x, y, yaw=yaw)),
+        pose=TYPES.new("geometry_msgs/msg/PoseWithCovariance", pose=ros_pose(x, y, yaw=yaw, quaternion=quaternion)),
         twist=TYPES.new("geometry_msgs/msg/TwistWithCovariance", twist=twist),
     )
     # As it arrives: through CDR.
@@ -132,12 +149,20 @@ def ros_odometry(x: float, y: float, yaw: float, *, frame: str = "odom", v: floa
 
 
 def detection(
-    ident: str, cls: str, x: float, y: float, z: float, *, frame: str = "odom", yaw: float | None = None
+    ident: str,
+    cls: str,
+    x: float,
+    y: float,
+    z: float,
+    *,
+    frame: str = "odom",
+    yaw: float | None = None,
+    quaternion: tuple[float, float, float, float] | None = None,
 ) -> Any:
     hypothesis = TYPES.new(
         "vision_msgs/msg/ObjectHypothesisWithPose",
         hypothesis=TYPES.new("vision_msgs/msg/ObjectHypothesis", class_id=cls, score=1.0),
-        pose=TYPES.new("geometry_msgs/msg/PoseWithCovariance", pose=ros_pose(x, y, z, yaw)),
+        pose=TYPES.new("geometry_msgs/msg/PoseWithCovariance", pose=ros_pose(x, y, z, yaw, quaternion)),
     )
     return TYPES.new("vision_msgs/msg/Detection3D", header=header(NOW, frame), results=[hypothesis], id=ident)
 
@@ -181,6 +206,27 @@ def test_odometry_that_is_not_numbers_is_refused() -> None:
         odometry(ros_odometry(math.nan, 1.2, 0.0), "odom", NOW)
 
 
+def turned(yaw: float, length: float) -> tuple[float, float, float, float]:
+    """A quaternion (x, y, z, w) of `yaw` about z, `length` long instead of 1."""
+    return (0.0, 0.0, length * math.sin(yaw / 2), length * math.cos(yaw / 2))
+
+
+def test_odometry_takes_the_yaw_of_a_quaternion_of_any_length() -> None:
+    for length in (0.1, 1.0, 3.0, 1e-200, 1e200):
+        odom = odometry(ros_odometry(6.0, 1.2, 0.0, quaternion=turned(1.2, length)), "odom", NOW)
+        assert odom.pose.yaw == pytest.approx(1.2), length
+
+
+@pytest.mark.parametrize(
+    "quaternion", [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, math.nan, math.nan), (math.inf, math.inf, 0.0, 0.0)]
+)
+def test_odometry_whose_quaternion_is_no_rotation_is_refused_naming_it(
+    quaternion: tuple[float, float, float, float],
+) -> None:
+    with pytest.raises(RobotReportError, match=r"^odometry whose orientation \(x, y, z, w\) = .* has norm"):
+        odometry(ros_odometry(6.0, 1.2, 0.0, quaternion=quaternion), "odom", NOW)
+
+
 def test_a_robot_clock_far_from_ours_is_not_believed() -> None:
     stamps = Stamps()
     assert stamps.of(header(NOW - 0.01, "odom"), NOW) == pytest.approx(NOW - 0.01)
@@ -216,6 +262,33 @@ def test_joint_states_from_arm_and_gripper_apart_merge_into_one_in_tethers_order
 def test_joint_states_that_do_not_add_up_are_refused() -> None:
     with pytest.raises(RobotReportError, match="2 names and 1 positions"):
         JointMerger().update(joint_message(list(FINGER_JOINTS), [0.04]), NOW)
+    all_joints = [*ARM_JOINTS, *FINGER_JOINTS]
+    with pytest.raises(RobotReportError, match="9 names and 7 velocities"):
+        JointMerger().update(joint_message(all_joints, [*HOME, 0.04, 0.04], [5.0] * 7), NOW)
+    with pytest.raises(RobotReportError, match="naming 'panda_joint1' more than once"):
+        JointMerger().update(joint_message([ARM_JOINTS[0], *all_joints], [0.1, *HOME, 0.04, 0.04]), NOW)
+
+
+def test_joint_states_refused_leave_the_merged_state_as_it_was() -> None:
+    all_joints = [*ARM_JOINTS, *FINGER_JOINTS]
+    merger = JointMerger()
+    merger.update(joint_message(all_joints, [-1.5e308] * 9), NOW)
+    # A speed estimated from these positions is not a number: refused, not reported as inf.
+    with pytest.raises(RobotReportError, match=r"moving panda_joint1 .* a speed that is not a number"):
+        merger.update(joint_message(all_joints, [1.5e308] * 9), NOW + 0.01)
+    state = merger.update(joint_message(all_joints, [-1.5e308] * 9), NOW + 0.02)
+    assert state is not None and state.velocity == [0.0] * 9
+
+
+def test_joint_states_naming_none_of_tethers_joints_pass_nothing_on() -> None:
+    merger = JointMerger()
+    merger.update(joint_message(list(FINGER_JOINTS), [0.04, 0.04]), NOW)
+    arm = merger.update(joint_message(list(ARM_JOINTS), HOME, [0.8] * 7), NOW + 0.01)
+    assert arm is not None and arm.stamp == NOW + 0.01
+    # A message of none of tether's joints (a base's wheels) says nothing new: before, it republished all.
+    assert merger.update(joint_message(["wheel_left_joint"], [3.0]), NOW + 11.0) is None
+    again = merger.update(joint_message(list(FINGER_JOINTS), [0.03, 0.03]), NOW + 12.0)
+    assert again is not None and again.stamp == NOW + 12.0 and again.position[-2:] == [0.03, 0.03]
 
 
 def perception(class_map: dict[str, str] | None = None) -> Perception:
@@ -261,6 +334,30 @@ def test_a_detection_in_a_frame_without_a_transform_is_left_out_with_the_reason(
 def test_a_book_seen_turned_reports_its_heading_modulo_a_half_turn() -> None:
     seen = perception().read(detections(detection("blue_book", "book", 3.0, 6.0, 0.45, yaw=math.pi - 0.3)), NOW)
     assert seen.objects is not None and seen.objects.objects[0].yaw == pytest.approx(-0.3)
+
+
+def test_a_book_seen_turned_by_a_quaternion_of_another_length_reports_its_heading() -> None:
+    book = detection("blue_book", "book", 3.0, 6.0, 0.45, quaternion=turned(0.5, 3.0))
+    seen = perception().read(detections(book), NOW)
+    assert seen.objects is not None and seen.objects.objects[0].yaw == pytest.approx(0.5)
+    # w = 1 with z = 1 is no detector's "no orientation": a quarter turn.
+    book = detection("blue_book", "book", 3.0, 6.0, 0.45, quaternion=(0.0, 0.0, 1.0, 1.0))
+    seen = perception().read(detections(book), NOW)
+    assert seen.objects is not None and seen.objects.objects[0].yaw == pytest.approx(math.pi / 2)
+
+
+def test_a_detection_whose_quaternion_is_no_rotation_is_left_out_and_a_persons_kept_with_the_reason() -> None:
+    book = detection("blue_book", "book", 3.0, 6.0, 0.45, quaternion=(0.0, 0.0, 0.0, 0.0))
+    seen = perception().read(detections(book), NOW)
+    assert seen.objects is not None and seen.objects.objects == []
+    assert seen.problems == [
+        "blue_book detected, but its orientation (x, y, z, w) = (0.0, 0.0, 0.0, 0.0) has norm 0.0: it is no rotation"
+    ]
+    # A person is kept where it stands: safety keeps its distance from it all the same.
+    person = detection("operator", "person", 9.5, 1.5, 0.85, quaternion=(0.0, 0.0, math.nan, math.nan))
+    seen = perception().read(detections(person), NOW)
+    assert seen.humans is not None and seen.humans.humans[0].pose == Pose2D(x=9.5, y=1.5, yaw=0.0)
+    assert len(seen.problems) == 1 and "person operator: its orientation" in seen.problems[0]
 
 
 def test_an_array_of_people_only_is_the_trackers_and_an_empty_one_the_cameras() -> None:
@@ -933,6 +1030,24 @@ def test_a_result_that_fails_unexpectedly_ends_the_goal_and_cancels_it_on_the_ro
     action = FakeAction("arm", make=BrokenResult)
     ending = TrajectoryRun(rig.context, action, FakeHandle(swing(10.0)), MESSAGES).run()
     assert ending.state is GoalState.ABORTED and "a decoder bug" in ending.message
+    assert action.goals[0].cancels == 1
+
+
+class ResultNeverComes(FakeGoal):
+    """A goal whose get_result never answers: it may run on whatever its status says."""
+
+    def result(self, timeout: float) -> tuple[int, Any]:
+        raise RobotCallFailed("get_result: no answer within 10 s")
+
+
+def test_a_goal_whose_status_says_it_ended_but_whose_result_never_comes_is_canceled_on_the_robot(
+    rig: Rig,
+) -> None:
+    action = FakeAction("arm", make=ResultNeverComes)
+    # A terminal status on the action's status topic, as anyone on the robot's network could publish.
+    rig.clock.once(lambda: bool(action.goals), lambda: setattr(action.goals[0], "status", ABORTED))
+    ending = TrajectoryRun(rig.context, action, FakeHandle(swing(4.0)), MESSAGES).run()
+    assert ending.state is GoalState.ABORTED and "its result could not be read" in ending.message
     assert action.goals[0].cancels == 1
 
 
