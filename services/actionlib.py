@@ -41,6 +41,8 @@ R = TypeVar("R")
 RESULT_RETENTION = 300.0
 MAX_RESULT_WAIT = 3600.0
 CANCEL_POLL = 0.05
+# Cancels of goal ids not (yet) known an action server remembers, so the goal is rejected if it comes.
+MAX_EARLY_CANCELS = 1024
 # After a client cancels a goal, it waits this long for the server to report it ended.
 CANCEL_GRACE = 10.0
 # A preempting goal waits this long for the goals it cancels to end before it is accepted.
@@ -147,6 +149,10 @@ class ActionServer(Generic[G, F, R]):
         # across one is rejected (see the class's docstring).
         self._sweeps = 0
         self._swept_because = ""
+        # Goal ids canceled before any goal of theirs was known, oldest first (at most
+        # MAX_EARLY_CANCELS): a client that had no answer to its send_goal cancels the goal by id, and
+        # the server may still be deciding on it. Such a goal is rejected when its turn comes.
+        self._canceled_early: dict[str, None] = {}
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
         # An accepted goal starts once its acceptance has gone back (`_start`): the sender does not
@@ -208,6 +214,9 @@ class ActionServer(Generic[G, F, R]):
             self._forget_old()
             if reason is None and request.goal_id in self._goals:
                 reason = f"goal id {request.goal_id} was already used"
+            if request.goal_id in self._canceled_early:
+                del self._canceled_early[request.goal_id]
+                reason = reason or f"goal {request.goal_id} was canceled before it was accepted"
             if reason is None and self._sweeps != sweeps:
                 reason = f"{self._swept_because} (while this goal was being decided)"
             if reason is None and exclusive and self._blocking():
@@ -282,6 +291,10 @@ class ActionServer(Generic[G, F, R]):
             return CancelResponse(goal_id=request.goal_id, accepted=bool(running), reason=f"{len(running)} canceled")
         with self._lock:
             handle = self._goals.get(request.goal_id)
+            if handle is None:
+                self._canceled_early[request.goal_id] = None
+                while len(self._canceled_early) > MAX_EARLY_CANCELS:
+                    del self._canceled_early[next(iter(self._canceled_early))]
         if handle is None or handle.done.is_set():
             return CancelResponse(goal_id=request.goal_id, accepted=False, reason="no such running goal")
         handle.cancel_requested.set()
@@ -386,7 +399,14 @@ class ActionClient(Generic[G, F, R]):
         canceled, the goal is not sent at all: nothing may start moving after a cancel."""
         if cancel is not None and cancel.is_set():
             return ResultResponse(goal_id=UNSENT, state=GoalState.CANCELED, message="canceled before it was sent")
-        handle = self.send(goal)
+        goal_id = uuid.uuid4().hex
+        try:
+            handle = self.send(goal, goal_id=goal_id)
+        except CallError:
+            # No answer, or an error instead of one: the goal may have been accepted all the same and
+            # move the robot. Canceled by its id; a server still deciding on it rejects it then.
+            self._cancel_quietly(ClientGoal(self, goal_id))
+            raise
         if cancel is None:
             try:
                 return handle.result(timeout)

@@ -4,6 +4,8 @@ goals decided on Zenoh's callback thread when nothing makes them wait."""
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -50,9 +52,13 @@ class Script:
     lock: threading.Lock = field(default_factory=threading.Lock)
     # The threads `accept` ran on, in order: Zenoh's callback thread or a pool worker.
     accepted_on: list[str] = field(default_factory=list)
+    # When set, `accept` waits until it is set (a robot slow to decide), at most WAIT.
+    decide: threading.Event | None = None
 
     def accept(self, _goal: NavigateToPoseGoal) -> str | None:
         self.accepted_on.append(threading.current_thread().name)
+        if self.decide is not None:
+            self.decide.wait(WAIT)
         return self.refusal
 
     def execute(self, handle: GoalHandle[NavigateToPoseGoal, NavigateToPoseFeedback]) -> Outcome[NavigateToPoseResult]:
@@ -244,6 +250,27 @@ def test_a_goal_waiting_for_the_one_it_preempts_is_rejected_when_every_goal_is_c
             second.result(WAIT)
         assert first.result(WAIT).state is GoalState.SUCCEEDED  # it ignored every cancel
         assert rig.script.started == [first.goal_id], "a goal started after every goal was canceled"
+
+
+def test_a_goal_whose_send_goal_went_unanswered_is_canceled_and_never_runs(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The client gives up waiting for send_goal's answer while the server still decides: it cancels the
+    goal by id, and the server, once decided, rejects it instead of running a goal no one follows."""
+    caplog.set_level(logging.INFO, logger=actionlib.__name__)  # where the server says it rejected a goal
+    rig.script.decide = threading.Event()
+    sent = rig.client.send
+    rig.client.send = functools.partial(sent, timeout=0.3)  # type: ignore[method-assign]
+    with pytest.raises(CallError):  # no answer in time
+        rig.client.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT)
+    assert rig.script.accepted_on, "the goal reached the server"
+    rig.script.decide.set()
+
+    def rejected() -> bool:
+        return any("was canceled before it was accepted" in r.getMessage() for r in caplog.records)
+
+    assert wait_until(rejected, WAIT), "the server did not reject the goal canceled while it decided"
+    assert rig.script.started == [], "a goal whose sender gave up on it ran"
 
 
 def test_a_client_gives_up_on_a_goal_that_ignores_its_cancel(rig: Rig) -> None:
