@@ -90,6 +90,10 @@ class RobotBehindSafety(ScriptedRobot):
         self.started.set()
         if self.forwarded > 1:
             return ResultResponse(goal_id="g", state=GoalState.SUCCEEDED)
+        return self.first(cancel)
+
+    def first(self, cancel: threading.Event) -> ResultResponse[Any]:
+        """How the first goal forwarded ends: it drives until safety (or the executor) cancels it."""
         while not cancel.wait(0.01):
             if self.safety.canceled.is_set():
                 return ResultResponse(goal_id="g", state=GoalState.CANCELED, message="canceled")
@@ -201,14 +205,19 @@ def test_canceled_while_paused_the_plan_ends_canceled(paused_run: Run) -> None:
     assert run.robot.forwarded == 1
 
 
+def e_stopped(run: Run) -> Any:
+    """The plan's result after the e-stop latches while it drives: safety cancels its goal (no pause)."""
+    assert run.robot.started.wait(WAIT)
+    run.safety.gate.latch.trigger("operator", "test", 0.0)
+    run.safety.canceled.set()
+    return run.ended()
+
+
 def test_an_e_stop_after_the_approval_fails_the_step_as_before(gate: SafetyGate) -> None:
     run = Run(gate)
     try:
         run.approved_and_driving()
-        # Safety cancels the goal on the e-stop (no pause): the step fails at once, no waiting.
-        gate.latch.trigger("operator", "test", 0.0)
-        run.safety.canceled.set()
-        result = run.ended()
+        result = e_stopped(run)  # the step fails at once, no waiting
     finally:
         run.cancel.set()
     assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.VETOED), result
@@ -224,16 +233,8 @@ WAIT_FIRST = grounded([WaitStep(duration=1.0), go(NEAR, "near")])
 class AbortedFirst(RobotBehindSafety):
     """The first navigation goal safety forwards ends aborted by the robot (a failure of its own)."""
 
-    def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        self.goals.append(goal)
-        ruled = self.gate.navigate(SendGoal(goal_id=f"n{len(self.goals)}", goal=goal)).forward
-        if isinstance(ruled, GoalResponse):
-            raise GoalRejected(ruled.reason, ruled.kind)
-        self.forwarded += 1
-        self.started.set()
-        if self.forwarded == 1:
-            return ResultResponse(goal_id="g", state=GoalState.ABORTED, message="navigation aborted: stalled")
-        return ResultResponse(goal_id="g", state=GoalState.SUCCEEDED)
+    def first(self, cancel: threading.Event) -> ResultResponse[Any]:
+        return ResultResponse(goal_id="g", state=GoalState.ABORTED, message="navigation aborted: stalled")
 
 
 def paused_and_resumed_while_waiting(run: Run) -> None:
@@ -252,10 +253,7 @@ def test_a_pause_resumed_while_nothing_moved_is_not_taken_for_a_later_e_stop(gat
     run = Run(gate, WAIT_FIRST)
     try:
         paused_and_resumed_while_waiting(run)
-        assert run.robot.started.wait(WAIT)
-        gate.latch.trigger("operator", "test", 0.0)
-        run.safety.canceled.set()
-        result = run.ended()
+        result = e_stopped(run)
     finally:
         run.cancel.set()
     assert (result.status, result.failure) == (PlanStatus.FAILED, FailureKind.VETOED), result
