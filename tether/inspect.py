@@ -21,7 +21,17 @@ from services.recorder.timeline import Level, RobotState, Row, Timeline, build_t
 from services.worldmodel import DEFAULT_WORLD, WorldFileError, load_world
 from tether.output import literal
 from tether.progress import Bar, ProgressOpt, progress_bar
-from tether.recordings import FilesArg, RobotKeyOpt, console, fail, key_matcher, open_recording, robot_key_of
+from tether.recordings import (
+    FilesArg,
+    RobotKeyOpt,
+    console,
+    fail,
+    key_matcher,
+    open_recording,
+    printable,
+    robot_key_of,
+    shown,
+)
 
 out = Console()
 
@@ -104,7 +114,7 @@ def write_map(
             draw_map(png, title, world, keep_out, track, vetoed, estops)
     except OSError as exc:
         fail(f"cannot write the map to {png}: {exc.strerror or exc}")
-    console.print(f"map written to {literal(png)}", highlight=False)
+    console.print(f"map written to {shown(png)}", highlight=False)
 
 
 def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World | None, list[KeepOut]]:
@@ -117,15 +127,15 @@ def map_world(recording: RecordingFile, world_name: str | None) -> tuple[World |
         try:
             world = load_world(name)
         except WorldFileError as error:
-            said = literal(f"{exc}; and --world {name}: {error}; the map shows no world")
+            said = shown(f"{exc}; and --world {name}: {error}; the map shows no world")
             console.print(f"[yellow]{said}[/]", highlight=False)
             return None, []
-        console.print(f"[yellow]{literal(f'{exc}; the map shows the world {name!r} instead')}[/]", highlight=False)
+        console.print(f"[yellow]{shown(f'{exc}; the map shows the world {name!r} instead')}[/]", highlight=False)
         return world, list(world.keep_out)
     try:
         return world, list(recorded_policy(recording, world).limits.keep_out)
     except RecordingError as exc:
-        console.print(f"[yellow]{literal(exc)}; the map shows the world file's keep-out zones only[/]", highlight=False)
+        console.print(f"[yellow]{shown(exc)}; the map shows the world file's keep-out zones only[/]", highlight=False)
         return world, list(world.keep_out)
 
 
@@ -165,10 +175,12 @@ def _safety(state: RobotState) -> Text:
 
 
 def table(recording: RecordingFile, timeline: Timeline, rows: list[Row], width: int) -> Table:
-    """The rows with the robot's state at each; the key column only when there is room for it."""
+    """The rows with the robot's state at each; the key column only when there is room for it. Every
+    text a file gave (keys, reasons, names) has its control characters escaped here, where rows reach
+    the screen."""
     where = f"{recording.name}: robot {recording.robot or '?'}, {timeline.duration:.1f} s, "
     where += f"{timeline.messages} messages, {len(rows)} rows"
-    result = Table(title=literal(where), title_justify="left")
+    result = Table(title=literal(printable(where)), title_justify="left")
     result.add_column("t (s)", justify="right", no_wrap=True)
     result.add_column("kind", no_wrap=True)
     wide = width >= WIDE
@@ -181,12 +193,12 @@ def table(recording: RecordingFile, timeline: Timeline, rows: list[Row], width: 
     for row in rows:
         style = LEVEL_STYLES[row.level]
         state = row.state
-        key = [Text(row.key, style="dim")] if wide else []
+        key = [Text(printable(row.key), style="dim")] if wide else []
         result.add_row(
             f"{row.t:.2f}",
             Text(str(row.kind), style=style),
             *key,
-            Text(row.text, style=style),
+            Text(printable(row.text), style=style),
             _pose(state),
             _num(state.speed),
             _safety(state),

@@ -67,8 +67,25 @@ RobotKeyOpt = Annotated[
 ]
 
 
+# C0 and C1 control characters and DEL, each as its Python escape: a file's text must not move the
+# cursor, clear the screen or retitle the terminal (rich passes ESC sequences through as they are).
+_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
+_CONTROLS_BUT_NEWLINE = {code: escaped for code, escaped in _CONTROLS.items() if code != ord("\n")}
+
+
+def printable(value: object, newlines: bool = False) -> str:
+    """`value` as text with its control characters escaped (`\\x1b`), newlines kept if `newlines`:
+    for anything a file holds, before it reaches a terminal."""
+    return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else _CONTROLS)
+
+
+def shown(value: object) -> str:
+    """`value` as markup that prints as written, control characters escaped (see printable)."""
+    return literal(printable(value, newlines=True))
+
+
 def fail(message: str, code: int = 2) -> NoReturn:
-    console.print(f"[red]error:[/] {literal(message)}", highlight=False)
+    console.print(f"[red]error:[/] {shown(message)}", highlight=False)
     raise typer.Exit(code)
 
 
@@ -126,9 +143,14 @@ def open_recording(
         match = key_matcher(robot or recording.robot, expr)
         recording.messages = [m for m in recording.messages if match(m.key)]
     for part in parts:
-        if not part.complete:
+        if part.skipped:
             console.print(
-                f"[yellow]{literal(part.path)} was cut short: {literal(part.problem)}; read as far as it is whole "
+                f"[yellow]{shown(part.path)} is damaged: {shown(part.problem)}; everything else in it is read[/]",
+                highlight=False,
+            )
+        elif not part.complete:
+            console.print(
+                f"[yellow]{shown(part.path)} was cut short: {shown(part.problem)}; read as far as it is whole "
                 "(`tether recover` writes a complete copy)[/]",
                 highlight=False,
             )
@@ -240,7 +262,7 @@ def _replay(
         NodeSettings(robot=target)
     except ValueError as exc:
         fail(f"--to: {exc}")
-    plan = plan_replay(recording.messages, robot, target, live=live_commands)
+    plan = plan_replay(recording.messages, robot, target, live=live_commands, key_error=key_error)
     node_settings = NodeSettings(
         robot=target,
         base_port=settings(ctx).base_port,
@@ -264,14 +286,27 @@ def _replay(
         if live_commands and "safety" not in alive:
             fail(f"--live-commands needs robot {target}'s safety up to check the commands; it is not reachable")
         for why, count in plan.skipped.items():
-            console.print(f"[dim]not replayed: {count} messages {literal(why)}[/]")
+            console.print(f"[dim]not replayed: {count} messages {shown(why)}[/]")
+        for why, count in plan.retimed.items():
+            console.print(f"[yellow]not on their recorded time: {count} messages {shown(why)}[/]")
         console.print(
-            f"replaying {len(plan.items)} messages of {robot} from {recording.name} as {target} at {speed:g}x "
-            f"({plan.duration / speed:.1f} s)",
+            printable(
+                f"replaying {len(plan.items)} messages of {robot} from {recording.name} as {target} at {speed:g}x "
+                f"({plan.duration / speed:.1f} s)"
+            ),
             markup=False,
         )
         sent = Player(node).play(plan, speed, bar)
     console.print(f"replayed {sent} messages")
+
+
+def key_error(key: str) -> str | None:
+    """What Zenoh finds wrong with `key` as a key to publish on, or None when it takes it."""
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        return str(exc).split(" at ")[0]
+    return None
 
 
 class Player:
@@ -334,9 +369,9 @@ class Player:
         for reply in self.node.session.get(key, payload=payload, timeout=QUERY_TIMEOUT):
             answer = reply.ok if reply.ok is not None else reply.err
             data = answer.payload.to_bytes() if answer is not None else b""
-            console.print(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}", markup=False)
+            console.print(printable(f"{key.rsplit('/', 3)[0]}: {data[:300].decode(errors='replace')}"), markup=False)
             return
-        console.print(f"[yellow]{literal(key)}: no reply within {QUERY_TIMEOUT:g} s[/]")
+        console.print(f"[yellow]{shown(key)}: no reply within {QUERY_TIMEOUT:g} s[/]")
 
 
 # Recheck
@@ -374,12 +409,12 @@ def recheck_command(
             if recording.world is None:
                 if world_name is None:
                     fail(f"{name} carries no world file (recorded without one); give one with --world")
-                console.print(f"{name} carries no world file: checking in {world_name}", markup=False)
+                console.print(printable(f"{name} carries no world file: checking in {world_name}"), markup=False)
                 world, label = load_world(world_name), f"the world {world_name}"
             else:
                 if world_name is not None:
                     unused = f"--world {world_name} not used: {name} carries its own world file"
-                    console.print(f"[yellow]{literal(unused)}[/]")
+                    console.print(f"[yellow]{shown(unused)}[/]")
                 world, label = recorded_world(recording), "the recorded world"
             safety = recorded_policy(recording, world, policy, label)
         except RecordingError as exc:
@@ -413,6 +448,8 @@ def _report_json(report: RecheckReport, recording: RecordingFile, start: float, 
     return {
         "file": str(recording.path),
         "parts": [str(part) for part in recording.files],
+        "complete": recording.complete,
+        "problem": recording.problem,
         "policy_hash": report.policy_hash,
         "checked": len(report.checked),
         "differ": len(report.differences),
@@ -436,23 +473,30 @@ def _report_json(report: RecheckReport, recording: RecordingFile, start: float, 
 
 def _print_report(report: RecheckReport, name: str, start: float, show_all: bool, policy: Path | None) -> None:
     for warning in report.warnings:
-        console.print(f"[yellow]warning:[/] {literal(warning)}")
+        console.print(f"[yellow]warning:[/] {shown(warning)}")
     rows = report.checked if show_all else report.differences
     if rows:
         table = Table("t (s)", "command", "recorded", "now", "why")
         for c in rows:
             colour = "red" if c.differs else "dim"
             why = c.now_reason if c.now_reason else c.recorded_reason
-            cells = (literal(c.command), literal(c.recorded), f"[{colour}]{literal(c.now)}[/]", literal(why))
+            cells = (cell(c.command), cell(c.recorded), f"[{colour}]{cell(c.now)}[/]", cell(why))
             table.add_row(f"{c.stamp - start:.2f}", *cells)
         Console().print(table)
     skipped = ", ".join(f"{n} {why}" for why, n in report.skipped.items())
     against = f"policy {policy}" if policy else "the recorded policy"
     console.print(
-        f"{name}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
-        f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else ""),
+        printable(
+            f"{name}: {len(report.checked)} commands rechecked against {against} ({report.policy_hash}); "
+            f"{len(report.differences)} decided differently" + (f"; not rechecked: {skipped}" if skipped else "")
+        ),
         markup=False,
     )
+
+
+def cell(value: object) -> str:
+    """A table cell's markup for a text from a file: one line, printed as written."""
+    return literal(printable(value))
 
 
 # Recover
@@ -474,7 +518,8 @@ def recover_command(
         fail(str(exc))
     except OSError as exc:
         fail(f"cannot write {output}: {exc.strerror}")
-    state = "was complete; copied" if done.complete else f"recovered ({done.problem})"
+    state = "was complete; copied" if done.complete else f"recovered, without what could not be read ({done.problem})"
     console.print(
-        f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}", markup=False
+        printable(f"{file} {state}: {done.messages} messages on {done.channels} channels written to {output}"),
+        markup=False,
     )

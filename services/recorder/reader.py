@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import itertools
 import logging
+import struct
+import zlib
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -12,8 +15,11 @@ from typing import Any
 
 import lz4.frame
 import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import EndOfFile
+from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import CRCValidationError, breakup_chunk
 from mcap.well_known import Profile
 from mcap.writer import Writer
 
@@ -58,7 +64,9 @@ class RecordingFile:
     """Everything in one recording: messages in the order they were received, metadata, attachments.
 
     `complete` is False for a file without its summary (the recorder was killed): it is read up to
-    the last chunk that was flushed whole, and `problem` says where reading stopped.
+    the last chunk that was flushed whole, and `problem` says where reading stopped. It is False too
+    when a damaged chunk (or other record) was skipped, reading on past it: `skipped` counts those,
+    and `problem` names each with its offset and what is wrong with it.
     """
 
     path: Path
@@ -70,10 +78,14 @@ class RecordingFile:
     attachments: dict[str, Attachment] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
+    # Each topic's channel and schema as first defined (an id may be defined again for another topic).
+    topics: dict[str, tuple[Channel, Schema | None]] = field(default_factory=dict)
     complete: bool = False
     problem: str = ""
     # For parts of a rotated recording read as one (join_recordings): every file, in order.
     parts: list[Path] = field(default_factory=list)
+    # How many damaged records were skipped (named in `problem`).
+    skipped: int = 0
 
     @property
     def files(self) -> list[Path]:
@@ -162,22 +174,165 @@ def _unpack(chunk: Chunk) -> bytes:
     return data
 
 
-def _records(path: Path) -> Generator[Any, None, None]:
+MAGIC = b"\x89MCAP0\r\n"
+_HEAD = struct.Struct("<BQ")  # every record: opcode, then the length of what follows
+# A chunk's fields before its compression's name: start and end time, uncompressed size and CRC,
+# the name's length.
+_CHUNK_FIELDS = struct.Struct("<QQQII")
+_RECORD_TYPES: dict[int, Any] = {
+    Opcode.ATTACHMENT: Attachment,
+    Opcode.CHANNEL: Channel,
+    Opcode.CHUNK: Chunk,
+    Opcode.DATA_END: DataEnd,
+    Opcode.FOOTER: Footer,
+    Opcode.HEADER: Header,
+    Opcode.MESSAGE: Message,
+    Opcode.METADATA: Metadata,
+    Opcode.SCHEMA: Schema,
+}
+SCAN_WINDOW = 1 << 20
+
+
+@dataclass(frozen=True)
+class Damaged:
+    """A record that could not be read and was skipped: where it starts in the file, and why."""
+
+    offset: int
+    why: str
+    what: str = "record"  # the kind of record, where its opcode is known
+
+
+class NotMcap(Exception):
+    """A file that does not start as MCAP does."""
+
+
+class FileEndsEarly(Exception):
+    """The file ends inside a record (or before its footer): a recorder killed mid-write."""
+
+
+def _cause(exc: BaseException) -> str:
+    if isinstance(exc, CRCValidationError):
+        return f"its CRC does not match its contents (expected {exc.expected:#010x}, found {exc.actual:#010x})"
+    if isinstance(exc, EndOfFile):
+        return "its fields run past its own length"
+    if isinstance(exc, UnicodeDecodeError):
+        return f"a text in it is not UTF-8 ({exc.reason} at byte {exc.start})"
+    return str(exc) or type(exc).__name__
+
+
+def _parse(opcode: int, body: bytes) -> Any:
+    """The record `body` holds, or None for one tether does not read (indexes, statistics...)."""
+    kind = _RECORD_TYPES.get(opcode)
+    if kind is None:
+        return None
+    stream = ReadDataStream(io.BytesIO(body))
+    if kind is Message:
+        return Message.read(stream, len(body))
+    return kind.read(stream)
+
+
+def _is_chunk_at(head: bytes, room: int) -> bool:
+    """Whether `head` (a record's first bytes) is a chunk's, whole within `room` bytes: its own
+    fields must add up to the length it declares, which a damaged or random stretch of bytes does
+    not do by chance."""
+    if len(head) < _HEAD.size + _CHUNK_FIELDS.size or head[0] != Opcode.CHUNK:
+        return False
+    _, length = _HEAD.unpack_from(head)
+    if length > RECORD_SIZE_LIMIT or _HEAD.size + length > room:
+        return False
+    *_, name_length = _CHUNK_FIELDS.unpack_from(head, _HEAD.size)
+    name_at = _HEAD.size + _CHUNK_FIELDS.size
+    if name_length > 4 or len(head) < name_at + name_length + 8:
+        return False
+    if head[name_at : name_at + name_length] not in (b"", b"lz4", b"zstd"):
+        return False
+    (data_length,) = struct.unpack_from("<Q", head, name_at + name_length)
+    return _CHUNK_FIELDS.size + name_length + 8 + data_length == length
+
+
+def _next_chunk(stream: Any, start: int, size: int) -> int | None:
+    """The offset of the first whole chunk at or after `start`, or None."""
+    overlap = _HEAD.size + _CHUNK_FIELDS.size + 4 + 8
+    at = start
+    while at < size:
+        stream.seek(at)
+        window = stream.read(SCAN_WINDOW + overlap)
+        if not window:
+            return None
+        found = window.find(bytes([Opcode.CHUNK]))
+        while 0 <= found < SCAN_WINDOW:
+            if _is_chunk_at(window[found : found + overlap], size - (at + found)):
+                return at + found
+            found = window.find(bytes([Opcode.CHUNK]), found + 1)
+        at += SCAN_WINDOW
+    return None
+
+
+def _records(path: Path, size: int) -> Generator[Any, None, None]:
+    """The records of `path` in order, a chunk's broken up into the records it holds. A record that
+    cannot be read is yielded as Damaged and skipped: by its length when that is sound, else up to
+    the next whole chunk. Raises FileEndsEarly where the file is cut."""
     with path.open("rb") as stream:
-        # CRCs checked: a chunk damaged on disk ends the reading rather than passing as whole.
-        reader = StreamReader(stream, validate_crcs=True, record_size_limit=RECORD_SIZE_LIMIT, emit_chunks=True)
-        for record in reader.records:
-            if isinstance(record, Chunk):
-                yield from breakup_chunk(replace(record, compression="", data=_unpack(record)), validate_crc=True)
+        magic = stream.read(len(MAGIC))
+        if magic != MAGIC:
+            raise NotMcap(f"it does not start as MCAP does (magic {magic!r})")
+        at = len(MAGIC)
+        crc: int | None = zlib.crc32(MAGIC)  # the data section's, while every record was read
+        while True:
+            head = stream.read(_HEAD.size)
+            if len(head) < _HEAD.size:
+                raise FileEndsEarly()
+            opcode, length = _HEAD.unpack(head)
+            if length > RECORD_SIZE_LIMIT or at + _HEAD.size + length > size:
+                following = _next_chunk(stream, at + 1, size)
+                if following is None:
+                    if length <= RECORD_SIZE_LIMIT:
+                        raise FileEndsEarly()
+                    raise ChunkError(
+                        f"a record at byte {at} declares {length} bytes, more than the {RECORD_SIZE_LIMIT} "
+                        "a tether file holds, and no whole chunk follows it"
+                    )
+                limit = f"more than the {RECORD_SIZE_LIMIT} a tether file holds"
+                beyond = limit if length > RECORD_SIZE_LIMIT else f"past the file's end ({size} bytes)"
+                yield Damaged(at, f"it declares {length} bytes, {beyond}")
+                stream.seek(following)
+                at, crc = following, None  # the data section's CRC cannot be checked past a skip
+                continue
+            body = stream.read(length)
+            if len(body) < length:
+                raise FileEndsEarly()  # the file shrank while it was read
+            try:
+                record = _parse(opcode, body)
+                if isinstance(record, DataEnd) and crc is not None and record.data_section_crc not in (0, crc):
+                    yield Damaged(at, "its CRC does not match: a record outside the chunks changed", "data section")
+                if isinstance(record, Chunk):
+                    inner = breakup_chunk(replace(record, compression="", data=_unpack(record)), validate_crc=True)
+            except Exception as exc:  # whatever the bytes make the mcap library raise: this record only
+                kind = _RECORD_TYPES.get(opcode)
+                yield Damaged(
+                    at,
+                    _cause(exc),
+                    "record" if kind is None else "chunk" if kind is Chunk else f"{kind.__name__.lower()} record",
+                )
+                record = None
             else:
-                yield record
+                if isinstance(record, Chunk):
+                    yield from inner
+                elif record is not None:
+                    yield record
+            if crc is not None:
+                crc = zlib.crc32(body, zlib.crc32(head, crc))
+            at += _HEAD.size + length
+            if isinstance(record, Footer):
+                return
 
 
 def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> RecordingFile:
     """Read `path` front to back, keeping the messages whose key `keep` accepts (default: all).
 
-    Reads a file cut short as far as it is whole; raises RecordingError for a file that is missing or
-    not MCAP at all.
+    Reads a file cut short as far as it is whole, and skips a damaged record (a chunk whose CRC,
+    compression or contents are wrong) to read on past it, naming it in `problem`; raises
+    RecordingError for a file that is missing or not MCAP at all.
     """
     try:
         size = path.stat().st_size
@@ -192,12 +347,16 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
     recording = RecordingFile(path)
     kept: dict[int, bool] = {}
     last_sequence: int | None = None  # of the last message kept, which a link record may belong to
-    records = _records(path)
+    damaged: list[Damaged] = []
+    unknown_channel = 0
+    ending = ""
+    records = _records(path, size)
     try:
         for record in records:
             if isinstance(record, Message):
                 channel = recording.channels.get(record.channel_id)
                 if channel is None:
+                    unknown_channel += 1
                     continue
                 if is_link_channel(channel.topic):
                     if (
@@ -217,13 +376,20 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                     recording.messages.append(Recorded(record.log_time, channel.topic, record.data))
                     last_sequence = record.sequence
             elif isinstance(record, Channel):
+                if recording.channels.get(record.id, record) != record:
+                    kept.pop(record.id, None)  # an id defined again: its messages are the new topic's
                 recording.channels[record.id] = record
+                recording.topics.setdefault(record.topic, (record, recording.schemas.get(record.schema_id)))
             elif isinstance(record, Schema):
                 recording.schemas[record.id] = record
             elif isinstance(record, Metadata):
                 recording.metadata[record.name] = dict(record.metadata)
             elif isinstance(record, Attachment):
                 recording.attachments[record.name] = record
+            elif isinstance(record, Damaged):
+                damaged.append(record)
+                last_sequence = None
+                log.debug("%s: skipped a damaged record at byte %d: %s", path, record.offset, record.why)
             elif isinstance(record, DataEnd | Footer):
                 recording.complete = True
                 break
@@ -232,24 +398,39 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                     f"{path} is a ROS 2 recording (MCAP ros2 profile) for Foxglove and ros2 bag; "
                     "tether's tools read the tether recording beside it"
                 )
-    except RecordingError:
-        raise
-    # Whatever a cut or damaged file raises inside the mcap library (short reads, bad lengths,
-    # decompression errors, CRC mismatches, absurd sizes) ends the reading there.
-    except Exception as exc:
-        if not recording.channels and not recording.metadata:
-            why = str(exc) or type(exc).__name__
-            raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {why}") from None
-        if isinstance(exc, ChunkError):
-            recording.problem = f"reading stopped at a chunk that cannot be trusted: {exc}"
-        else:
-            recording.problem = "the file ends early (a crash?): read up to the last whole chunk"
-        log.debug("%s: reading stopped at %s: %s", path, type(exc).__name__, exc)
+    except NotMcap as exc:
+        raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {exc}") from None
+    except FileEndsEarly:
+        ending = "the file ends early (a crash?): read up to the last whole chunk"
+    except ChunkError as exc:
+        ending = f"reading stopped at a record that cannot be trusted: {exc}"
     finally:
         records.close()
-    if not recording.complete and not recording.problem:
-        recording.problem = "the file ends without its summary (a crash?)"
+    if not recording.channels and not recording.metadata and not recording.complete:
+        why = damaged[0].why if damaged else ending or "it holds no record"
+        raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {why}")
+    problems = [_skipped(damaged)] if damaged else []
+    if unknown_channel:
+        problems.append(
+            f"{unknown_channel} message{'s' if unknown_channel > 1 else ''} on a channel the file does not "
+            "define (defined in a skipped record?) dropped"
+        )
+    if ending:
+        problems.append(ending)
+    elif not recording.complete:
+        problems.append("the file ends without its summary (a crash?)")
+    recording.problem = "; ".join(problems)
+    recording.skipped = len(damaged)
+    recording.complete = recording.complete and not damaged and not unknown_channel
     return recording
+
+
+def _skipped(damaged: list[Damaged]) -> str:
+    """The damaged records, each with its offset and cause (the first few)."""
+    shown = "; ".join(f"{d.what} at byte {d.offset}: {d.why}" for d in damaged[:3])
+    more = f"; and {len(damaged) - 3} more" if len(damaged) > 3 else ""
+    count = f"{len(damaged)} damaged record{'s' if len(damaged) > 1 else ''}"
+    return f"{count} skipped, read on past {'them' if len(damaged) > 1 else 'it'} ({shown}{more})"
 
 
 def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
@@ -307,7 +488,9 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
         attachments=first.attachments,
         schemas=first.schemas,
         channels=first.channels,
+        topics={topic: found for part in ordered[::-1] for topic, found in part.topics.items()},
         complete=all(part.complete for part in ordered),
+        skipped=sum(part.skipped for part in ordered),
         problem="; ".join(f"{part.path.name}: {part.problem}" for part in ordered if part.problem),
         parts=[part.path for part in ordered],
     )
@@ -336,18 +519,20 @@ def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
     with output.open("wb") as stream:
         writer = Writer(stream, compression=COMPRESSION[compression])
         writer.start(profile=PROFILE, library=LIBRARY)
-        schema_ids = {
-            sid: writer.register_schema(name=s.name, encoding=s.encoding, data=s.data)
-            for sid, s in recording.schemas.items()
-        }
+        # One channel per topic, as each was first defined: a file may define an id again for
+        # another topic, and every message keeps the topic it was read under.
         channel_ids: dict[str, int] = {}
-        link = next((c.topic for c in recording.channels.values() if is_link_channel(c.topic)), None)
-        for channel in recording.channels.values():
-            channel_ids[channel.topic] = writer.register_channel(
-                topic=channel.topic,
-                message_encoding=channel.message_encoding,
-                schema_id=schema_ids.get(channel.schema_id, 0),
-                metadata=channel.metadata,
+        schema_ids: dict[tuple[str, str, bytes], int] = {}
+        link = next((topic for topic in recording.topics if is_link_channel(topic)), None)
+        for topic, (channel, schema) in recording.topics.items():
+            schema_id = 0
+            if schema is not None:
+                described = (schema.name, schema.encoding, schema.data)
+                if described not in schema_ids:
+                    schema_ids[described] = writer.register_schema(*described)
+                schema_id = schema_ids[described]
+            channel_ids[topic] = writer.register_channel(
+                topic=topic, message_encoding=channel.message_encoding, schema_id=schema_id, metadata=channel.metadata
             )
         for name, values in recording.metadata.items():
             writer.add_metadata(name, values)
@@ -385,6 +570,4 @@ def recover(source: Path, output: Path, compression: str = "zstd") -> Recovered:
                 sequence=sequence,
             )
         writer.finish()
-    return Recovered(
-        source, output, len(recording.messages), len(recording.channels), recording.complete, recording.problem
-    )
+    return Recovered(source, output, len(recording.messages), len(channel_ids), recording.complete, recording.problem)

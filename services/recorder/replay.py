@@ -13,8 +13,8 @@ from __future__ import annotations
 import enum
 import json
 import uuid
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 
 from schemas import keys
 from schemas.actions import CANCEL_ALL
@@ -32,6 +32,11 @@ LIVE_QUERIES = frozenset(
     for path in (action.send_goal.path, action.cancel_goal.path)
 )
 SAFETY_TRACE = "_trace/safety/"
+# A longer silence between two replayed messages is shortened to this (seconds, at speed 1): a log
+# time months ahead, in a damaged or hostile file, would otherwise hold the replay for months. Ten
+# minutes with nothing on any replayed key is no pause of a session worth keeping to the second.
+MAX_GAP = 600.0
+BACKWARDS = "recorded before the message ahead of them (log time going backwards): sent right after it"
 
 
 class ReplayKind(enum.StrEnum):
@@ -52,10 +57,11 @@ class Item:
 class ReplayPlan:
     items: list[Item]
     skipped: dict[str, int]  # why -> how many recorded messages were not replayed
+    retimed: dict[str, int] = field(default_factory=dict)  # why -> how many are sent off their recorded time
 
     @property
     def duration(self) -> float:
-        return self.items[-1].at if self.items else 0.0
+        return max((item.at for item in self.items), default=0.0)
 
 
 def default_target(robot: str) -> str:
@@ -71,20 +77,37 @@ def _relative(robot: str, key: str) -> str | None:
     return key[len(root) :] if key.startswith(root) else None
 
 
-def plan_replay(messages: Iterable[Recorded], robot: str, target: str, live: bool = False) -> ReplayPlan:
+def plan_replay(
+    messages: Iterable[Recorded],
+    robot: str,
+    target: str,
+    live: bool = False,
+    key_error: Callable[[str], str | None] | None = None,
+    max_gap: float = MAX_GAP,
+) -> ReplayPlan:
     """The messages of `robot` to send to `target`, in recorded order, at recorded offsets.
 
     With `live` only commands, as described above; goal ids are replaced by new ones (a goal id
     names one goal, and the recorded ones may still be known to the robot), consistently for a
-    goal's send and cancel.
+    goal's send and cancel. `key_error` says what is wrong with a key the transport would refuse
+    (None for a good one): such messages are skipped. Offsets never go backwards, and a silence
+    longer than `max_gap` seconds is shortened to it; `retimed` counts both.
     """
     items: list[Item] = []
     skipped: dict[str, int] = {}
+    retimed: dict[str, int] = {}
     goal_ids: dict[str, str] = {}
-    start: int | None = None
+    bad_keys: dict[str, str | None] = {}
+    first_bad: tuple[str, str] | None = None
+    refused = 0
+    previous: int | None = None  # the log time of the last message planned
+    at = 0.0
 
     def skip(why: str) -> None:
         skipped[why] = skipped.get(why, 0) + 1
+
+    def retime(why: str) -> None:
+        retimed[why] = retimed.get(why, 0) + 1
 
     for message in messages:
         path = _relative(robot, message.key)
@@ -99,10 +122,27 @@ def plan_replay(messages: Iterable[Recorded], robot: str, target: str, live: boo
             kind, path, payload, goal_id = item
         else:
             kind, payload, goal_id = ReplayKind.PUT, message.data, None
-        start = message.log_time if start is None else start
-        at = (message.log_time - start) / 1e9
-        items.append(Item(at, kind, f"{keys.prefix(target)}/{path}", payload, goal_id))
-    return ReplayPlan(items, skipped)
+        key = f"{keys.prefix(target)}/{path}"
+        if key_error is not None:
+            if key not in bad_keys:
+                bad_keys[key] = key_error(key)
+            if (error := bad_keys[key]) is not None:
+                refused += 1
+                first_bad = first_bad or (key, error)
+                continue
+        if previous is not None:
+            gap = (message.log_time - previous) / 1e9
+            if gap < 0:
+                retime(BACKWARDS)
+            elif gap > max_gap:
+                retime(f"after a silence of more than {max_gap:g} s (the gap is shortened to {max_gap:g} s)")
+            at += min(max(gap, 0.0), max_gap)
+        previous = message.log_time if previous is None else max(previous, message.log_time)
+        items.append(Item(at, kind, key, payload, goal_id))
+    if first_bad is not None:
+        key, error = first_bad
+        skipped[f"on a key that is not a valid Zenoh key expression (first {key!r}: {error})"] = refused
+    return ReplayPlan(items, skipped, retimed)
 
 
 def _live_item(path: str, data: bytes, goal_ids: dict[str, str]) -> tuple[ReplayKind, str, bytes, str | None] | None:
