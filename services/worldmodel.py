@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -56,7 +57,7 @@ def _check_references(world: World, path: Path) -> None:
         *(x.id for x in world.humans),
         *(x.id for x in world.walls),
     ]
-    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    duplicates = sorted(i for i, n in Counter(ids).items() if n > 1)
     if duplicates:
         raise WorldFileError(f"world file {path}: duplicate ids {duplicates}")
     furniture = {f.id for f in world.furniture}

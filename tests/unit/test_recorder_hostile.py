@@ -27,6 +27,7 @@ from services.recorder.mcapfile import Recording
 from services.recorder.reader import Recorded, read_recording, recover
 from services.recorder.replay import Item, ReplayKind, ReplayPlan, default_target, plan_replay
 from services.runtime import encode
+from services.worldmodel import WorldFileError, parse_world
 from tether import recordings
 from tether.inspect import inspect
 from tether.recordings import Player, recover_command
@@ -285,3 +286,23 @@ def test_a_recording_reads_back_whole_after_the_changes(tmp_path: Path) -> None:
     assert recording.complete and recording.problem == "" and recording.skipped == 0
     assert numbers(path) == list(range(300))
     assert recording.messages[0] == Recorded(T0, f"{PREFIX}/k0", encode({"i": 0}))
+
+
+def alias_bomb(levels: int) -> bytes:
+    """A YAML document of ten nodes per level, each level ten aliases of the one before: 10**levels nodes."""
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, levels)]
+    return "\n".join(lines).encode()
+
+
+@pytest.mark.parametrize("text", [alias_bomb(7), b"rooms: &r [*r]"], ids=["ten million nodes", "holds itself"])
+def test_a_recorded_world_of_aliases_that_expand_without_end_is_refused_before_it_is_built(text: bytes) -> None:
+    """A recording's world file is hostile: 400 KB of aliases cost 3.9 GB and 28 s before the refusal."""
+    started = time.thread_time()
+    with pytest.raises(WorldFileError, match=r"YAML of more than 1000000 nodes once its aliases are expanded"):
+        parse_world(text, Path("world.yaml"))
+    assert time.thread_time() - started < 1.0
+    # Aliases that stay small are YAML as any other: the same check passes them on to decoding.
+    with pytest.raises(WorldFileError, match=r"world file world\.yaml") as small:
+        parse_world(alias_bomb(2), Path("world.yaml"))
+    assert "aliases are expanded" not in str(small.value)
