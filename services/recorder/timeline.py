@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import bisect
 import enum
 import functools
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -448,18 +449,8 @@ class _Builder:
                 f"no heartbeat from safety in the last {silent:.2f} s of the recording: the robot stops without one",
                 Level.BAD,
             )
-        explicit = [r for r in self.rows if not r.implied]
-        return [r for r in self.rows if not r.implied or not self._told(r, explicit)]
-
-    @staticmethod
-    def _told(implied: Row, explicit: list[Row]) -> bool:
-        """Whether safety's own event about the change `implied` saw in the heartbeat is in the rows."""
-        window = SAME_CHANGE * 1e9
-        return any(
-            r.decision is implied.decision and abs(r.log_time - implied.log_time) <= window
-            for r in explicit
-            if r.source == keys.SAFETY_EVENTS.path
-        )
+        told = told_by_safety([r for r in self.rows if not r.implied])
+        return [r for r in self.rows if not r.implied or not told(r)]
 
     # Robot state
 
@@ -893,3 +884,23 @@ def _target(goal: Any, values: dict[str, float]) -> tuple[float, float] | None:
     if "x" in values and "y" in values:
         return values["x"], values["y"]
     return None
+
+
+def told_by_safety(rows: list[Row]) -> Callable[[Row], bool]:
+    """Whether safety's own event about the change an implied row saw in the heartbeat is among `rows`:
+    an event of the same decision within SAME_CHANGE of it. Each decision's times sorted once, so a
+    file of many implied rows and many events is read in n log n, not n times n (16,000 took 11 s)."""
+    times: dict[Decision | None, list[int]] = {}
+    for r in rows:
+        if r.source == keys.SAFETY_EVENTS.path:
+            times.setdefault(r.decision, []).append(r.log_time)
+    for each in times.values():
+        each.sort()
+    window = SAME_CHANGE * 1e9
+
+    def told(implied: Row) -> bool:
+        at = times.get(implied.decision, [])
+        k = bisect.bisect_left(at, implied.log_time - window)
+        return k < len(at) and at[k] <= implied.log_time + window
+
+    return told

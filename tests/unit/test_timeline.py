@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import pytest
 import typer
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from matplotlib import image
 from typer.testing import CliRunner
 
@@ -33,7 +36,16 @@ from services.recorder.mapview import draw_map, estop_points, track_of, vetoed_g
 from services.recorder.mcapfile import Provenance, Recording, SourceFile
 from services.recorder.reader import read_recording
 from services.recorder.recorded import recorded_world
-from services.recorder.timeline import EventKind, Level, Row, Timeline, build_timeline
+from services.recorder.timeline import (
+    SAME_CHANGE,
+    EventKind,
+    Level,
+    RobotState,
+    Row,
+    Timeline,
+    build_timeline,
+    told_by_safety,
+)
 from services.runtime import encode
 from services.worldmodel import world_path
 from tether.inspect import inspect
@@ -506,3 +518,47 @@ def test_faults_incidents_and_recoveries_are_rows(tmp_path: Path) -> None:
     assert rows[2].text == "incident 4 remembered: dropped at (2.50, 0.63): red cup fell"
     assert rows[2].target == (2.5, 0.63)
     assert rows[3].text.startswith("recovery 1 after precondition at step 3: succeeded as plan ")
+
+
+def _row(log_time: int, decision: Decision | None, source: str) -> Row:
+    return Row(0.0, log_time, EventKind.DECISION, "cmd/cmd_vel", "", RobotState(), source, decision=decision)
+
+
+def _told_one_by_one(implied: Row, rows: list[Row]) -> bool:
+    """What an implied row's check means, read row by row."""
+    return any(
+        r.decision is implied.decision and abs(r.log_time - implied.log_time) <= SAME_CHANGE * 1e9
+        for r in rows
+        if r.source == keys.SAFETY_EVENTS.path
+    )
+
+
+@settings(max_examples=300, deadline=None, derandomize=True, database=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, 5 * 10**9),
+            st.sampled_from([Decision.VETOED, Decision.LATCHED, Decision.RESET, None]),
+            st.sampled_from([keys.SAFETY_EVENTS.path, keys.HEARTBEAT.path]),
+        ),
+        max_size=30,
+    ),
+    st.integers(0, 5 * 10**9),
+    st.sampled_from([Decision.VETOED, Decision.LATCHED, Decision.RESET, None]),
+)
+def test_an_implied_row_is_told_by_safety_exactly_when_an_event_is_near_it(
+    events: list[tuple[int, Decision | None, str]], at: int, decision: Decision | None
+) -> None:
+    rows = [_row(t, d, source) for t, d, source in events]
+    implied = _row(at, decision, keys.HEARTBEAT.path)
+    assert told_by_safety(rows)(implied) == _told_one_by_one(implied, rows)
+
+
+def test_many_implied_rows_are_checked_against_many_events_in_n_log_n() -> None:
+    """16,000 of each took 11 s when every implied row read every event."""
+    rows = [_row(k * 10**8, Decision.LATCHED, keys.SAFETY_EVENTS.path) for k in range(20_000)]
+    implied = [_row(k * 10**8 + 5 * 10**7, Decision.RESET, keys.HEARTBEAT.path) for k in range(20_000)]
+    started = time.thread_time()
+    told = told_by_safety(rows)
+    assert not any(told(r) for r in implied)
+    assert time.thread_time() - started < 1.0
