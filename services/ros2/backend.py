@@ -17,11 +17,11 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, get_args
 
 import numpy as np
 
-from schemas.common import Pose2D, Vec3
+from schemas.common import Id, Metres, Pose2D, Text, Vec3, preview
 from schemas.robot import (
     ARM_JOINTS,
     FINGER_JOINTS,
@@ -82,6 +82,19 @@ CLOCK_TOLERANCE = 1.0
 ESTOP_PERIOD = 0.05
 
 
+# What the schemas let a report hold, read from their own types (safety decodes by them; a Struct
+# built here is not checked against them): where the robot, a person or an object may be, what a
+# person's id may look like, how long a goal's message may be.
+_METRES = get_args(Metres)[1]
+METRES_MIN, METRES_MAX = float(_METRES.ge), float(_METRES.le)
+_ID = get_args(Id)[1]
+_ID_PATTERN = re.compile(_ID.pattern)
+TEXT_MAX = int(get_args(Text)[1].max_length)
+# The robot's own words (Nav2's error_msg, a trajectory's error_string) are cut to this, leaving
+# the rest of a goal's message (TEXT_MAX) for what tether says around them.
+ROBOT_TEXT_MAX = TEXT_MAX // 4
+
+
 class RobotCallFailed(Exception):
     """The robot gave no usable answer: none in time, another type hash, undecodable bytes."""
 
@@ -131,6 +144,20 @@ def yaw_of(q: Any) -> float:
 
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
+
+
+def _in_metres(*values: float) -> bool:
+    """Whether every value is a place safety can decode (schemas' Metres); False for NaN too."""
+    return all(METRES_MIN <= v <= METRES_MAX for v in values)
+
+
+def robot_text(text: str) -> str:
+    """Text the robot wrote (an error message, a frame id), cut to ROBOT_TEXT_MAX characters on one
+    line, saying so, so that the goal's message that carries it still fits tether's Text."""
+    if len(text) <= ROBOT_TEXT_MAX:
+        return text
+    note = f" [cut: {len(text)} characters in all]"
+    return preview(text, ROBOT_TEXT_MAX - len(note)) + note
 
 
 def _frame(frame_id: str) -> str:
@@ -318,6 +345,11 @@ def odometry(message: Any, frame: str, stamp: float) -> Odometry:
     linear, angular = float(twist.linear.x), float(twist.angular.z)
     if not _finite(x, y, yaw, linear, angular):
         raise RobotReportError(f"odometry with values that are not numbers: x={x}, y={y}, v={linear}, w={angular}")
+    if not _in_metres(x, y):
+        raise RobotReportError(
+            f"odometry at ({x:g}, {y:g}): outside {METRES_MIN:g} to {METRES_MAX:g} m (tether's Metres), a pose "
+            "safety could not read"
+        )
     return Odometry(stamp=stamp, sim_time=stamp, pose=Pose2D(x=x, y=y, yaw=yaw), linear_x=linear, angular_z=angular)
 
 
@@ -426,7 +458,7 @@ class Perception:
             frame = _frame(detection.header.frame_id or message.header.frame_id)
             ident = str(detection.id)
             x, y, z = float(pose.position.x), float(pose.position.y), float(pose.position.z)
-            if not _finite(x, y, z) or max(abs(x), abs(y), abs(z)) > 1000.0:
+            if not _in_metres(x, y, z):
                 problems.append(f"detection {k} ({ident or class_id}) at ({x}, {y}, {z}): not a place in the world")
                 continue
             is_person = class_id == self.person_class or ident in self.people
@@ -518,7 +550,8 @@ def _identity(q: Any) -> bool:
 
 
 def _is_id(text: str) -> bool:
-    return 0 < len(text) <= 64 and all(c.isalnum() or c in "_.:-" for c in text)
+    """Whether `text` is an id as the schemas' Id takes one (ASCII letters and digits, not any letter)."""
+    return _ID.min_length <= len(text) <= _ID.max_length and _ID_PATTERN.fullmatch(text) is not None
 
 
 # A camera picture's largest side, checked before it is decoded.
@@ -698,7 +731,7 @@ def trajectory_error(result: Any) -> str:
     code = int(result.error_code)
     if code == 0:
         return ""
-    text = str(result.error_string)
+    text = robot_text(str(result.error_string))
     name = TRAJECTORY_ERRORS.get(code, f"error {code}")
     return f"{name}: {text}" if text else name
 
@@ -707,7 +740,7 @@ def navigation_error(result: Any) -> str:
     if result is None:
         return ""
     code = int(getattr(result, "error_code", 0))
-    text = str(getattr(result, "error_msg", ""))
+    text = robot_text(str(getattr(result, "error_msg", "")))
     if code == 0:
         return text
     name = NAV2_ERRORS.get(code, f"error {code}")
@@ -796,7 +829,7 @@ class RobotState:
             return odom
         why = "no odometry from the robot yet" if odom is None else f"no odometry from the robot for {age:.1f} s"
         if problem := self.recent_problem(about=("odometry", self.odom_topic.strip("/"))):
-            why += f"; {problem}"
+            why += f"; {robot_text(problem)}"  # it may quote the robot (a frame id) at any length
         return why
 
     @property

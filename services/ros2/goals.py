@@ -914,6 +914,13 @@ class GripperRun(GoalRun):
             position = float(result.state.position[0]) * 2 if len(result.state.position) else 0.0
         else:
             position = float(result.position)
+        if not math.isfinite(position):
+            # Passed on, no one could decode the result (JSON has no NaN): the goal ends aborted instead.
+            message = (
+                f"the robot reports the {self.label} goal succeeded, but with the gripper at {position}: not a gap"
+            )
+            log.warning("%s goal ended: %s", self.label, message)
+            return Ending(GoalState.ABORTED, self.result_now(), message)
         stalled, reached = bool(result.stalled), bool(result.reached_goal)
         holding = self._holding() if self.closing and stalled else None
         message = f"gripper at {position * 1000:.0f} mm"

@@ -20,20 +20,25 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from schemas.actions import GoalState
+from schemas.actions import GoalState, ResultResponse
+from schemas.actions import GoalStatus as TetherGoalStatus
 from schemas.common import Pose2D
 from schemas.robot import (
     ARM_JOINTS,
     FINGER_JOINTS,
     FollowJointTrajectoryGoal,
+    FollowJointTrajectoryResult,
     GripperCommandGoal,
+    GripperCommandResult,
     JointState,
     NavigateToPoseGoal,
+    NavigateToPoseResult,
     Odometry,
     TrajectoryPoint,
     Twist,
 )
 from schemas.safety import EstopState, SafetyStatus
+from schemas.world import PerceivedHumans
 from services.footprint import route_legs
 from services.robotrules import NO_HEARTBEAT_YET, HeartbeatGuard, SafetyNow, away_from, check_trajectory
 from services.ros2 import backend
@@ -99,6 +104,12 @@ def status(
 
 def clear(scale: float = 1.0, linear: float | None = None, angular: float | None = None) -> SafetyNow:
     return SafetyNow(None, status(scale=scale, linear=linear, angular=angular))
+
+
+def as_safety_reads(value: Any, schema: Any) -> Any:
+    """`value` through JSON and back, decoded by `schema` as safety and the executor decode it:
+    a Struct built in Python is not checked against its bounds, only a decoded one is."""
+    return msgspec.json.decode(msgspec.json.encode(value), type=schema)
 
 
 def header(stamp: float, frame: str) -> Any:
@@ -225,6 +236,16 @@ def test_odometry_whose_quaternion_is_no_rotation_is_refused_naming_it(
 ) -> None:
     with pytest.raises(RobotReportError, match=r"^odometry whose orientation \(x, y, z, w\) = .* has norm"):
         odometry(ros_odometry(6.0, 1.2, 0.0, quaternion=quaternion), "odom", NOW)
+
+
+@pytest.mark.parametrize(("x", "y"), [(5000.0, 1.2), (1e300, 1.2), (6.0, -1000.5)])
+def test_odometry_beyond_the_schemas_metres_is_refused_naming_the_bound(x: float, y: float) -> None:
+    # Before, it was passed on: safety could not decode it, so its monitors went blind while the
+    # backend's own keep-out check used the pose.
+    with pytest.raises(RobotReportError, match=r"^odometry at \(.*\): outside -1000 to 1000 m \(tether's Metres\)"):
+        odometry(ros_odometry(x, y, 0.0), "odom", NOW)
+    edge = odometry(ros_odometry(1000.0, -1000.0, 0.0), "odom", NOW)
+    assert as_safety_reads(edge, Odometry) == edge
 
 
 def test_a_robot_clock_far_from_ours_is_not_believed() -> None:
@@ -358,6 +379,21 @@ def test_a_detection_whose_quaternion_is_no_rotation_is_left_out_and_a_persons_k
     seen = perception().read(detections(person), NOW)
     assert seen.humans is not None and seen.humans.humans[0].pose == Pose2D(x=9.5, y=1.5, yaw=0.0)
     assert len(seen.problems) == 1 and "person operator: its orientation" in seen.problems[0]
+
+
+def test_a_person_whose_id_is_no_id_of_the_schemas_is_named_so_safety_can_read_the_people() -> None:
+    # Letters other than ASCII passed as an id before: the schema's Id refused them, so safety
+    # could read none of the people in the message.
+    seen = perception().read(detections(detection("café", "person", 9.5, 1.5, 0.85)), NOW)
+    assert seen.humans is not None and [h.id for h in seen.humans.humans] == ["person_0"]
+    assert as_safety_reads(seen.humans, PerceivedHumans) == seen.humans
+
+
+def test_a_detection_beyond_the_schemas_metres_is_left_out_with_the_reason() -> None:
+    seen = perception().read(detections(detection("operator", "person", 1000.5, 1.5, 0.85)), NOW)
+    assert seen.humans is None and seen.problems == [
+        "detection 0 (operator) at (1000.5, 1.5, 0.85): not a place in the world"
+    ]
 
 
 def test_an_array_of_people_only_is_the_trackers_and_an_empty_one_the_cameras() -> None:
@@ -899,6 +935,56 @@ def test_a_trajectory_the_robot_refuses_or_aborts_ends_aborted_with_what_it_said
     assert failed.state is GoalState.ABORTED and "GOAL_TOLERANCE_VIOLATED" in failed.message
 
 
+def assert_plan_reads(ending: Any, result_type: Any) -> None:
+    """The goal's ending as the executor reads it: its result and its status both decode."""
+    wire = ResultResponse(goal_id="g1", state=ending.state, result=ending.result, message=ending.message)
+    as_safety_reads(wire, ResultResponse[result_type])
+    as_safety_reads(TetherGoalStatus(goal_id="g1", state=ending.state, message=ending.message), TetherGoalStatus)
+
+
+def test_the_robots_words_too_long_for_a_message_are_cut_saying_so(rig: Rig) -> None:
+    # Before, a 10 000-character reason made the goal's ending undecodable: the robot's words were lost.
+    action = FakeAction("arm")
+    rig.clock.once(
+        lambda: bool(action.goals),
+        lambda: action.goals[0].finish(ABORTED, trajectory_result(-4, "panda_joint2 blocked " + "x" * 10_000)),
+    )
+    arm = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES).run()
+    assert arm.state is GoalState.ABORTED
+    assert arm.message.startswith(
+        "the robot aborted the follow_joint_trajectory goal: PATH_TOLERANCE_VIOLATED: panda_joint2 blocked xxx"
+    )
+    assert arm.message.endswith("… [cut: 10021 characters in all]")
+    assert len(arm.message) < backend.TEXT_MAX // 2
+    assert_plan_reads(arm, FollowJointTrajectoryResult)
+
+    to_pose = FakeAction("navigate_to_pose")
+    failed = TYPES.new(f"{backend.NAVIGATE_TO_POSE}_Result", error_code=9003, error_msg="y" * 10_000)
+    rig.clock.once(lambda: bool(to_pose.goals), lambda: to_pose.goals[0].finish(ABORTED, failed))
+    nav = navigation(rig, FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=6.5, y=1.2))), to_pose).run()
+    assert nav.state is GoalState.ABORTED and nav.message.startswith(
+        "the robot aborted the navigate_to_pose goal: TIMEOUT: yyy"
+    )
+    assert nav.message.endswith("… [cut: 10000 characters in all]")
+    assert_plan_reads(nav, NavigateToPoseResult)
+
+
+@pytest.mark.parametrize("position", [math.nan, math.inf, -math.inf])
+def test_a_gripper_result_whose_position_is_not_a_number_ends_the_goal_aborted(rig: Rig, position: float) -> None:
+    # Before, the goal succeeded with a result no one could decode (JSON has no NaN).
+    action = FakeAction("gripper")
+    run = GripperRun(rig.context, action, FakeHandle(GripperCommandGoal(position=0.08)), MESSAGES, {}, 0.2)
+    result = TYPES.new(f"{backend.GRIPPER_COMMAND}_Result", position=position, stalled=False, reached_goal=True)
+    rig.clock.once(lambda: bool(action.goals), lambda: action.goals[0].finish(SUCCEEDED, result))
+    ending = run.run()
+    assert ending.state is GoalState.ABORTED
+    assert ending.message == (
+        f"the robot reports the gripper_command goal succeeded, but with the gripper at {position}: not a gap"
+    )
+    assert ending.result.position == pytest.approx(0.08), "the gap the joint states show"
+    assert_plan_reads(ending, GripperCommandResult)
+
+
 def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
     """For what the goal runs' own threads do in wall time."""
     deadline = time.monotonic() + timeout
@@ -1110,6 +1196,17 @@ def test_a_navigation_with_odometry_in_the_wrong_frame_is_refused_with_the_reaso
     rig.robot.refused_odometry("odometry in frame 'map', expected 'odom' ([ros2.frames] odom)")
     ending = navigation(rig, FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2))), FakeAction("nav")).run()
     assert ending.state is GoalState.ABORTED and "frame 'map'" in ending.message
+
+
+def test_a_navigation_refused_for_odometry_in_a_frame_of_any_length_says_so_in_a_message_that_fits(
+    rig: Rig,
+) -> None:
+    rig.clock.now += 1.0
+    rig.robot.refused_odometry(f"odometry in frame {'m' * 10_000!r}, expected 'odom' ([ros2.frames] odom)")
+    ending = navigation(rig, FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2))), FakeAction("nav")).run()
+    assert ending.state is GoalState.ABORTED and "odometry in frame 'mmm" in ending.message
+    assert ending.message.endswith("… [cut: 10067 characters in all]") and len(ending.message) < backend.TEXT_MAX // 2
+    assert_plan_reads(ending, NavigateToPoseResult)
 
 
 def test_a_base_pushed_off_its_route_is_stopped_and_the_goal_aborted(rig: Rig) -> None:
