@@ -72,6 +72,10 @@ PROGRESS_STEP = 0.01  # metres (or radians, weighted) of progress that count
 # the base is clearly doing the next thing.
 PHASE_HYSTERESIS = 0.005
 FRESH_REPORT_WAIT = 0.2  # a result waits this long for a report from after it
+# A navigation ends this close to its goal pose (metres, radians; docs/robot.md): Nav2 saying it
+# arrived farther off (a goal checker looser than this, or a robot that is wrong) ends it aborted.
+ARRIVAL_DISTANCE = 0.05
+ARRIVAL_YAW = 0.05
 # A cancel the robot did not confirm is asked again this often (wall seconds) until the goal ends.
 CANCEL_RETRY = 0.5
 # A goal whose send_goal went unanswered is canceled by its id for the goal timeout plus this.
@@ -736,6 +740,17 @@ class NavigationRun(GoalRun):
     def succeeded(self, result: Any) -> Ending:
         odom = self.ctx.robot.fresh_odometry(self.ctx.robot.clock(), FRESH_REPORT_WAIT)
         pose = odom.pose if odom is not None else self.goal.pose
+        goal = self.goal.pose
+        off, turned = math.hypot(pose.x - goal.x, pose.y - goal.y), abs(math.remainder(pose.yaw - goal.yaw, math.tau))
+        if off > ARRIVAL_DISTANCE or turned > ARRIVAL_YAW:
+            message = (
+                f"the robot says it reached the goal pose, but odometry has the base at ({pose.x:.2f}, {pose.y:.2f}, "
+                f"yaw {pose.yaw:.2f}), {off:.2f} m and {turned:.2f} rad from it (tether's navigations end within "
+                f"{ARRIVAL_DISTANCE * 100:g} cm and {ARRIVAL_YAW:g} rad: set Nav2's goal checker within these)"
+            )
+            log.warning("%s goal ended: %s", self.label, message)
+            self.make_safe()
+            return Ending(GoalState.ABORTED, NavigateToPoseResult(pose=pose, message=message), message)
         message = "reached the goal pose"
         return Ending(GoalState.SUCCEEDED, NavigateToPoseResult(pose=pose, message=message), message)
 

@@ -1228,7 +1228,7 @@ def test_a_paused_navigation_is_canceled_and_the_rest_sent_through_its_remaining
         rig.clock.at(rig.clock.now + 1.0, lambda: rig.set(clear()))
 
     rig.clock.once(lambda: bool(to_pose.goals), drive_then_pause)
-    rig.clock.once(lambda: bool(through.goals), lambda: through.goals[0].finish(SUCCEEDED))
+    rig.clock.once(lambda: bool(through.goals), lambda: arrive(rig, through, Pose2D(x=8.0, y=1.2)))
     ending = navigation(rig, handle, to_pose, through).run()
     assert ending.state is GoalState.SUCCEEDED, ending.message
     assert to_pose.goals[0].cancels == 1
@@ -1257,9 +1257,40 @@ def test_a_navigation_tells_nav2_its_speed_limit_as_the_heartbeat_changes_it_and
     run = navigation(rig, FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=7.0, y=1.2), max_speed=0.4)), action)
     run.publish_speed_limit = limits.append
     rig.clock.once(lambda: bool(action.goals), lambda: rig.set(clear(0.5)))
-    rig.clock.once(lambda: len(limits) == 2, lambda: action.goals[0].finish(SUCCEEDED))
+    rig.clock.once(lambda: len(limits) == 2, lambda: arrive(rig, action, Pose2D(x=7.0, y=1.2)))
     assert run.run().state is GoalState.SUCCEEDED
     assert limits == pytest.approx([0.4, 0.3, 0.6]), "the goal's, then the scaled maximum, then lifted"
+
+
+def arrive(rig: Rig, action: Any, where: Pose2D) -> None:
+    """The base at `where`, then Nav2's goal ends succeeded."""
+    rig.odometry(where)
+    action.goals[0].finish(SUCCEEDED)
+
+
+@pytest.mark.parametrize(
+    ("where", "off"),
+    [(Pose2D(x=6.0, y=1.2), "2.00 m and 0.00 rad"), (Pose2D(x=8.0, y=1.2, yaw=0.3), "0.00 m and 0.30 rad")],
+    ids=["short of it", "facing elsewhere"],
+)
+def test_a_navigation_nav2_says_arrived_but_odometry_does_not_is_aborted(rig: Rig, where: Pose2D, off: str) -> None:
+    """Nav2's word is not taken for it: a goal checker looser than tether's, or a robot that is wrong."""
+    action = FakeAction("navigate_to_pose")
+    handle = FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2), start=Pose2D(x=6.0, y=1.2)))
+    rig.clock.once(lambda: bool(action.goals), lambda: arrive(rig, action, where))
+    ending = navigation(rig, handle, action).run()
+    assert ending.state is GoalState.ABORTED, ending.message
+    assert "the robot says it reached the goal pose, but odometry has the base at" in ending.message
+    assert off in ending.message and "set Nav2's goal checker within these" in ending.message
+    assert rig.halts, "the base is stopped"
+
+
+def test_a_navigation_that_ends_within_the_arrival_tolerance_succeeded(rig: Rig) -> None:
+    action = FakeAction("navigate_to_pose")
+    handle = FakeHandle(NavigateToPoseGoal(pose=Pose2D(x=8.0, y=1.2), start=Pose2D(x=6.0, y=1.2)))
+    rig.clock.once(lambda: bool(action.goals), lambda: arrive(rig, action, Pose2D(x=7.97, y=1.21, yaw=0.04)))
+    ending = navigation(rig, handle, action).run()
+    assert (ending.state, ending.message) == (GoalState.SUCCEEDED, "reached the goal pose")
 
 
 def test_why_there_is_no_odometry_names_the_latest_problem_with_it() -> None:
