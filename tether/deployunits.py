@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import tempfile
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,6 +29,8 @@ IMAGE_UID = 10001
 
 # The robot backend for a real robot (one of SERVICE_IDENTITIES): instead of sim, never together with it.
 ROS2 = "ros2"
+# A robot's config under systemd (tether.toml with this layout's paths), handed to each unit as a credential.
+CONFIG_CREDENTIAL = "systemd.toml"
 # Seconds without WATCHDOG=1 before systemd restarts a service. Safety feeds it from its heartbeat loop
 # (50 Hz): a hung safety is replaced within 2 s, while the robot, without heartbeats, has already stopped.
 WATCHDOG_SEC = {"safety": 2, "sim": 5, ROS2: 5}
@@ -109,7 +113,9 @@ def write_all(
             )
         source = directory / robot / "tether.toml"
         base = source.read_text() if source.exists() else ""
-        written.append(_write(directory / robot / "systemd.toml", managed_config(base, systemd_paths(robot), source)))
+        written.append(
+            _write(directory / robot / CONFIG_CREDENTIAL, managed_config(base, systemd_paths(robot), source))
+        )
         written.append(_write(directory / robot / "compose.toml", managed_config(base, container_paths(), source)))
     port, name = router.port, router.container_alias
     written.append(_write(directory / "compose" / "router.json5", open_router_config(port)))
@@ -125,11 +131,22 @@ def write_all(
 
 
 def _write(path: Path, text: str) -> Written:
-    """Write `path` unless it already holds `text`; `created` says whether it was (re)written."""
-    if path.is_file() and path.read_text() == text:
+    """Write `path` unless it already holds `text`; `created` says whether it was (re)written.
+
+    Written beside it and renamed over it: a symlink planted at `path` is replaced, never followed
+    (write_text wrote through one to whatever file it named)."""
+    if not path.is_symlink() and path.is_file() and path.read_text() == text:
         return Written(path, created=False, secret=False)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(handle, "w") as stream:
+            stream.write(text)
+        os.chmod(temporary, 0o644)  # mkstemp makes it 600; nothing here is secret, and it was 644 before
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
     return Written(path, created=True, secret=False)
 
 
@@ -177,7 +194,11 @@ SystemCallErrorNumber=EPERM
 def service_unit(identity: Identity, tls: bool, executable: Path) -> str:
     robot, service, unit = identity.robot, identity.service, identity.unit
     home = INSTALL_DIR / robot
-    credentials = "\n".join(f"LoadCredential={name}:{home / name}" for name in identity.credentials(tls))
+    # The config too: a DynamicUser reads nothing of root's 600 files in /etc/tether but what
+    # LoadCredential hands it (with --config at its install path every start failed, EACCES).
+    credentials = "\n".join(
+        f"LoadCredential={name}:{home / name}" for name in (*identity.credentials(tls), CONFIG_CREDENTIAL)
+    )
     backend = {
         "sim": f"Conflicts={unit.replace('-sim', '-' + ROS2)}.service\n",
         ROS2: f"Conflicts={unit.replace('-' + ROS2, '-sim')}.service\n",
@@ -191,7 +212,7 @@ def service_unit(identity: Identity, tls: bool, executable: Path) -> str:
     )
     command = (
         f"{executable} --zenoh-config ${{CREDENTIALS_DIRECTORY}}/{service}.json5 --robot {robot} "
-        f"run {service} --config {home / 'systemd.toml'}"
+        f"run {service} --config ${{CREDENTIALS_DIRECTORY}}/{CONFIG_CREDENTIAL}"
     )
     feeders = {"safety": " from the heartbeat loop", "sim": " from the physics loop", ROS2: " from the heartbeat watch"}
     fed_from = feeders.get(service, "")

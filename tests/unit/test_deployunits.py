@@ -93,7 +93,8 @@ def test_each_service_gets_only_its_own_files(deploy_dir: Path) -> None:
         for service in deployment.SERVICE_IDENTITIES:
             settings = unit_settings(deploy_dir / "systemd" / f"tether-{robot}-{service}.service")
             loaded = {value.split(":", 1)[0]: value.split(":", 1)[1] for value in settings["LoadCredential"]}
-            expected = {f"{service}.json5"} | ({f"{service}.pem", f"{service}.key", "ca.pem"} if tls else set())
+            expected = {f"{service}.json5", "systemd.toml"}
+            expected |= {f"{service}.pem", f"{service}.key", "ca.pem"} if tls else set()
             expected |= {
                 "safety": {"operator.token", "robot.key"},
                 "sim": {"robot.key"},
@@ -110,7 +111,8 @@ def test_each_service_gets_only_its_own_files(deploy_dir: Path) -> None:
             assert settings["StateDirectory"] == [f"tether-{robot}-{service}"]
             (command,) = settings["ExecStart"]
             assert command.startswith(f"{EXECUTABLE} --zenoh-config ${{CREDENTIALS_DIRECTORY}}/{service}.json5 ")
-            assert command.endswith(f"--robot {robot} run {service} --config /etc/tether/{robot}/systemd.toml")
+            # The config as a credential too: the DynamicUser cannot read root's 600 file at its install path.
+            assert command.endswith(f"--robot {robot} run {service} --config ${{CREDENTIALS_DIRECTORY}}/systemd.toml")
 
 
 def test_safety_watchdog_is_the_shortest(deploy_dir: Path) -> None:
@@ -253,3 +255,19 @@ def test_rerun_with_another_robot_keeps_units_of_the_first(tmp_path: Path) -> No
     assert {"tether-robot1-safety.service", "tether-robot2-safety.service"} <= names
     services = yaml.safe_load((tmp_path / "compose.secured.yaml").read_text())["services"]
     assert {"robot1-safety", "robot2-safety"} <= set(services)
+
+
+def test_a_symlink_planted_where_a_file_goes_is_replaced_not_written_through(tmp_path: Path) -> None:
+    """write_text followed a link at compose.yaml to overwrite the file it named (a review's finding)."""
+    directory = tmp_path / "deploy"
+    deployment.init(directory, ROBOTS, tls=False, router=deployment.RouterAddress.parse("robothost"))
+    victim, missing = tmp_path / "victim.txt", tmp_path / "created.txt"
+    victim.write_text("kept")
+    for planted, target in ((directory / "compose.yaml", victim), (directory / "robot1" / "systemd.toml", missing)):
+        planted.unlink(missing_ok=True)
+        planted.symlink_to(target)
+    deployunits.write_all(directory, ROBOTS, tls=False, executable=EXECUTABLE)
+    assert victim.read_text() == "kept" and not missing.exists()
+    for written in (directory / "compose.yaml", directory / "robot1" / "systemd.toml"):
+        assert not written.is_symlink() and written.stat().st_mode & 0o777 == 0o644
+    assert not list(directory.glob(".compose.yaml.*")), "no temporary file left behind"
