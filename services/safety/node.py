@@ -220,6 +220,11 @@ class SafetyNode:
             with self._twist_lock:
                 self._robot_cmd_vel.put(Twist())
             self._persist()
+        elif ruling.cancel_goals:
+            # A pause or a mode that stops programs: a program's twist stops now, not when the robot's
+            # hold of the last one runs out (0.5 s). Teleop, if it may drive, sends its next one.
+            with self._twist_lock:
+                self._robot_cmd_vel.put(Twist())
         for event in ruling.events:
             self._publish_event(event)
         if ruling.events:
@@ -434,14 +439,22 @@ class SafetyNode:
         """Serve `cmd`'s keys: goals as the gate rules, forwarded to `robot`; its feedback and status relayed."""
 
         def send_goal(req: SendGoal[Any]) -> GoalResponse:
+            # Noted as forwarded before it is decided on: an e-stop, pause or mode change decided after
+            # this goal's check cancels it, also while it is on its way (the robot rejects a goal
+            # canceled before it knew it). Noted only once accepted, such a goal ran on, uncanceled.
+            with self._forwarded_lock:
+                noted_before = req.goal_id in self._forwarded  # a goal id sent twice: the first's stays
+                self._forwarded[req.goal_id] = robot
             ruling = decide(req)
             self._carry_out(ruling)
             if isinstance(ruling.forward, GoalResponse):
-                return ruling.forward
-            response = self.node.call(robot.send_goal, ruling.forward, timeout=self.config.forward_timeout)
-            if response.accepted:
+                response = ruling.forward
+            else:
+                # A call that fails leaves the goal noted: it may run, and a later sweep cancels it.
+                response = self.node.call(robot.send_goal, ruling.forward, timeout=self.config.forward_timeout)
+            if not response.accepted and not noted_before:
                 with self._forwarded_lock:
-                    self._forwarded[req.goal_id] = robot
+                    self._forwarded.pop(req.goal_id, None)
             return response
 
         def cancel_goal(req: CancelGoal) -> CancelResponse:

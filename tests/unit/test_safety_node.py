@@ -33,7 +33,19 @@ from schemas.robot import (
     TrajectoryPoint,
     Twist,
 )
-from schemas.safety import Decision, EstopState, ResetReply, ResetRequest, SafetyEvent, SafetyStatus
+from schemas.safety import (
+    ApprovalAction,
+    ApprovalDecision,
+    ApprovalRequest,
+    ControlMode,
+    Decision,
+    EstopState,
+    ModeRequest,
+    ResetReply,
+    ResetRequest,
+    SafetyEvent,
+    SafetyStatus,
+)
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.errors import GoalRejected
@@ -48,6 +60,7 @@ from services.safety.policy import START_TOLERANCE, SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
 from tests.sessions import free_port
+from tests.unit.test_safety_modes import PLAN as MODES_PLAN
 
 WORLD = load_world()
 HOME = list(WORLD.robot.home_joints)
@@ -450,3 +463,47 @@ def test_incident_queries_are_answered_from_memory_at_a_bounded_rate(start: Star
     assert len(served) <= QUERY_RATE + 1, "a burst of at most a second's worth"
     assert refused and all("too many queries" in a.store and not a.incidents for a in refused)
     store.close()
+
+
+def approved_in_supervised_mode(node: Recorder) -> Callable[[ApprovalAction], bool]:
+    """Plan p1 approved by the operator in supervised mode; what the operator then decides on it."""
+    node.callbacks[keys.ODOM.path](odometry())
+    mode = ModeRequest(operator="alice", token="token", mode=ControlMode.SUPERVISED)
+    assert node.callbacks[keys.SET_MODE.path](mode).ok
+
+    def decide(action: ApprovalAction) -> bool:
+        decision = ApprovalDecision(operator="alice", token="token", goal_id="p1", action=action)
+        return bool(node.callbacks[keys.APPROVAL_DECIDE.path](decision).ok)
+
+    node.callbacks[keys.APPROVAL_REQUEST.path](ApprovalRequest(goal_id="p1", plan=MODES_PLAN))
+    assert decide(ApprovalAction.APPROVE)
+    return decide
+
+
+def test_a_pause_cancels_a_goal_on_its_way_to_the_robot(recorded: Recorder) -> None:
+    """Checked before the pause, on its way when it came: noted only once the robot accepted it, the
+    goal was missed by the pause's cancels and ran while the plan was paused (a review's finding)."""
+    node = recorded
+    decide = approved_in_supervised_mode(node)
+    paused: list[bool] = []
+
+    def pause_while_on_its_way(path: str, _message: Any) -> None:
+        if path == keys.ROBOT_NAVIGATE.send_goal.path and not paused:
+            paused.append(decide(ApprovalAction.PAUSE))
+
+    node.on_put = pause_while_on_its_way
+    goal = SendGoal(goal_id="g-on-its-way", goal=NavigateToPoseGoal(pose=Pose2D(x=6.5, y=1.2)))
+    assert node.callbacks[keys.CMD_NAVIGATE.send_goal.path](goal).accepted  # the robot here accepts
+    assert paused == [True]
+    node.wait_for(lambda sent: (keys.ROBOT_NAVIGATE.cancel_goal.path, CancelGoal(goal_id="g-on-its-way")) in sent)
+
+
+def test_a_pause_stops_a_programs_twist_at_once(recorded: Recorder) -> None:
+    """Not only when the robot's hold of the last twist runs out (0.5 s)."""
+    node = recorded
+    decide = approved_in_supervised_mode(node)
+    node.callbacks[keys.CMD_VEL.path](Twist(linear_x=0.3))
+    assert (keys.ROBOT_CMD_VEL.path, Twist(linear_x=0.3)) in node.sent
+    after = len(node.sent)
+    assert decide(ApprovalAction.PAUSE)
+    assert (keys.ROBOT_CMD_VEL.path, Twist()) in node.sent[after:]
