@@ -178,10 +178,10 @@ def _refusal_kind(exc: Vetoed) -> ErrorKind:
 class AttemptLimit:
     """At most `per_window` failed attempts per identity in any `window` seconds, and `total` for all
     together; `attempt` says how long to wait when a limit is reached (0.0: allowed) and counts the
-    attempt if it is a wrong one. A `right` attempt (a reset with the right token) is never counted
-    and is held only to its identity's limit of wrong ones: an operator may reset as often as the
-    robot needs, and many made-up names filling the shared limit cannot lock the real operator out.
-    Not thread-safe: the gate calls it under its lock."""
+    attempt if it is a wrong one. A `right` attempt (the right token) is never counted and never held:
+    an operator may reset as often as the robot needs, and neither made-up names filling the shared
+    limit nor wrong tokens sent under the operator's own name (it is in every event) lock the real
+    operator out of a reset or a pause. Not thread-safe: the gate calls it under its lock."""
 
     def __init__(self, per_window: int, total: int, window: float = RESET_WINDOW) -> None:
         self.per_window = per_window
@@ -195,15 +195,15 @@ class AttemptLimit:
             while times and t - times[0] >= self.window:
                 times.popleft()
         self._by = {k: v for k, v in self._by.items() if v}
+        if right:
+            return 0.0
         mine = self._by.setdefault(identity, deque())
-        caps = ((mine, self.per_window),) if right else ((mine, self.per_window), (self._all, self.total))
-        full = [times for times, cap in caps if len(times) >= cap]
+        full = [times for times, cap in ((mine, self.per_window), (self._all, self.total)) if len(times) >= cap]
         if full:
             # Allowed again once the oldest attempt counted against the full one leaves the window.
             return max(max(times[0] for times in full) + self.window - t, 0.001)
-        if not right:
-            mine.append(t)
-            self._all.append(t)
+        mine.append(t)
+        self._all.append(t)
         return 0.0
 
 
