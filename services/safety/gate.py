@@ -947,6 +947,15 @@ class SafetyGate:
         mode = self.modes.mode
         with self._lock:
             known = self._approvals.get(req.goal_id, t)
+            asked_for = self._approvals.plan(req.goal_id)
+        if known is not None and asked_for != req.plan:
+            # An approval holds for the plan it was asked for: another plan under the same goal id (a
+            # harmless one asked first, to have the real one ride on its approval) is refused, the
+            # book as it was.
+            other = f"goal {req.goal_id} was asked about with another plan; an approval is for one plan only"
+            refusal = PlanApproval(goal_id=req.goal_id, state=ApprovalState.DENIED, reason=other)
+            event = GateEvent(key, Decision.DENIED, other, refusal, Rule.APPROVAL, (Rule.APPROVAL,))
+            return Ruling(refusal, (event,))
         if known is not None:
             if known.state not in WAITING or mode is ControlMode.SUPERVISED:
                 return Ruling(known)

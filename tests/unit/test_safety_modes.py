@@ -213,3 +213,17 @@ def test_an_approval_checks_the_plan_again_from_where_the_robot_is_now(gate: Saf
     blocked = decide(gate, "p4", True)
     assert not blocked.forward.ok and "e-stop latched" in blocked.forward.message  # type: ignore[attr-defined]
     assert gate.approval("p4").state is ApprovalState.DENIED  # type: ignore[union-attr]
+
+
+def test_an_approval_holds_for_the_plan_it_was_asked_for_only(gate: SafetyGate) -> None:
+    """A harmless plan asked about first under a goal id: the real plan under the same id got the
+    harmless one's answer, and once approved, its approval (a review's finding). Now it is refused."""
+    assert set_mode(gate, ControlMode.SUPERVISED)
+    assert gate.request_approval(ApprovalRequest(goal_id="p1", plan=PLAN)).forward.state is ApprovalState.PENDING
+    other = gate.request_approval(ApprovalRequest(goal_id="p1", plan=STAIRS))
+    assert other.forward.state is ApprovalState.DENIED
+    assert "asked about with another plan; an approval is for one plan only" in other.forward.reason
+    assert other.events[0].decision is Decision.DENIED
+    assert decide(gate, "p1", True).forward.ok  # the plan asked for first, as it was
+    assert gate.request_approval(ApprovalRequest(goal_id="p1", plan=STAIRS)).forward.state is ApprovalState.DENIED
+    assert gate.request_approval(ApprovalRequest(goal_id="p1", plan=PLAN)).forward.state is ApprovalState.APPROVED
