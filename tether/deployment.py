@@ -419,19 +419,78 @@ def router_config(robots: Sequence[str], router: RouterAddress, tls: bool) -> st
     return header + json.dumps(conf, indent=2) + "\n"
 
 
-# The keys under tether/<robot>/ on which each service declares queryables and replies (its node.py):
-# nobody else may, so a compromised service cannot answer in another's place. The robot backends
-# serve robot/** by their own rule (serve-the-robot); the operator and the agent serve nothing.
-SERVES: dict[str, tuple[str, ...]] = {
-    "safety": ("cmd/*/_action/**",),  # the command doors; safety/** by its own rule (be-safety)
-    "parser": ("plan/parse",),
-    "resolver": ("plan/resolve", "world/scene"),
-    "executor": ("plan/execute/_action/**",),
-    "planner": ("plan/ask", "planner/**"),
-    "recorder": ("recorder/**",),
-    "sim": ("sim/**",),
+@dataclass(frozen=True)
+class Owners:
+    """Who may use one key of schemas/keys.py, beyond receiving it (everyone of its robot may).
+
+    A topic's `by` publish it. A service's `by` serve it and its `asked_by` query it. An action's `by`
+    serve its goals (send, cancel, result, status) and alone publish its feedback and status; its
+    `asked_by` are its clients: they send, cancel and follow goals.
+    """
+
+    by: tuple[str, ...]
+    asked_by: tuple[str, ...] = ()
+
+
+BACKENDS = ROBOT_BACKEND_IDENTITIES
+# Every key any identity may put, serve or query, by the key's path in schemas/keys.py (who calls what:
+# each service's node.py, the command line's tether/*.py as the operator, tether/agentapi.py as the
+# agent). A key not here is denied to all but its receivers: a new key works in a deployment once it
+# is granted here (tests/unit/test_deploy_owners.py names each one that is not).
+OWNERS: dict[str, Owners] = {
+    # The planner side: only the executor asks the parser and the resolver; plans come from the planner,
+    # a person and an agent; only the planner reports its attempts.
+    keys.PLAN_PARSE.path: Owners(("parser",), asked_by=("executor",)),
+    keys.PLAN_RESOLVE.path: Owners(("resolver",), asked_by=("executor",)),
+    keys.EXECUTE_PLAN.path: Owners(("executor",), asked_by=("planner", "operator", "agent")),
+    keys.PLAN_ASK.path: Owners(("planner",), asked_by=("operator", "agent")),
+    keys.PLANNER_ATTEMPTS.path: Owners(("planner",)),
+    keys.PLANNER_RECOVERIES.path: Owners(("planner",)),
+    keys.SCENE.path: Owners(("resolver",), asked_by=("executor", "planner", "operator", "agent")),
+    # The doors to safety: motion from the executor, and from the operator (`tether replay
+    # --live-commands`); a person's stream only from the operator.
+    keys.PLAN_CHECK.path: Owners(("safety",), asked_by=("executor",)),
+    keys.CMD_NAVIGATE.path: Owners(("safety",), asked_by=("executor", "operator")),
+    keys.CMD_TRAJECTORY.path: Owners(("safety",), asked_by=("executor", "operator")),
+    keys.CMD_GRIPPER.path: Owners(("safety",), asked_by=("executor", "operator")),
+    keys.CMD_VEL.path: Owners(("executor", "operator")),
+    keys.TELEOP_CMD_VEL.path: Owners(("operator",)),
+    # Safety: anyone stops the robot; only the operator resets, sets the mode, decides and forgets
+    # (DESIGN invariant 3; safety checks the token too); only the executor asks to move a plan.
+    keys.HEARTBEAT.path: Owners(("safety",)),
+    keys.ESTOP.path: Owners(IDENTITIES),
+    keys.SAFETY_EVENTS.path: Owners(("safety",)),
+    keys.RESET.path: Owners(("safety",), asked_by=("operator",)),
+    keys.SET_MODE.path: Owners(("safety",), asked_by=("operator",)),
+    keys.APPROVAL_REQUEST.path: Owners(("safety",), asked_by=("executor",)),
+    keys.APPROVAL_DECIDE.path: Owners(("safety",), asked_by=("operator",)),
+    keys.PENDING_PLANS.path: Owners(("safety",), asked_by=("operator",)),
+    keys.INCIDENTS.path: Owners(("safety",), asked_by=("planner", "operator", "agent")),
+    keys.FORGET_INCIDENT.path: Owners(("safety",), asked_by=("operator",)),
+    keys.INCIDENT_REPORT.path: Owners(("executor", *BACKENDS)),
+    keys.NEW_INCIDENT.path: Owners(("safety",)),
+    # The robot: only safety commands it; only the backend reports its state and the people near it
+    # (safety slows down for them).
+    keys.ROBOT_NAVIGATE.path: Owners(BACKENDS, asked_by=("safety",)),
+    keys.ROBOT_TRAJECTORY.path: Owners(BACKENDS, asked_by=("safety",)),
+    keys.ROBOT_GRIPPER.path: Owners(BACKENDS, asked_by=("safety",)),
+    keys.ROBOT_CMD_VEL.path: Owners(("safety",)),
+    keys.JOINT_STATES.path: Owners(BACKENDS),
+    keys.ODOM.path: Owners(BACKENDS),
+    keys.OBJECTS.path: Owners(BACKENDS),
+    keys.HUMANS.path: Owners(BACKENDS),
+    keys.CAMERA_IMAGE.path: Owners(BACKENDS, asked_by=("operator", "agent")),
+    keys.ROBOT_DIAGNOSTICS.path: Owners(BACKENDS, asked_by=("operator", "agent")),
+    # The simulated world and the recording: changed and read by a person; the recording's name by safety.
+    keys.GROUND_TRUTH.path: Owners(("sim",), asked_by=("operator",)),
+    keys.SIM_MOVE.path: Owners(("sim",), asked_by=("operator",)),
+    keys.SIM_FAULT.path: Owners(("sim",), asked_by=("operator",)),
+    keys.RECORDER_STATUS.path: Owners(("recorder",), asked_by=("safety", "operator")),
 }
 
+PUT = ["put", "delete"]
+SERVE = ["declare_queryable", "reply"]
+ASK = ["query"]
 ALL_MESSAGES = [
     "put",
     "delete",
@@ -445,20 +504,49 @@ ALL_MESSAGES = [
 ]
 
 
+def declared_keys() -> dict[str, keys.Topic[Any] | keys.Service[Any, Any] | keys.ActionKeys[Any, Any, Any]]:
+    """Every topic, service and action schemas/keys.py defines, by its path (not only those in its tuples)."""
+    kinds = (keys.Topic, keys.Service, keys.ActionKeys)
+    return {v.path: v for v in vars(keys).values() if isinstance(v, kinds)}
+
+
+def rights(identity: str) -> dict[str, list[str]]:
+    """The key paths (under tether/<robot>/) `identity` may publish, serve and ask, from OWNERS."""
+    declared = declared_keys()
+    found: dict[str, list[str]] = {"publish": [], "serve": [], "ask": []}
+    for path, owners in OWNERS.items():
+        match declared.get(path):
+            case keys.ActionKeys() as action:
+                goals = [s.path for s in (action.send_goal, action.cancel_goal, action.get_result, action.get_status)]
+                if identity in owners.by:
+                    found["serve"] += goals
+                    found["publish"] += [action.feedback.path, action.status.path]
+                if identity in owners.asked_by:
+                    found["ask"] += goals
+            case keys.Service():
+                if identity in owners.by:
+                    found["serve"].append(path)
+                if identity in owners.asked_by:
+                    found["ask"].append(path)
+            case keys.Topic() if not owners.asked_by:
+                if identity in owners.by:
+                    found["publish"].append(path)
+            case _:
+                raise DeploymentError(f"OWNERS grants {path!r}: no topic (asked by none), service or action of keys.py")
+    return found
+
+
 def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
     """Rules, subjects and policies of one robot, all scoped to tether/<robot>/.
 
-    Deny by default; each identity gets only what it does: every one of the robot's identities may
-    subscribe to and receive its robot's keys; the services and the operator put and query the planner
-    side and the command doors; each service declares queryables (and replies) only on the keys it
-    serves itself (SERVES), so no service can pose as the parser or as safety's command doors; only
-    safety commands the robot and publishes safety/**; only the robot backend (sim, ros2) reports the
-    robot's state and people and serves robot/**; only the operator resets the e-stop, sets the control
-    mode, approves plans, forgets incidents and drives by hand; only the executor asks safety to approve a
-    plan; the executor and the robot backend report incidents; everyone may list them;
-    each liveliness token and query trace only under its own name, and each service answers
-    `_process/<itself>` only (the services and the operator ask `_process/*`); the agent only what an
-    LLM agent needs (plans, the e-stop, the scene and the camera).
+    Deny by default. Every one of the robot's identities may subscribe to and receive its robot's keys;
+    beyond that each gets exactly what OWNERS grants it: it publishes only the topics (and the feedback
+    and status of the actions) it owns, serves only its own services and actions, and asks only what it
+    is a client of. So no service can answer in another's place or forge another's publication (a
+    plan's or a command's status, the planner's attempts), and only the executor and the operator send
+    goals through safety's command doors. Each identity holds a liveliness token and publishes query
+    traces only under its own name; each service answers `_process/<itself>` only, and the services and
+    the operator ask `_process/*`.
     """
     root = keys.prefix(robot)
 
@@ -471,92 +559,30 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
             "key_exprs": [f"{root}/{k}" for k in key_exprs],
         }
 
+    def own(key: str) -> str:
+        return key.removeprefix(root + "/")
+
     rules = [
         rule("receive", ALL_MESSAGES, ["**"], flow="egress"),
         rule("subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], ["**"]),
-        # The planner side and the command doors to safety: put and ask, not serve (SERVES says who
-        # serves each). Not teleop, not the robot's own reports.
-        rule(
-            "planner-side",
-            ["put", "delete", "query"],
-            [
-                "plan/**",
-                "cmd/cmd_vel",
-                "cmd/*/_action/**",
-                "world/scene",
-                "sim/**",
-                "recorder/**",
-                "planner/**",
-            ],
-        ),
-        rule("stop", ["put"], ["safety/estop"]),
-        rule(
-            "read",
-            ["query"],
-            [
-                "safety/check_plan",
-                "safety/approval/pending",
-                "safety/incidents",
-                "robot/*/_action/get_result",
-                "robot/*/_action/get_status",
-                "robot/camera/image",
-                "robot/diagnostics",
-            ],
-        ),
-        # What an LLM agent's tools ask (tether/agentapi.py): plans, questions, the scene, the camera.
-        rule(
-            "agent-asks",
-            ["query"],
-            [
-                "plan/**",
-                "safety/check_plan",
-                "safety/incidents",
-                "world/scene",
-                "recorder/status",
-                "robot/camera/image",
-                "robot/diagnostics",
-            ],
-        ),
         # Each service's own figures (`tether status`): asked by the operator and the services, not the agent.
-        rule("ask-processes", ["query"], [keys.process_key(robot).removeprefix(root + "/")]),
-        rule("reset", ["query"], ["safety/reset"]),
-        # The control mode and the approval of plans: a person's, like the reset (safety checks the token too).
-        # Forgetting an incident or clearing a caution zone: the operator's too.
-        rule("supervise", ["query"], ["safety/mode", "safety/approval/decide", "safety/incidents/forget"]),
-        # Before a plan's first motion the executor asks safety whether it may move (supervised mode).
-        rule("ask-approval", ["query"], ["safety/approval/request"]),
-        # What only the executor (a failed grasp, a drop) and the robot (a collision) see, for safety's memory.
-        rule("report-incidents", ["put"], ["safety/incidents/report"]),
-        rule("teleop", ["put"], ["cmd/teleop/**"]),
-        rule("be-safety", ["put", "delete", "declare_queryable", "reply"], ["safety/**"]),
-        rule(
-            "drive",
-            ["put", "delete", "query"],
-            ["robot/cmd_vel", "robot/*/_action/send_goal", "robot/*/_action/cancel_goal"],
-        ),
-        rule(
-            "be-the-robot",
-            ["put", "delete"],
-            [
-                "robot/joint_states",
-                "robot/odom",
-                "world/objects",
-                "world/humans",
-                "robot/*/_action/feedback",
-                "robot/*/_action/status",
-            ],
-        ),
-        rule("serve-the-robot", ["declare_queryable", "reply"], ["robot/**"]),
+        rule("ask-processes", ["query"], [own(keys.process_key(robot))]),
     ]
-    rules += [rule(f"serve-{service}", ["declare_queryable", "reply"], served) for service, served in SERVES.items()]
+    policies_of: dict[str, list[str]] = {}
     for identity in IDENTITIES:
-        alive, trace = keys.alive_key(robot, identity), keys.trace_key(robot, identity, "**")
-        rules.append(rule(f"alive-{identity}", ["liveliness_token"], [alive.removeprefix(root + "/")]))
-        rules.append(rule(f"trace-{identity}", ["put"], [trace.removeprefix(root + "/")]))
+        granted = rights(identity)
+        names = []
+        for what, messages in (("publish", PUT), ("serve", SERVE), ("ask", ASK)):
+            if granted[what]:
+                rules.append(rule(f"{what}-{identity}", messages, granted[what]))
+                names.append(f"{what}-{identity}")
+        policies_of[identity] = names
+    for identity in IDENTITIES:
+        rules.append(rule(f"alive-{identity}", ["liveliness_token"], [own(keys.alive_key(robot, identity))]))
+        rules.append(rule(f"trace-{identity}", ["put"], [own(keys.trace_key(robot, identity, "**"))]))
     # Each service answers for its own process only (services/runtime.py `declare_process_status`).
     for service in SERVICE_IDENTITIES:
-        process = keys.process_key(robot, service)
-        rules.append(rule(f"process-{service}", ["declare_queryable", "reply"], [process.removeprefix(root + "/")]))
+        rules.append(rule(f"process-{service}", SERVE, [own(keys.process_key(robot, service))]))
 
     subjects = []
     for identity in IDENTITIES:
@@ -577,17 +603,11 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
 
     people_and_services = [i for i in IDENTITIES if i != "agent"]
     policies = [
-        policy("everyone", ["receive", "subscribe", "stop"], IDENTITIES),
-        policy("services-and-operator", ["planner-side", "read", "ask-processes"], people_and_services),
-        policy("agent", ["agent-asks"], ["agent"]),
-        policy("operator", ["reset", "supervise", "teleop"], ["operator"]),
-        policy("executor", ["ask-approval", "report-incidents"], ["executor"]),
-        policy("report-incidents", ["report-incidents"], ROBOT_BACKEND_IDENTITIES),
-        policy("safety", ["be-safety", "drive"], ["safety"]),
-        policy("robot", ["be-the-robot", "serve-the-robot"], ROBOT_BACKEND_IDENTITIES),
+        policy("everyone", ["receive", "subscribe"], IDENTITIES),
+        policy("ask-processes", ["ask-processes"], people_and_services),
     ]
+    policies += [policy(f"rights-{i}", policies_of[i], [i]) for i in IDENTITIES if policies_of[i]]
     policies += [policy(f"own-{i}", [f"alive-{i}", f"trace-{i}"], [i]) for i in IDENTITIES]
-    policies += [policy(f"serves-{s}", [f"serve-{s}"], [s]) for s in SERVES]
     policies += [policy(f"own-process-{s}", [f"process-{s}"], [s]) for s in SERVICE_IDENTITIES]
     return rules, subjects, policies
 

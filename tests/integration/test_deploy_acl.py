@@ -134,9 +134,9 @@ def token_passes(f: Fleet, writer: zenoh.Session, key: str, marker: str) -> bool
             token.undeclare()
 
 
-# Markers each identity may put: the agent only the e-stop, everyone else the planner side too.
+# The marker: the e-stop, which every identity may put (nothing here listens to it but the router).
 def marker_of(robot: str, identity: str) -> str:
-    return f"tether/{robot}/safety/estop" if identity == "agent" else f"tether/{robot}/plan/marker"
+    return f"tether/{robot}/safety/estop"
 
 
 def test_the_agent_may_send_plans_and_stop_the_robot_and_nothing_else(fleet: Fleet) -> None:
@@ -158,7 +158,7 @@ def test_only_safety_drives_the_robot_and_the_sim_receives_it(fleet: Fleet) -> N
     received: queue.Queue[tuple[str, bytes]] = queue.Queue()
     sim, safety = fleet.s("r1", "sim"), fleet.s("r1", "safety")
     with sim.declare_subscriber("tether/r1/**", lambda s: received.put((str(s.key_expr), s.payload.to_bytes()))):
-        nonce, marker = os.urandom(8), "tether/r1/plan/marker"
+        nonce, marker = os.urandom(8), "tether/r1/safety/estop"
         deadline = time.monotonic() + DEADLINE
         while (marker, b"ready") not in drain(received):  # the sim's subscription is known to the router
             assert time.monotonic() < deadline, "the sim never received safety's marker"
@@ -169,8 +169,8 @@ def test_only_safety_drives_the_robot_and_the_sim_receives_it(fleet: Fleet) -> N
         while (marker, b"after") not in got:
             got.append(received.get(timeout=DEADLINE))
         assert ("tether/r1/robot/cmd_vel", nonce) in got
-    assert put_passes(fleet, safety, "tether/r1/robot/cmd_vel", "tether/r1/plan/marker")
-    assert query_passes(fleet, safety, "tether/r1/robot/navigate_to_pose/_action/send_goal", "tether/r1/plan/marker")
+    assert put_passes(fleet, safety, "tether/r1/robot/cmd_vel", "tether/r1/safety/estop")
+    assert query_passes(fleet, safety, "tether/r1/robot/navigate_to_pose/_action/send_goal", "tether/r1/safety/estop")
     for identity in ("sim", "executor", "planner", "operator", "ros2"):
         assert not put_passes(fleet, fleet.s("r1", identity), "tether/r1/robot/cmd_vel", marker_of("r1", identity))
 
@@ -185,10 +185,10 @@ def drain(q: queue.Queue[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
 
 
 def test_only_the_operator_resets_and_only_the_robot_reports_people(fleet: Fleet) -> None:
-    assert query_passes(fleet, fleet.s("r1", "operator"), "tether/r1/safety/reset", "tether/r1/plan/marker")
-    assert not query_passes(fleet, fleet.s("r1", "executor"), "tether/r1/safety/reset", "tether/r1/plan/marker")
-    assert put_passes(fleet, fleet.s("r1", "sim"), "tether/r1/world/humans", "tether/r1/plan/marker")
-    assert not put_passes(fleet, fleet.s("r1", "planner"), "tether/r1/world/humans", "tether/r1/plan/marker")
+    assert query_passes(fleet, fleet.s("r1", "operator"), "tether/r1/safety/reset", "tether/r1/safety/estop")
+    assert not query_passes(fleet, fleet.s("r1", "executor"), "tether/r1/safety/reset", "tether/r1/safety/estop")
+    assert put_passes(fleet, fleet.s("r1", "sim"), "tether/r1/world/humans", "tether/r1/safety/estop")
+    assert not put_passes(fleet, fleet.s("r1", "planner"), "tether/r1/world/humans", "tether/r1/safety/estop")
 
 
 def test_only_the_operator_forgets_an_incident_and_only_the_robot_side_reports_one(fleet: Fleet) -> None:
@@ -197,34 +197,34 @@ def test_only_the_operator_forgets_an_incident_and_only_the_robot_side_reports_o
         "tether/r1/safety/incidents/report",
         "tether/r1/safety/incidents",
     )
-    assert query_passes(fleet, fleet.s("r1", "operator"), forget, "tether/r1/plan/marker")
+    assert query_passes(fleet, fleet.s("r1", "operator"), forget, "tether/r1/safety/estop")
     agent, agent_marker = fleet.s("r1", "agent"), marker_of("r1", "agent")
     assert not query_passes(fleet, agent, forget, agent_marker)
     assert query_passes(fleet, agent, listing, agent_marker)  # the agent may read what is remembered
     assert not put_passes(fleet, agent, report, agent_marker)  # but not make up an incident
     for identity in ("executor", "sim"):
-        assert put_passes(fleet, fleet.s("r1", identity), report, "tether/r1/plan/marker"), identity
-    assert not query_passes(fleet, fleet.s("r1", "planner"), forget, "tether/r1/plan/marker")
+        assert put_passes(fleet, fleet.s("r1", identity), report, "tether/r1/safety/estop"), identity
+    assert not query_passes(fleet, fleet.s("r1", "planner"), forget, "tether/r1/safety/estop")
 
 
 def test_each_liveliness_token_only_from_its_own_service(fleet: Fleet) -> None:
-    assert token_passes(fleet, fleet.s("r1", "safety"), "tether/r1/alive/safety", "tether/r1/plan/marker")
-    assert token_passes(fleet, fleet.s("r1", "executor"), "tether/r1/alive/executor", "tether/r1/plan/marker")
+    assert token_passes(fleet, fleet.s("r1", "safety"), "tether/r1/alive/safety", "tether/r1/safety/estop")
+    assert token_passes(fleet, fleet.s("r1", "executor"), "tether/r1/alive/executor", "tether/r1/safety/estop")
     for identity in ("executor", "sim", "operator", "agent"):
         key, marker = "tether/r1/alive/safety", marker_of("r1", identity)
         assert not token_passes(fleet, fleet.s("r1", identity), key, marker), identity
-    assert not token_passes(fleet, fleet.s("r2", "safety"), "tether/r1/alive/safety", "tether/r2/plan/marker")
+    assert not token_passes(fleet, fleet.s("r2", "safety"), "tether/r1/alive/safety", "tether/r2/safety/estop")
 
 
 def test_one_robots_identities_can_neither_drive_nor_hear_another_robot(fleet: Fleet) -> None:
     for identity in deployment.IDENTITIES:
         other, marker = fleet.s("r2", identity), marker_of("r2", identity)
-        for key in ("tether/r1/robot/cmd_vel", "tether/r1/safety/estop", "tether/r1/plan/marker"):
+        for key in ("tether/r1/robot/cmd_vel", "tether/r1/safety/estop", "tether/r1/cmd/cmd_vel"):
             assert not put_passes(fleet, other, key, marker), (identity, key)
         for key in ("tether/r1/safety/reset", "tether/r1/plan/execute/_action/send_goal"):
             assert not query_passes(fleet, other, key, marker), (identity, key)
     # The same rights on its own robot: the rules are the same, scoped to tether/r2/.
-    assert put_passes(fleet, fleet.s("r2", "safety"), "tether/r2/robot/cmd_vel", "tether/r2/plan/marker")
+    assert put_passes(fleet, fleet.s("r2", "safety"), "tether/r2/robot/cmd_vel", "tether/r2/safety/estop")
 
     # What the router sends: r1's traffic reaches r1's operator and not r2's. The router's own session
     # writes r1's odometry, then each operator's marker, round after round. r1's operator hears both;
@@ -292,7 +292,7 @@ def test_a_session_without_credentials_or_certificate_is_refused(fleet: Fleet) -
 
 def test_the_rights_each_identity_has_and_has_not(fleet: Fleet) -> None:
     # What deploy/check_acl.py proved of the hand-written example router it replaced, on the generated rules.
-    m = "tether/r1/plan/marker"
+    m = "tether/r1/safety/estop"
     assert put_passes(fleet, fleet.s("r1", "executor"), "tether/r1/cmd/cmd_vel", m)
     assert put_passes(fleet, fleet.s("r1", "executor"), "tether/r1/safety/estop", m)
     assert not put_passes(fleet, fleet.s("r1", "executor"), "tether/r1/safety/heartbeat", m)
@@ -304,6 +304,31 @@ def test_the_rights_each_identity_has_and_has_not(fleet: Fleet) -> None:
     assert not put_passes(fleet, fleet.s("r1", "executor"), "tether/r1/world/humans", m)
     assert not query_passes(fleet, fleet.s("r1", "executor"), "tether/r1/robot/navigate_to_pose/_action/send_goal", m)
     assert not query_passes(fleet, fleet.s("r1", "sim"), "tether/r1/safety/reset", m)
+
+
+def test_nobody_forges_anothers_publication_or_sends_motion_past_the_executor(fleet: Fleet) -> None:
+    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/safety/estop"
+    plan_status = "tether/r1/plan/execute/_action/status"
+    nav_status, nav_feedback = (
+        "tether/r1/cmd/navigate_to_pose/_action/status",
+        "tether/r1/cmd/navigate_to_pose/_action/feedback",
+    )
+    # Safety ends a plan's approval on the plan's status (services/safety/node.py): the executor's alone.
+    assert put_passes(fleet, s("executor"), plan_status, m)
+    assert not put_passes(fleet, s("parser"), plan_status, m)
+    # A command's status and feedback: safety's, which the executor waits on.
+    assert put_passes(fleet, s("safety"), nav_status, m)
+    assert not put_passes(fleet, s("parser"), nav_status, m)
+    assert not put_passes(fleet, s("recorder"), nav_feedback, m)
+    assert put_passes(fleet, s("planner"), "tether/r1/planner/attempts", m)
+    assert not put_passes(fleet, s("recorder"), "tether/r1/planner/attempts", m)
+    # Motion goals reach safety from the executor (and a person), never from the parser or the planner.
+    goal = "tether/r1/cmd/navigate_to_pose/_action/send_goal"
+    assert query_passes(fleet, s("executor"), goal, m)
+    for identity in ("parser", "planner"):
+        assert not query_passes(fleet, s(identity), goal, m), identity
+    assert query_passes(fleet, s("operator"), "tether/r1/sim/move", m)
+    assert not query_passes(fleet, s("recorder"), "tether/r1/sim/move", m)
 
 
 def serves(
@@ -330,30 +355,31 @@ def serves(
 
 
 def test_each_service_serves_only_its_own_keys(fleet: Fleet) -> None:
-    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/plan/marker"
+    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/safety/estop"
     door, gripper = (
         "tether/r1/cmd/navigate_to_pose/_action/send_goal",
         "tether/r1/robot/gripper_command/_action/send_goal",
     )
-    assert serves(fleet, s("parser"), "tether/r1/plan/parse", m, s("operator"))
+    assert serves(fleet, s("parser"), "tether/r1/plan/parse", m, s("executor"))
     assert serves(fleet, s("safety"), door, m, s("executor"))
     # (Never the server asking itself: a session answers its own queries without the router.)
     assert serves(fleet, s("sim"), "tether/r1/sim/ground_truth", m, s("operator"))
     assert serves(fleet, s("ros2"), gripper, m, s("safety"))
     # A compromised planner (or any other service) cannot pose as the parser or as safety's command doors.
     for identity in ("planner", "executor", "resolver", "recorder", "operator"):
+        if identity != "executor":  # the parser's only asker
+            assert not serves(fleet, s(identity), "tether/r1/plan/parse", m, s("executor")), identity
         asker = s("executor" if identity == "operator" else "operator")
-        assert not serves(fleet, s(identity), "tether/r1/plan/parse", m, asker), identity
         assert not serves(fleet, s(identity), door, m, asker), identity
     assert not serves(fleet, s("parser"), "tether/r1/plan/execute/_action/send_goal", m, s("operator"))
-    assert not serves(fleet, s("planner"), "tether/r1/safety/check_plan", m, s("operator"))
+    assert not serves(fleet, s("planner"), "tether/r1/safety/check_plan", m, s("executor"))
     for identity in ("executor", "planner"):
         assert not serves(fleet, s(identity), gripper, m, s("safety")), identity
 
 
 def test_each_service_answers_for_its_own_process_only(fleet: Fleet) -> None:
     # `tether status` asks tether/<robot>/_process/*; each service answers on its own key (runtime.py).
-    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/plan/marker"
+    s, m = (lambda i: fleet.s("r1", i)), "tether/r1/safety/estop"
     every = "tether/r1/_process/*"
     assert serves(fleet, s("sim"), "tether/r1/_process/sim", m, s("operator"), ask=every)
     assert serves(fleet, s("safety"), "tether/r1/_process/safety", m, s("executor"), ask=every)
@@ -378,7 +404,7 @@ def test_each_service_answers_for_its_own_process_only(fleet: Fleet) -> None:
         fleet, s("sim"), "tether/r1/_process/sim", m, s("operator"), ask=every, reply_as="tether/r1/_process/safety"
     )
     assert not serves(
-        fleet, fleet.s("r2", "safety"), "tether/r1/_process/safety", "tether/r2/plan/marker", s("operator")
+        fleet, fleet.s("r2", "safety"), "tether/r1/_process/safety", "tether/r2/safety/estop", s("operator")
     )
 
 
