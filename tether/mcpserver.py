@@ -20,6 +20,7 @@ from jsonschema import Draft202012Validator
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
 
+from schemas.plan import MAX_NESTING, MAX_STEPS
 from services.agent.tools import ToolSpec, all_tools, render
 from services.recorder.mcapfile import version
 from services.runtime import Node, NodeSettings
@@ -40,6 +41,64 @@ ESTOP_LIMITER = anyio.CapacityLimiter(4)
 Handler = Callable[[dict[str, Any]], "str | Picture"]
 
 
+class ArgumentCheck:
+    """A tool's arguments held to its schema, in time that grows with their size.
+
+    A plan's step schema is an anyOf of one schema per action, whose on_failure steps refer back to
+    it: checked as written, each level of on_failure multiplies the work by the number of actions (a
+    264-byte plan five levels deep took 47 s of a worker's CPU, and 40 such calls kept the agent's
+    e-stop waiting 21 s). So a tool with such a step ($defs.step) is checked in parts: the arguments
+    with each step only an object, then each step against its own action's schema (chosen by its
+    `action`) with its on_failure steps only objects, then those, no deeper than MAX_NESTING levels
+    and MAX_STEPS steps in all. Any other tool is checked against its schema as it is."""
+
+    def __init__(self, schema: dict[str, Any]) -> None:
+        step = schema.get("$defs", {}).get("step")
+        self.branches: dict[str, Draft202012Validator] = {}
+        if not (isinstance(step, dict) and isinstance(step.get("anyOf"), list)):
+            self.whole = Draft202012Validator(schema)
+            return
+        shallow = {**schema, "$defs": {**schema["$defs"], "step": {"type": "object"}}}
+        self.whole = Draft202012Validator(shallow)
+        for branch in step["anyOf"]:
+            (action,) = branch["properties"]["action"]["enum"]
+            on_failure = {**branch["properties"]["on_failure"], "items": {"type": "object"}}
+            alone = {**branch, "properties": {**branch["properties"], "on_failure": on_failure}}
+            self.branches[action] = Draft202012Validator({**alone, "$defs": shallow["$defs"]})
+
+    def problem(self, arguments: dict[str, Any]) -> str | None:
+        """The first way `arguments` break the schema, where ("plan/2/on_failure/0/target: ..."), or None."""
+        if (found := _first_problem(self.whole, arguments, "")) is not None or not self.branches:
+            return found
+        steps = arguments.get("plan")
+        pending = [(step, f"plan/{i}", 0) for i, step in enumerate(steps)] if isinstance(steps, list) else []
+        seen = 0
+        while pending:
+            step, where, depth = pending.pop(0)
+            seen += 1
+            if seen > MAX_STEPS:
+                return f"plan: more than {MAX_STEPS} steps, on_failure steps included"
+            if depth > MAX_NESTING:
+                return f"{where}: on_failure nested more than {MAX_NESTING} levels deep"
+            action = step.get("action")
+            check = self.branches.get(action) if isinstance(action, str) else None
+            if check is None:
+                return f"{where}/action: {str(action)[:60]!r} is not one of {', '.join(sorted(self.branches))}"
+            if (found := _first_problem(check, step, where + "/")) is not None:
+                return found
+            alternatives = step.get("on_failure") or []
+            pending += [(alt, f"{where}/on_failure/{k}", depth + 1) for k, alt in enumerate(alternatives)]
+        return None
+
+
+def _first_problem(validator: Draft202012Validator, instance: Any, prefix: str) -> str | None:
+    problems = sorted(validator.iter_errors(instance), key=lambda e: list(e.absolute_path))
+    if not problems:
+        return None
+    where = prefix + "/".join(str(p) for p in problems[0].absolute_path) or "arguments"
+    return f"{where.rstrip('/')}: {problems[0].message[:300]}"
+
+
 class Tools:
     """Tool name -> what it does, for the generated tool list."""
 
@@ -48,7 +107,7 @@ class Tools:
         self.specs = specs
         # The SDK's low-level server does not check arguments: a call is held to its schema here, so
         # `say` cannot carry `action: drive` and a goal id cannot be a megabyte.
-        self.validators = {spec.name: Draft202012Validator(spec.parameters) for spec in specs}
+        self.validators = {spec.name: ArgumentCheck(spec.parameters) for spec in specs}
         self.kinds = {spec.name: spec.kind for spec in specs}
         fixed: dict[str, Handler] = {
             "execute_plan": lambda a: api.execute_plan(a),
@@ -79,11 +138,9 @@ class Tools:
             return _error(f"unknown tool {name!r}; the tools are {', '.join(sorted(self.handlers))}")
         if not isinstance(arguments, dict):
             return _error(f"{name}: arguments must be a JSON object")
-        problems = sorted(self.validators[name].iter_errors(arguments), key=lambda e: list(e.absolute_path))
-        if problems:
-            where = "/".join(str(p) for p in problems[0].absolute_path) or "arguments"
-            return _error(f"{name}: {where}: {problems[0].message[:300]}")
         try:
+            if (problem := self.validators[name].problem(arguments)) is not None:
+                return _error(f"{name}: {problem}")
             answer = handler(arguments)
         except AgentError as exc:
             return _error(f"{name}: {exc}")
