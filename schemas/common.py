@@ -14,7 +14,9 @@ from msgspec import Meta
 DECODE_ERRORS = (msgspec.DecodeError, UnicodeDecodeError, RecursionError)
 
 # Bounded scalars. SI units throughout: metres, radians, seconds, kilograms.
-Metres = Annotated[float, Meta(ge=-1000.0, le=1000.0)]
+# Where anything may be, in the map frame: what parses or reports a place checks it against these.
+METRES_MIN, METRES_MAX = -1000.0, 1000.0
+Metres = Annotated[float, Meta(ge=METRES_MIN, le=METRES_MAX)]
 Radians = Annotated[float, Meta(ge=-100.0, le=100.0)]
 Seconds = Annotated[float, Meta(ge=0.0, le=3600.0)]
 Kilograms = Annotated[float, Meta(ge=0.0, le=1000.0)]

@@ -6,12 +6,12 @@ import functools
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Any, get_args
+from typing import Any
 
 import msgspec
 from rapidfuzz import fuzz, process
 
-from schemas.common import ErrorKind, Metres, ServiceError, Stage
+from schemas.common import METRES_MAX, METRES_MIN, ErrorKind, ServiceError, Stage
 from schemas.plan import (
     Action,
     Coordinates,
@@ -56,9 +56,6 @@ _LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)",
 _YAML_FENCES = ("yaml", "yml")
 # "plan:" followed by an indented list or key: YAML, not a prose heading like "Plan:".
 _YAML_BODY = re.compile(r"[^\n]*\n[ \t]+(?:-\s|[\w\"']+\s*:)")
-# The bounds of a coordinate are those of the schema's Metres.
-_METRES = get_args(Metres)[1]
-METRES_MIN, METRES_MAX = float(_METRES.ge), float(_METRES.le)
 # Two sources of one point agree when they differ by less than this (metres): rounding, not a choice.
 SAME_POINT = 1e-6
 # "(3.5, 2.0)", "[3.5, 2.0, 0.7]", "x=3.5, y=2": brackets around a point written as text, and axis labels.

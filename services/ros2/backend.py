@@ -21,7 +21,7 @@ from typing import Any, Protocol, get_args
 
 import numpy as np
 
-from schemas.common import Id, Metres, Pose2D, Text, Vec3, preview
+from schemas.common import METRES_MAX, METRES_MIN, Id, Pose2D, Text, Vec3, preview
 from schemas.robot import (
     ARM_JOINTS,
     FINGER_JOINTS,
@@ -83,10 +83,8 @@ ESTOP_PERIOD = 0.05
 
 
 # What the schemas let a report hold, read from their own types (safety decodes by them; a Struct
-# built here is not checked against them): where the robot, a person or an object may be, what a
-# person's id may look like, how long a goal's message may be.
-_METRES = get_args(Metres)[1]
-METRES_MIN, METRES_MAX = float(_METRES.ge), float(_METRES.le)
+# built here is not checked against them): what a person's id may look like, how long a goal's
+# message may be; where the robot, a person or an object may be is schemas.common's METRES_MIN/MAX.
 _ID = get_args(Id)[1]
 _ID_PATTERN = re.compile(_ID.pattern)
 TEXT_MAX = int(get_args(Text)[1].max_length)
