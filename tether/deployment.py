@@ -245,8 +245,9 @@ def _read_manifest(directory: Path) -> dict[str, Any] | None:
 
 def _write_bytes(path: Path, data: bytes, *, secret: bool = False, replace: bool = False) -> Written:
     """Create `path` (mode 600 when `secret`), or keep it as it is when it exists and not `replace`
-    (or `replace` but it already holds `data`)."""
-    if path.exists() and (not replace or (path.is_file() and path.read_bytes() == data)):
+    (or `replace` but it already holds `data`). Replaced, it is written beside and renamed over: a
+    symlink planted there is replaced, never written through nor kept."""
+    if path.exists() and (not replace or (not path.is_symlink() and path.is_file() and path.read_bytes() == data)):
         return Written(path, created=False, secret=secret)
     path.parent.mkdir(parents=True, exist_ok=True)
     mode = SECRET_MODE if secret else 0o644
@@ -268,6 +269,11 @@ def _write_bytes(path: Path, data: bytes, *, secret: bool = False, replace: bool
 
 def _write_text(path: Path, text: str, *, secret: bool = False, replace: bool = False) -> Written:
     return _write_bytes(path, text.encode(), secret=secret, replace=replace)
+
+
+def write_generated(path: Path, text: str) -> Written:
+    """A file deploy init generates and rewrites when its text changes (nothing secret in it)."""
+    return _write_text(path, text, replace=True)
 
 
 def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -> dict[str, str]:

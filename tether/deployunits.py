@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -16,7 +14,7 @@ import yaml
 
 from services.planner.config import KEY_FILE_ENV
 from tether import deployment
-from tether.deployment import SERVICE_IDENTITIES, RouterAddress, Written
+from tether.deployment import SERVICE_IDENTITIES, RouterAddress, Written, write_generated
 
 # Where the installer puts things on a host (deploy/README.md): the venv with the `tether` command, and
 # the deployment directory's files, DIR/router* in /etc/tether and DIR/<robot>/ in /etc/tether/<robot>/.
@@ -103,51 +101,33 @@ def write_all(
     written: list[Written] = []
     units = directory / "systemd"
     units.mkdir(parents=True, exist_ok=True)
-    written.append(_write(units / "tether-router.service", router_unit(tls, executable)))
+    written.append(write_generated(units / "tether-router.service", router_unit(tls, executable)))
     for robot in robots:
         for service in SERVICE_IDENTITIES:
             written.append(
-                _write(
+                write_generated(
                     units / f"tether-{robot}-{service}.service", service_unit(Identity(robot, service), tls, executable)
                 )
             )
         source = directory / robot / "tether.toml"
         base = source.read_text() if source.exists() else ""
         written.append(
-            _write(directory / robot / CONFIG_CREDENTIAL, managed_config(base, systemd_paths(robot), source))
+            write_generated(directory / robot / CONFIG_CREDENTIAL, managed_config(base, systemd_paths(robot), source))
         )
-        written.append(_write(directory / robot / "compose.toml", managed_config(base, container_paths(), source)))
+        written.append(
+            write_generated(directory / robot / "compose.toml", managed_config(base, container_paths(), source))
+        )
     port, name = router.port, router.container_alias
-    written.append(_write(directory / "compose" / "router.json5", open_router_config(port)))
-    written.append(_write(directory / "compose" / "client.json5", open_client_config(port)))
-    written.append(_write(directory / "compose.yaml", compose_yaml(robots, tls=tls, secured=False, port=port)))
+    written.append(write_generated(directory / "compose" / "router.json5", open_router_config(port)))
+    written.append(write_generated(directory / "compose" / "client.json5", open_client_config(port)))
+    written.append(write_generated(directory / "compose.yaml", compose_yaml(robots, tls=tls, secured=False, port=port)))
     written.append(
-        _write(
+        write_generated(
             directory / "compose.secured.yaml",
             compose_yaml(robots, tls=tls, secured=True, port=port, router_host=name),
         )
     )
     return written
-
-
-def _write(path: Path, text: str) -> Written:
-    """Write `path` unless it already holds `text`; `created` says whether it was (re)written.
-
-    Written beside it and renamed over it: a symlink planted at `path` is replaced, never followed
-    (write_text wrote through one to whatever file it named)."""
-    if not path.is_symlink() and path.is_file() and path.read_text() == text:
-        return Written(path, created=False, secret=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(handle, "w") as stream:
-            stream.write(text)
-        os.chmod(temporary, 0o644)  # mkstemp makes it 600; nothing here is secret, and it was 644 before
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    return Written(path, created=True, secret=False)
 
 
 # systemd
