@@ -79,9 +79,10 @@ def printable(value: object, newlines: bool = False) -> str:
     return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else _CONTROLS)
 
 
-def shown(value: object) -> str:
-    """`value` as markup that prints as written, control characters escaped (see printable)."""
-    return literal(printable(value, newlines=True))
+def shown(value: object, newlines: bool = True) -> str:
+    """`value` as markup that prints as written, control characters escaped (see printable); on one
+    line unless `newlines` (a table cell)."""
+    return literal(printable(value, newlines))
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
@@ -479,9 +480,9 @@ def _print_report(report: RecheckReport, name: str, start: float, show_all: bool
         table = Table("t (s)", "command", "recorded", "now", "why")
         for c in rows:
             colour = "red" if c.differs else "dim"
-            why = c.now_reason if c.now_reason else c.recorded_reason
-            cells = (cell(c.command), cell(c.recorded), f"[{colour}]{cell(c.now)}[/]", cell(why))
-            table.add_row(f"{c.stamp - start:.2f}", *cells)
+            texts = (c.command, c.recorded, c.now, c.now_reason if c.now_reason else c.recorded_reason)
+            command, recorded, now, why = (shown(text, newlines=False) for text in texts)
+            table.add_row(f"{c.stamp - start:.2f}", command, recorded, f"[{colour}]{now}[/]", why)
         Console().print(table)
     skipped = ", ".join(f"{n} {why}" for why, n in report.skipped.items())
     against = f"policy {policy}" if policy else "the recorded policy"
@@ -492,11 +493,6 @@ def _print_report(report: RecheckReport, name: str, start: float, show_all: bool
         ),
         markup=False,
     )
-
-
-def cell(value: object) -> str:
-    """A table cell's markup for a text from a file: one line, printed as written."""
-    return literal(printable(value))
 
 
 # Recover
