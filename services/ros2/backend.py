@@ -75,6 +75,9 @@ DIAGNOSTICS_WINDOW = 60.0
 DIAGNOSTICS_KEPT = 16
 # rmw.py's count of the reports it held back: left out, so a problem that goes on is one entry.
 _HELD_BACK = re.compile(r" \(\d+ more like it since the last report\)$")
+# The arm's joint states must keep up with the gripper's, merged from two publishers: an arm heard
+# longer ago than this (seconds; safety's default state_max_age) is not passed on as current.
+JOINTS_MAX_LAG = 0.5
 # A robot stamp further than this from our wall clock is not believed: the report is stamped on arrival.
 CLOCK_TOLERANCE = 1.0
 # emergency_stop goes out this often, `true` or `false` (docs/robot.md: the controller's rate): a
@@ -355,13 +358,27 @@ class JointMerger:
     """sensor_msgs/JointState messages as tether's JointState: the arm's seven joints then the two
     fingers, merged over messages (a robot may publish its arm and gripper apart), velocities
     estimated from positions when the robot sends none. The merged state carries the stamp of the
-    message that completed it; a message naming none of its joints adds nothing and is not passed on."""
+    message that completed it; a message naming none of its joints adds nothing and is not passed on.
 
-    def __init__(self, names: Sequence[str] = (*ARM_JOINTS, *FINGER_JOINTS)) -> None:
+    The `keeping_up` joints (the arm's) must have been heard within `max_lag` seconds of every
+    message merged: when their publisher stops while another (the gripper's) goes on, nothing is
+    passed on (`lagging` names them), rather than their last positions under a fresh stamp. Safety
+    ages joint states by when they arrive, so it then finds them missing, refuses arm motion and
+    trips its watchdog if the arm was moving. The others (fingers) may be reported only on change."""
+
+    def __init__(
+        self,
+        names: Sequence[str] = (*ARM_JOINTS, *FINGER_JOINTS),
+        keeping_up: Sequence[str] = ARM_JOINTS,
+        max_lag: float = JOINTS_MAX_LAG,
+    ) -> None:
         self.names = tuple(names)
+        self.keeping_up = tuple(name for name in keeping_up if name in self.names)
+        self.max_lag = max_lag
         self._position: dict[str, float] = {}
         self._velocity: dict[str, float] = {}
         self._heard: dict[str, float] = {}
+        self._lagging: list[str] = []
 
     def update(self, message: Any, stamp: float) -> JointState | None:
         """The joint state with `message` merged in; None until every joint has been heard, and
@@ -400,6 +417,9 @@ class JointMerger:
             self._position[name], self._velocity[name], self._heard[name] = position, velocity, stamp
         if len(self._position) < len(self.names):
             return None
+        self._lagging = [name for name in self.keeping_up if stamp - self._heard[name] > self.max_lag]
+        if self._lagging:
+            return None
         return JointState(
             stamp=stamp,
             name=list(self.names),
@@ -409,6 +429,10 @@ class JointMerger:
 
     def missing(self) -> list[str]:
         return [n for n in self.names if n not in self._position]
+
+    def lagging(self) -> list[str]:
+        """The `keeping_up` joints not heard within `max_lag` of the last message merged."""
+        return list(self._lagging)
 
 
 @dataclass(frozen=True)

@@ -530,6 +530,10 @@ class Ros2Backend:
             # Also a message of none of tether's joints (a base's wheels on the same topic): nothing new.
             if missing := self._joints.missing():
                 self._complain("joint states", f"waiting for joints {missing}")
+            elif lagging := self._joints.lagging():
+                why = f"joints {lagging} not heard for over {self._joints.max_lag:g} s while others were: not passed on"
+                self.robot.problem(f"joint states on {self.config.names.joint_states}: {why}")
+                self._complain("joint states", why)
             return
         self.robot.heard_joints(joints)
         if self._rates["joint_states"].allow(time.monotonic()):

@@ -43,6 +43,7 @@ from services.footprint import route_legs
 from services.robotrules import NO_HEARTBEAT_YET, HeartbeatGuard, SafetyNow, away_from, check_trajectory
 from services.ros2 import backend
 from services.ros2.backend import (
+    JOINTS_MAX_LAG,
     BaseLimits,
     CmdVelHold,
     EstopSignal,
@@ -309,8 +310,23 @@ def test_joint_states_naming_none_of_tethers_joints_pass_nothing_on() -> None:
     assert arm is not None and arm.stamp == NOW + 0.01
     # A message of none of tether's joints (a base's wheels) says nothing new: before, it republished all.
     assert merger.update(joint_message(["wheel_left_joint"], [3.0]), NOW + 11.0) is None
+    assert merger.update(joint_message(list(ARM_JOINTS), HOME, [0.0] * 7), NOW + 11.9) is not None
     again = merger.update(joint_message(list(FINGER_JOINTS), [0.03, 0.03]), NOW + 12.0)
     assert again is not None and again.stamp == NOW + 12.0 and again.position[-2:] == [0.03, 0.03]
+
+
+def test_an_arm_that_stops_reporting_is_not_passed_on_under_the_grippers_fresh_stamps() -> None:
+    merger = JointMerger()
+    assert merger.update(joint_message(list(ARM_JOINTS), HOME, [0.8] * 7), NOW) is None
+    # The gripper's messages complete the state while the arm's are recent.
+    assert merger.update(joint_message(list(FINGER_JOINTS), [0.04, 0.04]), NOW + JOINTS_MAX_LAG) is not None
+    # The arm's publisher has stopped; the gripper's goes on: its message would carry the arm's last
+    # positions, moving at 0.8 rad/s, as measured now. Nothing is passed on, and the arm is named.
+    assert merger.update(joint_message(list(FINGER_JOINTS), [0.04, 0.04]), NOW + JOINTS_MAX_LAG + 0.01) is None
+    assert merger.lagging() == list(ARM_JOINTS) and merger.missing() == []
+    # The arm reports again: passed on at once. Fingers reported only on change may lag.
+    back = merger.update(joint_message(list(ARM_JOINTS), HOME, [0.0] * 7), NOW + 5.0)
+    assert back is not None and back.stamp == NOW + 5.0 and merger.lagging() == []
 
 
 def perception(class_map: dict[str, str] | None = None) -> Perception:
