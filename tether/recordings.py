@@ -397,8 +397,9 @@ def recheck_command(
     Robot commands and heartbeats that are not safety's (no robot-link MAC, another sender, replayed, no
     decision allowing them) are listed as warnings.
 
-    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot) or when
-    something not safety's reached the robot's keys, 2 on bad input or when nothing could be rechecked.
+    Exit 0 when none differs, 1 when some do (a policy change to look at before it reaches a robot), when
+    something not safety's reached the robot's keys, or when the file is damaged (what its skipped records
+    held was not rechecked), 2 on bad input or when nothing could be rechecked.
     """
     robot_key = robot_key_of(robot_key_file)
     if policy is not None and not policy.is_file():
@@ -440,8 +441,15 @@ def recheck_command(
     if not report.checked:
         # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing.
         fail(f"nothing in {name} could be rechecked: it holds no safety decision with the robot's state before it")
+    if recording.skipped:
+        # Not a pass either: the decisions in the damaged records went unchecked (open_recording named them).
+        console.print(
+            f"[yellow]{shown(name)}: {recording.skipped} damaged record(s) skipped; the commands they held "
+            "were not rechecked[/]",
+            highlight=False,
+        )
     # Commands or heartbeats that are not safety's are a finding too (listed as warnings).
-    raise typer.Exit(1 if report.differences or report.suspects else 0)
+    raise typer.Exit(1 if report.differences or report.suspects or recording.skipped else 0)
 
 
 def _report_json(report: RecheckReport, recording: RecordingFile, start: float, show_all: bool) -> dict[str, Any]:
@@ -451,6 +459,7 @@ def _report_json(report: RecheckReport, recording: RecordingFile, start: float, 
         "parts": [str(part) for part in recording.files],
         "complete": recording.complete,
         "problem": recording.problem,
+        "damaged_records": recording.skipped,
         "policy_hash": report.policy_hash,
         "checked": len(report.checked),
         "differ": len(report.differences),

@@ -3,6 +3,7 @@ damaged here; the tools read what is whole, name what is not, and never raise.""
 
 from __future__ import annotations
 
+import functools
 import json
 import struct
 import time
@@ -20,7 +21,9 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from typer.testing import CliRunner
 
 from schemas import keys
-from schemas.robot import Twist
+from schemas.actions import GoalResponse, SendGoal
+from schemas.common import Pose2D
+from schemas.robot import NavigateToPoseGoal, Twist
 from schemas.safety import Decision, SafetyEvent
 from services.recorder import replay
 from services.recorder.mcapfile import Recording
@@ -28,7 +31,8 @@ from services.recorder.reader import Recorded, read_recording, recover
 from services.recorder.replay import Item, ReplayKind, ReplayPlan, default_target, plan_replay
 from services.runtime import encode
 from services.worldmodel import WorldFileError, parse_world
-from tether import recordings
+from tests.unit import test_timeline as timeline
+from tether import cli, recordings
 from tether.inspect import inspect
 from tether.recordings import Player, recover_command
 
@@ -306,3 +310,39 @@ def test_a_recorded_world_of_aliases_that_expand_without_end_is_refused_before_i
     with pytest.raises(WorldFileError, match=r"world file world\.yaml") as small:
         parse_world(alias_bomb(2), Path("world.yaml"))
     assert "aliases are expanded" not in str(small.value)
+
+
+def test_recheck_of_a_damaged_file_is_no_pass_even_when_what_it_read_agrees(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A chunk skipped held commands no one rechecked: exit 1 (it was 0), the damage named."""
+    monkeypatch.setattr(timeline, "Recording", functools.partial(Recording, chunk_size=2048))  # many chunks
+    path = tmp_path / "drive.mcap"
+    writer = timeline.Writer(path, timeline.household(), beating=True)
+    writer.beat(0.0, seq=1)
+    for i in range(400):  # the base stands at the start; a goal to where it stands every 0.1 s
+        t = 0.01 + i * 0.02
+        writer.odom(t, 6.0, 1.2)
+        if i % 5 == 4:
+            goal = SendGoal(goal_id=f"g{i}", goal=NavigateToPoseGoal(pose=Pose2D(x=6.0, y=1.2)))
+            writer.event(t + 0.001, keys.CMD_NAVIGATE.send_goal.path, Decision.APPROVED, command=goal)
+            response = GoalResponse(goal_id=goal.goal_id, accepted=True)
+            writer.trace(t + 0.002, "safety", keys.CMD_NAVIGATE.send_goal.path, goal, response)
+    writer.finish()
+    intact = CliRunner().invoke(cli.app, ["recheck", "--json", "--no-progress", str(path)])
+    assert intact.exit_code == 0, intact.output
+    assert json.loads(intact.stdout)["damaged_records"] == 0
+    data = bytearray(path.read_bytes())
+    chunks = [(at, length) for at, opcode, length in records(bytes(data)) if opcode == Opcode.CHUNK]
+    assert len(chunks) > 3
+    damage_flip(data, *chunks[len(chunks) // 2])
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data))
+
+    result = CliRunner().invoke(cli.app, ["recheck", "--json", "--no-progress", str(damaged)])
+
+    document = json.loads(result.stdout)
+    assert 0 < document["checked"] < json.loads(intact.stdout)["checked"] and document["differ"] == 0
+    assert document["damaged_records"] == 1
+    assert result.exit_code == 1, result.output
+    assert "were not rechecked" in " ".join(result.stderr.split())
