@@ -721,6 +721,20 @@ class Node:
         finally:
             sub.undeclare()
 
+    def watch_alive(self, service: str, changed: Callable[[bool], None]) -> None:
+        """Call `changed(True)` when `service` comes alive (its liveliness token; also one held when
+        this is called) and `changed(False)` when it goes away: it closed its session, or its link
+        was lost for longer than Zenoh's lease. On Zenoh's callback thread."""
+
+        def on_token(sample: zenoh.Sample) -> None:
+            try:
+                changed(sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("handling %s's liveliness failed", service)
+
+        key = keys.alive_key(self.robot, service)
+        self._declared.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
+
     def _forget(self, item: Any) -> None:
         if item in self._declared:
             self._declared.remove(item)

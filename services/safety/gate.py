@@ -1092,6 +1092,26 @@ class SafetyGate:
         with self._lock:
             return PendingPlans(mode=self.modes.mode, plans=self._approvals.waiting(t), paused=self._approvals.paused())
 
+    def executor_gone(self) -> Ruling[None]:
+        """The executor's liveliness ended (it stopped or crashed, or its link was lost): the plans it
+        ran will never be reported ended, so every plan waiting, approved or paused ends now (one event
+        each). Left approved, a plan let every program's motion pass in supervised mode for as long as
+        safety ran. Goals under way of a plan that was running are canceled, a program's twist stopped."""
+        key = keys.APPROVAL_REQUEST.path
+        t = self._time()
+        why = "the executor went away (its liveliness ended): an approval holds only while its executor runs"
+        with self._lock:
+            running = self._approvals.running()
+            ended = self._approvals.end_all(why, t)
+        if not ended:
+            return Ruling(None)
+        events = tuple(
+            GateEvent(key, Decision.DENIED, f"plan {a.goal_id}: {why}", a, Rule.APPROVAL, (Rule.APPROVAL,))
+            for a in ended
+        )
+        stop = running is not None and self.modes.mode is ControlMode.SUPERVISED
+        return Ruling(None, events, cancel_goals=stop, approvals_changed=True)
+
     def plan_status(self, status: GoalStatus) -> Ruling[None]:
         """The executor's plan goal changed state: one that ended no longer waits or moves the robot."""
         if not status.state.terminal:

@@ -135,6 +135,18 @@ class ApprovalBook:
         self._entries[goal_id] = replace(entry, approval=approval, at=t)
         return approval
 
+    def end_all(self, reason: str, t: float) -> list[PlanApproval]:
+        """Every plan waiting (denied), approved or paused (finished) ends for `reason`: their
+        executor is gone, and none of them will be reported ended. The approvals as they now are."""
+        ended = []
+        for goal_id, entry in list(self._entries.items()):
+            state = entry.approval.state
+            if state is ApprovalState.PENDING:
+                ended.append(self.change(goal_id, ApprovalState.DENIED, reason, t))
+            elif state in (ApprovalState.APPROVED, ApprovalState.PAUSED):
+                ended.append(self.change(goal_id, ApprovalState.FINISHED, reason, t))
+        return ended
+
     def running(self) -> str | None:
         """The goal id of an approved plan (which may move the robot), if any."""
         return next((g for g, e in self._entries.items() if e.approval.state is ApprovalState.APPROVED), None)

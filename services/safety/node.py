@@ -62,6 +62,8 @@ log = logging.getLogger(__name__)
 
 # Incidents noticed but not yet recorded, at most (more are dropped with an error in the log).
 MAX_NOTED = 1000
+# The service whose plans the approvals are for (its node's name, so its liveliness token's).
+EXECUTOR = "executor"
 # On close, incidents noticed are still recorded for at most this long (seconds); the rest are logged.
 CLOSE_DRAIN = 2.0
 # The recording thread looks at the store when idle this often (seconds): incidents kept in memory
@@ -182,8 +184,10 @@ class SafetyNode:
         node.serve(keys.PENDING_PLANS, self._on_pending)
         # Waits (up to the request's `wait`) for an operator: on the pool for queries that wait.
         node.serve(keys.APPROVAL_REQUEST, self._on_approval_request, waits=True)
-        # The plans' goals ending: an approved plan may move the robot only until it ends.
+        # The plans' goals ending: an approved plan may move the robot only until it ends, or until
+        # its executor goes away (it would never report the end).
         node.subscribe(keys.EXECUTE_PLAN.status, self._on_plan_status)
+        node.watch_alive(EXECUTOR, self._on_executor_alive)
         # The plan and step running, for the incidents.
         node.subscribe(keys.EXECUTE_PLAN.feedback, self._on_plan_feedback)
         node.subscribe(keys.INCIDENT_REPORT, self._on_incident_report)
@@ -378,6 +382,10 @@ class SafetyNode:
     def _on_plan_status(self, status: GoalStatus) -> None:
         self.watch.plan_status(status)
         self._carry_out(self.gate.plan_status(status))
+
+    def _on_executor_alive(self, alive: bool) -> None:
+        if not alive:
+            self._carry_out(self.gate.executor_gone())
 
     def _on_plan_feedback(self, feedback: Feedback[ExecutePlanFeedback]) -> None:
         self.watch.plan_feedback(feedback)

@@ -37,6 +37,7 @@ from schemas.safety import (
     ApprovalAction,
     ApprovalDecision,
     ApprovalRequest,
+    ApprovalState,
     ControlMode,
     Decision,
     EstopState,
@@ -107,6 +108,9 @@ class Recorder:
 
     def serve(self, service: keys.Service[Any, Any], handler: Callable[[Any], Any], **_how: Any) -> None:
         self.callbacks[service.path] = handler
+
+    def watch_alive(self, service: str, changed: Callable[[bool], None]) -> None:
+        self.callbacks[f"alive/{service}"] = changed
 
     def call(self, service: keys.Service[Any, Any], request: Any, timeout: float) -> Any:
         self._record(service.path, request)
@@ -507,3 +511,65 @@ def test_a_pause_stops_a_programs_twist_at_once(recorded: Recorder) -> None:
     after = len(node.sent)
     assert decide(ApprovalAction.PAUSE)
     assert (keys.ROBOT_CMD_VEL.path, Twist()) in node.sent[after:]
+
+
+def test_an_approval_ends_when_the_executor_goes_away(recorded: Recorder) -> None:
+    """It never reports the plan ended: left approved, the plan let every program's motion pass in
+    supervised mode for as long as safety ran (a review's finding)."""
+    node = recorded
+    approved_in_supervised_mode(node)
+    node.callbacks[keys.CMD_VEL.path](Twist(linear_x=0.3))
+    assert (keys.ROBOT_CMD_VEL.path, Twist(linear_x=0.3)) in node.sent
+    goal = SendGoal(goal_id="g-running", goal=NavigateToPoseGoal(pose=Pose2D(x=6.5, y=1.2)))
+    assert node.callbacks[keys.CMD_NAVIGATE.send_goal.path](goal).accepted
+    after = len(node.sent)
+
+    node.callbacks["alive/executor"](False)
+
+    ended = [m for _, m in node.sent[after:] if isinstance(m, SafetyEvent) and "executor went away" in m.reason]
+    assert [e.decision for e in ended] == [Decision.DENIED]
+    assert (keys.ROBOT_CMD_VEL.path, Twist()) in node.sent[after:]
+    node.wait_for(lambda sent: (keys.ROBOT_NAVIGATE.cancel_goal.path, CancelGoal(goal_id="g-running")) in sent)
+    before = len(node.sent)
+    node.callbacks[keys.CMD_VEL.path](Twist(linear_x=0.3))
+    assert (keys.ROBOT_CMD_VEL.path, Twist(linear_x=0.3)) not in node.sent[before:]
+    refused = node.callbacks[keys.CMD_NAVIGATE.send_goal.path](SendGoal(goal_id="g-next", goal=goal.goal))
+    assert not refused.accepted and "no plan an operator approved is running" in refused.reason
+
+
+def test_the_executors_session_closing_ends_its_approvals_over_zenoh(tmp_path: Path) -> None:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    arm = ArmModel(WORLD.robot.arm_urdf)
+    policy = SafetyPolicy(WorldModel(WORLD), load_policy(None, WORLD.robot, arm, WORLD.keep_out), arm)
+    (tmp_path / "estop.json").write_bytes(msgspec.json.encode(EstopState(latched=False)))
+    with Node("safety", settings) as session:
+        safety = SafetyNode(session, policy, EstopLatch("token", tmp_path / "estop.json"), SafetyConfig())
+        session.declare_alive()
+        try:
+            executor = Node("executor", settings)
+            with executor:
+                executor.declare_alive()
+                assert not executor.wait_alive({"safety"}, WAIT), "the two sessions did not find each other"
+                mode = ModeRequest(operator="alice", token="token", mode=ControlMode.SUPERVISED)
+                assert executor.call(keys.SET_MODE, mode, timeout=WAIT).ok
+                executor.publish(keys.ODOM, odometry())
+                deadline = time.monotonic() + WAIT
+                while safety.gate.pose() is None:
+                    assert time.monotonic() < deadline, "safety never heard the odometry"
+                    time.sleep(0.005)
+                executor.call(keys.APPROVAL_REQUEST, ApprovalRequest(goal_id="p1", plan=MODES_PLAN), timeout=WAIT)
+                decision = ApprovalDecision(
+                    operator="alice", token="token", goal_id="p1", action=ApprovalAction.APPROVE
+                )
+                assert executor.call(keys.APPROVAL_DECIDE, decision, timeout=WAIT).ok
+                assert safety.gate._mode_veto() is None, "the approved plan lets its motion pass"
+            # The executor's session closed: its liveliness token went with it.
+            deadline = time.monotonic() + WAIT
+            while (approval := safety.gate.approval("p1")) is not None and approval.state is ApprovalState.APPROVED:
+                assert time.monotonic() < deadline, "the approval outlived its executor"
+                time.sleep(0.01)
+            assert approval is not None and approval.state is ApprovalState.FINISHED
+            assert "executor went away" in approval.reason
+            assert safety.gate._mode_veto() is not None
+        finally:
+            safety.close()
