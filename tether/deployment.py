@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from cryptography import x509
+from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -133,7 +134,9 @@ def init(
 ) -> list[Written]:
     """Write (or extend) the deployment in `directory` for `robots`; return every file, written or kept.
 
-    A secret, key or certificate already there is never changed. The router's config, its password
+    A secret, key or certificate already there is never changed, but for a certificate the CA in
+    `ca/` did not sign (a CA replaced: delete `ca/` and rerun), one out of date, or one not for the
+    key beside it: issued anew, with a new key. The router's config, its password
     list (each user's password kept as it was), the manifest and the generated units and compose
     files are rewritten to cover every robot, and reported as written only when their content changed.
     """
@@ -312,12 +315,12 @@ def _robot_files(
     home = directory / robot
     if ca is not None:
         ca_pem = ca[1].public_bytes(serialization.Encoding.PEM)
-        written.append(_write_bytes(home / "ca.pem", ca_pem))
+        written.append(_write_bytes(home / "ca.pem", ca_pem, replace=True))  # the CA's, should it be replaced
     for identity in IDENTITIES:
         user = username(robot, identity)
         if ca is not None:
             key_path, cert_path = home / f"{identity}.key", home / f"{identity}.pem"
-            if not key_path.exists() or not cert_path.exists():
+            if not _usable(key_path, cert_path, ca[1]):
                 key_path.unlink(missing_ok=True)  # a certificate is only ever made with a new key of its own
                 cert_path.unlink(missing_ok=True)
                 key, cert = _issue(ca, user, sans=(), server=False)
@@ -693,7 +696,7 @@ def _router_certificate(
     written: list[Written],
 ) -> None:
     key_path, cert_path = directory / "router.key", directory / "router.pem"
-    if key_path.exists() and cert_path.exists():
+    if _usable(key_path, cert_path, ca[1]):
         written += [Written(key_path, False, True), Written(cert_path, False, False)]
         return
     key_path.unlink(missing_ok=True)
@@ -702,6 +705,23 @@ def _router_certificate(
     key, cert = _issue(ca, "tether-router", sans=sans, server=True)
     written.append(_write_bytes(key_path, _key_pem(key), secret=True))
     written.append(_write_bytes(cert_path, cert.public_bytes(serialization.Encoding.PEM)))
+
+
+def _usable(key_path: Path, cert_path: Path, ca_cert: x509.Certificate) -> bool:
+    """Whether the certificate and key there can be kept: both there, the certificate signed by the
+    deployment's CA (not one replaced since: its clients would all be refused), valid now, and for
+    that key. Anything else is issued anew, with a new key."""
+    if not key_path.exists() or not cert_path.exists():
+        return False
+    try:
+        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+        cert.verify_directly_issued_by(ca_cert)
+        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+    except (OSError, ValueError, TypeError, InvalidSignature):
+        return False
+    now = dt.datetime.now(dt.UTC)
+    in_time = cert.not_valid_before_utc <= now < cert.not_valid_after_utc
+    return in_time and key.public_key() == cert.public_key()
 
 
 def _issue(

@@ -324,3 +324,30 @@ def test_only_the_operator_forgets_incidents_those_who_ask_list_them_and_executo
     assert [i for i in deployment.IDENTITIES if listing in may(i, "query")] == ["planner", "operator", "agent"]
     reporters = [i for i in deployment.IDENTITIES if report in may(i, "put")]
     assert sorted(reporters) == ["executor", "ros2", "sim"]
+
+
+def test_a_rerun_after_the_ca_was_replaced_issues_every_certificate_anew(tmp_path: Path) -> None:
+    """Kept, the certificates the old CA signed were refused by a router and clients that trust the new one."""
+    deployment.init(tmp_path, ["r1"], tls=True)
+    before = snapshot(tmp_path)
+    for name in ("ca.pem", "ca.key"):
+        (tmp_path / "ca" / name).unlink()
+
+    written = {w.path for w in deployment.init(tmp_path, ["r1"], tls=True) if w.created}
+
+    ca = x509.load_pem_x509_certificate((tmp_path / "ca" / "ca.pem").read_bytes())
+    certificates = [tmp_path / "router.pem", *(tmp_path / "r1" / f"{i}.pem" for i in deployment.IDENTITIES)]
+    for path in certificates:
+        x509.load_pem_x509_certificate(path.read_bytes()).verify_directly_issued_by(ca)
+        assert path in written and path.with_suffix(".key") in written
+        assert path.with_suffix(".key").read_bytes() != before[path.with_suffix(".key")], "a new key"
+    assert (tmp_path / "r1" / "ca.pem").read_bytes() == (tmp_path / "ca" / "ca.pem").read_bytes()
+    # The rest is kept: tokens, keys of the robot, client configs.
+    for name in ("operator.token", "robot.key", "safety.json5", "tether.toml"):
+        assert (tmp_path / "r1" / name).read_bytes() == before[tmp_path / "r1" / name]
+    # And a certificate put back beside another key is issued anew too.
+    safety = tmp_path / "r1" / "safety"
+    safety.with_suffix(".key").write_bytes((tmp_path / "r1" / "planner.key").read_bytes())
+    assert safety.with_suffix(".pem") in {w.path for w in deployment.init(tmp_path, ["r1"], tls=True) if w.created}
+    again = deployment.init(tmp_path, ["r1"], tls=True)
+    assert [w.path for w in again if w.created and w.path.suffix == ".pem"] == [], "kept once good"
