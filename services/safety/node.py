@@ -17,7 +17,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, Feedback, GetResult, GoalResponse, GoalStatus, SendGoal
-from schemas.common import DECODE_ERRORS, Pose2D, fmt_point
+from schemas.common import DECODE_ERRORS, ErrorKind, Pose2D, fmt_point
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
     ForgetAction,
@@ -49,6 +49,7 @@ from schemas.safety import (
 )
 from schemas.world import Empty, PerceivedHumans
 from services.actionlib import MAX_RESULT_WAIT
+from services.errors import CallError
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.gate import MOVING, GateEvent, GoalRuling, Ruling, SafetyGate
@@ -469,11 +470,22 @@ class SafetyNode:
             return self.node.call(robot.cancel_goal, req, timeout=self.config.forward_timeout)
 
         def get_result(req: GetResult) -> Any:
+            # Forgotten once it ended, or once the robot says it knows no such goal. A get_result that
+            # failed on the way (no reply, the link down) leaves it noted: it may run on, and a pause
+            # or e-stop must still cancel it.
             try:
-                return self.node.call(robot.get_result, req, timeout=MAX_RESULT_WAIT)
-            finally:
-                with self._forwarded_lock:
-                    self._forwarded.pop(req.goal_id, None)
+                result = self.node.call(robot.get_result, req, timeout=MAX_RESULT_WAIT)
+            except CallError as exc:
+                if exc.error.kind is ErrorKind.INVALID_REQUEST:
+                    forget(req.goal_id)
+                raise
+            if result.state.terminal:
+                forget(req.goal_id)
+            return result
+
+        def forget(goal_id: str) -> None:
+            with self._forwarded_lock:
+                self._forwarded.pop(goal_id, None)
 
         def get_status(req: GetResult) -> Any:
             return self.node.call(robot.get_status, req, timeout=self.config.forward_timeout)

@@ -19,8 +19,8 @@ import msgspec
 import pytest
 
 from schemas import keys
-from schemas.actions import CancelGoal, CancelResponse, GoalResponse, GoalState, SendGoal
-from schemas.common import Pose2D
+from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, GoalState, ResultResponse, SendGoal
+from schemas.common import ErrorKind, Pose2D, ServiceError
 from schemas.incidents import IncidentKind, IncidentQuery
 from schemas.robot import (
     ARM_JOINTS,
@@ -49,7 +49,7 @@ from schemas.safety import (
 )
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
-from services.errors import GoalRejected
+from services.errors import CallError, GoalRejected
 from services.robotmodel import ArmModel
 from services.runtime import Node, NodeSettings
 from services.safety.config import SafetyConfig
@@ -83,6 +83,8 @@ class Recorder:
         self.changed = threading.Condition()
         # Called with each message before it is recorded; a test may look around, or raise.
         self.on_put: Callable[[str, Any], None] = lambda path, message: None
+        # The robot's answer to a query by its path, where a test gives one.
+        self.answers: dict[str, Callable[[Any], Any]] = {}
 
     def _record(self, path: str, message: Any) -> None:
         self.on_put(path, message)
@@ -114,6 +116,8 @@ class Recorder:
 
     def call(self, service: keys.Service[Any, Any], request: Any, timeout: float) -> Any:
         self._record(service.path, request)
+        if (answer := self.answers.get(service.path)) is not None:
+            return answer(request)
         if service is keys.ROBOT_NAVIGATE.send_goal:
             return GoalResponse(goal_id=request.goal_id, accepted=True)
         return CancelResponse(goal_id=request.goal_id, accepted=True)
@@ -573,3 +577,37 @@ def test_the_executors_session_closing_ends_its_approvals_over_zenoh(tmp_path: P
             assert safety.gate._mode_veto() is not None
         finally:
             safety.close()
+
+
+def test_a_goal_whose_result_could_not_be_fetched_is_still_canceled_by_a_pause(start: Start) -> None:
+    """A get_result that failed on the way (no reply) forgot the goal: it ran on while the plan was
+    paused. Forgotten only once it ended, or the robot knows no such goal."""
+    node, safety = start()
+    decide = approved_in_supervised_mode(node)
+    goal = SendGoal(goal_id="g-running", goal=NavigateToPoseGoal(pose=Pose2D(x=6.5, y=1.2)))
+    assert node.callbacks[keys.CMD_NAVIGATE.send_goal.path](goal).accepted
+
+    def no_reply(_request: Any) -> Any:
+        raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message="no reply"))
+
+    node.answers[keys.ROBOT_NAVIGATE.get_result.path] = no_reply
+    with pytest.raises(CallError):
+        node.callbacks[keys.CMD_NAVIGATE.get_result.path](GetResult(goal_id="g-running"))
+    assert decide(ApprovalAction.PAUSE)
+    node.wait_for(lambda sent: (keys.ROBOT_NAVIGATE.cancel_goal.path, CancelGoal(goal_id="g-running")) in sent)
+    # A result that says it ended forgets it, as does a robot that knows no such goal.
+    assert decide(ApprovalAction.RESUME)
+    node.answers[keys.ROBOT_NAVIGATE.get_result.path] = lambda request: ResultResponse(
+        goal_id=request.goal_id, state=GoalState.SUCCEEDED
+    )
+    node.callbacks[keys.CMD_NAVIGATE.get_result.path](GetResult(goal_id="g-running"))
+    assert "g-running" not in safety._forwarded
+    assert node.callbacks[keys.CMD_NAVIGATE.send_goal.path](SendGoal(goal_id="g-lost", goal=goal.goal)).accepted
+
+    def unknown(request: Any) -> Any:
+        raise CallError(ServiceError(kind=ErrorKind.INVALID_REQUEST, message=f"unknown goal {request.goal_id}"))
+
+    node.answers[keys.ROBOT_NAVIGATE.get_result.path] = unknown
+    with pytest.raises(CallError):
+        node.callbacks[keys.CMD_NAVIGATE.get_result.path](GetResult(goal_id="g-lost"))
+    assert "g-lost" not in safety._forwarded
