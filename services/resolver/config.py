@@ -29,6 +29,10 @@ PUT_BACK_PHRASES = (
 )
 
 
+# Odometry older than this (seconds since it arrived) is not where the robot is (odom_max_age).
+ODOM_MAX_AGE = 1.0
+
+
 class ResolverConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
     # A bundled world's name ("household") or a path to a world file.
     world: Annotated[str, Meta(min_length=1, max_length=1000)] = "household"
@@ -43,6 +47,9 @@ class ResolverConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     coordinate_tolerance: Distance = 0.5
     # An object not seen by perception for this long (seconds) is stale: still used, with a warning.
     stale_after: Annotated[float, Meta(gt=0.0, le=86400.0)] = 60.0
+    # Odometry older than this (seconds since it arrived) is no pose: a move relative to the robot,
+    # or a choice by where it stands, is refused (precondition) until odometry comes again.
+    odom_max_age: Annotated[float, Meta(gt=0.0, le=60.0)] = ODOM_MAX_AGE
     # A new sighting within this (metres) of the remembered one refines it; farther, the object moved.
     move_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.05
     # Successful resolutions kept for identical plans while the world does not change.

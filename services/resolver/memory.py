@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,11 +52,14 @@ class ObjectMemory:
     position without changing it. Not thread-safe: the caller holds a lock.
     """
 
-    def __init__(self, stale_after: float, move_tolerance: float) -> None:
+    def __init__(self, stale_after: float, move_tolerance: float, known: Iterable[str] | None = None) -> None:
         if not stale_after > 0.0 or not move_tolerance > 0.0:
             raise ValueError(f"stale_after ({stale_after}) and move_tolerance ({move_tolerance}) must be positive")
         self.stale_after = stale_after
         self.move_tolerance = move_tolerance
+        # The ids worth remembering (the world's objects; None: every id). Others have no name to be
+        # referred to by, and a flood of them must not push out what the camera saw of real ones.
+        self._known = frozenset(known) if known is not None else None
         self.version = 0
         self._objects: dict[str, _Sighting] = {}
         self._origins: dict[str, Origin] = {}
@@ -70,6 +74,8 @@ class ObjectMemory:
         self._stamp = frame.stamp
         in_frame: set[str] = set()
         for seen in frame.objects:
+            if self._known is not None and seen.id not in self._known:
+                continue
             if seen.id not in in_frame:
                 in_frame.add(seen.id)
                 changed |= self._sighted(seen, frame.stamp, now)

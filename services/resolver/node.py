@@ -6,22 +6,24 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from schemas import keys
 from schemas.common import Pose2D, ServiceError
 from schemas.plan import Plan, ResolveReply
 from schemas.robot import Odometry
-from schemas.world import Empty, PerceivedHumans, PerceivedObjects, SceneDescription
+from schemas.world import Empty, PerceivedHuman, PerceivedHumans, PerceivedObjects, SceneDescription
 from services.resolver.cache import ResolutionCache, WorldKey, world_key
-from services.resolver.config import ResolverConfig
+from services.resolver.config import ODOM_MAX_AGE, ResolverConfig
 from services.resolver.memory import ObjectMemory, Origin
 from services.resolver.resolver import Resolver, answer
 from services.runtime import Node, encode
 from services.worldmodel import WorldModel, load_world
 
 log = logging.getLogger(__name__)
+# People remembered by id at most (a real scene has a handful); the longest unseen go first.
+MAX_PEOPLE = 256
 
 
 @dataclass(frozen=True)
@@ -37,14 +39,25 @@ class Snapshot:
 
 
 class Perception:
-    """Perception remembered, the newest odometry and people; written by subscribers, read per query."""
+    """Perception remembered, the newest odometry and each person where last seen; written by
+    subscribers, read per query.
 
-    def __init__(self, memory: ObjectMemory, clock: Callable[[], float] = time.monotonic) -> None:
+    Odometry older than `odom_max_age` (on `clock`, when it arrived) is no pose at all: a move
+    relative to the robot is refused rather than grounded from where it stood an hour ago. A person
+    missing from the latest report (out of view: a people tracker lists only whom it sees) stays
+    where last seen, not where the world file puts them; a report naming one id at two poses moves
+    no one of that id (which is meant is not known) and is logged."""
+
+    def __init__(
+        self, memory: ObjectMemory, clock: Callable[[], float] = time.monotonic, odom_max_age: float = ODOM_MAX_AGE
+    ) -> None:
         self._lock = threading.Lock()
         self._memory = memory
         self._clock = clock
-        self._robot: Pose2D | None = None
-        self._humans: PerceivedHumans | None = None
+        self._odom_max_age = odom_max_age
+        self._robot: tuple[float, Pose2D] | None = None  # when it arrived, the pose
+        self._people: dict[str, PerceivedHuman] = {}  # by id, as last seen
+        self._people_stamp: float | None = None  # of the latest report; None before any
 
     def on_objects(self, message: PerceivedObjects) -> None:
         with self._lock:
@@ -52,25 +65,46 @@ class Perception:
 
     def on_odom(self, message: Odometry) -> None:
         with self._lock:
-            self._robot = message.pose
+            self._robot = (self._clock(), message.pose)
 
     def on_humans(self, message: PerceivedHumans) -> None:
+        poses: dict[str, set[tuple[float, float, float]]] = {}
+        for human in message.humans:
+            poses.setdefault(human.id, set()).add((human.pose.x, human.pose.y, human.pose.yaw))
+        twice = sorted(i for i, p in poses.items() if len(p) > 1)
+        if twice:
+            log.warning("people reported at two poses at once, not moved: %s", ", ".join(twice[:5]))
         with self._lock:
-            self._humans = message
+            self._people_stamp = message.stamp
+            for human in message.humans:
+                if human.id not in twice:
+                    self._people.pop(human.id, None)  # to the end: the dict runs from longest unseen
+                    self._people[human.id] = human
+            while len(self._people) > MAX_PEOPLE:  # ids invented without end must not grow it
+                del self._people[next(iter(self._people))]
 
     def snapshot(self) -> Snapshot:
         with self._lock:
-            objects = self._memory.snapshot(self._clock())
-            key = world_key(self._memory.version, self._robot, self._humans)
-            return Snapshot(objects, self._robot, self._humans, key, self._memory.origins())
+            now = self._clock()
+            objects = self._memory.snapshot(now)
+            robot = None
+            if self._robot is not None and now - self._robot[0] <= self._odom_max_age:
+                robot = self._robot[1]
+            humans = None
+            if self._people_stamp is not None:
+                humans = PerceivedHumans(stamp=self._people_stamp, humans=list(self._people.values()))
+            key = world_key(self._memory.version, robot, humans)
+            return Snapshot(objects, robot, humans, key, self._memory.origins())
 
 
 def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(WorldModel(load_world(config.world)), config)
 
 
-def build_perception(config: ResolverConfig) -> Perception:
-    return Perception(ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance))
+def build_perception(config: ResolverConfig, known: Iterable[str]) -> Perception:
+    """`known`: the world's object ids, the only ones remembered."""
+    memory = ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance, known=known)
+    return Perception(memory, odom_max_age=config.odom_max_age)
 
 
 def handler(resolver: Resolver, perception: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
@@ -105,7 +139,7 @@ def scene_handler(resolver: Resolver, perception: Perception) -> Callable[[Empty
 
 
 def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Perception:
-    perception = build_perception(config)
+    perception = build_perception(config, (o.id for o in resolver.world.objects))
     node.subscribe(keys.OBJECTS, perception.on_objects)
     node.subscribe(keys.ODOM, perception.on_odom)
     node.subscribe(keys.HUMANS, perception.on_humans)

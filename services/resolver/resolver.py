@@ -274,6 +274,14 @@ class Resolver:
             for grounded in self._step(at, step.action, step, state):
                 out.steps.append(grounded)
                 out.labels.append(at.label)
+            if len(out.steps) > MAX_STEPS:
+                # Refused as soon as it is certain, not after grounding the rest: groups of groups let a
+                # plan of a megabyte name ten thousand steps, seconds of CPU each.
+                raise ResolveError(
+                    f"the plan needs more than {MAX_STEPS} robot steps in a row (step {at.label} brings it to "
+                    f"{len(out.steps)}; long turns and backward drives take more than one): split it into "
+                    "several plans"
+                )
         if before is not None:
             self._alternatives(at, step, before, first, state, out)
 

@@ -190,11 +190,63 @@ def test_the_handler_resolves_with_what_it_remembers() -> None:
     latest.on_odom(Odometry(stamp=1.0, sim_time=1.0, pose=ROBOT, linear_x=0.0, angular_z=0.0))
     latest.on_humans(people(9.5))
     latest.on_objects(PerceivedObjects(stamp=2.0, objects=[]))  # the cup out of view: still remembered
+    clock.now = 0.5
+    handle(pick("blue cup"))
+    assert fake.calls[-1][2] == ROBOT
     clock.now = 61.0
     handle(pick("blue cup"))
     _, objects, robot, humans = fake.calls[-1]
     assert objects is not None and [(o.id, o.position.x, o.stale) for o in objects.objects] == [("blue_cup", 8.2, True)]
-    assert robot == ROBOT and humans == people(9.5)
+    # Odometry a minute old is no pose (a drive relative to it is refused); people stay as last seen.
+    assert robot is None and humans == people(9.5)
+
+
+def test_odometry_counts_for_odom_max_age_after_it_arrived() -> None:
+    """An hour-old pose grounded "drive 1 m forward" to an absolute goal from where the robot once stood."""
+    clock, fake = Clock(), FakeResolver()
+    latest = Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05), clock, odom_max_age=1.0)
+    handle = handler(cast(Resolver, fake), latest, ResolutionCache(8))
+    latest.on_odom(Odometry(stamp=1.0, sim_time=1.0, pose=ROBOT, linear_x=0.0, angular_z=0.0))
+    clock.now = 1.0
+    handle(pick("blue cup"))
+    assert fake.calls[-1][2] == ROBOT
+    clock.now = 1.01
+    handle(pick("blue cup"))
+    assert fake.calls[-1][2] is None, "and not the cached answer from when it was fresh"
+
+
+def test_a_person_out_of_the_latest_report_stays_where_last_seen() -> None:
+    """A people tracker lists whom it sees: the operator missing from one report went back to the
+    world file's pose ("bring it to me" to the living room, the operator in the bedroom)."""
+    fake = FakeResolver()
+    latest = Perception(ObjectMemory(stale_after=60.0, move_tolerance=0.05), Clock())
+    handle = handler(cast(Resolver, fake), latest, ResolutionCache(8))
+    latest.on_humans(people(1.0, 7.5))
+    guest = PerceivedHuman(id="guest", name="guest", pose=Pose2D(x=3.0, y=3.0, yaw=0.0))
+    latest.on_humans(PerceivedHumans(stamp=2.0, humans=[guest]))
+    handle(pick("blue cup"))
+    humans = fake.calls[-1][3]
+    assert humans is not None and humans.stamp == 2.0
+    assert {h.id: (h.pose.x, h.pose.y) for h in humans.humans} == {"operator": (1.0, 7.5), "guest": (3.0, 3.0)}
+    # One id at two poses in one report: which is meant is not known, so it is not moved.
+    twice = people(9.0).humans + people(2.0).humans
+    latest.on_humans(PerceivedHumans(stamp=3.0, humans=twice))
+    handle(pick("blue cup"))
+    humans = fake.calls[-1][3]
+    assert humans is not None and {h.id: h.pose.x for h in humans.humans}["operator"] == 1.0
+
+
+def test_perception_of_ids_the_world_does_not_know_pushes_out_no_real_object() -> None:
+    """A frame of 1,000 made-up ids evicted the red cup the camera had seen; it fell back to the world file."""
+    memory = ObjectMemory(stale_after=60.0, move_tolerance=0.05, known={"blue_cup"})
+    memory.update(cup_at(8.2), 0.0)
+    made_up = [
+        PerceivedObject(id=f"thing_{i}", name="thing", cls="thing", color="grey", position=Vec3(x=1.0, y=1.0, z=0.0))
+        for i in range(1000)
+    ]
+    memory.update(PerceivedObjects(stamp=2.0, objects=made_up), 1.0)
+    snapshot = memory.snapshot(2.0)
+    assert snapshot is not None and [(o.id, o.position.x) for o in snapshot.objects] == [("blue_cup", 8.2)]
 
 
 def test_the_handler_tells_the_resolver_where_a_held_object_was_before() -> None:
