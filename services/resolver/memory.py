@@ -41,6 +41,7 @@ class _Sighting:
     stamp: float  # the stamp of the frame it was last seen in
     released: bool = False  # let go by the gripper out of view: where it went is not known
     stale: bool = False  # as of the last refresh
+    anchor: Vec3 | None = None  # the position when `version` last changed for it
 
 
 class ObjectMemory:
@@ -49,7 +50,8 @@ class ObjectMemory:
     `version` changes exactly when what the resolver would believe changes: the first frame, an
     object first seen, moved beyond `move_tolerance` (xy or z), onto something else, released from
     the gripper, turned stale or fresh again, or forgotten. Sightings within tolerance refine the
-    position without changing it. Not thread-safe: the caller holds a lock.
+    position without changing it, until the refined position has gone `move_tolerance` from where it
+    stood when `version` last changed for it (an object creeping a millimetre a frame). Not thread-safe: the caller holds a lock.
     """
 
     def __init__(self, stale_after: float, move_tolerance: float, known: Iterable[str] | None = None) -> None:
@@ -127,21 +129,27 @@ class ObjectMemory:
             else:
                 self._origins.pop(seen.id, None)  # where it was before is not known
         if known is None or known.released or seen.on != known.report.on or not self._near(known.position, seen):
-            self._objects[seen.id] = _Sighting(seen, seen.position, 1, now, stamp)
+            self._objects[seen.id] = _Sighting(seen, seen.position, 1, now, stamp, anchor=seen.position)
             return True
         known.averaged = min(known.averaged + 1, MAX_AVERAGED)
         known.position = _towards(known.position, seen.position, 1.0 / known.averaged)
         known.report = seen
         known.seen_at = now
         known.stamp = stamp
-        return False
+        # An object creeping within tolerance at every sighting is followed by the average: once that
+        # has gone `move_tolerance` from where it was last believed, it is believed somewhere new
+        # (else answers cached for the old place were given for ever).
+        if known.anchor is not None and self._within(known.anchor, known.position):
+            return False
+        known.anchor = known.position
+        return True
 
     def _near(self, remembered: Vec3, seen: PerceivedObject) -> bool:
-        p = seen.position
-        return (
-            math.hypot(p.x - remembered.x, p.y - remembered.y) <= self.move_tolerance
-            and abs(p.z - remembered.z) <= self.move_tolerance
-        )
+        return self._within(remembered, seen.position)
+
+    def _within(self, a: Vec3, b: Vec3) -> bool:
+        """Whether `b` is within `move_tolerance` of `a`, in xy and in z."""
+        return math.hypot(b.x - a.x, b.y - a.y) <= self.move_tolerance and abs(b.z - a.z) <= self.move_tolerance
 
     def _restale(self, now: float) -> bool:
         flipped = False

@@ -248,3 +248,25 @@ def test_no_origin_for_what_was_first_seen_held_or_lost_from_view(memory: Object
     memory.update(frame(1.6, obj("apple", 6.0, 1.0, 0.04, None)), now=1.6)
     memory.update(frame(1.8, obj("apple", 6.0, 1.0, 0.3, "gripper")), now=1.8)
     assert memory.origins()["apple"].on is None  # from the floor
+
+
+def test_an_object_creeping_within_tolerance_at_every_sighting_is_believed_where_it_went() -> None:
+    """1 mm a frame: every sighting refined the average, the version never changed, and a pick cached
+    at the start still reached for where the object stood 38 cm before."""
+    memory = ObjectMemory(stale_after=STALE_AFTER, move_tolerance=TOLERANCE)
+    versions = []
+    for i in range(400):
+        memory.update(frame(i * 0.1, obj("red_cup", 8.0 + i * 0.001, 0.55)), now=i * 0.1)
+        versions.append(memory.version)
+    snapshot = memory.snapshot(40.0)
+    assert snapshot is not None
+    [seen] = snapshot.objects
+    assert seen.position.x > 8.3, "the average followed it"
+    assert len(set(versions)) > 5, "and the belief changed with it"
+    # Noise around one place changes nothing.
+    still = ObjectMemory(stale_after=STALE_AFTER, move_tolerance=TOLERANCE)
+    still.update(frame(0.0, obj("red_cup", 8.0, 0.55)), now=0.0)
+    before = still.version
+    for i in range(100):
+        still.update(frame(i * 0.1, obj("red_cup", 8.0 + (0.01 if i % 2 else -0.01), 0.55)), now=i * 0.1)
+    assert still.version == before
