@@ -11,10 +11,12 @@ The person sets the direction; the filter does the fine motion, in two parts:
   full speed. Near people every speed is multiplied by safety's separation scale.
 - `guard`: the hard rule, on the twist actually sent: held for the horizon and then braked, the
   footprint comes no closer than STOP_DISTANCE to a wall, furniture or person, and the base's disc
-  no closer to a keep-out zone (as the policy grows zones), or no closer than it already is.
-  Otherwise the forward speed is cut (bisected) until it does; a turn in place is allowed unless the
-  footprint would come within TOUCH_DISTANCE. The forward speed is only ever cut, never raised or
-  reversed.
+  no closer to a keep-out zone (as the policy grows zones), or no closer than it already is. A
+  footprint already touching or overlapping something (odometry drift, a bump) is 0 away however
+  deep it is: for that thing the rule is that the overlap never grows (backing off, or sliding
+  along without going deeper, passes; further in does not). Otherwise the forward speed is cut
+  (bisected) until it holds; a turn in place is allowed unless the footprint would come within
+  TOUCH_DISTANCE. The forward speed is only ever cut, never raised or reversed.
 """
 
 from __future__ import annotations
@@ -55,6 +57,8 @@ BISECTIONS = 8
 # Speeds (m/s, rad/s) below this count as zero; distances equal within it count as equal.
 STILL = 1e-6
 EPSILON = 1e-6
+# Overlaps (m^2) equal within this count as equal (the robot rules' TOUCHING).
+AREA_EPSILON = 1e-6
 
 
 @dataclass(frozen=True)
@@ -141,12 +145,17 @@ class SharedFilter:
 
     # Where things are
 
+    def _body(self, pose: Pose2D) -> shapely.Polygon:
+        """The footprint at `pose`."""
+        lim = self.limits
+        return shapely.Polygon(
+            _footprints(np.array([pose.x]), np.array([pose.y]), np.array([pose.yaw]), lim.length, lim.width)[0]
+        )
+
     def _near(self, pose: Pose2D, around: Surroundings) -> list[_Near]:
         """Every obstacle and zone, nearest first: how far from the base, and which way it pushes."""
         lim = self.limits
-        body = shapely.Polygon(
-            _footprints(np.array([pose.x]), np.array([pose.y]), np.array([pose.yaw]), lim.length, lim.width)[0]
-        )
+        body = self._body(pose)
         centre = Point(pose.x, pose.y)
         found = []
         for name, shape in around.obstacles:
@@ -178,13 +187,26 @@ class SharedFilter:
             least = np.minimum(least, shapely.distance(centres, shape) - lim.radius)
         return least
 
-    def _clear(self, pose: Pose2D, twist: Twist, around: Surroundings, now: float) -> bool:
-        """Whether holding `twist` (then braking) keeps the base as far off everything as it must."""
+    def _clear(
+        self, pose: Pose2D, twist: Twist, around: Surroundings, now: float, touched: Sequence[BaseGeometry] = ()
+    ) -> bool:
+        """Whether holding `twist` (then braking) keeps the base as far off everything as it must:
+        `around` as far as the rule says (`now`: the nearest of them now), and no deeper into any of
+        `touched` (obstacles the footprint touches or overlaps now) than it already is."""
         if abs(twist.linear_x) < STILL and abs(twist.angular_z) < STILL:
             return True
         keep = self.limits.stop_distance if abs(twist.linear_x) >= STILL else TOUCH_DISTANCE
         required = min(keep, now) - EPSILON
-        return bool(np.all(self.clearance(*predict(pose, twist, self.limits), around) >= required))
+        path = predict(pose, twist, self.limits)
+        if not np.all(self.clearance(*path, around) >= required):
+            return False
+        if touched:
+            prints = shapely.polygons(_footprints(*path, self.limits.length, self.limits.width))
+            for shape in touched:
+                overlap = shapely.area(shapely.intersection(prints, shape))
+                if np.any(overlap > overlap[0] + AREA_EPSILON):
+                    return False
+        return True
 
     # The two parts
 
@@ -243,17 +265,31 @@ class SharedFilter:
         the rule in the module's docstring; a turn in place that would touch is dropped as well."""
         near = self._near(pose, around)
         nearest = near[0] if near else None
-        now = nearest.distance if nearest is not None else math.inf
+        # What the footprint touches or overlaps now is held to its overlap; the rest to the distance rule.
+        body = self._body(pose)
+        touched = [shape for _, shape in around.obstacles if body.distance(shape) <= EPSILON]
+        if touched:
+            apart = [(name, shape) for name, shape in around.obstacles if body.distance(shape) > EPSILON]
+            around = Surroundings(apart, around.zones)
+            now = min((n.distance for n in self._near(pose, around)), default=math.inf)
+        else:
+            now = nearest.distance if nearest is not None else math.inf
         v, w = twist.linear_x, twist.angular_z
-        if self._clear(pose, twist, around, now):
+
+        def clear(linear: float, turn: float) -> bool:
+            return self._clear(
+                pose, msgspec.structs.replace(twist, linear_x=linear, angular_z=turn), around, now, touched
+            )
+
+        if clear(v, w):
             return self._result(twist, v, w, False, False, nearest, [], {})
         for turn in (w, 0.0):
-            if not self._clear(pose, msgspec.structs.replace(twist, linear_x=0.0, angular_z=turn), around, now):
+            if not clear(0.0, turn):
                 continue
             low, high = 0.0, 1.0
             for _ in range(BISECTIONS):
                 mid = (low + high) / 2
-                if self._clear(pose, msgspec.structs.replace(twist, linear_x=v * mid, angular_z=turn), around, now):
+                if clear(v * mid, turn):
                     low = mid
                 else:
                     high = mid

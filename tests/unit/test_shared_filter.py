@@ -140,6 +140,29 @@ def test_a_turn_in_place_is_allowed_unless_it_would_touch() -> None:
     assert free.twist.angular_z == 1.0 and not free.changed
 
 
+def test_a_footprint_already_in_the_wall_goes_no_deeper_but_may_back_off_or_slide_along() -> None:
+    """Touching or overlapping, the wall was 0 away however deep: every path passed the guard, and
+    the base drove on into the wall at 41% of the request (a review's finding)."""
+    for depth in (0.0, 0.02, 0.04):  # how far the footprint's front is into the wall
+        facing = Pose2D(x=0.0, y=LENGTH / 2 - depth, yaw=-math.pi / 2)
+        for yaw_off in (0.0, math.radians(45)):
+            pose = Pose2D(x=facing.x, y=facing.y, yaw=facing.yaw + yaw_off)
+            into = footprint(pose.x, pose.y, pose.yaw, LENGTH, WIDTH).intersection(WALL).area
+            out = FILTER.filter(Twist(linear_x=0.3), pose, AROUND).twist
+            xs, ys, yaws = predict(pose, out, LIMITS)
+            deepest = max(
+                footprint(px, py, pyaw, LENGTH, WIDTH).intersection(WALL).area
+                for px, py, pyaw in zip(xs, ys, yaws, strict=True)
+            )
+            assert deepest <= into + 1e-6, (depth, yaw_off, out)
+            assert FILTER.guard(Twist(linear_x=0.3), pose, AROUND).twist.linear_x == 0.0
+        back = FILTER.filter(Twist(linear_x=-0.3), facing, AROUND)
+        assert back.twist.linear_x == -0.3, "backing off the wall is not slowed"
+    # Alongside the wall, its side touching it: driving along it stays as it is.
+    alongside = Pose2D(x=0.0, y=WIDTH / 2, yaw=0.0)
+    assert FILTER.guard(Twist(linear_x=0.3), alongside, AROUND).twist.linear_x == pytest.approx(0.3)
+
+
 def test_a_keep_out_zone_is_kept_off_by_the_bases_disc() -> None:
     zone = Surroundings(zones=[("keep-out zone 'stairs'", box(3.0, 4.0, 5.0, 6.0))])
     pose = Pose2D(x=0.0, y=5.0, yaw=0.0)
