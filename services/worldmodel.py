@@ -180,6 +180,10 @@ class WorldModel:
         """Walls, furniture and keep-out zones: where the base may not be."""
         return unary_union([o.shape for o in self.obstacles] + list(self.keep_out_shapes.values()))
 
+    def clear_by(self, shape: BaseGeometry) -> float:
+        """How far `shape` (a footprint) keeps from every wall, piece of furniture and keep-out zone."""
+        return float(self._blocked.distance(shape))
+
     def free_spot(self, x: float, y: float, radius: float, within: Polygon) -> tuple[float, float] | None:
         """The point nearest (x, y) inside `within` whose `radius` around it touches no obstacle or
         keep-out zone; None when there is none."""

@@ -34,6 +34,7 @@ from schemas.plan import (
     WaitStep,
 )
 from schemas.world import Furniture, PerceivedHumans, PerceivedObjects, SceneDescription
+from services.footprint import TRACKING_TOLERANCE, footprint
 from services.resolver.config import ResolverConfig
 from services.resolver.errors import ResolveError
 from services.resolver.match import Matcher, NoMatch
@@ -48,6 +49,8 @@ FLOOR = "floor"
 MAX_WAIT = 60.0
 # Bounds of the relative moves, as the parser's vocabulary states them.
 MAX_DRIVE = 5.0
+# Sides round an object on the floor the base may approach it from (every 15 degrees), the robot's first.
+APPROACH_SIDES = 24
 MAX_TURN = math.tau + 1e-3
 # NavigateStep.max_speed's bound.
 MAX_NAVIGATE_SPEED = 5.0
@@ -531,7 +534,7 @@ class Resolver:
             belief = state.beliefs[entity.id]
             if belief.on == GRIPPER:
                 raise at.error(f"cannot go to {entity.name}: it is in the gripper", ErrorKind.PRECONDITION)
-            goal = self._object_approach(belief, state.robot)
+            goal = self._object_approach(at, entity.name, belief, state.robot)
             self._handled(state, entity)
         goal = _rounded(goal)
         self._moved_to(state, goal)
@@ -547,11 +550,30 @@ class Resolver:
         ahead = (human.x + math.cos(human.yaw), human.y + math.sin(human.yaw))
         return approach_towards(human.x, human.y, self.config.human_standoff, *ahead)
 
-    def _object_approach(self, belief: Belief, robot: Pose2D | None) -> Pose2D:
+    def _object_approach(self, at: _At, name: str, belief: Belief, robot: Pose2D | None) -> Pose2D:
+        """Where the base stands to reach an object: its furniture's approach pose, or, on the floor,
+        `object_standoff` from it facing it, from the robot's side if the footprint fits there (clear of
+        walls, furniture and keep-out zones by TRACKING_TOLERANCE, in the object's room), else from the
+        nearest side round it that fits. Refused when none does: the straight line from the robot put
+        the base inside a table, or on the far side of a wall."""
         if belief.on is not None and belief.on in self.model.furniture:
             return self.model.furniture[belief.on].approach
         start = robot or self.world.robot.start
-        return approach_towards(belief.position.x, belief.position.y, self.config.object_standoff, start.x, start.y)
+        x, y = belief.position.x, belief.position.y
+        room = self.model.room_of(x, y)
+        towards = math.atan2(start.y - y, start.x - x) if math.dist((start.x, start.y), (x, y)) > 1e-6 else 0.0
+        size, standoff = self.world.robot.base_size, self.config.object_standoff
+        for k in range(APPROACH_SIDES):
+            side = towards + (k + 1) // 2 * (1 if k % 2 else -1) * math.tau / APPROACH_SIDES
+            pose = approach_towards(x, y, standoff, x + math.cos(side), y + math.sin(side))
+            fits = self.model.clear_by(footprint(pose.x, pose.y, pose.yaw, size.x, size.y)) >= TRACKING_TOLERANCE
+            if fits and (room is None or self.model.room_of(pose.x, pose.y) == room):
+                return pose
+        raise at.error(
+            f"cannot reach {name} at ({x:.2f}, {y:.2f}): the base fits nowhere {standoff:g} m from it "
+            "(walls, furniture or keep-out zones all round); move it, or reach it some other way",
+            ErrorKind.PRECONDITION,
+        )
 
     def _base_pose(self, at: _At, verb: str, state: _State) -> Pose2D:
         """Where the base is predicted to stand now, for a move relative to it."""
@@ -684,7 +706,7 @@ class Resolver:
         obj = self.model.objects[entity.id]
         belief = state.beliefs[entity.id]
         support = belief.on if belief.on is not None and belief.on in self.model.furniture else FLOOR
-        approach = _rounded(self._object_approach(belief, state.robot))
+        approach = _rounded(self._object_approach(at, entity.name, belief, state.robot))
         pick = PickStep(
             object_id=entity.id,
             object_name=entity.name,

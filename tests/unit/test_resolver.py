@@ -25,6 +25,7 @@ from schemas.plan import (
     WaitStep,
 )
 from schemas.world import KeepOut, PerceivedHuman, PerceivedHumans, PerceivedObject, PerceivedObjects
+from services.footprint import TRACKING_TOLERANCE, footprint
 from services.resolver.config import ResolverConfig
 from services.resolver.errors import ResolveError
 from services.resolver.memory import Origin
@@ -817,3 +818,32 @@ def test_what_this_robot_cannot_do_is_refused_not_skipped(
     error = refusal(resolver, plan_of({"action": "say", "target": "hi"}, step))
     assert error.kind is ErrorKind.INVALID_REQUEST and error.step == 1
     assert expected in error.message and "remove the step" in error.message
+
+
+@pytest.mark.parametrize(
+    ("at", "robot"),
+    [
+        ((2.5, 3.4), Pose2D(x=1.0, y=4.7, yaw=0.0)),  # just south of the kitchen table, the robot north-west
+        ((3.0, 0.8), START),  # against the counter, the robot in the living room
+        ((2.0, 5.3), Pose2D(x=2.0, y=3.0, yaw=1.57)),  # by the bedroom's wall, the robot in the kitchen
+    ],
+)
+def test_an_object_on_the_floor_is_approached_from_a_side_where_the_base_fits(
+    resolver: Resolver, model: WorldModel, at: tuple[float, float], robot: Pose2D
+) -> None:
+    """Straight from the robot, the base was sent into the table, the counter, or the far side of a wall."""
+    cup = (Vec3(x=at[0], y=at[1], z=0.05), None)
+    plan = resolver.resolve(plan_of({"action": "pick", "target": "red cup"}), seen(model, red_cup=cup), robot)
+    pick = plan.steps[0]
+    assert isinstance(pick, PickStep)
+    a, size = pick.approach, model.world.robot.base_size
+    assert model.clear_by(footprint(a.x, a.y, a.yaw, size.x, size.y)) >= TRACKING_TOLERANCE
+    assert model.room_of(a.x, a.y) == model.room_of(*at)
+    assert math.dist((a.x, a.y), at) == pytest.approx(resolver.config.object_standoff, abs=1e-3)
+
+
+def test_an_object_on_the_floor_with_nowhere_to_stand_is_refused(resolver: Resolver, model: WorldModel) -> None:
+    widest = max(model.world.furniture, key=lambda f: min(f.size.x, f.size.y))
+    under = (Vec3(x=widest.center[0], y=widest.center[1], z=0.05), None)  # every side of it is furniture
+    error = refusal(resolver, plan_of({"action": "pick", "target": "red cup"}), objects=seen(model, red_cup=under))
+    assert "the base fits nowhere" in error.message and error.kind is ErrorKind.PRECONDITION
