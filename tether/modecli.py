@@ -24,6 +24,7 @@ from services.errors import CallError
 from services.runtime import Node, NodeSettings
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name
+from tether.output import printable
 
 # Exit codes of these commands.
 EXIT_OK = 0
@@ -44,12 +45,14 @@ def _node(ctx: typer.Context) -> Node:
 
 
 def _emit(as_json: bool, data: dict[str, Any], text: str, code: int) -> NoReturn:
+    # The text quotes safety's replies, which quote what others sent: its control characters are
+    # escaped (rich's escape is for its markup only, it passes ESC sequences through).
     if as_json:
         print(json.dumps(data))
     elif code == EXIT_OK:
-        print(text)
+        print(printable(text))
     else:
-        console.print(escape(text))
+        console.print(escape(printable(text)))
     raise typer.Exit(code)
 
 
@@ -217,15 +220,18 @@ def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
     if as_json:
         print(json.dumps({"ok": True, **msgspec.to_builtins(waiting)}))
         raise typer.Exit(EXIT_OK)
-    lines = [f"mode: {waiting.mode}"]
+    # Steps, labels, checks and reasons are what a plan's sender wrote (any peer may ask for an
+    # approval): each field is printed with its control characters escaped.
+    lines = [f"mode: {printable(waiting.mode)}"]
     if not waiting.plans:
         lines.append("no plan waits for approval")
     for plan in waiting.paused:
-        lines.append(f"goal {plan.goal_id} is paused ({plan.reason}): `tether resume {plan.goal_id}` hands back")
+        goal = printable(plan.goal_id)
+        lines.append(f"goal {goal} is paused ({printable(plan.reason)}): `tether resume {goal}` hands back")
     now = time.time()
     for plan in waiting.plans:
-        lines.append(f"goal {plan.goal_id}, waiting {max(0.0, now - plan.requested):.0f} s:")
-        lines += [f"  {step}" for step in plan.steps]
-        lines.append(f"  safety's dry run: {'; '.join(plan.checks) or 'approved'}")
+        lines.append(f"goal {printable(plan.goal_id)}, waiting {max(0.0, now - plan.requested):.0f} s:")
+        lines += [f"  {printable(step)}" for step in plan.steps]
+        lines.append(f"  safety's dry run: {'; '.join(printable(check) for check in plan.checks) or 'approved'}")
     sys.stdout.write("\n".join(lines) + "\n")
     raise typer.Exit(EXIT_OK)

@@ -26,3 +26,21 @@ def conclude(console: Console, as_json: bool, document: dict[str, Any], said: st
     else:
         console.print(said)
     raise typer.Exit(code)
+
+
+# Text someone else wrote (a file, a peer, the robot), before it reaches a terminal: its control
+# characters escaped, so no ESC sequence retitles, clears or repaints the operator's terminal.
+_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
+_CONTROLS_BUT_NEWLINE = {code: escaped for code, escaped in _CONTROLS.items() if code != ord("\n")}
+
+
+def printable(value: object, newlines: bool = False) -> str:
+    """`value` as text with its control characters escaped (`\\x1b`), newlines kept if `newlines`:
+    for anything a file holds, before it reaches a terminal."""
+    return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else _CONTROLS)
+
+
+def shown(value: object, newlines: bool = True) -> str:
+    """`value` as markup that prints as written, control characters escaped (see printable); on one
+    line unless `newlines` (a table cell)."""
+    return literal(printable(value, newlines))

@@ -36,7 +36,7 @@ from services.robotlink import KeyFileError, read_key
 from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 from services.worldmodel import WorldFileError, load_world
-from tether.output import literal
+from tether.output import literal, printable, shown
 from tether.progress import Bar, ProgressOpt, progress_bar
 
 console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
@@ -69,22 +69,6 @@ RobotKeyOpt = Annotated[
 
 # C0 and C1 control characters and DEL, each as its Python escape: a file's text must not move the
 # cursor, clear the screen or retitle the terminal (rich passes ESC sequences through as they are).
-_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
-_CONTROLS_BUT_NEWLINE = {code: escaped for code, escaped in _CONTROLS.items() if code != ord("\n")}
-
-
-def printable(value: object, newlines: bool = False) -> str:
-    """`value` as text with its control characters escaped (`\\x1b`), newlines kept if `newlines`:
-    for anything a file holds, before it reaches a terminal."""
-    return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else _CONTROLS)
-
-
-def shown(value: object, newlines: bool = True) -> str:
-    """`value` as markup that prints as written, control characters escaped (see printable); on one
-    line unless `newlines` (a table cell)."""
-    return literal(printable(value, newlines))
-
-
 def fail(message: str, code: int = 2) -> NoReturn:
     console.print(f"[red]error:[/] {shown(message)}", highlight=False)
     raise typer.Exit(code)

@@ -34,6 +34,7 @@ import typer
 from schemas import keys
 from schemas.robot import Twist
 from schemas.safety import Decision, SafetyEvent, SafetyStatus
+from tether.output import printable
 
 # Until the terminal starts repeating a held key (250 to 660 ms on common desktops) one key press
 # holds its command this long; a key released before then moves the robot this long at most.
@@ -399,14 +400,17 @@ class SafetyView:
         if beat is None or now - beat_at > STALE_HEARTBEAT:
             return "NO HEARTBEAT from safety: the robot will not move"
         if beat.estop.latched:
-            return f"E-STOP latched by {beat.estop.source}: {beat.estop.reason} (`tether reset` clears it)"
+            # Anyone may publish an e-stop with any reason, and safety's vetoes quote what they were
+            # given: their control characters are escaped before they reach the terminal.
+            estop = f"{printable(beat.estop.source)}: {printable(beat.estop.reason)}"
+            return f"E-STOP latched by {estop} (`tether reset` clears it)"
         if last is None or now - last_at > STALE_EVENT:
             words = "ready"
         elif last.decision is Decision.CLAMPED:
             speed, turn = last.values.get("speed_mps", math.nan), last.values.get("turn_rps", math.nan)
             words = f"CLAMPED to {speed:+.2f} m/s {turn:+.2f} rad/s ({last.rule or 'limit'})"
         elif last.decision is Decision.VETOED:
-            words = f"VETOED ({last.rule or 'rule'}): {last.reason}"
+            words = f"VETOED ({last.rule or 'rule'}): {printable(last.reason)}"
         else:
             words = "approved"
         if beat.speed_scale < 1.0:
@@ -416,6 +420,7 @@ class SafetyView:
     def line(self, deadman: Deadman, now: float, width: int) -> str:
         linear, angular = deadman.commanded(now)
         mode = self.mode()
+        mode = None if mode is None else printable(mode)
         text = (
             f"cmd {linear:+.2f} m/s {angular:+.2f} rad/s | scale x{deadman.scale:.1f} "
             f"({deadman.speeds.linear * deadman.scale:.2f} m/s, {deadman.speeds.angular * deadman.scale:.2f} rad/s) "

@@ -380,6 +380,7 @@ class TeleopBridge:
         self.refusals = RepeatLog("teleop input refused")
         # What a Foxglove user should see (the server's status messages), sent by the deadman's thread.
         self.notices: collections.deque[str] = collections.deque(maxlen=16)
+        self._closed = False  # the view ends: no twist goes out any more but close()'s stop
 
     def _put(self, twist: Twist) -> None:
         self._send(msgspec.structs.replace(twist, stamp=self._wall()))
@@ -388,8 +389,10 @@ class TeleopBridge:
         # One line per kind of problem, then a count every few seconds: a flood does not fill the log.
         if (line := self.refusals.note(type(exc).__name__, detail)) is not None:
             log.warning("%s", line)
-            if notify:
-                self.notices.append(f"tether view: {detail}")
+        # Each refused channel is told to Foxglove, also the second within the log's few seconds
+        # (another client's, maybe): the deque is bounded, a flood costs nothing.
+        if notify:
+            self.notices.append(f"tether view: {detail}")
 
     def advertise(self, client: int, channel: ClientChannel) -> None:
         try:
@@ -401,6 +404,8 @@ class TeleopBridge:
 
     def message(self, client: int, channel: int, data: bytes) -> None:
         with self._lock:
+            if self._closed:
+                return
             try:
                 accepted = self.gate.message(client, channel, data, self._clock())
             except Refused as exc:
@@ -412,19 +417,23 @@ class TeleopBridge:
 
     def unadvertise(self, client: int, channel: int) -> None:
         with self._lock:
-            if (stop := self.gate.unadvertise(client, channel)) is not None:
+            if (stop := self.gate.unadvertise(client, channel)) is not None and not self._closed:
                 self._put(stop)
                 log.warning("teleop: client %d channel %d gone while driving: stopped", client, channel)
 
     def tick(self) -> None:
         """The deadman: a stop once the messages stopped coming."""
         with self._lock:
-            if (stop := self.gate.expire(self._clock())) is not None:
+            if (stop := self.gate.expire(self._clock())) is not None and not self._closed:
                 self._put(stop)
 
     def close(self) -> None:
-        """The view ends: a moving robot is told to stop now."""
+        """The view ends: a moving robot is told to stop now, and every twist after this is dropped
+        (the server may take messages until it stops, the deadman may have ended already)."""
         with self._lock:
+            if self._closed:
+                return
+            self._closed = True
             if self.gate.moving:
                 self._put(Twist())
 
@@ -621,15 +630,28 @@ def view(
             while not stop.wait(PUBLISH_PERIOD):
                 live.publish_once()
         finally:
-            # The helpers end before the server and the session do, and before Python finalizes: one
-            # still in a Zenoh or Foxglove call then (both Rust) would abort the process as it exits
-            # (tether/runservice.py, leave).
-            stop.set()
-            for helper in helpers:
-                helper.join(timeout=HELPER_JOIN)
-            server.stop()
-            if bridge is not None:
-                bridge.close()
+            shut_down(bridge, stop, helpers, server)
+
+
+def shut_down(
+    bridge: TeleopBridge | None,
+    stop: threading.Event,
+    helpers: list[threading.Thread],
+    server: foxglove.WebSocketServer,
+) -> None:
+    """The view's end. Teleop first: from here no twist goes out and a moving robot is told to stop,
+    before the wait for the helpers (the camera's may be in a call for seconds, and the deadman's
+    thread ends with `stop`). The helpers end before the server and the session do, and before
+    Python finalizes: one still in a Zenoh or Foxglove call then (both Rust) would abort the process
+    as it exits (tether/runservice.py, leave)."""
+    try:
+        if bridge is not None:
+            bridge.close()
+    finally:
+        stop.set()
+        for helper in helpers:
+            helper.join(timeout=HELPER_JOIN)
+        server.stop()
 
 
 def teleop_loop(bridge: TeleopBridge, server: foxglove.WebSocketServer, stop: threading.Event) -> None:

@@ -137,6 +137,12 @@ class Bucket:
             return True
         return False
 
+    def full_by(self, now: float) -> bool:
+        """Whether it has saved up `burst` again by `now`: then it is as good as a new one."""
+        if self.at == -math.inf:
+            return self.tokens >= self.burst
+        return self.tokens + max(0.0, now - self.at) * self.rate >= self.burst
+
 
 @dataclass(frozen=True)
 class Accepted:
@@ -156,7 +162,12 @@ class TeleopGate:
         self._rate, self._burst = rate, float(burst)
         self._lock = threading.Lock()
         self._channels: set[tuple[int, int]] = set()  # (client id, client channel id) taken
+        # A client's bucket outlives its channels: advertising again must not refill it. It goes
+        # once the client has no channel and the bucket has saved up its burst again (a new one
+        # would be the same), as of the latest message's time: clients coming and going leave none.
         self._buckets: dict[int, Bucket] = {}
+        self._idle: set[int] = set()  # clients with a bucket and no channel
+        self._now = -math.inf  # the time of the latest message
         self._driver: tuple[int, int] | None = None  # the channel of the last twist sent
         self._last = -math.inf  # when it came
         self._moving = False  # the last twist sent was not a stop
@@ -180,11 +191,14 @@ class TeleopGate:
                 self.refused += 1
                 raise
             self._channels.add((client, channel))
+            self._idle.discard(client)
             self._buckets.setdefault(client, Bucket(self._rate, self._burst, self._burst))
 
     def message(self, client: int, channel: int, data: bytes, now: float) -> Accepted:
         """The twist of one message, or raise Refused (RateLimited over the client's rate)."""
         with self._lock:
+            self._now = max(self._now, now)
+            self._forget_full_buckets()
             try:
                 if (client, channel) not in self._channels:
                     raise UnknownChannel(f"channel {channel} was not taken (advertise {TELEOP_TOPIC!r} first)")
@@ -211,11 +225,17 @@ class TeleopGate:
         """A channel gone: if it was driving, stop now."""
         with self._lock:
             self._channels.discard((client, channel))
-            if not any(c == client for c, _ in self._channels):
-                self._buckets.pop(client, None)
+            if client in self._buckets and not any(c == client for c, _ in self._channels):
+                self._idle.add(client)
+                self._forget_full_buckets()
             if self._moving and self._driver == (client, channel):
                 return self._stop()
             return None
+
+    def _forget_full_buckets(self) -> None:
+        for client in [c for c in self._idle if self._buckets[c].full_by(self._now)]:
+            del self._buckets[client]
+            self._idle.discard(client)
 
     def expire(self, now: float) -> Twist | None:
         """The deadman: the stop once no message has come for `deadman` seconds while moving."""

@@ -329,6 +329,37 @@ def test_the_line_shows_the_mode_only_when_the_heartbeat_has_one() -> None:
     assert view.mode() is None and "mode" not in view.line(deadman, 0.0, 400)
 
 
+# What anyone may publish on safety/estop (the MCP agent too): a reason that retitles the terminal,
+# clears the screen and writes a false all-clear in green.
+HOSTILE = "obstacle\x1b]0;PWNED\x07\x1b[2J\x1b[1;1H\x1b[32mALL CLEAR, safe to approach\x1b[0m\r\x9b2J\x7f"
+
+
+def controls(text: str) -> list[str]:
+    return [c for c in text if ord(c) < 0x20 or 0x7F <= ord(c) < 0xA0]
+
+
+def test_the_line_escapes_control_characters_of_the_estop_a_veto_and_the_mode_at_any_width() -> None:
+    view = SafetyView()
+    deadman = Deadman()
+    wire = msgspec.json.encode(
+        {"seq": 1, "stamp": 0.0, "estop": {"latched": True, "source": HOSTILE, "reason": HOSTILE}}
+    )
+    view.beat(msgspec.json.decode(wire, type=SafetyStatus), 0.0)
+    estop = view.line(deadman, 0.0, 1000)
+    assert "E-STOP latched by obstacle\\x1b]0;PWNED\\x07" in estop and "ALL CLEAR" in estop
+    ours = Twist(linear_x=0.3, stamp=5.0)
+    view.sent(ours)
+    view.beat(ModeBeat(mode=HOSTILE), 0.1)  # type: ignore[arg-type]
+    view.event(event(Decision.VETOED, ours, rule=Rule.KEEP_OUT, reason=HOSTILE), 0.1)
+    vetoed = view.line(deadman, 0.1, 1000)
+    assert "VETOED (keep_out): obstacle\\x1b]0;PWNED" in vetoed and "| mode obstacle\\x1b]0;" in vetoed
+    # Escaped before the cut: no width leaves a piece of a sequence at the end of the line.
+    for line in (estop, vetoed):
+        assert controls(line) == []
+    for width in range(1, len(vetoed) + 2):
+        assert controls(view.line(deadman, 0.1, width)) == []
+
+
 def test_events_on_other_keys_are_not_teleops() -> None:
     view = SafetyView()
     ours = Twist(linear_x=0.3, stamp=5.0)

@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import foxglove
 import pytest
+from foxglove.websocket import Capability
 
 from schemas.robot import Twist
-from tether.view import Listener, TeleopBridge
+from tether.view import Listener, TeleopBridge, shut_down, teleop_loop
 from tether.viewteleop import (
     BURST,
     DEADMAN,
@@ -139,6 +144,29 @@ def test_a_flood_is_cut_to_the_rate_and_counted() -> None:
     gate.message(2, 1, twist_json(0.1), 2.0)
 
 
+def test_advertising_again_does_not_refill_a_clients_rate() -> None:
+    gate = TeleopGate()
+    taken = 0
+    for i in range(100):  # 1000 a second for 0.1 s, the channel advertised afresh around each
+        gate.advertise(7, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+        try:
+            gate.message(7, 1, twist_json(0.3), i / 1000)
+            taken += 1
+        except RateLimited:
+            pass
+        gate.unadvertise(7, 1)
+    assert taken == pytest.approx(BURST + 0.1 * RATE_HZ, abs=1)
+    # Once it has saved up its burst again a client's bucket is as good as new: it is forgotten, so
+    # clients coming and going leave nothing behind.
+    gate.advertise(8, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.message(8, 1, twist_json(0.3), 0.1 + BURST / RATE_HZ)
+    assert set(gate._buckets) == {8}
+    gate.unadvertise(8, 1)
+    gate.advertise(7, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    for i in range(BURST):
+        gate.message(7, 1, twist_json(0.3), 0.2 + BURST / RATE_HZ + i / 1000)
+
+
 def test_the_deadman_stops_once_half_a_second_after_the_last_message() -> None:
     gate = TeleopGate()
     gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
@@ -254,6 +282,27 @@ def test_the_listener_never_raises_and_says_why_it_refused(
     assert "teleop callback failed" in caplog.text
 
 
+def test_each_refused_channel_is_told_to_its_foxglove_user_and_logged_once(
+    bridge: tuple[TeleopBridge, Fakes], caplog: pytest.LogCaptureFixture
+) -> None:
+    teleop, _ = bridge
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    with caplog.at_level(logging.WARNING, "tether.view"):
+        listener.on_client_advertise(Client(1), Channel(1, topic="/joy"))  # type: ignore[arg-type]
+        # Another Foxglove window, within the same few seconds: its user is told too.
+        listener.on_client_advertise(Client(2), Channel(1, encoding="cdr"))  # type: ignore[arg-type]
+        listener.on_client_advertise(Client(2), Channel(2, schema_name="std_msgs/String"))  # type: ignore[arg-type]
+    assert [notice.removeprefix("tether view: ").split(":")[0] for notice in teleop.notices] == [
+        "client 1 channel 1 not taken",
+        "client 2 channel 1 not taken",
+        "client 2 channel 2 not taken",
+    ]
+    assert sum("not taken" in r.message for r in caplog.records) == 1  # the log is throttled, the notices not
+    for client in range(3, 100):  # a flood keeps the newest few
+        listener.on_client_advertise(Client(client), Channel(1, topic="/joy"))  # type: ignore[arg-type]
+    assert len(teleop.notices) == teleop.notices.maxlen and "client 99 " in teleop.notices[-1]
+
+
 def test_a_disconnect_while_driving_stops_at_once(bridge: tuple[TeleopBridge, Fakes]) -> None:
     teleop, fakes = bridge
     listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
@@ -266,12 +315,71 @@ def test_a_disconnect_while_driving_stops_at_once(bridge: tuple[TeleopBridge, Fa
     assert len(fakes.sent) == 2
 
 
-def test_closing_the_view_stops_a_moving_robot(bridge: tuple[TeleopBridge, Fakes]) -> None:
+def test_closing_the_view_stops_a_moving_robot_and_nothing_goes_out_after(bridge: tuple[TeleopBridge, Fakes]) -> None:
     teleop, fakes = bridge
     teleop.advertise(1, Channel(1))  # type: ignore[arg-type]
     teleop.message(1, 1, twist_json(0.0, 0.5))
     teleop.close()
-    assert fakes.sent[-1] == Twist(stamp=1000.0)
+    assert fakes.sent[-1] == Twist(stamp=1000.0) and len(fakes.sent) == 2
+    # The server takes messages until it stops: none is sent, nor another stop.
+    teleop.message(1, 1, twist_json(0.3))
+    teleop.advertise(1, Channel(2))  # type: ignore[arg-type]
+    teleop.message(1, 2, twist_json(0.3))
+    fakes.now[0] = 2 * DEADMAN
+    teleop.tick()
+    teleop.unadvertise(1, 1)
+    teleop.close()
+    assert len(fakes.sent) == 2
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"not within {timeout} s: {what}"
+        time.sleep(0.005)
+
+
+def test_from_the_moment_the_view_ends_the_panels_twists_are_dropped_and_the_robot_told_to_stop() -> None:
+    """The view's end waits for its helpers (a camera picture may take seconds) before the server
+    stops; meanwhile the server still takes the panel's twists, and the deadman's thread has ended."""
+    sent: list[Twist] = []
+    teleop = TeleopBridge(sent.append)
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    server = foxglove.start_server(
+        name="test",
+        host="127.0.0.1",
+        port=0,
+        context=foxglove.Context(),
+        server_listener=listener,
+        capabilities=[Capability.ClientPublish],
+        supported_encodings=["json"],
+    )
+    stop = threading.Event()
+    camera_answered = threading.Event()  # a camera picture in flight: its helper ends when it comes
+    helpers = [
+        threading.Thread(target=teleop_loop, args=(teleop, server, stop), daemon=True),
+        threading.Thread(target=camera_answered.wait, daemon=True),
+    ]
+    for helper in helpers:
+        helper.start()
+    ending = threading.Thread(target=shut_down, args=(teleop, stop, helpers, server), daemon=True)
+    try:
+        listener.on_client_advertise(Client(1), Channel(1))  # type: ignore[arg-type]
+        listener.on_message_data(Client(1), 1, twist_json(0.3))  # type: ignore[arg-type]
+        assert [t.linear_x for t in sent] == [0.3]
+        ending.start()  # Ctrl-C
+        wait_until(lambda: not helpers[0].is_alive(), "the deadman's thread ended")
+        for _ in range(5):  # the panel's button still held
+            listener.on_message_data(Client(1), 1, twist_json(0.3))  # type: ignore[arg-type]
+        assert ending.is_alive(), "the view's end did not wait for the camera's helper"
+        assert [(t.linear_x, t.angular_z) for t in sent] == [(0.3, 0.0), (0.0, 0.0)]
+    finally:
+        camera_answered.set()
+        if ending.ident is None:
+            shut_down(teleop, stop, helpers, server)
+        else:
+            ending.join(timeout=10.0)
+    assert not ending.is_alive()
 
 
 def test_the_shipped_layouts_teleop_panel_drives_through_the_view() -> None:
