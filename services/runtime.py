@@ -822,8 +822,19 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
         raise ConfigError(f"config file {path} [{section}]: {exc}") from None
 
 
+# Control characters a log line escapes (newlines and tabs stay: tracebacks).
+_LOG_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0)) if chr(code) not in "\n\t"}
+
+
+class _EscapingFormatter(logging.Formatter):
+    """Log lines quote what others wrote (an e-stop's reason, a plan's step, a robot's error): their
+    ESC sequences are escaped, so none retitles or repaints the terminal or journal they are read in."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return super().format(record).translate(_LOG_CONTROLS)
+
+
 def configure_logging(level: str = "INFO") -> None:
-    logging.basicConfig(
-        level=os.environ.get("TETHER_LOG_LEVEL", level).upper(),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    handler = logging.StreamHandler()
+    handler.setFormatter(_EscapingFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    logging.basicConfig(level=os.environ.get("TETHER_LOG_LEVEL", level).upper(), handlers=[handler])

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import time
 import uuid
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +16,8 @@ from schemas.common import ErrorKind, ServiceError
 from services.errors import CallError
 from services.runtime import Node, NodeSettings
 from tests.sessions import free_port
+
+ROOT = Path(__file__).resolve().parents[2]
 
 FLOOD = 1000
 
@@ -57,3 +62,16 @@ def test_a_flood_of_garbage_is_one_line_and_a_count(caplog: pytest.LogCaptureFix
     assert not heard
     # One report per line, for a service to publish as an event (safety does): the first, with its count.
     assert [(k, c) for k, _, c in reported] == [(key, 1), (keys.ROBOT_DIAGNOSTICS.key(settings.robot), 1)]
+
+
+def test_a_services_log_escapes_control_characters_others_wrote() -> None:
+    """An e-stop's reason (anyone may publish one) was logged raw: its ESC sequences retitled and
+    repainted the terminal that showed safety's log. Newlines and tabs (tracebacks) stay."""
+    code = (
+        "import logging; from services.runtime import configure_logging; configure_logging(); "
+        "logging.getLogger('safety').warning('E-STOP latched by %s: %s', 'agent', "
+        "'x\\x1b]0;pwned\\x07\\x9b2J\\nnext\\tcol')"
+    )
+    child = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert "x\\x1b]0;pwned\\x07\\x9b2J\nnext\tcol" in child.stderr
+    assert not any(ch in child.stderr for ch in "\x1b\x07\x9b")
