@@ -51,7 +51,8 @@ class ObjectMemory:
     object first seen, moved beyond `move_tolerance` (xy or z), onto something else, released from
     the gripper, turned stale or fresh again, or forgotten. Sightings within tolerance refine the
     position without changing it, until the refined position has gone `move_tolerance` from where it
-    stood when `version` last changed for it (an object creeping a millimetre a frame). Not thread-safe: the caller holds a lock.
+    stood when `version` last changed for it (an object creeping a millimetre a frame). Not
+    thread-safe: the caller holds a lock.
     """
 
     def __init__(self, stale_after: float, move_tolerance: float, known: Iterable[str] | None = None) -> None:
