@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import re
+import unicodedata
 from dataclasses import dataclass
 from typing import Literal
 
 from rapidfuzz import fuzz, process
+from rapidfuzz.distance import OSA
 
 from schemas.world import World
 
@@ -19,8 +21,18 @@ KIND_NOUNS: dict[Kind, str] = {
     "human": "a person",
 }
 # Words that never tell two things apart: "the red cup" is "red cup".
-_FILLER = frozenset({"the", "a", "an", "some", "my", "this", "that", "please"})
+FILLER = frozenset({"the", "a", "an", "some", "my", "this", "that", "please"})
 _PUNCTUATION = re.compile(r"[^\w\s]|_")
+# Words that point instead of naming ("put it there", "give it to her", "go upstairs"): however close
+# one is spelt to a name ("there" is a letter from the operator's "here"), it is never read as that name.
+POINTING_WORDS = frozenset(
+    {"here", "there", "where", "it", "its", "this", "that", "these", "those", "them", "they", "he", "him"}
+    | {"his", "she", "her", "hers", "you", "your", "me", "us", "we", "our", "upstairs", "downstairs"}
+    | {"inside", "outside", "somewhere", "anywhere", "everywhere", "nowhere", "elsewhere", "yonder"}
+)
+# A near-miss is read as a name only if each of its words is at most this many typos (a letter
+# added, dropped or changed, or two swapped) from the name's word in the same place.
+TYPOS_PER_WORD = 1
 MAX_SUGGESTIONS = 3
 # Near-misses scoring below this (0..100) are not even suggested.
 SUGGESTION_CUTOFF = 60.0
@@ -30,10 +42,27 @@ SUGGESTION_SPREAD = 0.1
 MAX_MATCH_CHARS = 200
 
 
+def name_words(text: str) -> list[str]:
+    """'The Red-Cup.' -> ['the', 'red', 'cup']: NFKC-folded (fullwidth or ligature letters become the
+    letters they show, so a name typed on a CJK keyboard is the same name), lower case, no punctuation."""
+    return _PUNCTUATION.sub(" ", unicodedata.normalize("NFKC", text).lower()).split()
+
+
 def normalise_name(text: str) -> str:
     """'The Red-Cup.' -> 'red cup'."""
-    words = _PUNCTUATION.sub(" ", text.lower()).split()
-    return " ".join(w for w in words if w not in _FILLER)
+    return " ".join(w for w in name_words(text) if w not in FILLER)
+
+
+def is_misspelling(written: str, known: str) -> bool:
+    """Whether the normalised name `written` may be `known` mistyped: as many words in the same order,
+    each at most TYPOS_PER_WORD typos from its counterpart, none a pointing word. An extra word
+    ("living room sofa") or another head noun ("coffee pot", not "coffee cup") is another name."""
+    said, meant = written.split(), known.split()
+    return (
+        len(said) == len(meant)
+        and POINTING_WORDS.isdisjoint(said)
+        and all(OSA.distance(a, b) <= TYPOS_PER_WORD for a, b in zip(said, meant, strict=True))
+    )
 
 
 @dataclass(frozen=True)
@@ -99,6 +128,12 @@ class NameIndex:
             key, self._keys, scorer=fuzz.token_sort_ratio, limit=limit, score_cutoff=SUGGESTION_CUTOFF
         )
         return [Scored(tuple(self._by_name[match]), score / 100.0, match) for match, score, _ in found]
+
+    def readings(self, name: str, min_score: float) -> list[Scored]:
+        """The near-misses `name` is read as, best first: those scoring at least `min_score` that it
+        may be a mistyping of (`is_misspelling`). Suggestions are not held to this."""
+        key = normalise_name(name)[:MAX_MATCH_CHARS]
+        return [s for s in self.near_misses(name) if s.score >= min_score and is_misspelling(key, s.matched)]
 
     def suggestions(self, name: str) -> list[str]:
         """Display names of the things `name` most likely meant, best first."""

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Literal
 
-from services.resolver.names import normalise_name
+from services.resolver.names import FILLER, name_words, normalise_name
 
 RelationKind = Literal["on", "in", "at", "near", "left_of", "right_of", "nearest_to", "farthest_from"]
 Superlative = Literal["nearest", "farthest", "leftmost", "rightmost", "biggest", "smallest"]
@@ -86,7 +85,8 @@ PRONOUNS = frozenset({"it", "that", "this", "them", "that one", "this one", "sam
 # Nouns that name no kind of thing: "the red one" is any red object.
 GENERIC = frozenset({"one", "thing", "object", "item"})
 ARTICLES = frozenset({"the", "a", "an"})
-_PUNCTUATION = re.compile(r"[^\w\s]|_")
+# Fillers that are a pronoun after a relation ("the book near that"), so kept until relations are read.
+_POINTING_FILLERS = FILLER & {word for pronoun in PRONOUNS for word in pronoun.split()}
 # Deep enough for any real name; a plan cannot make the reader recurse further.
 MAX_RELATIONS = 4
 
@@ -110,6 +110,9 @@ class Reference:
     superlative: Superlative | None = None
     relations: tuple[Relation, ...] = ()
     pronoun: bool = False
+    # A name that starts with a relation ("next to the apple", "on the table") names where, by the
+    # thing there: the rest of the Reference is that thing, `lead` the relation the name started with.
+    lead: RelationKind | None = None
 
     @property
     def generic(self) -> bool:
@@ -130,10 +133,10 @@ def _find_relation(words: list[str]) -> tuple[int, int, RelationKind] | None:
 def parse_reference(text: str, depth: int = 0) -> Reference:
     """Read `text` into a Reference; never fails (an unreadable name becomes a noun to look up)."""
     key = normalise_name(text)
-    plain = " ".join(w for w in _PUNCTUATION.sub(" ", text.lower()).split() if w not in ARTICLES)
-    if plain in PRONOUNS:
-        return Reference(text=text, key=plain, noun="", pronoun=True)
-    words = key.split()
+    plain = [w for w in name_words(text) if w not in ARTICLES]
+    if " ".join(plain) in PRONOUNS:
+        return Reference(text=text, key=" ".join(plain), noun="", pronoun=True)
+    words = [w for w in plain if w not in FILLER or w in _POINTING_FILLERS]
     superlative: Superlative | None = None
     for tail, side in SIDES.items():
         if len(words) > len(tail) and tuple(words[-len(tail) :]) == tail:
@@ -146,7 +149,7 @@ def parse_reference(text: str, depth: int = 0) -> Reference:
         other = parse_reference(" ".join(words[end:]), depth + 1)
         if start == 0:
             # "next to the apple", "at the counter": where a thing is, named by what is there.
-            return replace(other, text=text)
+            return replace(other, text=text, lead=kind)
         relations.append(Relation(kind, other))
         words = words[:start]
     colour = size = None
@@ -158,7 +161,7 @@ def parse_reference(text: str, depth: int = 0) -> Reference:
             size = SIZES[word]
         elif word in COLOURS and colour is None:
             colour = word
-        else:
+        elif word not in FILLER:
             noun.append(word)
     return Reference(
         text=text,
