@@ -173,7 +173,7 @@ class Planner:
         if (latched := self.estop_latched()) is not None:
             return AskReply(status=AskStatus.REJECTED, request_id=request_id, stage=Stage.SAFETY, reason=latched)
         try:
-            reply = self._given(request, request_id) if request.plan else self._asked(request, request_id)
+            reply, approved = self._given(request, request_id) if request.plan else self._asked(request, request_id)
         except ExecutorUnreachable as exc:
             return AskReply(status=AskStatus.UNREACHABLE, request_id=request_id, reason=str(exc))
         if reply.status is not AskStatus.APPROVED or request.dry_run:
@@ -182,7 +182,10 @@ class Planner:
             return msgspec.structs.replace(
                 reply, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=DEADLINE_PASSED
             )
-        sent = self.send(reply, reply.plan, request.preempt)
+        if (latched := self.estop_latched()) is not None:
+            return msgspec.structs.replace(reply, status=AskStatus.REJECTED, stage=Stage.SAFETY, reason=latched)
+        # The whole plan the dry run approved: the reply's copy is cut for the records (RecordedText).
+        sent = self.send(reply, approved, request.preempt)
         if sent.status is not AskStatus.ACCEPTED:
             return sent
         recoveries = self.config.max_recoveries if request.max_recoveries is None else request.max_recoveries
@@ -192,8 +195,9 @@ class Planner:
             self._follow_behind(request, sent, recoveries)
         return sent
 
-    def _asked(self, request: AskRequest, request_id: str) -> AskReply:
-        """The model's plan for the request, dry-run checked (APPROVED), or why there is none."""
+    def _asked(self, request: AskRequest, request_id: str) -> tuple[AskReply, str]:
+        """The model's plan for the request, dry-run checked (APPROVED), or why there is none; and
+        the plan's whole text (the reply holds it cut to what a record keeps)."""
         max_attempts = request.max_attempts or self.config.max_attempts
         scene = self.scene_text()  # first: it says where the robot is, for the hazards near it
         hazards = hazards_block(self.incidents())
@@ -205,26 +209,31 @@ class Planner:
             max_attempts,
             self._recorder(request, request_id, max_attempts, 0),
         )
-        return AskReply(
-            status=LOOP_STATUS[result.status],
+        status, stage, reason = LOOP_STATUS[result.status], result.stage, result.reason
+        if result.status is LoopStatus.LLM_ERROR and (latched := self.estop_latched()) is not None:
+            status, stage, reason = AskStatus.REJECTED, Stage.SAFETY, latched  # it latched during the loop
+        reply = AskReply(
+            status=status,
             request_id=request_id,
             attempts=len(result.attempts),
-            stage=result.stage,
-            reason=bounded(result.reason, 4000),
+            stage=stage,
+            reason=bounded(reason, 4000),
             plan=bounded(result.plan),
         )
+        return reply, result.plan
 
-    def _given(self, request: AskRequest, request_id: str) -> AskReply:
-        """A plan given as is (`tether send --recover`): its dry run, with no model call."""
+    def _given(self, request: AskRequest, request_id: str) -> tuple[AskReply, str]:
+        """A plan given as is (`tether send --recover`): its dry run, with no model call; and the plan."""
         verdict = self.check(request.plan)
         log.info("request %s: the given plan's dry run: %s %s", request_id, verdict.approved, verdict.reason)
-        return AskReply(
+        reply = AskReply(
             status=AskStatus.APPROVED if verdict.approved else AskStatus.REJECTED,
             request_id=request_id,
             stage=verdict.stage,
             reason=bounded(verdict.reason, 4000),
-            plan=request.plan,
+            plan=bounded(request.plan),
         )
+        return reply, request.plan
 
     def _tools(self) -> list[dict[str, Any]]:
         if self._tool_schemas is None:
@@ -242,6 +251,8 @@ class Planner:
                 raise LLMError(DEADLINE_PASSED)
             if self._closing.is_set():
                 raise LLMError("the planner is shutting down")
+            if (latched := self.estop_latched()) is not None:
+                raise LLMError(latched)  # latched since the loop began: no model is asked to fix anything
             reply: ChatReply = chat.chat(conversation, tools)
             return reply
 

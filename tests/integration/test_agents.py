@@ -29,7 +29,9 @@ from mcp.client.stdio import StdioServerParameters
 
 from schemas import keys
 from schemas.actions import GetResult
+from schemas.common import Stage
 from schemas.planner import AskRequest, AskStatus, AttemptOutcome
+from schemas.safety import EstopSource
 from schemas.world import Empty, GroundTruth
 from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
@@ -37,7 +39,7 @@ from tests.fastsim import FAST_SIM
 from tests.integration.conftest import Stack, run_tether, start_stack, stop_stack, tether_cli
 from tests.sessions import free_port
 from tests.watch import Watch
-from tether.client import reset_estop
+from tether.client import reset_estop, trigger_estop
 
 API_KEY = "sk-tether-test-5f1c0e9a7b"
 KEY_VARIABLE = "TETHER_TEST_LLM_KEY"
@@ -89,11 +91,14 @@ class ScriptedLLM:
     script: list[dict[str, Any] | tuple[int, bytes]] = field(default_factory=list)
     received: list[Received] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    # Run as each request arrives, before it is answered (what happens while the model thinks).
+    meanwhile: Callable[[], None] = lambda: None
 
-    def play(self, *entries: dict[str, Any] | tuple[int, bytes]) -> None:
+    def play(self, *entries: dict[str, Any] | tuple[int, bytes], meanwhile: Callable[[], None] = lambda: None) -> None:
         with self.lock:
             self.script = list(entries)
             self.received = []
+            self.meanwhile = meanwhile
 
     def answer(self, headers: dict[str, str], body: dict[str, Any]) -> tuple[int, bytes]:
         with self.lock:
@@ -101,6 +106,8 @@ class ScriptedLLM:
             if not self.script:
                 return 500, b'{"error": {"message": "the test script is exhausted"}}'
             entry = self.script.pop(0)
+            meanwhile = self.meanwhile
+        meanwhile()
         if isinstance(entry, tuple):
             return entry
         completion = {
@@ -261,6 +268,21 @@ def test_an_approved_plan_is_sent_and_its_goal_id_returned(agent_stack: Stack, l
     assert reply.goal_id
     result = agent_stack.node.call(keys.EXECUTE_PLAN.get_result, GetResult(goal_id=reply.goal_id), timeout=60.0)
     assert result.result is not None and result.result.status == "succeeded", result
+
+
+def test_an_approved_plan_longer_than_a_record_is_sent_whole(agent_stack: Stack, llm_server: ScriptedLLM) -> None:
+    """The reply keeps 8,000 characters of the plan (RecordedText): the executor was sent that cut
+    copy, not the plan the dry run approved, and ran its first steps only (a review's finding)."""
+    words = "and this sentence is long enough that sixty of them make a plan of more than eight thousand characters"
+    steps = [{"action": "say", "text": f"step {i}: {words}"} for i in range(60)]
+    plan = json.dumps({"plan": steps})
+    assert len(plan) > 8000
+    llm_server.play(text_reply(plan))
+    reply = agent_stack.node.call(keys.PLAN_ASK, AskRequest(text="say sixty things"), timeout=120.0)
+    assert reply.status is AskStatus.ACCEPTED, reply.reason
+    result = agent_stack.node.call(keys.EXECUTE_PLAN.get_result, GetResult(goal_id=reply.goal_id), timeout=60.0)
+    assert result.result is not None and result.result.status == "succeeded", result
+    assert len(result.result.steps) == 60
 
 
 def test_endpoint_errors_are_named_and_the_cli_calls_an_endpoint_of_its_own(
@@ -458,6 +480,24 @@ def test_an_agent_can_stop_the_robot_and_no_tool_starts_it_again(agent_stack: St
         latest = beats.latest(timeout=5.0)
         assert latest is not None and latest.estop.latched, "an agent's tool calls cleared the e-stop"
         assert not [k for k, _ in everything.samples if keys.RESET.path in k], "a tool reached safety/reset"
+    finally:
+        reset = reset_estop(agent_stack.node, str(agent_stack.token_file))
+    assert reset.ok, reset.message
+
+
+def test_an_estop_latched_while_the_model_thinks_ends_the_asking(agent_stack: Stack, llm_server: ScriptedLLM) -> None:
+    """The e-stop was looked at once, before the first model call: latched during the loop, the
+    model was asked four more times to fix its plan (a review's finding)."""
+
+    def latch() -> None:
+        assert trigger_estop(agent_stack.node, EstopSource.OPERATOR, "latched while the model thought") is not None
+
+    llm_server.play(*[text_reply("not a plan at all")] * 5, meanwhile=latch)
+    try:
+        reply = agent_stack.node.call(keys.PLAN_ASK, AskRequest(text="say hello", max_attempts=5), timeout=120.0)
+        assert reply.status is AskStatus.REJECTED and reply.stage is Stage.SAFETY, reply
+        assert "e-stop is latched" in reply.reason and not reply.goal_id
+        assert len(llm_server.received) == 1, "asked the model again after the e-stop latched"
     finally:
         reset = reset_estop(agent_stack.node, str(agent_stack.token_file))
     assert reset.ok, reset.message
