@@ -13,6 +13,10 @@ log = logging.getLogger(__name__)
 SUMMARY_PERIOD = 5.0
 # Problems keeps this many kinds of problem, the latest.
 PROBLEM_KINDS = 32
+# A RepeatLog keeps this many keys, the first-seen forgotten first: its keys may be a peer's (garbage
+# on a thousand made-up keys under a wildcard must not grow it without end). A key forgotten and
+# seen again is logged again at once.
+MAX_KEYS = 1024
 
 
 class RepeatLog:
@@ -36,6 +40,10 @@ class RepeatLog:
             self.total += 1
             seen = self._windows.get(key)
             if seen is None:
+                if len(self._windows) >= MAX_KEYS:
+                    oldest = next(iter(self._windows))
+                    del self._windows[oldest]
+                    self._covered.pop(oldest, None)
                 self._windows[key] = (now, 0)
                 self._covered[key] = 1
                 return f"{self.what} on {key}: {detail}"

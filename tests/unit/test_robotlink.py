@@ -14,7 +14,7 @@ from cryptography.hazmat.primitives import hashes as crypto_hashes
 from cryptography.hazmat.primitives import hmac as crypto_hmac
 
 from schemas import keys
-from services.repeats import RepeatLog
+from services.repeats import MAX_KEYS, RepeatLog
 from services.robotlink import (
     BAD_MAC,
     BEFORE_START,
@@ -241,3 +241,14 @@ def test_a_repeat_log_keeps_keys_apart() -> None:
     assert repeats.note("b", "bad") == "undecodable on b: bad"
     assert repeats.note("a", "bad") is None
     assert repeats.count("a") == 1 and repeats.total == 3
+
+
+def test_a_repeat_log_keeps_a_bounded_number_of_keys() -> None:
+    """Its keys may be a peer's: garbage on ever new keys under a wildcard grew it without end."""
+    repeats = RepeatLog("undecodable", clock=lambda: 0.0)
+    for i in range(MAX_KEYS * 5):
+        assert repeats.note(f"tether/r1/_trace/x{i}", "garbage") is not None  # each first one is logged
+    assert len(repeats._windows) == MAX_KEYS and len(repeats._covered) == MAX_KEYS
+    assert repeats.total == MAX_KEYS * 5
+    # A key still kept is counted within its window as before.
+    assert repeats.note(f"tether/r1/_trace/x{MAX_KEYS * 5 - 1}", "again") is None
