@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
 
+import httpx2 as httpx
 import msgspec
 from msgspec import Meta
 
@@ -101,6 +102,17 @@ class Endpoint:
         url = url if url.endswith("/chat/completions") else f"{url}/chat/completions"
         return f"{url}{query}{rest}"
 
+    def url_error(self) -> str:
+        """Why httpx cannot call the URL ("" when it can), without the URL's credentials: httpx's own
+        reason only when the URL has none (it may quote a part of the URL)."""
+        try:
+            port = httpx.URL(self.chat_url).port
+        except httpx.InvalidURL as exc:
+            return str(exc) if self.shown_url == self.chat_url else "httpx cannot parse it"
+        if port is not None and not 0 < port < 65536:
+            return f"port {port} is not between 1 and 65535"
+        return ""
+
 
 def resolve_endpoint(config: PlannerConfig, environ: Mapping[str, str] | None = None) -> Endpoint | None:
     """The endpoint from the environment (TETHER_LLM_URL, _MODEL, _API_KEY), else from the config;
@@ -112,9 +124,16 @@ def resolve_endpoint(config: PlannerConfig, environ: Mapping[str, str] | None = 
         return None
     if not url.startswith(("http://", "https://")):
         raise NotConfigured(f"{URL_ENV} must be an http:// or https:// URL")
+    # The pattern of PlannerConfig.url lets through what httpx refuses ('http://[::1/v1'): checked here,
+    # once, and named without the credentials a URL may hold.
+    where = Endpoint(url=url, model="")
+    problem = where.url_error()
+    if problem:
+        source = URL_ENV if env.get(URL_ENV, "").strip() else "[planner] url"
+        raise NotConfigured(f"{source} {where.shown_url} is not a valid URL: {problem}")
     model = env.get(MODEL_ENV, "").strip() or config.model
     if not model:
-        raise NotConfigured(f"the LLM endpoint {url} has no model: set {MODEL_ENV} or [planner] model")
+        raise NotConfigured(f"the LLM endpoint {where.shown_url} has no model: set {MODEL_ENV} or [planner] model")
     key: Secret | None = None
     source = ""
     if env.get(KEY_ENV):

@@ -9,6 +9,7 @@ from typing import Any
 
 from schemas.common import Pose2D, Stage
 from schemas.incidents import IncidentList, IncidentQuery
+from schemas.plan import MAX_PLAN_BYTES, MAX_STEPS
 from services.agent.feedback import as_data
 from services.safety.hazards import incident_line, zone_line
 
@@ -103,9 +104,15 @@ def refusal_text(stage: Stage | None, reason: str) -> str:
 
 def feedback_messages(reply_message: dict[str, Any], stage: Stage | None, reason: str) -> list[dict[str, Any]]:
     """The assistant's reply, then the refusal: as a tool result for each tool call when the model
-    called tools (the protocol wants one per call), else as the next user message."""
+    called tools (the protocol wants one per call), else as the next user message. A reply that cannot
+    go back whole (left_out) goes back as a short note of what it was: the conversation stays bounded
+    and encodable."""
     text = refusal_text(stage, reason)
     calls = reply_message.get("tool_calls") or []
+    left_out = unrepeatable(reply_message)
+    if left_out:
+        note = {"role": "assistant", "content": f"(my answer, not repeated here: {left_out})"}
+        return [note, {"role": "user", "content": text}]
     if not calls:
         return [reply_message, {"role": "user", "content": text}]
     results = [
@@ -115,9 +122,43 @@ def feedback_messages(reply_message: dict[str, Any], stage: Stage | None, reason
     return [reply_message, *results]
 
 
+def unrepeatable(reply_message: dict[str, Any]) -> str:
+    """Why a reply cannot go back into the conversation as it is ("" when it can): more tool calls than a
+    plan holds steps (each would want its own tool result: 100,000 empty calls, 300 KB, became 22 MB a
+    request), bigger than a plan can be (refused before any dry run), or a number JSON cannot carry
+    (NaN, Infinity: the next request could not be encoded)."""
+    calls = reply_message.get("tool_calls") or []
+    if len(calls) > MAX_STEPS:
+        return f"{len(calls)} tool calls, more than the {MAX_STEPS} steps a plan can hold"
+    try:
+        size = len(json.dumps(reply_message, ensure_ascii=False, allow_nan=False).encode())
+    except ValueError:
+        return "it held a number that is not finite (NaN or Infinity)"
+    except RecursionError:
+        return "it was nested too deep"
+    if size > MAX_PLAN_BYTES:
+        return f"{size} bytes, more than a plan can be ({MAX_PLAN_BYTES})"
+    return ""
+
+
 def normalize_calls(tool_calls: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Tool calls with the `id` and `type` some servers leave out, so that results can refer to them."""
-    return [{"id": f"call_{i}", "type": "function", **call} for i, call in enumerate(tool_calls)]
+    """Tool calls with an `id` and a `type`, so that results can refer to them: an id that is missing, not
+    a non-empty string or a repeat of an earlier one becomes call_N (N the call's place), a type that is
+    not a string "function"."""
+    taken: set[str] = set()
+    out = []
+    for i, call in enumerate(tool_calls):
+        call_id = call.get("id")
+        if not isinstance(call_id, str) or not call_id or call_id in taken:
+            call_id = f"call_{i}"
+            suffix = 0
+            while call_id in taken:  # a model's own id was already call_N
+                suffix += 1
+                call_id = f"call_{i}_{suffix}"
+        taken.add(call_id)
+        kind = call.get("type")
+        out.append({**call, "id": call_id, "type": kind if isinstance(kind, str) and kind else "function"})
+    return out
 
 
 def plan_text(content: str, tool_calls: list[dict[str, Any]]) -> str:
