@@ -29,7 +29,7 @@ from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig, r
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
-from tether.output import literal
+from tether.output import literal, printable, shown
 
 console = Console(stderr=True)
 
@@ -65,22 +65,23 @@ def show(reply: AskReply, as_json: bool) -> None:
         return
     if reply.status is AskStatus.UNCONFIGURED:
         console.print("[red]error:[/] ", end="")
-        console.print(reply.reason, markup=False, highlight=False)
+        console.print(printable(reply.reason, newlines=True), markup=False, highlight=False)
         return
     if reply.plan:
         console.print(f"plan after {reply.attempts} attempt(s):", highlight=False)
-        console.print(reply.plan, markup=False, highlight=False)
+        console.print(printable(reply.plan, newlines=True), markup=False, highlight=False)
     for recovery in reply.recoveries:
         step = f" step {recovery.step + 1}" if recovery.step is not None else ""
         failed = f"after{step} failed ({recovery.failure or 'unknown'})"
         said = f"recovery {recovery.number} {failed}: {recovery.outcome}: {recovery.reason}"
-        console.print(said, markup=False, highlight=False)
+        console.print(printable(said, newlines=True), markup=False, highlight=False)
     colour = "green" if reply.status in GREEN else "red"
     where = f" at stage {reply.stage}" if reply.stage is not None and colour == "red" else ""
     console.print(f"[{colour}]{reply.status}[/]{where}: ", end="")
-    console.print(reply.reason, markup=False, highlight=False)
+    console.print(printable(reply.reason, newlines=True), markup=False, highlight=False)
     if reply.goal_id:
-        console.print(f"goal {reply.goal_id}; `tether goal {reply.goal_id}` follows it.", markup=False, highlight=False)
+        goal = printable(reply.goal_id)
+        console.print(f"goal {goal}; `tether goal {goal}` follows it.", markup=False, highlight=False)
 
 
 def ask(
@@ -155,7 +156,7 @@ def ask(
         if as_json:
             print(json.dumps({"status": "unreachable" if exc.unreachable else "error", "reason": exc.reason}))
         else:
-            console.print(f"[red]planner failed[/]: {literal(exc.reason)}", highlight=False)
+            console.print(f"[red]planner failed[/]: {shown(exc.reason)}", highlight=False)
         raise typer.Exit(code) from None
     show(reply, as_json)
     raise typer.Exit(EXIT_CODES[reply.status])

@@ -64,7 +64,7 @@ from tether.client import (
     trigger_estop,
 )
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
-from tether.output import conclude, literal
+from tether.output import conclude, literal, printable, shown
 from tether.runcommand import HELP, common, run
 from tether.supervisor import Supervisor, free_base_port
 
@@ -213,7 +213,7 @@ def start_services(
     if missing:
         for name in sorted(missing):
             console.print(f"[red]{name} did not come up within {timeout:.0f} s; its log:[/]")
-            console.print(supervisor.log_tail(name), markup=False, highlight=False)
+            console.print(printable(supervisor.log_tail(name), newlines=True), markup=False, highlight=False)
         node.close()
         supervisor.stop_all()
         raise typer.Exit(1)
@@ -391,7 +391,7 @@ ENDED = (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
 
 def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
-        console.print(f"[dim]{fb.stage}[/]: {literal(fb.message)}")
+        console.print(f"[dim]{fb.stage}[/]: {shown(fb.message)}")
         return
     print_step(fb.step, fb.label, fb.action, fb.message, fb.status, fb.failure, fb.searched, fb.attempt)
 
@@ -406,13 +406,13 @@ def print_step(
     searched: list[str],
     attempt: int = 1,
 ) -> None:
-    failed = f"[red]failed ({literal(failure)})[/]" if failure else "[red]failed[/]"
+    failed = f"[red]failed ({shown(failure)})[/]" if failure else "[red]failed[/]"
     mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(status, "...")
     if status is StepStatus.RUNNING and attempt > 1:
         mark = "[yellow]retrying[/]"
     # Where a detect or pick searched, once the step has ended (the notes said it as it went).
-    where = f" [dim](searched: {literal(', '.join(searched))})[/]" if searched and status in ENDED else ""
-    said = literal(f"step {label or index + 1} {action}: {message}")
+    where = f" [dim](searched: {shown(', '.join(searched))})[/]" if searched and status in ENDED else ""
+    said = shown(f"step {label or index + 1} {action}: {message}")
     console.print(f"{said} {mark}{where}")
 
 
@@ -422,9 +422,9 @@ def print_unseen_ends(run: PlanRun) -> None:
     the run being done), or never, and the result is the record of how each step ended."""
     if run.result is None:
         return
-    shown = {(fb.step, fb.label) for fb in run.feedback if fb.status in ENDED}
+    told = {(fb.step, fb.label) for fb in run.feedback if fb.status in ENDED}
     for step in run.result.steps:
-        if step.status in ENDED and (step.index, step.label) not in shown:
+        if step.status in ENDED and (step.index, step.label) not in told:
             print_step(step.index, step.label, step.action, step.message, step.status, step.failure, step.searched)
 
 
@@ -434,17 +434,17 @@ def print_result(run: PlanRun, as_json: bool) -> None:
         return
     result = run.result
     if result is None and (waiting := run.awaiting_approval) is not None:
-        console.print(f"[yellow]awaiting_approval[/] (goal {literal(run.goal_id)}): {literal(waiting.message)}")
+        console.print(f"[yellow]awaiting_approval[/] (goal {shown(run.goal_id)}): {shown(waiting.message)}")
         return
     if result is None:
-        goal = literal(run.goal_id)
+        goal = shown(run.goal_id)
         console.print(f"plan accepted (goal {goal}); executing. `tether goal {goal}` follows it.")
         return
     print_unseen_ends(run)
     for warning in result.warnings:
-        console.print(f"[yellow]warning[/]: {literal(warning)}")
+        console.print(f"[yellow]warning[/]: {shown(warning)}")
     colour = "green" if result.status is PlanStatus.SUCCEEDED else "red"
-    reason = f": {literal(result.reason)}" if result.reason else ""
+    reason = f": {shown(result.reason)}" if result.reason else ""
     console.print(f"[{colour}]{result.status}[/] at stage {result.stage}{reason}")
 
 
@@ -452,7 +452,7 @@ def unreachable(as_json: bool, reason: str) -> NoReturn:
     if as_json:
         print(json.dumps({"status": "unreachable", "stage": None, "reason": reason, "steps": []}))
     else:
-        console.print(f"[red]{literal(reason)}[/]")
+        console.print(f"[red]{shown(reason)}[/]")
     raise typer.Exit(EXIT_UNREACHABLE)
 
 
@@ -527,7 +527,7 @@ def send(
             if as_json:
                 print(json.dumps({"status": "rejected", "stage": "execute", "reason": exc.reason, "steps": []}))
             else:
-                console.print(f"[red]rejected[/]: {literal(exc.reason)}")
+                console.print(f"[red]rejected[/]: {shown(exc.reason)}")
             raise typer.Exit(2) from None
         except CallError as exc:
             unreachable(as_json, f"executor unreachable: {exc}")
@@ -560,11 +560,11 @@ def cancel(
             reply = node.call(keys.EXECUTE_PLAN.cancel_goal, CancelGoal(goal_id=goal_id), timeout=3.0)
         except CallError as exc:
             document = {"status": "unreachable", "goal_id": goal_id, "reason": f"executor unreachable: {exc}"}
-            conclude(console, as_json, document, f"[red]executor unreachable[/]: {literal(exc)}", EXIT_UNREACHABLE)
+            conclude(console, as_json, document, f"[red]executor unreachable[/]: {shown(exc)}", EXIT_UNREACHABLE)
     if reply.accepted:
         conclude(console, as_json, {"status": "requested", "goal_id": goal_id, "reason": ""}, "cancel requested")
     document = {"status": "nothing_to_cancel", "goal_id": goal_id, "reason": reply.reason}
-    conclude(console, as_json, document, f"nothing to cancel ({literal(reply.reason)})")
+    conclude(console, as_json, document, f"nothing to cancel ({shown(reply.reason)})")
 
 
 @app.command()
@@ -586,7 +586,7 @@ def goal(
                     print(json.dumps({"goal_id": goal_id, "state": "unknown", "reason": exc.error.message}))
                 else:
                     kept = RESULT_RETENTION / 60
-                    console.print(f"[red]{literal(exc.error.message)}[/] (results are kept for {kept:g} minutes)")
+                    console.print(f"[red]{shown(exc.error.message)}[/] (results are kept for {kept:g} minutes)")
                 raise typer.Exit(2) from None
             unreachable(as_json, f"executor unreachable: {exc}")
     result = progress.result
@@ -595,7 +595,7 @@ def goal(
         print(json.dumps(msgspec.to_builtins(progress)))
         raise typer.Exit(code)
     said = f"goal {goal_id}: {progress.state}" + (f" ({progress.message})" if progress.message else "")
-    console.print(said, markup=False)
+    console.print(printable(said, newlines=True), markup=False, highlight=False)
     if result is None and progress.feedback is not None:
         print_feedback(progress.feedback)
     if result is not None:
@@ -628,7 +628,7 @@ def estop(
         conclude(console, as_json, document, said, EXIT_UNREACHABLE)
     latch = status.estop
     document = {"status": "latched", "source": latch.source, "reason": latch.reason}
-    conclude(console, as_json, document, f"[red]E-STOP latched[/] by {literal(latch.source)}: {literal(latch.reason)}")
+    conclude(console, as_json, document, f"[red]E-STOP latched[/] by {shown(latch.source)}: {shown(latch.reason)}")
 
 
 @app.command()
@@ -651,11 +651,11 @@ def reset(
             conclude(console, as_json, document, f"[red]cannot read the operator token[/]: {literal(exc)}", 2)
         except CallError as exc:
             document = {"status": "unreachable", "message": f"safety unreachable: {exc}"}
-            conclude(console, as_json, document, f"[red]safety unreachable[/]: {literal(exc)}", EXIT_UNREACHABLE)
+            conclude(console, as_json, document, f"[red]safety unreachable[/]: {shown(exc)}", EXIT_UNREACHABLE)
     if not reply.ok:
         document = {"status": "refused", "message": reply.message}
-        conclude(console, as_json, document, f"[red]refused[/]: {literal(reply.message)}", 2)
-    conclude(console, as_json, {"status": "reset", "message": reply.message}, literal(reply.message))
+        conclude(console, as_json, document, f"[red]refused[/]: {shown(reply.message)}", 2)
+    conclude(console, as_json, {"status": "reset", "message": reply.message}, shown(reply.message))
 
 
 @app.command()
@@ -818,7 +818,7 @@ def memory_line(processes: dict[str, dict[str, Any]]) -> str:
     # A service's own and its children's (the sim's camera renderer).
     held = {name: p["rss_bytes"] + p.get("children_rss_bytes", 0) for name, p in processes.items()}
     total = sum(held.values())
-    each = ", ".join(f"{name} {rss / MB:.0f}" for name, rss in held.items())
+    each = ", ".join(f"{shown(name, newlines=False)} {rss / MB:.0f}" for name, rss in held.items())
     return f"memory: {total / MB:.0f} MB resident ({each})"
 
 
@@ -861,9 +861,8 @@ def status(
         if as_json:
             print(json.dumps(report))
         elif report["ok"]:
-            out.print(
-                f"healthy: {', '.join(service or report['alive'])} alive; safety's heartbeat fresh", soft_wrap=True
-            )
+            alive = shown(", ".join(service or report["alive"]))
+            out.print(f"healthy: {alive} alive; safety's heartbeat fresh", soft_wrap=True)
         else:
             console.print("unhealthy: " + "; ".join(report["problems"]), markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(0 if report["ok"] else 1)
@@ -881,7 +880,7 @@ def status(
     console.print(f"mode: {state['mode'] or 'unknown (no heartbeat)'}")
     e = state["estop"]
     console.print(
-        f"e-stop: {'[red]LATCHED[/] by ' + literal(e['source'] + ': ' + e['reason']) if e['latched'] else e['latched']}"
+        f"e-stop: {'[red]LATCHED[/] by ' + shown(e['source'] + ': ' + e['reason']) if e['latched'] else e['latched']}"
     )
     robot = state["robot"] or {"pose": None, "problems": []}
     if p := robot["pose"]:
@@ -889,10 +888,10 @@ def status(
     if robot["problems"]:
         console.print("[red]robot problems[/] (the latest first):")
         for problem in robot["problems"]:
-            console.print(f"  {problem['age']:.0f} s ago: {literal(problem['text'])}")
+            console.print(f"  {problem['age']:.0f} s ago: {shown(problem['text'])}")
     table = Table("object", "room", "on", "x", "y", "z")
     for o in state["objects"]:
-        names = (literal(o[k] or "-") for k in ("name", "room", "on"))
+        names = (shown(o[k] or "-") for k in ("name", "room", "on"))
         table.add_row(*names, *(f"{o['pose'][k]:.2f}" for k in "xyz"))
     console.print(table)
 
@@ -919,8 +918,8 @@ def world_failed(error: ServiceError, as_json: bool = False) -> NoReturn:
     code = WORLD_EXIT_CODES.get(error.kind, 1)
     status = {2: "refused", EXIT_UNREACHABLE: "unreachable"}.get(code, "failed")
     document = {"status": status, "error": msgspec.to_builtins(error)}
-    known = "\nknown: " + literal(", ".join(error.candidates)) if error.candidates else ""
-    conclude(console, as_json, document, f"[red]{literal(error.kind)}[/]: {literal(error.message)}{known}", code)
+    known = "\nknown: " + shown(", ".join(error.candidates)) if error.candidates else ""
+    conclude(console, as_json, document, f"[red]{shown(error.kind)}[/]: {shown(error.message)}{known}", code)
 
 
 @world_app.command("move")
@@ -957,7 +956,7 @@ def world_move(
         world_failed(reply, as_json)
     p = reply.position
     document = {"status": "moved", "id": reply.id, "position": {"x": p.x, "y": p.y, "z": p.z}}
-    conclude(out, as_json, document, f"{literal(reply.id)} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
+    conclude(out, as_json, document, f"{shown(reply.id)} now at ({p.x:.3f}, {p.y:.3f}, {p.z:.3f})")
 
 
 lazy_command(world_app, "fault", "tether.worldfault:world_fault")
@@ -980,23 +979,23 @@ def world_scene(
         try:
             scene = node.call(keys.SCENE, Empty(), timeout=5.0)
         except CallError as exc:
-            console.print(f"[red]{literal(exc.error.kind)}[/]: {literal(exc.error.message)}")
+            console.print(f"[red]{shown(exc.error.kind)}[/]: {shown(exc.error.message)}")
             raise typer.Exit(EXIT_UNREACHABLE) from None
     if as_json:
         print(encode(scene).decode())
         return
-    console.print(scene.text, markup=False, highlight=False)
+    console.print(printable(scene.text, newlines=True), markup=False, highlight=False)
     table = Table("object", "on", "room", "x", "y", "z", "seen")
     for o in scene.objects:
         seen = "stale" if o.stale else ("yes" if o.stamp else "world file")
         p = o.position
-        names = (literal(name or "-") for name in (o.name, o.on, o.room))
+        names = (shown(name or "-") for name in (o.name, o.on, o.room))
         table.add_row(*names, f"{p.x:.2f}", f"{p.y:.2f}", f"{p.z:.2f}", seen)
     console.print(table)
     relations = [
         f"{r.subject} {r.relation.replace('_', ' ')} {r.object}" for r in scene.relations if r.relation != "in"
     ]
-    console.print("relations: " + "; ".join(relations), markup=False, highlight=False)
+    console.print(printable("relations: " + "; ".join(relations)), markup=False, highlight=False)
 
 
 # The demo
@@ -1019,7 +1018,7 @@ def demo(
     ] = "sim",
 ) -> None:
     """Start everything, bring the red cup to the coffee table, check it in the simulator, keep the recording."""
-    logging.basicConfig(level=logging.WARNING)
+    configure_logging("WARNING")  # what others wrote, quoted in a warning, escaped (services/runtime.py)
     if backend not in ("sim", "ros2"):
         console.print(f"[red]error:[/] unknown backend {literal(repr(backend))}; the demo runs on sim or ros2")
         raise typer.Exit(2)
@@ -1042,7 +1041,7 @@ def demo(
             try:
                 recording = node.call(keys.RECORDER_STATUS, Empty(), timeout=3.0).path
             except CallError as exc:
-                console.print(f"[yellow]recorder did not answer: {literal(exc)}[/]")
+                console.print(f"[yellow]recorder did not answer: {shown(exc)}[/]")
             console.print("sending the plan:")
             console.print(DEMO_PLAN, markup=False, highlight=False)
             started = time.monotonic()
@@ -1052,11 +1051,11 @@ def demo(
             ok = verify_demo(node) and ok
             console.print(f"plan took {time.monotonic() - started:.1f} s")
         except CallError as exc:
-            console.print(f"[red]demo failed[/]: {literal(exc)}")
+            console.print(f"[red]demo failed[/]: {shown(exc)}")
         finally:
             node.close()
             supervisor.stop_all()
-        console.print(f"recording: {recording}", markup=False)
+        console.print(printable(f"recording: {recording}"), markup=False, highlight=False)
         console.print("[green]demo succeeded[/]" if ok else "[red]demo failed[/]")
         raise typer.Exit(0 if ok else 1)
 
@@ -1125,7 +1124,7 @@ def mcp_command(
             file=sys.stderr,
         )
         raise typer.Exit(2)
-    logging.basicConfig(level=logging.WARNING, stream=sys.stderr)  # stdout is the protocol's
+    configure_logging("WARNING")  # on stderr, escaped: stdout is the protocol's
     # The MCP SDK and its web server take half a second to import: only for this command.
     from tether.mcpserver import serve
 

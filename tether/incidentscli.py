@@ -17,7 +17,6 @@ from typing import Annotated, Any, NoReturn
 import msgspec
 import typer
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 from schemas import keys
@@ -36,6 +35,7 @@ from services.runtime import Node, NodeSettings
 from services.safety.hazards import ago, zone_reason
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, operator_name
+from tether.output import printable, shown
 
 # Exit codes.
 EXIT_OK = 0
@@ -58,7 +58,7 @@ def _fail(as_json: bool, why: str, code: int, **data: Any) -> NoReturn:
     if as_json:
         print(json.dumps({"ok": False, "error": why, **data}))
     else:
-        console.print(escape(f"error: {why}"))
+        console.print(shown(f"error: {why}"))
     raise typer.Exit(code)
 
 
@@ -150,7 +150,7 @@ def _list(
         )
         raise typer.Exit(EXIT_OK)
     if answer.store:
-        console.print(escape(f"warning: the incident store has a fault: {answer.store}"), style="yellow")
+        console.print(shown(f"warning: the incident store has a fault: {answer.store}"), style="yellow")
     if not answer.incidents:
         out.print("no incidents" + (" match" if kinds or since or near is not None else " remembered"))
     else:
@@ -164,14 +164,14 @@ def _list(
             table.add_row(
                 str(incident.id),
                 ago(incident.stamp, now),
-                escape(kind_text),
+                shown(kind_text),
                 where(incident),
-                escape(step),
-                escape(incident.reason),
+                shown(step),
+                shown(incident.reason),
             )
         out.print(table)
     for zone in answer.zones:
-        out.print(escape(zone_reason(zone)))
+        out.print(shown(zone_reason(zone)))
     raise typer.Exit(EXIT_OK)
 
 
@@ -276,7 +276,7 @@ def show(
         )
         raise typer.Exit(EXIT_OK)
     now = time.time()
-    out.print(f"incident {incident.id}: {incident.kind}" + (f" ({incident.source})" if incident.source else ""))
+    out.print(shown(f"incident {incident.id}: {incident.kind}" + (f" ({incident.source})" if incident.source else "")))
     lines = [
         ("when", f"{incident_json(incident)['time']} ({ago(incident.stamp, now)})"),
         ("where", where(incident) + ("" if incident.yaw is None else f", heading {math.degrees(incident.yaw):.0f}°")),
@@ -294,11 +294,11 @@ def show(
     ]
     for name, value in lines:
         if value:
-            out.print(f"  {name + ':':<11}{escape(value)}")
+            out.print(f"  {name + ':':<11}{shown(value)}")
     if note:
-        console.print(escape(note), style="yellow")
+        console.print(shown(note), style="yellow")
     for row in rows:
-        out.print(f"  {row['dt']:+7.2f} s  {escape(str(row['kind'])):<10} {escape(row['summary'])}")
+        out.print(f"  {row['dt']:+7.2f} s  {shown(row['kind']):<10} {shown(row['summary'])}")
     raise typer.Exit(EXIT_OK)
 
 
@@ -345,9 +345,9 @@ def _change(
     if as_json:
         print(json.dumps({"ok": reply.ok, "message": reply.message, "changed": reply.changed}))
     elif reply.ok:
-        print(reply.message)
+        print(printable(reply.message, newlines=True))
     else:
-        console.print(escape(f"refused: {reply.message}"))
+        console.print(shown(f"refused: {reply.message}"))
     raise typer.Exit(EXIT_OK if reply.ok else EXIT_REFUSED)
 
 

@@ -30,7 +30,7 @@ from services.planner.errors import NotConfigured
 from services.runtime import ConfigError, NodeSettings, load_config
 from tether.ask import PlannerFailed, ask_planner, show
 from tether.client import EXIT_CODES, EXIT_UNREACHABLE, PlanRun
-from tether.output import literal
+from tether.output import literal, shown
 
 console = Console(stderr=True)
 
@@ -148,7 +148,7 @@ def send_recover(
             if as_json:
                 print(json.dumps(unsent(PlanStatus.FAILED, reason)))
             else:
-                console.print(f"[red]failed[/]: {literal(reason)}", highlight=False)
+                console.print(f"[red]failed[/]: {shown(reason)}", highlight=False)
             raise typer.Exit(EXIT_CODES[PlanStatus.FAILED]) from None
     if reply.status is AskStatus.UNCONFIGURED and reply.request_id == "none":  # no service answered
         reply = AskReply(status=AskStatus.UNCONFIGURED, request_id=reply.request_id, reason=NO_PLANNER)

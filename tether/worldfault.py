@@ -11,7 +11,7 @@ from schemas.common import ErrorKind, ServiceError
 from schemas.world import FaultKind, InjectFault
 from services.errors import CallError
 from tether.cli import client, out, world_failed
-from tether.output import conclude, literal
+from tether.output import conclude, shown
 
 
 def world_fault(
@@ -62,4 +62,4 @@ def world_fault(
         "message": reply.message,
         "position": position,
     }
-    conclude(out, as_json, document, f"{literal(str(reply.kind))}: {literal(reply.message)}")
+    conclude(out, as_json, document, f"{shown(reply.kind)}: {shown(reply.message)}")
