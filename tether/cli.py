@@ -204,21 +204,31 @@ def start_services(
         node_settings = dataclasses.replace(settings, zenoh_config=configs[services[0]])
     supervisor.start_all(services)
     node = Node("cli", node_settings)
+    deadline = time.monotonic() + timeout
     with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
-        missing = node.wait_alive(services, timeout)
+        while True:
+            missing = node.wait_alive(services, min(UP_POLL, max(0.0, deadline - time.monotonic())))
+            # One that exited (a config it refuses, a port taken) will not come up: said now, not at the timeout.
+            exited = {name: code for name in missing if (code := supervisor.procs[name].poll()) is not None}
+            if not missing or exited or time.monotonic() >= deadline:
+                break
     table = Table("service", "pid", "state")
     for name in services:
         table.add_row(name, str(supervisor.procs[name].pid), "[red]not up[/]" if name in missing else "[green]up[/]")
     console.print(table)
     if missing:
         for name in sorted(missing):
-            console.print(f"[red]{name} did not come up within {timeout:.0f} s; its log:[/]")
+            why = f"it exited with code {exited[name]}" if name in exited else f"not within {timeout:.0f} s"
+            console.print(f"[red]{name} did not come up: {why}; its log:[/]")
             console.print(printable(supervisor.log_tail(name), newlines=True), markup=False, highlight=False)
         node.close()
         supervisor.stop_all()
         raise typer.Exit(1)
     return supervisor, node
 
+
+# How often `tether up` looks, while it waits, whether a service it started has exited.
+UP_POLL = 0.2
 
 ConfigOpt = Annotated[
     Path | None, typer.Option("--config", help=literal("TOML file with one table per service ([sim], [safety], ...)."))

@@ -265,12 +265,25 @@ def test_json_still_carries_the_text_as_it_came(peer: Peer) -> None:
 
 
 def test_a_service_log_shown_when_it_did_not_come_up_is_escaped(tmp_path: Path) -> None:
-    """`tether up` shows the log of a service that did not come up: what it wrote (a traceback quoting
-    a peer's text, a library's own output) reaches the terminal with its controls escaped."""
+    """`tether up` shows the log of a service that did not come up, at once when it exited (it waited
+    out the timeout before): what it wrote (a traceback quoting a peer's text, a library's own
+    output) reaches the terminal with its controls escaped."""
     (tmp_path / "parser.log").write_text(f"Traceback: {HOSTILE}\n")
+    # A config the parser refuses: it exits at once, so it never comes up, however quick the machine.
+    (tmp_path / "bad.toml").write_text("[parser]\nno_such_option = 1\n")
     settings = ["--robot", f"t{uuid.uuid4().hex[:8]}", "--base-port", str(free_ports(len(ALL_SERVICES)))]
-    up = ["up", "--only", "parser", "--timeout", "0", "--log-dir", str(tmp_path)]
+    up = [
+        "up",
+        "--only",
+        "parser",
+        "--timeout",
+        "30",
+        "--log-dir",
+        str(tmp_path),
+        "--config",
+        str(tmp_path / "bad.toml"),
+    ]
     result = CliRunner().invoke(cli.app, [*settings, *up])
     said = result.stdout + result.stderr
-    assert result.exit_code == 1 and "did not come up" in said, said
+    assert result.exit_code == 1 and "parser did not come up: it exited with code 2" in said, said
     assert f"Traceback: {ESCAPED}" in said and controls(said) == [], said
