@@ -38,3 +38,5 @@ class RecorderStatus(Frozen):
     dropped: int = 0
     files: list[str] = []
     ros2: Ros2RecorderStatus | None = None
+    # Why tether's own file is not being written ("" while it is): the disk full, a rotation that failed.
+    error: str = ""

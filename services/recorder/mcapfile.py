@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -43,6 +44,10 @@ MEDIA_TYPES = {".yaml": "application/yaml", ".yml": "application/yaml", ".toml":
 LINK_SUFFIX = "/_robot_link"
 
 
+# The warning for keys past MAX_CHANNELS, once per file (in the set of keys warned about).
+CHANNELS_FULL = "<channels>"
+
+
 def link_channel(robot: str) -> str:
     return keys.prefix(robot) + LINK_SUFFIX
 
@@ -53,6 +58,14 @@ def is_link_channel(topic: str) -> bool:
 
 # A longer attachment is not the robot link's (its is services.robotlink.ATTACHMENT_BYTES): not kept.
 MAX_ATTACHMENT = 256
+# A record longer than this is not one the recorder writes: the reader refuses it (a corrupt or hostile
+# length) before reading it into memory. A chunk holds at most its chunk_size and one message more.
+RECORD_SIZE_LIMIT = 128 * 1024 * 1024
+# Room left in a chunk's limit for its framing, indexes and the messages before a big one (bytes).
+CHUNK_MARGIN = 1024 * 1024
+# Keys recorded in one file at most (MCAP channel ids are 16-bit; a peer inventing keys must not
+# exhaust them, nor the index): the messages of further keys are dropped and counted, as the twin does.
+MAX_CHANNELS = 4096
 
 
 def link_record(sequence: int, attachment: bytes) -> bytes:
@@ -172,6 +185,27 @@ class Recording:
         self._owns_stream = isinstance(output, str | Path)
         # "x": never over a file that exists (two recorders starting in the same second).
         self._stream = open(output, "xb") if isinstance(output, str | Path) else output  # noqa: SIM115
+        try:
+            self._begin(robot, compression, chunk_size, clock, provenance, part, run)
+        except BaseException:
+            # Not a file's beginning left behind (the disk full: a restart after each made one more).
+            if self._owns_stream:
+                with contextlib.suppress(OSError):
+                    self._stream.close()
+                with contextlib.suppress(OSError):
+                    Path(self.path).unlink()
+            raise
+
+    def _begin(
+        self,
+        robot: str,
+        compression: str,
+        chunk_size: int,
+        clock: Callable[[], int],
+        provenance: Provenance | None,
+        part: int,
+        run: str | None,
+    ) -> None:
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._lock = threading.Lock()
         self._schemas: dict[tuple[str, bytes], int] = {}  # (name, document) -> schema id
@@ -181,6 +215,11 @@ class Recording:
         self.started_ns = clock()
         self.messages = 0
         self.dropped = 0
+        # A message bigger than this would make a chunk the reader refuses, taking its neighbours along.
+        self.max_payload = RECORD_SIZE_LIMIT - chunk_size - CHUNK_MARGIN
+        # Why writing stopped (the disk full, the file gone), "" while it goes on: then every message is
+        # dropped and counted, the rest of the chunk in memory never written.
+        self.error = ""
         self.finished = False
         self._size_at_finish = 0
         self._writer.start(profile=PROFILE, library=LIBRARY)
@@ -247,36 +286,61 @@ class Recording:
         attachment: bytes | None = None,
     ) -> bool:
         """Write one message, and its `attachment` (if any, at most MAX_ATTACHMENT bytes) on the link
-        channel right after it; False if it was dropped (not JSON, or the recording is finished)."""
+        channel right after it; False if it was dropped and counted: not JSON, too big for a chunk the
+        reader takes, a key past MAX_CHANNELS, the link channel's own key, or the recording finished or
+        failed (`error`). Never raises for what a peer sends or the disk does."""
+        if len(payload) > self.max_payload:
+            self._drop(key, f"payload of {len(payload)} bytes; a file holds messages of {self.max_payload} at most")
+            return False
+        if key == link_channel(self.robot):
+            self._drop(key, "the key is the recording's own, for the robot link's records")
+            return False
         try:
             msgspec.json.decode(payload)
         except DECODE_ERRORS as exc:
             self._drop(key, f"payload of {len(payload)} bytes is not JSON ({exc})")
             return False
         with self._lock:
-            if self.finished:
+            if self.finished or self.error:
                 self.dropped += 1
-                log.debug("dropped a message on %s: recording finished", key)
+                log.debug("dropped a message on %s: recording %s", key, self.error or "finished")
                 return False
             channel = self._channels.get(key)
-            if channel is None:
-                channel = self._channels[key] = self._register(key)
+            if channel is None and len(self._channels) >= MAX_CHANNELS:
+                self.dropped += 1
+                if CHANNELS_FULL not in self._warned:
+                    self._warned.add(CHANNELS_FULL)
+                    log.warning("dropping the messages of keys past %d in %s (first: %s)", MAX_CHANNELS, self.path, key)
+                return False
             # Taken under the lock, so receive times rise with the sequence.
             now = self._clock() if log_time is None else log_time
-            self._writer.add_message(
-                channel_id=channel,
-                log_time=now,
-                publish_time=now if publish_time is None else publish_time,
-                data=payload,
-                sequence=self.messages,
-            )
-            if attachment is not None and len(attachment) <= MAX_ATTACHMENT:
-                self._record_link(self.messages, attachment, now)
-            self.messages += 1
-            if self._derive.wants(key):
-                for topic, message in self._derive.messages(key, payload, now / 1e9):
-                    self._write_derived(topic, message, now)
+            try:
+                if channel is None:
+                    channel = self._channels[key] = self._register(key)
+                self._writer.add_message(
+                    channel_id=channel,
+                    log_time=now,
+                    publish_time=now if publish_time is None else publish_time,
+                    data=payload,
+                    sequence=self.messages,
+                )
+                if attachment is not None and len(attachment) <= MAX_ATTACHMENT:
+                    self._record_link(self.messages, attachment, now)
+                self.messages += 1
+                if self._derive.wants(key):
+                    for topic, message in self._derive.messages(key, payload, now / 1e9):
+                        self._write_derived(topic, message, now)
+            except OSError as exc:
+                self._failed(exc)
+                self.dropped += 1
+                return False
         return True
+
+    def _failed(self, exc: OSError) -> None:
+        """With the lock held: writing failed (the disk full, read-only, gone); said once."""
+        if not self.error:
+            self.error = f"cannot write {self.path}: {exc.strerror or exc}"
+            log.error("%s; messages are dropped and counted until a new file can be written", self.error)
 
     def _record_link(self, sequence: int, attachment: bytes, log_time: int) -> None:
         """With the lock held."""
@@ -309,28 +373,40 @@ class Recording:
     def _drop(self, key: str, why: str) -> None:
         with self._lock:
             self.dropped += 1
-            first = key not in self._warned
-            self._warned.add(key)
+            first = key not in self._warned and len(self._warned) < MAX_CHANNELS
+            if first:
+                self._warned.add(key)
         # Once per key at warning level, so a noisy publisher cannot flood the log.
         log.log(logging.WARNING if first else logging.DEBUG, "dropped a message on %s: %s", key, why)
 
     def flush(self) -> None:
-        """Write the chunk in progress, so a crash loses at most what arrived since."""
+        """Write the chunk in progress, so a crash loses at most what arrived since. A write that
+        fails is `error`, not raised."""
         with self._lock:
-            if not self.finished:
-                self._writer.flush()
+            if not self.finished and not self.error:
+                try:
+                    self._writer.flush()
+                except OSError as exc:
+                    self._failed(exc)
 
     def finish(self) -> None:
-        """Write the summary and index, and close the file if this recording opened it. Idempotent."""
+        """Write the summary and index, and close the file if this recording opened it. Idempotent.
+        The file is closed also when that fails (the disk full: the file is as `tether recover` reads it)."""
         with self._lock:
             if self.finished:
                 return
             self.finished = True
-            self._writer.finish()
-            self._stream.flush()
-            self._size_at_finish = self._stream.tell()
-            if self._owns_stream:
-                self._stream.close()
+            try:
+                if not self.error:
+                    self._writer.finish()
+                    self._stream.flush()
+                self._size_at_finish = self._stream.tell()
+            except OSError as exc:
+                self._failed(exc)
+            finally:
+                if self._owns_stream:
+                    with contextlib.suppress(OSError):
+                        self._stream.close()
 
     @property
     def size(self) -> int:

@@ -31,6 +31,7 @@ from services.recorder.mcapfile import (
     METADATA_NAME,
     POLICY_ATTACHMENT,
     PROFILE,
+    RECORD_SIZE_LIMIT,
     WORLD_ATTACHMENT,
     is_link_channel,
     link_attachment,
@@ -38,10 +39,6 @@ from services.recorder.mcapfile import (
 )
 
 log = logging.getLogger(__name__)
-
-# A record longer than this is not one the recorder writes (its chunks are at most 64 MiB): a
-# corrupt or hostile length, refused before it is read into memory.
-RECORD_SIZE_LIMIT = 128 * 1024 * 1024
 
 
 class RecordingError(Exception):

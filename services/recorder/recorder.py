@@ -64,6 +64,7 @@ class Recorder:
         self._ros2_skipped_before = 0
         self._ros2_file_error = ""
         self._ros2_link_error = ""
+        self._rotation_error = ""  # why the next file could not be started, "" once one was
         self._current = self._open()
         self._ros2_current = self._open_ros2(Path(self._current.path))
 
@@ -146,7 +147,15 @@ class Recorder:
             if why is None:
                 return
             log.info("rotating %s: %s", current.path, why)
-            following = self._open()  # if this fails (disk full), the current file goes on
+            try:
+                following = self._open()
+            except OSError as exc:  # the disk full, the directory gone: the current file goes on
+                error = f"cannot start the next file in {self.config.output_dir}: {exc.strerror or exc}"
+                if error != self._rotation_error:
+                    log.error("%s; %s goes on", error, current.path)
+                self._rotation_error = error
+                return
+            self._rotation_error = ""
             self._messages_before += current.messages
             self._dropped_before += current.dropped
             self._current = following
@@ -170,6 +179,8 @@ class Recorder:
             self._ros2_file_error = error
 
     def _rotation_due(self, current: Recording, twin: Ros2Recording | None) -> str | None:
+        if current.error:  # tried each tick: recording goes on in a new file once one can be written
+            return current.error
         limit_bytes, limit_seconds = self.config.max_file_bytes, self.config.max_file_seconds
         if limit_bytes is not None and (size := current.size) >= limit_bytes:
             return f"{size} bytes, the limit is {limit_bytes}"
@@ -206,6 +217,7 @@ class Recorder:
                 dropped=self._dropped_before + current.dropped,
                 files=[str(p) for p in self.files],
                 ros2=self._ros2_status(),
+                error="; ".join(e for e in (current.error, self._rotation_error) if e),
             )
 
     def _ros2_status(self) -> Ros2RecorderStatus | None:

@@ -22,7 +22,9 @@ from schemas.robot import NavigateToPoseFeedback, Twist
 from schemas.trace import TraceRecord
 from services.recorder import scene3d
 from services.recorder.config import RecorderConfig
-from services.recorder.mcapfile import Recording
+from services.recorder.mcapfile import MAX_CHANNELS, Provenance, Recording, link_channel, link_record
+from services.recorder.reader import read_recording
+from services.recorder.recorder import Recorder
 from services.runtime import ConfigError, encode, load_config
 
 ROBOT = "r1"
@@ -248,3 +250,92 @@ def test_a_bad_config_value_is_named_with_the_file(tmp_path: Path, table: str, n
     with pytest.raises(ConfigError, match=named) as err:
         load_config(RecorderConfig, path, "recorder")
     assert str(path) in str(err.value)
+
+
+# What a peer or the disk does to a live recording (a review's findings): never raised, always counted
+
+
+def test_keys_past_max_channels_are_dropped_and_counted_and_the_file_stays_whole(tmp_path: Path) -> None:
+    """Past 65,535 keys, mcap's 16-bit channel id overflowed inside a chunk: the chunk unreadable,
+    every later new key an exception, and finish() raising with the file left without its summary."""
+    path = tmp_path / "flood.mcap"
+    recording = Recording(path, ROBOT)
+    assert recording.record(CMD_VEL, encode(Twist(linear_x=0.1)))
+    for i in range(MAX_CHANNELS + 50):
+        assert recording.record(f"{keys.prefix(ROBOT)}/made_up/k{i}", b"{}") == (i < MAX_CHANNELS - 1)
+    assert recording.record(CMD_VEL, encode(Twist(linear_x=0.2))), "a key already known is still recorded"
+    recording.finish()
+    assert recording.dropped == 51 and recording.messages == MAX_CHANNELS + 1
+    recorded = read_recording(path)
+    assert recorded.complete and len(recorded.messages) == MAX_CHANNELS + 1
+    assert recorded.messages[-1].key == CMD_VEL
+
+
+def test_a_payload_too_big_for_a_chunk_the_reader_takes_is_dropped_not_the_chunk(tmp_path: Path) -> None:
+    """Counted recorded, a 130 MiB message made a chunk the reader refuses, with its neighbours and
+    every later message on a channel defined in it."""
+    path = tmp_path / "big.mcap"
+    recording = Recording(path, ROBOT)
+    assert recording.record(CMD_VEL, encode(Twist(linear_x=0.1)))
+    assert not recording.record(UNKNOWN, b'"' + b"a" * (recording.max_payload + 1) + b'"')
+    assert recording.record(CMD_VEL, encode(Twist(linear_x=0.2)))
+    recording.finish()
+    assert recording.dropped == 1
+    assert [m.key for m in read_recording(path).messages] == [CMD_VEL, CMD_VEL]
+
+
+def test_a_message_on_the_robot_links_own_key_is_dropped(tmp_path: Path) -> None:
+    """Recorded there, a peer's message was read as a link record: it vanished, and its 'MAC' was put
+    on another message that had none."""
+    path = tmp_path / "link.mcap"
+    recording = Recording(path, ROBOT)
+    heartbeat = keys.HEARTBEAT.key(ROBOT)
+    assert recording.record(heartbeat, b'{"seq": 1}')
+    assert not recording.record(link_channel(ROBOT), link_record(0, b"\xab" * 32))
+    recording.finish()
+    [beat] = read_recording(path).messages
+    assert beat.key == heartbeat and beat.attachment is None
+
+
+def test_a_disk_that_fills_drops_and_counts_and_says_so_once(caplog: pytest.LogCaptureFixture) -> None:
+    """/dev/full answers every write with ENOSPC: the error escaped into Zenoh's callback, then the
+    flush and finish raised, and the service died with only tracebacks."""
+    with open("/dev/full", "wb", buffering=0) as full:
+        recording = Recording(full, ROBOT, chunk_size=1024)
+        for i in range(2000):
+            recording.record(CMD_VEL, encode(Twist(linear_x=i / 2000)))
+        recording.flush()
+        recording.finish()
+    assert "No space left on device" in recording.error
+    assert recording.dropped > 0 and recording.messages + recording.dropped == 2000
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        f"{recording.error}; messages are dropped and counted until a new file can be written"
+    ]
+
+
+def test_a_rotation_that_cannot_start_its_file_keeps_the_current_one(tmp_path: Path) -> None:
+    """The next file's directory gone: tick() raised and the recorder exited, though the file it
+    was writing could go on."""
+    out = tmp_path / "out"
+    clock = [1_800_000_000 * 10**9]
+    recorder = Recorder(
+        RecorderConfig(output_dir=str(out), max_file_seconds=60), Provenance(ROBOT), clock=lambda: clock[0]
+    )
+    assert recorder.record(CMD_VEL, encode(Twist(linear_x=0.1)))
+    first = recorder.status().path
+    moved = tmp_path / "moved"
+    out.rename(moved)
+    out.write_text("not a directory")  # where new files go, no file can be made
+    clock[0] += 61 * 10**9
+    recorder.tick()
+    status = recorder.status()
+    assert status.path == first and "cannot start the next file" in status.error
+    assert recorder.record(CMD_VEL, encode(Twist(linear_x=0.2)))
+    out.unlink()
+    moved.rename(out)
+    clock[0] += 1 * 10**9
+    recorder.tick()  # the directory is back: the rotation happens
+    after = recorder.status()
+    assert after.path != first and after.error == "" and after.messages == 2
+    recorder.finish()
+    assert len(read_recording(Path(first)).messages) == 2
