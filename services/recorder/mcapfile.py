@@ -6,6 +6,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import threading
 import time
 import uuid
@@ -407,6 +408,21 @@ class Recording:
                 if self._owns_stream:
                     with contextlib.suppress(OSError):
                         self._stream.close()
+
+    def removed(self) -> bool:
+        """Whether the file this recording writes was removed from its directory (its name is gone,
+        or names another file now): what is written goes nowhere anyone can read."""
+        if not self._owns_stream:
+            return False
+        with self._lock:
+            if self.finished:
+                return False
+            try:
+                ours = os.fstat(self._stream.fileno())
+                there = os.stat(self.path)
+            except OSError:
+                return True
+        return ours.st_nlink == 0 or (ours.st_dev, ours.st_ino) != (there.st_dev, there.st_ino)
 
     @property
     def size(self) -> int:

@@ -18,6 +18,10 @@ from services.recorder.ros2file import Ros2Recording, Ros2Source, WarnOnce, ros2
 log = logging.getLogger(__name__)
 
 
+# Names tried when files of the same name keep appearing between the look and the open.
+NAME_TRIES = 100
+
+
 def unused_path(path: Path, twin: Callable[[Path], Path] | None = None) -> Path:
     """`path`, or `name_1.mcap`, `name_2.mcap`... when a file of that name (or its `twin`) exists (two
     rotations in one second)."""
@@ -73,18 +77,27 @@ class Recorder:
         named = self._first_path or self.config.path_for(
             self.provenance.robot, dt.datetime.fromtimestamp(now / 1e9, dt.UTC)
         )
-        path = unused_path(named, ros2_path if self._ros2 is not None else None)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        recording = Recording(
-            path,
-            self.provenance.robot,
-            compression=self.config.compression,
-            chunk_size=self.config.chunk_size,
-            clock=self._clock,
-            provenance=self.provenance,
-            part=len(self.files),
-            run=self.run,
-        )
+        named.parent.mkdir(parents=True, exist_ok=True)
+        for _ in range(NAME_TRIES):
+            path = unused_path(named, ros2_path if self._ros2 is not None else None)
+            try:
+                recording = Recording(
+                    path,
+                    self.provenance.robot,
+                    compression=self.config.compression,
+                    chunk_size=self.config.chunk_size,
+                    clock=self._clock,
+                    provenance=self.provenance,
+                    part=len(self.files),
+                    run=self.run,
+                )
+                break
+            except FileExistsError:
+                # Another recorder made that name between the look and the open (the same robot and
+                # output_dir, the same second): the next free name, never over its file.
+                continue
+        else:
+            raise FileExistsError(f"no free file name like {named} after {NAME_TRIES} tries")
         self.files.append(path)
         log.info("recording to %s", path)
         return recording
@@ -181,6 +194,9 @@ class Recorder:
     def _rotation_due(self, current: Recording, twin: Ros2Recording | None) -> str | None:
         if current.error:  # tried each tick: recording goes on in a new file once one can be written
             return current.error
+        if current.removed():
+            log.error("%s was removed while it was written: what it held since its last rotation is lost", current.path)
+            return "its file was removed"
         limit_bytes, limit_seconds = self.config.max_file_bytes, self.config.max_file_seconds
         if limit_bytes is not None and (size := current.size) >= limit_bytes:
             return f"{size} bytes, the limit is {limit_bytes}"

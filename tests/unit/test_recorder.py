@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import io
 import json
+import shutil
 import threading
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from schemas.executor import ExecutePlanFeedback
 from schemas.plan import PlanText
 from schemas.robot import NavigateToPoseFeedback, Twist
 from schemas.trace import TraceRecord
+from services.recorder import recorder as recorder_module
 from services.recorder import scene3d
 from services.recorder.config import RecorderConfig
 from services.recorder.mcapfile import MAX_CHANNELS, Provenance, Recording, link_channel, link_record
@@ -339,3 +341,43 @@ def test_a_rotation_that_cannot_start_its_file_keeps_the_current_one(tmp_path: P
     assert after.path != first and after.error == "" and after.messages == 2
     recorder.finish()
     assert len(read_recording(Path(first)).messages) == 2
+
+
+def test_a_file_made_by_another_recorder_between_the_look_and_the_open_is_not_fatal(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two recorders of one robot and output_dir rotating in the same second: the name looked free,
+    the other made it, and the open raised FileExistsError out of the recorder."""
+    looked = recorder_module.unused_path
+
+    def taken_meanwhile(path: Path, twin: Any = None) -> Path:
+        free = looked(path, twin)
+        if not list(tmp_path.glob("*.mcap")):
+            free.write_bytes(b"the other recorder's")  # it got there first
+        return free
+
+    monkeypatch.setattr(recorder_module, "unused_path", taken_meanwhile)
+    recorder = Recorder(RecorderConfig(output_dir=str(tmp_path)), Provenance(ROBOT))
+    other = sorted(tmp_path.glob("*.mcap"))[0]
+    assert recorder.status().path != str(other) and other.read_bytes() == b"the other recorder's"
+    recorder.finish()
+
+
+def test_a_file_removed_while_it_is_written_is_followed_by_a_new_one(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The output directory cleaned away mid-file: recording went on into a deleted file, the status
+    saying all was well, and nothing of it was left after finish."""
+    out = tmp_path / "out"
+    recorder = Recorder(RecorderConfig(output_dir=str(out)), Provenance(ROBOT))
+    assert recorder.record(CMD_VEL, encode(Twist(linear_x=0.1)))
+    lost = recorder.status().path
+    shutil.rmtree(out)
+    recorder.tick()
+    status = recorder.status()
+    assert len(status.files) == 2 and Path(status.path).exists(), "a new file (its name may be the same)"
+    assert lost == status.files[0]
+    assert any("was removed while it was written" in r.getMessage() for r in caplog.records)
+    assert recorder.record(CMD_VEL, encode(Twist(linear_x=0.2)))
+    recorder.finish()
+    assert len(read_recording(Path(recorder.status().path)).messages) == 1
