@@ -37,6 +37,7 @@ from schemas.plan import MAX_PLAN_BYTES
 from schemas.process import ProcessStatus
 from schemas.robot import Odometry, RobotDiagnostics
 from schemas.safety import EstopSource, SafetyStatus
+from schemas.trace import RecorderStatus
 from schemas.world import Empty, MoveEntity, PerceivedObjects
 from services.actionlib import CANCEL_ALL, RESULT_RETENTION
 from services.errors import CallError, GoalRejected
@@ -729,8 +730,14 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     def ask_processes() -> None:
         found["processes"] = node.process_statuses(timeout)
 
+    def ask_recorder() -> None:
+        try:
+            found["recording"] = node.call(keys.RECORDER_STATUS, Empty(), timeout=timeout)
+        except CallError:  # no recorder running
+            found["recording"] = None
+
     threads = [threading.Thread(target=grab, args=a) for a in (("odom", keys.ODOM), ("objects", keys.OBJECTS))]
-    threads += [threading.Thread(target=t) for t in (diagnose, heartbeat, ask_processes)]
+    threads += [threading.Thread(target=t) for t in (diagnose, heartbeat, ask_processes, ask_recorder)]
     for t in threads:
         t.start()
     alive = node.alive_services(timeout=timeout)
@@ -743,6 +750,7 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
     objects: PerceivedObjects | None = found.get("objects")
     problems = robot_problems(found.get("diagnostics"))
     processes: dict[str, ProcessStatus] = found.get("processes", {})
+    recording: RecorderStatus | None = found.get("recording")
     return {
         # The robot's other backends only when one runs.
         "services": {name: name in alive for name in ALL_SERVICES if name in SERVICES or name in alive},
@@ -752,6 +760,17 @@ def status_dict(node: Node, timeout: float = 1.5) -> dict[str, Any]:
             for name in [*(n for n in ALL_SERVICES if n in processes), *sorted(set(processes) - set(ALL_SERVICES))]
         },
         "mode": str(beat.mode) if beat else None,
+        # The recorder's file, and why it is not being written ("" while it is); null without a recorder.
+        "recording": (
+            {
+                "path": recording.path,
+                "messages": recording.messages,
+                "dropped": recording.dropped,
+                "error": recording.error,
+            }
+            if recording is not None
+            else None
+        ),
         "estop": (
             {"latched": beat.estop.latched, "source": beat.estop.source, "reason": beat.estop.reason}
             if beat
@@ -888,6 +907,11 @@ def status(
     if state["processes"]:
         console.print(memory_line(state["processes"]), highlight=False)
     console.print(f"mode: {state['mode'] or 'unknown (no heartbeat)'}")
+    if (rec := state["recording"]) is not None:
+        counts = f"{rec['messages']} messages, {rec['dropped']} dropped"
+        console.print(f"recording: {shown(rec['path'])} ({counts})", highlight=False)
+        if rec["error"]:
+            console.print(f"[red]recording FAILING:[/] {shown(rec['error'])}", highlight=False)
     e = state["estop"]
     console.print(
         f"e-stop: {'[red]LATCHED[/] by ' + shown(e['source'] + ': ' + e['reason']) if e['latched'] else e['latched']}"

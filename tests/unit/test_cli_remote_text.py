@@ -36,6 +36,7 @@ from schemas.planner import AskReply, AskRequest, AskStatus, Recovery, RecoveryO
 from schemas.process import ProcessStatus
 from schemas.robot import Odometry, RobotDiagnostics, RobotProblem
 from schemas.safety import EstopState, ResetReply, SafetyStatus
+from schemas.trace import RecorderStatus
 from schemas.world import (
     FaultInjected,
     FaultKind,
@@ -162,6 +163,9 @@ def serve_everything(peer: Node) -> None:
         return ForgetReply(ok=request.action is ForgetAction.FORGET, message=HOSTILE)
 
     peer.serve(keys.FORGET_INCIDENT, forget)
+    # A recorder whose disk is full: `tether status` says so (it showed only that the recorder was up).
+    failing = RecorderStatus(path=f"/rec/{HOSTILE}.mcap", messages=5, started=0.0, dropped=7, error=HOSTILE)
+    peer.serve(keys.RECORDER_STATUS, lambda r: failing)
 
 
 def hostile_object() -> PerceivedObject:
@@ -231,6 +235,7 @@ def peer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Peer]:
         (["send", '{"plan": [{"action": "stop"}]}'], 2, "rejected"),
         (["estop", "--reason", "test"], 0, "E-STOP latched by"),
         (["status"], 0, "robot problems"),
+        (["status"], 0, "recording FAILING"),
         (["status", "--check"], 0, "healthy:"),
         (["world", "move", "cup", "1", "2"], 2, "invalid_request"),
         (["world", "fault", "block", "kitchen"], 0, "block:"),
