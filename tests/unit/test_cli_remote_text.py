@@ -49,6 +49,7 @@ from services.errors import CallError
 from services.robotlink import Signer
 from services.runtime import ALL_SERVICES, Node, NodeSettings, encode
 from tests.sessions import free_ports
+from tests.unit.test_operator_hostile import controls
 from tether import cli
 
 # Retitles the terminal, clears the screen, and the same with the 8-bit CSI.
@@ -56,10 +57,6 @@ HOSTILE = "x\x1b]0;pwned\x07\x1b[2J\x9b2J"
 ESCAPED = "x\\x1b]0;pwned\\x07\\x1b[2J\\x9b2J"
 # A service name a peer may hold a liveliness token and answer a process status for.
 INTRUDER = f"intruder{HOSTILE}"
-
-
-def controls(text: str) -> list[str]:
-    return [c for c in text if (ord(c) < 0x20 and c != "\n") or 0x7F <= ord(c) < 0xA0]
 
 
 @dataclass

@@ -5,16 +5,17 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgspec
 import pytest
 
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
-from schemas.plan import DetectStep, NavigateStep, PickStep, PlaceStep, Plan, Step
-from schemas.world import PerceivedObject, PerceivedObjects
+from schemas.plan import DetectStep, NavigateStep, PickStep, PlaceStep, Plan
 from services.resolver.errors import ResolveError
 from services.resolver.names import normalise_name
 from services.resolver.resolver import Resolver
-from services.worldmodel import WorldModel, load_world
+from services.worldmodel import WorldModel
+from tests.unit.test_resolver import model as model  # the module-scoped fixtures, shared
+from tests.unit.test_resolver import plan_of, seen
+from tests.unit.test_resolver import resolver as resolver
 
 # In the kitchen between the counter and the table, facing the table (north): the blue cup is left of
 # the apple, nothing is right of it.
@@ -25,31 +26,6 @@ IN_THE_DOORWAY = Pose2D(x=5.0, y=2.1, yaw=0.0)
 BLUE_CUP_ON_THE_COFFEE_TABLE = (Vec3(x=7.8, y=2.5, z=0.5), "coffee_table")
 # From an ASCII character to its fullwidth form ("a" -> U+FF41).
 FULLWIDTH_OFFSET = 0xFEE0
-
-
-@pytest.fixture(scope="module")
-def model() -> WorldModel:
-    return WorldModel(load_world("household"))
-
-
-@pytest.fixture(scope="module")
-def resolver(model: WorldModel) -> Resolver:
-    return Resolver(model)
-
-
-def plan_of(*steps: dict[str, Any]) -> Plan:
-    return Plan(steps=[msgspec.convert(s, Step) for s in steps])
-
-
-def seen(model: WorldModel, **changes: tuple[Vec3, str | None]) -> PerceivedObjects:
-    """Perception of every world object where the file puts it, except those in `changes`."""
-    objects = []
-    for obj in model.world.objects:
-        position, on = changes.get(obj.id, (model.initial_position(obj), obj.support))
-        objects.append(
-            PerceivedObject(id=obj.id, name=obj.name, cls=obj.cls, color=obj.color, position=position, on=on)
-        )
-    return PerceivedObjects(stamp=1.0, objects=objects)
 
 
 def refusal(resolver: Resolver, plan: Plan, *args: Any) -> ServiceError:
