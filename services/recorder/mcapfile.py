@@ -212,6 +212,7 @@ class Recording:
         self._schemas: dict[tuple[str, bytes], int] = {}  # (name, document) -> schema id
         self._channels: dict[str, int] = {}  # key -> channel id
         self._link_channel: int | None = None
+        self._link_key = link_channel(robot)
         self._warned: set[str] = set()
         self.started_ns = clock()
         self.messages = 0
@@ -293,7 +294,7 @@ class Recording:
         if len(payload) > self.max_payload:
             self._drop(key, f"payload of {len(payload)} bytes; a file holds messages of {self.max_payload} at most")
             return False
-        if key == link_channel(self.robot):
+        if key == self._link_key:
             self._drop(key, "the key is the recording's own, for the robot link's records")
             return False
         try:
@@ -348,7 +349,7 @@ class Recording:
         if self._link_channel is None:
             schema = self._writer.register_schema(name="RobotLink", encoding=SchemaEncoding.JSONSchema, data=b"{}")
             self._link_channel = self._writer.register_channel(
-                topic=link_channel(self.robot), message_encoding=MessageEncoding.JSON, schema_id=schema
+                topic=self._link_key, message_encoding=MessageEncoding.JSON, schema_id=schema
             )
         self._writer.add_message(
             channel_id=self._link_channel,

@@ -13,7 +13,9 @@ from typing import TYPE_CHECKING, BinaryIO
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import Writer
 
-from services.recorder.mcapfile import COMPRESSION, LIBRARY
+# MAX_CHANNELS, as tether's file: a hostile publisher inventing names cannot grow a file's channels or
+# our memory without bound.
+from services.recorder.mcapfile import COMPRESSION, LIBRARY, MAX_CHANNELS
 from services.ros2.wire import Attachment, Naming, Style
 
 if TYPE_CHECKING:
@@ -25,8 +27,6 @@ SUFFIX = ".ros2.mcap"
 METADATA_NAME = "tether_ros2"
 # The first two bytes of a sample, its CDR encapsulation: plain CDR, big or little endian, as ROS 2 sends it.
 CDR_KINDS = frozenset({b"\x00\x00", b"\x00\x01"})
-# A hostile publisher inventing names cannot grow a file's channels or our memory without bound.
-MAX_CHANNELS = 4096
 MAX_WARNINGS = 1024
 
 
