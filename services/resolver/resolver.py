@@ -10,6 +10,7 @@ from typing import assert_never, get_args
 
 import msgspec
 from shapely.geometry import Point
+from shapely.ops import unary_union
 
 from schemas.common import ErrorKind, Pose2D, Vec3
 from schemas.plan import (
@@ -70,6 +71,13 @@ PERSON_CLEARANCE = 0.4
 MAX_NAME_CHARS = 200
 # Surfaces named when a delivery finds none near enough.
 DELIVERY_SUGGESTIONS = 3
+# How far outside a piece of furniture's top a sighting said to be on it may be (a camera's estimate
+# of an object at the edge) before the report contradicts itself.
+ON_MARGIN = 0.15
+# How far below the floor, and above the highest furniture top, a sighting may be before it cannot be right.
+BELOW_FLOOR = 0.2
+MAP_MARGIN = 0.5
+ABOVE_TOPS = 1.5
 
 
 def _echo(name: str) -> str:
@@ -80,8 +88,11 @@ def _wrap(angle: float) -> float:
     return math.atan2(math.sin(angle), math.cos(angle))
 
 
+@dataclass(frozen=True)
 class _Unknown:
-    """The gripper's content when nothing has been perceived yet."""
+    """The gripper's content when perception does not say it: why not."""
+
+    why: str = "not known yet (no camera frame)"
 
 
 UNKNOWN = _Unknown()
@@ -164,6 +175,9 @@ class Resolver:
         base = self.world.robot.base_size
         self._base_radius = math.hypot(base.x / 2, base.y / 2)
         self._put_back = frozenset(normalise_name(p) for p in self.config.put_back_phrases) - {""}
+        # Where a sighting can be: over the map (give or take MAP_MARGIN), between the floor and above the tops.
+        self._map = unary_union(list(world_model.room_shapes.values())).buffer(MAP_MARGIN)
+        self._highest = max((f.size.z for f in self.world.furniture), default=0.0) + ABOVE_TOPS
 
     def resolve(
         self,
@@ -232,22 +246,64 @@ class Resolver:
     ) -> _State:
         beliefs = {o.id: Belief(self.model.initial_position(o), o.support, o.size.z / 2) for o in self.world.objects}
         holding: str | _Unknown | None = UNKNOWN
+        notes = _Notes()
         if objects is not None:
-            holding = None
+            held: list[str] = []
             for seen in objects.objects:
                 known = beliefs.get(seen.id)
                 if known is None:
                     continue  # perception of something the world file does not know: no name to refer to it
-                beliefs[seen.id] = Belief(seen.position, seen.on, known.half_height, seen.stamp, seen.stale)
-                if seen.on == GRIPPER:
-                    holding = seen.id
+                doubt = self._implausible(seen.position)
+                if doubt is not None:
+                    # Not believed: the object is where the world file (or an earlier belief) puts it.
+                    notes.warnings.append(
+                        f"the camera's report of {self._display_name(seen.id)} is not believed: {doubt}"
+                    )
+                    continue
+                on = self._support_of(seen.id, seen.position, seen.on, known.half_height, notes)
+                beliefs[seen.id] = Belief(seen.position, on, known.half_height, seen.stamp, seen.stale)
+                if on == GRIPPER and seen.id not in held:
+                    held.append(seen.id)
+            holding = held[0] if len(held) == 1 else None
+            if len(held) > 1:
+                names = " and ".join(self._display_name(h) for h in held)
+                holding = _Unknown(f"not known: the camera reports both {names} in the gripper")
+                notes.warnings.append(f"the camera reports both {names} in the gripper, which holds one thing")
         human_poses = {h.id: h.pose for h in self.world.humans}
         if humans is not None:
             human_poses.update({h.id: h.pose for h in humans.humans if h.id in human_poses})
-        state = _State(beliefs, holding, robot, human_poses, _Notes())
+        state = _State(beliefs, holding, robot, human_poses, notes)
         if isinstance(holding, str) and origins and holding in origins:
             state.origins[holding] = (origins[holding], "where the camera last saw it before it was in the gripper")
         return state
+
+    def _implausible(self, position: Vec3) -> str | None:
+        """Why a sighting at `position` cannot be right (off the map, under the floor, in the air), or None."""
+        where = f"({position.x:.2f}, {position.y:.2f}, {position.z:.2f})"
+        if not self._map.covers(Point(position.x, position.y)):
+            return f"it puts it at {where}, off the map"
+        if not -BELOW_FLOOR <= position.z <= self._highest:
+            return f"it puts it at {where}, {'under the floor' if position.z < 0 else 'in the air'}"
+        return None
+
+    def _support_of(
+        self, object_id: str, position: Vec3, on: str | None, half_height: float, notes: _Notes
+    ) -> str | None:
+        """What a sighting rests on: the furniture it names when its position is over that furniture,
+        else the furniture under its position (the position is what the robot acts on), said in a warning."""
+        if on is None or on == GRIPPER:
+            return on
+        item = self.model.furniture.get(on)
+        if item is not None and self.model.footprint(item).buffer(ON_MARGIN).covers(Point(position.x, position.y)):
+            return on
+        under = self.model.support_under(position, half_height)
+        said = item.name if item is not None else _echo(on)
+        actual = self.model.furniture[under].name if under is not None else "the floor"
+        notes.warnings.append(
+            f"the camera reports {self._display_name(object_id)} on {said}, but at ({position.x:.2f}, "
+            f"{position.y:.2f}), not over it: taken to be on {actual}"
+        )
+        return under
 
     # Groups, sub-steps and alternatives
 
@@ -823,8 +879,7 @@ class Resolver:
             raise at.error(f"cannot {verb}: the gripper holds nothing", ErrorKind.PRECONDITION)
         if isinstance(held, _Unknown):
             raise at.error(
-                f"cannot {verb}: what the gripper holds is not known yet (no camera frame); name the object",
-                ErrorKind.PRECONDITION,
+                f"cannot {verb}: what the gripper holds is {held.why}; name the object", ErrorKind.PRECONDITION
             )
         return held
 
