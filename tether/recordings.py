@@ -196,8 +196,9 @@ def record(
                         break
     finally:
         recorder.finish()
-    files = ", ".join(map(str, recorder.files))
-    console.print(f"recorded {recorder.messages} messages ({recorder.dropped} dropped) to {files}", markup=False)
+    console.print(
+        f"recorded {recorder.messages} messages ({recorder.dropped} dropped) to {recorder.files_said()}", markup=False
+    )
 
 
 def _left(duration: float | None, started: float) -> float:

@@ -76,7 +76,7 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         recorder.finish()
         log.info(
             "recording finished: %s (%d messages, %d dropped)",
-            ", ".join(map(str, recorder.files)),
+            recorder.files_said(),
             recorder.messages,
             recorder.dropped,
         )

@@ -118,7 +118,7 @@ class Provenance:
     world: SourceFile | None = None
     policy: SourceFile | None = None
 
-    def metadata(self, started_ns: int, part: int, run: str) -> dict[str, str]:
+    def metadata(self, started_ns: int, part: int, run: str, elapsed_ns: int | None = None) -> dict[str, str]:
         data = {
             "robot": self.robot,
             "run": run,
@@ -126,6 +126,8 @@ class Provenance:
             "part": str(part),
             "version": version(),
         }
+        if elapsed_ns is not None:
+            data["elapsed_ns"] = str(elapsed_ns)
         for name, source in ((WORLD_ATTACHMENT, self.world), (POLICY_ATTACHMENT, self.policy)):
             if source is not None:
                 data[name] = str(source.path)
@@ -178,7 +180,10 @@ class Recording:
         provenance: Provenance | None = None,
         part: int = 0,
         run: str | None = None,
+        elapsed_ns: int | None = None,
     ) -> None:
+        """`elapsed_ns`: how long the run had been going when this part started, on a clock that never
+        steps (the recorder's monotonic clock): the reader orders the parts by it, not by wall times."""
         self.robot = robot
         self.path = str(output) if isinstance(output, str | Path) else getattr(output, "name", "<stream>")
         self._clock = clock
@@ -187,7 +192,7 @@ class Recording:
         # "x": never over a file that exists (two recorders starting in the same second).
         self._stream = open(output, "xb") if isinstance(output, str | Path) else output  # noqa: SIM115
         try:
-            self._begin(robot, compression, chunk_size, clock, provenance, part, run)
+            self._begin(robot, compression, chunk_size, clock, provenance, part, run, elapsed_ns)
         except BaseException:
             # Not a file's beginning left behind (the disk full: a restart after each made one more).
             if self._owns_stream:
@@ -206,6 +211,7 @@ class Recording:
         provenance: Provenance | None,
         part: int,
         run: str | None,
+        elapsed_ns: int | None,
     ) -> None:
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=COMPRESSION[compression])
         self._lock = threading.Lock()
@@ -232,7 +238,7 @@ class Recording:
         provenance = provenance or Provenance(robot)
         # The parts one recorder writes share a run id: only those are read back as one.
         self.run = run or uuid.uuid4().hex
-        self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part, self.run))
+        self._writer.add_metadata(METADATA_NAME, provenance.metadata(self.started_ns, part, self.run, elapsed_ns))
         for name, source in provenance.attachments():
             self._writer.add_attachment(
                 log_time=self.started_ns,

@@ -434,8 +434,11 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
     """The parts of one rotated recording as one, in the order they were recorded (whatever order they
     are given in). RecordingError unless they are consecutive parts of one recorder's run (the same
     run id, part numbers without a gap) with the same robot, world and policy files (compared by
-    content), and their times follow one another. Metadata and files are the first part's; `complete`
-    only if every part is, and `problem` names the parts that are not."""
+    content), and they follow one another in time: on the recorder's monotonic clock where every
+    part carries it (`elapsed_ns`), so a step of the wall clock between or inside parts does not part
+    them, else by their messages' receive times. The messages stay in the order they were recorded,
+    their receive times as they are. Metadata and files are the first part's; `complete` only if
+    every part is, and `problem` names the parts that are not."""
     if not parts:
         raise RecordingError("no recording given")
     if len(parts) == 1:
@@ -469,15 +472,7 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
         for kind in (WORLD_ATTACHMENT, POLICY_ATTACHMENT):
             if _content(first.attachment(kind)) != _content(after.attachment(kind)):
                 raise RecordingError(f"{first.path} and {after.path} carry different {kind} files")
-    latest: tuple[int, Path] | None = None
-    for part in ordered:
-        if not part.messages:
-            continue
-        if latest is not None and min(m.log_time for m in part.messages) < latest[0]:
-            raise RecordingError(
-                f"{latest[1]} and {part.path} overlap in time: parts of one recording follow one another"
-            )
-        latest = (max(m.log_time for m in part.messages), part.path)
+    _check_follow(ordered)
     return RecordingFile(
         first.path,
         messages=[m for part in ordered for m in part.messages],
@@ -491,6 +486,36 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
         problem="; ".join(f"{part.path.name}: {part.problem}" for part in ordered if part.problem),
         parts=[part.path for part in ordered],
     )
+
+
+def _check_follow(ordered: list[RecordingFile]) -> None:
+    """RecordingError unless the parts (in part order) follow one another in time."""
+    elapsed = [value for part in ordered if (value := _elapsed(part)) is not None]
+    if len(elapsed) == len(ordered):
+        # Written by the recorder on a clock NTP does not step: the wall times in the parts may run
+        # backwards (a robot that booted with its clock ahead), and that recording is still one.
+        for (before, started), (after, then) in itertools.pairwise(zip(ordered, elapsed, strict=True)):
+            if then < started:
+                raise RecordingError(
+                    f"{after.path} starts before {before.path} on the recorder's own clock: parts of one "
+                    "recording follow one another"
+                )
+        return
+    latest: tuple[int, Path] | None = None
+    for part in ordered:
+        if not part.messages:
+            continue
+        if latest is not None and min(m.log_time for m in part.messages) < latest[0]:
+            raise RecordingError(
+                f"{latest[1]} and {part.path} overlap in time: parts of one recording follow one another"
+            )
+        latest = (max(m.log_time for m in part.messages), part.path)
+
+
+def _elapsed(part: RecordingFile) -> int | None:
+    """The run's time when `part` started, on the recorder's monotonic clock; None if the part does not say."""
+    value = part.metadata.get(METADATA_NAME, {}).get("elapsed_ns", "")
+    return int(value) if value.isascii() and value.isdigit() else None
 
 
 def _content(attachment: Attachment | None) -> str | None:

@@ -20,6 +20,9 @@ log = logging.getLogger(__name__)
 
 # Names tried when files of the same name keep appearing between the look and the open.
 NAME_TRIES = 100
+# Files named in the status (and `files`), the latest: a run rotating for months must not grow
+# either without bound. The totals count every file.
+FILES_LISTED = 100
 
 
 def unused_path(path: Path, twin: Callable[[Path], Path] | None = None) -> Path:
@@ -39,6 +42,10 @@ class Recorder:
     With `ros2`, each file has a twin `<stem>.ros2.mcap` for the robot's ROS 2 samples (`record_ros2`),
     opened, flushed and rotated with it. Nothing on that side stops tether's file: a twin that cannot be
     opened is logged and shown in the status, and tether's recording goes on.
+
+    `clock` gives the receive times written (the wall clock); `monotonic` measures a file's age and the
+    run's elapsed time written in each part, which a step of the wall clock (NTP correcting it) must
+    not move.
     """
 
     def __init__(
@@ -47,23 +54,28 @@ class Recorder:
         provenance: Provenance,
         *,
         clock: Callable[[], int] = time.time_ns,
+        monotonic: Callable[[], int] = time.monotonic_ns,
         first_path: Path | None = None,
         ros2: Ros2Source | None = None,
     ) -> None:
         self.config = config
         self.provenance = provenance
         self._clock = clock
+        self._monotonic = monotonic
         # A name chosen by the user for the first file; later files take it with _1, _2...
         self._first_path = first_path
         self._lock = threading.Lock()
-        self.files: list[Path] = []
+        self.files: list[Path] = []  # the latest FILES_LISTED
+        self.parts = 0  # files started over the run
         self._messages_before = 0  # in the files already closed
         self._dropped_before = 0
         self.started_ns = clock()
+        self._run_started = self._monotonic()
+        self._part_started = self._run_started
         self.run = uuid.uuid4().hex  # in every part's metadata
         self._ros2 = ros2
         self._ros2_warn = WarnOnce()  # once per kind over the whole run, not per file
-        self.ros2_files: list[Path] = []
+        self.ros2_files: list[Path] = []  # the latest FILES_LISTED
         self._ros2_messages_before = 0
         self._ros2_skipped_before = 0
         self._ros2_file_error = ""
@@ -73,7 +85,7 @@ class Recorder:
         self._ros2_current = self._open_ros2(Path(self._current.path))
 
     def _open(self) -> Recording:
-        now = self._clock()
+        now, started = self._clock(), self._monotonic()
         named = self._first_path or self.config.path_for(
             self.provenance.robot, dt.datetime.fromtimestamp(now / 1e9, dt.UTC)
         )
@@ -88,8 +100,9 @@ class Recorder:
                     chunk_size=self.config.chunk_size,
                     clock=self._clock,
                     provenance=self.provenance,
-                    part=len(self.files),
+                    part=self.parts,
                     run=self.run,
+                    elapsed_ns=started - self._run_started,
                 )
                 break
             except FileExistsError:
@@ -98,7 +111,9 @@ class Recorder:
                 continue
         else:
             raise FileExistsError(f"no free file name like {named} after {NAME_TRIES} tries")
-        self.files.append(path)
+        self.parts += 1
+        self._part_started = started
+        _append_latest(self.files, path)
         log.info("recording to %s", path)
         return recording
 
@@ -110,7 +125,7 @@ class Recorder:
         metadata = {
             "robot": self.provenance.robot,
             "run": self.run,
-            "part": str(len(self.files) - 1),
+            "part": str(self.parts - 1),
             "tether_file": tether_path.name,
             "version": version(),
             **self._ros2.metadata(),
@@ -130,7 +145,7 @@ class Recorder:
             log.error("%s; tether's recording goes on without it", self._ros2_file_error)
             return None
         self._ros2_file_error = ""
-        self.ros2_files.append(path)
+        _append_latest(self.ros2_files, path)
         log.info("recording ROS 2 traffic (%s) to %s", ", ".join(self._ros2.keys.key_exprs()), path)
         return recording
 
@@ -202,7 +217,7 @@ class Recorder:
             return f"{size} bytes, the limit is {limit_bytes}"
         if limit_bytes is not None and twin is not None and (size := twin.size) >= limit_bytes:
             return f"its ROS 2 twin holds {size} bytes, the limit is {limit_bytes}"
-        age = (self._clock() - current.started_ns) / 1e9
+        age = (self._monotonic() - self._part_started) / 1e9
         if limit_seconds is not None and age >= limit_seconds:
             return f"{age:.0f} s old, the limit is {limit_seconds:g} s"
         return None
@@ -212,6 +227,12 @@ class Recorder:
             self._current.finish()
             if self._ros2_current is not None:
                 self._on_twin(self._ros2_current, self._ros2_current.finish)
+
+    def files_said(self) -> str:
+        """The files of the run, in words: the latest FILES_LISTED named, and how many came before them."""
+        named = ", ".join(map(str, self.files))
+        earlier = self.parts - len(self.files)
+        return f"{named} (after {earlier} earlier file{'s' if earlier > 1 else ''})" if earlier else named
 
     @property
     def messages(self) -> int:
@@ -247,3 +268,8 @@ class Recorder:
             files=[str(p) for p in self.ros2_files],
             error="; ".join(e for e in (self._ros2_link_error, self._ros2_file_error) if e),
         )
+
+
+def _append_latest(files: list[Path], path: Path) -> None:
+    files.append(path)
+    del files[:-FILES_LISTED]

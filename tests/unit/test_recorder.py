@@ -321,7 +321,10 @@ def test_a_rotation_that_cannot_start_its_file_keeps_the_current_one(tmp_path: P
     out = tmp_path / "out"
     clock = [1_800_000_000 * 10**9]
     recorder = Recorder(
-        RecorderConfig(output_dir=str(out), max_file_seconds=60), Provenance(ROBOT), clock=lambda: clock[0]
+        RecorderConfig(output_dir=str(out), max_file_seconds=60),
+        Provenance(ROBOT),
+        clock=lambda: clock[0],
+        monotonic=lambda: clock[0],
     )
     assert recorder.record(CMD_VEL, encode(Twist(linear_x=0.1)))
     first = recorder.status().path

@@ -294,7 +294,9 @@ def test_each_tether_file_has_a_ros2_twin_rotated_with_it_and_named_in_the_statu
 ) -> None:
     clock = Clock()
     config = RecorderConfig(output_dir=str(tmp_path), max_file_seconds=10.0)
-    recorder = Recorder(config, Provenance("r1"), clock=clock, ros2=Ros2Source(rmw_keys, "tcp/127.0.0.1:7447"))
+    recorder = Recorder(
+        config, Provenance("r1"), clock=clock, monotonic=clock, ros2=Ros2Source(rmw_keys, "tcp/127.0.0.1:7447")
+    )
     cdr = types.encode(TWIST, twist(types, 0.3, 0.0))
     assert recorder.record_ros2(CMD_VEL_KEY, cdr, Attachment(1, clock.now, GID).encode())
     recorder.record("tether/r1/a", b"{}")
@@ -331,7 +333,9 @@ def test_a_name_is_taken_only_when_both_files_are_free(tmp_path: Path, rmw_keys:
     config = RecorderConfig(output_dir=str(tmp_path))
     first = config.path_for("r1", dt.datetime.fromtimestamp(clock.now / 1e9, dt.UTC))
     ros2_path(first).write_bytes(b"left over")
-    recorder = Recorder(config, Provenance("r1"), clock=clock, ros2=Ros2Source(rmw_keys, "tcp/127.0.0.1:7447"))
+    recorder = Recorder(
+        config, Provenance("r1"), clock=clock, monotonic=clock, ros2=Ros2Source(rmw_keys, "tcp/127.0.0.1:7447")
+    )
     recorder.finish()
     assert recorder.files == [first.with_name(first.stem + "_1.mcap")]
     assert ros2_path(first).read_bytes() == b"left over"

@@ -78,7 +78,7 @@ def payload(i: int, size: int = 100) -> bytes:
 def test_a_file_is_rotated_by_age_and_each_part_carries_metadata_and_files(tmp_path: Path) -> None:
     clock = Clock()
     config = RecorderConfig(output_dir=str(tmp_path), max_file_seconds=10.0)
-    recorder = Recorder(config, provenance(), clock=clock)
+    recorder = Recorder(config, provenance(), clock=clock, monotonic=clock)
     recorder.record(f"{PREFIX}/a", payload(0))
     clock.now += 5 * SECOND
     recorder.tick()
@@ -104,7 +104,7 @@ def test_a_file_is_rotated_by_age_and_each_part_carries_metadata_and_files(tmp_p
 def test_a_file_is_rotated_by_size_and_names_never_collide(tmp_path: Path) -> None:
     clock = Clock()  # the clock stands still: every file starts in the same second
     config = RecorderConfig(output_dir=str(tmp_path), max_file_bytes=64 * 1024, chunk_size=4096)
-    recorder = Recorder(config, provenance(), clock=clock)
+    recorder = Recorder(config, provenance(), clock=clock, monotonic=clock)
     for i in range(3000):
         recorder.record(f"{PREFIX}/a", payload(i, 200))
         if i % 500 == 499:
