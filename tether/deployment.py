@@ -7,6 +7,7 @@ import ipaddress
 import json
 import os
 import secrets
+import stat
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,8 @@ MANIFEST = "deployment.json"
 ROUTER_CONFIG = "router.json5"
 USERS_FILE = "router-users.txt"
 CA_DIR = "ca"
+# Beside DIR/<robot>/: the CA, the systemd units, the open compose variant's configs.
+OWN_DIRS = (CA_DIR, "systemd", "compose")
 # Certificates outlive a robot's usual service interval; `tether deploy init` never renews one, so an
 # installer renews by deleting the expired files (and the CA, to rotate everything) and rerunning it.
 CA_LIFETIME = dt.timedelta(days=3650)
@@ -45,6 +48,9 @@ SERVICE_CONNECT = {
 }
 PERSON_RETRY = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
 SECRET_MODE = 0o600
+# Every directory it writes holds secrets or sits among them (a world-writable one lets anyone swap a
+# key, a certificate or a unit), so it is its owner's alone, whatever the umask.
+PRIVATE_DIR_MODE = 0o700
 # The planner's LLM API key: written empty (no key), for the installer to fill; never overwritten.
 LLM_KEY_FILE = "llm-api-key"
 
@@ -123,9 +129,13 @@ def username(robot: str, identity: str) -> str:
 
 
 def check_robot_name(robot: str) -> str:
-    # The same alphabet as NodeSettings, and no name that the rules' key expressions would widen.
-    if not robot or not robot.replace("_", "").replace("-", "").isalnum():
-        raise DeploymentError(f"robot name {robot!r} must be letters, digits, '-' or '_'")
+    # NodeSettings' alphabet, and no name that the rules' key expressions would widen. ASCII only:
+    # the name is in systemd unit names and compose service names, which take no other letters.
+    if not robot or not robot.isascii() or not robot.replace("_", "").replace("-", "").isalnum():
+        raise DeploymentError(f"robot name {robot!r} must be ASCII letters, digits, '-' or '_'")
+    if robot in OWN_DIRS:
+        # DIR/<robot>/ would be one of them: the robot's files, copied to its hosts, beside the CA's key or the units.
+        raise DeploymentError(f"robot name {robot!r} is taken by the deployment's own {robot}/ directory")
     return robot
 
 
@@ -145,6 +155,9 @@ def init(
     if not robots:
         raise DeploymentError("name at least one robot (--robot NAME)")
     directory = directory.resolve()
+    if not _is_utf8(str(directory)):
+        # Its configs name their files by absolute path, in TOML, which is UTF-8 text.
+        raise DeploymentError(f"{str(directory)!r} is not a UTF-8 path, which tether.toml cannot hold: use another one")
     if directory.exists() and not directory.is_dir():
         raise DeploymentError(f"{directory} exists and is not a directory")
     manifest = _read_manifest(directory)
@@ -161,7 +174,7 @@ def init(
         router = known
     router = router or RouterAddress()
     all_robots = list(dict.fromkeys([*(manifest["robots"] if manifest else []), *robots]))
-    directory.mkdir(parents=True, exist_ok=True)
+    private_dir(directory, ours=False)
     written: list[Written] = []
 
     ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None = None
@@ -246,13 +259,54 @@ def _read_manifest(directory: Path) -> dict[str, Any] | None:
 # Files
 
 
+def private_dir(path: Path, *, ours: bool = True) -> None:
+    """Make `path` mode 700 (its missing parents 755, whatever the umask). One already there must be
+    the user's (or root's): one of deploy init's own subdirectories (`ours`) is then set to 700 if others
+    may use it; the directory the installer named, perhaps a shared one (/tmp), is never changed, but
+    refused when others may write in it."""
+    for parent in reversed(path.parents):
+        if not parent.exists():
+            parent.mkdir(mode=0o755, exist_ok=True)  # the umask only takes bits away: never writable by others
+    try:
+        path.mkdir(mode=PRIVATE_DIR_MODE)
+        return
+    except FileExistsError:
+        pass
+    found = path.stat()
+    if not stat.S_ISDIR(found.st_mode):
+        raise DeploymentError(f"{path} exists and is not a directory")
+    if found.st_uid not in (os.geteuid(), 0):
+        raise DeploymentError(
+            f"{path} belongs to uid {found.st_uid}, not to you: its owner could swap the keys and "
+            "certificates in it; use a directory of your own"
+        )
+    mode = stat.S_IMODE(found.st_mode)
+    if ours and mode & 0o077:
+        os.chmod(path, PRIVATE_DIR_MODE)
+    elif not ours and mode & 0o022:
+        raise DeploymentError(
+            f"others may write in {path} (mode {mode:o}): anyone could swap a key, certificate or unit "
+            "there; use a directory only you can write in (`chmod go-w` it, or another one)"
+        )
+
+
+def _kept(path: Path, secret: bool) -> Written:
+    """A file kept as it was; a secret others could read or change is made 600 (a copy may have loosened
+    it). A link is left as it is: what it points to is not deploy init's."""
+    found = path.lstat()
+    if secret and stat.S_ISREG(found.st_mode) and stat.S_IMODE(found.st_mode) & 0o077:
+        os.chmod(path, SECRET_MODE)
+    return Written(path, created=False, secret=secret)
+
+
 def _write_bytes(path: Path, data: bytes, *, secret: bool = False, replace: bool = False) -> Written:
     """Create `path` (mode 600 when `secret`), or keep it as it is when it exists and not `replace`
     (or `replace` but it already holds `data`). Replaced, it is written beside and renamed over: a
     symlink planted there is replaced, never written through nor kept."""
     if path.exists() and (not replace or (not path.is_symlink() and path.is_file() and path.read_bytes() == data)):
-        return Written(path, created=False, secret=secret)
-    path.parent.mkdir(parents=True, exist_ok=True)
+        return _kept(path, secret)
+    if not path.parent.is_dir():
+        private_dir(path.parent)
     mode = SECRET_MODE if secret else 0o644
     target = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp") if replace else path
     # O_EXCL: never write through a file or link someone else put there; the mode is set at creation.
@@ -284,7 +338,11 @@ def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -
     path = directory / USERS_FILE
     known: dict[str, str] = {}
     if path.exists():
-        for number, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            text = path.read_text()
+        except UnicodeDecodeError as exc:
+            raise DeploymentError(f"{path} is not text ({exc}): not made by tether deploy") from None
+        for number, line in enumerate(text.splitlines(), 1):
             if not line.strip():
                 continue
             user, sep, password = line.partition(":")
@@ -299,7 +357,7 @@ def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -
         text = "".join(f"{user}:{password}\n" for user, password in passwords.items())
         written.append(_write_text(path, text, secret=True, replace=True))
     else:
-        written.append(Written(path, created=False, secret=True))
+        written.append(_kept(path, secret=True))
     return passwords
 
 
@@ -313,6 +371,7 @@ def _robot_files(
     written: list[Written],
 ) -> None:
     home = directory / robot
+    private_dir(home)
     if ca is not None:
         ca_pem = ca[1].public_bytes(serialization.Encoding.PEM)
         written.append(_write_bytes(home / "ca.pem", ca_pem, replace=True))  # the CA's, should it be replaced
@@ -327,14 +386,14 @@ def _robot_files(
                 written.append(_write_bytes(key_path, _key_pem(key), secret=True))
                 written.append(_write_bytes(cert_path, cert.public_bytes(serialization.Encoding.PEM)))
             else:
-                written += [Written(key_path, False, True), Written(cert_path, False, False)]
+                written += [_kept(key_path, secret=True), _kept(cert_path, secret=False)]
         text = client_config(robot, identity, router, passwords[user], tls)
         written.append(_write_text(home / f"{identity}.json5", text, secret=True))
     written.append(_write_text(home / "operator.token", secrets.token_hex(24) + "\n", secret=True))
     written.append(_write_text(home / "robot.key", secrets.token_hex(32) + "\n", secret=True))
     written.append(_write_text(home / LLM_KEY_FILE, "", secret=True))
     written.append(_write_text(home / "tether.toml", robot_config(home)))
-    (home / "state").mkdir(mode=0o700, exist_ok=True)
+    private_dir(home / "state")
 
 
 def robot_config(home: Path) -> str:
@@ -624,6 +683,14 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
 # Certificates
 
 
+def _is_utf8(text: str) -> bool:
+    try:
+        text.encode()
+    except UnicodeEncodeError:  # bytes of another encoding, carried as surrogates
+        return False
+    return True
+
+
 def _is_ip(host: str) -> bool:
     try:
         ipaddress.ip_address(host)
@@ -652,20 +719,33 @@ def _key_usage(*, ca: bool) -> x509.KeyUsage:
     )
 
 
-def _load_key(path: Path) -> ec.EllipticCurvePrivateKey:
-    key = serialization.load_pem_private_key(path.read_bytes(), password=None)
+def _load_ca(key_path: Path, cert_path: Path) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
+    """The CA in ca/, when it can still sign: its key, and its certificate for that key, valid now."""
+    replace = f"delete {key_path.parent} and rerun to make a new CA (then reinstall every certificate and key)"
+    try:
+        key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
+        cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    except (ValueError, TypeError) as exc:
+        raise DeploymentError(f"the CA in {key_path.parent} is unreadable or damaged ({exc}): {replace}") from None
     if not isinstance(key, ec.EllipticCurvePrivateKey):
-        raise DeploymentError(f"{path} is not an elliptic-curve key made by tether deploy init")
-    return key
+        raise DeploymentError(f"{key_path} is not an elliptic-curve key made by tether deploy init: {replace}")
+    if key.public_key() != cert.public_key():
+        # Certificates signed with this key would name a CA that did not sign them: every one refused.
+        raise DeploymentError(f"{key_path} is not the key of {cert_path}: {replace}")
+    if dt.datetime.now(dt.UTC) >= cert.not_valid_after_utc:
+        raise DeploymentError(f"the CA in {key_path.parent} expired on {cert.not_valid_after_utc:%Y-%m-%d}: {replace}")
+    return key, cert
 
 
 def _certificate_authority(
     directory: Path, written: list[Written]
 ) -> tuple[ec.EllipticCurvePrivateKey, x509.Certificate]:
     key_path, cert_path = directory / CA_DIR / "ca.key", directory / CA_DIR / "ca.pem"
+    private_dir(directory / CA_DIR)
     if key_path.exists() and cert_path.exists():
-        written += [Written(key_path, False, True), Written(cert_path, False, False)]
-        return _load_key(key_path), x509.load_pem_x509_certificate(cert_path.read_bytes())
+        ca = _load_ca(key_path, cert_path)
+        written += [_kept(key_path, secret=True), _kept(cert_path, secret=False)]
+        return ca
     if key_path.exists() or cert_path.exists():
         raise DeploymentError(f"{directory / CA_DIR} holds only half a CA (ca.key and ca.pem go together)")
     key = ec.generate_private_key(ec.SECP256R1())
@@ -697,7 +777,7 @@ def _router_certificate(
 ) -> None:
     key_path, cert_path = directory / "router.key", directory / "router.pem"
     if _usable(key_path, cert_path, ca[1]):
-        written += [Written(key_path, False, True), Written(cert_path, False, False)]
+        written += [_kept(key_path, secret=True), _kept(cert_path, secret=False)]
         return
     key_path.unlink(missing_ok=True)
     cert_path.unlink(missing_ok=True)

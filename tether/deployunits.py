@@ -100,7 +100,8 @@ def write_all(
             router = RouterAddress()
     written: list[Written] = []
     units = directory / "systemd"
-    units.mkdir(parents=True, exist_ok=True)
+    for own in (units, directory / "compose", *(directory / robot for robot in robots)):
+        deployment.private_dir(own)
     written.append(write_generated(units / "tether-router.service", router_unit(tls, executable)))
     for robot in robots:
         for service in SERVICE_IDENTITIES:
@@ -110,7 +111,7 @@ def write_all(
                 )
             )
         source = directory / robot / "tether.toml"
-        base = source.read_text() if source.exists() else ""
+        base = _installer_config(source)
         written.append(
             write_generated(directory / robot / CONFIG_CREDENTIAL, managed_config(base, systemd_paths(robot), source))
         )
@@ -306,6 +307,18 @@ def container_paths() -> dict[tuple[str, str], str]:
     }
 
 
+def _installer_config(source: Path) -> str:
+    """A robot's tether.toml as the installer left it ("" when there is none); a clear error when it is not TOML."""
+    if not source.exists():
+        return ""
+    try:
+        text = source.read_text()
+        tomllib.loads(text)
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise deployment.DeploymentError(f"{source} is not valid TOML ({exc}): fix it and rerun") from None
+    return text
+
+
 _TABLE = re.compile(r"^\s*\[([A-Za-z0-9_.-]+)\]\s*(#.*)?$")
 _KEY = re.compile(r"^\s*([A-Za-z0-9_-]+)\s*=")
 
@@ -340,7 +353,13 @@ def managed_config(base: str, paths: dict[tuple[str, str], str], source: Path) -
         "# secrets and state. Edit tether.toml and rerun `tether deploy init` (or edit both).\n"
     )
     text = header + "\n".join(out) + "\n"
-    tomllib.loads(text)  # a bug here must not reach a robot
+    try:
+        tomllib.loads(text)  # neither a bug here nor a layout it does not follow may reach a robot
+    except tomllib.TOMLDecodeError as exc:
+        raise deployment.DeploymentError(
+            f"cannot set this host's paths in {source} ({exc}): write each of its tables as a [table] "
+            "header with one `key = value` per line (no dotted, quoted or inline keys), and rerun"
+        ) from None
     return text
 
 
