@@ -43,12 +43,18 @@ MAX_RESULT_WAIT = 3600.0
 CANCEL_POLL = 0.05
 # Cancels of goal ids not (yet) known an action server remembers, so the goal is rejected if it comes.
 MAX_EARLY_CANCELS = 1024
-# After a client cancels a goal, it waits this long for the server to report it ended.
+# After a client cancels a goal, it waits this long for the server to report it ended; then it
+# raises GoalNotStopped: the goal may still be moving the robot.
 CANCEL_GRACE = 10.0
 # A preempting goal waits this long for the goals it cancels to end before it is accepted.
 PREEMPT_TIMEOUT = 10.0
 # The goal id of a result for a goal that was never sent.
 UNSENT = "unsent"
+
+
+class GoalNotStopped(CallError):
+    """A goal did not end within the grace after its cancel: it may still be moving the robot, and
+    whoever sent it must not go on as if it had stopped."""
 
 
 @dataclass(frozen=True)
@@ -176,6 +182,12 @@ class ActionServer(Generic[G, F, R]):
         for handle in self._sweep(reason):
             handle.abort_reason = reason
             handle.cancel_requested.set()
+
+    def wait_ended(self, timeout: float) -> list[str]:
+        """Wait up to `timeout` for the running goals to end (after `abort_all`, say); the ids of
+        those that did not."""
+        deadline = time.monotonic() + timeout
+        return [h.goal_id for h in self.active() if not h.done.wait(max(0.0, deadline - time.monotonic()))]
 
     def _sweep(self, reason: str) -> list[GoalHandle[G, F]]:
         """The running goals, for canceling or aborting all of them; a goal being decided now will be
@@ -409,7 +421,7 @@ class ActionClient(Generic[G, F, R]):
             raise
         if cancel is None:
             try:
-                return handle.result(timeout)
+                return self._ended(handle, handle.result(timeout))
             except CallError:
                 self._cancel_quietly(handle)
                 raise
@@ -425,13 +437,24 @@ class ActionClient(Generic[G, F, R]):
                     f"{self._action.path} goal {handle.goal_id} did not end within {self._cancel_grace:g} s "
                     "of its cancel"
                 )
-                raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
+                raise GoalNotStopped(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
         try:
-            return future.result()
+            return self._ended(handle, future.result())
         except CallError:
             # No result in time: the goal must not go on moving the robot behind our back.
             self._cancel_quietly(handle)
             raise
+
+    def _ended(self, handle: ClientGoal[G, F, R], response: ResultResponse[R]) -> ResultResponse[R]:
+        """`response` as this goal's end; CallError when it is not one (a peer answering with another
+        goal's result, or with a state the goal goes on from): the goal may still be running."""
+        if response.goal_id != handle.goal_id:
+            message = f"{self._action.path} answered goal {handle.goal_id}'s result with goal {response.goal_id}'s"
+        elif not response.state.terminal:
+            message = f"{self._action.path} goal {handle.goal_id}'s result is no end: state {response.state}"
+        else:
+            return response
+        raise CallError(ServiceError(kind=ErrorKind.INTERNAL, message=message))
 
     @staticmethod
     def _cancel_quietly(handle: ClientGoal[G, F, R]) -> None:

@@ -51,6 +51,12 @@ class Interrupted(ExecutionError):
     kind = FailureKind.VETOED
 
 
+class MotionNotStopped(ExecutionError):
+    """A motion went on past its cancel's grace (the robot ignored it, or never answered): it may
+    still be moving the robot, so the executor latched the e-stop. No retry, no on_failure, and a
+    canceled plan fails with this rather than ending canceled as if the robot had stopped."""
+
+
 class GraspFailed(PostconditionFailed):
     """The gripper closed and the object was not in it: reported to safety's incident memory as a
     grasp_failed incident (services/executor/README.md, Keys: safety/incidents/report)."""

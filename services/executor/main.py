@@ -18,6 +18,10 @@ from services.worldmodel import WorldModel, load_world
 
 log = logging.getLogger(__name__)
 
+# How long a stopping executor waits for its aborted plans to end: each cancels its motion on the
+# robot from its own thread, over the session that closes after this.
+STOP_WAIT = 5.0
+
 
 def main(settings: NodeSettings, config_file: Path | None) -> None:
     configure_logging()
@@ -40,3 +44,5 @@ def main(settings: NodeSettings, config_file: Path | None) -> None:
         notifier.wait(stop)
         notifier.stopping("aborting running plans")
         server.abort_all("executor shutting down")
+        if running := server.wait_ended(STOP_WAIT):
+            log.error("plan goals %s had not ended %g s after the abort: a motion may go on", running, STOP_WAIT)

@@ -25,11 +25,12 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.safety import ApprovalRequest, ApprovalState, PlanApproval, SafetyStatus
+from schemas.safety import ApprovalRequest, ApprovalState, EStop, EstopSource, PlanApproval, SafetyStatus
 from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
-from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, Outcome
+from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, GoalNotStopped, Outcome
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
+from services.executor.errors import MotionNotStopped
 from services.executor.runner import FeedbackSink, Held, PlanRunner
 from services.runtime import Node
 
@@ -88,6 +89,7 @@ class NodeRobot:
         self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY)
         self._gripper = ActionClient(node, keys.CMD_GRIPPER)
         self._cmd_vel = node.publisher(keys.CMD_VEL)
+        self._estop = node.publisher(keys.ESTOP)
         self._changed = threading.Condition()
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
@@ -200,22 +202,35 @@ class NodeRobot:
             return list(self._objects[1].objects)
 
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
-        try:
-            return self._navigate.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
-        finally:
-            self._motion_end()
+        return self._move(self._navigate, goal, cancel)
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._move(self._trajectory, goal, cancel)
+
+    def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
+        return self._move(self._gripper, goal, cancel)
+
+    def _move(self, client: ActionClient[Any, Any, Any], goal: Any, cancel: threading.Event) -> ResultResponse[Any]:
+        """Run one motion to its end. One that goes on past its cancel may still be moving the robot:
+        nothing of this plan or the next may move beside it, so the e-stop is latched (an operator
+        looks and resets it)."""
         try:
-            return self._trajectory.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
+            return client.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
+        except GoalNotStopped as exc:
+            why = f"{exc.error.message}: it may still be moving the robot"
+            raise MotionNotStopped(f"{why}; {self._halt(why)}") from None
         finally:
             self._motion_end()
 
-    def gripper(self, goal: GripperCommandGoal, cancel: threading.Event) -> ResultResponse[Any]:
+    def _halt(self, why: str) -> str:
+        """Latch the e-stop for `why`; what was done, in words."""
+        log.error("latching the e-stop: %s", why)
         try:
-            return self._gripper.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
-        finally:
-            self._motion_end()
+            self._estop.put(EStop(source=EstopSource.EXECUTOR, reason=why[:4000]))
+        except Exception as exc:  # the plan still fails; the words must not claim the e-stop latched
+            log.exception("the e-stop could not be sent")
+            return f"latching the e-stop failed: {exc}"
+        return "the executor latched the e-stop"
 
     def cmd_vel(self, twist: Twist) -> None:
         self._cmd_vel.put(twist)

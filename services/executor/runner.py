@@ -35,7 +35,14 @@ from schemas.plan import (
 )
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
-from services.executor.errors import Canceled, CommandVetoed, ExecutionError, GraspFailed, Interrupted
+from services.executor.errors import (
+    Canceled,
+    CommandVetoed,
+    ExecutionError,
+    GraspFailed,
+    Interrupted,
+    MotionNotStopped,
+)
 from services.executor.manipulation import Manipulator, Note
 from services.executor.ports import PlanServices, Robot
 
@@ -335,12 +342,14 @@ class PlanRunner:
             except Canceled as exc:
                 return canceled(str(exc))
             except (ExecutionError, CallError) as exc:
-                if cancel.is_set():
+                # A motion that did not stop is no cancel and no pause: the plan fails with it.
+                stuck = isinstance(exc, MotionNotStopped)
+                if cancel.is_set() and not stuck:
                     # Canceled while the try failed for a reason of its own (its route could not be
                     # planned): the plan was canceled, so no pause is waited out, no retry or on_failure
                     # runs, and no one plans a recovery for a failure.
                     return canceled(f"canceled (the try had failed: {exc})")
-                held = Held.NOT_PAUSED if pauses is None else pauses.hold(cancel, paused)
+                held = Held.NOT_PAUSED if pauses is None or stuck else pauses.hold(cancel, paused)
                 if held is Held.RESUMED:
                     log.info("step %s (%s) resumed after an operator's pause (%s)", label, action, exc)
                     note(f"resumed by the operator: {step.describe()} again from where the robot is now")
@@ -419,6 +428,8 @@ class PlanRunner:
             return "safety refused the motion"
         if isinstance(exc, Interrupted):
             return "the robot side ended the motion"
+        if isinstance(exc, MotionNotStopped):
+            return "the robot did not stop its motion when canceled"
         if isinstance(exc, CallError):
             # A goal sent but never answered for may still be moving the robot.
             return f"the robot side did not answer ({exc})"
