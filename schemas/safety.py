@@ -232,12 +232,17 @@ class Rule(enum.StrEnum):
     CAUTION_ZONE = "caution_zone"  # slower where incidents repeated (safety's memory), until an operator clears it
 
 
+# In a `latched` event's values (1.0): the e-stop was asked for while already latched; the latch
+# stays as the first one set it (the event's reason names both).
+ALREADY_LATCHED = "already_latched"
+
+
 class SafetyEvent(Frozen):
     """One safety decision: what was asked, what was decided, by which rule, on which measurements.
 
     `rule` is the rule that decided a veto, clamp or latch (None for an approval); `checks` the rules that
     were applied; `values` the measured values and limits the decision rests on (SI units, named
-    like `speed_mps` and `limit_mps`); `policy_hash` the sha256 of the policy file in force.
+    like `speed_mps` and `limit_mps`, or ALREADY_LATCHED); `policy_hash` the sha256 of the policy file in force.
     """
 
     stamp: float

@@ -33,7 +33,7 @@ from schemas.robot import (
     Odometry,
     Twist,
 )
-from schemas.safety import Decision, EStop, Rule, SafetyEvent, SafetyStatus
+from schemas.safety import ALREADY_LATCHED, Decision, EStop, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from schemas.world import FaultInjected, GroundTruth, InjectFault, Moved, MoveEntity
 from services.recorder.linkaudit import Flag, Why, audit
@@ -521,7 +521,17 @@ class _Builder:
         rule = None if event.rule is None else str(event.rule)
         decision = event.decision
         key = event.key
-        if decision is Decision.LATCHED:
+        if decision is Decision.LATCHED and ALREADY_LATCHED in event.values:
+            # Asked for again while it held: the latch is the first one's, this is who else asked.
+            self.row(
+                EventKind.ESTOP,
+                key,
+                f"e-stop asked for again while latched: {event.reason}",
+                Level.WARN,
+                decision,
+                rule,
+            )
+        elif decision is Decision.LATCHED:
             self.state.estop = True
             said = _rule(rule) if event.rule is not Rule.ESTOP else ""
             self.row(EventKind.ESTOP, key, f"e-stop latched {event.reason}{said}", Level.BAD, decision, rule)

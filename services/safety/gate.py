@@ -28,6 +28,7 @@ from schemas.robot import (
     Twist,
 )
 from schemas.safety import (
+    ALREADY_LATCHED,
     ApprovalAction,
     ApprovalDecision,
     ApprovalReply,
@@ -91,6 +92,8 @@ REPEAT_WINDOW = 1.0
 RESET_WINDOW = 60.0
 RESET_SHARES = 3
 GoalRuling = SendGoal[Any] | GoalResponse
+# Where repeated events are counted: the key, the rule and who asked (the e-stop's source; "" for a veto).
+Repeats = tuple[str, Rule, str]
 # A plan in these states waits for an operator: pending before its first motion, paused while it ran.
 WAITING = (ApprovalState.PENDING, ApprovalState.PAUSED)
 # The state a plan must be in for each of an operator's decisions, and the word for it in messages.
@@ -249,7 +252,7 @@ class SafetyGate:
         # What was last put on robot/cmd_vel, from any path, and when: teleop speeds up from it.
         # Never sent counts as sent long ago.
         self._sent_twist: tuple[float, Twist] = (-math.inf, Twist())
-        self._repeats: dict[tuple[str, Rule], tuple[float, int, str]] = {}
+        self._repeats: dict[Repeats, tuple[float, int, str]] = {}
         self._resets = AttemptLimit(max_resets_per_minute, RESET_SHARES * max_resets_per_minute)
         self._rates: dict[str, RateLimit] = {}
         for topic in (keys.CMD_VEL, keys.TELEOP_CMD_VEL):
@@ -616,30 +619,39 @@ class SafetyGate:
     def _veto_repeated(self, key: str, exc: Vetoed, command: object, t: float) -> list[GateEvent]:
         """A stream vetoed for the same rule over and over (e-stop latched, over the rate): the first
         veto is an event, the rest within REPEAT_WINDOW are counted into one event (see _flush_repeats)."""
+        counted = self._repeated((key, exc.rule, ""), str(exc), t)
+        return [] if counted is None else [*counted, _veto_event(key, exc, command)]
+
+    def _repeated(self, slot: Repeats, reason: str, t: float) -> list[GateEvent] | None:
+        """None: counted into the window `slot` has open. Else this one opens a window: the count of
+        the last window's rest first, when a tick did not publish it (counted at t, not lost)."""
         with self._lock:
-            seen = self._repeats.get((key, exc.rule))
+            seen = self._repeats.get(slot)
             if seen is not None and t - seen[0] < REPEAT_WINDOW:
-                self._repeats[(key, exc.rule)] = (seen[0], seen[1] + 1, str(exc))
-                return []
-            self._repeats[(key, exc.rule)] = (t, 0, str(exc))
-        # A window that ended before a tick could count it is counted t, not lost.
-        counted = [] if seen is None else self._count_event(key, exc.rule, seen, t)
-        return [*counted, _veto_event(key, exc, command)]
+                self._repeats[slot] = (seen[0], seen[1] + 1, reason)
+                return None
+            self._repeats[slot] = (t, 0, reason)
+        return [] if seen is None else self._count_event(slot, seen, t)
 
     def _flush_repeats(self, t: float) -> list[GateEvent]:
         with self._lock:
             due = [(k, v) for k, v in self._repeats.items() if t - v[0] >= REPEAT_WINDOW]
             for k, _ in due:
                 del self._repeats[k]
-        return [event for (key, rule), seen in due for event in self._count_event(key, rule, seen, t)]
+        return [event for slot, seen in due for event in self._count_event(slot, seen, t)]
 
     @staticmethod
-    def _count_event(key: str, rule: Rule, seen: tuple[float, int, str], t: float) -> list[GateEvent]:
+    def _count_event(slot: Repeats, seen: tuple[float, int, str], t: float) -> list[GateEvent]:
+        key, rule, source = slot
         at, count, reason = seen
         if not count:
             return []
+        values = {"count": float(count)}
+        if key == keys.ESTOP.path:
+            why = f"{count} more asked for by {source} while latched in the last {t - at:.1f} s, the last {reason}"
+            return [GateEvent(key, Decision.LATCHED, why, None, rule, (), {**values, ALREADY_LATCHED: 1.0})]
         why = f"{count} more vetoed like this in the last {t - at:.1f} s: {reason}"
-        return [GateEvent(key, Decision.VETOED, why, None, rule, (rule,), {"count": float(count)})]
+        return [GateEvent(key, Decision.VETOED, why, None, rule, (rule,), values)]
 
     # The e-stop
 
@@ -657,8 +669,16 @@ class SafetyGate:
     def _latch(
         self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
     ) -> Ruling[None]:
-        if not self.latch.trigger(source, reason, self._wall_clock()):
-            return Ruling(None)
+        latched, held = self.latch.request(source, reason, self._wall_clock())
+        if not latched:
+            # The latch stays as the first one set it; who else asked, and why, is recorded (the first
+            # reason may be stale by now). A flood from one source is one event and a count.
+            why = f"by {source}: {reason}; already latched by {held.source}: {held.reason}"
+            if (counted := self._repeated((keys.ESTOP.path, rule, source), why, t)) is None:
+                return Ruling(None)
+            values = {**values, ALREADY_LATCHED: 1.0}
+            event = GateEvent(keys.ESTOP.path, Decision.LATCHED, why, command, rule, (), values)
+            return Ruling(None, (*counted, event))
         with self._lock:
             self._sent_twist = (t, Twist())
         log.warning("E-STOP latched by %s: %s", source, reason)
@@ -884,7 +904,8 @@ class SafetyGate:
             with self._lock:
                 running = self._approvals.running()
                 paused = self._approvals.paused()
-            if running is None and paused:
+            # A pause holds whatever else is approved: the operator took over.
+            if paused:
                 held = paused[0]
                 why = (
                     f"mode supervised: plan {held.goal_id} {held.reason}; a program's motion is refused until "
@@ -927,12 +948,28 @@ class SafetyGate:
             return Ruling(ModeReply(ok=True, message=f"mode already {req.mode}", mode=req.mode))
         log.warning("control mode %s -> %s by operator %s", previous, req.mode, req.operator)
         why = f"mode {previous} -> {req.mode} by operator {req.operator}"
-        event = GateEvent(key, Decision.MODE, why, redacted, Rule.MODE, (Rule.OPERATOR,))
+        events = [GateEvent(key, Decision.MODE, why, redacted, Rule.MODE, (Rule.OPERATOR,))]
+        if req.mode is ControlMode.SUPERVISED:
+            # A plan autonomous mode let run was never approved by an operator; supervised mode needs one.
+            unreviewed = f"{why}: it ran because mode autonomous needs no approval, not an operator's; it moves no more"
+            with self._lock:
+                denied = self._approvals.deny_unreviewed(unreviewed, self._advance())
+            events += [
+                GateEvent(
+                    keys.APPROVAL_REQUEST.path,
+                    Decision.DENIED,
+                    f"plan {a.goal_id}: {unreviewed}",
+                    a,
+                    Rule.APPROVAL,
+                    (Rule.MODE,),
+                )
+                for a in denied
+            ]
         # Goals under way that the new mode would refuse are ended (the next ones are refused).
         cancel = self._mode_veto() is not None
         return Ruling(
             ModeReply(ok=True, message=why, mode=req.mode),
-            (event,),
+            tuple(events),
             mode_changed=True,
             cancel_goals=cancel,
             approvals_changed=True,
@@ -948,27 +985,8 @@ class SafetyGate:
         with self._lock:
             known = self._approvals.get(req.goal_id, t)
             asked_for = self._approvals.plan(req.goal_id)
-        if known is not None and asked_for != req.plan:
-            # An approval holds for the plan it was asked for: another plan under the same goal id (a
-            # harmless one asked first, to have the real one ride on its approval) is refused, the
-            # book as it was.
-            other = f"goal {req.goal_id} was asked about with another plan; an approval is for one plan only"
-            refusal = PlanApproval(goal_id=req.goal_id, state=ApprovalState.DENIED, reason=other)
-            event = GateEvent(key, Decision.DENIED, other, refusal, Rule.APPROVAL, (Rule.APPROVAL,))
-            return Ruling(refusal, (event,))
         if known is not None:
-            if known.state not in WAITING or mode is ControlMode.SUPERVISED:
-                return Ruling(known)
-            # The mode changed while it waited (or was paused): autonomous lets it run, direct and
-            # shared refuse it.
-            why = PLANS_REFUSED.get(mode)
-            state = ApprovalState.DENIED if why else ApprovalState.APPROVED
-            why = why or f"mode {mode}: no approval needed"
-            with self._lock:
-                approval = self._approvals.change(req.goal_id, state, why, t, decided=self._wall_clock(), by="mode")
-            decision = Decision.DENIED if state is ApprovalState.DENIED else Decision.APPROVED
-            event = GateEvent(key, decision, f"plan {req.goal_id}: {why}", approval, Rule.APPROVAL, (Rule.MODE,))
-            return Ruling(approval, (event,), approvals_changed=True)
+            return self._asked_again(req, known, asked_for, mode, t)
         if mode is ControlMode.AUTONOMOUS:
             return Ruling(PlanApproval(goal_id=req.goal_id, state=ApprovalState.NOT_NEEDED, reason=f"mode {mode}"))
         if (why := PLANS_REFUSED.get(mode)) is not None:
@@ -993,10 +1011,49 @@ class SafetyGate:
                 requested=wall,
             )
         with self._lock:
-            approval = self._approvals.add(approval, req.plan, t)
+            known = self._approvals.get(req.goal_id, t)
+            asked_for = self._approvals.plan(req.goal_id)
+            if known is None:
+                approval = self._approvals.add(approval, req.plan, t)
+        if known is not None:
+            # Another ask under this goal id was held while this one was checked. It stays: replacing
+            # it gave the operator's look at (or approval of) that plan to this one, or undid it. This
+            # ask is answered as a later one is.
+            again = self._asked_again(req, known, asked_for, self.modes.mode, t)
+            return replace(again, events=(*checked.events, *again.events))
         decision = Decision.AWAITING_APPROVAL if approval.state is ApprovalState.PENDING else Decision.DENIED
         event = GateEvent(key, decision, f"plan {req.goal_id}: {approval.reason}", approval, Rule.APPROVAL)
         return Ruling(approval, (*checked.events, event), approvals_changed=True)
+
+    def _asked_again(
+        self, req: ApprovalRequest, known: PlanApproval, asked_for: GroundedPlan | None, mode: ControlMode, t: float
+    ) -> Ruling[PlanApproval]:
+        """An ask for a goal the book holds (`known`, for plan `asked_for`): answered from the book, or
+        decided by a mode that changed while it waited."""
+        key = keys.APPROVAL_REQUEST.path
+        if asked_for != req.plan:
+            # An approval holds for the plan it was asked for: another plan under the same goal id (a
+            # harmless one asked first, to have the real one ride on its approval) is refused, the
+            # book as it was.
+            other = f"goal {req.goal_id} was asked about with another plan; an approval is for one plan only"
+            refusal = PlanApproval(goal_id=req.goal_id, state=ApprovalState.DENIED, reason=other)
+            event = GateEvent(key, Decision.DENIED, other, refusal, Rule.APPROVAL, (Rule.APPROVAL,))
+            return Ruling(refusal, (event,))
+        if known.state not in WAITING or mode is ControlMode.SUPERVISED:
+            return Ruling(known)
+        # The mode changed while it waited (or was paused): autonomous lets it run (until supervised
+        # mode is back), direct and shared refuse it.
+        why = PLANS_REFUSED.get(mode)
+        state = ApprovalState.DENIED if why else ApprovalState.APPROVED
+        why = why or f"mode {mode}: no approval needed"
+        with self._lock:
+            if state is ApprovalState.APPROVED:
+                approval = self._approvals.let_run(req.goal_id, why, t, self._wall_clock())
+            else:
+                approval = self._approvals.change(req.goal_id, state, why, t, decided=self._wall_clock(), by="mode")
+        decision = Decision.DENIED if state is ApprovalState.DENIED else Decision.APPROVED
+        event = GateEvent(key, decision, f"plan {req.goal_id}: {why}", approval, Rule.APPROVAL, (Rule.MODE,))
+        return Ruling(approval, (event,), approvals_changed=True)
 
     def approval(self, goal_id: str) -> PlanApproval | None:
         """What safety holds of `goal_id`'s approval now (None: nothing)."""
@@ -1119,7 +1176,11 @@ class SafetyGate:
         t = self._time()
         with self._lock:
             known = self._approvals.get(status.goal_id, t)
-            if known is None or known.state not in (*WAITING, ApprovalState.APPROVED):
+            if known is None:
+                # An ask for it may still be on its way (being checked); it is not to wait then.
+                self._approvals.gone(status.goal_id, f"the plan ended ({status.state}) before safety held it")
+                return Ruling(None)
+            if known.state not in (*WAITING, ApprovalState.APPROVED):
                 return Ruling(None)
             why = f"the plan ended ({status.state}) after it was {known.state}"
             self._approvals.change(status.goal_id, ApprovalState.FINISHED, why, t)

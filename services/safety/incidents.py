@@ -60,7 +60,7 @@ from schemas.incidents import (
     IncidentQuery,
     IncidentReport,
 )
-from schemas.safety import Decision, EstopSource, EstopState, Rule
+from schemas.safety import ALREADY_LATCHED, Decision, EstopSource, EstopState, Rule
 from services.safety.hazards import MIN_CELL, NEAR_LIMIT, NO_ZONES, ZoneMap
 from services.safety.monitor import RateLimit, Separation
 
@@ -1047,13 +1047,15 @@ class IncidentWatch:
 
     def decided(self, events: Iterable[Any], latch: EstopState) -> list[Draft]:
         """The incidents in a ruling's events (services.safety.gate.GateEvent): the e-stop latching
-        (kind by who latched it), and a veto of a program's motion command (cmd/* goals, cmd/cmd_vel)
-        while a plan runs, one per rule and key within VETO_WINDOW (not for the e-stop, which is its own
-        incident, nor the mode, a missing approval or the rate)."""
+        (kind by who latched it; not one asked for while it held), and a veto of a program's motion
+        command (cmd/* goals, cmd/cmd_vel) while a plan runs, one per rule and key within VETO_WINDOW
+        (not for the e-stop, which is its own incident, nor the mode, a missing approval or the rate)."""
         drafts: list[Draft] = []
         for event in events:
             rule = str(event.rule) if event.rule is not None else ""
             if event.decision is Decision.LATCHED and event.key == keys.ESTOP.path:
+                if ALREADY_LATCHED in event.values:
+                    continue  # the latch that holds is the incident; this one only asked for it again
                 source = latch.source if latch.latched else ""
                 kind = _ESTOP_KINDS.get(source, IncidentKind.ESTOP)
                 drafts.append(Draft(kind, event.reason, source=source, rule=rule))

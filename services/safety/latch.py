@@ -87,11 +87,16 @@ class EstopLatch:
         not delay a stop. save() renames the file into place before syncing it, so a crash of safety
         between the two still leaves it latched on restart.
         """
+        return self.request(source, reason, stamp)[0]
+
+    def request(self, source: str, reason: str, stamp: float) -> tuple[bool, EstopState]:
+        """As trigger, and the state in force after it: when already latched, the one that latched it
+        (read in the same step, so a reset in between cannot make it say the wrong holder)."""
         with self._lock:
             if self._state.latched:
-                return False
+                return False, self._state
             self._state = EstopState(latched=True, source=source, reason=reason, stamp=stamp)
-            return True
+            return True, self._state
 
     def accepts(self, token: str) -> bool:
         """Whether `token` is the operator's (compared in constant time)."""

@@ -93,6 +93,7 @@ class _Entry:
     approval: PlanApproval
     plan: GroundedPlan
     at: float  # the gate's clock, when it was asked or last changed
+    by_mode: bool = False  # approved because the mode needed no approval, not by an operator
 
 
 class ApprovalBook:
@@ -102,6 +103,8 @@ class ApprovalBook:
 
     def __init__(self) -> None:
         self._entries: dict[str, _Entry] = {}
+        # Goals reported ended before they were asked about, and why (the last ENDED_KEPT).
+        self._gone: dict[str, str] = {}
 
     def get(self, goal_id: str, t: float) -> PlanApproval | None:
         self._expire(t)
@@ -121,19 +124,43 @@ class ApprovalBook:
         return sum(1 for e in self._entries.values() if e.approval.state is state)
 
     def add(self, approval: PlanApproval, plan: GroundedPlan, t: float) -> PlanApproval:
+        """Hold a plan not held yet (the caller looks first, under the same lock)."""
         self._expire(t)
-        if approval.state is ApprovalState.PENDING and self.count(ApprovalState.PENDING) >= MAX_WAITING:
+        gone = self._gone.pop(approval.goal_id, None)
+        if approval.state is ApprovalState.PENDING and gone is not None:
+            # Its executor gave up on it (an ask that took too long) before it was held here: kept
+            # waiting, an operator could approve a plan no one runs, whose end would never come.
+            approval = replace_approval(approval, ApprovalState.DENIED, gone)
+        elif approval.state is ApprovalState.PENDING and self.count(ApprovalState.PENDING) >= MAX_WAITING:
             approval = replace_approval(
                 approval, ApprovalState.DENIED, f"{MAX_WAITING} plans already wait for an operator: decide those first"
             )
         self._entries[approval.goal_id] = _Entry(approval, plan, t)
         return approval
 
+    def gone(self, goal_id: str, reason: str) -> None:
+        """`goal_id` was reported ended while not held: an ask for it still on its way is denied for `reason`."""
+        self._gone[goal_id] = reason[:4000]
+        for old in list(self._gone)[: max(0, len(self._gone) - ENDED_KEPT)]:
+            del self._gone[old]
+
     def change(self, goal_id: str, state: ApprovalState, reason: str, t: float, **fields: object) -> PlanApproval:
         entry = self._entries[goal_id]
         approval = replace_approval(entry.approval, state, reason, **fields)
-        self._entries[goal_id] = replace(entry, approval=approval, at=t)
+        self._entries[goal_id] = replace(entry, approval=approval, at=t, by_mode=False)
         return approval
+
+    def let_run(self, goal_id: str, reason: str, t: float, decided: float) -> PlanApproval:
+        """Approved because the mode needs no approval (autonomous), not by an operator."""
+        approval = self.change(goal_id, ApprovalState.APPROVED, reason, t, decided=decided, by="mode")
+        self._entries[goal_id] = replace(self._entries[goal_id], by_mode=True)
+        return approval
+
+    def deny_unreviewed(self, reason: str, t: float) -> list[PlanApproval]:
+        """Supervised mode again: every plan approved only because the mode needed no approval is
+        denied for `reason` (an operator never approved it). The approvals as they now are."""
+        unreviewed = [g for g, e in self._entries.items() if e.by_mode and e.approval.state is ApprovalState.APPROVED]
+        return [self.change(goal_id, ApprovalState.DENIED, reason, t) for goal_id in unreviewed]
 
     def end_all(self, reason: str, t: float) -> list[PlanApproval]:
         """Every plan waiting (denied), approved or paused (finished) ends for `reason`: their

@@ -251,7 +251,9 @@ class SafetyNode:
                     stamp=self.wall_clock(),
                     key=event.key,
                     decision=event.decision,
-                    reason=event.reason,
+                    # Within what every reader decodes (Text): a 4,000-character e-stop reason made a
+                    # latch event of 4,010 that none could read, the recording's included.
+                    reason=event.reason[:4000],
                     rule=event.rule,
                     checks=list(event.checks),
                     values=finite,

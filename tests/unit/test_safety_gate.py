@@ -474,7 +474,9 @@ def test_the_latch_rules_once_and_only_the_operator_token_clears_it(gate: Safety
     pressed = gate.estop(EStop(source=EstopSource.AGENT, reason="stop"))
     assert pressed.latched and latched_by(pressed) == "by agent: stop"
     clock.set(0.1)
-    assert gate.estop(EStop(source=EstopSource.OPERATOR, reason="again")) == Ruling(None)
+    again = gate.estop(EStop(source=EstopSource.OPERATOR, reason="again"))
+    assert not again.latched and again.events[0].values["already_latched"] == 1.0
+    assert gate.latch.state.source == EstopSource.AGENT and gate.latch.state.reason == "stop"
     wrong = gate.reset(ResetRequest(operator="mallory", token="guess"))
     assert not wrong.reset and not wrong.forward.ok and gate.latch.state.latched
     assert wrong.events[0].command == ResetRequest(operator="mallory", token="***")

@@ -29,7 +29,7 @@ from schemas.executor import (
 )
 from schemas.plan import GroundedPlan, NavigateStep, Plan, PlanApproved, PlanText, Step
 from schemas.robot import NavigateToPoseGoal, NavigateToPoseResult, Odometry, Twist
-from schemas.safety import Decision, EStop, EstopSource, EstopState, Rule, SafetyEvent, SafetyStatus
+from schemas.safety import ALREADY_LATCHED, Decision, EStop, EstopSource, EstopState, Rule, SafetyEvent, SafetyStatus
 from schemas.trace import TraceRecord
 from schemas.world import PerceivedHuman, PerceivedHumans
 from services.recorder.mapview import draw_map, estop_points, track_of, vetoed_goals
@@ -239,6 +239,20 @@ def test_the_incident_reads_as_one_row_per_thing_that_happened(incident: Path) -
     assert text[11] == "estop: e-stop requested by operator: stop!"
     assert text[12] == "estop: e-stop latched by operator: stop!"
     assert text[13] == "reset: e-stop reset by operator alice"
+
+
+def test_an_estop_asked_for_while_latched_reads_as_asked_again_not_as_a_second_latch(tmp_path: Path) -> None:
+    w = Writer(tmp_path / "again.mcap")
+    w.beat(0.0, latched=True, seq=1)
+    w.event(0.5, keys.ESTOP.path, Decision.LATCHED, "by operator: stop!", rule=Rule.ESTOP)
+    again = "by agent: looping; already latched by operator: stop!"
+    w.event(1.0, keys.ESTOP.path, Decision.LATCHED, again, rule=Rule.ESTOP, values={ALREADY_LATCHED: 1.0})
+    rows = [row for row in timeline_of(w.finish()).rows if row.key == keys.ESTOP.path]
+    assert summaries(rows)[-2:] == [
+        "estop: e-stop latched by operator: stop!",
+        f"estop: e-stop asked for again while latched: {again}",
+    ]
+    assert rows[-1].level is Level.WARN
 
 
 def test_a_veto_names_the_rule_the_target_and_the_reason(incident: Path) -> None:
