@@ -6,18 +6,17 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
-import signal
 import stat
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import zenoh
 
 from services.runtime import zenoh_config_file
+from tests.integration.test_deploy_acl import background
 from tests.sessions import free_port
 
 DEADLINE = 30.0
@@ -37,30 +36,6 @@ def deploy(*args: str, umask: int = 0o022) -> subprocess.CompletedProcess[str]:
         env=clean_env(),
         umask=umask,
     )
-
-
-@contextlib.contextmanager
-def router(directory: Path, log: Path) -> Iterator[subprocess.Popen[bytes]]:
-    with open(log, "wb") as out:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "tether", "router", str(directory)],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env=clean_env(),
-            start_new_session=True,
-        )
-        try:
-            yield proc
-        finally:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(timeout=10)
-            print(f"----- {log.name} -----\n{log.read_text(errors='replace')[-4000:]}")
 
 
 def open_when_up(config: Path, proc: subprocess.Popen[bytes]) -> zenoh.Session:
@@ -89,7 +64,7 @@ def test_a_deployment_made_under_a_permissive_umask_is_private_and_runs(tmp_path
             assert not found & 0o022, path
 
     # The router reads its files and each identity logs in with its own: the agent's e-stop reaches the operator.
-    with router(directory, tmp_path / "router.log") as proc:
+    with background(["router", str(directory)], tmp_path / "router.log") as proc:
         received: queue.Queue[bytes] = queue.Queue()
         with (
             open_when_up(directory / "r1" / "operator.json5", proc) as operator,
