@@ -166,23 +166,28 @@ def _frame(frame_id: str) -> str:
 
 
 class Stamps:
-    """Report stamps: the robot's own when its clock agrees with ours, else the time a report arrived."""
+    """Report stamps, one clock per source (a topic): the robot's own while its clock agrees with ours;
+    once a source's stamp is not believed (off by more than CLOCK_TOLERANCE, not a number, or none
+    at all), the time its reports arrive, from then on. Two clocks taken by turns on one topic made
+    its stamps jump back and forth by up to the tolerance, and joint speeds estimated from them 0 or
+    a fraction of the real ones."""
 
     def __init__(self) -> None:
-        self._warned = False
+        self._on_arrival: set[str] = set()
 
-    def of(self, header: Any, now: float) -> float:
+    def of(self, header: Any, now: float, source: str = "") -> float:
         stamp = to_seconds(header.stamp)
+        if source in self._on_arrival:
+            return now
         if math.isfinite(stamp) and abs(stamp - now) <= CLOCK_TOLERANCE:
             return stamp
-        if stamp == 0.0:
-            return now  # not stamped at all
-        if not self._warned:
-            self._warned = True
+        self._on_arrival.add(source)
+        if stamp != 0.0:  # else not stamped at all
             log.warning(
-                "the robot's clock is %.1f s off ours (a report stamped %.3f arrived at %.3f): stamping its "
-                "reports on arrival; synchronise the clocks (chrony) for exact stamps",
+                "the robot's clock is %.1f s off ours (a report on %s stamped %.3f arrived at %.3f): stamping "
+                "its reports there on arrival from now on; synchronise the clocks (chrony) for exact stamps",
                 stamp - now,
+                source or "a topic",
                 stamp,
                 now,
             )
@@ -580,6 +585,17 @@ def _is_id(text: str) -> bool:
 MAX_IMAGE_SIDE = 4096
 # Detections read from one message; a detector's real scenes hold far fewer.
 MAX_DETECTIONS = 256
+# The most each report from the robot may weigh on the wire (bytes), checked before it is decoded:
+# a robot's real ones are far smaller (an odometry about 700 bytes, a picture MAX_IMAGE_SIDE square
+# at 4 bytes a pixel), and a peer sending more (a JointState of millions of names, a gigabyte
+# picture) would cost the backend far more memory and time to decode than its bytes.
+REPORT_MAX_BYTES = {
+    ODOMETRY: 1 << 16,
+    JOINT_STATE: 1 << 18,  # a thousand joints with long names
+    DETECTIONS: 1 << 22,  # thousands of detections, of which MAX_DETECTIONS are read
+    IMAGE: MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 4 + (1 << 16),
+    COMPRESSED_IMAGE: MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 4 + (1 << 16),
+}
 
 
 def camera_image(message: Any, stamp: float) -> CameraImage:

@@ -94,7 +94,10 @@ class RosGoal(Protocol):
 
     def result(self, timeout: float) -> tuple[int, Any]: ...
 
-    def cancel(self, timeout: float) -> bool: ...
+    def cancel(self, timeout: float) -> bool:
+        """Ask the robot to cancel the goal; True when its action server answers that the goal had
+        ended already (a goal it is canceling is not over yet)."""
+        ...
 
     def forget(self) -> None:
         """Stop following the goal (its status and feedback): it is over, or no longer ours to follow."""
@@ -282,12 +285,19 @@ class RunContext:
 
 
 class _Flight:
-    """A ROS goal the robot accepted, its result fetched on a thread of its own."""
+    """A ROS goal the robot accepted, its result fetched on a thread of its own.
+
+    `ended` says the fetch is over (a result, or a status saying the goal ended whose result could
+    not be read); `settled` that the robot's action server itself said the goal ended: its result,
+    or its answer to a cancel. Only `settled` lets the backend take the goal for over: anyone on
+    the robot's network can publish its status topic, and a forged or stale one would leave it running.
+    """
 
     def __init__(self, goal: RosGoal, label: str) -> None:
         self.goal = goal
         self.label = label
         self.ended = threading.Event()
+        self.settled = threading.Event()
         self.outcome: tuple[int, Any, str] = (0, None, "")
         self._abandoned = False
         threading.Thread(target=self._fetch, name=f"result:{label}", daemon=True).start()
@@ -304,27 +314,33 @@ class _Flight:
         self.goal.forget()
 
     def _fetch_result(self) -> None:
-        while not self._abandoned:
+        while not self._abandoned and not self.settled.is_set():
             try:
                 status, result = self.goal.result(RESULT_POLL)
             except RobotCallFailed as exc:
                 status = int(self.goal.status)
-                if status in TERMINAL:
-                    # It ended (the status topic says so) but its result cannot be read.
+                if status in TERMINAL and not self.ended.is_set():
+                    # It ended, the status topic says, but its result cannot be read: the run ends and
+                    # cancels it; the result is asked for on, as only the robot's own word settles it.
                     self.outcome = (status, None, f"its result could not be read: {exc}")
                     self.ended.set()
-                    return
                 log.debug("no result yet for the %s goal: %s", self.label, exc)
                 time.sleep(POLL * 10)
                 continue
-            self.outcome = (int(status), result, "")
+            if not self.ended.is_set():
+                self.outcome = (int(status), result, "")
+            if int(status) in TERMINAL:
+                self.settled.set()
             self.ended.set()
             return
 
-    @property
-    def over(self) -> bool:
-        """Whether the robot ended the goal: its result, or its status, says so."""
-        return (self.ended.is_set() and self.outcome[0] in TERMINAL) or int(self.goal.status) in TERMINAL
+    def cancel(self, timeout: float) -> None:
+        """Ask the robot to cancel the goal; its answer that the goal had ended already settles it."""
+        try:
+            if self.goal.cancel(timeout):
+                self.settled.set()
+        except RobotCallFailed as exc:
+            log.warning("cancel of the %s goal failed: %s", self.label, exc)
 
     @property
     def result_read(self) -> bool:
@@ -511,14 +527,19 @@ class GoalRun:
             time.sleep(CANCEL_RETRY)
 
     def _cancel(self, flight: _Flight) -> bool:
-        """Cancel the ROS goal and wait for it to end; whether it ended in time. When it did not, the
-        robot is held stopped (its emergency_stop) until it does, and the cancel asked again."""
-        try:
-            flight.goal.cancel(self.ctx.cancel_timeout)
-        except RobotCallFailed as exc:
-            log.warning("cancel of the %s goal failed: %s", self.label, exc)
-        if flight.ended.wait(self.ctx.cancel_timeout) and flight.over:
-            return True
+        """Cancel the ROS goal and wait for the robot to say it ended; whether it did in time. When it
+        did not, the robot is held stopped (its emergency_stop) until it does, and the cancel asked again."""
+        deadline = time.monotonic() + self.ctx.cancel_timeout
+        while True:
+            flight.cancel(self.ctx.cancel_timeout)
+            # Its result says when it ends, or the robot's answer to a cancel asked again (no result coming).
+            remaining = deadline - time.monotonic()
+            if flight.settled.wait(max(0.0, min(remaining, CANCEL_RETRY))):
+                # Settled by a cancel's answer, its result (the outcome: how it ended) is on its way.
+                flight.ended.wait(max(0.0, deadline - time.monotonic()))
+                return True
+            if time.monotonic() >= deadline:
+                break
         log.error("the robot did not end the %s goal within %g s of its cancel", self.label, self.ctx.cancel_timeout)
         self._escalate(flight)
         return False
@@ -535,16 +556,13 @@ class GoalRun:
         ).start()
 
     def _keep_canceling(self, flight: _Flight, release: Callable[[], None]) -> None:
-        """Ask the robot to cancel the goal until its status (or result) shows it ended, then release it."""
-        while not flight.over:
+        """Ask the robot to cancel the goal until its result (or its answer to a cancel) says it ended,
+        then release it: never on its status topic alone, which anyone on its network can publish."""
+        while not flight.settled.wait(CANCEL_RETRY):
             try:
-                flight.goal.cancel(self.ctx.cancel_timeout)
-            except Exception as exc:
-                log.warning("cancel of the %s goal failed again: %s", self.label, exc)
-            if not flight.ended.wait(CANCEL_RETRY):
-                continue
-            if not flight.over:
-                time.sleep(CANCEL_RETRY)
+                flight.cancel(self.ctx.cancel_timeout)
+            except Exception:
+                log.exception("cancel of the %s goal failed again", self.label)
         log.info("the robot ended the %s goal after all: its emergency stop is no longer held for it", self.label)
         release()
 
@@ -595,8 +613,8 @@ class GoalRun:
         status, result, unreadable = flight.outcome
         if status == GoalStatus.SUCCEEDED and not unreadable:
             return self.succeeded(result)
-        if not flight.result_read:
-            self._cancel(flight)  # its result could not be fetched: it may run still, whatever its status says
+        # Its result could not be fetched: it may run still, whatever its status says.
+        running = not flight.result_read and not self._cancel(flight)
         self.make_safe()
         blocked = self.ctx.safety().blocked
         if blocked is not None:
@@ -605,6 +623,11 @@ class GoalRun:
             message = f"the robot reports the {self.label} goal succeeded, but {unreadable}"
         else:
             message = self.failure(status, result, unreadable)
+        if running:
+            message += (
+                f"; the robot did not end it within {self.ctx.cancel_timeout:g} s of its cancel: its emergency "
+                "stop is held until it does"
+            )
         log.warning("%s goal ended: %s", self.label, message)
         return Ending(GoalState.ABORTED, self.result_now(), message)
 

@@ -39,6 +39,7 @@ from services.ros2.backend import (
     NAVIGATE_TO_POSE,
     ODOMETRY,
     PARALLEL_GRIPPER_COMMAND,
+    REPORT_MAX_BYTES,
     SPEED_LIMIT,
     TRIGGER,
     BaseLimits,
@@ -61,7 +62,7 @@ from services.ros2.config import Ros2Config
 from services.ros2.goals import Ending, GoalRun, GripperRun, NavigationRun, RunContext, TrajectoryRun
 from services.ros2.rmw import RosActionClient, RosCallError, RosClientGoal, RosGoalRejected, RosNode
 from services.ros2.types import RosTypes
-from services.ros2.wire import Naming
+from services.ros2.wire import CancelReturn, Naming
 from services.runtime import ConfigError, Node
 from services.worldmodel import WorldModel
 
@@ -128,8 +129,9 @@ class _Goal:
         return outcome
 
     def cancel(self, timeout: float) -> bool:
+        """Ask the robot to cancel the goal; True when its server answers that the goal had ended already."""
         try:
-            return self._goal.cancel(timeout)
+            return self._goal.request_cancel(timeout) is CancelReturn.ERROR_GOAL_TERMINATED
         except RosCallError as exc:
             raise RobotCallFailed(str(exc)) from None
 
@@ -266,11 +268,13 @@ class Ros2Backend:
         self._trajectory = _Action(self.ros.action_client(names.follow_joint_trajectory, FOLLOW_JOINT_TRAJECTORY))
         gripper_type = PARALLEL_GRIPPER_COMMAND if parallel else GRIPPER_COMMAND
         self._gripper = _Action(self.ros.action_client(names.gripper, gripper_type))
-        self.ros.subscribe(names.odom, ODOMETRY, self._on_odom)
-        self.ros.subscribe(names.joint_states, JOINT_STATE, self._on_joint_states)
-        self.ros.subscribe(names.detections, DETECTIONS, self._on_detections)
-        camera_type = IMAGE if config.camera_format == "raw" else COMPRESSED_IMAGE
-        self.ros.subscribe(names.camera, camera_type, self._on_image)
+        for topic, ros_type, callback in (
+            (names.odom, ODOMETRY, self._on_odom),
+            (names.joint_states, JOINT_STATE, self._on_joint_states),
+            (names.detections, DETECTIONS, self._on_detections),
+            (names.camera, IMAGE if config.camera_format == "raw" else COMPRESSED_IMAGE, self._on_image),
+        ):
+            self.ros.subscribe(topic, ros_type, callback, max_bytes=REPORT_MAX_BYTES[ros_type])
 
         # tether's side
         self.context = RunContext(
@@ -507,9 +511,9 @@ class Ros2Backend:
     # The robot's reports
 
     def _on_odom(self, message: Any) -> None:
-        now = time.time()
+        stamp = self._stamps.of(message.header, time.time(), self.config.names.odom)
         try:
-            odom = odometry(message, self.config.frames.odom, self._stamps.of(message.header, now))
+            odom = odometry(message, self.config.frames.odom, stamp)
         except RobotReportError as exc:
             self.robot.refused_odometry(str(exc))
             self._complain(f"odometry on {self.config.names.odom}", str(exc))
@@ -520,7 +524,8 @@ class Ros2Backend:
 
     def _on_joint_states(self, message: Any) -> None:
         try:
-            joints = self._joints.update(message, self._stamps.of(message.header, time.time()))
+            stamp = self._stamps.of(message.header, time.time(), self.config.names.joint_states)
+            joints = self._joints.update(message, stamp)
         except RobotReportError as exc:
             what = f"joint states on {self.config.names.joint_states}"
             self.robot.problem(f"{what}: {exc}")
@@ -540,7 +545,8 @@ class Ros2Backend:
             self._joint_states_out.put(joints)
 
     def _on_detections(self, message: Any) -> None:
-        perceived = self._perception.read(message, self._stamps.of(message.header, time.time()))
+        stamp = self._stamps.of(message.header, time.time(), self.config.names.detections)
+        perceived = self._perception.read(message, stamp)
         for problem in perceived.problems:
             self._complain(f"detections on {self.config.names.detections}", problem)
         now = time.monotonic()
@@ -552,7 +558,7 @@ class Ros2Backend:
             self._humans_out.put(perceived.humans)
 
     def _on_image(self, message: Any) -> None:
-        self._image = (message, self._stamps.of(message.header, time.time()))
+        self._image = (message, self._stamps.of(message.header, time.time(), self.config.names.camera))
 
     def _on_camera_image(self, _request: Empty) -> CameraImage:
         latest = self._image

@@ -47,6 +47,10 @@ KEEP_TERMINAL_GOALS = 64  # finished goals still listed in status and answered b
 # a server that takes it after all (a late answer, a lost one) has it canceled.
 ABANDONED_WATCH = 60.0
 LATE_CANCEL_TIMEOUT = 2.0
+# The most a service reply or a sample may weigh (bytes), unless its subscription says otherwise: far
+# more than any goal status array, feedback or result. A peer sending more (anyone on the robot's
+# network can) is dropped before it is decoded, which would cost far more memory and time than its bytes.
+MAX_PAYLOAD = 1 << 20
 
 
 def _next_id() -> int:
@@ -170,6 +174,9 @@ class RosClient:
                 errors.append(text)
                 continue
             sample = reply.ok
+            if (size := len(sample.payload)) > MAX_PAYLOAD:
+                errors.append(f"a response of {size} bytes, over the {MAX_PAYLOAD} it may take: dropped unread")
+                continue
             if self._node.naming.style is Style.RMW_ZENOH:
                 problem = self._check_reply_attachment(sample, sequence)
                 if problem:
@@ -558,10 +565,20 @@ class RosClientGoal:
 
     def cancel(self, timeout: float) -> bool:
         """Ask the server to cancel this goal; True when it accepted (the goal is then CANCELING)."""
+        return self.request_cancel(timeout) is CancelReturn.ERROR_NONE
+
+    def request_cancel(self, timeout: float) -> CancelReturn:
+        """Ask the server to cancel this goal; its answer: ERROR_NONE when it is canceling it,
+        ERROR_GOAL_TERMINATED when the goal had ended already (the server's own word, where its
+        status topic is anyone's), else why not."""
         response = self._client._cancel(self.goal_id, 0, timeout)
-        return int(response.return_code) == CancelReturn.ERROR_NONE and any(
-            bytes(info.goal_id.uuid) == self.goal_id for info in response.goals_canceling
-        )
+        code = int(response.return_code)
+        if code == CancelReturn.ERROR_NONE:
+            listed = any(bytes(info.goal_id.uuid) == self.goal_id for info in response.goals_canceling)
+            return CancelReturn.ERROR_NONE if listed else CancelReturn.ERROR_REJECTED
+        if code in CancelReturn._value2member_map_:
+            return CancelReturn(code)
+        return CancelReturn.ERROR_REJECTED
 
     def wait_status(self, predicate: Callable[[GoalStatus], bool], timeout: float) -> bool:
         """Wait until the latest status satisfies predicate (from the status topic); False on timeout."""
@@ -727,9 +744,10 @@ class RosNode:
     """One ROS 2 node on a zenoh session: its liveliness token and those of each endpoint it declares.
 
     Samples and requests with another type hash, a missing or malformed attachment, or undecodable
-    CDR are never delivered: on_error gets a sentence naming the endpoint and what was wrong (at most
-    once per endpoint per second). Callbacks run on zenoh's threads; service handlers and action
-    `execute` on threads of their own.
+    CDR, and samples and replies over their size (MAX_PAYLOAD, or the subscription's), are never
+    delivered: on_error gets a sentence naming the endpoint and what was wrong (at most once per
+    endpoint and kind per second, counting the rest). Callbacks run on zenoh's threads; service
+    handlers and action `execute` on threads of their own.
     """
 
     def __init__(
@@ -858,7 +876,9 @@ class RosNode:
         self._declare_token(token)
         return RosPublisher(self, endpoint, publisher, entity_gid(token))
 
-    def _subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None], qos: Qos) -> None:
+    def _subscribe(
+        self, endpoint: Endpoint, callback: Callable[[Any], None], qos: Qos, max_bytes: int = MAX_PAYLOAD
+    ) -> None:
         token = self._token_key(EntityKind.SUBSCRIPTION, _next_id(), endpoint, qos)
         rmw = self.naming.style is Style.RMW_ZENOH
         key = endpoint.key.rsplit("/", 2)[0] + "/*/*" if rmw else endpoint.key
@@ -879,6 +899,14 @@ class RosNode:
                 if problem:
                     self.report(where, problem, kind)
                     return
+            if (size := len(sample.payload)) > max_bytes:
+                self.report(
+                    where,
+                    f"sample on {where} of {size} bytes, over the {max_bytes} a {endpoint.ros_type} may take here: "
+                    "dropped unread",
+                    "size",
+                )
+                return
             try:
                 message = self.types.decode(endpoint.ros_type, sample.payload.to_bytes())
             except RosDecodeError as exc:
@@ -909,8 +937,17 @@ class RosNode:
     def publisher(self, topic: str, ros_type: str, *, qos: Qos = DEFAULT_QOS) -> RosPublisher:
         return self._publisher(self.naming.endpoint(topic, ros_type, self.types), qos)
 
-    def subscribe(self, topic: str, ros_type: str, callback: Callable[[Any], None], *, qos: Qos = DEFAULT_QOS) -> None:
-        self._subscribe(self.naming.endpoint(topic, ros_type, self.types), callback, qos)
+    def subscribe(
+        self,
+        topic: str,
+        ros_type: str,
+        callback: Callable[[Any], None],
+        *,
+        qos: Qos = DEFAULT_QOS,
+        max_bytes: int = MAX_PAYLOAD,
+    ) -> None:
+        """Deliver the topic's messages to `callback`; a sample over `max_bytes` is dropped unread (on_error)."""
+        self._subscribe(self.naming.endpoint(topic, ros_type, self.types), callback, qos, max_bytes)
 
     def serve(self, service: str, srv_type: str, handler: Callable[[Any], Any]) -> None:
         """Answer a service: handler(request) -> response, on a thread per request."""
