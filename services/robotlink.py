@@ -7,6 +7,7 @@ import hmac
 import logging
 import os
 import secrets
+import stat
 import struct
 import threading
 import time
@@ -23,6 +24,8 @@ log = logging.getLogger(__name__)
 # (`robot_key_file` in [safety], [sim], [ros2]) takes precedence.
 KEY_ENV = "TETHER_ROBOT_KEY_FILE"
 KEY_BYTES = 32
+# Its hex and a newline, with room for stray whitespace; a longer file is not a robot key.
+MAX_KEY_FILE_BYTES = 1024
 # A signed message stamped further than this from the robot's wall clock (either way) is refused:
 # safety and the robot backend run on one computer (or on hosts kept in time by NTP).
 MAX_SKEW = 2.0
@@ -101,16 +104,24 @@ def robot_key(configured: str | None, default_dir: Path, robot: str) -> tuple[by
 
 
 def read_key(path: Path) -> bytes:
+    # Opened without blocking and checked on the open file: a FIFO or device configured as the key
+    # would hang start-up or be read without end, and the file checked is the file read.
     try:
-        mode = path.stat().st_mode
-        text = path.read_text().strip()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as f:
+            mode = os.fstat(f.fileno()).st_mode
+            data = f.read(MAX_KEY_FILE_BYTES + 1) if stat.S_ISREG(mode) else b""
     except OSError as exc:
         raise KeyFileError(f"robot key file {path}: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise KeyFileError(f"robot key file {path} is not a regular file")
     if mode & 0o077:
         raise KeyFileError(f"robot key file {path} is readable by others (mode {mode & 0o777:o}); chmod 600 it")
+    if len(data) > MAX_KEY_FILE_BYTES:
+        raise KeyFileError(f"robot key file {path} is over {MAX_KEY_FILE_BYTES} bytes; a robot key is {KEY_BYTES}")
     try:
-        key = bytes.fromhex(text)
-    except ValueError:
+        key = bytes.fromhex(data.decode("ascii").strip())
+    except ValueError:  # also bytes that are not ASCII
         raise KeyFileError(f"robot key file {path} is not hex") from None
     if len(key) != KEY_BYTES:
         raise KeyFileError(f"robot key file {path} holds {len(key)} bytes; a robot key is {KEY_BYTES}")
@@ -198,14 +209,18 @@ BAD_MAC = "robot-link MAC does not match: not signed with this robot's key, or a
 STALE = "robot-link stamp out of the time window"
 BEFORE_START = "robot-link stamp from before this robot backend started (a replay?)"
 REPLAYED = "robot-link counter not increasing: replayed or reordered"
+SUPERSEDED = "robot-link sender superseded: another safety session beats the heartbeat now"
 
 
 class Verifier:
     """The robot's side: a message counts as safety's when its MAC matches under the robot key, its
     stamp is within MAX_SKEW of `clock` and not from before this verifier was made (a restarted robot
     takes nothing recorded before), and its counter is above the last taken from its sender session
-    on that key (replayed or reordered messages are refused). A restarted safety is a new session.
-    A session not heard within MAX_SKEW is forgotten: anything of it sent before that is too old anyway."""
+    on that key (replayed or reordered messages are refused). A restarted safety is a new session: once
+    its heartbeat is taken, the session that beat it before is superseded and nothing more of it is
+    taken (what the old safety signed and was held back on the way would run under a safety that never
+    approved it). A session not heard within 2 x MAX_SKEW is forgotten: anything of it sent before
+    that is too old anyway."""
 
     def __init__(self, key: bytes, clock: Callable[[], float] = time.time, max_skew: float = MAX_SKEW) -> None:
         if len(key) != KEY_BYTES:
@@ -216,7 +231,9 @@ class Verifier:
         self.started = clock()
         self._lock = threading.Lock()
         self._last: dict[tuple[bytes, str], int] = {}  # (session, key expr) -> counter last taken
-        self._newest: dict[bytes, float] = {}  # session -> its newest stamp taken
+        self._newest: dict[bytes, float] = {}  # session -> its newest stamp heard (taken or superseded)
+        self._beating: bytes | None = None  # the session whose heartbeat was taken last
+        self._superseded: set[bytes] = set()
 
     def check(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
         """None when the message is safety's, and it is taken (its counter remembered); else why not."""
@@ -238,12 +255,21 @@ class Verifier:
             last = self._last.get((sig.session, key_expr), 0)
             if sig.counter <= last:
                 return Refusal(REPLAYED, f"counter {sig.counter} after {last} on {path_of(key_expr)}")
+            if sig.session in self._superseded:
+                self._heard(sig)  # remembered, so superseded, for as long as it goes on signing
+                return Refusal(SUPERSEDED)
             self._last[(sig.session, key_expr)] = sig.counter
-            self._newest[sig.session] = max(self._newest.get(sig.session, sig.stamp), sig.stamp)
-            self._newest[sig.session] = self._newest.pop(sig.session)  # the latest heard last
-            if len(self._newest) > MAX_SESSIONS:
-                self._drop(next(iter(self._newest)))
+            if path_of(key_expr) == keys.HEARTBEAT.path and sig.session != self._beating:
+                if self._beating is not None:
+                    self._superseded.add(self._beating)
+                self._beating = sig.session
+            self._heard(sig)
         return None
+
+    def _heard(self, sig: Signature) -> None:
+        self._newest[sig.session] = max(self._newest.pop(sig.session, sig.stamp), sig.stamp)  # the latest last
+        if len(self._newest) > MAX_SESSIONS:
+            self._drop(next(iter(self._newest)))
 
     def _forget_old(self, now: float) -> None:
         for session, newest in list(self._newest.items()):
@@ -252,8 +278,15 @@ class Verifier:
 
     def _drop(self, session: bytes) -> None:
         self._newest.pop(session, None)
+        self._superseded.discard(session)
+        if session == self._beating:
+            self._beating = None
         for k in [k for k in self._last if k[0] == session]:
             del self._last[k]
+
+
+# What a refusal names instead of a key expression with wildcards (only safety's concrete keys are signed).
+WILDCARD = "a wildcard key expression"
 
 
 class LinkGuard:
@@ -277,8 +310,13 @@ class LinkGuard:
         if refusal is None:
             return None
         path = path_of(key_expr)
+        detail: object = refusal
+        if path not in SIGNED_PATHS:
+            # A put or query on a wildcard expression reaches the robot's keys too; a peer can make up
+            # endless ones ("tether/r1/s$*/h$*t"): counted as one kind, never one log line each.
+            path, detail = WILDCARD, f"{refusal}; sent to {key_expr[:200]!r}"
         text = f"refused {path}: {refusal.why}"
-        self._problems.note(text, path, refusal)
+        self._problems.note(text, path, detail)
         if self._report is not None:
             self._report(text)
         return refusal
