@@ -17,6 +17,7 @@ from schemas.actions import CancelGoal, GetResult
 from schemas.common import Pose2D, Stage
 from schemas.executor import ExecutePlanGoal
 from schemas.incidents import IncidentList
+from schemas.plan import MAX_PLAN_BYTES
 from schemas.planner import AskReply, AskRequest
 from schemas.safety import EstopSource
 from schemas.world import CameraImage, Empty
@@ -61,7 +62,12 @@ class AgentAPI:
         return self.execute_plan({"plan": [step]})
 
     def execute_plan(self, plan: Any) -> str:
-        text = plan if isinstance(plan, str) else json.dumps(plan)
+        # As written: escaped, an "é" took six bytes and a plan within the tool's bounds went over the
+        # executor's limit.
+        text = plan if isinstance(plan, str) else json.dumps(plan, ensure_ascii=False)
+        if (size := len(text.encode())) > MAX_PLAN_BYTES:
+            # The executor drops a goal this long undecoded, which read as "not reachable".
+            return f"rejected: the plan is {size} bytes as JSON; the limit is {MAX_PLAN_BYTES}: shorten its texts"
         goal = ExecutePlanGoal(text=text, format="auto")
         try:
             handle = self.sender.send(goal)

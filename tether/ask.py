@@ -127,7 +127,14 @@ def ask(
     `tether send` does).
     """
     settings: NodeSettings = ctx.obj
-    text = sys.stdin.read() if request == "-" else request
+    # Bytes that are not UTF-8 (from stdin, or in the argument) are kept as surrogates, then refused
+    # here: sent, they failed to encode with a traceback.
+    text = sys.stdin.buffer.read().decode(errors="surrogateescape") if request == "-" else request
+    try:
+        text.encode()
+    except UnicodeEncodeError as exc:
+        console.print(f"[red]error:[/] the request is not UTF-8 text (a byte at character {exc.start + 1})")
+        raise typer.Exit(2) from None
     if not text.strip() or len(text) > MAX_REQUEST_CHARS:
         console.print(f"[red]error:[/] the request must be 1 to {MAX_REQUEST_CHARS} characters, not {len(text)}")
         raise typer.Exit(2)

@@ -26,8 +26,15 @@ DATA_NOTE = (
 )
 
 
-# Any spelling of the closing marker a model might still read as one.
-CLOSING = re.compile(r"<\s*/\s*robot-data\s*>", re.IGNORECASE)
+# Any spelling of the closing marker a model might still read as one: with attributes, with invisible
+# characters (zero-width, soft hyphen) inside, fullwidth or small brackets, an underscore or a space for
+# the hyphen. Each of these closed the block before, and what followed read as instructions.
+_INVISIBLE = r"[\s\u00ad\u200b-\u200f\u2060-\u2064\ufeff]*"
+CLOSING = re.compile(
+    rf"[<\uff1c\ufe64]{_INVISIBLE}[/\uff0f]{_INVISIBLE}robot{_INVISIBLE}(?:[-_\u2010\u2011]{_INVISIBLE})?data"
+    r"\b[^<>\uff1c\uff1e\ufe64\ufe65]{0,200}[>\uff1e\ufe65]",
+    re.IGNORECASE,
+)
 
 
 def as_data(source: str, text: str) -> str:
