@@ -94,21 +94,33 @@ def parse_since(text: str, now: float) -> float:
         raise ValueError(
             f"--since {text!r} is neither a duration (90s, 30m, 2h, 7d) nor a date or time (2026-11-20T14:00)"
         ) from None
-    if when.tzinfo is None:
-        when = when.astimezone()
-    return max(0.0, when.timestamp())
+    try:
+        if when.tzinfo is None:
+            when = when.astimezone()
+        return max(0.0, when.timestamp())
+    except (OverflowError, OSError, ValueError):
+        raise ValueError(f"--since {text!r} is a date this computer cannot place in time") from None
 
 
 def where(incident: Incident) -> str:
     return "where unknown" if incident.x is None or incident.y is None else fmt_point(incident.x, incident.y)
 
 
+def local_time(stamp: float) -> str | None:
+    """`stamp` (wall clock seconds) as an ISO time here; None for one no date can show (safety's answer
+    is a peer's: a stamp from a broken clock or a hostile store file must not stop the listing)."""
+    try:
+        return dt.datetime.fromtimestamp(stamp).astimezone().isoformat(timespec="seconds")
+    except (OverflowError, OSError, ValueError):
+        return None
+
+
 def incident_json(incident: Incident) -> dict[str, Any]:
     data: dict[str, Any] = msgspec.to_builtins(incident)
-    # Always present, also when safety did not know the pose (None then).
+    # Always present, also when safety did not know the pose or the time is no date (None then).
     data.setdefault("x", None)
     data.setdefault("y", None)
-    data["time"] = dt.datetime.fromtimestamp(incident.stamp).astimezone().isoformat(timespec="seconds")
+    data["time"] = local_time(incident.stamp)
     return data
 
 
@@ -247,8 +259,8 @@ def show(
 ) -> None:
     """Show one incident, with the timeline around it from the recording it is in (as `tether inspect`).
 
-    Exit 0 shown (a missing recording is a note, not an error), 2 unknown incident or unreadable
-    recording, 3 safety unreachable.
+    Exit 0 shown (a recording missing or unreadable is a note, not an error), 2 unknown incident,
+    3 safety unreachable.
     """
     incident, _answer = _one(ctx, incident_id, as_json)
     path = find_recording(incident, recording, Path("recordings"))
@@ -278,7 +290,10 @@ def show(
     now = time.time()
     out.print(shown(f"incident {incident.id}: {incident.kind}" + (f" ({incident.source})" if incident.source else "")))
     lines = [
-        ("when", f"{incident_json(incident)['time']} ({ago(incident.stamp, now)})"),
+        (
+            "when",
+            f"{local_time(incident.stamp) or f'stamp {incident.stamp:g} is no date'} ({ago(incident.stamp, now)})",
+        ),
         ("where", where(incident) + ("" if incident.yaw is None else f", heading {math.degrees(incident.yaw):.0f}°")),
         (
             "hand",
@@ -312,6 +327,8 @@ def timeline_rows(path: Path, stamp: float, window: float) -> tuple[list[dict[st
         recording = read_recording(path)
     except RecordingError as exc:
         return [], f"the recording cannot be read: {exc}"
+    except OSError as exc:  # opening it: the path is safety's (or the user's), not necessarily readable here
+        return [], f"the recording {path} cannot be read: {exc.strerror or exc}"
     timeline = build_timeline(recording)
     centre = int(stamp * 1e9)
     span = int(window * 1e9)

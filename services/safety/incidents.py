@@ -34,6 +34,7 @@ import math
 import sqlite3
 import threading
 import time
+import typing
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import Feedback, GoalStatus
-from schemas.common import Vec3
+from schemas.common import Metres, Radians, Vec3
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
     MAX_INVOLVED,
@@ -88,6 +89,11 @@ READ_CHUNK = 500
 MAX_REASON = 4000
 MAX_SHORT = 64
 MAX_RECORDING = 400
+# What the wire allows of a place and a heading (ge, le): a file's value beyond them is not used.
+_PLACE = (typing.get_args(Metres)[1].ge, typing.get_args(Metres)[1].le)
+_HEADING = (typing.get_args(Radians)[1].ge, typing.get_args(Radians)[1].le)
+# The longest list of names (JSON) a file's row is read for: MAX_INVOLVED names, escaped.
+MAX_NAMES_JSON = 64 * 1024
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS incidents (
@@ -208,20 +214,30 @@ def _row(incident: Incident) -> tuple[Any, ...]:
 
 
 def _listed(text: Any) -> list[str]:
+    if isinstance(text, str | bytes) and len(text) > MAX_NAMES_JSON:
+        return []
     try:
         value = json.loads(text)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, RecursionError):
         return []
-    return [str(v) for v in value][:MAX_INVOLVED] if isinstance(value, list) else []
+    return _names(str(v) for v in value) if isinstance(value, list) else []
 
 
-def _number(value: Any) -> float | None:
-    """A REAL column as a finite float; None for NULL or anything else (a newer version's file)."""
+def _number(value: Any, bounds: tuple[float, float]) -> float | None:
+    """A REAL column as a finite float within `bounds`; None for NULL or anything else (a newer
+    version's file, a hostile one): a value the wire refuses would make every answer listing it
+    undecodable."""
     try:
         number = float(value)
     except (TypeError, ValueError):
         return None
-    return number if math.isfinite(number) else None
+    return number if math.isfinite(number) and bounds[0] <= number <= bounds[1] else None
+
+
+def _decoded(raw: bytes) -> str:
+    """A TEXT column: one that is not UTF-8 is read with replacement characters, never raises (which
+    would leave every incident of the file out of memory)."""
+    return raw.decode("utf-8", errors="replace")
 
 
 def _text(value: Any, limit: int = MAX_SHORT) -> str:
@@ -239,9 +255,9 @@ def _incident(row: Sequence[Any]) -> Incident | None:
         return None
     if number < 1 or not math.isfinite(when):
         return None
-    hx, hy, hz = _number(hx), _number(hy), _number(hz)
+    hx, hy, hz = _number(hx, _PLACE), _number(hy, _PLACE), _number(hz, _PLACE)
     hand = Vec3(x=hx, y=hy, z=hz) if hx is not None and hy is not None and hz is not None else None
-    x, y = _number(x), _number(y)
+    x, y = _number(x, _PLACE), _number(y, _PLACE)
     return Incident(
         id=number,
         stamp=when,
@@ -249,7 +265,7 @@ def _incident(row: Sequence[Any]) -> Incident | None:
         reason=_text(reason, MAX_REASON),
         x=x if y is not None else None,
         y=y if x is not None else None,
-        yaw=_number(yaw),
+        yaw=_number(yaw, _HEADING),
         hand=hand,
         source=_text(source),
         rule=_text(rule),
@@ -259,7 +275,7 @@ def _incident(row: Sequence[Any]) -> Incident | None:
         objects=_listed(objects),
         people=_listed(people),
         recording=_text(row[17], MAX_RECORDING),
-        cleared=bool(row[18]),
+        cleared=isinstance(row[18], int | float) and row[18] != 0,
     )
 
 
@@ -355,8 +371,20 @@ class IncidentStore:
         self.version += 1
 
     def _put_many(self, incidents: list[Incident]) -> None:
-        """Many into memory (a file read): oldest first, and the order sorted once, not one by one."""
-        incidents = sorted(incidents, key=_order)
+        """Many into memory (a file read): oldest first, and the order sorted once, not one by one. A
+        number already held is skipped: only a file not made by this code has two rows under one (its
+        `id` not the key), and one number held twice would list an incident after it is forgotten."""
+        unique: dict[int, Incident] = {}
+        for incident in incidents:
+            if incident.id not in self._incidents:
+                unique.setdefault(incident.id, incident)
+        if len(unique) < len(incidents):
+            log.error(
+                "incident store %s: %d rows skipped: their incident numbers repeat another row's",
+                self.path,
+                len(incidents) - len(unique),
+            )
+        incidents = sorted(unique.values(), key=_order)
         for incident in incidents:
             self._put(incident, ordered=False)
         self._ordered = sorted(self._ordered + incidents, key=_order)
@@ -416,6 +444,7 @@ class IncidentStore:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             db = sqlite3.connect(self.path, timeout=self._busy_timeout, check_same_thread=False, isolation_level=None)
+            db.text_factory = _decoded
             version = int(db.execute("PRAGMA user_version").fetchone()[0])
             if version > SCHEMA_VERSION:
                 db.close()
@@ -452,6 +481,7 @@ class IncidentStore:
             ro = sqlite3.connect(
                 f"{self.path.resolve().as_uri()}?mode=ro", uri=True, timeout=self._busy_timeout, check_same_thread=False
             )
+            ro.text_factory = _decoded
             try:
                 columns = {r[1] for r in ro.execute("PRAGMA table_info(incidents)").fetchall()}
                 rows: list[Any] = []
@@ -819,8 +849,13 @@ class IncidentStore:
                     if clusters is not None and clusters.params == params and journal is not None:
                         if not journal:
                             return self._zones
-                        nearby = [(spot, self._cells_around(spot.x, spot.y, radius)) for spot in journal]
-                    else:
+                        # An update looks at every incident around each new one: where most of them are
+                        # (a flood of reports at one place) that costs more than computing afresh, once
+                        # for each new incident, and the writer would fall ever further behind.
+                        crowd = sum(len(c) for spot in journal for c in self._cells_at(spot.x, spot.y, radius))
+                        if crowd <= len(self._spots):
+                            nearby = [(spot, self._cells_around(spot.x, spot.y, radius)) for spot in journal]
+                    if not nearby:
                         points = [(s.id, s.x, s.y, s.stamp, s.kind) for s in self._spots.values() if not s.cleared]
                     self._journal = []
                 if points is not None:
@@ -834,12 +869,16 @@ class IncidentStore:
                         self.version += 1
             return self._zones
 
-    def _cells_around(self, x: float, y: float, radius: float) -> list[list[_Spot]]:
-        """Copies of the index's cells within `radius` of (x, y) (call with `_lock` held)."""
+    def _cells_at(self, x: float, y: float, radius: float) -> Iterator[list[_Spot]]:
+        """The index's cells within `radius` of (x, y) that hold incidents (call with `_lock` held)."""
         span = math.ceil(radius / CELL)
         cx, cy = _cell(x, y)
         cells = ((i, j) for i in range(cx - span, cx + span + 1) for j in range(cy - span, cy + span + 1))
-        return [list(spots) for c in cells if (spots := self._grid.get(c))]
+        return (spots for c in cells if (spots := self._grid.get(c)))
+
+    def _cells_around(self, x: float, y: float, radius: float) -> list[list[_Spot]]:
+        """Copies of the index's cells within `radius` of (x, y) (call with `_lock` held)."""
+        return [list(spots) for spots in self._cells_at(x, y, radius)]
 
 
 def _update(clusters: _Clusters, nearby: list[tuple[_Spot, list[list[_Spot]]]], radius: float) -> bool:
