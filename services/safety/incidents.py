@@ -1032,8 +1032,11 @@ class Draft:
 
 # Vetoes of one rule on one key while a plan runs within this many seconds are one incident.
 VETO_WINDOW = 5.0
-# Reports taken a second, at most (bursts of a second's worth); more are dropped with a warning.
-REPORT_RATE = 20.0
+# Reports taken: up to REPORT_BURST at once, then one every REPORT_PERIOD seconds on average; more are
+# dropped with a warning. A robot sees a few such things an hour; 20 a second, kept, grew safety's
+# memory and file by about 100 KB a second for as long as a reporter looped.
+REPORT_BURST = 20
+REPORT_PERIOD = 10.0
 # A pause counts as a near-miss while a plan runs or the base moved this recently (seconds).
 MOVED_RECENTLY = 2.0
 # Refusals that say nothing about a place: the e-stop (its own incident), the control mode, a missing
@@ -1055,7 +1058,7 @@ class IncidentWatch:
     _vetoes: dict[tuple[str, str], float] = field(default_factory=dict)
     _moved: float = -math.inf
     _paused_noted: bool = False
-    _reports: RateLimit = field(default_factory=lambda: RateLimit(REPORT_RATE, 1.0))
+    _reports: RateLimit = field(default_factory=lambda: RateLimit(1.0 / REPORT_PERIOD, REPORT_BURST * REPORT_PERIOD))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def plan_status(self, status: GoalStatus) -> None:
@@ -1141,7 +1144,10 @@ class IncidentWatch:
             allowed = ", ".join(sorted(str(k) for k in REPORTED_KINDS))
             return f"incident report of kind {report.kind} ignored: only {allowed} may be reported"
         if not self._reports.allow(self.clock()):
-            return f"incident report ({report.kind}) dropped: more than {REPORT_RATE:g} a second"
+            return (
+                f"incident report ({report.kind}) dropped: more than {REPORT_BURST} at once, or one every "
+                f"{REPORT_PERIOD:g} s on average"
+            )
         goal_id, step, label = self.context()
         return Draft(
             report.kind,

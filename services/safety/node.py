@@ -53,7 +53,7 @@ from services.errors import CallError
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.gate import MOVING, GateEvent, GoalRuling, Ruling, SafetyGate
-from services.safety.incidents import Draft, IncidentStore, IncidentStoreError, IncidentWatch
+from services.safety.incidents import MAX_REASON, Draft, IncidentStore, IncidentStoreError, IncidentWatch
 from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
 from services.safety.monitor import RateLimit
@@ -63,6 +63,9 @@ log = logging.getLogger(__name__)
 
 # Incidents noticed but not yet recorded, at most (more are dropped with an error in the log).
 MAX_NOTED = 1000
+# How far from the robot's base a reported incident (a dropped object) may be placed: its reach, and
+# then some for a fall and a roll.
+REPORT_REACH = 3.0
 # The service whose plans the approvals are for (its node's name, so its liveliness token's).
 EXECUTOR = "executor"
 # On close, incidents noticed are still recorded for at most this long (seconds); the rest are logged.
@@ -587,11 +590,18 @@ class SafetyNode:
         assert store is not None
         draft, pose = noted.draft, noted.pose
         x, y = (draft.x, draft.y) if draft.x is not None and draft.y is not None else (None, None)
+        reason = draft.reason
+        if x is not None and y is not None and pose is not None and math.dist((x, y), (pose.x, pose.y)) > REPORT_REACH:
+            # Nothing the robot dropped or hit lands that far from it: a report placed there (a broken
+            # or hostile reporter) would make caution zones anywhere. Where the robot was stands instead.
+            note = f" (reported at {fmt_point(x, y)}, over {REPORT_REACH:g} m from the robot: placed where it was)"
+            reason = reason[: MAX_REASON - len(note)] + note
+            x = y = None
         if x is None and pose is not None:
             x, y = pose.x, pose.y
         incident = store.add(
             draft.kind,
-            draft.reason,
+            reason,
             x=x,
             y=y,
             yaw=pose.yaw if pose is not None else None,

@@ -26,6 +26,7 @@ from schemas.incidents import (
     IncidentReport,
 )
 from schemas.safety import Decision, EstopSource
+from services.safety.node import REPORT_REACH
 from services.safety.operator import read_token
 from tests.fastsim import FAST_SIM
 from tests.integration.conftest import Stack, start_stack, stop_stack, tether_cli
@@ -58,20 +59,36 @@ def restart_safety(stack: Stack) -> None:
     assert Watch(stack.node, keys.HEARTBEAT).latest(timeout=10.0) is not None, "no heartbeat after the restart"
 
 
-def report(stack: Stack, reason: str) -> Incident:
-    """A dropped object reported as the executor would; the incident safety records for it."""
+def report(stack: Stack, reason: str, metres_away: float = 0.5) -> Incident:
+    """A dropped object reported as the sim would, `metres_away` east of the robot; the incident
+    safety records for it."""
     new = Watch(stack.node, keys.NEW_INCIDENT)
+    here = Watch(stack.node, keys.ODOM).latest(timeout=5.0)
+    assert here is not None, "no odometry"
+    x, y = round(here.pose.x + metres_away, 3), round(here.pose.y, 3)
     # A kind only safety may record is ignored; published first, it would arrive first.
     stack.node.publish(keys.INCIDENT_REPORT, IncidentReport(kind=IncidentKind.ESTOP, reason=f"pretend {reason}"))
     stack.node.publish(
         keys.INCIDENT_REPORT,
-        IncidentReport(kind=IncidentKind.DROPPED, reason=reason, objects=["red cup"], x=3.0, y=2.0),
+        IncidentReport(kind=IncidentKind.DROPPED, reason=reason, objects=["red cup"], x=x, y=y),
     )
     incident = new.wait_for(lambda i: reason in i.reason, timeout=10.0)
     assert incident is not None, "the report was not recorded"
     assert all(i.kind is not IncidentKind.ESTOP for i in new.messages), "a reported e-stop was taken"
-    assert (incident.kind, incident.x, incident.y, incident.objects) == (IncidentKind.DROPPED, 3.0, 2.0, ["red cup"])
+    assert (incident.kind, incident.objects) == (IncidentKind.DROPPED, ["red cup"])
+    if metres_away <= REPORT_REACH:
+        assert (incident.x, incident.y) == (x, y)
     return incident
+
+
+def test_a_report_placed_far_from_the_robot_is_recorded_where_the_robot_was(stack: Stack) -> None:
+    """A broken or hostile reporter could put caution zones anywhere: a drop 8 m from the robot is not where it says."""
+    here = Watch(stack.node, keys.ODOM).latest(timeout=5.0)
+    assert here is not None
+    incident = report(stack, "dropped far away, it says", metres_away=REPORT_REACH + 5.0)
+    assert incident.x is not None and incident.y is not None
+    assert math.dist((incident.x, incident.y), (here.pose.x, here.pose.y)) < 0.5, incident
+    assert f"over {REPORT_REACH:g} m from the robot: placed where it was" in incident.reason
 
 
 def test_an_estop_is_remembered_where_the_robot_was_survives_a_restart_and_warns_a_later_plan(stack: Stack) -> None:

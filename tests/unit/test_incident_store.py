@@ -24,6 +24,7 @@ from services.safety.gate import GateEvent
 from services.safety.incidents import (
     _INSERT,
     MAX_PENDING,
+    REPORT_PERIOD,
     RETRY_INTERVAL,
     IncidentStore,
     IncidentStoreError,
@@ -390,8 +391,15 @@ def test_only_reported_kinds_are_taken_and_at_a_bounded_rate() -> None:
     assert not isinstance(taken, str) and (taken.goal_id, taken.step, taken.objects) == ("p7", 1, ("red cup",))
     results = [watch.report(IncidentReport(kind=IncidentKind.COLLISION, reason="bump")) for _ in range(100)]
     assert sum(not isinstance(r, str) for r in results) < 25
-    clock.t += 2.0
+    clock.t += REPORT_PERIOD
     assert not isinstance(watch.report(IncidentReport(kind=IncidentKind.COLLISION, reason="later")), str)
+    # A reporter looping at 20 a second for a minute: what a robot sees in an hour at most, not 1,200
+    # incidents (each up to 5 KB, kept for good).
+    taken = 0
+    for _ in range(20 * 60):
+        clock.t += 0.05
+        taken += not isinstance(watch.report(IncidentReport(kind=IncidentKind.COLLISION, reason="loop")), str)
+    assert taken <= 60 / REPORT_PERIOD + 1, taken
 
 
 def test_a_place_with_a_thousand_incidents_is_one_zone_and_near_gives_the_newest(tmp_path: Path) -> None:
