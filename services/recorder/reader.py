@@ -329,7 +329,7 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
 
     Reads a file cut short as far as it is whole, and skips a damaged record (a chunk whose CRC,
     compression or contents are wrong) to read on past it, naming it in `problem`; raises
-    RecordingError for a file that is missing or not MCAP at all.
+    RecordingError for a file that is missing, cannot be read, or is not MCAP at all.
     """
     try:
         size = path.stat().st_size
@@ -397,6 +397,8 @@ def read_recording(path: Path, keep: Callable[[str], bool] | None = None) -> Rec
                 )
     except NotMcap as exc:
         raise RecordingError(f"{path} ({size} bytes) is not an MCAP recording: {exc}") from None
+    except OSError as exc:  # not ours to read (permissions), or the disk failed under it
+        raise RecordingError(f"cannot read recording {path}: {exc.strerror or exc}") from None
     except FileEndsEarly:
         ending = "the file ends early (a crash?): read up to the last whole chunk"
     except ChunkError as exc:

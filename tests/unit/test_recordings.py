@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import threading
 import tracemalloc
 from collections.abc import Callable
@@ -231,6 +232,28 @@ def test_a_file_that_is_not_a_recording_is_refused_naming_it(tmp_path: Path, con
         read_recording(path)
     with pytest.raises(RecordingError, match=r"missing\.mcap"):
         read_recording(tmp_path / "missing.mcap")
+
+
+def test_a_file_that_cannot_be_read_is_refused_naming_it(tmp_path: Path) -> None:
+    # Root reads any file whatever its mode: a write-only attribute of the kernel stands in for one
+    # the user may not read (tether incidents show crashed on such a recording).
+    unreadable = tmp_path / "theirs.mcap"
+    unreadable.write_bytes(b"\x89MCAP0\r\n" + b"\0" * 40)
+    unreadable.chmod(0)
+    if _readable(unreadable):
+        unreadable = Path("/sys/bus/pci/rescan")
+        if not unreadable.exists() or _readable(unreadable):
+            pytest.skip("no file here that this user cannot read")
+    with pytest.raises(RecordingError, match=f"cannot read recording {re.escape(str(unreadable))}"):
+        read_recording(unreadable)
+
+
+def _readable(path: Path) -> bool:
+    try:
+        with path.open("rb"):
+            return True
+    except PermissionError:
+        return False
 
 
 # Replay
