@@ -175,7 +175,19 @@ def settings_of(ctx: typer.Context) -> NodeSettings:
 
 
 def client(ctx: typer.Context) -> Node:
-    return Node("cli", settings_of(ctx))
+    """This command's session; a router that is down or refuses the login ends the command with exit 3,
+    saying so (with --json, one object: status 'unreachable' and the reason)."""
+    try:
+        return Node("cli", settings_of(ctx))
+    except zenoh.ZError as exc:
+        why = f"cannot open a Zenoh session: {exc}"
+        conclude(
+            console,
+            bool(ctx.params.get("as_json")),
+            {"status": "unreachable", "reason": why},
+            f"[red]unreachable[/]: {shown(why)}",
+            EXIT_UNREACHABLE,
+        )
 
 
 # Services
@@ -202,10 +214,21 @@ def start_services(
         configs = {s: deployed.client_config(settings.robot, s) for s in services}
         supervisor = Supervisor(settings, log_dir, deployed.robot_config(settings.robot), zenoh_configs=configs)
         supervisor.robot_key_file = deployed.directory / settings.robot / "robot.key"
-        node_settings = dataclasses.replace(settings, zenoh_config=configs[services[0]])
-    supervisor.start_all(services)
-    node = Node("cli", node_settings)
+        first = {**dataclasses.asdict(settings), "zenoh_config": configs[services[0]]}
+        node_settings = ConnectWithin(**first, seconds=timeout)
     deadline = time.monotonic() + timeout
+    supervisor.start_all(services)
+    try:
+        node = Node("cli", node_settings)
+    except BaseException as exc:  # Ctrl-C while it waited too: the services started go with this process
+        supervisor.stop_all()
+        if not isinstance(exc, zenoh.ZError):
+            raise
+        console.print(
+            f"[red]error:[/] no Zenoh session within {timeout:g} s: {literal(exc)}; the services were stopped",
+            soft_wrap=True,
+        )
+        raise typer.Exit(1) from None
     with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
         while True:
             missing = node.wait_alive(services, min(UP_POLL, max(0.0, deadline - time.monotonic())))
@@ -226,6 +249,20 @@ def start_services(
         supervisor.stop_all()
         raise typer.Exit(1)
     return supervisor, node
+
+
+@dataclasses.dataclass(frozen=True)
+class ConnectWithin(NodeSettings):
+    """Settings whose session gives up on its router after `seconds`. A deployment's service configs
+    wait for the router for ever; `tether up`, watching as one of them, must not: it could then be
+    neither timed out nor stopped with Ctrl-C, and was killed with its services left running."""
+
+    seconds: float = 60.0
+
+    def zenoh(self, service: str | None) -> zenoh.Config:
+        conf = super().zenoh(service)
+        conf.insert_json5("connect/timeout_ms", str(round(self.seconds * 1000)))
+        return conf
 
 
 # How often `tether up` looks, while it waits, whether a service it started has exited.
@@ -509,9 +546,15 @@ def send(
     goal first sent, final_goal_id the last recovery's.
     """
     if fmt not in ("auto", "json", "yaml", "text"):
-        console.print(f"[red]error:[/] --format must be auto, json, yaml or text, not {literal(repr(fmt))}")
-        raise typer.Exit(2)
-    text = read_plan(plan)
+        why = f"--format must be auto, json, yaml or text, not {fmt!r}"
+        refused: dict[str, Any] = {"status": "rejected", "stage": None, "reason": why, "steps": []}
+        conclude(console, as_json, refused, f"[red]error:[/] {literal(why)}", 2)
+    try:
+        text = read_plan(plan)
+    except OSError as exc:
+        why = f"cannot read the plan file {plan}: {exc.strerror or exc}"
+        refused = {"status": "rejected", "stage": None, "reason": why, "steps": []}
+        conclude(console, as_json, refused, f"[red]error:[/] {literal(why)}", 2)
     if len(text.encode()) > MAX_PLAN_BYTES:
         reason = f"plan is {len(text.encode())} bytes; the limit is {MAX_PLAN_BYTES}"
         if as_json:
@@ -525,7 +568,7 @@ def send(
         send_recover(settings_of(ctx), text, fmt, dry_run, wait, preempt, timeout, as_json, config)
     if config is not None:
         why = "--config is read only with --recover (the planner's [planner] table)"
-        refused: dict[str, Any] = {"status": "rejected", "stage": None, "reason": why, "steps": []}
+        refused = {"status": "rejected", "stage": None, "reason": why, "steps": []}
         conclude(console, as_json, refused, f"[red]error:[/] {literal(why)}", 2)
     with client(ctx) as node:
         if "executor" not in node.alive_services(timeout=2.0):
@@ -860,7 +903,7 @@ def status(
         typer.Option(
             "--check",
             help="A health probe: exit 0 only if the services are alive and safety's heartbeat is fresh, "
-            "else 1 with one line saying what is missing.",
+            "else 1 with one line saying what is missing (3: no Zenoh session).",
         ),
     ] = False,
     service: Annotated[
@@ -881,9 +924,13 @@ def status(
         raise typer.Exit(2)
     if check:
         try:
-            node = client(ctx)
+            node = Node("cli", settings_of(ctx))
         except Exception as exc:  # zenoh.ZError: no router, refused login; anything else, as unhealthy
-            console.print(f"unhealthy: cannot open a Zenoh session: {exc}", markup=False, soft_wrap=True)
+            why = f"cannot open a Zenoh session: {exc}"
+            if as_json:
+                print(json.dumps({"ok": False, "alive": [], "heartbeat": False, "problems": [why]}))
+            else:
+                console.print(f"unhealthy: {why}", markup=False, soft_wrap=True)
             raise typer.Exit(EXIT_UNREACHABLE) from None
         with node:
             report = health(node, service or [])
@@ -996,6 +1043,11 @@ def world_move(
 lazy_command(world_app, "fault", "tether.worldfault:world_fault")
 
 
+def scene_failed(error: ServiceError, as_json: bool) -> NoReturn:
+    document = {"status": "unreachable", "error": msgspec.to_builtins(error)}
+    conclude(console, as_json, document, f"[red]{shown(error.kind)}[/]: {shown(error.message)}", EXIT_UNREACHABLE)
+
+
 @world_app.command("scene")
 def world_scene(
     ctx: typer.Context,
@@ -1004,17 +1056,16 @@ def world_scene(
     """What the resolver knows about the world: where each object was last seen, the relations
     between things (on, in, near, left of, right of), and the description an LLM prompt can use.
 
-    Exit 0, 3 when no resolver is reachable.
+    Exit 0, 3 when no resolver is reachable (with --json: status 'unreachable' and the error).
     """
     with client(ctx) as node:
         if "resolver" not in node.alive_services(timeout=2.0):
-            console.print("[red]no resolver reachable[/]: start the services with `tether up`")
-            raise typer.Exit(EXIT_UNREACHABLE)
+            why = "no resolver reachable: start the services with `tether up`"
+            scene_failed(ServiceError(kind=ErrorKind.UNAVAILABLE, message=why), as_json)
         try:
             scene = node.call(keys.SCENE, Empty(), timeout=5.0)
         except CallError as exc:
-            console.print(f"[red]{shown(exc.error.kind)}[/]: {shown(exc.error.message)}")
-            raise typer.Exit(EXIT_UNREACHABLE) from None
+            scene_failed(exc.error, as_json)
     if as_json:
         print(encode(scene).decode())
         return
