@@ -20,6 +20,7 @@ from typing import Annotated
 
 import msgspec
 import typer
+import zenoh
 from rich.console import Console
 
 from schemas import keys
@@ -174,7 +175,11 @@ def ask_planner(
 ) -> AskReply:
     """The planner's reply: in this process with an endpoint of its own, else from the planner service,
     else UNCONFIGURED. PlannerFailed when the service answered with an error instead."""
-    with Node("cli", settings) as node:
+    try:
+        node = Node("cli", settings)
+    except zenoh.ZError as exc:  # the router down, the login refused: exit 3, saying so
+        raise PlannerFailed(f"cannot open a Zenoh session: {exc}", unreachable=True) from None
+    with node:
         if endpoint is not None:
             planner = Planner(node, config, endpoint)
             try:

@@ -65,7 +65,7 @@ from tether.client import (
     trigger_estop,
 )
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
-from tether.output import conclude, literal, printable, shown
+from tether.output import conclude, literal, open_node, printable, shown
 from tether.runcommand import HELP, common, run
 from tether.supervisor import Supervisor, free_base_port
 
@@ -175,19 +175,8 @@ def settings_of(ctx: typer.Context) -> NodeSettings:
 
 
 def client(ctx: typer.Context) -> Node:
-    """This command's session; a router that is down or refuses the login ends the command with exit 3,
-    saying so (with --json, one object: status 'unreachable' and the reason)."""
-    try:
-        return Node("cli", settings_of(ctx))
-    except zenoh.ZError as exc:
-        why = f"cannot open a Zenoh session: {exc}"
-        conclude(
-            console,
-            bool(ctx.params.get("as_json")),
-            {"status": "unreachable", "reason": why},
-            f"[red]unreachable[/]: {shown(why)}",
-            EXIT_UNREACHABLE,
-        )
+    """This command's session, or exit 3 saying why there is none (output.open_node)."""
+    return open_node(settings_of(ctx), console, bool(ctx.params.get("as_json")))
 
 
 # Services

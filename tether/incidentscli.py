@@ -35,7 +35,7 @@ from services.runtime import Node, NodeSettings
 from services.safety.hazards import ago, zone_reason
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, operator_name
-from tether.output import printable, shown
+from tether.output import open_node, printable, shown
 
 # Exit codes.
 EXIT_OK = 0
@@ -64,7 +64,7 @@ def _fail(as_json: bool, why: str, code: int, **data: Any) -> NoReturn:
 
 def _node(ctx: typer.Context) -> Node:
     settings: NodeSettings = ctx.obj
-    return Node("cli", settings)
+    return open_node(settings, console, bool(ctx.params.get("as_json")))
 
 
 def _ask(ctx: typer.Context, query: IncidentQuery, as_json: bool) -> IncidentList:
@@ -325,10 +325,8 @@ def timeline_rows(path: Path, stamp: float, window: float) -> tuple[list[dict[st
 
     try:
         recording = read_recording(path)
-    except RecordingError as exc:
+    except RecordingError as exc:  # missing, not ours to read (the path is safety's), or not MCAP
         return [], f"the recording cannot be read: {exc}"
-    except OSError as exc:  # opening it: the path is safety's (or the user's), not necessarily readable here
-        return [], f"the recording {path} cannot be read: {exc.strerror or exc}"
     timeline = build_timeline(recording)
     centre = int(stamp * 1e9)
     span = int(window * 1e9)

@@ -24,7 +24,7 @@ from services.errors import CallError
 from services.runtime import Node, NodeSettings
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name
-from tether.output import printable
+from tether.output import open_node, printable
 
 # Exit codes of these commands.
 EXIT_OK = 0
@@ -41,7 +41,7 @@ console = Console(stderr=True, highlight=False)
 
 def _node(ctx: typer.Context) -> Node:
     settings: NodeSettings = ctx.obj
-    return Node("cli", settings)
+    return open_node(settings, console, bool(ctx.params.get("as_json")))
 
 
 def _emit(as_json: bool, data: dict[str, Any], text: str, code: int) -> NoReturn:

@@ -7,8 +7,14 @@ import json
 from typing import Any, NoReturn
 
 import typer
+import zenoh
 from rich.console import Console
 from rich.markup import escape
+
+from services.runtime import Node, NodeSettings
+
+# No services reachable (the CLI contract's exit code 3), here: no Zenoh session at all.
+EXIT_UNREACHABLE = 3
 
 
 def literal(value: object) -> str:
@@ -26,6 +32,17 @@ def conclude(console: Console, as_json: bool, document: dict[str, Any], said: st
     else:
         console.print(said)
     raise typer.Exit(code)
+
+
+def open_node(settings: NodeSettings, console: Console, as_json: bool, name: str = "cli") -> Node:
+    """A command's session; a router that is down, a refused login or a config Zenoh cannot use ends
+    the command with exit 3, saying so (with --json, one object: status 'unreachable' and the reason)."""
+    try:
+        return Node(name, settings)
+    except zenoh.ZError as exc:
+        why = f"cannot open a Zenoh session: {exc}"
+        said = f"[red]unreachable[/]: {shown(why)}"
+        conclude(console, as_json, {"status": "unreachable", "reason": why}, said, EXIT_UNREACHABLE)
 
 
 # Text someone else wrote (a file, a peer, the robot), before it reaches a terminal: its control

@@ -43,12 +43,22 @@ def router_down(tmp_path: Path) -> Path:
         ["status"],
         ["world", "move", "red_cup", "1", "1"],
         ["world", "scene"],
+        ["mode"],
+        ["pending"],
+        ["approve", "0123", "--token-file", "TOKEN"],
+        ["incidents"],
+        ["incidents", "show", "1"],
+        ["ask", "bring me the red cup"],
     ],
 )
 @pytest.mark.parametrize("as_json", [False, True])
 def test_a_command_whose_router_is_down_says_so_and_exits_3(
     router_down: Path, command: list[str], as_json: bool
 ) -> None:
+    token = router_down.with_name("operator.token")  # one that reads: the session is what fails
+    token.write_text("ab" * 24 + "\n")
+    token.chmod(0o600)
+    command = [str(token) if arg == "TOKEN" else arg for arg in command]
     args = ["--zenoh-config", str(router_down), *command, *(["--json"] if as_json else [])]
     result = CliRunner().invoke(cli.app, args)
     assert isinstance(result.exception, SystemExit) and result.exit_code == 3, (result.exception, result.output)

@@ -166,4 +166,4 @@ def unreadable(tmp_path: Path) -> Path:
 def test_show_notes_a_recording_it_cannot_open(tmp_path: Path) -> None:
     path = unreadable(tmp_path)
     rows, note = timeline_rows(path, 1_800_000_000.0, 10.0)
-    assert rows == [] and note == f"the recording {path} cannot be read: Permission denied"
+    assert rows == [] and note == f"the recording cannot be read: cannot read recording {path}: Permission denied"
