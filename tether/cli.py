@@ -1182,7 +1182,7 @@ def mcp_command(
     ctx: typer.Context,
     http: Annotated[bool, typer.Option("--http", help="Serve streamable HTTP instead of stdio.")] = False,
     host: Annotated[str, typer.Option(help="With --http: the loopback address to bind.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="With --http: the port.")] = 8765,
+    port: Annotated[int, typer.Option(help="With --http: the port (tether view takes 8765).")] = 8766,
 ) -> None:
     """Serve the robot's tools over MCP: stdio for an MCP client that starts this command, or --http.
 
