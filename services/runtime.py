@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import signal
+import stat
 import threading
 import time
 import tomllib
@@ -225,10 +226,26 @@ def zenoh_config_file(path: Path) -> zenoh.Config:
     return conf
 
 
-@functools.cache
+# msgspec (0.22) is not safe building a type's description (a decoder, a first typed decode or
+# convert) on two threads at once; see decoder. Whatever does so off its main thread holds this, one
+# lock for the whole process: two types may share the struct types they hold.
+BUILDING_TYPES = threading.RLock()
+_decoders: dict[Any, msgspec.json.Decoder[Any]] = {}
+
+
 def decoder(type_: Any) -> msgspec.json.Decoder[Any]:
-    """One decoder per type, built once."""
-    return msgspec.json.Decoder(type_)
+    """One decoder per type, built once, and one at a time: msgspec (0.22) caches a struct type's
+    description on the type before it has filled it in, so a decoder built on another thread
+    meanwhile took the half-made one, and its first decode crashed the process (SIGSEGV: a planner
+    asked three plan/ask requests at once, each asking safety for incidents). A decoder already
+    built is taken without the lock: a call's reply decoder is looked up on every call."""
+    found = _decoders.get(type_)
+    if found is None:
+        with BUILDING_TYPES:
+            found = _decoders.get(type_)
+            if found is None:
+                found = _decoders[type_] = msgspec.json.Decoder(type_)
+    return found
 
 
 _encoder = msgspec.json.Encoder()
@@ -802,6 +819,10 @@ def stop_event() -> threading.Event:
     return stop
 
 
+# A service's config file is a few KB; the limit only keeps a wrong or hostile file from being read whole.
+MAX_CONFIG_BYTES = 1024 * 1024
+
+
 class ConfigError(Exception):
     """A config file is unreadable or a value in it is out of bounds; the message names both."""
 
@@ -810,16 +831,34 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
     """A service's frozen config from the `[section]` table of a TOML file; defaults without a file."""
     if path is None:
         return msgspec.convert({}, cls)
+    # Opened without blocking and checked on the open file: a FIFO given as the config hung start-up,
+    # and a device (/dev/zero) would be read without end.
     try:
-        data = tomllib.loads(path.read_text())
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        with os.fdopen(fd, "rb") as f:
+            regular = stat.S_ISREG(os.fstat(f.fileno()).st_mode)
+            raw = f.read(MAX_CONFIG_BYTES + 1) if regular else b""
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    if not regular:
+        raise ConfigError(f"config file {path} is not a regular file")
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES} bytes; a config file is a few KB")
+    try:
+        data = tomllib.loads(raw.decode())
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {path} is not UTF-8 text (byte {exc.start} is not)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"config file {path} nests arrays or tables too deeply") from None
+    except ValueError:  # past Python's limit on the digits of an integer it parses
+        raise ConfigError(f"config file {path} holds a number of too many digits") from None
     try:
         return msgspec.convert(data.get(section, {}), cls)
     except msgspec.ValidationError as exc:
-        raise ConfigError(f"config file {path} [{section}]: {exc}") from None
+        # It quotes the file (an unknown field's name): shown on a terminal, its ESC sequences are escaped.
+        raise ConfigError(f"config file {path} [{section}]: {str(exc).translate(_LOG_CONTROLS)}") from None
 
 
 # Control characters a log line escapes (newlines and tabs stay: tracebacks).
@@ -835,6 +874,12 @@ class _EscapingFormatter(logging.Formatter):
 
 
 def configure_logging(level: str = "INFO") -> None:
+    """Log lines to stderr at TETHER_LOG_LEVEL, else `level`; a level logging does not know (a typo
+    in a unit file) is said in one line, and `level` is used: it ended the service with a traceback."""
     handler = logging.StreamHandler()
     handler.setFormatter(_EscapingFormatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    logging.basicConfig(level=os.environ.get("TETHER_LOG_LEVEL", level).upper(), handlers=[handler])
+    asked = os.environ.get("TETHER_LOG_LEVEL", level)
+    known = asked.upper() in logging.getLevelNamesMapping()
+    logging.basicConfig(level=asked.upper() if known else level.upper(), handlers=[handler])
+    if not known:
+        log.warning("TETHER_LOG_LEVEL=%r is not a log level (DEBUG, INFO, WARNING, ERROR); logging at %s", asked, level)

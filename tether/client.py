@@ -58,11 +58,15 @@ class HeartbeatWait:
     """The first heartbeat that can be safety's and is fresh: it carries a signature-shaped robot-link
     attachment (the CLI has no robot key: this screens out unsigned forgeries, not a forger's own
     MAC) and is stamped within `fresh` seconds of `clock` (a beat buffered across a stalled link and
-    delivered late is not fresh). `why_not` says what came instead, when nothing did."""
+    delivered late is not fresh), and, given `wanted`, one it passes (a latched e-stop). `why_not` says
+    what came instead, when nothing did."""
 
-    def __init__(self, fresh: float, clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self, fresh: float, clock: Callable[[], float] = time.time, wanted: Callable[[SafetyStatus], bool] | None = None
+    ) -> None:
         self.fresh = fresh
         self._clock = clock
+        self._wanted = wanted
         self._lock = threading.Lock()
         self._arrived = threading.Event()
         self.status: SafetyStatus | None = None
@@ -84,6 +88,8 @@ class HeartbeatWait:
                 return
             if not abs(age) < self.fresh:  # also NaN
                 self._stale = age
+                return
+            if self._wanted is not None and not self._wanted(status):
                 return
             self.status = status
         self._arrived.set()
@@ -123,22 +129,18 @@ def operator_name() -> str:
 
 
 def trigger_estop(node: Node, source: EstopSource, reason: str, timeout: float = 2.0) -> SafetyStatus | None:
-    """Publish an e-stop and wait for a heartbeat that shows it latched; None if safety never confirms."""
-    confirmed: list[SafetyStatus] = []
-    latched = threading.Event()
+    """Publish an e-stop and wait for a heartbeat that shows it latched; None if safety never confirms.
 
-    def on_beat(status: SafetyStatus) -> None:
-        if status.estop.latched and not confirmed:
-            confirmed.append(status)
-            latched.set()
-
-    subscription = node.subscribe(keys.HEARTBEAT, on_beat)
+    Only a beat that can be safety's and is fresh confirms it (HeartbeatWait): a latched one without a
+    robot-link MAC, or one stamped long ago (a replay, a beat held on a stalled link), said "latched"
+    while safety, unreachable, never heard of this e-stop and the robot went on."""
+    waiting = HeartbeatWait(fresh=timeout, wanted=lambda status: status.estop.latched)
+    subscription = node.subscribe(keys.HEARTBEAT, waiting.take, verify=waiting.verify)
     try:
         node.publish(keys.ESTOP, EStop(source=source, reason=reason))
-        latched.wait(timeout)
+        return waiting.wait(timeout)
     finally:
         subscription.undeclare()
-    return confirmed[0] if confirmed else None
 
 
 def reset_estop(node: Node, token_file: str | None = None, timeout: float = 3.0) -> ResetReply:
