@@ -37,7 +37,7 @@ from services.planner.llm import ChatClient, ChatReply
 from services.planner.loop import Attempt, DryRunVerdict, LoopResult, LoopStatus, plan_loop
 from services.planner.prompt import hazard_lines, hazards_block, hazards_query, initial_messages
 from services.planner.recovery import Ended, Ports, Sent, follow_and_recover
-from services.runtime import Node
+from services.runtime import BUILDING_TYPES, Node, prepare_types
 
 log = logging.getLogger(__name__)
 
@@ -75,9 +75,12 @@ def bounded(text: str, limit: int = MAX_RECORDED_CHARS) -> str:
 
 
 def tool_schemas() -> list[dict[str, Any]]:
-    """The action tools in OpenAI's shape (imported when first asked, not at start)."""
+    """The action tools in OpenAI's shape (imported when first asked, not at start). The import brings
+    struct types (the vocabulary's) first used here, maybe on two workers at once: built one at a time
+    (runtime.prepare_types; two threads using a new struct type at once crashed the planner)."""
     from services.agent.tools import all_tools, render
 
+    prepare_types()
     tools = all_tools()
     # The step tools and execute_plan; not plan_and_execute (this planner itself), reads or controls.
     actions = [t for t in tools if t.kind == "action" and t.name != "plan_and_execute"] or tools
@@ -237,7 +240,9 @@ class Planner:
 
     def _tools(self) -> list[dict[str, Any]]:
         if self._tool_schemas is None:
-            self._tool_schemas = tool_schemas()
+            with BUILDING_TYPES:  # once, and the vocabulary read by one worker at a time
+                if self._tool_schemas is None:
+                    self._tool_schemas = tool_schemas()
         return self._tool_schemas
 
     def _model_call(self, request: AskRequest, deadline: float) -> Callable[[list[dict[str, Any]]], ChatReply]:

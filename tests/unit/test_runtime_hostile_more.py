@@ -13,6 +13,7 @@ import pytest
 
 from services.parser.config import ParserConfig
 from services.runtime import ConfigError, load_config
+from tests.sessions import free_ports
 
 ROOT = Path(__file__).resolve().parents[2]
 # A fresh interpreter (no decoder built yet) whose threads all ask for the same reply's decoder at once
@@ -40,6 +41,39 @@ print(totals)
 """
 RUNS = 5
 WAIT = 5.0
+# A service's first uses of struct types on its worker threads, as they come with its first queries:
+# once a Node is open, three threads each convert to a type not yet used (a decoder of it never
+# built), and three threads build the planner's tool schemas, whose import brings the vocabulary's
+# types. Before types were prepared as a Node opens, most runs died of SIGSEGV (msgspec 0.22 hands a
+# second thread a half-built type description).
+FIRST_USES = """
+import sys, threading
+import msgspec
+from schemas.incidents import IncidentList
+from services.planner.node import tool_schemas
+from services.runtime import SWITCH_INTERVAL, Node, NodeSettings
+
+node = Node("test", NodeSettings(robot="r1", base_port=int(sys.argv[1])))
+sys.setswitchinterval(SWITCH_INTERVAL)
+start = threading.Barrier(6)
+done = []
+
+def convert():
+    start.wait()
+    done.append(msgspec.convert({"total": 2}, IncidentList).total)
+
+def tools():
+    start.wait()
+    done.append(len(tool_schemas()) > 0)
+
+threads = [threading.Thread(target=f) for f in (convert, convert, convert, tools, tools, tools)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+node.close()
+print(sorted(map(int, done)))
+"""
 
 
 def test_threads_asking_for_a_decoder_at_once_all_get_a_whole_one() -> None:
@@ -49,6 +83,16 @@ def test_threads_asking_for_a_decoder_at_once_all_get_a_whole_one() -> None:
         )
         assert done.returncode == 0, f"run {run}: exit {done.returncode}\n{done.stderr[-2000:]}"
         assert done.stdout.strip() == "[1, 1, 1]", done.stdout
+
+
+def test_threads_first_using_struct_types_in_an_open_service_do_not_crash_it() -> None:
+    for run in range(RUNS):
+        base = str(free_ports(9))
+        done = subprocess.run(
+            [sys.executable, "-c", FIRST_USES, base], cwd=ROOT, capture_output=True, text=True, timeout=60
+        )
+        assert done.returncode == 0, f"run {run}: exit {done.returncode}\n{done.stderr[-2000:]}"
+        assert done.stdout.strip() == "[1, 1, 1, 2, 2, 2]", done.stdout
 
 
 # Config files as a wrong or hostile hand wrote them: each is refused with a ConfigError naming the file
