@@ -7,6 +7,7 @@ import faulthandler
 import functools
 import json
 import logging
+import math
 import os
 import signal
 import stat
@@ -172,10 +173,10 @@ def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Ses
     conf = settings.zenoh(service)
     ports = None if settings.zenoh_config is not None else listening_ports()
     if ports is None:
-        return zenoh.open(conf), 0.0
+        return _open(conf), 0.0
     conf.insert_json5("scouting/delay", "0")
     listening = {s for i, s in enumerate(ALL_SERVICES) if s != service and settings.base_port + i in ports}
-    session = zenoh.open(conf)
+    session = _open(conf)
     endpoints = {settings.endpoint(s) for s in listening}
     linked: set[str] = set()
     changed = threading.Condition()
@@ -202,6 +203,43 @@ def open_session(settings: NodeSettings, service: str | None) -> tuple[zenoh.Ses
         if time.monotonic() - started >= HEARD_TIMEOUT:
             log.debug("not every service linked to answered within %g s", HEARD_TIMEOUT)
     return session, time.monotonic() + DISCOVERY
+
+
+# After this long opening a session, a service says it is still waiting (for its router, most likely).
+OPEN_NOTICE = 2.0
+
+
+def _open(conf: zenoh.Config) -> zenoh.Session:
+    """zenoh.open, which a client config waits in for its router for as long as it is down. In a
+    service (stop_event was made) it waits on a thread of its own, so a stop meanwhile ends the
+    service at once (SystemExit 0): blocked in zenoh.open, the main thread never ran the SIGTERM
+    handler, and systemd or `tether up` had to kill it."""
+    stopping = _stopping
+    if stopping is None:
+        return zenoh.open(conf)
+    opened: list[zenoh.Session | BaseException] = []
+    done = threading.Event()
+
+    def open_it() -> None:
+        try:
+            opened.append(zenoh.open(conf))
+        except BaseException as exc:  # handed to the main thread, which raises it
+            opened.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=open_it, name="zenoh-open", daemon=True).start()
+    said_at = time.monotonic() + OPEN_NOTICE
+    while not done.wait(SIGNAL_POLL):  # woken to run a signal's handler
+        if stopping.is_set():
+            log.info("stopped while its Zenoh session was opening (its router not up?)")
+            raise SystemExit(0)
+        if time.monotonic() > said_at:
+            said_at = math.inf
+            log.warning("no Zenoh session after %g s: waiting for %s", OPEN_NOTICE, conf.get_json("connect/endpoints"))
+    if isinstance(opened[0], BaseException):
+        raise opened[0]
+    return opened[0]
 
 
 # The file paths a Zenoh config may hold: TLS keys, certificates and CA, and the router's password list.
@@ -829,9 +867,14 @@ class StopEvent(threading.Event):
                 return False
 
 
+# The stop event of this process when it is a service (stop_event): what a session opening looks at.
+_stopping: StopEvent | None = None
+
+
 def stop_event() -> threading.Event:
     """An event set by SIGINT or SIGTERM, for a service's main loop to wait on."""
-    stop = StopEvent()
+    global _stopping
+    stop = _stopping = StopEvent()
 
     def handle(signum: int, _frame: object) -> None:
         log.info("received %s, shutting down", signal.Signals(signum).name)

@@ -3,16 +3,23 @@ safety's, or not fresh, never confirm an e-stop."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
 from schemas import keys
 from schemas.safety import EstopSource, EstopState, SafetyStatus
+from services import runtime
 from services.robotlink import KEY_BYTES, Signer
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.sessions import free_ports
@@ -82,3 +89,34 @@ def test_a_fresh_signed_latched_heartbeat_confirms_an_estop(settings: NodeSettin
     with beating(settings, lambda seq: latched(seq, time.time()), signer), client(settings) as node:
         status = trigger_estop(node, EstopSource.OPERATOR, "stop", timeout=WAIT)
         assert status is not None and status.estop.latched
+
+
+def test_a_service_waiting_for_a_router_that_is_down_says_so_and_stops_at_once_on_sigterm(tmp_path: Path) -> None:
+    """Blocked in zenoh.open (a deployment's client config waits for its router), the service never ran
+    its SIGTERM handler: silent, it outlived every stop until systemd or `tether up` killed it."""
+    config = tmp_path / "parser.json5"
+    endpoint = f"tcp/127.0.0.1:{free_ports(1)}"  # nothing listens there
+    # As a deployment's service config has it (tether/deployment.py SERVICE_CONNECT): wait for the router.
+    connect = {"endpoints": [endpoint], "timeout_ms": -1, "exit_on_failure": False}
+    config.write_text(json.dumps({"mode": "client", "connect": connect}))
+    log = tmp_path / "parser.log"
+    env = {**os.environ, "TETHER_ZENOH_CONFIG": str(config)}
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "tether", "run", "parser"], stdout=out, stderr=subprocess.STDOUT, env=env
+        )
+    try:
+        deadline = time.monotonic() + WAIT + runtime.OPEN_NOTICE
+        while "no Zenoh session after" not in log.read_text(errors="replace"):
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text(errors="replace")
+            time.sleep(0.05)  # polling its log, within the deadline above
+        assert endpoint in log.read_text(errors="replace")
+        stopped = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=WAIT) == 0, log.read_text(errors="replace")
+        assert time.monotonic() - stopped < 2.0, "the stop waited for something"
+        assert "stopped while its Zenoh session was opening" in log.read_text(errors="replace")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(WAIT)
