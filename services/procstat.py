@@ -1,6 +1,7 @@
 """A service process's own figures for `tether status`: resident memory and its peak, CPU time, uptime.
 
-Each service reads them about itself (services may run on other hosts than the one asking).
+Each service reads them about itself (services may run on other hosts than the one asking); and which
+process holds a port it cannot listen on.
 """
 
 from __future__ import annotations
@@ -80,3 +81,50 @@ def process_status(service: str) -> ProcessStatus:
         uptime_seconds=time.monotonic() - STARTED,
         children_rss_bytes=children_memory(),
     )
+
+
+def port_holders(port: int, proc: Path = Path("/proc")) -> list[tuple[int, str]]:
+    """The processes (pid, command line) with a TCP socket bound to local `port`, of those this user may
+    look into; none where they cannot be seen (another user's, no /proc)."""
+    sockets: set[str] = set()
+    for table in ("tcp", "tcp6"):
+        try:
+            lines = (proc / "net" / table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()  # sl local_address rem_address st ... uid timeout inode
+            if len(fields) > 9 and fields[1].rpartition(":")[2] == f"{port:04X}" and fields[9] != "0":
+                sockets.add(f"socket:[{fields[9]}]")
+    holders: list[tuple[int, str]] = []
+    if not sockets:
+        return holders
+    for process in proc.iterdir():
+        if process.name.isdecimal() and sockets & open_files(process):
+            try:
+                holders.append((int(process.name), command_line(process)))
+            except OSError:
+                continue  # gone meanwhile
+    return holders
+
+
+def open_files(process: Path) -> set[str]:
+    """What a process's descriptors point to (`socket:[INODE]` for a socket); none for another user's."""
+    try:
+        descriptors = list((process / "fd").iterdir())
+    except OSError:
+        return set()
+    links: set[str] = set()
+    for fd in descriptors:
+        try:
+            links.add(os.readlink(fd))
+        except OSError:
+            continue  # closed meanwhile (the one that listed them, in this process)
+    return links
+
+
+def command_line(process: Path, limit: int = 200) -> str:
+    """A process's command line as one printable line (it is the other process's to choose)."""
+    words = (process / "cmdline").read_bytes().rstrip(b"\0").split(b"\0")
+    line = " ".join(word.decode(errors="replace") for word in words)
+    return "".join(c if c.isprintable() else "?" for c in line)[:limit]

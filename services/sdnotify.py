@@ -17,6 +17,11 @@ from collections.abc import Callable, Mapping
 
 log = logging.getLogger(__name__)
 
+# The longest a notification may wait for room in the manager's queue: one nobody reads (a manager that
+# hangs, a socket left bound by a finished test) fills after a few datagrams, and a blocking send would
+# hold the service's main thread there, deaf to its stop. A loop's keepalive does not wait at all.
+SEND_TIMEOUT = 1.0
+
 
 def watchdog_period(env: Mapping[str, str], pid: int) -> float | None:
     """How often (seconds) to send WATCHDOG=1: half of $WATCHDOG_USEC, or None when systemd asks for
@@ -43,6 +48,12 @@ def socket_address(notify_socket: str) -> str | None:
     return None
 
 
+def status_line(text: str) -> str:
+    """`STATUS=text` on one line: a status quotes what files hold (a world's name), and a line break in
+    it would start an assignment of its own, such as WATCHDOG=trigger (systemd kills the service)."""
+    return "STATUS=" + " ".join(text.splitlines())
+
+
 class Notifier:
     """Tells the service manager how this service is. Safe to call from any thread."""
 
@@ -64,16 +75,20 @@ class Notifier:
     def enabled(self) -> bool:
         return self._address is not None
 
-    def send(self, *lines: str) -> bool:
-        """One datagram of `KEY=value` lines; False if it could not be sent (logged once, never raised:
-        a service does not stop serving because its manager is not listening)."""
+    def send(self, *lines: str, timeout: float = SEND_TIMEOUT) -> bool:
+        """One datagram of `KEY=value` lines; False if it could not be sent within `timeout` seconds
+        (logged once, never raised: a service does not stop serving because its manager is not listening)."""
         if self._address is None:
             return False
         message = "\n".join(lines).encode()
         try:
             # A socket per message, as libsystemd does: nothing to keep open or close, a few a second.
+            # Connected, so that waiting for room at the receiver sleeps: an unconnected socket polls
+            # writable while the receiver's queue is full, and the timeout would be spent spinning.
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
-                sock.sendto(message, self._address)
+                sock.settimeout(timeout)
+                sock.connect(self._address)
+                sock.send(message)
         except OSError as exc:
             if not self._failed:
                 self._failed = True
@@ -83,29 +98,30 @@ class Notifier:
 
     def ready(self, status: str = "") -> None:
         """The service is serving: systemd marks it started (and starts watching it)."""
-        self.send("READY=1", *([f"STATUS={status}"] if status else []))
+        self.send("READY=1", *([status_line(status)] if status else []))
         self.feed()
 
     def status(self, text: str) -> None:
         """One line for `systemctl status`."""
-        self.send(f"STATUS={text}")
+        self.send(status_line(text))
 
     def stopping(self, status: str = "") -> None:
-        self.send("STOPPING=1", *([f"STATUS={status}"] if status else []))
+        self.send("STOPPING=1", *([status_line(status)] if status else []))
 
-    def feed(self) -> None:
+    def feed(self, timeout: float = SEND_TIMEOUT) -> None:
         """WATCHDOG=1 now (when systemd watches this process)."""
         if self.period is None:
             return
         with self._lock:
             self._next_feed = self._clock() + self.period
-        self.send("WATCHDOG=1")
+        self.send("WATCHDOG=1", timeout=timeout)
 
     def keepalive(self) -> None:
         """For a loop: WATCHDOG=1 when about half the watchdog timeout passed since the last one (a
-        tenth of slack, so a loop that waits exactly `period` between calls feeds every time)."""
+        tenth of slack, so a loop that waits exactly `period` between calls feeds every time). Never
+        waits for room at the manager: the loop may be safety's heartbeat, which must go on."""
         if self.period is not None and self._clock() >= self._next_feed - self.period / 10:
-            self.feed()
+            self.feed(timeout=0.0)
 
     def wait(self, stop: threading.Event) -> None:
         """Block until `stop`, feeding the watchdog meanwhile: for a service whose main thread has no

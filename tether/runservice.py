@@ -14,7 +14,12 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import re
+import signal
+import stat
 import sys
+import threading
+import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -29,6 +34,15 @@ RED = "\x1b[31m"
 PLAIN = "\x1b[0m"
 # A config or world file that cannot be read or is invalid, or an unknown service (the CLI's usage code).
 EXIT_USAGE = 2
+# Set by tether.supervisor: the read end of a pipe whose write end only the supervising process holds.
+# Its end of file says that process is gone, however it went (SIGKILL, a Ctrl-C while it waited for its
+# services): the service then stops, instead of serving on orphaned, holding its port for the next `up`.
+SUPERVISOR_FD_ENV = "TETHER_SUPERVISOR_FD"
+# How long a service whose supervisor is gone gets to stop on SIGTERM before it is killed: what the
+# supervisor itself would have waited.
+ORPHAN_STOP_WAIT = 10.0
+
+log = logging.getLogger(__name__)
 
 
 def error(message: str) -> None:
@@ -41,12 +55,14 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
     """`run`'s work, once the command line is read (by typer or by `read_command_line`): the service
     until its main returns (stopped by SIGINT or SIGTERM), then the process ends (see `leave`) with 0;
     with EXIT_USAGE for an unknown service or a config or world file that cannot be used, with 1 and
-    the traceback on stderr for a service that fails, with a SystemExit's own code for one that exits.
-    A Ctrl-C before the service takes SIGINT over (while it imports) ends it as Python does: no Zenoh
-    session is open yet to abort it."""
+    the traceback on stderr for a service that fails (an error naming the port and its holder for a
+    port in use), with a SystemExit's own code for one that exits. Under a supervisor it also stops
+    when that supervisor is gone (`stop_with_supervisor`). A Ctrl-C before the service takes SIGINT
+    over (while it imports) ends it as Python does: no Zenoh session is open yet to abort it."""
     if service not in ALL_SERVICES:
         error(f"unknown service {service!r}; services are {', '.join(ALL_SERVICES)}")
         raise SystemExit(EXIT_USAGE)
+    stop_with_supervisor()
     sys.setswitchinterval(SWITCH_INTERVAL)
     module = importlib.import_module(f"services.{service}.main")
     try:
@@ -63,9 +79,60 @@ def run_service(settings: NodeSettings, service: str, config: Path | None) -> No
         if isinstance(exc, WorldFileError):
             error(str(exc))
             leave(EXIT_USAGE)
+        if (taken := port_taken(service, exc)) is not None:
+            error(taken)
+            leave(1)
         traceback.print_exc()
         leave(1)
     leave(0)
+
+
+def stop_with_supervisor() -> None:
+    """When a supervisor started this process ($TETHER_SUPERVISOR_FD), SIGTERM to itself once that
+    supervisor is gone, and SIGKILL if it has not stopped ORPHAN_STOP_WAIT later; nothing without one
+    (systemd, a shell)."""
+    value = os.environ.pop(SUPERVISOR_FD_ENV, None)  # not for the processes this service starts
+    if value is None:
+        return
+    try:
+        fd = int(value)
+        if not stat.S_ISFIFO(os.fstat(fd).st_mode):
+            raise ValueError("not a pipe")
+        os.set_inheritable(fd, False)
+    except (ValueError, OSError) as exc:
+        log.warning(
+            "ignoring %s=%r (%s): this service will not stop with its supervisor", SUPERVISOR_FD_ENV, value, exc
+        )
+        return
+    threading.Thread(target=_stop_at_end_of_file, args=(fd,), name="supervisor-watch", daemon=True).start()
+
+
+def _stop_at_end_of_file(fd: int) -> None:
+    try:
+        while os.read(fd, 1):  # nobody writes: only the end of file returns
+            pass
+    except OSError:
+        return
+    log.warning("the supervisor that started this service is gone: stopping")
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(ORPHAN_STOP_WAIT)
+    log.warning("still running %g s after SIGTERM: killing itself", ORPHAN_STOP_WAIT)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def port_taken(service: str, exc: Exception) -> str | None:
+    """What to say when `exc` is Zenoh failing to listen on a port already in use (another stack, or the
+    services of a `tether up` killed before it could stop them): the port and who holds it."""
+    text = str(exc)
+    where = re.search(r"bound to (\S+):(\d+):", text)
+    if "Address already in use" not in text or where is None:
+        return None
+    from services.procstat import port_holders
+
+    port = int(where.group(2))
+    holders = port_holders(port)
+    held = ", ".join(f"pid {pid} ({command})" for pid, command in holders) or "a process this user cannot see"
+    return f"{service} cannot listen on {where.group(1)}:{port}: the port is in use by {held}"
 
 
 def exit_status(exc: SystemExit) -> int:

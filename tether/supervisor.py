@@ -17,6 +17,7 @@ from typing import IO
 from services.robotlink import KEY_ENV, ensure_key, key_path
 from services.runtime import ALL_SERVICES, DUMP_STACKS, SERVICES, NodeSettings
 from services.safety.operator import TOKEN_ENV
+from tether.runservice import SUPERVISOR_FD_ENV
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,9 @@ STACK_DUMP_WAIT = 0.5
 # connections. Not inside that range: there one of the sessions' own outgoing sockets could take a
 # port between the check and the listen, and a service would fail to start.
 LOWEST_PORT = 20000
+# A service's log larger than this when the service starts (its restarts after crashes, one run of the
+# stack after another, all append to it) becomes `<service>.log.1`, replacing the one before.
+LOG_ROTATE_BYTES = 16 * 1024 * 1024
 
 
 def _outgoing_low() -> int:
@@ -74,7 +78,8 @@ def free_base_port(count: int = len(ALL_SERVICES), band: tuple[int, int] = (0, 1
 
 
 class Supervisor:
-    """Each service in its own process group, its output in `log_dir/<service>.log`.
+    """Each service in its own process group, its output in `log_dir/<service>.log`; each stops by
+    itself when the process that started it is gone, also when killed before it could stop them.
 
     Safety and the robot backend share a key (services/robotlink.py): unless the environment names
     one ($TETHER_ROBOT_KEY_FILE), the stack's own, `robot-<robot>.key` (0600) beside the operator
@@ -102,6 +107,9 @@ class Supervisor:
         self._logs: dict[str, IO[bytes]] = {}
         log_dir.mkdir(parents=True, exist_ok=True)
         self._robot_key_file: Path | None = None
+        # A pipe whose write end only this process holds (os.pipe's ends are not inherited): each service
+        # gets the read end and stops at its end of file, when this process is gone however it went.
+        self._lifeline: tuple[int, int] | None = None
 
     @property
     def robot_key_file(self) -> Path:
@@ -148,20 +156,38 @@ class Supervisor:
         cmd = [sys.executable, "-m", "tether", "run", service]
         if self.config_file is not None:
             cmd += ["--config", str(self.config_file)]
-        out = self._logs.get(service)
-        if out is None or out.closed:
-            out = self._logs[service] = open(self.log_dir / f"{service}.log", "ab")  # noqa: SIM115
+        out = self._log_file(service)
+        if self._lifeline is None:
+            self._lifeline = os.pipe()
+        env = self.env(service)
+        env[SUPERVISOR_FD_ENV] = str(self._lifeline[0])
         proc = subprocess.Popen(
             cmd,
             stdout=out,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
-            env=self.env(service),
+            env=env,
             start_new_session=True,
+            pass_fds=(self._lifeline[0],),
         )
         self.procs[service] = proc
         log.info("started %s (pid %d)", service, proc.pid)
         return proc
+
+    def _log_file(self, service: str) -> IO[bytes]:
+        """The file the service's output goes to, appended to; moved to `.log.1` first when it has grown
+        past LOG_ROTATE_BYTES, so a service that crashes and is restarted over and over does not fill
+        the disk with its tracebacks."""
+        path = self.log_dir / f"{service}.log"
+        out = self._logs.get(service)
+        if out is not None and not out.closed and os.fstat(out.fileno()).st_size > LOG_ROTATE_BYTES:
+            out.close()
+        if out is None or out.closed:
+            with contextlib.suppress(FileNotFoundError):
+                if path.stat().st_size > LOG_ROTATE_BYTES:
+                    path.replace(path.with_name(f"{path.name}.1"))
+            out = self._logs[service] = open(path, "ab")  # noqa: SIM115
+        return out
 
     def start_all(self, services: tuple[str, ...] = SERVICES) -> None:
         for service in services:
@@ -209,6 +235,10 @@ class Supervisor:
             codes.update(self._stop_together(stage, timeout))
         for out in self._logs.values():
             out.close()
+        if self._lifeline is not None:
+            for fd in self._lifeline:
+                os.close(fd)
+            self._lifeline = None
         return codes
 
     def log_tail(self, service: str, lines: int = 40) -> str:
