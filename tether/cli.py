@@ -67,7 +67,7 @@ from tether.client import (
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
 from tether.output import conclude, literal, open_node, printable, shown
 from tether.runcommand import HELP, common, run
-from tether.supervisor import Supervisor, free_base_port
+from tether.supervisor import Restarts, Supervisor, free_base_port
 
 if TYPE_CHECKING:
     from tether import deployment
@@ -354,11 +354,23 @@ def up(
     supervisor, node = start_services(ctx, config, log_dir, timeout, backend, services, deployed)
     console.print(f"all services up; logs in {literal(log_dir)}/. Ctrl-C (or SIGTERM) stops them.")
     stop = stop_event()
+    restarts, due = Restarts(), dict[str, float]()  # when each service that exited is started again
+    for service in services:
+        restarts.started(service, time.monotonic())
     try:
         while not stop.wait(0.5):
+            now = time.monotonic()
             for name, code in supervisor.exited().items():
-                console.print(f"[yellow]{name} exited with {code}; restarting it[/]")
-                supervisor.start(name)
+                if name not in due:
+                    delay = restarts.delay(name, now)
+                    due[name] = now + delay
+                    later = f" in {delay:g} s (it exited soon after its start)" if delay else ""
+                    console.print(f"[yellow]{name} exited with {code}; restarting it{later}[/]")
+            for name, at in list(due.items()):
+                if now >= at:
+                    del due[name]
+                    supervisor.start(name)
+                    restarts.started(name, now)
         console.print("stopping services...")
     finally:
         node.close()

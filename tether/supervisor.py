@@ -77,6 +77,37 @@ def free_base_port(count: int = len(ALL_SERVICES), band: tuple[int, int] = (0, 1
     raise RuntimeError(f"no {count} free consecutive loopback ports between {lowest} and {highest}")
 
 
+# A service that exits again within this long of its start was not well: its next restart waits, twice
+# as long each time (from RESTART_DELAY to MAX_RESTART_DELAY), so a service that cannot run (its port
+# taken by another stack, a config it refuses) is not restarted twice a second for as long as up runs.
+STABLE_AFTER = 60.0
+RESTART_DELAY = 1.0
+MAX_RESTART_DELAY = 30.0
+
+
+class Restarts:
+    """When `tether up` restarts a service that exited: at once the first time, or after it ran
+    STABLE_AFTER; after an exit soon after its start, RESTART_DELAY, doubling up to MAX_RESTART_DELAY.
+    Pure: callers pass monotonic `now`."""
+
+    def __init__(self) -> None:
+        self._started: dict[str, float] = {}
+        self._delay: dict[str, float] = {}
+
+    def started(self, service: str, now: float) -> None:
+        self._started[service] = now
+
+    def delay(self, service: str, now: float) -> float:
+        """How long to wait before restarting `service`, which exited at `now`."""
+        started = self._started.get(service)
+        if started is None or now - started >= STABLE_AFTER:
+            self._delay.pop(service, None)
+            return 0.0
+        delay = min(MAX_RESTART_DELAY, 2 * self._delay[service]) if service in self._delay else RESTART_DELAY
+        self._delay[service] = delay
+        return delay
+
+
 class Supervisor:
     """Each service in its own process group, its output in `log_dir/<service>.log`; each stops by
     itself when the process that started it is gone, also when killed before it could stop them.

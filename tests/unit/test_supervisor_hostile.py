@@ -23,7 +23,7 @@ from services.runtime import NodeSettings
 from services.sdnotify import SEND_TIMEOUT, Notifier
 from tether import supervisor as supervisor_module
 from tether.runservice import SUPERVISOR_FD_ENV, port_taken, stop_with_supervisor
-from tether.supervisor import Supervisor
+from tether.supervisor import MAX_RESTART_DELAY, RESTART_DELAY, STABLE_AFTER, Restarts, Supervisor
 
 
 @pytest.fixture
@@ -185,3 +185,25 @@ def test_a_log_that_outgrew_its_bound_moves_aside_when_its_service_starts(
         assert sorted(p.name for p in logs.iterdir()) == ["parser.log", "parser.log.1"]
     finally:
         supervisor.stop_all()
+
+
+def test_a_service_that_keeps_exiting_soon_after_its_start_is_restarted_ever_later() -> None:
+    """A second `tether up` on the ports of a first restarted its parser twice a second for as long as it ran."""
+    restarts = Restarts()
+    now = 0.0
+    restarts.started("parser", now)
+    delays = []
+    for _ in range(8):
+        now += 0.3  # it exits 0.3 s after each start
+        delay = restarts.delay("parser", now)
+        delays.append(delay)
+        now += delay
+        restarts.started("parser", now)
+    assert delays == [RESTART_DELAY * 2**i for i in range(5)] + [MAX_RESTART_DELAY] * 3
+    # One that ran a while before it exited is restarted at once, and its delay starts over.
+    now += STABLE_AFTER + 1.0
+    assert restarts.delay("parser", now) == 0.0
+    restarts.started("parser", now)
+    assert restarts.delay("parser", now + 0.3) == RESTART_DELAY
+    # Never started by this supervisor's watch (it died before up watched): at once.
+    assert restarts.delay("safety", now) == 0.0
