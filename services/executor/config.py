@@ -105,3 +105,8 @@ class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     # cup at its centre pressed the palm onto its rim and tipped it over between the fingers.
     grasp_depth: Annotated[float, Meta(gt=0.0, le=0.2)] = 0.03
     search: SearchConfig = SearchConfig()
+    # Seconds a motion may go on after its cancel before the executor takes the robot for not stopping
+    # it: then it latches the e-stop and the plan fails (the default is services/actionlib.py's
+    # CANCEL_GRACE, which imports zenoh, as this does not). Longer for a heavy robot that brakes
+    # slowly, never so short that a stop under way is taken for none.
+    cancel_grace: Annotated[float, Meta(ge=1.0, le=120.0)] = 10.0

@@ -85,9 +85,10 @@ class NodeRobot:
     def __init__(self, node: Node, config: ExecutorConfig) -> None:
         self.node = node
         self.config = config
-        self._navigate = ActionClient(node, keys.CMD_NAVIGATE)
-        self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY)
-        self._gripper = ActionClient(node, keys.CMD_GRIPPER)
+        grace = config.cancel_grace
+        self._navigate = ActionClient(node, keys.CMD_NAVIGATE, cancel_grace=grace)
+        self._trajectory = ActionClient(node, keys.CMD_TRAJECTORY, cancel_grace=grace)
+        self._gripper = ActionClient(node, keys.CMD_GRIPPER, cancel_grace=grace)
         self._cmd_vel = node.publisher(keys.CMD_VEL)
         self._estop = node.publisher(keys.ESTOP)
         self._changed = threading.Condition()
