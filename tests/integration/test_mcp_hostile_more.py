@@ -11,7 +11,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, TypeVar
 
@@ -19,12 +19,12 @@ import anyio
 import mcp_types as types
 import pytest
 from mcp import Client
-from mcp.client.stdio import StdioServerParameters
 
 from schemas import keys
 from services.runtime import SERVICES
 from tests.fastsim import FAST_SIM
 from tests.integration.conftest import Stack, start_stack, stop_stack
+from tests.integration.test_agents import text, with_client
 from tests.watch import Watch
 from tether.client import reset_estop
 
@@ -104,21 +104,6 @@ def stack(tmp_path_factory: pytest.TempPathFactory, held_llm: HeldLLM) -> Iterat
         yield stack
     finally:
         stop_stack(stack)
-
-
-def with_client(stack: Stack, body: Callable[[Client], Awaitable[T]]) -> T:
-    """`body` with an MCP client connected to `tether mcp` over stdio, started as an MCP host starts it."""
-    params = StdioServerParameters(command=sys.executable, args=["-m", "tether", "mcp"], env=stack.supervisor.env())
-
-    async def main() -> T:
-        async with Client(params, read_timeout_seconds=90.0) as client:
-            return await body(client)
-
-    return anyio.run(main)
-
-
-def text(result: types.CallToolResult) -> str:
-    return "\n".join(c.text for c in result.content if isinstance(c, types.TextContent))
 
 
 def reset(stack: Stack) -> None:

@@ -12,7 +12,6 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,25 +20,11 @@ import zenoh
 from services.procstat import port_holders
 from services.runtime import NodeSettings
 from services.sdnotify import SEND_TIMEOUT, Notifier
+from tests.unit.test_sdnotify import listener as listener  # the fixture, shared
+from tests.unit.test_sdnotify import received
 from tether import supervisor as supervisor_module
 from tether.runservice import SUPERVISOR_FD_ENV, port_taken, stop_with_supervisor
 from tether.supervisor import MAX_RESTART_DELAY, RESTART_DELAY, STABLE_AFTER, Restarts, Supervisor
-
-
-@pytest.fixture
-def listener(tmp_path: Path) -> Iterator[tuple[socket.socket, str]]:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    path = tmp_path / "notify"
-    sock.bind(str(path))
-    sock.settimeout(5.0)
-    try:
-        yield sock, str(path)
-    finally:
-        sock.close()
-
-
-def received(sock: socket.socket) -> list[str]:
-    return sock.recv(4096).decode().split("\n")
 
 
 def test_a_notify_socket_nobody_reads_does_not_hold_the_caller(listener: tuple[socket.socket, str]) -> None:
