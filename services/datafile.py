@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import msgspec
+
+if TYPE_CHECKING:
+    import yaml
 
 T = TypeVar("T")
 
@@ -13,30 +17,46 @@ T = TypeVar("T")
 # a recording is hostile (tether recheck loads its world and policy). A document of more nodes than
 # this, every alias expanded, is refused before it is built: a world or a policy holds thousands.
 MAX_YAML_NODES = 1_000_000
+# A world or a policy is kilobytes; a path that names a huge file (or /dev/zero) is refused, not read.
+MAX_FILE_BYTES = 16 * 1024 * 1024
 
 
 def read_struct(path: Path, type_: type[T], what: str, error: type[Exception]) -> T:
     """Decode `path` (JSON or TOML by suffix, else YAML) as `type_`; raise `error` naming `what` file."""
+    return decode_struct(read_bytes(path, what, error), path, type_, what, error)
+
+
+def read_bytes(path: Path, what: str, error: type[Exception]) -> bytes:
+    """The bytes of `path`, refusing a file of more than MAX_FILE_BYTES without reading it all."""
     try:
-        data = path.read_bytes()
+        with path.open("rb") as file:
+            return file.read(MAX_FILE_BYTES + 1)  # one more: decode_struct refuses it
     except OSError as exc:
         raise error(f"cannot read {what} file {path}: {exc.strerror}") from None
-    return decode_struct(data, path, type_, what, error)
 
 
 def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: type[Exception]) -> T:
     """Decode the bytes read from `path`; the same rules and errors as read_struct."""
     kind = {".json": "JSON", ".toml": "TOML"}.get(path.suffix, "YAML")
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"{what} file {path}: more than {MAX_FILE_BYTES} bytes; not read")
     try:
         if kind == "JSON":
+            # msgspec keeps the last of two equal keys: a second "keep_out" would drop the first's zones.
+            if key := _json_duplicate_key(data):
+                raise error(f"{what} file {path}: key {key!r} appears twice in one object")
             return msgspec.json.decode(data, type=type_)
         if kind == "TOML":
-            return msgspec.toml.decode(data, type=type_)
-        if (nodes := _yaml_nodes(data)) > MAX_YAML_NODES:
+            return msgspec.toml.decode(data, type=type_)  # TOML itself refuses a key given twice
+        root = _yaml_compose(data)
+        if (nodes := _yaml_nodes(root)) > MAX_YAML_NODES:
             raise error(
                 f"{what} file {path}: YAML of more than {MAX_YAML_NODES} nodes once its aliases are expanded "
                 f"({'an alias that holds itself' if nodes == _ENDLESS else f'{nodes} nodes'}); not read"
             )
+        if duplicate := _yaml_duplicate_key(root):
+            key, line = duplicate
+            raise error(f"{what} file {path}: key {key!r} appears twice in one mapping (line {line})")
         return msgspec.yaml.decode(data, type=type_)
     except msgspec.ValidationError as exc:
         raise error(f"{what} file {path}: {exc}") from None
@@ -47,16 +67,69 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
 _ENDLESS = MAX_YAML_NODES + 1
 
 
-def _yaml_nodes(data: bytes) -> int:
-    """How many nodes the YAML document holds with every alias expanded, counted on the composed graph
-    without expanding it (an aliased node is counted once, then by its size); _ENDLESS for an alias
-    inside its own anchor. 0 when it does not compose: decoding then says what is wrong."""
+def _json_duplicate_key(data: bytes) -> str | None:
+    """The first key given twice in one JSON object; None when there is none or it does not parse
+    (decoding then says what is wrong)."""
+
+    class Duplicate(Exception):
+        pass
+
+    def pairs(items: list[tuple[str, object]]) -> dict[str, object]:
+        keys = [key for key, _ in items]
+        if len(set(keys)) < len(keys):
+            raise Duplicate(next(key for key in keys if keys.count(key) > 1))
+        return dict(items)
+
+    try:
+        json.loads(data, object_pairs_hook=pairs)
+    except Duplicate as exc:
+        return str(exc)
+    except (ValueError, RecursionError):
+        return None
+    return None
+
+
+def _yaml_compose(data: bytes) -> yaml.Node | None:
+    """The YAML document as a graph of nodes, aliases not expanded; None when it does not compose
+    (decoding then says what is wrong)."""
     import yaml  # as msgspec.yaml does, only for a YAML file
 
     try:
-        root = yaml.compose(data, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+        return yaml.compose(data, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
     except yaml.YAMLError:
-        return 0
+        return None
+
+
+def _yaml_duplicate_key(root: yaml.Node | None) -> tuple[str, int] | None:
+    """The first key given twice in one mapping, and its line; YAML loaders keep only the last."""
+    import yaml
+
+    seen: set[int] = set()
+    stack = [root] if root is not None else []
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:  # an alias: its node is checked once
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            keys: set[tuple[str, str]] = set()
+            for key, value in node.value:
+                if isinstance(key, yaml.ScalarNode):
+                    if (key.tag, key.value) in keys:
+                        return key.value, key.start_mark.line + 1
+                    keys.add((key.tag, key.value))
+                stack.extend((key, value))
+    return None
+
+
+def _yaml_nodes(root: yaml.Node | None) -> int:
+    """How many nodes the YAML document holds with every alias expanded, counted on the composed graph
+    without expanding it (an aliased node is counted once, then by its size); _ENDLESS for an alias
+    inside its own anchor. 0 when it did not compose."""
+    import yaml
+
     sizes: dict[int, int] = {}
     stack: list[tuple[yaml.Node, bool]] = [(root, False)] if root is not None else []
     while stack:  # iterative: nesting is no limit here

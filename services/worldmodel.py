@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+import shapely
 from shapely.geometry import LineString, Point, Polygon, box
 from shapely.geometry.base import BaseGeometry
 from shapely.ops import unary_union
@@ -16,6 +18,7 @@ from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, Wall, World, WorldObject
 from services.bundled import DEFAULT_WORLD, world_path  # importable from here too, as before
 from services.datafile import decode_struct, read_struct
+from services.footprint import footprint
 
 # The base drives the last leg straight in from this far behind the goal, along the goal's
 # heading, so its corners never swing around next to the furniture it parks at.
@@ -28,6 +31,8 @@ SUPPORT_TOLERANCE = 0.05
 ROOM_POSE_CLEARANCE = 0.1
 # A free spot found on the edge of the free area is moved this far inside it, so rounding keeps it free.
 SPOT_INSET = 0.01
+# Two rooms may share an edge; sharing more floor than this (m^2) leaves "which room" to the file's order.
+ROOM_OVERLAP_TOLERANCE = 1e-6
 
 
 class WorldFileError(Exception):
@@ -37,20 +42,27 @@ class WorldFileError(Exception):
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:
     path = world_path(name_or_path)
     world = read_struct(path, World, "world", WorldFileError)
-    _check_references(world, path)
+    _check_world(world, path)
     return world
 
 
 def parse_world(data: bytes, path: Path) -> World:
     """The world from the bytes of a file named `path` (a file kept in a recording, say)."""
     world = decode_struct(data, path, World, "world", WorldFileError)
-    _check_references(world, path)
+    _check_world(world, path)
     return world
 
 
-def _check_references(world: World, path: Path) -> None:
+def _check_world(world: World, path: Path) -> None:
+    """What the types cannot say: references resolve, and the geometry is what the checks assume.
+    Safety decides with these shapes (a crossed keep-out polygon does not contain what it seems to)."""
+
+    def bad(entry: str, why: str) -> WorldFileError:
+        return WorldFileError(f"world file {path}: {entry}: {why}")
+
     ids = [
         *(x.id for x in world.rooms),
+        *(x.id for x in world.keep_out),
         *(x.id for x in world.furniture),
         *(x.id for x in world.objects),
         *(x.id for x in world.places),
@@ -60,10 +72,55 @@ def _check_references(world: World, path: Path) -> None:
     duplicates = sorted(i for i, n in Counter(ids).items() if n > 1)
     if duplicates:
         raise WorldFileError(f"world file {path}: duplicate ids {duplicates}")
-    furniture = {f.id for f in world.furniture}
-    for obj in world.objects:
-        if obj.support not in furniture:
+    furniture = {f.id: f for f in world.furniture}
+    for i, obj in enumerate(world.objects):
+        support = furniture.get(obj.support)
+        if support is None:
             raise WorldFileError(f"world file {path}: object {obj.id!r} rests on unknown furniture {obj.support!r}")
+        if abs(obj.offset[0]) > support.size.x / 2 or abs(obj.offset[1]) > support.size.y / 2:
+            raise bad(f"objects[{i}] ({obj.id}).offset", f"{obj.offset} is off the top of {obj.support!r}")
+    rooms = [_area(f"rooms[{i}] ({r.id})", r.polygon, bad) for i, r in enumerate(world.rooms)]
+    zones = [_area(f"keep_out[{i}] ({z.id})", z.polygon, bad) for i, z in enumerate(world.keep_out)]
+    # Pairs from a tree: a file of many rooms is no reason to compare each with each.
+    for i, j in sorted(zip(*shapely.STRtree(rooms).query(rooms, predicate="intersects").tolist(), strict=True)):
+        if j < i and rooms[i].intersection(rooms[j]).area > ROOM_OVERLAP_TOLERANCE:
+            raise bad(f"rooms[{i}] ({world.rooms[i].id})", f"overlaps rooms[{j}] ({world.rooms[j].id})")
+    floor = unary_union(rooms)
+    for i, wall in enumerate(world.walls):
+        if wall.start == wall.end:
+            raise bad(f"walls[{i}] ({wall.id})", "starts where it ends")
+    model = WorldModel(world)
+    for i, item in enumerate(world.furniture):
+        if not floor.covers(model.footprint(item)):
+            raise bad(f"furniture[{i}] ({item.id})", "is not inside the rooms")
+    poses = [
+        *((f"furniture[{i}] ({f.id}).approach", f.approach) for i, f in enumerate(world.furniture)),
+        *((f"places[{i}] ({p.id}).pose", p.pose) for i, p in enumerate(world.places)),
+        *((f"humans[{i}] ({h.id}).pose", h.pose) for i, h in enumerate(world.humans)),
+        ("robot.start", world.robot.start),
+    ]
+    for entry, pose in poses:
+        if not floor.covers(Point(pose.x, pose.y)):
+            raise bad(entry, f"({pose.x:g}, {pose.y:g}) is outside every room")
+    start, size = world.robot.start, world.robot.base_size
+    base = footprint(start.x, start.y, start.yaw, size.x, size.y)
+    for zone, shape in zip(world.keep_out, zones, strict=True):
+        if base.intersects(shape):
+            raise bad("robot.start", f"the base would start in keep-out zone {zone.id!r}")
+    for obstacle in model.obstacles:
+        if base.intersects(obstacle.shape):
+            raise bad("robot.start", f"the base would start in {obstacle.id!r}")
+    if not all(math.isfinite(q) for q in world.robot.home_joints):
+        raise bad("robot.home_joints", "every joint position must be a finite number")
+
+
+def _area(entry: str, points: list[list[float]], bad: Callable[[str, str], WorldFileError]) -> Polygon:
+    """The polygon, refused unless it is simple: no edge crosses another, so it has an area (GEOS)."""
+    shape = Polygon(points)
+    if not shape.is_valid:
+        why = shapely.is_valid_reason(shape)
+        raise bad(f"{entry}.polygon", f"is not a simple polygon ({why}); list its corners in order around it")
+    return shape
 
 
 def wall_shape(wall: Wall) -> Polygon:

@@ -25,7 +25,7 @@ from schemas.common import Id, Name, Text
 from schemas.robot import ARM_JOINTS
 from schemas.world import KeepOut, Polygon, RobotSpec
 from services.bundled import DEFAULT_POLICY
-from services.datafile import decode_struct
+from services.datafile import decode_struct, read_bytes
 
 if TYPE_CHECKING:  # the arm is handed in: whoever only needs DEFAULT_POLICY (the recorder) loads no pinocchio
     from services.robotmodel import ArmModel
@@ -197,11 +197,7 @@ def load_policy(path: Path | None, robot: RobotSpec, arm: ArmModel, world_zones:
     path = path or DEFAULT_POLICY
     if path.suffix not in (".toml", ".yaml", ".yml"):
         raise PolicyError(f"policy file {path}: use .toml, .yaml or .yml")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise PolicyError(f"cannot read policy file {path}: {exc.strerror}") from None
-    return parse_policy(data, path, robot, arm, world_zones)
+    return parse_policy(read_bytes(path, "policy", PolicyError), path, robot, arm, world_zones)
 
 
 def parse_policy(data: bytes, path: Path, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut]) -> Limits:
@@ -249,6 +245,9 @@ def resolve(
     for axis in ("x", "y", "z"):
         if getattr(box.min, axis) >= getattr(box.max, axis):
             raise bad(f"workspace.min.{axis}", f"must be less than workspace.max.{axis}")
+    if box.min.z < 0.0:
+        # Nothing else keeps the hand out of the floor: the workspace box is its only bound.
+        raise bad("workspace.min.z", f"{box.min.z:g} m is below the floor (z is up from the floor)")
     joints = _joint_limits(policy.arm, arm, bad)
     zones = list(world_zones)
     ids = {zone.id for zone in zones}
