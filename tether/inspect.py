@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -107,10 +108,13 @@ def write_map(
 ) -> None:
     world, keep_out = map_world(recording, world_name)
     robot = recording.robot or "unknown"
-    title = f"{recording.name} — robot {robot}" + ("" if world is not None else " (no world file)")
+    title = printable(f"{recording.name} — robot {robot}" + ("" if world is not None else " (no world file)"))
     track, vetoed, estops = track_of(recording), vetoed_goals(timeline.rows), estop_points(timeline.rows)
     try:
-        with (bar or Bar()).step("drawing the map"):
+        with (bar or Bar()).step("drawing the map"), warnings.catch_warnings():
+            # Matplotlib names each character its font lacks in a warning, the character itself
+            # included: a name in the file holding ESC would reach the terminal as it is.
+            warnings.filterwarnings("ignore", message="Glyph .* missing from font")
             draw_map(png, title, world, keep_out, track, vetoed, estops)
     except OSError as exc:
         fail(f"cannot write the map to {png}: {exc.strerror or exc}")

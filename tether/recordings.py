@@ -19,6 +19,7 @@ from schemas.actions import CancelGoal
 from schemas.robot import Twist
 from services.recorder.config import RecorderConfig
 from services.recorder.main import provenance
+from services.recorder.mcapfile import MAX_CHANNELS, SourceFile
 from services.recorder.node import bind
 from services.recorder.reader import RecordingError, RecordingFile, join_recordings, read_recording, recover
 from services.recorder.recorded import recorded_policy, recorded_world
@@ -41,6 +42,10 @@ from tether.progress import Bar, ProgressOpt, progress_bar
 
 console = Console(stderr=True, soft_wrap=True)  # notes name files: paths stay whole
 QUERY_TIMEOUT = 5.0
+# A replay keeps a publisher for this many keys, as many channels as a recorder writes: past them (a
+# crafted file) each message is put without one, for Zenoh takes ever longer to declare each further
+# publisher (tens of thousands hold a replay for minutes).
+MAX_PUBLISHERS = MAX_CHANNELS
 
 FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
 FilesArg = Annotated[
@@ -305,6 +310,7 @@ class Player:
         self.publishers: dict[str, zenoh.Publisher] = {}
         self.asker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="replay-query")
         self.started: list[Item] = []  # the goals sent, to cancel if the replay is stopped
+        self.base: str | None = None  # the robot whose base this replay sent velocities, to stop if stopped
 
     def play(self, plan: ReplayPlan, speed: float, bar: Bar | None = None) -> int:
         """Send the items on the recorded clock, `speed` times as fast, counting the recorded seconds on `bar`."""
@@ -333,10 +339,15 @@ class Player:
 
     def _send(self, item: Item) -> None:
         if item.kind is ReplayKind.PUT:
+            if item.key.endswith(f"/{keys.CMD_VEL.path}"):
+                self.base = item.key.split("/")[1]
             publisher = self.publishers.get(item.key)
-            if publisher is None:
+            if publisher is None and len(self.publishers) < MAX_PUBLISHERS:
                 publisher = self.publishers[item.key] = self.node.session.declare_publisher(item.key)
-            publisher.put(item.payload)
+            if publisher is None:
+                self.node.session.put(item.key, item.payload)
+            else:
+                publisher.put(item.payload)
             return
         if item.goal_id is not None:
             self.started.append(item)
@@ -346,9 +357,8 @@ class Player:
         for item in self.started:
             cancel = item.key.removesuffix("send_goal") + "cancel_goal"
             self._ask(cancel, encode(CancelGoal(goal_id=str(item.goal_id))))
-        if any(key.endswith(f"/{keys.CMD_VEL.path}") for key in self.publishers):
-            robot = next(iter(self.publishers)).split("/")[1]
-            self.node.session.put(keys.CMD_VEL.key(robot), encode(Twist()))
+        if self.base is not None:
+            self.node.session.put(keys.CMD_VEL.key(self.base), encode(Twist()))
 
     def _ask(self, key: str, payload: bytes) -> None:
         """A replayed goal query, asked of the live robot's safety; its answer is shown."""
@@ -416,8 +426,10 @@ def recheck_command(
             if m.key.startswith(root)
         )
         kept = recording.policy
-        kept_hash = recording.metadata.get("tether", {}).get("policy_hash", "")
-        report = recheck(messages, safety, kept_hash if kept is not None else "", robot, robot_key)
+        # The digest of the file kept, not the one the metadata claims for it: an attachment swapped
+        # under intact metadata is still told from what safety's events say it ran with.
+        kept_hash = SourceFile(Path(kept.name), kept.data).hash if kept is not None else ""
+        report = recheck(messages, safety, kept_hash, robot, robot_key)
     start = recording.messages[0].log_time / 1e9 if recording.messages else 0.0
     if as_json:
         print(json.dumps(_report_json(report, recording, start, show_all)))

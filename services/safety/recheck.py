@@ -64,6 +64,11 @@ GOALS = {
 # later is another goal, whose decision says nothing of this one.
 EVENT_SLACK = 0.01
 
+# Safety decides a goal query with one event, two when a trajectory is checked again on a fresher
+# joint state: more stamped while it answered one query come from a crafted file, and only the first
+# this many are weighed (each of its queries would otherwise go through every one).
+EVENTS_PER_QUERY = 8
+
 # Where safety's runtime traces each goal query it answered.
 GOAL_TRACES = frozenset(f"_trace/safety/{path}" for path in GOALS)
 
@@ -119,20 +124,32 @@ class History(Generic[T]):
     def __init__(self) -> None:
         self.times: list[float] = []
         self.values: list[T] = []
+        self._sorted = True
 
     def add(self, time: float, value: T) -> None:
-        # Arrival order is receive order; a message out of order by a hair goes where it belongs.
-        at = bisect.bisect_right(self.times, time)
-        self.times.insert(at, time)
-        self.values.insert(at, value)
+        # Sorted once, before the first look-up: inserting each where it belongs costs a move of
+        # everything after it, and a file written backwards would make that quadratic.
+        self._sorted = self._sorted and (not self.times or self.times[-1] <= time)
+        self.times.append(time)
+        self.values.append(value)
+
+    def _sort(self) -> None:
+        if not self._sorted:
+            # Stable: of messages received at one time, the last to arrive is the latest.
+            order = sorted(range(len(self.times)), key=self.times.__getitem__)
+            self.times = [self.times[i] for i in order]
+            self.values = [self.values[i] for i in order]
+            self._sorted = True
 
     def at(self, time: float, max_age: float) -> tuple[float, T] | None:
+        self._sort()
         i = bisect.bisect_right(self.times, time) - 1
         if i < 0 or time - self.times[i] > max_age:
             return None
         return self.times[i], self.values[i]
 
     def after(self, time: float, within: float) -> tuple[float, T] | None:
+        self._sort()
         i = bisect.bisect_right(self.times, time)
         if i >= len(self.times) or self.times[i] - time > within:
             return None
@@ -334,10 +351,7 @@ def recheck(
     if not rechecker.state.odom.times:
         report.warnings.append("no odometry in the recording: every check that needs the robot's pose is skipped")
     # Safety's event about each goal: its rule, when the goal was refused.
-    goal_events: dict[tuple[str, str], list[tuple[float, SafetyEvent]]] = {}
-    for time, event in events:
-        if event.key in GOALS and (goal_id := goal_id_in(event.command)) is not None:
-            goal_events.setdefault((event.key, goal_id), []).append((time, event))
+    goal_events = GoalEvents(events)
     checks: list[Rechecked] = []
     for time, event in events:
         if event.key == keys.PLAN_CHECK.path:
@@ -350,6 +364,26 @@ def recheck(
         _recheck_goal(rechecker, report, time, trace, goal_events, checks)
     report.checked = sorted(checks, key=lambda c: c.stamp)
     return report
+
+
+class GoalEvents:
+    """Safety's events about goals, by goal (its key and id), in the order safety stamped them."""
+
+    def __init__(self, events: list[tuple[float, SafetyEvent]]) -> None:
+        by_goal: dict[tuple[str, str], list[tuple[float, SafetyEvent]]] = {}
+        for time, event in events:
+            if event.key in GOALS and (goal_id := goal_id_in(event.command)) is not None:
+                by_goal.setdefault((event.key, goal_id), []).append((time, event))
+        self.by_goal = {goal: sorted(about, key=lambda c: c[1].stamp) for goal, about in by_goal.items()}
+        self.stamps = {goal: [c[1].stamp for c in about] for goal, about in self.by_goal.items()}
+
+    def stamped(self, key: str, goal_id: str, earliest: float, latest: float) -> list[tuple[float, SafetyEvent]]:
+        """The events about the goal stamped from `earliest` to `latest` (the first EVENTS_PER_QUERY)."""
+        goal = (key, goal_id)
+        stamps = self.stamps.get(goal, [])
+        start = bisect.bisect_left(stamps, earliest)
+        end = min(bisect.bisect_right(stamps, latest), start + EVENTS_PER_QUERY)
+        return self.by_goal[goal][start:end] if stamps else []
 
 
 def _suspect_lines(flags: list[Flag], start: float) -> list[str]:
@@ -382,7 +416,9 @@ def _recheck_event(
 ) -> None:
     if event.decision not in (Decision.APPROVED, Decision.VETOED):
         return
-    if event.rule in NOT_POLICY:
+    # Only a refusal can be the e-stop's or the clock's: safety approves with no rule, so an approval
+    # naming one (a crafted file) is checked like any other, not counted away as a refusal.
+    if event.decision is Decision.VETOED and event.rule in NOT_POLICY:
         report.skipped[NOT_POLICY[event.rule]] += _count(event)
         return
     command = _decode(event.command, type_)
@@ -416,7 +452,7 @@ def _recheck_goal(
     report: RecheckReport,
     time: float,
     trace: TraceRecord,
-    events: dict[tuple[str, str], list[tuple[float, SafetyEvent]]],
+    events: GoalEvents,
     out: list[Rechecked],
 ) -> None:
     goal_type: Any = GOALS[trace.key]
@@ -433,7 +469,7 @@ def _recheck_goal(
     # query that decided as the reply says, if one did: a trajectory refused at first may pass on a
     # fresher joint state.
     earliest, latest = trace.stamp - EVENT_SLACK, trace.stamp + max(0.0, trace.duration) + EVENT_SLACK
-    candidates = [c for c in events.get((trace.key, request.goal_id), []) if earliest <= c[1].stamp <= latest]
+    candidates = events.stamped(trace.key, request.goal_id, earliest, latest)
     agreeing = [c for c in candidates if (c[1].decision is Decision.VETOED) == refused] or candidates
     event = min(agreeing, key=lambda c: abs(c[0] - time))[1] if agreeing else None
     if refused and response.kind is ErrorKind.ESTOP:
