@@ -47,7 +47,7 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
                 raise error(f"{what} file {path}: key {key!r} appears twice in one object")
             return msgspec.json.decode(data, type=type_)
         if kind == "TOML":
-            return msgspec.toml.decode(data, type=type_)  # TOML itself refuses a key given twice
+            return _toml(data, type_)  # TOML itself refuses a key given twice
         root = _yaml_compose(data)
         if (nodes := _yaml_nodes(root)) > MAX_YAML_NODES:
             raise error(
@@ -65,6 +65,22 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
 
 
 _ENDLESS = MAX_YAML_NODES + 1
+
+
+def _toml(data: bytes, type_: type[T]) -> T:
+    """msgspec's TOML decode, its reader's other errors as DecodeErrors: bytes that are not UTF-8, arrays
+    nested past the interpreter's recursion limit, an integer of thousands of digits (a recording's
+    policy file is anyone's)."""
+    try:
+        return msgspec.toml.decode(data, type=type_)
+    except msgspec.MsgspecError:  # what the file says against its type, named by decode_struct
+        raise
+    except UnicodeDecodeError as exc:
+        raise msgspec.DecodeError(f"not UTF-8 text (byte {exc.start})") from None
+    except RecursionError:
+        raise msgspec.DecodeError("arrays or tables nested too deeply") from None
+    except ValueError as exc:  # past Python's limit on the digits of an integer it parses
+        raise msgspec.DecodeError(str(exc)) from None
 
 
 def _json_duplicate_key(data: bytes) -> str | None:

@@ -92,3 +92,21 @@ def test_a_huge_policy_file_is_refused_unread(tmp_path: Path, arm: ArmModel) -> 
     with path.open("wb") as file:
         file.truncate(datafile.MAX_FILE_BYTES + 1)  # sparse: no disk for the test
     refused(path, arm, rf"more than {datafile.MAX_FILE_BYTES} bytes; not read")
+
+
+@pytest.mark.parametrize(
+    ("content", "said"),
+    [
+        (b'[limits]\nx = "\xff"\n', "not UTF-8 text"),
+        (b"x = " + b"[" * 100_000 + b"]" * 100_000 + b"\n", "nested too deeply"),
+        (b"x = 1" + b"0" * 5000 + b"\n", "digits"),
+    ],
+)
+def test_a_toml_policy_its_reader_chokes_on_is_refused_naming_it(
+    tmp_path: Path, arm: ArmModel, content: bytes, said: str
+) -> None:
+    """A recording's policy file is anyone's: tether recheck ended in a traceback on each of these."""
+    path = tmp_path / "policy.toml"
+    path.write_bytes(content)
+    with pytest.raises(PolicyError, match=rf"^policy file {re.escape(str(path))} is not valid TOML: .*{said}"):
+        load(path, arm)
