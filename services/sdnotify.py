@@ -21,6 +21,9 @@ log = logging.getLogger(__name__)
 # hangs, a socket left bound by a finished test) fills after a few datagrams, and a blocking send would
 # hold the service's main thread there, deaf to its stop. A loop's keepalive does not wait at all.
 SEND_TIMEOUT = 1.0
+# The shortest feeding period: a WATCHDOG_USEC of a few microseconds (a typo; systemd's smallest useful
+# timeout is far longer) would have the feeding loop send without pause, spinning a core.
+MIN_FEED_PERIOD = 0.01
 
 
 def watchdog_period(env: Mapping[str, str], pid: int) -> float | None:
@@ -36,7 +39,11 @@ def watchdog_period(env: Mapping[str, str], pid: int) -> float | None:
     except ValueError:
         log.warning("ignoring a malformed watchdog setting WATCHDOG_USEC=%r WATCHDOG_PID=%r", usec, watchdog_pid)
         return None
-    return timeout / 2 if timeout > 0 else None
+    if not timeout > 0:
+        return None
+    if timeout / 2 < MIN_FEED_PERIOD:
+        log.warning("WATCHDOG_USEC=%s is under %g ms: feeding every %g s", usec, 2e3 * MIN_FEED_PERIOD, MIN_FEED_PERIOD)
+    return max(timeout / 2, MIN_FEED_PERIOD)
 
 
 def socket_address(notify_socket: str) -> str | None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from services.sdnotify import Notifier, socket_address, watchdog_period
+from services.sdnotify import MIN_FEED_PERIOD, Notifier, socket_address, watchdog_period
 
 
 @pytest.fixture
@@ -92,6 +92,7 @@ def test_wait_feeds_until_stopped(listener: tuple[socket.socket, str]) -> None:
         ({"WATCHDOG_USEC": "3000000", "WATCHDOG_PID": "1"}, None),  # systemd watches another process
         ({"WATCHDOG_USEC": "0"}, None),
         ({"WATCHDOG_USEC": "soon"}, None),
+        ({"WATCHDOG_USEC": "1"}, MIN_FEED_PERIOD),  # a microsecond: fed every 10 ms, not without pause
     ],
 )
 def test_watchdog_period_from_environment(env: dict[str, str], expected: float | None) -> None:
