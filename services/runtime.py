@@ -145,7 +145,10 @@ class NodeSettings:
     def zenoh(self, service: str | None) -> zenoh.Config:
         """A config file when one is given; else a loopback peer that nothing outside can reach."""
         if self.zenoh_config is not None:
-            return zenoh_config_file(self.zenoh_config)
+            try:
+                return zenoh_config_file(self.zenoh_config)
+            except zenoh.ZError as exc:  # a service's config error, one line (a traceback before)
+                raise ConfigError(f"Zenoh config file {self.zenoh_config} cannot be used: {exc}") from None
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
         conf.insert_json5("scouting/multicast/enabled", "false")

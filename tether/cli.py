@@ -45,6 +45,7 @@ from services.runtime import (
     ALL_SERVICES,
     ROBOT_BACKENDS,
     SERVICES,
+    ConfigError,
     Node,
     NodeSettings,
     configure_logging,
@@ -211,6 +212,9 @@ def start_services(
         node = Node("cli", node_settings)
     except BaseException as exc:  # Ctrl-C while it waited too: the services started go with this process
         supervisor.stop_all()
+        if isinstance(exc, ConfigError):
+            console.print(f"[red]error:[/] {literal(exc)}", soft_wrap=True)
+            raise typer.Exit(2) from None
         if not isinstance(exc, zenoh.ZError):
             raise
         console.print(

@@ -11,7 +11,7 @@ import zenoh
 from rich.console import Console
 from rich.markup import escape
 
-from services.runtime import Node, NodeSettings
+from services.runtime import ConfigError, Node, NodeSettings
 
 # No services reachable (the CLI contract's exit code 3), here: no Zenoh session at all.
 EXIT_UNREACHABLE = 3
@@ -39,6 +39,8 @@ def open_node(settings: NodeSettings, console: Console, as_json: bool, name: str
     the command with exit 3, saying so (with --json, one object: status 'unreachable' and the reason)."""
     try:
         return Node(name, settings)
+    except ConfigError as exc:  # --zenoh-config names a file Zenoh cannot use
+        conclude(console, as_json, {"status": "error", "reason": str(exc)}, f"[red]error:[/] {shown(exc)}", 2)
     except zenoh.ZError as exc:
         why = f"cannot open a Zenoh session: {exc}"
         said = f"[red]unreachable[/]: {shown(why)}"

@@ -154,3 +154,18 @@ def test_send_refuses_bad_usage_with_one_json_object_and_exit_2(args: list[str],
     assert isinstance(result.exception, SystemExit) and result.exit_code == 2, (result.exception, result.output)
     document = json.loads(result.stdout)
     assert document["status"] == "rejected" and document["reason"].startswith(reason), document
+
+
+def test_a_zenoh_config_zenoh_cannot_use_is_one_error_line_for_commands_and_services(tmp_path: Path) -> None:
+    """A wrong mode in a hand-edited operator.json5 or service config: a traceback before."""
+    path = tmp_path / "operator.json5"
+    path.write_text('{mode: "bogus"}')
+    result = CliRunner().invoke(cli.app, ["--zenoh-config", str(path), "status", "--json"])
+    assert result.exit_code == 2, result.output
+    document = json.loads(result.stdout)
+    assert document["status"] == "error" and f"Zenoh config file {path} cannot be used" in document["reason"]
+    env = {**os.environ, "TETHER_ZENOH_CONFIG": str(path)}
+    service = [sys.executable, "-m", "tether", "run", "parser"]
+    done = subprocess.run(service, cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "Traceback" not in done.stderr and f"error: Zenoh config file {path} cannot be used" in done.stderr
