@@ -46,6 +46,9 @@ MAX_EARLY_CANCELS = 1024
 # After a client cancels a goal, it waits this long for the server to report it ended; then it
 # raises GoalNotStopped: the goal may still be moving the robot.
 CANCEL_GRACE = 10.0
+# A cancel that did not reach the server (no answer, or the server too busy) is sent again this often
+# while the goal's cancel grace lasts.
+CANCEL_RESEND = 0.5
 # A preempting goal waits this long for the goals it cancels to end before it is accepted.
 PREEMPT_TIMEOUT = 10.0
 # The goal id of a result for a goal that was never sent.
@@ -427,11 +430,16 @@ class ActionClient(Generic[G, F, R]):
                 raise
         future = handle.result_future(timeout)
         canceled_at: float | None = None
+        answered, asked = False, 0.0  # whether the server took a cancel of it, and when one was last sent
         # Two things to wait for: check the cancel flag between short waits for the result.
         while not futures.wait([future], CANCEL_POLL).done:
             if cancel.is_set() and canceled_at is None:
-                canceled_at = time.monotonic()
-                self._cancel_quietly(handle)
+                canceled_at = asked = time.monotonic()
+                answered = self._cancel_quietly(handle)
+            elif canceled_at is not None and not answered and time.monotonic() - asked >= CANCEL_RESEND:
+                # A cancel lost on the way, or the server too busy: asked again, within the grace.
+                asked = time.monotonic()
+                answered = self._cancel_quietly(handle)
             if canceled_at is not None and time.monotonic() - canceled_at > self._cancel_grace:
                 message = (
                     f"{self._action.path} goal {handle.goal_id} did not end within {self._cancel_grace:g} s "
@@ -457,8 +465,12 @@ class ActionClient(Generic[G, F, R]):
         raise CallError(ServiceError(kind=ErrorKind.INTERNAL, message=message))
 
     @staticmethod
-    def _cancel_quietly(handle: ClientGoal[G, F, R]) -> None:
+    def _cancel_quietly(handle: ClientGoal[G, F, R]) -> bool:
+        """Ask the server to cancel; False when the cancel did not reach it (no answer, or too busy to
+        take it): worth asking again. An answer that it knows no such running goal is an answer."""
         try:
             handle.cancel()
         except CallError as exc:
             log.warning("cancel of %s failed: %s", handle.goal_id, exc)
+            return exc.error.kind is not ErrorKind.UNAVAILABLE
+        return True

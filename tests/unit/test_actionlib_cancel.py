@@ -12,7 +12,7 @@ import pytest
 
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, GoalState, ResultResponse, SendGoal
-from schemas.common import Pose2D
+from schemas.common import ErrorKind, Pose2D, ServiceError
 from schemas.robot import NavigateToPoseFeedback, NavigateToPoseGoal, NavigateToPoseResult
 from services import actionlib
 from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
@@ -126,3 +126,38 @@ def test_a_result_that_is_not_this_goals_end_is_not_taken_for_it(
     with pytest.raises(CallError, match=why):
         peers.navigation.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT, cancel=cancel)
     assert len(hostile.canceled) == 1, "the goal was not canceled"
+
+
+def test_a_cancel_that_did_not_reach_the_server_is_sent_again_within_the_grace(peers: Peers) -> None:
+    """The first cancel answered "too busy" (or lost): sent once, the goal drove on to the end of its
+    grace and the e-stop latched, where a second cancel would have stopped it."""
+    ended = threading.Event()
+    asked: list[str] = []
+    action = keys.ROBOT_NAVIGATE
+
+    def cancel_goal(request: CancelGoal) -> CancelResponse:
+        asked.append(request.goal_id)
+        if len(asked) == 1:
+            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message="too busy to answer; try again"))
+        ended.set()
+        return CancelResponse(goal_id=request.goal_id, accepted=True)
+
+    def get_result(request: GetResult) -> ResultResponse[NavigateToPoseResult]:
+        ended.wait(WAIT)
+        state = GoalState.CANCELED if ended.is_set() else GoalState.ABORTED
+        return ResultResponse(goal_id=request.goal_id, state=state)
+
+    peers.server.serve(action.send_goal, lambda r: GoalResponse(goal_id=r.goal_id, accepted=True))
+    peers.server.serve(action.cancel_goal, cancel_goal)
+    peers.server.serve(action.get_result, get_result, waits=True)
+    found(peers)
+    patient = ActionClient(peers.client, action, cancel_grace=3.0)
+    cancel = threading.Event()
+    timer = threading.Timer(0.2, cancel.set)  # once the goal is sent and running
+    timer.start()
+    try:
+        ending = patient.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT, cancel=cancel)
+    finally:
+        timer.cancel()
+    assert ending.state is GoalState.CANCELED, ending
+    assert len(asked) == 2, asked
