@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 
@@ -19,6 +21,39 @@ T = TypeVar("T")
 MAX_YAML_NODES = 1_000_000
 # A world or a policy is kilobytes; a path that names a huge file (or /dev/zero) is refused, not read.
 MAX_FILE_BYTES = 16 * 1024 * 1024
+
+
+def read_regular(path: Path, limit: int) -> tuple[int, bytes]:
+    """`path`'s mode and, when it is a regular file, at most `limit` + 1 of its bytes (one more than a
+    caller allows, so it tells a file over its limit by the length); b"" for anything else. Opened
+    without blocking and checked on the open file: a FIFO named in its place would hang the reader, a
+    device (/dev/zero) feed it without end, and the file checked is the file read. OSError as
+    os.open raises it."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    with os.fdopen(fd, "rb") as file:
+        mode = os.fstat(file.fileno()).st_mode
+        return mode, file.read(limit + 1) if stat.S_ISREG(mode) else b""
+
+
+class DuplicateKey(ValueError):
+    """A JSON object that gives one key twice (`key`): loaders keep the last, dropping the first."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(f"the key {key[:60]!r} appears twice in one object")
+        self.key = key
+
+
+def no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A json object_pairs_hook that refuses {"action": "pick", "action": "place"} (DuplicateKey)
+    instead of keeping the last."""
+    value = dict(pairs)
+    if len(value) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise DuplicateKey(key)
+            seen.add(key)
+    return value
 
 
 def read_struct(path: Path, type_: type[T], what: str, error: type[Exception]) -> T:
@@ -88,20 +123,10 @@ def _toml(data: bytes, type_: type[T]) -> T:
 def _json_duplicate_key(data: bytes) -> str | None:
     """The first key given twice in one JSON object; None when there is none or it does not parse
     (decoding then says what is wrong)."""
-
-    class Duplicate(Exception):
-        pass
-
-    def pairs(items: list[tuple[str, object]]) -> dict[str, object]:
-        keys = [key for key, _ in items]
-        if len(set(keys)) < len(keys):
-            raise Duplicate(next(key for key in keys if keys.count(key) > 1))
-        return dict(items)
-
     try:
-        json.loads(data, object_pairs_hook=pairs)
-    except Duplicate as exc:
-        return str(exc)
+        json.loads(data, object_pairs_hook=no_duplicate_keys)
+    except DuplicateKey as exc:
+        return exc.key
     except (ValueError, RecursionError):
         return None
     return None

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schemas import keys
+from services.datafile import read_regular
 from services.repeats import Problems, RepeatLog
 
 log = logging.getLogger(__name__)
@@ -104,13 +105,9 @@ def robot_key(configured: str | None, default_dir: Path, robot: str) -> tuple[by
 
 
 def read_key(path: Path) -> bytes:
-    # Opened without blocking and checked on the open file: a FIFO or device configured as the key
-    # would hang start-up or be read without end, and the file checked is the file read.
+    # A FIFO or device configured as the key would hang start-up or be read without end (read_regular).
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-        with os.fdopen(fd, "rb") as f:
-            mode = os.fstat(f.fileno()).st_mode
-            data = f.read(MAX_KEY_FILE_BYTES + 1) if stat.S_ISREG(mode) else b""
+        mode, data = read_regular(path, MAX_KEY_FILE_BYTES)
     except OSError as exc:
         raise KeyFileError(f"robot key file {path}: {exc.strerror}") from None
     if not stat.S_ISREG(mode):

@@ -27,6 +27,7 @@ from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.process import ProcessStatus
 from schemas.trace import TraceRecord
+from services.datafile import read_regular
 from services.errors import CallError
 from services.listening import listening_ports
 from services.procstat import process_status
@@ -901,16 +902,12 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
     """A service's frozen config from the `[section]` table of a TOML file; defaults without a file."""
     if path is None:
         return msgspec.convert({}, cls)
-    # Opened without blocking and checked on the open file: a FIFO given as the config hung start-up,
-    # and a device (/dev/zero) would be read without end.
+    # A FIFO given as the config hung start-up, and a device (/dev/zero) would be read without end.
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-        with os.fdopen(fd, "rb") as f:
-            regular = stat.S_ISREG(os.fstat(f.fileno()).st_mode)
-            raw = f.read(MAX_CONFIG_BYTES + 1) if regular else b""
+        mode, raw = read_regular(path, MAX_CONFIG_BYTES)
     except OSError as exc:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
-    if not regular:
+    if not stat.S_ISREG(mode):
         raise ConfigError(f"config file {path} is not a regular file")
     if len(raw) > MAX_CONFIG_BYTES:
         raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES} bytes; a config file is a few KB")
@@ -931,8 +928,11 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
         raise ConfigError(f"config file {path} [{section}]: {str(exc).translate(_LOG_CONTROLS)}") from None
 
 
-# Control characters a log line escapes (newlines and tabs stay: tracebacks).
-_LOG_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0)) if chr(code) not in "\n\t"}
+# Control characters (C0, DEL, C1) as text shows them escaped (`\\x1b`), for str.translate: what others
+# wrote, before it reaches a terminal or a journal (and tether/output.py's printable).
+CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
+# Those a log line escapes (newlines and tabs stay: tracebacks).
+_LOG_CONTROLS = {code: escaped for code, escaped in CONTROLS.items() if chr(code) not in "\n\t"}
 
 
 class _EscapingFormatter(logging.Formatter):

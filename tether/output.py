@@ -11,7 +11,7 @@ import zenoh
 from rich.console import Console
 from rich.markup import escape
 
-from services.runtime import ConfigError, Node, NodeSettings
+from services.runtime import CONTROLS, ConfigError, Node, NodeSettings
 
 # No services reachable (the CLI contract's exit code 3), here: no Zenoh session at all.
 EXIT_UNREACHABLE = 3
@@ -49,14 +49,13 @@ def open_node(settings: NodeSettings, console: Console, as_json: bool, name: str
 
 # Text someone else wrote (a file, a peer, the robot), before it reaches a terminal: its control
 # characters escaped, so no ESC sequence retitles, clears or repaints the operator's terminal.
-_CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
-_CONTROLS_BUT_NEWLINE = {code: escaped for code, escaped in _CONTROLS.items() if code != ord("\n")}
+_CONTROLS_BUT_NEWLINE = {code: escaped for code, escaped in CONTROLS.items() if code != ord("\n")}
 
 
 def printable(value: object, newlines: bool = False) -> str:
     """`value` as text with its control characters escaped (`\\x1b`), newlines kept if `newlines`:
     for anything a file holds, before it reaches a terminal."""
-    return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else _CONTROLS)
+    return str(value).translate(_CONTROLS_BUT_NEWLINE if newlines else CONTROLS)
 
 
 def shown(value: object, newlines: bool = True) -> str:

@@ -10,6 +10,7 @@ from typing import Any
 
 import json_repair
 
+from services.datafile import no_duplicate_keys
 from services.parser.errors import ParseError
 
 # A fenced block: ```lang\n body ``` (an unclosed fence runs to the end, as truncated output does).
@@ -131,21 +132,9 @@ def fenced_blocks(text: str) -> list[tuple[str, int, str]]:
     return blocks
 
 
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """An object hook that refuses {"action": "pick", "action": "place"} instead of keeping the last."""
-    value = dict(pairs)
-    if len(value) != len(pairs):
-        seen: set[str] = set()
-        for key, _ in pairs:
-            if key in seen:
-                raise ValueError(f"the key {key[:60]!r} appears twice in one object")
-            seen.add(key)
-    return value
-
-
 # JSON with every key given once, built once (json.loads builds a decoder per call). Only ever
 # given text that starts with a bracket, so json.loads' check for a leading byte-order mark is moot.
-_STRICT = json.JSONDecoder(object_pairs_hook=_no_duplicates)
+_STRICT = json.JSONDecoder(object_pairs_hook=no_duplicate_keys)
 
 
 class TruncatedJson(ParseError):
