@@ -66,7 +66,7 @@ from tether.client import (
     trigger_estop,
 )
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
-from tether.output import conclude, literal, open_node, printable, shown
+from tether.output import command_node, conclude, literal, printable, shown
 from tether.runcommand import HELP, common, run
 from tether.supervisor import Restarts, Supervisor, free_base_port
 
@@ -176,8 +176,8 @@ def settings_of(ctx: typer.Context) -> NodeSettings:
 
 
 def client(ctx: typer.Context) -> Node:
-    """This command's session, or exit 3 saying why there is none (output.open_node)."""
-    return open_node(settings_of(ctx), console, bool(ctx.params.get("as_json")))
+    """This command's session, or exit 3 saying why there is none (output.command_node)."""
+    return command_node(ctx, console)
 
 
 # Services

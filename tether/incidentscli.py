@@ -31,11 +31,10 @@ from schemas.incidents import (
     IncidentQuery,
 )
 from services.errors import CallError
-from services.runtime import Node, NodeSettings
 from services.safety.hazards import ago, zone_reason
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, operator_name
-from tether.output import open_node, printable, shown
+from tether.output import command_node, printable, shown
 
 # Exit codes.
 EXIT_OK = 0
@@ -62,13 +61,8 @@ def _fail(as_json: bool, why: str, code: int, **data: Any) -> NoReturn:
     raise typer.Exit(code)
 
 
-def _node(ctx: typer.Context) -> Node:
-    settings: NodeSettings = ctx.obj
-    return open_node(settings, console, bool(ctx.params.get("as_json")))
-
-
 def _ask(ctx: typer.Context, query: IncidentQuery, as_json: bool) -> IncidentList:
-    with _node(ctx) as node:
+    with command_node(ctx, console) as node:
         try:
             answer: IncidentList = node.call(keys.INCIDENTS, query, timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -352,7 +346,7 @@ def _change(
         request = msgspec.json.decode(msgspec.json.encode(request), type=ForgetIncident)
     except msgspec.ValidationError as exc:
         _fail(as_json, f"bad request: {exc}", EXIT_REFUSED)
-    with _node(ctx) as node:
+    with command_node(ctx, console) as node:
         try:
             reply: ForgetReply = node.call(keys.FORGET_INCIDENT, request, timeout=CALL_TIMEOUT)
         except CallError as exc:

@@ -21,10 +21,9 @@ from schemas import keys
 from schemas.safety import ApprovalAction, ApprovalDecision, ApprovalReply, ControlMode, ModeRequest, PendingPlans
 from schemas.world import Empty
 from services.errors import CallError
-from services.runtime import Node, NodeSettings
 from services.safety.operator import read_token, token_path
 from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name
-from tether.output import open_node, printable
+from tether.output import command_node, printable
 
 # Exit codes of these commands.
 EXIT_OK = 0
@@ -37,11 +36,6 @@ TokenFileOpt = Annotated[str | None, typer.Option("--token-file", help="The oper
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object.")]
 
 console = Console(stderr=True, highlight=False)
-
-
-def _node(ctx: typer.Context) -> Node:
-    settings: NodeSettings = ctx.obj
-    return open_node(settings, console, bool(ctx.params.get("as_json")))
 
 
 def _emit(as_json: bool, data: dict[str, Any], text: str, code: int) -> NoReturn:
@@ -90,7 +84,7 @@ def mode(
     Exit 0 shown or set, 2 refused (wrong token, unknown mode), 3 safety unreachable.
     """
     if new is None:
-        with _node(ctx) as node:
+        with command_node(ctx, console) as node:
             waited = next_heartbeat(node, HEARTBEAT_WAIT)
         beat = waited.status
         if beat is None:
@@ -104,7 +98,7 @@ def mode(
         why = f"unknown mode {new!r}; modes are {known}"
         _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_REFUSED)
     token = _token(token_file, as_json)
-    with _node(ctx) as node:
+    with command_node(ctx, console) as node:
         try:
             reply = node.call(
                 keys.SET_MODE, ModeRequest(operator=operator_name(), token=token, mode=wanted), timeout=CALL_TIMEOUT
@@ -132,7 +126,7 @@ def _decide(
     except msgspec.ValidationError as exc:
         why = f"bad request: {exc}"
         _emit(as_json, {"ok": False, "goal_id": goal_id, "error": why}, f"error: {why}", EXIT_REFUSED)
-    with _node(ctx) as node:
+    with command_node(ctx, console) as node:
         try:
             reply: ApprovalReply = node.call(keys.APPROVAL_DECIDE, request, timeout=CALL_TIMEOUT)
         except CallError as exc:
@@ -212,7 +206,7 @@ def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
 
     Exit 0 (also when none waits), 3 safety unreachable.
     """
-    with _node(ctx) as node:
+    with command_node(ctx, console) as node:
         try:
             waiting: PendingPlans = node.call(keys.PENDING_PLANS, Empty(), timeout=CALL_TIMEOUT)
         except CallError as exc:

@@ -11,7 +11,7 @@ import zenoh
 from rich.console import Console
 from rich.markup import escape
 
-from services.runtime import CONTROLS, ConfigError, Node, NodeSettings
+from services.runtime import CONTROLS, ConfigError, Node
 
 # No services reachable (the CLI contract's exit code 3), here: no Zenoh session at all.
 EXIT_UNREACHABLE = 3
@@ -34,11 +34,13 @@ def conclude(console: Console, as_json: bool, document: dict[str, Any], said: st
     raise typer.Exit(code)
 
 
-def open_node(settings: NodeSettings, console: Console, as_json: bool, name: str = "cli") -> Node:
-    """A command's session; a router that is down, a refused login or a config Zenoh cannot use ends
-    the command with exit 3, saying so (with --json, one object: status 'unreachable' and the reason)."""
+def command_node(ctx: typer.Context, console: Console) -> Node:
+    """A command's session from its settings (`ctx.obj`). A router that is down, a refused login or a
+    config Zenoh cannot use ends the command, saying so: exit 3 (2 for the config), with --json one
+    object, status 'unreachable' (or 'error') and the reason."""
+    as_json = bool(ctx.params.get("as_json"))
     try:
-        return Node(name, settings)
+        return Node("cli", ctx.obj)
     except ConfigError as exc:  # --zenoh-config names a file Zenoh cannot use
         conclude(console, as_json, {"status": "error", "reason": str(exc)}, f"[red]error:[/] {shown(exc)}", 2)
     except zenoh.ZError as exc:
