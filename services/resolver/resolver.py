@@ -178,6 +178,8 @@ class Resolver:
         # Where a sighting can be: over the map (give or take MAP_MARGIN), between the floor and above the tops.
         self._map = unary_union(list(world_model.room_shapes.values())).buffer(MAP_MARGIN)
         self._highest = max((f.size.z for f in self.world.furniture), default=0.0) + ABOVE_TOPS
+        # Where a sighting said to be on each piece of furniture may be: its top and ON_MARGIN round it.
+        self._near_tops = {f.id: world_model.footprint(f).buffer(ON_MARGIN) for f in self.world.furniture}
 
     def resolve(
         self,
@@ -294,7 +296,7 @@ class Resolver:
         if on is None or on == GRIPPER:
             return on
         item = self.model.furniture.get(on)
-        if item is not None and self.model.footprint(item).buffer(ON_MARGIN).covers(Point(position.x, position.y)):
+        if item is not None and self._near_tops[on].covers(Point(position.x, position.y)):
             return on
         under = self.model.support_under(position, half_height)
         said = item.name if item is not None else _echo(on)
