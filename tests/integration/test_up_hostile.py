@@ -105,6 +105,15 @@ def fill(path: str) -> socket.socket:
     return sender
 
 
+def logged(supervisor: Supervisor, service: str, text: str) -> None:
+    """Wait, while `service` runs, until its log holds `text`."""
+    deadline = time.monotonic() + STARTUP_TIMEOUT
+    while text not in supervisor.log_tail(service):
+        assert time.monotonic() < deadline and supervisor.procs[service].poll() is None, supervisor.log_tail(service)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            supervisor.procs[service].wait(timeout=0.05)
+
+
 def test_a_notify_socket_nobody_reads_does_not_keep_a_service_from_stopping(tmp_path: Path) -> None:
     # A service manager that hangs (or a socket left bound by something finished) reads nothing.
     path = str(tmp_path / "notify")
@@ -118,11 +127,7 @@ def test_a_notify_socket_nobody_reads_does_not_keep_a_service_from_stopping(tmp_
             supervisor.start("parser")
             with Node("cli", stack) as node:
                 assert not node.wait_alive(["parser"], STARTUP_TIMEOUT), supervisor.log_tail("parser")
-            deadline = time.monotonic() + STARTUP_TIMEOUT
-            while "cannot notify the service manager" not in supervisor.log_tail("parser"):
-                assert time.monotonic() < deadline and supervisor.procs["parser"].poll() is None
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    supervisor.procs["parser"].wait(timeout=0.05)
+            logged(supervisor, "parser", "cannot notify the service manager")
 
             code = supervisor.stop("parser", timeout=STOP_WAIT)
 
@@ -160,11 +165,7 @@ def test_safety_beats_on_while_its_notify_socket_takes_no_more(tmp_path: Path) -
             supervisor.start("safety")
             with Node("cli", stack) as node:
                 assert not node.wait_alive(["safety"], STARTUP_TIMEOUT), supervisor.log_tail("safety")
-                deadline = time.monotonic() + STARTUP_TIMEOUT
-                while "cannot notify the service manager" not in supervisor.log_tail("safety"):
-                    assert time.monotonic() < deadline and supervisor.procs["safety"].poll() is None
-                    with contextlib.suppress(subprocess.TimeoutExpired):
-                        supervisor.procs["safety"].wait(timeout=0.05)
+                logged(supervisor, "safety", "cannot notify the service manager")
                 subscription = node.subscribe(keys.HEARTBEAT, on_beat)
                 try:
                     assert enough.wait(20.0), f"{len(beats)} heartbeats in 20 s"
