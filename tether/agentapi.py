@@ -14,7 +14,7 @@ from typing import Any
 
 from schemas import keys
 from schemas.actions import CancelGoal, GetResult
-from schemas.common import Pose2D, Stage
+from schemas.common import Pose2D
 from schemas.executor import ExecutePlanGoal
 from schemas.incidents import IncidentList
 from schemas.plan import MAX_PLAN_BYTES
@@ -81,9 +81,7 @@ class AgentAPI:
             return feedback.started_text(handle.goal_id, None, None, checked=False)
         finally:
             self.sender.forget(handle.goal_id)  # the agent follows it with get_goal_status from here
-        latest = run.feedback[-1] if run.feedback else None
-        started = any(fb.stage is Stage.EXECUTE for fb in run.feedback)
-        return feedback.started_text(handle.goal_id, run.result, latest, checked=started)
+        return feedback.started_text(handle.goal_id, run.result, run.latest, checked=run.executing)
 
     def plan_and_execute(self, request: str, dry_run: bool) -> str:
         try:

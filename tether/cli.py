@@ -57,6 +57,7 @@ from services.runtime import (
 from tether.client import (
     EXIT_CODES,
     EXIT_UNREACHABLE,
+    STEP_ENDS,
     PlanRun,
     PlanSender,
     next_heartbeat,
@@ -439,9 +440,6 @@ def read_plan(plan: str) -> str:
     return plan
 
 
-ENDED = (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
-
-
 def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
         console.print(f"[dim]{fb.stage}[/]: {shown(fb.message)}")
@@ -464,7 +462,7 @@ def print_step(
     if status is StepStatus.RUNNING and attempt > 1:
         mark = "[yellow]retrying[/]"
     # Where a detect or pick searched, once the step has ended (the notes said it as it went).
-    where = f" [dim](searched: {shown(', '.join(searched))})[/]" if searched and status in ENDED else ""
+    where = f" [dim](searched: {shown(', '.join(searched))})[/]" if searched and status in STEP_ENDS else ""
     said = shown(f"step {label or index + 1} {action}: {message}")
     console.print(f"{said} {mark}{where}")
 
@@ -475,9 +473,8 @@ def print_unseen_ends(run: PlanRun) -> None:
     the run being done), or never, and the result is the record of how each step ended."""
     if run.result is None:
         return
-    told = {(fb.step, fb.label) for fb in run.feedback if fb.status in ENDED}
     for step in run.result.steps:
-        if step.status in ENDED and (step.index, step.label) not in told:
+        if step.status in STEP_ENDS and (step.index, step.label) not in run.told_ends:
             print_step(step.index, step.label, step.action, step.message, step.status, step.failure, step.searched)
 
 

@@ -34,6 +34,10 @@ EXIT_CODES = {
 EXIT_UNREACHABLE = 3
 # How long the executor may take to accept or reject a plan.
 SEND_TIMEOUT = 5.0
+STEP_ENDS = (StepStatus.SUCCEEDED, StepStatus.FAILED, StepStatus.CANCELED)
+# A plan's steps end at most MAX_STEPS times each (with their sub-steps and retries, a few times more):
+# the ends a run notes are bounded, whatever an executor sends.
+MAX_TOLD_ENDS = 4096
 
 
 def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
@@ -153,13 +157,23 @@ class PlanRun:
     """One execute_plan goal as the client sees it: feedback as it comes, then the result."""
 
     goal_id: str = ""
-    feedback: list[ExecutePlanFeedback] = field(default_factory=list)
     result: ExecutePlanResult | None = None
+    # What the feedback said, not the feedback itself: a plan that runs for hours sends it for hours.
+    latest: ExecutePlanFeedback | None = None
+    executing: bool = False  # some feedback said the plan was being carried out
+    # (step, label) of the steps whose end some feedback showed
+    told_ends: set[tuple[int | None, str | None]] = field(default_factory=set)
+
+    def heard(self, fb: ExecutePlanFeedback) -> None:
+        self.latest = fb
+        self.executing = self.executing or fb.stage is Stage.EXECUTE
+        if fb.status in STEP_ENDS and len(self.told_ends) < MAX_TOLD_ENDS:
+            self.told_ends.add((fb.step, fb.label))
 
     @property
     def awaiting_approval(self) -> ExecutePlanFeedback | None:
         """The feedback saying the plan waits for an operator (supervised mode), while that is the latest."""
-        latest = self.feedback[-1] if self.feedback else None
+        latest = self.latest
         if self.result is None and latest is not None and latest.status is StepStatus.AWAITING_APPROVAL:
             return latest
         return None
@@ -198,7 +212,7 @@ class PlanSender:
             run = self._runs.get(goal_id)
             if run is None:  # another client's plan, or one this sender is done with
                 return
-            run.feedback.append(fb)
+            run.heard(fb)
             started = self._started[goal_id]
         # Moving, or waiting for an operator (supervised mode): either way the sender may return now.
         if fb.stage is Stage.EXECUTE or fb.status is StepStatus.AWAITING_APPROVAL:

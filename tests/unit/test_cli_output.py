@@ -25,7 +25,7 @@ from schemas.executor import ExecutePlanFeedback, ExecutePlanResult, FailureKind
 from services.runtime import ALL_SERVICES
 from tests.unit.test_timeline import write_incident
 from tether import cli
-from tether.client import PlanRun
+from tether.client import MAX_TOLD_ENDS, PlanRun
 from tether.completion import complete_plan_format, complete_service, complete_services, one_of
 from tether.output import literal
 
@@ -100,11 +100,28 @@ def test_a_steps_end_the_feedback_did_not_bring_is_printed_from_the_result(said:
         ExecutePlanFeedback(stage=Stage.EXECUTE, step=0, action="navigate_to", status=StepStatus.SUCCEEDED),
         ExecutePlanFeedback(stage=Stage.EXECUTE, step=1, action="detect", message="looking", searched=looked),
     ]
-    cli.print_result(PlanRun(goal_id="g", feedback=seen, result=result), as_json=False)
+    run = PlanRun(goal_id="g", result=result)
+    for fb in seen:
+        run.heard(fb)
+    cli.print_result(run, as_json=False)
     assert said.getvalue().splitlines() == [
         f"step 2 detect: apple not found failed (precondition) (searched: {', '.join(looked)})",
         "failed at stage execute: step 2 failed",
     ]
+
+
+def test_a_plan_that_runs_for_hours_keeps_what_its_feedback_said_not_the_feedback() -> None:
+    """Every feedback of a run was kept in a list until its result came: an hour of a patrol's
+    progress grew the CLI (or `tether mcp`) by every message of it."""
+    run = PlanRun(goal_id="g")
+    run.heard(ExecutePlanFeedback(stage=Stage.SAFETY, message="checking"))
+    assert not run.executing
+    for n in range(MAX_TOLD_ENDS + 500):
+        run.heard(ExecutePlanFeedback(stage=Stage.EXECUTE, step=n % 100, label=str(n), status=StepStatus.SUCCEEDED))
+    run.heard(ExecutePlanFeedback(stage=Stage.EXECUTE, step=7, message="driving", status=StepStatus.RUNNING))
+    assert run.executing and run.latest is not None and run.latest.message == "driving"
+    assert len(run.told_ends) == MAX_TOLD_ENDS and (0, "0") in run.told_ends
+    assert not hasattr(run, "feedback"), "the run keeps its feedback"
 
 
 def test_a_config_error_keeps_the_table_it_names(tmp_path: Path) -> None:
