@@ -299,7 +299,6 @@ class _Flight:
         self.ended = threading.Event()
         self.settled = threading.Event()
         self.outcome: tuple[int, Any, str] = (0, None, "")
-        self._abandoned = False
         threading.Thread(target=self._fetch, name=f"result:{label}", daemon=True).start()
 
     def _fetch(self) -> None:
@@ -314,7 +313,7 @@ class _Flight:
         self.goal.forget()
 
     def _fetch_result(self) -> None:
-        while not self._abandoned and not self.settled.is_set():
+        while not self.settled.is_set():
             try:
                 status, result = self.goal.result(RESULT_POLL)
             except RobotCallFailed as exc:
@@ -347,9 +346,6 @@ class _Flight:
         """Whether the goal's own result says it ended. Its status alone does not settle it: anyone
         on the robot's network can publish one, and a lost or forged one would leave the goal running."""
         return self.ended.is_set() and self.outcome[0] in TERMINAL and not self.outcome[2]
-
-    def abandon(self) -> None:
-        self._abandoned = True
 
 
 class GoalRun:
