@@ -622,7 +622,9 @@ class Node:
                 error = ServiceError(kind=ErrorKind.INTERNAL, message=payload[:500].decode(errors="replace"))
             raise CallError(error)
         waited = time.monotonic() - asked
-        if waited < timeout * 0.9:  # Zenoh ended the query early: nothing serving the key answered it
+        if self.closed:  # the session was closed under the query, not that nothing serves the key
+            message = f"no reply from {service.path}: this {self.service} session closed after {waited:.2f} s"
+        elif waited < timeout * 0.9:  # Zenoh ended the query early: nothing serving the key answered it
             message = f"no reply from {service.path}: nothing answered it within {waited:.2f} s (is it running?)"
         else:
             message = f"no reply from {service.path} within {timeout:g} s"

@@ -302,3 +302,26 @@ def test_a_pool_starts_no_more_threads_than_its_workers_and_refuses_past_its_bac
     assert pool.load() == "0 of 3 workers busy, 0 of 2 waiting"
     with pytest.raises(ValueError, match="needs workers >= 1"):
         QueryPool("none", workers=0)
+
+
+def test_a_call_cut_by_its_own_session_closing_says_so_not_that_nothing_serves_the_key() -> None:
+    """It said "nothing answered it within 0.31 s (is it running?)" of a service that was running and
+    still working on it: the caller's own session had closed."""
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    slow = Gate()
+    with Node("sim", settings) as server, ThreadPoolExecutor(1) as callers:
+        client = Node("executor", settings)
+        try:
+            server.serve(SLOW, slow.handler)
+            server.declare_alive()
+            assert not client.wait_alive(["sim"], WAIT)
+            cut = callers.submit(client.call, SLOW, HELLO, timeout=WAIT)
+            slow.wait_inside(1)
+            client.close()
+            with pytest.raises(CallError) as raised:
+                cut.result(WAIT)
+        finally:
+            slow.release.set()
+            client.close()
+    message = raised.value.error.message
+    assert "session closed" in message and "is it running" not in message, message
