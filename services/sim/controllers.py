@@ -413,16 +413,24 @@ class GripperMotion(GoalMotion[GripperCommandFeedback, GripperCommandResult]):
         world = ctl.world
         self.goal = goal
         self.closing = goal.position < world.robot.gripper_gap() - 1e-4
+        # The gripper's own clock stands still while paused (speed scale 0: a person is too close
+        # for fingers to close); any other scale moves the fingers at their normal speed. The fingers
+        # set off at the first tick that may move them: an opening goal that came while paused must
+        # not let go of what the hand holds while the goal waits.
+        self.clock = 0.0
+        self.paused = False
+        self.set_off = False
+        self.still_since = 0.0
+
+    def _go(self, ctl: Controllers) -> None:
+        """The fingers towards the goal's gap; opening lets go of what the hand holds."""
+        self.set_off = True
+        world = ctl.world
         if self.closing:
             world.fingers_touch_all()
         elif world.holding is not None:
             world.release()
-        ctl.fingers.command(goal.position, goal.max_effort)
-        # The gripper's own clock stands still while paused (speed scale 0: a person is too close
-        # for fingers to close); any other scale moves the fingers at their normal speed.
-        self.clock = 0.0
-        self.paused = False
-        self.still_since = 0.0
+        ctl.fingers.command(self.goal.position, self.goal.max_effort)
 
     def result_now(self, ctl: Controllers) -> GripperCommandResult:
         gap = ctl.world.robot.gripper_gap()
@@ -442,9 +450,9 @@ class GripperMotion(GoalMotion[GripperCommandFeedback, GripperCommandResult]):
                 self.paused = True
                 fingers.command(gap, self.goal.max_effort)
             return
-        if self.paused:
+        if self.paused or not self.set_off:
             self.paused = False
-            fingers.command(self.goal.position, self.goal.max_effort)
+            self._go(ctl)
         self.clock += world.dt
         elapsed = self.clock
         reached = abs(gap - self.goal.position) < GRIPPER_REACHED
@@ -505,7 +513,7 @@ class Controllers:
 
     def _start(self, kind: str, make: Callable[[], M]) -> M:
         # The old goal is canceled (its controller holds) before the new one is made, which may
-        # command its controller at once (the gripper does).
+        # command its controller at once.
         previous = self.motions.get(kind)
         if previous is not None and previous.running:
             self.cancel(previous, GoalState.CANCELED, f"preempted by a new {kind} goal")

@@ -262,6 +262,7 @@ class Faults:
         self.doors = doorways(world.spec)
         self.slip: _Slip | None = None
         self.hidden: dict[str, tuple[float, float, float]] = {}  # object id -> where it stood (x, y, bottom)
+        self._hides = 0  # since the last clear: each hides at a spot of its own, HIDE_STEP further west
         self._falls: list[_Fall] = []
         self._touched: dict[str, float] = {}  # what the robot touched -> sim time it last did
         self._touching: list[str] = []  # what the last check found touched (keys of _touched)
@@ -336,7 +337,8 @@ class Faults:
             raise _Refused(ErrorKind.PRECONDITION, f"{target} is hidden already")
         was = self.world.object_position(target)
         self.hidden[target] = (was.x, was.y, was.z - obj.size.z / 2)
-        x, y = HIDE_AT[0] - HIDE_STEP * (len(self.hidden) - 1), HIDE_AT[1]
+        x, y = HIDE_AT[0] - HIDE_STEP * self._hides, HIDE_AT[1]
+        self._hides += 1
         self._forget_falls(target)
         self.world.set_down(target, x, y, 0.0)
         message = (
@@ -360,9 +362,16 @@ class Faults:
             self.world.set_down(object_id, x, y, bottom)
             done.append(f"the {self.model.objects[object_id].name} put back at ({x:.2f}, {y:.2f})")
         self.hidden.clear()
+        self._hides = 0
         message = "cleared " + "; ".join(done) if done else "no fault was in force"
         log.info("fault: %s", message)
         return FaultInjected(kind=FaultKind.CLEAR, message=message)
+
+    def moved(self, entity_id: str) -> None:
+        """sim/move put it somewhere: hidden no more (`clear` leaves it there, `hide` takes it again),
+        and no fall of it is to be reported."""
+        self.hidden.pop(entity_id, None)
+        self._forget_falls(entity_id)
 
     def _forget_falls(self, object_id: str) -> None:
         self._falls = [f for f in self._falls if f.drop.object_id != object_id]

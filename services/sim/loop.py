@@ -13,7 +13,7 @@ from typing import Any, Protocol, TypeVar
 
 from schemas.actions import GoalState
 from schemas.common import ErrorKind, ServiceError
-from schemas.world import Empty, FaultReply, GroundTruth, InjectFault, MoveEntity, MoveReply
+from schemas.world import Empty, FaultReply, GroundTruth, InjectFault, Moved, MoveEntity, MoveReply
 from services.actionlib import Outcome
 from services.errors import CallError
 from services.robotrules import FEEDBACK_PERIOD
@@ -150,7 +150,14 @@ class SimLoop:
 
     def move(self, request: MoveEntity) -> MoveReply:
         """sim/move: the reply once the moved thing is at rest, or why it was not moved."""
-        moved = self.answer(lambda sim: sim.scene.move(request))
+
+        def move_now(sim: Simulation) -> Drop | Moved | ServiceError:
+            moved = sim.scene.move(request)
+            if not isinstance(moved, ServiceError):
+                sim.faults.moved(request.id)
+            return moved
+
+        moved = self.answer(move_now)
         if not isinstance(moved, Drop):
             return moved
         # The object falls and comes to rest while the sim thread keeps stepping (and obeying safety).

@@ -222,7 +222,7 @@ class Renderer:
             if self._closed and expected == "ready":
                 raise RendererDied("closed before it was up")
             if time.monotonic() > deadline:
-                self._process.kill()
+                self._kill()
                 raise RendererDied(f"gave no {expected} within {timeout:g} s and was killed")
         message: tuple[Any, ...] = self._conn.recv()
         if message[0] == "failed":
@@ -230,6 +230,14 @@ class Renderer:
         if message[0] != expected:
             raise RendererDied(f"answered {message[0]!r} to a request for {expected!r}")
         return message
+
+    def _kill(self) -> None:
+        """Kill the child and reap it: left unwaited it stayed a zombie until the sim restarted."""
+        self._process.kill()
+        try:
+            self._process.wait(STOP_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            log.error("camera renderer (pid %d) did not exit when killed", self.pid)
 
     def _died(self, exc: BaseException) -> None:
         with self._cond:

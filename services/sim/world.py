@@ -58,6 +58,9 @@ DROP_HEIGHT = 0.002
 SETTLED_OBJECT_SPEED = 0.01
 SETTLED_OBJECT_TIME = 0.1
 SETTLE_TIMEOUT = 3.0
+# sim/move's `z` is where an object is set down, not thrown from: below the floor Bullet shot it
+# metres up, from far above it was still falling when the reply said where it was.
+MOVE_MAX_Z = 2.0
 
 
 def wrap_angle(angle: float) -> float:
@@ -691,6 +694,9 @@ class SimWorld:
             return ServiceError(kind=ErrorKind.PRECONDITION, message=message)
         if self._under_the_robot(request.x, request.y):
             message = f"({request.x:g}, {request.y:g}) is where the robot stands"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        if request.z is not None and not 0.0 <= request.z <= MOVE_MAX_Z:
+            message = f"z = {request.z:g} m is not between the floor and {MOVE_MAX_Z:g} m above it"
             return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
         furniture = self._furniture_at(request.x, request.y)
         if furniture is not None and request.z is not None and request.z < furniture.size.z:

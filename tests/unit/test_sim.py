@@ -33,7 +33,7 @@ from services.footprint import TRACKING_TOLERANCE, footprint, route_sweeps
 from services.robotmodel import world_to_arm
 from services.runtime import ConfigError, load_config
 from services.sim.config import SimConfig
-from services.sim.controllers import STALL_TIME
+from services.sim.controllers import STALL_TIME, Navigation
 from services.sim.simulation import Simulation
 from services.worldmodel import WorldModel, drive_route, load_world
 from tests.fastsim import FAST_PHYSICS_HZ
@@ -292,6 +292,7 @@ def test_a_pause_stops_the_base_gently_and_keeps_the_goal_running(sim: Simulatio
     assert stopped_after > 0.8 * 0.3 / sim.world.robot.max_linear_acceleration
     assert speeds[-1] < 0.001
     # Long past the stall time, the paused goal runs on: the stall and deadline clocks stand still.
+    assert isinstance(motion, Navigation)
     clock, here = motion.clock, sim.robot.base_pose()
     sim.settle(3.0 * STALL_TIME)
     assert motion.running
