@@ -17,6 +17,22 @@ def _echo(text: str) -> str:
     return repr(text if len(text) <= ECHO_CHARS else text[:ECHO_CHARS] + "...")
 
 
+def given_once(
+    refuse: Callable[[str], ParseError], given: dict[str, Any], field: str, key: Any, first: Any, value: Any
+) -> None:
+    """Refuse a step field given under two of its names ('target' and 'goal_name') that differ: keeping
+    either would drop the other without a word (an 'args' beside 'parameters' losing a direction).
+
+    `given` maps each field seen to the key that gave it; `first` is what that key gave.
+    """
+    if field in given and value != first:
+        shown = f" ({_echo(first)} and {_echo(value)})" if isinstance(value, str) else ""
+        raise refuse(
+            f"gives its {field} twice, as {_echo(given[field])} and {_echo(key)}, and they differ{shown}; give it once"
+        )
+    given[field] = key
+
+
 class Expansions:
     """The vocabulary's `expansions`, looked up by any of their names (normalised)."""
 
@@ -48,16 +64,22 @@ class Expansions:
         names: dict[str, str] = {}
         params: dict[Any, Any] = {}
         keep: dict[str, Any] = {}
+        given: dict[str, Any] = {}
         for key, value in step.items():
             field = self.fields.get(normalise_word(key)) if isinstance(key, str) else None
-            if field == "action":
-                continue
+            if field == "action" or value is None:
+                continue  # null is not given: it must not blank out what a template step says
             if field in _NAME_FIELDS and isinstance(value, str):
                 if value.strip():
+                    given_once(refuse, given, field, key, names.get(field), value.strip())
                     names[field] = value.strip()
             elif field == "parameters" and isinstance(value, dict):
+                given_once(refuse, given, field, key, step[given[field]] if field in given else None, value)
                 params.update(value)
-            elif field in ("description", "on_failure"):
+            elif field == "on_failure":
+                given_once(refuse, given, field, key, keep.get(field), value)
+                keep[field] = value
+            elif field == "description":
                 keep[field] = value
             elif field == "substeps":
                 raise refuse(f"{_echo(written)} stands for steps of its own and cannot also have sub-steps")

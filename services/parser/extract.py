@@ -17,6 +17,7 @@ from services.parser.errors import ParseError
 _FENCE = re.compile(r"```[ \t]*([A-Za-z0-9_+.-]*)[^\n]*\n(.*?)(?:```|\Z)", re.DOTALL)
 _STRUCTURAL = re.compile(r'[\[\]{}"\\]')
 _CLOSERS = {"{": "}", "[": "]"}
+_OPENERS = re.compile(r"[\[{]")
 # How many opening brackets in prose are tried as the start of the plan before giving up.
 MAX_PROSE_STARTS = 64
 
@@ -106,6 +107,8 @@ class Candidate:
     value: Any
     warnings: list[str]
     line: int
+    # Where the value's closing bracket ends, when text follows it; None when it is all the text (or block).
+    end: int | None = None
 
 
 @dataclass
@@ -161,23 +164,32 @@ class JsonFinder:
         """The plan-like values: the bare text or fenced blocks if any start with a bracket, else prose.
         Repairs are taken from `repairs` (the parse's), or from a budget of this call's own."""
         repairs = repairs if repairs is not None else self.budget()
-        starts: dict[int, None] = {}  # ordered and O(1) to test
+        starts: dict[int, int] = {}  # where each value starts -> where its text or block ends; ordered
         stripped = text.lstrip()
         if stripped[:1] in _CLOSERS:
-            starts[len(text) - len(stripped)] = None
+            starts[len(text) - len(stripped)] = len(text)
         for _lang, body_at, body in fenced_blocks(text):
             offset = body_at + len(body) - len(body.lstrip())
             if text[offset : offset + 1] in _CLOSERS:
-                starts[offset] = None
+                starts[offset] = body_at + len(body)
         if not starts:
             return self._search_prose(text, looks_like_plan, repairs)
         found = Found(plans=[])
-        for start in starts:
+        for start, stop in starts.items():
             try:
                 decoded = self._decode(text, start, repairs)
             except ParseError as exc:
                 found.error = found.error or exc
                 continue
+            if decoded.end is not None:
+                # One step per line ('{"action": ...}' twice) is several values: the ones after the
+                # first are plans too, which must agree with it, not text to ignore.
+                fence = text.find("```", decoded.end, stop) if "`" in text else -1
+                rest = self._search_prose(text, looks_like_plan, repairs, decoded.end, stop if fence < 0 else fence)
+                if isinstance(rest.error, TruncatedJson):
+                    found.error = found.error or rest.error
+                    continue
+                found.plans.extend(rest.plans)
             if looks_like_plan(decoded.value):
                 found.plans.append(decoded)
             elif found.other is None:
@@ -185,7 +197,7 @@ class JsonFinder:
         return found
 
     def _decode(self, text: str, start: int, repairs: RepairBudget) -> Candidate:
-        """The JSON value that starts at `start`; text after its closing bracket is ignored."""
+        """The JSON value that starts at `start`, and where it ends when text follows (`find` reads that text)."""
         fast = self._decode_whole(text, start)
         if fast is not None:
             return fast
@@ -199,7 +211,7 @@ class JsonFinder:
         chunk = text[start : span.end]
         line = text.count("\n", 0, start) + 1
         try:
-            return Candidate(_STRICT.decode(chunk), [], line)
+            return Candidate(_STRICT.decode(chunk), [], line, span.end)
         except json.JSONDecodeError as exc:
             detail = f"{exc.msg} at {line_col(text, start + exc.pos)}"
         except (RecursionError, ValueError) as exc:
@@ -217,7 +229,7 @@ class JsonFinder:
             raise ParseError(f"malformed JSON: {detail} (repair failed: {exc})") from None
         if not isinstance(value, dict | list) or not value:
             raise ParseError(f"malformed JSON: {detail}")
-        return Candidate(value, [f"the JSON was malformed ({detail}) and was read leniently"], line)
+        return Candidate(value, [f"the JSON was malformed ({detail}) and was read leniently"], line, span.end)
 
     @staticmethod
     def _repair(chunk: str) -> Any:
@@ -258,10 +270,18 @@ class JsonFinder:
             return str(exc)
         return "unexpected end"
 
-    def _search_prose(self, text: str, looks_like_plan: Callable[[Any], bool], repairs: RepairBudget) -> Found:
+    def _search_prose(
+        self,
+        text: str,
+        looks_like_plan: Callable[[Any], bool],
+        repairs: RepairBudget,
+        start: int = 0,
+        stop: int | None = None,
+    ) -> Found:
+        """The plan-like values in `text[start:stop]`, which may sit among words."""
         found = Found(plans=[], in_prose=True)
         resume = 0
-        for tries, match in enumerate(re.finditer(r"[\[{]", text)):
+        for tries, match in enumerate(_OPENERS.finditer(text, start, len(text) if stop is None else stop)):
             if tries >= MAX_PROSE_STARTS or len(found.plans) >= MAX_CANDIDATES:
                 break
             if match.start() < resume:

@@ -23,8 +23,8 @@ from schemas.plan import (
     Step,
 )
 from services.parser.config import ParserConfig
-from services.parser.errors import ParseError
-from services.parser.expand import Expansions
+from services.parser.errors import ParseError, kind_of
+from services.parser.expand import Expansions, given_once
 from services.parser.extract import JsonFinder, RepairBudget, fenced_blocks
 from services.parser.hints import Hints
 from services.parser.text import TextGrammar, TextStep, load_grammar, read_text
@@ -85,12 +85,6 @@ def echo(value: object) -> str:
 def _listing(names: list[str]) -> str:
     shown = ", ".join(names[:MAX_LISTED])
     return shown if len(names) <= MAX_LISTED else f"{shown} and {len(names) - MAX_LISTED} more"
-
-
-def _type_name(value: object) -> str:
-    return {dict: "an object", list: "an array", str: "a string", bool: "a boolean", type(None): "null"}.get(
-        type(value), "a number"
-    )
 
 
 @dataclass(frozen=True)
@@ -283,7 +277,7 @@ class Parser:
 
     def _check_text(self, text: str) -> None:
         if not isinstance(text, str):
-            raise ParseError(f"plan text must be a string, got {_type_name(text)}")
+            raise ParseError(f"plan text must be a string, got {kind_of(text)}")
         if not text:
             raise ParseError("plan text is empty")
         limit = self.config.max_input_bytes
@@ -410,11 +404,20 @@ class Parser:
     def _steps_of(self, value: Any, warnings: list[str]) -> tuple[list[Any], Any]:
         description: Any = ""
         plan_key: str | None = None
+        keys = self.plan_keys
         for _ in range(2):  # {"plan": {"steps": [...]}} is read too
             if not isinstance(value, dict):
                 break
             by_key = {normalise_word(k): k for k in value if isinstance(k, str)}
             plan_key = next((by_key[k] for k in self.plan_keys if k in by_key), None)
+            # Steps under two plan keys are two plans ("plan" and "steps"): reading one would drop the other.
+            holders = [k for k, v in value.items() if isinstance(k, str) and v is not None]
+            holders = [k for k in holders if normalise_word(k) in keys]
+            if len(holders) > 1:
+                raise ParseError(
+                    f"the object holds steps under both {echo(holders[0])} and {echo(holders[1])}; "
+                    "send exactly one plan, with all its steps in one array"
+                )
             if plan_key is None:
                 if any(self.fields.get(k) == "action" for k in by_key):
                     return [value], description  # a single step on its own
@@ -427,9 +430,9 @@ class Parser:
                 warnings.append(f"top-level field(s) {_listing(extra)} ignored")
             value = value[plan_key]
         if plan_key is not None and not isinstance(value, list):
-            raise ParseError(f"'{plan_key}' must be an array of steps, got {_type_name(value)}")
+            raise ParseError(f"'{plan_key}' must be an array of steps, got {kind_of(value)}")
         if not isinstance(value, list):
-            raise ParseError(f"{NO_PLAN}; found {_type_name(value)}")
+            raise ParseError(f"{NO_PLAN}; found {kind_of(value)}")
         if not value:
             raise ParseError("the plan has no steps")
         if len(value) > self.config.max_steps:
@@ -576,7 +579,7 @@ class Parser:
         if depth > self.config.max_nesting:
             raise where.refuse(f"sub-steps are nested more than {self.config.max_nesting} levels deep")
         if not isinstance(value, dict):
-            raise where.refuse(f"is {_type_name(value)}, not an object with an 'action'")
+            raise where.refuse(f"is {kind_of(value)}, not an object with an 'action'")
         raw = self._fields(value, where, ctx.warnings)
         substeps = self._nested(raw.substeps, "substeps", where)
         on_failure = self._nested(raw.on_failure, "on_failure", where)
@@ -633,7 +636,7 @@ class Parser:
         if isinstance(value, dict):
             return [value]
         if not isinstance(value, list):
-            raise where.refuse(f"'{name}' must be an array of steps, got {_type_name(value)}")
+            raise where.refuse(f"'{name}' must be an array of steps, got {kind_of(value)}")
         return value
 
     def _build(self, raw: _RawStep, where: _Where, has_substeps: bool, ctx: _Context) -> Step:
@@ -649,7 +652,7 @@ class Parser:
             if isinstance(raw.action, str) and raw.action.strip():
                 description = description or raw.action.strip()[: self.config.max_string_chars]  # its name
             elif raw.action is not None:
-                ctx.warnings.append(f"{where.label}: 'action' of a group ignored: it is {_type_name(raw.action)}")
+                ctx.warnings.append(f"{where.label}: 'action' of a group ignored: it is {kind_of(raw.action)}")
             ignored = [*raw.names, *(echo(k) for k in raw.parameters), *(echo(k) for k in raw.extra)]
             if ignored:
                 ctx.warnings.append(f"{where.label}: field(s) {_listing(ignored)} of a group ignored")
@@ -683,6 +686,7 @@ class Parser:
 
     def _fields(self, value: dict[Any, Any], where: _Where, warnings: list[str]) -> _RawStep:
         raw = _RawStep()
+        given: dict[str, Any] = {}  # field -> the key that gave it, for a field given under two names
         for key, item in value.items():
             word = normalise_word(key) if isinstance(key, str) else ""
             name = self.fields.get(word)
@@ -701,24 +705,28 @@ class Parser:
                 if item is None:
                     continue
                 if not isinstance(item, dict):
-                    raise where.refuse(f"'{key}' must be an object, got {_type_name(item)}")
+                    raise where.refuse(f"'{key}' must be an object, got {kind_of(item)}")
+                given_once(where.refuse, given, name, key, raw.parameters, item)
                 raw.parameters = item
             elif name == "description":
                 if isinstance(item, str):
                     raw.description = item
                 elif item is not None:
-                    warnings.append(f"{where.label}: description ignored: it is {_type_name(item)}, not text")
+                    warnings.append(f"{where.label}: description ignored: it is {kind_of(item)}, not text")
             elif name in ("substeps", "on_failure"):
-                setattr(raw, name, item)
+                if item is not None:
+                    given_once(where.refuse, given, name, key, getattr(raw, name), item)
+                    setattr(raw, name, item)
             elif item is None or (isinstance(item, str) and not item.strip()):
                 continue
             elif isinstance(item, dict | list) and word in self.point_keys:
                 raw.extra[key] = item  # "location": [2.0, 3.5] is a point, not a name
             elif not isinstance(item, str):
-                raise where.refuse(f"'{key}' must be a name (a string), got {_type_name(item)}")
+                raise where.refuse(f"'{key}' must be a name (a string), got {kind_of(item)}")
             elif _CONTROL.search(item):
                 raise where.refuse(f"'{key}' contains control characters")
             else:
+                given_once(where.refuse, given, name, key, raw.names.get(name), item.strip())
                 raw.names[name] = item.strip()
         return raw
 
@@ -731,7 +739,7 @@ class Parser:
         if value is None or (isinstance(value, str) and not value.strip()):
             raise where.refuse(f"has no 'action'; known actions: {known}")
         if not isinstance(value, str):
-            raise where.refuse(f"'action' must be a string, got {_type_name(value)}")
+            raise where.refuse(f"'action' must be a string, got {kind_of(value)}")
         word = normalise_word(value)
         if word in self.actions:
             return self.actions[word]
@@ -763,8 +771,12 @@ class Parser:
             word = normalise_word(key) if isinstance(key, str) else ""
             field_name = self.fields.get(word)
             if in_parameters and word not in known and field_name in _NAME_FIELDS and isinstance(value, str):
-                if value.strip() and field_name not in raw.names:  # {"parameters": {"object": "cup"}}
-                    raw.names[field_name] = value.strip()
+                name = value.strip()
+                if name and raw.names.setdefault(field_name, name) != name:  # {"parameters": {"object": "cup"}}
+                    raise where.refuse(
+                        f"gives its {field_name} twice: {echo(raw.names[field_name])}, and {echo(name)} as "
+                        f"{echo(key)} in parameters; give it once"
+                    )
                 continue
             if word in known:
                 name, pspec, unit = known[word]
@@ -886,7 +898,7 @@ class Parser:
         elif isinstance(value, list):
             numbers = value
         else:
-            raise where.refuse(f"{name} must be a point such as {POINT_SHAPES}, got {_type_name(value)}")
+            raise where.refuse(f"{name} must be a point such as {POINT_SHAPES}, got {kind_of(value)}")
         if len(numbers) not in (2, 3):
             raise where.refuse(
                 f"{name} must be 2 or 3 numbers (x, y and optionally z, in metres in the map frame), "
@@ -961,7 +973,7 @@ class Parser:
     def _check_frame(self, where: _Where, subject: str, frame: Any) -> None:
         if frame is None or (isinstance(frame, str) and frame.strip().lstrip("/").lower() in self.map_frames):
             return
-        shown = echo(frame) if isinstance(frame, str) else _type_name(frame)
+        shown = echo(frame) if isinstance(frame, str) else kind_of(frame)
         raise where.refuse(
             f"{subject} is in frame {shown}; coordinates are read in the map frame only "
             f"({', '.join(self.map_frames)}): convert the point to the map frame, or name the place"
@@ -981,7 +993,7 @@ class Parser:
         what = f"parameter '{name}'"
         if spec.type == "str":
             if not isinstance(value, str):
-                raise where.refuse(f"{what} must be text, got {_type_name(value)}")
+                raise where.refuse(f"{what} must be text, got {kind_of(value)}")
             text = value.strip()
             if _CONTROL.search(text):
                 raise where.refuse(f"{what} contains control characters")
@@ -1023,7 +1035,7 @@ class Parser:
         """The value in the parameter's SI unit, and whether it came without a unit."""
         factors = self.vocabulary.units.get(spec.unit, {})
         if isinstance(value, bool) or not isinstance(value, int | float | str):
-            raise where.refuse(f"{what} must be a number, got {_type_name(value)}")
+            raise where.refuse(f"{what} must be a number, got {kind_of(value)}")
         if not isinstance(value, str):
             try:
                 number = float(value)
@@ -1116,7 +1128,7 @@ class Parser:
     def _text(self, value: Any, what: str, warnings: list[str]) -> str:
         if not isinstance(value, str):
             if value not in (None, ""):
-                warnings.append(f"{what} ignored: it is {_type_name(value)}, not text")
+                warnings.append(f"{what} ignored: it is {kind_of(value)}, not text")
             return ""
         if _CONTROL.search(value):
             warnings.append(f"{what}: control characters removed")

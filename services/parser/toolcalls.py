@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from schemas.plan import SourceFormat
-from services.parser.errors import ParseError
+from services.parser.errors import ParseError, kind_of
 
 # Arguments given as a JSON string (OpenAI) are decoded with this; it raises ParseError.
 Decode = Callable[[str, str], tuple[Any, list[str]]]
@@ -88,12 +88,6 @@ def _type(item: Any) -> str | None:
     return kind if isinstance(kind, str) else None
 
 
-def _kind_of(value: Any) -> str:
-    return {dict: "an object", list: "an array", str: "a string", bool: "a boolean", type(None): "null"}.get(
-        type(value), "a number"
-    )
-
-
 @dataclass
 class ToolCall:
     name: Any
@@ -138,7 +132,7 @@ def _is_chat_call(item: Any) -> bool:
 def _chat_call(item: Any, number: int) -> ToolCall:
     where = f"tool call {number}"
     if not isinstance(item, dict):
-        raise ParseError(f"{where} is {_kind_of(item)}, not an object")
+        raise ParseError(f"{where} is {kind_of(item)}, not an object")
     kind = item.get("type", "function")
     if kind == "custom":
         custom = item.get("custom")
@@ -217,7 +211,7 @@ def _responses_output(items: list[Any]) -> ToolCalls:
     for number, item in enumerate(items, 1):
         label = f"output item {number}"
         if not isinstance(item, dict):
-            raise ParseError(f"{label} is {_kind_of(item)}, not an object")
+            raise ParseError(f"{label} is {kind_of(item)}, not an object")
         kind = _type(item)
         if kind is None:
             raise ParseError(f"{label} has no 'type'")
@@ -268,7 +262,7 @@ def _responses(value: dict[Any, Any]) -> ToolCalls:
         raise ParseError(f"the response's status is {_shown(status)}{why}: only a completed response runs{cut}")
     output = value.get("output")
     if not isinstance(output, list):
-        raise ParseError(f"the response's 'output' must be an array of items, got {_kind_of(output)}")
+        raise ParseError(f"the response's 'output' must be an array of items, got {kind_of(output)}")
     found = _responses_output(output)
     if not found.calls:
         hint = "; if its message text is the plan, send that text" if found.text else ""
@@ -329,14 +323,14 @@ def _gemini_parts(parts: list[Any]) -> ToolCalls:
     for number, part in enumerate(parts, 1):
         label = f"part {number}"
         if not isinstance(part, dict):
-            raise ParseError(f"{label} is {_kind_of(part)}, not an object")
+            raise ParseError(f"{label} is {kind_of(part)}, not an object")
         if _get(part, "thought") is True:
             continue  # a thought summary: the model's reasoning is never read as steps
         call = _get(part, "functionCall")
         if call is not None:
             where = f"{label} (functionCall)"
             if not isinstance(call, dict):
-                raise ParseError(f"{where} is {_kind_of(call)}, not an object")
+                raise ParseError(f"{where} is {kind_of(call)}, not an object")
             if _get(call, "willContinue") is True or _get(call, "partialArgs") is not None:
                 raise ParseError(f"{where} is one piece of a streamed call; send the whole response")
             found.calls.append(ToolCall(call.get("name"), call.get("args"), where))
