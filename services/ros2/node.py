@@ -60,7 +60,7 @@ from services.ros2.backend import (
 )
 from services.ros2.config import Ros2Config
 from services.ros2.goals import Ending, GoalRun, GripperRun, NavigationRun, RunContext, TrajectoryRun
-from services.ros2.rmw import RosActionClient, RosCallError, RosClientGoal, RosGoalRejected, RosNode
+from services.ros2.rmw import MAX_PAYLOAD, RosActionClient, RosCallError, RosClientGoal, RosGoalRejected, RosNode
 from services.ros2.types import RosTypes
 from services.ros2.wire import CancelReturn, Naming
 from services.runtime import ConfigError, Node
@@ -73,6 +73,10 @@ COMPLAINT_PERIOD = 5.0
 WAIT_LOG_PERIOD = 10.0
 CLOSE_TIMEOUT = 3.0
 PROBLEM_CHARS = 1000  # a problem's text in the diagnostics, at most
+# The largest message Zenoh reassembles from the robot's network: the most any report or reply may
+# weigh (above that it is dropped unread anyway). Zenoh's default, 1 GiB, let any peer there make the
+# backend hold a gigabyte per message before the size check saw it.
+ROBOT_MAX_MESSAGE = max(MAX_PAYLOAD, *REPORT_MAX_BYTES.values())
 
 
 def robot_session_config(config: Ros2Config) -> zenoh.Config:
@@ -90,6 +94,7 @@ def robot_session_config(config: Ros2Config) -> zenoh.Config:
     conf.insert_json5("connect/endpoints", msgspec.json.encode([config.endpoint]).decode())
     retry = {"period_init_ms": 200, "period_max_ms": 1000, "period_increase_factor": 2}
     conf.insert_json5("connect/retry", msgspec.json.encode(retry).decode())
+    conf.insert_json5("transport/link/rx/max_message_size", str(ROBOT_MAX_MESSAGE))
     return conf
 
 
