@@ -515,6 +515,9 @@ class Gamepad:
         self._values = {code: (lo + hi) // 2 for code, (lo, hi) in self._ranges.items()}
         self._enable = {self._ecodes.BTN_TL, self._ecodes.BTN_TR}
         self._held: set[int] = set()
+        # The kernel's queue overflowed (SYN_DROPPED): events were lost, the release of the enable
+        # button maybe among them. Until the next SYN_REPORT the state is unknown, then read anew.
+        self._dropped = False
         self.name = str(self.device.name)
 
     def fileno(self) -> int:
@@ -522,21 +525,35 @@ class Gamepad:
 
     def read(self) -> Stick:
         """The stick after the events waiting now; OSError when the device is gone."""
+        ecodes = self._ecodes
         try:
             for event in self.device.read():
-                if event.type == self._ecodes.EV_ABS:
+                if event.type == ecodes.EV_SYN and event.code == ecodes.SYN_DROPPED:
+                    self._dropped = True
+                elif self._dropped:
+                    # The rest of a packet the kernel cut short is not to be trusted (evdev's protocol).
+                    if event.type == ecodes.EV_SYN and event.code == ecodes.SYN_REPORT:
+                        self._resync()
+                elif event.type == ecodes.EV_ABS:
                     self._values[event.code] = event.value
-                elif event.type == self._ecodes.EV_KEY and event.code in self._enable:
+                elif event.type == ecodes.EV_KEY and event.code in self._enable:
                     (self._held.add if event.value else self._held.discard)(event.code)
         except BlockingIOError:
             pass
-        x, y = self._ecodes.ABS_X, self._ecodes.ABS_Y
+        x, y = ecodes.ABS_X, ecodes.ABS_Y
         # Stick up and left read low: forward and turning left are positive.
         return Stick(
             linear=-stick_fraction(self._values[y], *self._ranges[y]),
             angular=-stick_fraction(self._values[x], *self._ranges[x]),
-            enabled=bool(self._held),
+            enabled=bool(self._held) and not self._dropped,
         )
+
+    def _resync(self) -> None:
+        """The buttons and axes as the device has them now (after events were lost)."""
+        self._held = set(self.device.active_keys()) & self._enable
+        for code in self._values:
+            self._values[code] = self.device.absinfo(code).value
+        self._dropped = False
 
     def close(self) -> None:
         with suppress(OSError):
@@ -561,6 +578,14 @@ class Ending:
 SIGNAL_ENDINGS = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP (terminal closed)"}
 
 
+def finite(value: float) -> float:
+    """An option's number, refused unless finite: click's min and max let "nan" through (a comparison
+    with NaN is false), and a NaN speed goes out as null, a twist safety cannot read."""
+    if not math.isfinite(value):
+        raise typer.BadParameter(f"{value} is not a number")
+    return value
+
+
 def usage_error(message: str, as_json: bool, code: int = EXIT_USAGE) -> typer.Exit:
     if as_json:
         print(json.dumps({"ended": "error", "error": message}))
@@ -573,14 +598,21 @@ def usage_error(message: str, as_json: bool, code: int = EXIT_USAGE) -> typer.Ex
 def teleop(
     ctx: typer.Context,
     linear: Annotated[
-        float, typer.Option("--linear", min=0.01, max=10.0, help="Forward/back speed at scale x1.0, m/s.")
+        float,
+        typer.Option("--linear", min=0.01, max=10.0, callback=finite, help="Forward/back speed at scale x1.0, m/s."),
     ] = Speeds.linear,
     angular: Annotated[
-        float, typer.Option("--angular", min=0.01, max=20.0, help="Turn rate at scale x1.0, rad/s.")
+        float, typer.Option("--angular", min=0.01, max=20.0, callback=finite, help="Turn rate at scale x1.0, rad/s.")
     ] = Speeds.angular,
     scale: Annotated[
         float,
-        typer.Option("--scale", min=MIN_SCALE, max=MAX_SCALE, help="The speed scale to start with (+/- step it)."),
+        typer.Option(
+            "--scale",
+            min=MIN_SCALE,
+            max=MAX_SCALE,
+            callback=finite,
+            help="The speed scale to start with (+/- step it).",
+        ),
     ] = 1.0,
     gamepad: Annotated[
         Path | None,

@@ -20,7 +20,8 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -46,6 +47,7 @@ from services.recorder.mcapfile import json_schema
 from services.repeats import RepeatLog
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
+from tether.teleop import finite
 from tether.viewteleop import TELEOP_TOPIC, Refused, TeleopGate
 
 log = logging.getLogger(__name__)
@@ -246,6 +248,7 @@ class LiveView:
         self.latest = Latest()
         self.logs = LogQueue()
         self.undecodable = RepeatLog("undecodable messages dropped")
+        self.unshowable = RepeatLog("messages not shown")
         self._static_due = threading.Event()
         self._static_due.set()
         self._static_sent = 0.0
@@ -311,18 +314,19 @@ class LiveView:
                 continue
             if kind in PASSTHROUGH:
                 self.channels[PASSTHROUGH[kind].key(self.robot)].log(payload)
-            if kind == "odom":
-                self._base = scene3d.base_transform(message)
-                tf_changed = True
-            elif kind == "joints" and self.arm is not None:
-                self._arm_frames = self.arm.transforms(message)
-                tf_changed = True
-            elif kind == "objects":
-                self._log(scene3d.OBJECTS_TOPIC, self.scene.objects(message))
-            elif kind == "humans":
-                self._log(scene3d.PEOPLE_TOPIC, self.scene.people(message))
-            elif kind == "route":
-                self._route(key, message, now)
+            with self._showing(kind, key):
+                if kind == "odom":
+                    self._base = scene3d.base_transform(message)
+                    tf_changed = True
+                elif kind == "joints" and self.arm is not None:
+                    self._arm_frames = self.arm.transforms(message)
+                    tf_changed = True
+                elif kind == "objects":
+                    self._log(scene3d.OBJECTS_TOPIC, self.scene.objects(message))
+                elif kind == "humans":
+                    self._log(scene3d.PEOPLE_TOPIC, self.scene.people(message))
+                elif kind == "route":
+                    self._route(key, message, now)
         if tf_changed:
             frames = ([self._base] if self._base is not None else []) + self._arm_frames
             self._log(scene3d.TF_TOPIC, scene3d.FrameTransforms(transforms=frames))
@@ -330,13 +334,25 @@ class LiveView:
             message = self._decode(kind, key, payload)
             if message is None:
                 continue
-            if kind == "safety":
-                self._log(scene3d.LOG_TOPIC, scene3d.safety_log(message))
-            elif kind == "feedback":
-                self._log(scene3d.LOG_TOPIC, scene3d.feedback_log(message.goal_id, message.feedback, now))
-            elif kind == "plan":
+            if kind == "plan":
                 self.channels[PASSTHROUGH["plan"].key(self.robot)].log(payload)
-                self._log(scene3d.LOG_TOPIC, scene3d.plan_status_log(message, now))
+            with self._showing(kind, key):
+                if kind == "safety":
+                    self._log(scene3d.LOG_TOPIC, scene3d.safety_log(message))
+                elif kind == "feedback":
+                    self._log(scene3d.LOG_TOPIC, scene3d.feedback_log(message.goal_id, message.feedback, now))
+                elif kind == "plan":
+                    self._log(scene3d.LOG_TOPIC, scene3d.plan_status_log(message, now))
+
+    @contextmanager
+    def _showing(self, kind: str, key: str) -> Iterator[None]:
+        """One message made into Foxglove's. One that cannot be (a value Foxglove's message cannot
+        carry, such as a stamp of -1e300) is dropped and logged: what a robot sends may not end the view."""
+        try:
+            yield
+        except Exception as exc:  # the conversions' own errors (scene3d, pinocchio), whatever the data hit
+            if (line := self.unshowable.note(key, f"{kind}: {type(exc).__name__}: {exc}")) is not None:
+                log.warning("%s", line)
 
     def _route(self, key: str, trace: TraceRecord, now: float) -> None:
         if bytes(trace.query) == b"null" or trace.error:
@@ -358,7 +374,8 @@ class LiveView:
             if (line := self.undecodable.note("camera", str(exc))) is not None:
                 log.warning("no camera picture: %s", line)
             return
-        self._log(scene3d.CAMERA_TOPIC, scene3d.camera_image(image))
+        with self._showing("camera", keys.CAMERA_IMAGE.path):
+            self._log(scene3d.CAMERA_TOPIC, scene3d.camera_image(image))
 
 
 class TeleopBridge:
@@ -501,7 +518,9 @@ def fail(code: int, message: str, as_json: bool) -> typer.Exit:
 
 def view(
     ctx: typer.Context,
-    port: Annotated[int, typer.Option(help="The WebSocket port (0: any free one, told on start).")] = DEFAULT_PORT,
+    port: Annotated[
+        int, typer.Option(help="The WebSocket port (0: any free one, told on start).", min=0, max=65535)
+    ] = DEFAULT_PORT,
     host: Annotated[str, typer.Option(help="The address to bind: loopback unless --allow-remote.")] = "127.0.0.1",
     allow_remote: Annotated[
         bool,
@@ -516,7 +535,10 @@ def view(
         typer.Option("--config", help="The stack's TOML file: its safety table names the world and policy."),
     ] = None,
     camera_rate: Annotated[
-        float, typer.Option(help="Camera pictures a second while a viewer watches the camera (0: none).", min=0, max=10)
+        float,
+        typer.Option(
+            help="Camera pictures a second while a viewer watches the camera (0: none).", min=0, max=10, callback=finite
+        ),
     ] = 2.0,
     arm: Annotated[bool, typer.Option(help="The arm's links as frames (loads the arm's URDF).")] = True,
     teleop: Annotated[
@@ -609,7 +631,8 @@ def view(
             for source in inputs(settings.robot):
                 node.subscribe_raw(source.key_expr, lambda key, payload, s=source: live.receive(s, key, payload))
             start_helper("view-camera", camera_loop, live, node, camera_rate, stop)
-            url = f"ws://{host}:{server.port}"
+            # An IPv6 address is bracketed in a URL: ws://::1:8765 is no address Foxglove can open.
+            url = f"ws://{f'[{host}]' if ':' in host else host}:{server.port}"
             if as_json:
                 started = {
                     "ok": True,

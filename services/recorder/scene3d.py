@@ -56,8 +56,12 @@ class Message(msgspec.Struct, frozen=True, kw_only=True):
 Base64 = Annotated[str, Meta(extra_json_schema={"contentEncoding": "base64"})]
 
 
+# Foxglove's Time holds its seconds in a uint32.
+MAX_STAMP_SEC = 2**32 - 1
+
+
 class Time(Message, kw_only=True):
-    sec: Annotated[int, Meta(ge=0)]
+    sec: Annotated[int, Meta(ge=0, le=MAX_STAMP_SEC)]
     nsec: Annotated[int, Meta(ge=0, le=999_999_999)]
 
 
@@ -225,7 +229,14 @@ def schema_document(type_: type[Message]) -> bytes:
 
 
 def stamp(seconds: float) -> Time:
-    sec = max(0, int(seconds))
+    """`seconds` as Foxglove's time, whose seconds are a uint32. A stamp no such time holds (NaN,
+    before 1970, after 2106: anything a peer sends) is the nearest one, not an error that ends the
+    view or loses the recorder's derived message."""
+    if not seconds > 0.0:  # also NaN
+        return Time(sec=0, nsec=0)
+    if seconds >= MAX_STAMP_SEC + 1:
+        return Time(sec=MAX_STAMP_SEC, nsec=999_999_999)
+    sec = int(seconds)
     return Time(sec=sec, nsec=min(999_999_999, max(0, round((seconds - sec) * 1e9))))
 
 

@@ -325,7 +325,7 @@ def test_foxglove_teleop_drives_through_safety_and_the_deadman_stops_it(viewed: 
         odom.first(lambda at, o: still(at, o) and at > time.time() - 0.2, 20.0)
 
         # A channel on another topic is refused, and the Foxglove user is told why.
-        twist_type = {"encoding": "json", "schemaName": "geometry_msgs/Twist"}
+        twist_type: dict[str, Any] = {"encoding": "json", "schemaName": "geometry_msgs/Twist"}
         other = client.step("advertise", "advertised", topic="/other", **twist_type)["advertised"]
         assert client.wait_for(lambda lines: any("/other" in str(line.get("status")) for line in lines), 10.0)
         channel = client.step("advertise", "advertised", topic=TELEOP_TOPIC, **twist_type)["advertised"]
@@ -454,12 +454,13 @@ def test_the_recording_carries_the_scene_frames_and_log_for_foxglove(viewed: Vie
     derived: dict[str, list[tuple[int, dict[str, Any]]]] = {}
     names: dict[str, tuple[str, str, str]] = {}
     with path.open("rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+        for schema, channel, record in make_reader(f).iter_messages(log_time_order=True):
             if channel.topic == odom_key:
-                odometry[message.log_time] = message.data
+                odometry[record.log_time] = record.data
             elif scene3d.is_derived(channel.topic):
+                assert schema is not None, channel.topic
                 names[channel.topic] = (schema.name, schema.encoding, channel.message_encoding)
-                derived.setdefault(channel.topic, []).append((message.log_time, json.loads(message.data)))
+                derived.setdefault(channel.topic, []).append((record.log_time, json.loads(record.data)))
     assert names[scene3d.SCENE_TOPIC] == ("foxglove.SceneUpdate", "jsonschema", "json")
     assert names[scene3d.TF_TOPIC] == ("foxglove.FrameTransforms", "jsonschema", "json")
     assert names[scene3d.LOG_TOPIC] == ("foxglove.Log", "jsonschema", "json")

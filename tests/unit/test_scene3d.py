@@ -95,6 +95,20 @@ def test_derived_messages_for_a_recording() -> None:
     assert derived.messages(keys.CMD_VEL.key(ROBOT), b"{}", 3.0) == []
 
 
+@pytest.mark.parametrize("when", [-1e300, 1e300, -1.0, 5e9])
+def test_a_stamp_foxglove_time_cannot_hold_becomes_the_nearest_it_can(when: float) -> None:
+    """-1e300 raised OverflowError (the view ended, the recorder lost the frame with a traceback),
+    1e300 made a time of 301 digits that no reader takes as Foxglove's uint32 seconds."""
+    derived = scene3d.Derived(ROBOT, scene())
+    odom = Odometry(stamp=when, sim_time=1.0, pose=Pose2D(x=1, y=2), linear_x=0, angular_z=0)
+    [(_topic, tf)] = derived.messages(keys.ODOM.key(ROBOT), encode(odom), 1.0)
+    assert isinstance(tf, scene3d.FrameTransforms)
+    [frame] = tf.transforms
+    nearest = (0, 0) if when < 0 else (scene3d.MAX_STAMP_SEC, 999_999_999)
+    assert (frame.timestamp.sec, frame.timestamp.nsec) == nearest
+    assert msgspec.json.decode(scene3d.encode(tf), type=scene3d.FrameTransforms) == tf
+
+
 def test_schemas_are_named_for_foxglove_with_the_image_data_marked_base64() -> None:
     for type_, name in scene3d.SCHEMA_NAMES.items():
         document = json.loads(scene3d.schema_document(type_))

@@ -375,6 +375,7 @@ def test_events_on_other_keys_are_not_teleops() -> None:
 
 
 class AbsInfo(NamedTuple):
+    value: int
     min: int
     max: int
 
@@ -385,11 +386,13 @@ class InputEvent(NamedTuple):
     value: int
 
 
-ecodes = SimpleNamespace(EV_KEY=1, EV_ABS=3, ABS_X=0, ABS_Y=1, BTN_TL=310, BTN_TR=311)
+ecodes = SimpleNamespace(
+    EV_SYN=0, EV_KEY=1, EV_ABS=3, SYN_REPORT=0, SYN_DROPPED=3, ABS_X=0, ABS_Y=1, BTN_TL=310, BTN_TR=311
+)
 
 
 class FakeDevice:
-    """evdev.InputDevice as Gamepad uses it: capabilities, a non-blocking read, then gone."""
+    """evdev.InputDevice as Gamepad uses it: capabilities, a non-blocking read, the state now, then gone."""
 
     def __init__(self, path: str, axes: tuple[int, ...] = (0, 1)) -> None:
         if not path.startswith("/dev/input/"):
@@ -398,9 +401,18 @@ class FakeDevice:
         self.axes = axes
         self.queue: list[list[InputEvent]] = []
         self.gone = False
+        # What the device has now (EVIOCGKEY, EVIOCGABS), whatever was queued or lost.
+        self.keys_down: set[int] = set()
+        self.values = dict.fromkeys(axes, 128)
 
     def capabilities(self) -> dict[int, list[tuple[int, AbsInfo]]]:
-        return {ecodes.EV_ABS: [(code, AbsInfo(0, 255)) for code in self.axes], ecodes.EV_KEY: []}
+        return {ecodes.EV_ABS: [(code, AbsInfo(128, 0, 255)) for code in self.axes], ecodes.EV_KEY: []}
+
+    def active_keys(self) -> list[int]:
+        return sorted(self.keys_down)
+
+    def absinfo(self, code: int) -> AbsInfo:
+        return AbsInfo(self.values[code], 0, 255)
 
     def fileno(self) -> int:
         return 99
@@ -439,6 +451,33 @@ def test_the_gamepad_drives_with_the_left_stick_while_a_shoulder_button_is_held(
     device.gone = True
     with pytest.raises(OSError):
         pad.read()
+
+
+SYN_REPORT = InputEvent(ecodes.EV_SYN, ecodes.SYN_REPORT, 0)
+SYN_DROPPED = InputEvent(ecodes.EV_SYN, ecodes.SYN_DROPPED, 0)
+
+
+def test_events_the_kernel_dropped_stop_the_stick_until_the_device_is_read_anew(evdev: SimpleNamespace) -> None:
+    pad = Gamepad(Path("/dev/input/event7"))
+    device = pad.device
+    device.queue.append(
+        [InputEvent(ecodes.EV_ABS, ecodes.ABS_Y, 0), InputEvent(ecodes.EV_KEY, ecodes.BTN_TR, 1), SYN_REPORT]
+    )
+    assert pad.read() == Stick(1.0, 0.0, True)
+    # teleop fell behind, the kernel's queue overflowed: the button's release and the stick's return
+    # were lost. The device now has the button up and the stick centred.
+    device.values[ecodes.ABS_Y] = 128
+    device.queue.append([SYN_DROPPED, InputEvent(ecodes.EV_ABS, ecodes.ABS_Y, 5)])
+    assert not pad.read().enabled, "drove on a state known to be wrong"
+    device.queue.append([SYN_REPORT])
+    assert pad.read() == Stick(0.0, 0.0, False)
+    # A loss while the button stays held: driving again once the device is read anew.
+    device.keys_down, device.values[ecodes.ABS_X] = {ecodes.BTN_TL}, 0
+    device.queue.append([SYN_DROPPED, SYN_REPORT])
+    stick = pad.read()
+    assert stick.enabled and stick.angular == 1.0 and stick.linear == 0.0
+    device.queue.append([InputEvent(ecodes.EV_KEY, ecodes.BTN_TL, 0), SYN_REPORT])
+    assert not pad.read().enabled
 
 
 def test_gamepad_errors_name_what_is_wrong(evdev: SimpleNamespace, monkeypatch: pytest.MonkeyPatch) -> None:
