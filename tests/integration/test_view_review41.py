@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -40,94 +41,83 @@ def odometry(stamp: float, x: float) -> Odometry:
     return Odometry(stamp=stamp, sim_time=0.0, pose=Pose2D(x=x, y=0.5), linear_x=0.0, angular_z=0.0)
 
 
+@contextmanager
+def running_view(stack: Stack, args: list[str], log: Path) -> Iterator[tuple[subprocess.Popen[str], dict[str, Any]]]:
+    """`tether view --json` on the stack's config, its stderr in `log`: the process and the line it
+    started with. Stopped with SIGINT at the end (exit 0 expected), killed if the test failed first."""
+    command = [sys.executable, "-m", "tether", "view", "--json", *args, "--config", str(stack.tmp / "tether.toml")]
+    with log.open("w") as log_file:
+        view = subprocess.Popen(
+            command,
+            env=stack.supervisor.env(),
+            stdout=subprocess.PIPE,
+            stderr=log_file,
+            text=True,
+            start_new_session=True,
+        )
+    try:
+        assert view.stdout is not None
+        started = json.loads(view.stdout.readline() or "{}")
+        assert started.get("ok"), f"tether view did not start: {started}\n{log.read_text()}"
+        yield view, started
+        os.killpg(view.pid, signal.SIGINT)
+        assert view.wait(timeout=20) == 0
+    finally:
+        if view.poll() is None:
+            os.killpg(view.pid, signal.SIGKILL)
+            view.wait(timeout=10)
+        assert view.stdout is not None
+        view.stdout.close()
+
+
 def test_an_odometry_stamped_beyond_foxglove_time_is_shown_and_the_view_goes_on_showing_the_robot(
     stack: Stack,
 ) -> None:
     script = client_script()
     log_path = stack.tmp / "view.log"
-    args = ["--port", "0", "--json", "--no-arm", "--camera-rate", "0", "--config", str(stack.tmp / "tether.toml")]
-    # The robot's session, where the view looks for the sim's: what it publishes is the robot's odometry.
-    robot = Node("sim", stack.settings)
-    try:
-        with log_path.open("w") as log_file:
-            view = subprocess.Popen(
-                [sys.executable, "-m", "tether", "view", *args],
-                env=stack.supervisor.env(),
-                stdout=subprocess.PIPE,
-                stderr=log_file,
-                text=True,
-                start_new_session=True,
-            )
-    except BaseException:
-        robot.close()
-        raise
     clients: list[Client] = []
-    try:
-        assert view.stdout is not None
-        started = json.loads(view.stdout.readline() or "{}")
-        assert started.get("ok"), f"tether view did not start: {started}\n{log_path.read_text()}"
+    # The robot's session, where the view looks for the sim's: what it publishes is the robot's odometry.
+    with (
+        Node("sim", stack.settings) as robot,
+        running_view(stack, ["--port", "0", "--no-arm", "--camera-rate", "0"], log_path) as (view, started),
+    ):
+        try:
 
-        def first_frame(stamp: float, x: float) -> dict[str, Any]:
-            """The first frame a new Foxglove client sees while the robot says it is at `x`."""
-            client = Client.start(script, "watch", started["url"], str(DEADLINE), scene3d.TF_TOPIC)
-            clients.append(client)
-            shown = False
-            while not shown and not client.ended and view.poll() is None:
-                robot.publish(keys.ODOM, odometry(stamp, x))
-                shown = client.wait_for(lambda lines: any("done" in line for line in lines), 0.5)
-            assert view.poll() is None, f"tether view ended (exit {view.returncode}):\n{log_path.read_text()[-3000:]}"
-            assert {"done": "all"} in client.lines, client.lines[-5:]
-            [frame] = client.messages(scene3d.TF_TOPIC)[0]["transforms"]
-            return dict(frame)
+            def first_frame(stamp: float, x: float) -> dict[str, Any]:
+                """The first frame a new Foxglove client sees while the robot says it is at `x`."""
+                client = Client.start(script, "watch", started["url"], str(DEADLINE), scene3d.TF_TOPIC)
+                clients.append(client)
+                shown = False
+                while not shown and not client.ended and view.poll() is None:
+                    robot.publish(keys.ODOM, odometry(stamp, x))
+                    shown = client.wait_for(lambda lines: any("done" in line for line in lines), 0.5)
+                ended = f"tether view ended (exit {view.returncode}):\n{log_path.read_text()[-3000:]}"
+                assert view.poll() is None, ended
+                assert {"done": "all"} in client.lines, client.lines[-5:]
+                [frame] = client.messages(scene3d.TF_TOPIC)[0]["transforms"]
+                return dict(frame)
 
-        # A stamp of -1e300 s: valid JSON, a valid Odometry, and beyond a float in nanoseconds. The view
-        # ended on it (OverflowError out of its publishing loop): the operator lost the robot's picture.
-        hostile = first_frame(-1e300, 9.0)
-        assert (hostile["translation"]["x"], hostile["timestamp"]) == (9.0, {"sec": 0, "nsec": 0}), hostile
-        # And the next odometry is shown: the base where it says.
-        frame = first_frame(5.0, 2.0)
-        assert (frame["translation"]["x"], frame["translation"]["y"]) == (2.0, 0.5)
-
-        os.killpg(view.pid, signal.SIGINT)
-        assert view.wait(timeout=20) == 0
-    finally:
-        robot.close()
-        for client in clients:
-            client.close()
-        if view.poll() is None:
-            os.killpg(view.pid, signal.SIGKILL)
-            view.wait(timeout=10)
-        assert view.stdout is not None
-        view.stdout.close()
+            # A stamp of -1e300 s: valid JSON, a valid Odometry, and beyond a float in nanoseconds. The view
+            # ended on it (OverflowError out of its publishing loop): the operator lost the robot's picture.
+            hostile = first_frame(-1e300, 9.0)
+            assert (hostile["translation"]["x"], hostile["timestamp"]) == (9.0, {"sec": 0, "nsec": 0}), hostile
+            # And the next odometry is shown: the base where it says.
+            frame = first_frame(5.0, 2.0)
+            assert (frame["translation"]["x"], frame["translation"]["y"]) == (2.0, 0.5)
+        finally:
+            for client in clients:
+                client.close()
 
 
 def test_the_url_the_view_gives_for_ipv6_loopback_is_one_a_foxglove_client_opens(stack: Stack) -> None:
     script = client_script()
-    args = ["--host", "::1", "--port", "0", "--json", "--no-arm", "--camera-rate", "0"]
-    view = subprocess.Popen(
-        [sys.executable, "-m", "tether", "view", *args, "--config", str(stack.tmp / "tether.toml")],
-        env=stack.supervisor.env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-        start_new_session=True,
-    )
-    client = None
-    try:
-        assert view.stdout is not None
-        started = json.loads(view.stdout.readline() or "{}")
+    args = ["--host", "::1", "--port", "0", "--no-arm", "--camera-rate", "0"]
+    with running_view(stack, args, stack.tmp / "view.log") as (_view, started):
         # It said ws://::1:PORT, which no WebSocket client takes for an address.
-        assert started.get("ok") and started["url"] == f"ws://[::1]:{started['port']}", started
+        assert started["url"] == f"ws://[::1]:{started['port']}", started
         client = Client.start(script, "watch", started["url"], str(DEADLINE), scene3d.SCENE_TOPIC)
-        assert client.wait_for(lambda lines: any("done" in line for line in lines))
-        assert {"done": "all"} in client.lines, client.lines[-5:]
-        os.killpg(view.pid, signal.SIGINT)
-        assert view.wait(timeout=20) == 0
-    finally:
-        if client is not None:
+        try:
+            assert client.wait_for(lambda lines: any("done" in line for line in lines))
+            assert {"done": "all"} in client.lines, client.lines[-5:]
+        finally:
             client.close()
-        if view.poll() is None:
-            os.killpg(view.pid, signal.SIGKILL)
-            view.wait(timeout=10)
-        assert view.stdout is not None
-        view.stdout.close()

@@ -10,7 +10,6 @@ import threading
 import time
 from collections.abc import Iterator
 
-import msgspec
 import numpy as np
 import pytest
 
@@ -24,24 +23,10 @@ from services.sim.loop import SimLoop
 from services.sim.renderer import Renderer
 from services.sim.simulation import Simulation
 from services.sim.world import Drop
-from services.worldmodel import load_world
-from tests.fastsim import FAST_PHYSICS_HZ
 from tests.procs import wait_until
-from tests.unit.test_sim import CARRY_JOINTS, PREGRASP_HEIGHT, above, approach, drive, gripper, reach
-
-
-@pytest.fixture(scope="module")
-def world() -> World:
-    household = load_world("household")
-    robot = msgspec.structs.replace(household.robot, home_joints=CARRY_JOINTS)
-    return msgspec.structs.replace(household, robot=robot)
-
-
-@pytest.fixture
-def sim(world: World) -> Iterator[Simulation]:
-    simulation = Simulation(world, physics_hz=FAST_PHYSICS_HZ, visuals=False)
-    yield simulation
-    simulation.close()
+from tests.unit.test_sim import PREGRASP_HEIGHT, above, approach, drive, gripper, reach
+from tests.unit.test_sim import sim as sim  # the fixtures, shared
+from tests.unit.test_sim import world as world
 
 
 def cup_from_hand(sim: Simulation) -> float:
