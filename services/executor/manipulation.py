@@ -38,7 +38,7 @@ from schemas.robot import (
     NavigateToPoseGoal,
     Twist,
 )
-from schemas.world import PerceivedObject
+from schemas.world import PerceivedObject, WorldObject
 from services.errors import GoalRejected
 from services.executor.armplanning import (
     GRIPPER,
@@ -173,6 +173,10 @@ class Manipulator:
         self.mount = world.world.robot.arm_mount
         # The grasp that holds what the hand holds, from the pick that took it.
         self._held: HeldObject | None = None
+        # What a place step let go of (the object's id, the step itself), while its motions after
+        # letting go are under way or failed: its retry or resume finds the hand empty and checks the
+        # object is where it was put. Another step, of this plan or a later one, is not that step.
+        self._let_go: tuple[str, PlaceStep] | None = None
         # Grasps and placements tried and failed, per object, so a retry comes in another way.
         self._failed: dict[str, set[str]] = {}
         # What a search's time limit is measured by (tests step it by hand).
@@ -220,6 +224,9 @@ class Manipulator:
         q = self.robot.arm_positions()
         if q is None:
             raise PreconditionFailed("no joint states from the robot")
+        # The robot's word, unchecked by the schema: a NaN would reach the planners and crash them.
+        if len(q) != len(self.home) or not all(math.isfinite(v) for v in q):
+            raise PreconditionFailed(f"the robot's joint states are not {len(self.home)} finite positions: {list(q)}")
         return np.array(q, dtype=float)
 
     def _look(self, new: bool = False) -> list[PerceivedObject]:
@@ -508,8 +515,15 @@ class Manipulator:
         note: Note = _quiet,
         searched: list[str] | None = None,
     ) -> str:
-        if (held_now := self.robot.held_object()) is not None:
-            raise PreconditionFailed(f"the gripper already holds {held_now}")
+        if (held_now := self.robot.held_object()) == step.object_id:
+            # A try that grasped it and then failed (its lift aborted) left it in the hand: done,
+            # once the arm is stowed.
+            self._stow_if_out(cancel)
+            self._failed.pop(step.object_id, None)
+            return f"holding {step.object_name} (in the gripper already)"
+        if held_now is not None:
+            held = self.world.objects.get(held_now)
+            raise PreconditionFailed(f"the gripper already holds {held.name if held else held_now}")
         target = self.locate(step, cancel, note, attempt, searched)
         obj = self.world.objects[step.object_id]
         base, q = self._base(), self._arm_now()
@@ -578,7 +592,14 @@ class Manipulator:
     def place(self, step: PlaceStep, cancel: threading.Event, attempt: int = 1, note: Note = _quiet) -> str:
         held_id = self.robot.held_object()
         if held_id is None:
+            let_go, self._let_go = self._let_go, None
+            if let_go is not None and let_go[1] is step and let_go[0] in self.world.objects:
+                # A try that let go of it and then failed (its retreat aborted): the hand is empty
+                # because it was put down, so whether it was is what perception says.
+                self._stow_if_out(cancel)
+                return self._check_placed(self.world.objects[let_go[0]], step, cancel)
             raise PreconditionFailed("the gripper holds nothing to place")
+        self._let_go = None
         obj = self.world.objects.get(held_id)
         if obj is None:
             raise PreconditionFailed(f"the gripper holds {held_id}, which the world file does not know")
@@ -594,18 +615,26 @@ class Manipulator:
         self._follow(plan.lower, f"lowering {obj.name} onto the {step.surface_name}", cancel)
         self.gripper(GRIPPER_OPEN, cancel)
         self._held = None
+        self._let_go = (held_id, step)
         self._follow(plan.retreat, "lifting the hand", cancel)
         assert plan.to_stow is not None
         self._follow(plan.to_stow, "stowing the arm", cancel)
-        # Done means perception sees it on the surface, not that the motions went through.
-        seen = self._find_in_view(held_id, cancel)
-        if seen is None or seen.on != step.surface_id:
+        self._let_go = None
+        try:
+            return self._check_placed(obj, step, cancel)
+        except PostconditionFailed:
             failed.add(plan.placement.description)
+            raise
+
+    def _check_placed(self, obj: WorldObject, step: PlaceStep, cancel: threading.Event) -> str:
+        """Done means perception sees it on the surface, not that the motions went through."""
+        seen = self._find_in_view(obj.id, cancel)
+        if seen is None or seen.on != step.surface_id:
             where = "nowhere in view" if seen is None else f"on the {self._surface_name(seen.on)}"
             raise PostconditionFailed(
                 f"after placing, perception has {obj.name} {where}, not on the {step.surface_name}"
             )
-        failed.clear()
+        self._failed.pop(obj.id, None)
         return f"placed {obj.name} on the {step.surface_name}"
 
     def detect(

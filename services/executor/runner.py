@@ -81,6 +81,14 @@ class PauseWatch(Protocol):
 RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDITION)
 # How often a step's clock looks at the speed scale and the goal's cancel.
 CLOCK_PERIOD = 0.05
+# A message or reason is schemas.common.Text: its receivers refuse a longer one, so a reason gathered
+# over attempts and alternatives (each with the robot's or a planner's words) is cut to fit.
+MAX_TEXT = 4000
+CUT = " [...]"
+
+
+def clip(text: str) -> str:
+    return text if len(text) <= MAX_TEXT else text[: MAX_TEXT - len(CUT)] + CUT
 
 
 @dataclass(frozen=True)
@@ -181,6 +189,7 @@ class PlanRunner:
         motion; `pauses` whether a step's attempt that failed was paused by an operator (no failure)."""
         warnings: list[str] = []
         result = self._run(goal, cancel, feedback, warnings, approval, pauses)
+        result = msgspec.structs.replace(result, reason=clip(result.reason))
         return msgspec.structs.replace(result, warnings=warnings) if warnings else result
 
     def _run(
@@ -296,7 +305,7 @@ class PlanRunner:
                     step=index,
                     action=action,
                     status=status,
-                    message=message,
+                    message=clip(message),
                     label=label,
                     failure=kind,
                     attempt=attempt,
@@ -309,7 +318,7 @@ class PlanRunner:
                 index=index,
                 action=action,
                 status=status,
-                message=message,
+                message=clip(message),
                 label=label,
                 failure=kind,
                 attempts=attempt,
@@ -388,6 +397,21 @@ class PlanRunner:
                     reason += f" (before: {'; '.join(earlier)})"
                 return result(StepStatus.FAILED, str(exc), attempt, kind), _Failure(
                     reason, PlanStatus.FAILED, final, kind
+                )
+            except Exception as exc:
+                # A fault of the executor's own (a planner's check that raised inside OMPL), which no
+                # retry or on_failure is known to mend: the plan fails with results saying so, rather
+                # than the goal ending without any. The first line names it; the log has the rest.
+                log.exception("step %s (%s) failed inside the executor", label, action)
+                why = f"the executor failed ({type(exc).__name__}): {(str(exc).splitlines() or [''])[0]}"
+                if cancel.is_set():
+                    return canceled(f"canceled (the try had failed: {why})")
+                report(StepStatus.FAILED, why, attempt, FailureKind.EXECUTION)
+                return result(StepStatus.FAILED, why, attempt, FailureKind.EXECUTION), _Failure(
+                    f"step {label} ({action}) failed: {why}",
+                    PlanStatus.FAILED,
+                    "the executor itself failed",
+                    FailureKind.EXECUTION,
                 )
             report(StepStatus.SUCCEEDED, message, attempt)
             return result(StepStatus.SUCCEEDED, message, attempt), None
