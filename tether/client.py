@@ -58,6 +58,13 @@ def next_message(node: Node, topic: Topic[T], timeout: float) -> T | None:
     return box[0] if box else None
 
 
+def signature_shaped(key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
+    """A subscription's `verify` for safety's heartbeat where there is no robot key (the CLI, the view):
+    refused without a signature-shaped robot-link attachment. It screens out unsigned forgeries, not
+    a forger's own MAC."""
+    return None if unpack(attachment) is not None else Refusal(NOT_SIGNED)
+
+
 class HeartbeatWait:
     """The first heartbeat that can be safety's and is fresh: it carries a signature-shaped robot-link
     attachment (the CLI has no robot key: this screens out unsigned forgeries, not a forger's own

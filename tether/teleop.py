@@ -73,6 +73,7 @@ EXIT_USAGE = 2  # bad options, no terminal, no evdev for --gamepad, a device tha
 EXIT_NO_SAFETY = 3  # no Zenoh session, or no heartbeat from safety: nothing would move
 
 HELP_KEYS = "arrows/WASD drive, space stops, +/- speed, q quits"
+REARM_WORDS = "e-stop reset: let go of the keys and the enable button, then drive"
 
 
 class TeleopError(Exception):
@@ -242,11 +243,18 @@ class Deadman:
         self._sent_at = -math.inf
         self.sent_count = 0
         self.max_commanded = (0.0, 0.0)  # the largest |linear|, |angular| sent
+        # Once safety's e-stop latched, what was held then moves nothing until it is let go and given
+        # again: a `tether reset` must not set the robot off on a key still repeating or an enable
+        # button still held (a reset does not restart motion by itself).
+        self.rearming = False
+        self._key_while_stopped = -math.inf  # when a motion key last came while rearming
 
     # Input
 
     def press(self, key: Key, now: float) -> None:
-        if key in MOTION:
+        if key in MOTION and self.rearming:
+            self._key_while_stopped = now
+        elif key in MOTION:
             index, direction = MOTION[key]
             axis = self.axes[index]
             if axis.direction == direction and axis.active(now):
@@ -278,11 +286,22 @@ class Deadman:
     def quit(self) -> None:
         self.quitting = True
 
+    def safety(self, estop_latched: bool, now: float) -> None:
+        """What safety's heartbeat says of the e-stop, every pass: latched, the inputs held stop
+        counting; cleared, they count again once no key has come for INITIAL_HOLD (longer than a
+        terminal's repeat delay: the key was let go) and the gamepad's enable button is up."""
+        if estop_latched:
+            if not self.rearming:
+                self.release_keys()
+            self.rearming = True
+        elif self.rearming and now - self._key_while_stopped > self.initial_hold and not self.stick.enabled:
+            self.rearming = False
+
     # Output
 
     def commanded(self, now: float) -> tuple[float, float]:
         """The twist wanted now (linear m/s, angular rad/s), before safety."""
-        if self.quitting:
+        if self.quitting or self.rearming:
             return 0.0, 0.0
         linear_axis, angular_axis = self.axes
         if linear_axis.active(now) or angular_axis.active(now):
@@ -387,6 +406,11 @@ class SafetyView:
             if event.decision is Decision.VETOED:
                 self.veto_reasons.append(event.reason)
 
+    def estop_latched(self) -> bool:
+        """Whether safety's latest heartbeat says its e-stop is latched."""
+        with self._lock:
+            return self.heartbeat is not None and self.heartbeat.estop.latched
+
     def mode(self) -> str | None:
         """The mode safety's heartbeat names, if it carries one."""
         with self._lock:
@@ -421,10 +445,13 @@ class SafetyView:
         linear, angular = deadman.commanded(now)
         mode = self.mode()
         mode = None if mode is None else printable(mode)
+        words = self.safety_words(now)
+        if deadman.rearming and not self.estop_latched():
+            words = f"{REARM_WORDS}; {words}"
         text = (
             f"cmd {linear:+.2f} m/s {angular:+.2f} rad/s | scale x{deadman.scale:.1f} "
             f"({deadman.speeds.linear * deadman.scale:.2f} m/s, {deadman.speeds.angular * deadman.scale:.2f} rad/s) "
-            f"| safety: {self.safety_words(now)}" + (f" | mode {mode}" if mode else "") + f" | {HELP_KEYS}"
+            f"| safety: {words}" + (f" | mode {mode}" if mode else "") + f" | {HELP_KEYS}"
         )
         return text if len(text) <= width else text[: max(0, width - 1)] + "~"
 
@@ -667,9 +694,8 @@ def teleop(
 
 def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: bool, as_json: bool) -> int:
     # The transport only here: the pure part above loads without Zenoh.
-    from services.robotlink import NOT_SIGNED, Refusal, unpack
     from services.runtime import Node
-    from tether.client import next_heartbeat
+    from tether.client import next_heartbeat, signature_shaped
 
     try:
         opened = Node("cli", ctx.obj)
@@ -682,11 +708,7 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
         view = SafetyView()
         view.beat(waited.status, time.monotonic())
 
-        def signed_shape(key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
-            # A heartbeat without a robot-link MAC is not safety's (tether.client.HeartbeatWait).
-            return None if unpack(attachment) is not None else Refusal(NOT_SIGNED)
-
-        node.subscribe(keys.HEARTBEAT, lambda s: view.beat(s, time.monotonic()), verify=signed_shape)
+        node.subscribe(keys.HEARTBEAT, lambda s: view.beat(s, time.monotonic()), verify=signature_shaped)
         node.subscribe(keys.SAFETY_EVENTS, lambda e: view.event(e, time.monotonic()))
         publisher = node.publisher(keys.TELEOP_CMD_VEL)
 
@@ -805,6 +827,7 @@ def loop(
                 deadman.quit()
             else:
                 deadman.set_stick(stick.linear, stick.angular, stick.enabled)
+        deadman.safety(view.estop_latched(), now)
         if (twist := deadman.tick(now)) is not None:
             send(twist)
         if deadman.finished:

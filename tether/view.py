@@ -47,6 +47,7 @@ from services.recorder.mcapfile import json_schema
 from services.repeats import RepeatLog
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
+from tether.client import signature_shaped
 from tether.teleop import finite
 from tether.viewteleop import TELEOP_TOPIC, Refused, TeleopGate
 
@@ -444,6 +445,16 @@ class TeleopBridge:
             if (stop := self.gate.expire(self._clock())) is not None and not self._closed:
                 self._put(stop)
 
+    def heartbeat(self, status: SafetyStatus) -> None:
+        """Safety's heartbeat: a latched e-stop stops what this view drives, and what is held through
+        it drives nothing until let go (tether/viewteleop.py, TeleopGate.estop)."""
+        with self._lock:
+            latched_now = status.estop.latched and not self.gate.rearming
+            if (stop := self.gate.estop(status.estop.latched)) is not None and not self._closed:
+                self._put(stop)
+        if latched_now:
+            self.notices.append("tether view: the e-stop latched; after its reset, let go of the buttons, then drive")
+
     def close(self) -> None:
         """The view ends: a moving robot is told to stop now, and every twist after this is dropped
         (the server may take messages until it stops, the deadman may have ended already)."""
@@ -605,6 +616,8 @@ def view(
         raise fail(EXIT_UNREACHABLE, f"cannot open a Zenoh session: {exc}", as_json) from None
     with node:
         bridge = None if teleop_off else TeleopBridge(node.publisher(keys.TELEOP_CMD_VEL).put)
+        if bridge is not None:
+            node.subscribe(keys.HEARTBEAT, bridge.heartbeat, verify=signature_shaped)
         try:
             server = foxglove.start_server(
                 name=f"tether {settings.robot}",

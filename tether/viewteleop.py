@@ -66,6 +66,10 @@ class BadMessage(Refused):
     """A message that is not a sane Twist."""
 
 
+class Rearming(Refused):
+    """A twist after safety's e-stop latched, before every panel let go of its buttons since."""
+
+
 class Vector3(msgspec.Struct):
     x: float = 0.0
     y: float = 0.0
@@ -171,6 +175,12 @@ class TeleopGate:
         self._driver: tuple[int, int] | None = None  # the channel of the last twist sent
         self._last = -math.inf  # when it came
         self._moving = False  # the last twist sent was not a stop
+        # Once safety's e-stop latched, twists move nothing until no message has come for `deadman`
+        # seconds with the e-stop clear: a `tether reset` does not set the robot off on a panel's
+        # button still held (its messages keep coming while it is).
+        self._latched = False
+        self._rearming = False
+        self._held_at = -math.inf  # the latest message while rearming
         self._warned: set[str] = set()
         self.accepted = 0
         self.refused = 0
@@ -206,6 +216,13 @@ class TeleopGate:
                     self.rate_dropped += 1
                     raise RateLimited(f"more than {self._rate:g} messages a second from this client: dropped")
                 twist, ignored = to_twist(data)
+                if self._rearming:
+                    self._held_at = now
+                    raise Rearming(
+                        "the e-stop latched: let go of the teleop panel's buttons, then drive"
+                        if self._latched
+                        else "the e-stop was reset: let go of the teleop panel's buttons, then drive"
+                    )
             except Refused:
                 self.refused += 1
                 raise
@@ -240,9 +257,25 @@ class TeleopGate:
     def expire(self, now: float) -> Twist | None:
         """The deadman: the stop once no message has come for `deadman` seconds while moving."""
         with self._lock:
+            if self._rearming and not self._latched and now - self._held_at >= self.deadman:
+                self._rearming = False
             if self._moving and now - self._last >= self.deadman:
                 return self._stop()
             return None
+
+    def estop(self, latched: bool) -> Twist | None:
+        """What safety's heartbeat says of its e-stop; latched, the stop if the robot was driven."""
+        with self._lock:
+            self._latched = latched
+            if not latched:
+                return None
+            self._rearming = True
+            return self._stop() if self._moving else None
+
+    @property
+    def rearming(self) -> bool:
+        with self._lock:
+            return self._rearming
 
     @property
     def moving(self) -> bool:

@@ -20,6 +20,7 @@ from tether.teleop import (
     INITIAL_HOLD,
     MAX_SCALE,
     PUBLISH_PERIOD,
+    REARM_WORDS,
     REPEAT_HOLD,
     Deadman,
     Gamepad,
@@ -224,6 +225,64 @@ def test_the_gamepad_drives_while_enabled_and_the_keys_come_first() -> None:
     deadman.set_stick(0.5, -1.0, enabled=False)  # released: once the key expires, one zero
     assert deadman.tick(0.08 + INITIAL_HOLD + 0.01) == Twist()
     assert deadman.tick(1.0) is None
+
+
+def through_a_latch(
+    deadman: Deadman, presses: dict[float, Key], latched: tuple[float, float], until: float, step: float = 0.01
+) -> list[tuple[float, Twist]]:
+    """`run`, with safety's e-stop latched from latched[0] to latched[1] (a `tether reset` then)."""
+    sent: list[tuple[float, Twist]] = []
+    pending = sorted(presses.items())
+    for i in range(round(until / step) + 1):
+        now = round(i * step, 6)
+        while pending and pending[0][0] <= now:
+            deadman.press(pending.pop(0)[1], now)
+        deadman.safety(latched[0] <= now < latched[1], now)
+        if (twist := deadman.tick(now)) is not None:
+            sent.append((now, twist))
+    return sent
+
+
+def test_a_key_held_through_an_estop_and_its_reset_moves_nothing_until_let_go_and_pressed_again() -> None:
+    """The robot drove off on the reset: the terminal's repeats of a key held through the e-stop kept
+    coming, and the twists they made, vetoed while it was latched, were approved once it was not."""
+    deadman = Deadman(Speeds(linear=0.3, angular=0.8))
+    presses = held(Key.FORWARD, 0.0, 0.4, 0.04, 3.0)  # held from 0 to 3 s
+    presses[4.0] = Key.FORWARD  # pressed again after letting go
+    sent = through_a_latch(deadman, presses, latched=(1.0, 2.0), until=5.0)
+    moving = [t for t, twist in sent if twist.linear_x != 0.0]
+    assert moving and max(t for t in moving if t < 4.0) < 1.0 + 0.011, "it drove on through the latch"
+    assert (1.0, Twist()) in sent, "no stop when the e-stop latched"
+    assert not [t for t in moving if 1.0 <= t < 4.0], "the reset set it off on the key still held"
+    assert moving[-1] >= 4.0 and (4.0, Twist(linear_x=0.3)) in sent, "a fresh press after the reset did not drive"
+
+
+def test_a_gamepad_enabled_through_an_estop_and_its_reset_moves_nothing_until_the_button_comes_up_again() -> None:
+    deadman = Deadman(Speeds(linear=0.4, angular=1.0))
+    deadman.set_stick(0.5, 0.0, enabled=True)
+    deadman.safety(False, 0.0)
+    assert deadman.tick(0.0) == Twist(linear_x=0.2)
+    deadman.safety(True, 0.1)
+    assert deadman.tick(0.1) == Twist()
+    deadman.safety(False, 0.2)  # reset, the button still held
+    assert deadman.rearming and deadman.tick(0.2) is None and deadman.tick(1.0) is None
+    deadman.set_stick(0.5, 0.0, enabled=False)
+    deadman.safety(False, 1.1)
+    deadman.set_stick(0.5, 0.0, enabled=True)
+    assert not deadman.rearming and deadman.tick(1.2) == Twist(linear_x=0.2)
+
+
+def test_the_line_says_to_let_go_after_a_reset_while_inputs_are_held() -> None:
+    view, deadman = SafetyView(), Deadman()
+    view.beat(SafetyStatus(seq=1, stamp=0.0, estop=EstopState(latched=True, source="operator", reason="x")), 0.0)
+    deadman.safety(view.estop_latched(), 0.0)
+    assert "E-STOP latched" in view.line(deadman, 0.0, 400) and REARM_WORDS not in view.line(deadman, 0.0, 400)
+    deadman.press(Key.FORWARD, 0.1)
+    view.beat(SafetyStatus(seq=2, stamp=0.0, estop=EstopState(latched=False)), 0.2)
+    deadman.safety(view.estop_latched(), 0.2)
+    assert REARM_WORDS in view.line(deadman, 0.2, 400)
+    deadman.safety(view.estop_latched(), 0.1 + INITIAL_HOLD + 0.01)
+    assert REARM_WORDS not in view.line(deadman, 0.7, 400)
 
 
 def test_wake_is_due_for_the_next_resend_and_the_expiry() -> None:

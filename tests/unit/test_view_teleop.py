@@ -16,6 +16,7 @@ import pytest
 from foxglove.websocket import Capability
 
 from schemas.robot import Twist
+from schemas.safety import EstopState, SafetyStatus
 from tether.view import Listener, TeleopBridge, shut_down, teleop_loop
 from tether.viewteleop import (
     BURST,
@@ -25,6 +26,7 @@ from tether.viewteleop import (
     RATE_HZ,
     TELEOP_TOPIC,
     RateLimited,
+    Rearming,
     Refused,
     TeleopGate,
     check_channel,
@@ -180,6 +182,45 @@ def test_the_deadman_stops_once_half_a_second_after_the_last_message() -> None:
     gate.message(1, 1, twist_json(0.3), 6.0)
     gate.message(1, 1, twist_json(0.0), 6.1)
     assert gate.expire(10.0) is None and gate.stops == 1
+
+
+def test_a_panel_held_through_an_estop_and_its_reset_drives_nothing_until_let_go() -> None:
+    """The panel's messages, vetoed by safety while the e-stop was latched, drove the robot off again
+    the moment someone ran `tether reset`, with the button still held."""
+    gate = TeleopGate()
+    gate.advertise(1, 1, TELEOP_TOPIC, "json", "geometry_msgs/Twist")
+    gate.message(1, 1, twist_json(0.3), 0.0)
+    assert gate.estop(True) == Twist(), "driving when the e-stop latched: no stop"
+    assert gate.estop(True) is None  # one stop, not one a heartbeat
+    held = [i / 10 for i in range(1, 30)]  # the panel at 10 Hz for 3 s; reset at 1 s
+    for now in held:
+        if now >= 1.0:
+            assert gate.estop(False) is None
+        with pytest.raises(Rearming, match="let go of the teleop panel's buttons"):
+            gate.message(1, 1, twist_json(0.3), now)
+        assert gate.expire(now + 0.05) is None
+    assert gate.rearming
+    gate.expire(held[-1] + DEADMAN + 1e-9)  # let go: quiet for the deadman's time, the e-stop clear
+    assert not gate.rearming
+    assert gate.message(1, 1, twist_json(0.3), 4.0).twist == Twist(linear_x=0.3)
+
+
+def test_the_bridge_stops_on_the_heartbeat_that_latches_and_tells_foxglove_users(
+    bridge: tuple[TeleopBridge, Fakes],
+) -> None:
+    teleop, fakes = bridge
+    listener = Listener(view=None, teleop=teleop)  # type: ignore[arg-type]
+    listener.on_client_advertise(Client(3), Channel(1))  # type: ignore[arg-type]
+    listener.on_message_data(Client(3), 1, twist_json(0.3))  # type: ignore[arg-type]
+    latched = SafetyStatus(seq=1, stamp=0.0, estop=EstopState(latched=True, source="operator", reason="x"))
+    teleop.heartbeat(latched)
+    teleop.heartbeat(latched)
+    assert fakes.sent[1:] == [Twist(stamp=1000.0)]
+    assert [n for n in teleop.notices if "e-stop latched" in n] == [
+        "tether view: the e-stop latched; after its reset, let go of the buttons, then drive"
+    ]
+    listener.on_message_data(Client(3), 1, twist_json(0.3))  # type: ignore[arg-type]
+    assert len(fakes.sent) == 2
 
 
 def test_the_driving_channel_gone_stops_at_once_another_does_not() -> None:
