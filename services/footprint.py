@@ -198,7 +198,10 @@ def nearest(shape: BaseGeometry, obstacles: Sequence[tuple[str, BaseGeometry]]) 
 def nearest_to_parts(parts: Sequence[BaseGeometry], obstacles: Sequence[tuple[str, BaseGeometry]]) -> tuple[str, float]:
     """nearest() for the union of `parts` without making it: every part's distance to every
     obstacle in one call, the least of them (the first obstacle of the least, as min() gives). An
-    empty outline (a wall of no length) is infinitely far, not NaN away."""
+    empty outline (a wall of no length) is infinitely far, not NaN away, and so is nothing at all (a
+    world without walls or furniture)."""
+    if not obstacles:
+        return "nothing", math.inf
     outlines = _array([outline for _, outline in obstacles])
     distances = shapely.distance(_array(parts)[:, np.newaxis], outlines).min(axis=0)
     distances[shapely.is_empty(outlines)] = np.inf

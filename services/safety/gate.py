@@ -247,6 +247,9 @@ class SafetyGate:
         self._offset = 0.0
         self._odom: tuple[float, Odometry] | None = None
         self._joints: tuple[float, JointState] | None = None
+        # The hand's reach from the base's centre, and the joint state it was worked out from (no lock:
+        # threads racing only work it out twice).
+        self._reach_of: tuple[JointState | None, float] | None = None
         self._people = PeopleReports(rules.humans.unseen_after)
         self._separation = Separation(rules.humans.reduced_speed_scale, "no report of people yet")
         # What was last put on robot/cmd_vel, from any path, and when: teleop speeds up from it.
@@ -352,8 +355,15 @@ class SafetyGate:
         return Vec3(x=x, y=y, z=float(point[2]) + policy.mount.z)
 
     def _reach(self, t: float) -> float:
-        """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches)."""
-        return self.policy.reach(self._joint_positions(t))
+        """How far the hand sticks out from the base's centre (unknown: as far as the arm reaches).
+        Worked out once per joint state: a teleop stream asks far more often than states come."""
+        joints = self._joint_state(t)
+        known = self._reach_of
+        if known is not None and known[0] is joints:
+            return known[1]
+        reach = self.policy.reach(_positions(joints))
+        self._reach_of = (joints, reach)
+        return reach
 
     def _base_moving(self) -> bool:
         with self._lock:
@@ -733,7 +743,7 @@ class SafetyGate:
         """A velocity from a program: over a limit it is refused and the base stopped."""
 
         def check(t: float) -> Verdict[Twist]:
-            return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale)
+            return self.policy.check_cmd_vel(twist, self._pose(t), self.separation.scale, self._reach(t))
 
         # A stop is never refused by the mode: only motion is.
         moves = twist.linear_x != 0.0 or twist.angular_z != 0.0
@@ -753,7 +763,7 @@ class SafetyGate:
             step = min(t - at, TELEOP_MAX_STEP)
             if self.modes.mode is ControlMode.SHARED:
                 return self._shared_teleop(twist, previous, step, t)
-            return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale)
+            return self.policy.check_teleop(twist, self._pose(t), previous, step, self.separation.scale, self._reach(t))
 
         return self._twist(keys.TELEOP_CMD_VEL.path, twist, check, self._time())
 
@@ -761,15 +771,15 @@ class SafetyGate:
         """Shared mode: the person's twist slowed and steered off obstacles and people (shared.py), then
         clamped and ramped as in direct mode, then guarded once more as it will be sent (a ramped turn
         bends the path). The event says what the filter did (`shared` in its values)."""
-        pose, scale = self._pose(t), self.separation.scale
+        pose, scale, reach = self._pose(t), self.separation.scale, self._reach(t)
         if pose is None:
             # check_teleop refuses driving without a pose; a turn in place cannot be checked either.
-            return self.policy.check_teleop(Twist(linear_x=twist.linear_x), None, previous, step, scale)
+            return self.policy.check_teleop(Twist(linear_x=twist.linear_x), None, previous, step, scale, reach)
         radius = self.policy.policy.humans.person_radius
         people = [(f"person {p.name}", Point(p.x, p.y).buffer(radius)) for p in self._people.people(t) or []]
         around = Surroundings(obstacles=[*self._fixed_obstacles, *people], zones=self._zones)
         shaped = self.shared.shape(twist, pose, around, scale)
-        verdict = self.policy.check_teleop(shaped.twist, pose, previous, step, scale)
+        verdict = self.policy.check_teleop(shaped.twist, pose, previous, step, scale, reach)
         guarded = self.shared.guard(verdict.command, pose, around)
         done = combine(shaped, guarded)
         values = {**verdict.values, **done.values, "requested_mps": twist.linear_x, "requested_rps": twist.angular_z}

@@ -64,6 +64,8 @@ START_TOLERANCE = 0.05
 INTERPOLATION_STEP = 0.05
 # Slower than this counts as standing still.
 STILL = 1e-6
+# A held cmd_vel's arc is checked as chords that cut inside it by at most this much (m).
+ARC_TOLERANCE = 1e-3
 
 # The arm may start moving while the base is slower than this (m/s, rad/s): a base that just
 # arrived is still settling.
@@ -149,6 +151,28 @@ def _joint_checks_pass(
     if (speeds > np.array([lim.velocity for lim in limits]) + STILL).any():
         return None
     return (float(speeds.max()) if speeds.size else 0.0), positions
+
+
+def _held_path(pose: Pose2D, linear: float, angular: float, seconds: float) -> list[tuple[float, float]]:
+    """The base centre's path holding (`linear`, `angular`) for `seconds` from `pose`: the arc it
+    drives, as chords that cut inside it by at most ARC_TOLERANCE (a chord over a turn of theta,
+    `length` long, cuts in by at most length * theta / 8); one straight line when `angular` is 0."""
+    chords = max(1, math.ceil(seconds * math.sqrt(abs(linear * angular) / (8 * ARC_TOLERANCE))))
+    points = [(pose.x, pose.y)]
+    for k in range(1, chords + 1):
+        t = seconds * k / chords
+        if angular == 0.0:
+            step = linear * t
+            points.append((pose.x + step * math.cos(pose.yaw), pose.y + step * math.sin(pose.yaw)))
+            continue
+        yaw, radius = pose.yaw + angular * t, linear / angular
+        points.append(
+            (
+                pose.x + radius * (math.sin(yaw) - math.sin(pose.yaw)),
+                pose.y - radius * (math.cos(yaw) - math.cos(pose.yaw)),
+            )
+        )
+    return points
 
 
 def base_moving(odom: Odometry) -> bool:
@@ -351,34 +375,59 @@ class SafetyPolicy:
         if not _finite(twist.linear_x, twist.angular_z):
             raise Vetoed("cmd_vel is not finite", Rule.BASE_SPEED)
 
-    def _check_horizon(self, twist: Twist, pose: Pose2D | None) -> None:
-        """Holding `twist` for the horizon must keep the base on the map and out of keep-out zones."""
-        if abs(twist.linear_x) <= STILL:
+    def _check_horizon(self, twist: Twist, pose: Pose2D | None, reach: float = 0.0) -> None:
+        """Holding `twist` for the horizon must keep the base on the map and out of keep-out zones
+        along the arc it drives (turning, it curves off the line ahead). `reach` is how far the hand
+        sticks out from the base's centre: beyond the footprint, zones are kept that far from the
+        centre instead, as on a route (check_route), and a turn in place swings the hand round too."""
+        hand = reach > self.radius
+        turning = abs(twist.angular_z) > STILL
+        # A turn in place keeps the base's footprint where it is; without a pose it is let through,
+        # as it always was, the hand's swing with it (nothing to check it against).
+        if abs(twist.linear_x) <= STILL and not (hand and turning and pose is not None):
             return
         if pose is None:
             raise Vetoed("the robot's pose is unknown (no recent odometry): only a stop is allowed", Rule.POSE_KNOWN)
         horizon = self.policy.base.cmd_vel_horizon
-        reach = twist.linear_x * horizon
-        ahead = (pose.x + reach * math.cos(pose.yaw), pose.y + reach * math.sin(pose.yaw))
-        x, y = ahead
+        linear = twist.linear_x if abs(twist.linear_x) > STILL else 0.0
+        path = LineString(_held_path(pose, linear, twist.angular_z if turning else 0.0, horizon))
+        x, y = path.coords[-1]
         values = {"x": x, "y": y, "speed_mps": twist.linear_x, "horizon_s": horizon}
-        if not self._floor.covers(LineString([(pose.x, pose.y), ahead])):
+        what = f"cmd_vel at {twist.linear_x:g} m/s"
+        if turning:
+            values["turn_rps"] = twist.angular_z
+            what += f", {twist.angular_z:g} rad/s"
+        if not self._floor.covers(path):
+            raise Vetoed(f"{what} would leave the map within {horizon:g} s", Rule.CMD_VEL_HORIZON, **values)
+        if zone := self._zone_hit(path):
             raise Vetoed(
-                f"cmd_vel at {twist.linear_x:g} m/s would leave the map within {horizon:g} s",
+                f"{what} would enter keep-out zone '{zone.name}' within {horizon:g} s{_why(zone)}",
                 Rule.CMD_VEL_HORIZON,
                 **values,
             )
-        if zone := self._zone_hit(LineString([(pose.x, pose.y), ahead])):
+        if hand and (zone := self._zone_within(path, reach)):
             raise Vetoed(
-                f"cmd_vel at {twist.linear_x:g} m/s would enter keep-out zone '{zone.name}' within "
-                f"{horizon:g} s{_why(zone)}",
+                f"{what} would take the {_what(reach, self.radius)} into keep-out zone '{zone.name}' within "
+                f"{horizon:g} s{_why(zone)}; stow the arm first",
                 Rule.CMD_VEL_HORIZON,
                 **values,
+                reach_m=reach,
             )
 
-    def check_cmd_vel(self, twist: Twist, pose: Pose2D | None, scale: float = 1.0) -> Verdict[Twist]:
+    def _zone_within(self, geometry: BaseGeometry, distance: float) -> KeepOut | None:
+        """The first keep-out zone within `distance` of `geometry` (the zones grown by it, without
+        growing them: a hand's reach changes with every joint state)."""
+        for zone in self.limits.keep_out:
+            if geometry.distance(self.zone_shapes[zone.id]) <= distance:
+                return zone
+        return None
+
+    def check_cmd_vel(
+        self, twist: Twist, pose: Pose2D | None, scale: float = 1.0, reach: float = 0.0
+    ) -> Verdict[Twist]:
         """A cmd_vel from a program (plan, agent): a value over a limit is refused, not clamped.
-        Near people (`scale` < 1) the robot itself keeps to the lower speed; the verdict says so."""
+        Near people (`scale` < 1) the robot itself keeps to the lower speed; the verdict says so.
+        `reach`: how far the hand sticks out from the base's centre (see _check_horizon)."""
         self._check_twist_finite(twist)
         if abs(twist.linear_x) > self.max_linear + STILL:
             raise Vetoed(
@@ -394,7 +443,7 @@ class SafetyPolicy:
                 turn_rps=twist.angular_z,
                 limit_rps=self.max_angular,
             )
-        self._check_horizon(twist, pose)
+        self._check_horizon(twist, pose, reach)
         values = {"speed_mps": twist.linear_x, "turn_rps": twist.angular_z, "scale": scale}
         note = ""
         if scale < 1.0:
@@ -405,12 +454,13 @@ class SafetyPolicy:
         return Verdict(twist, (Rule.BASE_SPEED, Rule.CMD_VEL_HORIZON, Rule.HUMAN_SEPARATION), values, note=note)
 
     def check_teleop(
-        self, twist: Twist, pose: Pose2D | None, previous: Twist, dt: float, scale: float = 1.0
+        self, twist: Twist, pose: Pose2D | None, previous: Twist, dt: float, scale: float = 1.0, reach: float = 0.0
     ) -> Verdict[Twist]:
         """A cmd_vel from a person: clamped to the speed limits (times the separation `scale`) and
         to the acceleration limits from `previous` (what was last sent, `dt` seconds ago); the
         clamping is reported. Slowing down is never limited. Vetoed only when even the clamped
-        value would leave the map or reach a keep-out zone within the horizon."""
+        value would leave the map or reach a keep-out zone within the horizon, the hand held out
+        `reach` from the base's centre included (see _check_horizon)."""
         self._check_twist_finite(twist)
         base = self.policy.base
         linear, angular = twist.linear_x, twist.angular_z
@@ -432,7 +482,7 @@ class SafetyPolicy:
                 )
             )
         sent = msgspec.structs.replace(twist, linear_x=linear, angular_z=angular)
-        self._check_horizon(sent, pose)
+        self._check_horizon(sent, pose, reach)
         values = {
             "requested_mps": twist.linear_x,
             "requested_rps": twist.angular_z,

@@ -231,15 +231,19 @@ class Rechecker:
         if isinstance(command, GroundedPlan):
             return policy.check_plan(command, self.pose(time))
         if isinstance(command, NavigateToPoseGoal):
-            joints = self.joints(time)
-            return policy.check_navigation(command, self.pose(time), policy.reach(joints[1] if joints else None))
+            return policy.check_navigation(command, self.pose(time), self._reach(time))
         if isinstance(command, FollowJointTrajectoryGoal):
             return self._check_trajectory(command, time, joints_stamp)
         if isinstance(command, GripperCommandGoal):
             return policy.check_gripper(command)
         if isinstance(command, Twist):
-            return policy.check_cmd_vel(command, self.pose(time), self.scale(time))
+            return policy.check_cmd_vel(command, self.pose(time), self.scale(time), self._reach(time))
         raise TypeError(f"no check for {type(command).__name__} on {path}")
+
+    def _reach(self, time: float) -> float:
+        """How far the hand stuck out from the base's centre at `time`, as safety works it out."""
+        joints = self.joints(time)
+        return self.policy.reach(joints[1] if joints else None)
 
     def _check_trajectory(
         self, goal: FollowJointTrajectoryGoal, time: float, joints_stamp: float | None
