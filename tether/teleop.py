@@ -701,11 +701,17 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
         opened = Node("cli", ctx.obj)
     except Exception as exc:  # zenoh.ZError: no router, a refused login
         raise usage_error(f"cannot open a Zenoh session: {exc}", as_json, EXIT_NO_SAFETY) from None
+    view = SafetyView()
+    ending = Ending()
+    started = time.monotonic()
     with opened as node:
-        waited = next_heartbeat(node, HEARTBEAT_WAIT)
+        try:
+            waited = next_heartbeat(node, HEARTBEAT_WAIT)
+        except KeyboardInterrupt:  # Ctrl-C before anything was sent: it ends as teleop always ends
+            ending.set(SIGNAL_ENDINGS[signal.SIGINT])
+            return report(ending, started, deadman, pad, view, as_json)
         if waited.status is None:
             raise usage_error(f"{waited.why_not(HEARTBEAT_WAIT)}: is safety running?", as_json, EXIT_NO_SAFETY)
-        view = SafetyView()
         view.beat(waited.status, time.monotonic())
 
         node.subscribe(keys.HEARTBEAT, lambda s: view.beat(s, time.monotonic()), verify=signature_shaped)
@@ -717,9 +723,7 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
             view.sent(stamped)
             publisher.put(stamped)
 
-        ending = Ending()
         stream = None if not keyboard else terminal_stream(as_json)
-        started = time.monotonic()
 
         def on_signal(number: int, _frame: FrameType | None) -> None:
             ending.set(SIGNAL_ENDINGS[signal.Signals(number)], lost_input=number == signal.SIGHUP)
@@ -745,16 +749,23 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
                 signal.signal(s, handler)
             os.close(wake_r)
             os.close(wake_w)
-        safety = view.summary()
-        summary = {
-            "ended": ending.reason or "error",
-            "duration_s": round(time.monotonic() - started, 3),
-            "twists_sent": deadman.sent_count,
-            "max_commanded": {"linear_mps": deadman.max_commanded[0], "angular_rps": deadman.max_commanded[1]},
-            "scale": deadman.scale,
-            "gamepad": pad.name if pad is not None else None,
-            "safety": safety,
-        }
+    return report(ending, started, deadman, pad, view, as_json)
+
+
+def report(
+    ending: Ending, started: float, deadman: Deadman, pad: Gamepad | None, view: SafetyView, as_json: bool
+) -> int:
+    """How teleop ended, on stdout as one JSON object (`--json`) or as a line on stderr; the exit code."""
+    safety = view.summary()
+    summary = {
+        "ended": ending.reason or "error",
+        "duration_s": round(time.monotonic() - started, 3),
+        "twists_sent": deadman.sent_count,
+        "max_commanded": {"linear_mps": deadman.max_commanded[0], "angular_rps": deadman.max_commanded[1]},
+        "scale": deadman.scale,
+        "gamepad": pad.name if pad is not None else None,
+        "safety": safety,
+    }
     if as_json:
         print(json.dumps(summary))
     else:

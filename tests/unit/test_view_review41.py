@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import json
 import logging
+import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import foxglove
@@ -25,7 +27,10 @@ from schemas.robot import Odometry
 from schemas.safety import Decision, SafetyEvent
 from schemas.world import CameraImage, PerceivedHumans
 from services.recorder import scene3d
-from tether.teleop import teleop
+from services.runtime import NodeSettings
+from tests.sessions import free_port
+from tether import client
+from tether.teleop import Deadman, drive, teleop
 from tether.view import LiveView, inputs, load_scene, view
 
 USAGE = 2
@@ -172,3 +177,18 @@ def test_a_camera_picture_the_view_cannot_show_does_not_end_the_camera(
     writer.close()
     pictures = recorded(tmp_path / "view.mcap")[scene3d.CAMERA_TOPIC]
     assert [p["timestamp"] for p in pictures] == [{"sec": 0, "nsec": 0}, {"sec": 5, "nsec": 0}]
+
+
+def test_ctrl_c_while_teleop_waits_for_safety_ends_it_with_its_summary(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It left with a traceback and exit 130, no JSON object, though nothing had been sent."""
+
+    def interrupted(_node: Any, _timeout: float) -> Any:
+        raise KeyboardInterrupt  # Ctrl-C during the wait for safety's first heartbeat
+
+    monkeypatch.setattr(client, "next_heartbeat", interrupted)
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    code = drive(SimpleNamespace(obj=settings), Deadman(), None, False, True)  # type: ignore[arg-type]
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["ended"] == "SIGINT" and summary["twists_sent"] == 0, summary
