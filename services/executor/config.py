@@ -94,7 +94,9 @@ class ExecutorConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     # How far the base's footprint keeps from walls and furniture on planned paths (metres): more
     # than the robot's tracking tolerance (services/footprint.py, 3 cm), which safety demands.
     base_clearance: Annotated[float, Meta(ge=0.0, le=0.5)] = 0.04
-    # The base counts as at an approach pose within these.
+    # The base counts as at a pose within these (metres, radians): at an approach pose already (no
+    # drive), and arrived after a navigation the robot reports succeeded (odometry must agree, or the
+    # step fails, postcondition). Looser than the robot's own arrival (5 cm, 0.05 rad: docs/robot.md).
     approach_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.15
     approach_yaw_tolerance: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.2
     # Heights above the grasp point: where the hand waits before descending, and lifts to after.

@@ -18,7 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import ErrorKind, Pose2D, Vec3
+from schemas.common import ErrorKind, Pose2D, Vec3, fmt_pose
 from schemas.plan import (
     DetectStep,
     GripperStep,
@@ -122,6 +122,11 @@ def _so_far(searched: list[str]) -> str:
     return f" after looking {', '.join(searched)}" if searched else ""
 
 
+def _pose_error(here: Pose2D, goal: Pose2D) -> tuple[float, float]:
+    """How far `here` is from `goal`: metres, and radians of heading either way."""
+    return math.hypot(here.x - goal.x, here.y - goal.y), abs(math.remainder(here.yaw - goal.yaw, math.tau))
+
+
 def _cm(metres: float) -> str:
     return f"{abs(metres) * 100:.0f} cm"
 
@@ -199,6 +204,26 @@ class Manipulator:
         except GoalRejected as exc:
             raise refused("navigation", exc) from None
         check_outcome("navigation", result, cancel)
+        self._check_arrived(pose)
+
+    def _check_arrived(self, goal: Pose2D) -> None:
+        """Done means odometry has the base at the goal, not that the robot said so: after a success
+        reported short of it (by a faulty robot, or whoever answers on its keys) the next step would
+        plan from where the base is not. The pose is one that arrived after the navigation ended
+        (NodeRobot.base_pose), none if none came."""
+        here = self.robot.base_pose()
+        if here is None:
+            raise PostconditionFailed(
+                f"the robot reported reaching {fmt_pose(goal)}, but no odometry came after the navigation "
+                "ended: where the base stopped is unknown"
+            )
+        if not self._at(here, goal):
+            distance, turn = _pose_error(here, goal)
+            raise PostconditionFailed(
+                f"the robot reported reaching {fmt_pose(goal)}, but odometry has the base stopped at "
+                f"{fmt_pose(here)}: {distance:.2f} m and {math.degrees(turn):.0f}° off (arrived means within "
+                f"{self.config.approach_tolerance:g} m and {math.degrees(self.config.approach_yaw_tolerance):.0f}°)"
+            )
 
     def ensure_at(self, approach: Pose2D, cancel: threading.Event, attempt: int = 1) -> None:
         """Drive to `approach` unless the base already stands there."""
@@ -208,9 +233,8 @@ class Manipulator:
         self.drive_to(approach, cancel, attempt=attempt)
 
     def _at(self, here: Pose2D, pose: Pose2D) -> bool:
-        distance = math.hypot(here.x - pose.x, here.y - pose.y)
-        yaw_error = abs(math.remainder(here.yaw - pose.yaw, math.tau))
-        return distance <= self.config.approach_tolerance and yaw_error <= self.config.approach_yaw_tolerance
+        distance, turn = _pose_error(here, pose)
+        return distance <= self.config.approach_tolerance and turn <= self.config.approach_yaw_tolerance
 
     # State
 

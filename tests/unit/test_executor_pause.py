@@ -89,7 +89,7 @@ class RobotBehindSafety(ScriptedRobot):
         self.forwarded += 1
         self.started.set()
         if self.forwarded > 1:
-            return ResultResponse(goal_id="g", state=GoalState.SUCCEEDED)
+            return self.ended(goal, GoalState.SUCCEEDED)
         return self.first(cancel)
 
     def first(self, cancel: threading.Event) -> ResultResponse[Any]:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import functools
+import math
 import re
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -70,9 +72,32 @@ class ScriptedPlanServices:
         return self._reply("check")
 
 
+# Where the scripted base stands before it moves: in the living room, facing east.
+START = Pose2D(x=6.0, y=1.2)
+# Where a navigation that succeeds leaves the base, from where it started and its goal pose.
+Stop = Callable[[Pose2D, Pose2D], Pose2D]
+
+
+def at_goal(start: Pose2D, goal: Pose2D) -> Pose2D:
+    return goal
+
+
+def short_of(metres: float) -> Stop:
+    """A robot that says it arrived having stopped `metres` short, on the straight line from its start."""
+
+    def stop(start: Pose2D, goal: Pose2D) -> Pose2D:
+        way = math.dist((start.x, start.y), (goal.x, goal.y))
+        left = min(metres, way) / way if way > 0 else 0.0
+        return Pose2D(x=goal.x - (goal.x - start.x) * left, y=goal.y - (goal.y - start.y) * left, yaw=goal.yaw)
+
+    return stop
+
+
 class ScriptedRobot:
     """Navigation ends as scripted (per goal pose in `outcomes`, else `state`); waits for cancel
-    when told to block. The gripper succeeds and holds nothing."""
+    when told to block. One that succeeds leaves the base where `stops` says (at the goal; a lying
+    robot elsewhere), and odometry then reports it unless `odometry_after` is off (none comes after
+    a motion, as NodeRobot.base_pose answers then). The gripper succeeds and holds nothing."""
 
     def __init__(
         self,
@@ -81,7 +106,13 @@ class ScriptedRobot:
         outcomes: dict[Pose2D, GoalState | str] | None = None,
         holding: str | None = None,
         stop_reason: str | None = None,
+        stops: Stop = at_goal,
+        odometry_after: bool = True,
     ) -> None:
+        self.pose = START
+        self.stops = stops
+        self.odometry_after = odometry_after
+        self.moved = False
         self.state = state
         self.block = block
         # A GoalState ends the goal so; a string is a rejection by safety with that reason.
@@ -102,7 +133,14 @@ class ScriptedRobot:
         state = self.outcomes.get(goal.pose, self.state)
         if not isinstance(state, GoalState):
             raise GoalRejected(state, ErrorKind.VETOED)
-        return ResultResponse(goal_id="g", state=state, message="stalled" if state is not GoalState.SUCCEEDED else "")
+        return self.ended(goal, state, "stalled" if state is not GoalState.SUCCEEDED else "")
+
+    def ended(self, goal: NavigateToPoseGoal, state: GoalState, message: str = "") -> ResultResponse[Any]:
+        """The navigation to `goal` ends in `state`: the base stops as scripted if it succeeded."""
+        self.moved = True
+        if state is GoalState.SUCCEEDED:
+            self.pose = self.stops(self.pose, goal.pose)
+        return ResultResponse(goal_id="g", state=state, message=message)
 
     def trajectory(self, goal: FollowJointTrajectoryGoal, cancel: threading.Event) -> ResultResponse[Any]:
         raise AssertionError("no arm motion in these plans")
@@ -116,7 +154,7 @@ class ScriptedRobot:
         pass
 
     def base_pose(self) -> Pose2D | None:
-        return Pose2D(x=6.0, y=1.2)
+        return self.pose if self.odometry_after or not self.moved else None
 
     def arm_positions(self) -> list[float] | None:
         return list(WORLD.world.robot.home_joints)  # stowed: driving needs no arm motion first
@@ -202,7 +240,7 @@ def test_a_refusal_at_any_stage_is_a_rejection_there_and_nothing_moves() -> None
 def test_dry_run_checks_everything_and_moves_nothing() -> None:
     robot = ScriptedRobot()
     result = runner(ScriptedPlanServices(), robot).run(
-        ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list().append
+        ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list[ExecutePlanFeedback]().append
     )
     assert result.status is PlanStatus.SUCCEEDED and result.stage is Stage.SAFETY
     assert robot.goals == []
@@ -419,7 +457,7 @@ def test_a_dry_run_lists_the_alternatives_after_the_steps_they_cover() -> None:
     plan = grounded([go(KITCHEN), SayStep(text="x"), go(HALLWAY)], ["1.1", "1.2", "2"], [alternative])
     robot = ScriptedRobot()
     result = runner(ScriptedPlanServices(resolve=plan), robot).run(
-        ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list().append
+        ExecutePlanGoal(text="...", dry_run=True), threading.Event(), list[ExecutePlanFeedback]().append
     )
     assert [s.label for s in result.steps] == ["1.1", "1.2", "1 on_failure 1", "2"]
     assert robot.goals == []
@@ -438,7 +476,7 @@ class FlakyRobot(ScriptedRobot):
     def navigate(self, goal: NavigateToPoseGoal, cancel: threading.Event) -> ResultResponse[Any]:
         self.goals.append(goal)
         state = GoalState.ABORTED if len(self.goals) <= self.failures else GoalState.SUCCEEDED
-        return ResultResponse(goal_id="g", state=state, message="stalled: is the way blocked?")
+        return self.ended(goal, state, "stalled: is the way blocked?")
 
 
 def retrying(navigate_to: int) -> ExecutorConfig:
