@@ -219,6 +219,7 @@ class Rule(enum.StrEnum):
     WORKSPACE = "workspace"  # the end effector inside its box
     ARM_KEEP_OUT = "arm_keep_out"  # the end effector out of keep-out zones
     BASE_STILL = "base_still"  # the arm moves only while the base stands still
+    ONE_MOTION = "one_motion"  # the arm and the base never move at once: not while the other's goal runs
     PAYLOAD = "payload"
     GRIPPER_FORCE = "gripper_force"
     GRIPPER_DROP = "gripper_drop"  # no opening the gripper over the floor with something in it

@@ -17,6 +17,7 @@ from schemas import keys
 from schemas.actions import GoalResponse, GoalStatus, SendGoal
 from schemas.common import ErrorKind, Pose2D, ServiceError, Stage, Vec3
 from schemas.incidents import CautionZone, Incident
+from schemas.keys import ActionKeys
 from schemas.plan import GroundedPlan, PlanApproved, PlanCheckReply
 from schemas.robot import (
     ARM_JOINTS,
@@ -236,6 +237,9 @@ class SafetyGate:
         # The control mode (changed only with the operator's token) and, in supervised mode, the plans
         # waiting for an operator or running with one's approval (guarded by the gate's lock).
         self.modes = modes if modes is not None else ModeFile(None)
+        # Which goal of a robot action may still run (the node's, which knows what it forwarded);
+        # by default none: a gate alone forwards nothing.
+        self.running: Callable[[ActionKeys[Any, Any, Any]], str | None] = lambda _action: None
         self._approvals = ApprovalBook()
         self._clock = clock
         # Only stamps the latch's state (when it latched, when it was reset), never a decision.
@@ -827,10 +831,22 @@ class SafetyGate:
 
     # Commands: goals and plans
 
+    def _one_motion(self, other: ActionKeys[Any, Any, Any], what: str) -> None:
+        """The arm and the base never move at once: refused while a goal of `other` may still run
+        (`running`, which the node answers from the goals it forwarded and the robot's word on them).
+        Odometry alone let a trajectory through while a navigation just accepted stood still."""
+        if (goal_id := self.running(other)) is not None:
+            raise Vetoed(
+                f"{what} (goal {goal_id}) is still under way: the arm and the base do not move at once; "
+                "send this once it has ended",
+                Rule.ONE_MOTION,
+            )
+
     def navigate(self, req: SendGoal[NavigateToPoseGoal]) -> Ruling[GoalRuling]:
         t = self._time()
 
         def check(goal: NavigateToPoseGoal) -> Verdict[NavigateToPoseGoal]:
+            self._one_motion(keys.ROBOT_TRAJECTORY, "an arm trajectory")
             return self._slower_through_zones(self.policy.check_navigation(goal, self._pose(t), self._reach(t)))
 
         return self._goal(keys.CMD_NAVIGATE.send_goal.path, req, check, t)
@@ -849,6 +865,7 @@ class SafetyGate:
         measured = {} if joints is None else {JOINTS_STAMP: joints.stamp}
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
+            self._one_motion(keys.ROBOT_NAVIGATE, "a navigation")
             try:
                 verdict = self.policy.check_trajectory(goal, positions, self._pose(t), self._base_moving())
             except Vetoed as exc:

@@ -133,6 +133,7 @@ class SafetyNode:
         self.policy_hash = policy.limits.hash
         self.wall_clock = wall_clock
         self.gate = SafetyGate(policy, latch, clock, wall_clock, config.max_resets_per_minute, modes)
+        self.gate.running = self._running
         # Wakes an executor waiting for a plan's approval when an operator decides (or the mode changes).
         self._approvals_changed = threading.Condition()
         self._seq = 0
@@ -307,6 +308,26 @@ class SafetyNode:
             log.error("the e-stop state could not be written (%s): a restart may not remember it", exc)
             return False
         return True
+
+    def _running(self, robot: ActionKeys[Any, Any, Any]) -> str | None:
+        """A goal forwarded on `robot` that may still run, or None. The robot's action server says
+        whether each one noted has ended (one whose end was fetched is no longer noted); a goal it
+        cannot answer for may run. One it knows nothing of is being decided or never reached it:
+        not running, and left noted (a goal on its way must still be canceled by an e-stop)."""
+        with self._forwarded_lock:
+            noted = [goal_id for goal_id, action in self._forwarded.items() if action is robot]
+        for goal_id in noted:
+            try:
+                progress = self.node.call(
+                    robot.get_status, GetResult(goal_id=goal_id), timeout=self.config.forward_timeout
+                )
+            except CallError as exc:
+                if exc.error.kind is ErrorKind.INVALID_REQUEST:
+                    continue
+                return goal_id
+            if not progress.state.terminal:
+                return goal_id
+        return None
 
     def _cancel_forwarded(self) -> None:
         with self._forwarded_lock:

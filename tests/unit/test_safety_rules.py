@@ -92,6 +92,7 @@ ELSEWHERE = {
     Rule.MODE,  # the control mode, not a limit: test_safety_modes.py, test_modes.py
     Rule.APPROVAL,  # supervised plans: test_safety_modes.py, test_modes.py
     Rule.CAUTION_ZONE,  # safety's memory of incidents: test_gate_incidents.py, test_caution_zone.py
+    Rule.ONE_MOTION,  # the goals the node forwarded: test_safety_one_motion.py
 }
 
 
