@@ -51,6 +51,7 @@ NOT_POLICY = {
     Rule.COMMAND_RATE: "refused for the command rate",
     Rule.MODE: "refused for the control mode",
     Rule.APPROVAL: "refused for want of an operator's approval",
+    Rule.ONE_MOTION: "refused while the other motion ran",
 }
 GOALS = {
     keys.CMD_NAVIGATE.send_goal.path: NavigateToPoseGoal,

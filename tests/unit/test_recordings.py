@@ -444,6 +444,23 @@ def test_recheck_takes_a_goals_decision_only_from_what_safety_stamped_as_it_answ
     assert report.skipped == {"refused for the e-stop": 2, "refused for the command rate": 1}
 
 
+def test_recheck_keeps_a_refusal_for_the_other_motion_as_recorded(world_policy: SafetyPolicy) -> None:
+    # Which goals ran on the robot is not the policy's to decide again: such a refusal is kept, not
+    # listed as a decision the policy now makes otherwise.
+    other = SendGoal(goal_id="b", goal=NavigateToPoseGoal(pose=Pose2D(x=6.4, y=1.2)))
+    decided = SafetyEvent(
+        stamp=2.5005,
+        key=keys.CMD_NAVIGATE.send_goal.path,
+        decision=Decision.VETOED,
+        rule=Rule.ONE_MOTION,
+        command=msgspec.Raw(encode(other)),
+    )
+    own = msg(5.0, keys.SAFETY_EVENTS.path, decided)
+    report = recheck(sorted([*incident(), own], key=lambda m: m.time), world_policy)
+    assert not any(c.command.startswith("navigate to (11.20") for c in report.checked)
+    assert report.skipped == {"refused for the e-stop": 2, "refused while the other motion ran": 1}
+
+
 # A trajectory sent the moment the previous motion ended, from where that motion ended (END), and
 # what the recorder heard meanwhile: the arm still moving, and the joint state safety decided from
 # (stamped 1.98, at END) only after the goal. The goal's query came at 2.0.
