@@ -783,6 +783,12 @@ class Node:
         replies = self.session.liveliness().get(keys.alive_key(self.robot, "*"), timeout=timeout)
         return {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
 
+    def is_alive(self, service: str, timeout: float) -> bool:
+        """Whether `service` holds its liveliness token, heard within `timeout`. A liveliness get
+        (alive_services) answers from the tokens heard when it is asked: from a session opened a moment
+        before, on a loaded machine, that missed a running resolver ("no resolver reachable")."""
+        return not self.wait_alive([service], timeout)
+
     def wait_alive(self, services: Iterable[str], timeout: float) -> set[str]:
         """Wait until all `services` hold liveliness tokens; return those still missing at the deadline."""
         wanted = set(services)

@@ -573,7 +573,7 @@ def send(
         refused = {"status": "rejected", "stage": None, "reason": why, "steps": []}
         conclude(console, as_json, refused, f"[red]error:[/] {literal(why)}", 2)
     with client(ctx) as node:
-        if "executor" not in node.alive_services(timeout=2.0):
+        if not node.is_alive("executor", 2.0):
             unreachable(as_json, "no executor reachable: start the services with `tether up`")
         sender = PlanSender(node, None if as_json else print_feedback)
         try:
@@ -1028,7 +1028,7 @@ def world_move(
     the object in the gripper), 3 no simulator (status 'unreachable'), 1 when the simulator failed otherwise.
     """
     with client(ctx) as node:
-        if "sim" not in node.alive_services(timeout=2.0):
+        if not node.is_alive("sim", 2.0):
             why = "no simulator reachable: start it with `tether up` or `tether run sim`"
             world_failed(ServiceError(kind=ErrorKind.UNAVAILABLE, message=why), as_json)
         try:
@@ -1061,7 +1061,7 @@ def world_scene(
     Exit 0, 3 when no resolver is reachable (with --json: status 'unreachable' and the error).
     """
     with client(ctx) as node:
-        if "resolver" not in node.alive_services(timeout=2.0):
+        if not node.is_alive("resolver", 2.0):
             why = "no resolver reachable: start the services with `tether up`"
             scene_failed(ServiceError(kind=ErrorKind.UNAVAILABLE, message=why), as_json)
         try:

@@ -44,7 +44,7 @@ def world_fault(
     (status 'unreachable'), 1 when the simulator failed otherwise.
     """
     with client(ctx) as node:
-        if "sim" not in node.alive_services(timeout=2.0):
+        if not node.is_alive("sim", 2.0):
             why = "no simulator reachable: start it with `tether up` or `tether run sim`"
             world_failed(ServiceError(kind=ErrorKind.UNAVAILABLE, message=why), as_json)
         try:

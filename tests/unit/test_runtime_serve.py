@@ -12,9 +12,11 @@ import uuid
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import pytest
 
+from schemas import keys
 from schemas.common import ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.plan import PlanText
@@ -325,3 +327,25 @@ def test_a_call_cut_by_its_own_session_closing_says_so_not_that_nothing_serves_t
             client.close()
     message = raised.value.error.message
     assert "session closed" in message and "is it running" not in message, message
+
+
+def test_a_service_whose_token_is_heard_after_the_question_is_alive() -> None:
+    """`tether world scene` said "no resolver reachable" of a running resolver: its session, opened a
+    moment before on a loaded machine, had not heard the resolver's token when it asked, once (a
+    liveliness get). Asked with is_alive, a token heard within the timeout counts."""
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    with Node("resolver", settings) as resolver, Node("cli", settings) as cli:
+        resolver.declare_alive()
+        assert not cli.wait_alive(["resolver"], WAIT)
+        tokens: list[Any] = []
+
+        def declare() -> None:
+            tokens.append(resolver.session.liveliness().declare_token(keys.alive_key(settings.robot, "sim")))
+
+        late = threading.Timer(0.3, declare)
+        late.start()
+        try:
+            assert cli.is_alive("sim", WAIT)
+            assert tokens, "alive before its token was declared"
+        finally:
+            late.cancel()
