@@ -18,7 +18,8 @@ The sim and safety are real processes started by the Supervisor on their own rob
 the sim runs at real time and is asked for odometry and joint states at 500 Hz, but reports at most
 once a physics step (240 Hz), so a halt is resolved to about 4 ms. Baseline from the same run:
 `heartbeat_period_ms`, safety's beat period as heard here (median gap between heartbeat arrivals):
-the sim hears an e-stop at the latest with the next beat.
+the sim hears an e-stop at the latest with the next beat. `goals_met`: the halt's p99 within 10 ms,
+over at least 20 trials (`--trials`; fewer do not meet the goal).
 
 With `--backend ros2` (default `sim`; the JSON's `backend` says which ran), the ros2 backend and the
 stand-in ROS 2 robot (ros2sim: the same sim, as configured above, behind a ROS 2 face on rmw_zenoh
@@ -75,6 +76,7 @@ SWING = 0.8  # rad, panda_joint1
 SWING_TIME = 2.0  # s
 MOVE_TIMEOUT = 5.0
 HALT_TIMEOUT = 2.0
+MIN_TRIALS = 20  # fewer give no p99 worth the name
 progress = reporter(PROG)
 
 
@@ -144,8 +146,13 @@ def bench(trials: int, backend: str) -> dict[str, Any]:
         "latch_heard_p50_ms": heard_p50,
         "latch_heard_max_ms": max(heard),
         "latch_heard_ms": heard,
-        "goals_met": {"p99_ms": p99 <= GOALS["goal_p99_ms"]},
+        "goals_met": goals_met(halts),
     }
+
+
+def goals_met(halts: list[float]) -> dict[str, bool]:
+    """The halt's p99 within the goal, from enough trials for a p99: a run of a few does not meet it."""
+    return {"p99_ms": ms_summary(halts)[1] <= GOALS["goal_p99_ms"], "trials": len(halts) >= MIN_TRIALS}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -188,7 +195,9 @@ def print_table(result: dict[str, Any]) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--trials", type=bounded(int, 1, 1000), default=20, help="e-stops (at least 20 for a p99)")
+    parser.add_argument(
+        "--trials", type=bounded(int, 1, 1000), default=MIN_TRIALS, help=f"e-stops (at least {MIN_TRIALS} for a p99)"
+    )
     add_backend_argument(parser)
 
 

@@ -4,7 +4,8 @@
     python -m bench.parser               a short table
 
 Throughput: a 10-step JSON plan and a 10-line English plan through `services.parser.parser.parse`,
-each timed alone; plans/s is one over the median parse time.
+each timed alone; plans/s is one over the median parse time. Either plan parsed into other than
+its 10 steps is an error, in-process and in the round trips alike: such a parse is not this work.
 
 Round trips: the parser service is a real process started by the Supervisor on its own robot name
 and ports; readiness is its liveliness token. The baseline is the bare Zenoh echo of
@@ -39,6 +40,7 @@ from services.errors import CallError
 from services.runtime import Node
 
 SERVICE = "parser"
+STEPS = 10  # in each plan below
 GOALS = {"goal_json_plans_per_s": 5000.0, "goal_text_plans_per_s": 1000.0, "goal_ratio_p50": 1.5}
 CALL_TIMEOUT = 2.0
 
@@ -91,8 +93,9 @@ def parse_times(text: str, fmt: str, seconds: float, warmup: int) -> list[float]
         plan = parse(text, fmt)
     except Exception as exc:  # a bench reports any failure of the code it measures, then goes on
         raise BenchError(f"{fmt} plan: {type(exc).__name__}: {exc}") from None
-    if len(plan.steps) != 10:
-        progress(f"note: the {fmt} plan parsed into {len(plan.steps)} steps, not 10")
+    # A parse that drops steps does less work: its time would not be this plan's.
+    if len(plan.steps) != STEPS:
+        raise BenchError(f"the {fmt} plan parsed into {len(plan.steps)} steps, not {STEPS}")
     for _ in range(warmup):
         parse(text, fmt)
     times: list[float] = []
@@ -124,6 +127,8 @@ def round_trips(node: Node, n: int, warmup: int, max_seconds: float) -> tuple[li
             raise BenchError(f"plan/parse refused the JSON plan: {exc.error.message}") from None
         if not isinstance(plan, Plan):
             raise BenchError(f"plan/parse replied with {type(plan).__name__}, not a Plan")
+        if len(plan.steps) != STEPS:
+            raise BenchError(f"plan/parse parsed the JSON plan into {len(plan.steps)} steps, not {STEPS}")
 
     return against_echo(node, SERVICE, runtime.encode(REQUEST), query, n, warmup, max_seconds)
 

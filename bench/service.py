@@ -361,8 +361,11 @@ class RobotMotion:
                 halt.since[topic] = None
             elif halt.since.get(topic) is None:
                 halt.since[topic] = stamp
-            if all(halt.since.get(t) is not None for t in self._watched):
-                halt.stamp = stamp
+            since = [halt.since.get(t) for t in self._watched]
+            if all(s is not None for s in since):
+                # The latest of them: a topic's sample that completes the halt may be older than
+                # another topic's first still one (the topics arrive apart, as a backend passes them on).
+                halt.stamp = max(s for s in since if s is not None)
                 halt.done.set()
 
     def moving(self) -> bool:

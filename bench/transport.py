@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import importlib.metadata
 import json
+import math
 import os
 import platform
 import signal
@@ -59,8 +60,11 @@ def serve(settings: NodeSettings) -> None:
 
 
 def percentile(values: list[float], q: float) -> float:
+    """The nearest-rank percentile: the least sample with at least q% of all at or below it. Rounding
+    the position of an interpolation instead left more than 1% of the samples above the p99 for about
+    half of all sample counts (52 to 99 of them, for one): a run cut short by its deadline has any."""
     ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
+    return ordered[max(0, math.ceil(q * len(ordered) / 100) - 1)]
 
 
 def summary(ms: list[float]) -> dict[str, float]:
