@@ -123,7 +123,10 @@ def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: li
     assert latched_ms is not None  # a latched beat arrived after t0, and the latch was clear before
     heard.append(round(latched_ms, 2))
     # The e-stop ended the trajectory (aborted); collect it so safety forgets it.
-    stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=10.0)
+    try:
+        stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=10.0)
+    except CallError as exc:
+        raise BenchError(f"the arm's trajectory after the e-stop: {exc.error.message}") from None
     reset_latch(stack, beats)
     return halt
 
