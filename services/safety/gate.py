@@ -343,11 +343,6 @@ class SafetyGate:
             return None
         return joints[1]
 
-    def _hand(self, pose: Pose2D, t: float) -> tuple[float, float] | None:
-        """The end effector on the floor plan (map frame)."""
-        hand = self.hand_on_map(pose, self._joint_positions(t))
-        return None if hand is None else (hand.x, hand.y)
-
     def hand_on_map(self, pose: Pose2D, joints: dict[str, float] | None) -> Vec3 | None:
         """The grasp point on the map, with its height (None when a joint position is unknown)."""
         policy = self.policy
@@ -451,10 +446,20 @@ class SafetyGate:
         if not people:
             return separation(None, True, humans)
         if (pose := self._pose(t)) is None:
-            return Separation(humans.reduced_speed_scale, "the robot's pose is unknown: reduced speed")
+            # People reported and no distance to them to be had: as near as can be.
+            return Separation(0.0, "people are reported and the robot's pose is unknown: paused")
         size = self.policy.world.world.robot.base_size
-        nearest = nearest_person(pose, (size.x, size.y), self._hand(pose, t), people, humans.person_radius)
-        return separation(nearest, True, humans, self.separation.scale)
+        joints = self._joint_positions(t)
+        hand = self.hand_on_map(pose, joints)
+        # Joints unknown: the arm may be held out anywhere within its full reach, as navigation assumes.
+        reach = 0.0 if hand is not None else self.policy.reach(joints)
+        at = None if hand is None else (hand.x, hand.y)
+        nearest = nearest_person(pose, (size.x, size.y), at, people, humans.person_radius, reach)
+        found = separation(nearest, True, humans, self.separation.scale)
+        if hand is not None or not found.reason:
+            return found
+        why = f"{found.reason} (the arm's joints are unknown: counted as reaching out {reach:.2f} m)"
+        return replace(found, reason=why)
 
     def _set_separation(self, found: Separation, zone: CautionZone | None = None) -> list[GateEvent]:
         """The scale in force from now; `zone`: the caution zone that decided it, if one did."""
@@ -774,7 +779,8 @@ class SafetyGate:
     def _shared_teleop(self, twist: Twist, previous: Twist, step: float, t: float) -> Verdict[Twist]:
         """Shared mode: the person's twist slowed and steered off obstacles and people (shared.py), then
         clamped and ramped as in direct mode, then guarded once more as it will be sent (a ramped turn
-        bends the path). The event says what the filter did (`shared` in its values)."""
+        bends the path); a twist the guard changed is held to the horizon's check again, or refused
+        (the base stopped). The event says what the filter did (`shared` in its values)."""
         pose, scale, reach = self._pose(t), self.separation.scale, self._reach(t)
         if pose is None:
             # check_teleop refuses driving without a pose; a turn in place cannot be checked either.
@@ -785,6 +791,15 @@ class SafetyGate:
         shaped = self.shared.shape(twist, pose, around, scale)
         verdict = self.policy.check_teleop(shaped.twist, pose, previous, step, scale, reach)
         guarded = self.shared.guard(verdict.command, pose, around)
+        if guarded.changed:
+            # The guard keeps only the base off things; a slower or straighter path than the one
+            # checked can still take the hand held out into a keep-out zone.
+            try:
+                self.policy.check_horizon(guarded.twist, pose, reach)
+            except Vetoed as exc:
+                raise Vetoed(
+                    f"shared: kept off {guarded.nearest or 'an obstacle'}, {exc}", exc.rule, **exc.values
+                ) from exc
         done = combine(shaped, guarded)
         values = {**verdict.values, **done.values, "requested_mps": twist.linear_x, "requested_rps": twist.angular_z}
         checks = (*verdict.checks, Rule.OBSTACLE, Rule.KEEP_OUT)

@@ -62,15 +62,20 @@ def nearest_person(
     hand: tuple[float, float] | None,
     people: Iterable[Person],
     radius: float = 0.0,
+    reach: float = 0.0,
 ) -> tuple[float, Person] | None:
     """The nearest person and the distance from the base's footprint or the hand, whichever is
-    nearer, to their body (`radius` around where they stand; 0 when touching). Asked at every
-    heartbeat: the footprint's distance is measured without building a polygon."""
+    nearer, to their body (`radius` around where they stand; 0 when touching). A `hand` of None is
+    one whose place is unknown: it may be anywhere within `reach` of the base's centre (the gate
+    gives the arm's full reach, as navigation assumes). Asked at every heartbeat: the footprint's
+    distance is measured without building a polygon."""
     best: tuple[float, Person] | None = None
     for person in people:
         distance = distance_to_footprint(pose.x, pose.y, pose.yaw, *size, (person.x, person.y))
         if hand is not None:
             distance = min(distance, math.dist(hand, (person.x, person.y)))
+        else:
+            distance = min(distance, math.dist((pose.x, pose.y), (person.x, person.y)) - reach)
         distance = max(0.0, distance - radius)
         if best is None or distance < best[0]:
             best = (distance, person)

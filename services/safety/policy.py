@@ -375,7 +375,7 @@ class SafetyPolicy:
         if not _finite(twist.linear_x, twist.angular_z):
             raise Vetoed("cmd_vel is not finite", Rule.BASE_SPEED)
 
-    def _check_horizon(self, twist: Twist, pose: Pose2D | None, reach: float = 0.0) -> None:
+    def check_horizon(self, twist: Twist, pose: Pose2D | None, reach: float = 0.0) -> None:
         """Holding `twist` for the horizon must keep the base on the map and out of keep-out zones
         along the arc it drives (turning, it curves off the line ahead). `reach` is how far the hand
         sticks out from the base's centre: beyond the footprint, zones are kept that far from the
@@ -427,7 +427,7 @@ class SafetyPolicy:
     ) -> Verdict[Twist]:
         """A cmd_vel from a program (plan, agent): a value over a limit is refused, not clamped.
         Near people (`scale` < 1) the robot itself keeps to the lower speed; the verdict says so.
-        `reach`: how far the hand sticks out from the base's centre (see _check_horizon)."""
+        `reach`: how far the hand sticks out from the base's centre (see check_horizon)."""
         self._check_twist_finite(twist)
         if abs(twist.linear_x) > self.max_linear + STILL:
             raise Vetoed(
@@ -443,7 +443,7 @@ class SafetyPolicy:
                 turn_rps=twist.angular_z,
                 limit_rps=self.max_angular,
             )
-        self._check_horizon(twist, pose, reach)
+        self.check_horizon(twist, pose, reach)
         values = {"speed_mps": twist.linear_x, "turn_rps": twist.angular_z, "scale": scale}
         note = ""
         if scale < 1.0:
@@ -460,7 +460,7 @@ class SafetyPolicy:
         to the acceleration limits from `previous` (what was last sent, `dt` seconds ago); the
         clamping is reported. Slowing down is never limited. Vetoed only when even the clamped
         value would leave the map or reach a keep-out zone within the horizon, the hand held out
-        `reach` from the base's centre included (see _check_horizon)."""
+        `reach` from the base's centre included (see check_horizon)."""
         self._check_twist_finite(twist)
         base = self.policy.base
         linear, angular = twist.linear_x, twist.angular_z
@@ -482,7 +482,7 @@ class SafetyPolicy:
                 )
             )
         sent = msgspec.structs.replace(twist, linear_x=linear, angular_z=angular)
-        self._check_horizon(sent, pose, reach)
+        self.check_horizon(sent, pose, reach)
         values = {
             "requested_mps": twist.linear_x,
             "requested_rps": twist.angular_z,

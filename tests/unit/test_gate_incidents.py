@@ -331,9 +331,7 @@ def test_a_person_nearer_than_the_zone_allows_decides_the_speed(
     gate: SafetyGate, clock: Clock, policy: SafetyPolicy
 ) -> None:
     gate.set_incidents(FakeStore(zones=[zone()]))
-    pose = Pose2D(x=ZONE_X, y=ZONE_Y)
-    clock.now += TICK
-    gate.odometry(Odometry(stamp=0.0, sim_time=0.0, pose=pose, linear_x=0.0, angular_z=0.0))
+    at(gate, clock, Pose2D(x=ZONE_X, y=ZONE_Y))  # the arm stowed: the person's gap is the footprint's
     near = PerceivedHuman(id="ann", name="ann", pose=Pose2D(x=ZONE_X + 0.9, y=ZONE_Y))
     gate.humans(PerceivedHumans(stamp=0.0, humans=[near]))
     gate.tick()

@@ -412,8 +412,9 @@ def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_
     front = WORLD.robot.base_size.x / 2
 
     def stand(gap: float) -> Separation:
-        """The operator `gap` from the base's front edge, reported (with fresh odometry) until every
-        report safety still counts puts them there."""
+        """The operator `gap` from the base's front edge, reported (with fresh odometry, and the arm
+        stowed over the base: unknown joints count as the arm held out) until every report safety
+        still counts puts them there."""
         body = here.x + front + humans.person_radius + gap
         operator = PerceivedHuman(id="operator", name="operator", pose=Pose2D(x=body, y=here.y))
         deadline = time.monotonic() + WAIT
@@ -421,6 +422,7 @@ def test_the_speed_goes_back_up_only_once_a_person_is_the_release_margin_beyond_
             rig.robot.publish(
                 keys.ODOM, Odometry(stamp=time.time(), sim_time=0.0, pose=here, linear_x=0.0, angular_z=0.0)
             )
+            rig.robot.publish(keys.JOINT_STATES, JointState(stamp=time.time(), name=list(ARM_JOINTS), position=HOME))
             rig.robot.publish(keys.HUMANS, PerceivedHumans(stamp=time.time(), humans=[operator]))
             found = rig.safety.gate.separation
             if found.distance is not None and abs(found.distance - gap) < 1e-6:
