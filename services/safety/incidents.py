@@ -1041,7 +1041,8 @@ REPORT_PERIOD = 10.0
 MOVED_RECENTLY = 2.0
 # Refusals that say nothing about a place: the e-stop (its own incident), the control mode, a missing
 # approval and the command rate (the operator's and the clock's doing).
-_NOT_HAZARDS = frozenset({Rule.ESTOP, Rule.MODE, Rule.APPROVAL, Rule.COMMAND_RATE})
+# Refusals that say nothing of a place: not hazards to remember (one_motion: two motions asked at once).
+_NOT_HAZARDS = frozenset({Rule.ESTOP, Rule.MODE, Rule.APPROVAL, Rule.COMMAND_RATE, Rule.ONE_MOTION})
 _ESTOP_KINDS = {EstopSource.MONITOR.value: IncidentKind.MONITOR, EstopSource.WATCHDOG.value: IncidentKind.WATCHDOG}
 
 

@@ -367,6 +367,15 @@ def test_the_watch_names_estops_by_their_source_and_groups_vetoes_of_a_running_p
     assert watch.context() == ("", None, "")
 
 
+def test_a_refusal_for_the_other_motion_is_no_incident() -> None:
+    """Two motions asked at once say nothing of the place: such a refusal while a plan ran was a veto
+    incident, counting towards a caution zone there."""
+    watch = IncidentWatch(0.15, Mono())
+    running(watch)
+    both = GateEvent(keys.CMD_TRAJECTORY.send_goal.path, Decision.VETOED, "a navigation runs", rule=Rule.ONE_MOTION)
+    assert watch.decided([both], EstopState(latched=False)) == []
+
+
 def test_a_pause_closer_than_the_near_miss_distance_while_under_way_is_one_near_miss() -> None:
     clock = Mono()
     watch = IncidentWatch(0.15, clock)
