@@ -86,7 +86,12 @@ def robot_session_config(config: Ros2Config) -> zenoh.Config:
         path = Path(config.zenoh_config)
         if not path.is_file():
             raise ConfigError(f"[ros2] zenoh_config {path} does not exist")
-        return zenoh.Config.from_file(str(path))
+        conf = zenoh.Config.from_file(str(path))
+        # The file's own limit is kept when it is lower; unset (Zenoh's 1 GiB) or higher, it is ours.
+        limit = "transport/link/rx/max_message_size"
+        if int(msgspec.json.decode(conf.get_json(limit))) > ROBOT_MAX_MESSAGE:
+            conf.insert_json5(limit, str(ROBOT_MAX_MESSAGE))
+        return conf
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")

@@ -71,3 +71,17 @@ def test_a_message_over_the_largest_a_report_may_weigh_is_dropped_before_it_is_r
             with arrived:
                 assert arrived.wait_for(lambda: len(b"after") in heard, WAIT), f"the link went down: {heard}"
     assert heard == [len(b"after")], f"a message of {heard[0]} bytes was taken"
+
+
+@pytest.mark.parametrize(
+    ("given", "taken"), [(None, node.ROBOT_MAX_MESSAGE), (1 << 30, node.ROBOT_MAX_MESSAGE), (4096, 4096)]
+)
+def test_a_zenoh_config_of_ones_own_takes_no_more_than_the_backend_reads(
+    tmp_path: Path, given: int | None, taken: int
+) -> None:
+    """A `[ros2] zenoh_config` file (TLS, a login) was used as written: without the limit, Zenoh's 1 GiB."""
+    link = "" if given is None else f"link: {{ rx: {{ max_message_size: {given} }} }},"
+    path = tmp_path / "robot.json5"
+    path.write_text(f'{{ mode: "client", connect: {{ endpoints: ["tcp/127.0.0.1:7447"] }}, transport: {{ {link} }} }}')
+    conf = node.robot_session_config(Ros2Config(zenoh_config=str(path)))
+    assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == taken
