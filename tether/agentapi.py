@@ -7,6 +7,9 @@ change the policy: nothing here names those keys.
 
 from __future__ import annotations
 
+import base64
+import binascii
+import io
 import json
 import time
 from dataclasses import dataclass
@@ -36,6 +39,8 @@ HAZARDS_TIMEOUT = 1.0
 # plan_and_execute asks the model up to a few times, each answer dry-run through the pipeline; it
 # answers within this (below the 60 s MCP clients commonly wait), or gives up having sent nothing.
 ASK_TIMEOUT = 50.0
+# The most base64 a camera picture may be: Anthropic's API refuses an image over 5 MB.
+MAX_PICTURE_CHARS = 5 * 1024 * 1024
 
 
 class AgentError(Exception):
@@ -72,7 +77,7 @@ class AgentAPI:
         try:
             handle = self.sender.send(goal)
         except GoalRejected as exc:
-            return f"rejected: {exc.reason}"
+            return feedback.rejected_text(exc.reason)
         except CallError as exc:
             raise AgentError(f"the executor is not reachable: {exc}") from None
         try:
@@ -177,7 +182,10 @@ class AgentAPI:
         try:
             image: CameraImage = self.node.call(keys.CAMERA_IMAGE, Empty(), timeout=CALL_TIMEOUT)
         except CallError as exc:
-            raise AgentError(f"no camera image: {exc.error.message}") from None
+            # The backend's reason quotes the robot (its image's encoding and format, as it named them).
+            raise AgentError("no camera image:\n" + feedback.as_data("camera", exc.error.message)) from None
+        if (problem := picture_problem(image)) is not None:
+            raise AgentError(f"no camera image: the robot's picture {problem}")
         caption = f"the robot's camera, {image.width} x {image.height} pixels"
         return Picture(image.data, image.mime_type, caption)
 
@@ -186,6 +194,33 @@ class AgentAPI:
             return self.node.call(keys.SCENE, Empty(), timeout=CALL_TIMEOUT)
         except CallError as exc:
             raise AgentError(f"the world model is not reachable: {exc.error.message}") from None
+
+
+def picture_problem(image: CameraImage) -> str | None:
+    """Why the robot's picture cannot go to a model, or None. A model's API refuses an image that is
+    not what its mime type says, or is over 5 MB, and the image stays in the agent's conversation,
+    sent again with every later request. So it must be base64 of a PNG that decodes whole, of the
+    size it claims, within MAX_PICTURE_CHARS."""
+    if len(image.data) > MAX_PICTURE_CHARS:
+        return f"is {len(image.data)} characters of base64; a model takes at most {MAX_PICTURE_CHARS}"
+    try:
+        png = base64.b64decode(image.data, validate=True)
+    except binascii.Error as exc:
+        return f"is not base64 ({exc})"
+    from PIL import Image, UnidentifiedImageError  # only when asked for a picture
+
+    try:
+        with Image.open(io.BytesIO(png), formats=["PNG"]) as picture:
+            # From the header, before decoding: a small file cannot make it decode far more pixels.
+            if picture.size != (image.width, image.height):
+                width, height = picture.size
+                return f"is {width} x {height} pixels, not the {image.width} x {image.height} it claims"
+            picture.load()
+    except UnidentifiedImageError:
+        return f"is not a PNG (it begins {png[:8]!r})"
+    except Exception as exc:  # what Pillow raises for a file it cannot read is not one class
+        return f"is not a PNG that decodes: {exc}"
+    return None
 
 
 def _goal_id(text: str) -> str:

@@ -97,9 +97,12 @@ def initial_messages(
 
 
 def refusal_text(stage: Stage | None, reason: str) -> str:
-    """What a refusal goes back to the model as: short, with the stage and the reason."""
+    """What a refusal goes back to the model as: short, with the stage, then the reason as data: it
+    quotes names from the world model (perceived objects, people) and the model's own plan."""
     where = f"rejected at stage {stage}" if stage is not None else "rejected"
-    return f"{where}: {reason.strip()}; fix the plan and answer with the whole corrected plan"
+    return f"{where}: fix the plan and answer with the whole corrected plan. Why:\n" + as_data(
+        "the refusal", reason.strip()
+    )
 
 
 def feedback_messages(reply_message: dict[str, Any], stage: Stage | None, reason: str) -> list[dict[str, Any]]:

@@ -15,7 +15,7 @@ from schemas.executor import (
     StepStatus,
 )
 from schemas.planner import AskReply, AskStatus
-from services.agent.feedback import DATA_CLOSE, as_data, ask_text, progress_text, result_text, started_text
+from services.agent.feedback import DATA_CLOSE, SAID, as_data, ask_text, progress_text, result_text, started_text
 
 VETO = (
     "step 1 (navigate_to): at the route point (10.80, 8.00) the base's footprint would be in keep-out zone "
@@ -63,7 +63,10 @@ def test_a_running_goal_says_which_step_and_a_started_one_how_to_follow_it() -> 
     progress: GoalProgress[ExecutePlanFeedback, ExecutePlanResult] = GoalProgress(
         goal_id="abc123", state=GoalState.EXECUTING, feedback=fb
     )
-    assert progress_text(progress) == "goal abc123 running: step 2 pick: running (attempt 2): grasping from the top"
+    # The executor's words (which quote perceived names) come as data after the status.
+    assert progress_text(progress) == (
+        "goal abc123 running: step 2 pick: running (attempt 2)\n" + as_data(SAID, "grasping from the top")
+    )
     started = started_text("abc123", None, fb)
     assert started.startswith("started goal abc123: step 2 pick") and "get_goal_status" in started
 
@@ -79,7 +82,9 @@ def test_the_planner_outcome_reads_as_what_happened() -> None:
     accepted = AskReply(status=AskStatus.ACCEPTED, request_id="r1", attempts=2, goal_id="g9", plan='{"plan": []}')
     assert ask_text(accepted).startswith("started goal g9 after 2 attempts")
     refused = AskReply(status=AskStatus.REJECTED, request_id="r1", attempts=3, stage=Stage.SAFETY, reason=VETO)
-    assert ask_text(refused) == f"rejected at safety after 3 attempts: {VETO}"
+    assert ask_text(refused) == "rejected at safety after 3 attempts\n" + as_data(
+        "what the planner said", f"reason: {VETO}"
+    )
 
 
 def test_no_agent_path_names_the_reset_key() -> None:

@@ -14,7 +14,7 @@ import pytest
 
 from schemas.common import Stage
 from schemas.planner import AskRequest
-from services.agent.feedback import DATA_CLOSE
+from services.agent.feedback import DATA_CLOSE, as_data
 from services.planner.config import HOW_TO_CONFIGURE, PlannerConfig, Secret, resolve_endpoint
 from services.planner.errors import LLMError, NotConfigured
 from services.planner.llm import ChatClient, ChatReply, parse_completion
@@ -72,8 +72,10 @@ def test_the_loop_feeds_each_refusal_back_and_stops_at_the_first_approved_plan()
     second, third = model.seen[1], model.seen[2]
     assert second[-2] == {"role": "assistant", "content": "Sure! Here is {the plan"}
     assert second[-1]["role"] == "user"
-    assert second[-1]["content"].startswith("rejected at stage parse: no plan found in the text; fix the plan")
-    assert third[-1]["content"].startswith("rejected at stage safety: the goal is inside the keep-out zone stairs")
+    assert second[-1]["content"].startswith("rejected at stage parse: fix the plan")
+    assert "no plan found in the text" in second[-1]["content"]
+    assert third[-1]["content"].startswith("rejected at stage safety: fix the plan")
+    assert "the goal is inside the keep-out zone stairs" in third[-1]["content"]
     assert third[:2] == model.seen[0], "the conversation grows; the start stays"
 
 
@@ -149,8 +151,8 @@ def test_the_scene_is_fenced_as_data_and_cannot_close_its_own_block() -> None:
 
 def test_a_refusal_names_its_stage_and_reason() -> None:
     assert refusal_text(Stage.RESOLVE, "no thing called 'blue teapot' ") == (
-        "rejected at stage resolve: no thing called 'blue teapot'; "
-        "fix the plan and answer with the whole corrected plan"
+        "rejected at stage resolve: fix the plan and answer with the whole corrected plan. Why:\n"
+        + as_data("the refusal", "no thing called 'blue teapot'")
     )
 
 
