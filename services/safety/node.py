@@ -311,8 +311,8 @@ class SafetyNode:
 
     def _running(self, robot: ActionKeys[Any, Any, Any]) -> str | None:
         """A goal forwarded on `robot` that may still run, or None. The robot's action server says
-        whether each one noted has ended (one whose end was fetched is no longer noted); a goal it
-        cannot answer for may run. One it knows nothing of is being decided or never reached it:
+        whether each one noted has ended (one whose end was fetched, or that it said ended, is no longer
+        noted); a goal it cannot answer for may run. One it knows nothing of is being decided or never reached it:
         not running, and left noted (a goal on its way must still be canceled by an e-stop)."""
         with self._forwarded_lock:
             noted = [goal_id for goal_id, action in self._forwarded.items() if action is robot]
@@ -327,6 +327,8 @@ class SafetyNode:
                 return goal_id
             if not progress.state.terminal:
                 return goal_id
+            with self._forwarded_lock:  # ended, the robot says: nothing left to cancel or to ask about
+                self._forwarded.pop(goal_id, None)
         return None
 
     def _cancel_forwarded(self) -> None:

@@ -49,7 +49,7 @@ def vetoes(node: Recorder) -> list[SafetyEvent]:
 
 
 def test_a_trajectory_while_a_navigation_runs_is_refused_and_once_it_ended_is_not(start: Start) -> None:
-    node, _safety = start()
+    node, safety = start()
     robot_state(node)
     states = {"nav": GoalState.EXECUTING}
     robot_says(node, states)
@@ -60,6 +60,8 @@ def test_a_trajectory_while_a_navigation_runs_is_refused_and_once_it_ended_is_no
     assert len(vetoes(node)) == 1
     states["nav"] = GoalState.SUCCEEDED  # ended, its result not fetched yet: the robot's word counts
     assert node.callbacks[keys.CMD_TRAJECTORY.send_goal.path](SendGoal(goal_id="arm2", goal=HOLD)).accepted
+    # and it is forgotten: not asked about again with every goal after it.
+    assert "nav" not in safety._forwarded
 
 
 def test_a_navigation_while_a_trajectory_runs_is_refused_until_its_result_is_in(start: Start) -> None:
