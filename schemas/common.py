@@ -21,7 +21,9 @@ Radians = Annotated[float, Meta(ge=-100.0, le=100.0)]
 Seconds = Annotated[float, Meta(ge=0.0, le=3600.0)]
 Kilograms = Annotated[float, Meta(ge=0.0, le=1000.0)]
 Name = Annotated[str, Meta(min_length=1, max_length=200)]
-Text = Annotated[str, Meta(max_length=4000)]
+# The longest free text a message carries (a reason, a step's message); code that builds one cuts it to this.
+TEXT_CHARS = 4000
+Text = Annotated[str, Meta(max_length=TEXT_CHARS)]
 Id = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
 
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import ClassVar
 
-from schemas.common import ErrorKind, ServiceError, Stage
+from schemas.common import TEXT_CHARS, ErrorKind, ServiceError, Stage
 
-MAX_MESSAGE_CHARS = 4000
+MAX_MESSAGE_CHARS = TEXT_CHARS
 
 
 class Refusal(Exception):

@@ -12,7 +12,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import Pose2D, Stage
+from schemas.common import TEXT_CHARS, Pose2D, Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus, StepStatus
 from schemas.incidents import MAX_INVOLVED, IncidentKind, IncidentReport
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
@@ -227,7 +227,7 @@ class NodeRobot:
         """Latch the e-stop for `why`; what was done, in words."""
         log.error("latching the e-stop: %s", why)
         try:
-            self._estop.put(EStop(source=EstopSource.EXECUTOR, reason=why[:4000]))
+            self._estop.put(EStop(source=EstopSource.EXECUTOR, reason=why[:TEXT_CHARS]))
         except Exception as exc:  # the plan still fails; the words must not claim the e-stop latched
             log.exception("the e-stop could not be sent")
             return f"latching the e-stop failed: {exc}"
@@ -264,7 +264,7 @@ class IncidentReporter:
     def __call__(self, kind: IncidentKind, reason: str, objects: list[str], step: int, label: str) -> None:
         report = IncidentReport(
             kind=kind,
-            reason=reason[:4000],
+            reason=reason[:TEXT_CHARS],
             objects=[o[:200] for o in objects[:MAX_INVOLVED]],
             goal_id=RUNNING_GOAL.get()[:64],
             step=step,
@@ -338,7 +338,7 @@ class Supervision:
                     f"the plan: {' | '.join(reply.steps)}"
                 )
                 status = StepStatus.AWAITING_APPROVAL
-                feedback(ExecutePlanFeedback(stage=Stage.SAFETY, status=status, message=message[:4000]))
+                feedback(ExecutePlanFeedback(stage=Stage.SAFETY, status=status, message=message[:TEXT_CHARS]))
                 log.info("plan goal %s awaits an operator's approval", goal_id)
                 told = True
         reason = "canceled while awaiting an operator's approval; nothing moved"
@@ -379,7 +379,7 @@ class Supervision:
                         "ends the plan"
                     )
                     waiting = StepStatus.AWAITING_APPROVAL
-                    feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, status=waiting, message=message[:4000]))
+                    feedback(ExecutePlanFeedback(stage=Stage.EXECUTE, status=waiting, message=message[:TEXT_CHARS]))
                     log.info("plan goal %s paused by an operator", goal_id)
                     told = True
                 continue

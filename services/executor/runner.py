@@ -14,7 +14,7 @@ from typing import Protocol
 
 import msgspec
 
-from schemas.common import ServiceError, Stage
+from schemas.common import TEXT_CHARS, ServiceError, Stage
 from schemas.executor import (
     ExecutePlanFeedback,
     ExecutePlanGoal,
@@ -83,12 +83,11 @@ RETRYABLE = (FailureKind.PLANNING, FailureKind.EXECUTION, FailureKind.POSTCONDIT
 CLOCK_PERIOD = 0.05
 # A message or reason is schemas.common.Text: its receivers refuse a longer one, so a reason gathered
 # over attempts and alternatives (each with the robot's or a planner's words) is cut to fit.
-MAX_TEXT = 4000
 CUT = " [...]"
 
 
 def clip(text: str) -> str:
-    return text if len(text) <= MAX_TEXT else text[: MAX_TEXT - len(CUT)] + CUT
+    return text if len(text) <= TEXT_CHARS else text[: TEXT_CHARS - len(CUT)] + CUT
 
 
 @dataclass(frozen=True)

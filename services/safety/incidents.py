@@ -45,7 +45,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import Feedback, GoalStatus
-from schemas.common import Metres, Radians, Vec3
+from schemas.common import TEXT_CHARS, Metres, Radians, Vec3
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
     MAX_INVOLVED,
@@ -86,7 +86,7 @@ ZONE_ROUNDS = 3
 # Ids asked for in one statement when a file's incidents are merged into memory.
 READ_CHUNK = 500
 # The longest texts the schema allows.
-MAX_REASON = 4000
+MAX_REASON = TEXT_CHARS
 MAX_SHORT = 64
 MAX_RECORDING = 400
 # What the wire allows of a place and a heading (ge, le): a file's value beyond them is not used.

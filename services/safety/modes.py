@@ -9,6 +9,7 @@ from pathlib import Path
 
 import msgspec
 
+from schemas.common import TEXT_CHARS
 from schemas.plan import GroundedPlan, fallback_labels, step_labels
 from schemas.safety import MAX_PLAN_LINES, ApprovalState, ControlMode, ModeState, PlanApproval
 from services.safety.latch import write_durably
@@ -85,7 +86,7 @@ def plan_lines(plan: GroundedPlan) -> list[str]:
         lines += [f"{label}. {step.brief()}" for label, step in zip(alternative, fallback.steps, strict=True)]
     if len(lines) > MAX_PLAN_LINES:
         lines = [*lines[: MAX_PLAN_LINES - 1], f"... and {len(lines) - MAX_PLAN_LINES + 1} more"]
-    return [line[:4000] for line in lines]
+    return [line[:TEXT_CHARS] for line in lines]
 
 
 @dataclass(frozen=True)
@@ -140,7 +141,7 @@ class ApprovalBook:
 
     def gone(self, goal_id: str, reason: str) -> None:
         """`goal_id` was reported ended while not held: an ask for it still on its way is denied for `reason`."""
-        self._gone[goal_id] = reason[:4000]
+        self._gone[goal_id] = reason[:TEXT_CHARS]
         for old in list(self._gone)[: max(0, len(self._gone) - ENDED_KEPT)]:
             del self._gone[old]
 
@@ -197,4 +198,4 @@ class ApprovalBook:
 
 
 def replace_approval(approval: PlanApproval, state: ApprovalState, reason: str, **fields: object) -> PlanApproval:
-    return msgspec.structs.replace(approval, state=state, reason=reason[:4000], **fields)
+    return msgspec.structs.replace(approval, state=state, reason=reason[:TEXT_CHARS], **fields)

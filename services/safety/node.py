@@ -17,7 +17,7 @@ import msgspec
 
 from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, Feedback, GetResult, GoalResponse, GoalStatus, SendGoal
-from schemas.common import DECODE_ERRORS, ErrorKind, Pose2D, fmt_point
+from schemas.common import DECODE_ERRORS, TEXT_CHARS, ErrorKind, Pose2D, fmt_point
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
     ForgetAction,
@@ -257,7 +257,7 @@ class SafetyNode:
                     decision=event.decision,
                     # Within what every reader decodes (Text): a 4,000-character e-stop reason made a
                     # latch event of 4,010 that none could read, the recording's included.
-                    reason=event.reason[:4000],
+                    reason=event.reason[:TEXT_CHARS],
                     rule=event.rule,
                     checks=list(event.checks),
                     values=finite,
