@@ -85,12 +85,12 @@ class HeartbeatWait:
         self._stale: float | None = None  # the age of the latest stale beat
 
     def verify(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
-        """Before decoding: refused without a signature-shaped attachment."""
-        if unpack(attachment) is not None:
-            return None
-        with self._lock:
-            self._unsigned += 1
-        return Refusal(NOT_SIGNED)
+        """Before decoding: refused without a signature-shaped attachment (signature_shaped), counted."""
+        refusal = signature_shaped(key_expr, payload, attachment)
+        if refusal is not None:
+            with self._lock:
+                self._unsigned += 1
+        return refusal
 
     def take(self, status: SafetyStatus) -> None:
         age = self._clock() - status.stamp
