@@ -20,6 +20,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -132,6 +133,35 @@ class Client:
         return {line["channel"]["topic"]: line["channel"] for line in self.lines if "channel" in line}
 
 
+@contextmanager
+def running_view(stack: Stack, args: list[str], log: Path) -> Iterator[tuple[subprocess.Popen[str], dict[str, Any]]]:
+    """`tether view --json` on the stack's config, its stderr in `log`: the process and the line it
+    started with. Stopped with SIGINT at the end (exit 0 expected), killed if the test failed first."""
+    command = [sys.executable, "-m", "tether", "view", "--json", *args, "--config", str(stack.tmp / "tether.toml")]
+    with log.open("w") as log_file:
+        view = subprocess.Popen(
+            command,
+            env=stack.supervisor.env(),
+            stdout=subprocess.PIPE,
+            stderr=log_file,
+            text=True,
+            start_new_session=True,
+        )
+    try:
+        assert view.stdout is not None
+        started = json.loads(view.stdout.readline() or "{}")
+        assert started.get("ok"), f"tether view did not start: {started}\n{log.read_text()}"
+        yield view, started
+        os.killpg(view.pid, signal.SIGINT)
+        assert view.wait(timeout=20) == 0
+    finally:
+        if view.poll() is None:
+            os.killpg(view.pid, signal.SIGKILL)
+            view.wait(timeout=10)
+        assert view.stdout is not None
+        view.stdout.close()
+
+
 @dataclass
 class Viewed:
     stack: Stack
@@ -149,42 +179,12 @@ def viewed(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Viewed]:
     official = json.loads(schemas.stdout.splitlines()[0])["official"]
     tmp = tmp_path_factory.mktemp("view")
     stack = start_stack(tmp, 4.0, services=("sim", "safety", "recorder"))
-    log_file = (tmp / "view.log").open("w")
-    view = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tether",
-            "view",
-            "--teleop",
-            "--port",
-            "0",
-            "--json",
-            "--config",
-            str(tmp / "tether.toml"),
-        ],
-        env=stack.supervisor.env(),
-        stdout=subprocess.PIPE,
-        stderr=log_file,
-        text=True,
-        start_new_session=True,
-    )
     try:
-        assert view.stdout is not None
-        started = json.loads(view.stdout.readline() or "{}")  # printed once serving; EOF if it failed
-        assert started.get("ok"), f"tether view did not start: {started}\n{(tmp / 'view.log').read_text()}"
-        assert started["teleop"] == TELEOP_TOPIC
-        yield Viewed(stack, view, started["url"], script, official, tmp / "view.log")
-        assert view.poll() is None, "tether view died"
-        os.killpg(view.pid, signal.SIGINT)
-        assert view.wait(timeout=20) == 0
+        with running_view(stack, ["--teleop", "--port", "0"], tmp / "view.log") as (view, started):
+            assert started["teleop"] == TELEOP_TOPIC
+            yield Viewed(stack, view, started["url"], script, official, tmp / "view.log")
+            assert view.poll() is None, "tether view died"
     finally:
-        if view.poll() is None:
-            os.killpg(view.pid, signal.SIGKILL)
-            view.wait(timeout=10)
-        assert view.stdout is not None
-        view.stdout.close()
-        log_file.close()
         print("----- view log -----\n" + (tmp / "view.log").read_text()[-5000:])
         stop_stack(stack)
 

@@ -4,13 +4,7 @@ tests/integration/foxglove_client); the URL it gives for an IPv6 host is one tha
 
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +16,7 @@ from schemas.robot import Odometry
 from services.recorder import scene3d
 from services.runtime import Node
 from tests.integration.conftest import Stack, start_stack, stop_stack
-from tests.integration.test_view import Client, client_script
+from tests.integration.test_view import Client, client_script, running_view
 
 DEADLINE = 30.0
 
@@ -39,35 +33,6 @@ def stack(tmp_path: Path) -> Iterator[Stack]:
 
 def odometry(stamp: float, x: float) -> Odometry:
     return Odometry(stamp=stamp, sim_time=0.0, pose=Pose2D(x=x, y=0.5), linear_x=0.0, angular_z=0.0)
-
-
-@contextmanager
-def running_view(stack: Stack, args: list[str], log: Path) -> Iterator[tuple[subprocess.Popen[str], dict[str, Any]]]:
-    """`tether view --json` on the stack's config, its stderr in `log`: the process and the line it
-    started with. Stopped with SIGINT at the end (exit 0 expected), killed if the test failed first."""
-    command = [sys.executable, "-m", "tether", "view", "--json", *args, "--config", str(stack.tmp / "tether.toml")]
-    with log.open("w") as log_file:
-        view = subprocess.Popen(
-            command,
-            env=stack.supervisor.env(),
-            stdout=subprocess.PIPE,
-            stderr=log_file,
-            text=True,
-            start_new_session=True,
-        )
-    try:
-        assert view.stdout is not None
-        started = json.loads(view.stdout.readline() or "{}")
-        assert started.get("ok"), f"tether view did not start: {started}\n{log.read_text()}"
-        yield view, started
-        os.killpg(view.pid, signal.SIGINT)
-        assert view.wait(timeout=20) == 0
-    finally:
-        if view.poll() is None:
-            os.killpg(view.pid, signal.SIGKILL)
-            view.wait(timeout=10)
-        assert view.stdout is not None
-        view.stdout.close()
 
 
 def test_an_odometry_stamped_beyond_foxglove_time_is_shown_and_the_view_goes_on_showing_the_robot(
