@@ -17,7 +17,6 @@ import time
 import uuid
 from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -37,6 +36,7 @@ from services.runtime import SERVICES
 from services.worldmodel import WorldModel, load_world
 from tests.fastsim import FAST_SIM
 from tests.integration.conftest import Stack, run_tether, start_stack, stop_stack, tether_cli
+from tests.loopback_http import LoopbackServer, QuietHandler
 from tests.sessions import free_port
 from tests.watch import Watch
 from tether.client import reset_estop, trigger_estop
@@ -123,7 +123,7 @@ class ScriptedLLM:
 def llm_server() -> Iterator[ScriptedLLM]:
     llm = ScriptedLLM()
 
-    class Handler(BaseHTTPRequestHandler):
+    class Handler(QuietHandler):
         def do_POST(self) -> None:
             length = int(self.headers.get("content-length", "0"))
             raw = self.rfile.read(length)
@@ -136,26 +136,14 @@ def llm_server() -> Iterator[ScriptedLLM]:
                     status, reply = 400, b'{"error": {"message": "body is not JSON"}}'
                 else:
                     status, reply = llm.answer({k.lower(): v for k, v in self.headers.items()}, body)
-            self.send_response(status)
-            self.send_header("content-type", "application/json")
-            self.send_header("content-length", str(len(reply)))
-            self.end_headers()
-            self.wfile.write(reply)
+            self.reply(status, reply)
 
-        def log_message(self, format: str, *args: Any) -> None:
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    server.daemon_threads = True
-    thread = threading.Thread(target=server.serve_forever, name="scripted-llm", daemon=True)
-    thread.start()
-    llm.url = f"http://127.0.0.1:{server.server_address[1]}/v1"
+    server = LoopbackServer(Handler, "scripted-llm")
+    llm.url = server.url
     try:
         yield llm
     finally:
-        server.shutdown()
-        server.server_close()
-        thread.join(timeout=5)
+        server.close()
 
 
 AGENT_SERVICES = tuple(s for s in SERVICES if s != "recorder")

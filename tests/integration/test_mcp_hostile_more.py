@@ -12,7 +12,6 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, TypeVar
 
 import anyio
@@ -25,6 +24,7 @@ from services.runtime import SERVICES
 from tests.fastsim import FAST_SIM
 from tests.integration.conftest import Stack, start_stack, stop_stack
 from tests.integration.test_agents import text, with_client
+from tests.loopback_http import LoopbackServer, QuietHandler
 from tests.watch import Watch
 from tether.client import reset_estop
 from tether.mcpserver import CALL_LIMITER
@@ -47,7 +47,7 @@ class HeldLLM:
         self._lock = threading.Lock()
         llm = self
 
-        class Handler(BaseHTTPRequestHandler):
+        class Handler(QuietHandler):
             def do_POST(self) -> None:
                 self.rfile.read(int(self.headers.get("content-length", "0")))
                 with llm._lock:
@@ -55,32 +55,15 @@ class HeldLLM:
                     held = llm.received > llm.free
                 if held:
                     llm.released.wait(HOLD)
-                reply = b'{"error": {"message": "released by the test"}}'
-                self.send_response(400)
-                self.send_header("content-type", "application/json")
-                self.send_header("content-length", str(len(reply)))
-                self.end_headers()
-                self.wfile.write(reply)
+                self.reply(400, b'{"error": {"message": "released by the test"}}')
 
-            def log_message(self, format: str, *args: Any) -> None:
-                pass
-
-        class Server(ThreadingHTTPServer):
-            # socketserver's backlog of 5: a flood's connections, arriving at once on a loaded machine
-            # before the accepting thread ran, were reset ("Connection reset by peer"), so answered.
-            request_queue_size = 128
-
-        self.server = Server(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/v1"
-        self.thread = threading.Thread(target=self.server.serve_forever, name="held-llm", daemon=True)
-        self.thread.start()
+        # A flood of connections at once: the server's backlog takes them (tests/loopback_http.py).
+        self.server = LoopbackServer(Handler, "held-llm")
+        self.url = self.server.url
 
     def close(self) -> None:
         self.released.set()
-        self.server.shutdown()
-        self.server.server_close()
-        self.thread.join(timeout=5)
+        self.server.close()
 
 
 @pytest.fixture(scope="module")

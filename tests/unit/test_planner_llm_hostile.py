@@ -8,7 +8,6 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
 import pytest
@@ -22,6 +21,7 @@ from services.planner.errors import LLMError, NotConfigured
 from services.planner.llm import SNIPPET, ChatClient, ChatReply
 from services.planner.loop import DryRunVerdict, LoopStatus, plan_loop
 from services.planner.prompt import feedback_messages, initial_messages, normalize_calls
+from tests.loopback_http import LoopbackServer, QuietHandler
 
 KEY = "sk-proj-SECRET0123456789abcdefghijklmnopqrstuvwxyz"
 GOOD = '{"plan": [{"action": "navigate_to", "target": "kitchen counter"}]}'
@@ -46,38 +46,24 @@ class ScriptedEndpoint:
         self.lock = threading.Lock()
         endpoint = self
 
-        class Handler(BaseHTTPRequestHandler):
+        class Handler(QuietHandler):
             def do_POST(self) -> None:
                 raw = self.rfile.read(int(self.headers.get("content-length", "0")))
                 with endpoint.lock:
                     endpoint.requests.append(raw)
                     answer = endpoint.answers.pop(0) if endpoint.answers else (500, "text/plain", b"script exhausted")
                 status, content_type, body = answer
-                self.send_response(status)
-                self.send_header("content-type", content_type)
-                self.send_header("content-length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
+                self.reply(status, body, content_type)
 
-            def log_message(self, format: str, *args: Any) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        self.thread = threading.Thread(
-            target=self.server.serve_forever, kwargs={"poll_interval": 0.05}, name="hostile-llm", daemon=True
-        )
-        self.thread.start()
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/v1"
+        self.server = LoopbackServer(Handler, "hostile-llm", poll_interval=0.05)
+        self.url = self.server.url
 
     def client(self, key: str | None = KEY, timeout: float = 10.0) -> ChatClient:
         secret = Secret(key) if key else None
         return ChatClient(Endpoint(url=self.url, model="m", api_key=secret, key_source="K", timeout=timeout))
 
     def stop(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
-        self.thread.join(timeout=5)
+        self.server.close()
 
 
 @pytest.fixture
