@@ -141,6 +141,10 @@ class SafetyNode:
         self._twist_lock = threading.Lock()
         self._forwarded: dict[str, ActionKeys[Any, Any, Any]] = {}
         self._forwarded_lock = threading.Lock()
+        # A navigation and a trajectory are decided and forwarded one at a time (one_motion): decided
+        # together, each asked the robot about the other before it had reached the robot, heard "no
+        # such goal", and both went.
+        self._motion_lock = threading.Lock()
         # Counts joint states heard, for a trajectory check that waits for one measured since.
         self._joint_reports = 0
         self._joints_arrived = threading.Condition()
@@ -200,8 +204,8 @@ class SafetyNode:
         node.serve(keys.INCIDENTS, self._on_incidents, waits=True)
         node.serve(keys.FORGET_INCIDENT, self._on_forget)
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
-        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate)
-        self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory)
+        self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate, self._motion_lock)
+        self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory, self._motion_lock)
         self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, self.gate.gripper)
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
@@ -472,10 +476,18 @@ class SafetyNode:
         cmd: ActionKeys[Any, Any, Any],
         robot: ActionKeys[Any, Any, Any],
         decide: Callable[[Any], Ruling[GoalRuling]],
+        one_at_a_time: threading.Lock | None = None,
     ) -> None:
-        """Serve `cmd`'s keys: goals as the gate rules, forwarded to `robot`; its feedback and status relayed."""
+        """Serve `cmd`'s keys: goals as the gate rules, forwarded to `robot`; its feedback and status
+        relayed. A goal holds `one_at_a_time` from its decision until the robot has answered it."""
 
         def send_goal(req: SendGoal[Any]) -> GoalResponse:
+            if one_at_a_time is None:
+                return decided(req)
+            with one_at_a_time:
+                return decided(req)
+
+        def decided(req: SendGoal[Any]) -> GoalResponse:
             # Noted as forwarded before it is decided on: an e-stop, pause or mode change decided after
             # this goal's check cancels it, also while it is on its way (the robot rejects a goal
             # canceled before it knew it). Noted only once accepted, such a goal ran on, uncanceled.

@@ -4,6 +4,7 @@ just sent off stands still for a moment, and the arm's check passed then)."""
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import pytest
@@ -98,3 +99,52 @@ def test_a_robot_that_cannot_say_refuses_the_other_motion_one_that_knows_no_such
     assert reply.accepted is (answer == "unknown"), reply
     # Either way the navigation stays noted: an e-stop still cancels it.
     assert "nav" in safety._forwarded
+
+
+@pytest.mark.parametrize("first", ["navigation", "trajectory"])
+def test_two_goals_sent_at_once_do_not_both_go(start: Start, first: str) -> None:
+    """The second goal is decided while the first is still on its way to the robot, which knows
+    nothing of it yet: it waits for the robot's answer to the first, then hears it runs."""
+    node, _safety = start()
+    robot_state(node)
+    states: dict[str, GoalState] = {}
+    robot_says(node, states)
+    kinds: list[tuple[Any, Any, Any]] = [
+        (keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, AHEAD),
+        (keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, HOLD),
+    ]
+    if first == "trajectory":
+        kinds.reverse()
+    (cmd, robot, goal), (other_cmd, other_robot, other_goal) = kinds
+    asked_about_first = threading.Event()
+    status = node.answers[robot.get_status.path]
+
+    def asked(request: GetResult) -> Any:
+        asked_about_first.set()
+        return status(request)
+
+    node.answers[robot.get_status.path] = asked
+    second_reply: list[GoalResponse] = []
+    second = threading.Thread(
+        target=lambda: second_reply.append(
+            node.callbacks[other_cmd.send_goal.path](SendGoal(goal_id="second", goal=other_goal))
+        )
+    )
+
+    def on_its_way(request: SendGoal[Any]) -> GoalResponse:
+        # The robot has the first goal but has not answered yet; the second goal is sent now. Decided
+        # at once (the defect), it asks about the first here; waiting its turn, it does not.
+        second.start()
+        asked_about_first.wait(timeout=0.5)
+        states[request.goal_id] = GoalState.EXECUTING
+        return GoalResponse(goal_id=request.goal_id, accepted=True)
+
+    node.answers[robot.send_goal.path] = on_its_way
+    try:
+        assert node.callbacks[cmd.send_goal.path](SendGoal(goal_id="first", goal=goal)).accepted
+    finally:
+        second.join(timeout=10.0)
+    assert not second.is_alive()
+    assert len(second_reply) == 1 and not second_reply[0].accepted, second_reply
+    assert "(goal first) is still under way" in second_reply[0].reason
+    assert not [path for path, _ in node.sent if path == other_robot.send_goal.path]
