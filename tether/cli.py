@@ -1055,8 +1055,9 @@ def world_scene(
     ctx: typer.Context,
     as_json: Annotated[bool, typer.Option("--json", help="Print the SceneDescription as one JSON object.")] = False,
 ) -> None:
-    """What the resolver knows about the world: where each object was last seen, the relations
-    between things (on, in, near, left of, right of), and the description an LLM prompt can use.
+    """What the resolver knows about the world, and the description an LLM prompt can use.
+
+    Where each object was last seen, and the relations between things (on, in, near, left of, right of).
 
     Exit 0, 3 when no resolver is reachable (with --json: status 'unreachable' and the error).
     """

@@ -199,10 +199,10 @@ def incidents(
     limit: Annotated[int, typer.Option("--limit", min=1, max=1000, help="List at most this many.")] = 100,
     as_json: JsonOpt = False,
 ) -> None:
-    """Safety's memory of incidents: list them (no command), `show` one with its timeline, `forget` one,
-    `clear` a caution zone.
+    """Safety's memory of incidents: list them, `show` one, `forget` one, `clear` a caution zone.
 
-    Lists the incidents safety remembers, newest first, and the caution zones they make.
+    With no command, lists the incidents safety remembers, newest first, and the caution zones they
+    make; `show` gives one incident with its timeline.
 
     JSON: {"ok", "incidents": [{id, time, stamp, kind, x, y, reason, ...}], "total", "zones", "store"}.
     Exit 0 listed (also none), 2 bad input, 3 safety unreachable.
@@ -371,8 +371,9 @@ def forget(
     token_file: TokenFileOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Forget an incident (operator only: needs the operator token file): it no longer warns plans or
-    counts towards a caution zone. Safety records who forgot it and why.
+    """Forget an incident (operator only: needs the operator token file).
+
+    It no longer warns plans or counts towards a caution zone. Safety records who forgot it and why.
 
     Exit 0 forgotten, 2 refused (wrong token, unknown incident, no reason), 3 safety unreachable.
     """
@@ -387,8 +388,9 @@ def clear(
     token_file: TokenFileOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Clear the caution zone an incident counts towards (operator only: needs the operator token file):
-    the robot goes back to its normal limits there; the incidents are kept and still warn plans.
+    """Clear the caution zone an incident counts towards (operator only: needs the operator token file).
+
+    The robot goes back to its normal limits there; the incidents are kept and still warn plans.
 
     Exit 0 cleared, 2 refused (wrong token, unknown incident, no reason), 3 safety unreachable.
     """

@@ -161,8 +161,9 @@ def deny(
     token_file: TokenFileOpt = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Refuse a plan waiting in supervised mode, or end a paused one: it moves the robot no more
-    (operator only: needs the token file).
+    """Refuse a plan waiting in supervised mode, or end a paused one (operator only: needs the token file).
+
+    A plan denied moves the robot no more.
 
     Exit 0 denied, 2 refused (wrong token, unknown or finished goal), 3 safety unreachable.
     """
@@ -201,8 +202,9 @@ def resume(
 
 
 def pending(ctx: typer.Context, as_json: JsonOpt = False) -> None:
-    """List the plans waiting for an operator's approval, the oldest first, with their steps and route
-    and safety's dry run, and the plans an operator paused.
+    """List the plans waiting for an operator's approval and those an operator paused.
+
+    The oldest first, each with its steps, its route and safety's dry run.
 
     Exit 0 (also when none waits), 3 safety unreachable.
     """

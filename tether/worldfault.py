@@ -30,8 +30,9 @@ def world_fault(
         typer.Option("--json", help="Print one JSON object: status, and kind, target, message, position or the error."),
     ] = False,
 ) -> None:
-    """Inject a fault into the SIMULATED world, for tests and demos (not a robot action; recorded like
-    `world move`).
+    """Inject a fault into the SIMULATED world, for tests and demos (not a robot action).
+
+    Recorded like `world move`.
 
     slip: what the gripper holds on its next carry slips out once the base has driven 0.3 m; it lands
     on a furniture top within the arm's reach, else on the floor beside the base. block ROOM_OR_DOOR:

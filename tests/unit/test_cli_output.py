@@ -256,3 +256,14 @@ def test_the_cli_and_the_recording_commands_load_rich_progress_only_to_show_prog
     code = "import sys, tether.cli, tether.inspect, tether.recordings; print('rich.progress' in sys.modules)"
     child = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert child.stdout.strip() == "False"
+
+
+def test_each_command_is_listed_on_one_line_of_its_own() -> None:
+    """A group's help lists each command by the first paragraph of its docstring, line breaks kept
+    (typer's rich mode): a first paragraph wrapped in the source broke the listing mid-sentence."""
+    broken = [
+        f"tether {' '.join(path)}: {(command.help or '').strip().split(chr(10) * 2)[0]!r}"
+        for path, command in commands(typer.main.get_command(cli.app))
+        if path and "\n" in (command.short_help or (command.help or "").strip().split("\n\n")[0])
+    ]
+    assert not broken, "\n".join(broken)
