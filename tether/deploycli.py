@@ -11,7 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from tether import deployment
-from tether.output import literal
+from tether.output import conclude, literal
 
 console = Console(stderr=True)
 out = Console()
@@ -29,16 +29,21 @@ def deploy_init(
             f"{deployment.DEFAULT_ROUTER_PORT}).",
         ),
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    as_json: Annotated[
+        bool,
+        typer.Option("--json", help="Print one JSON object: directory, robots, tls and the files, or the error."),
+    ] = False,
 ) -> None:
-    """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay."""
+    """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay.
+
+    Exit 0 written, 2 refused (a bad robot name or router address, a directory that cannot be written).
+    """
     try:
         address = deployment.RouterAddress.parse(router) if router is not None else None
         written = deployment.init(directory, robot, tls=tls, router=address)
         made = deployment.Deployment.load(directory)
     except (deployment.DeploymentError, OSError) as exc:
-        console.print(f"[red]error:[/] {literal(exc)}", soft_wrap=True)
-        raise typer.Exit(2) from None
+        conclude(console, as_json, {"error": str(exc)}, f"[red]error:[/] {literal(exc)}", 2)
     if warning := deployment.cleartext_warning(made):
         console.print(f"[yellow]warning:[/] {literal(warning)}", soft_wrap=True)
     if as_json:

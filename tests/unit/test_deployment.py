@@ -266,6 +266,20 @@ def test_deploy_init_prints_the_cleartext_warning(tmp_path: Path) -> None:
     assert quiet.exit_code == 0 and "warning:" not in quiet.output
 
 
+def test_deploy_init_with_json_says_its_error_in_json(tmp_path: Path) -> None:
+    """A script reading --json gets the refusal as one JSON object on stdout, not words on stderr."""
+    from typer.testing import CliRunner
+
+    from tether.cli import app
+
+    result = CliRunner().invoke(app, ["deploy", "init", str(tmp_path / "d"), "--robot", "r/1", "--json"])
+    assert result.exit_code == 2, result.output
+    error = json.loads(result.stdout)["error"]
+    assert "r/1" in error, error
+    plain = CliRunner().invoke(app, ["deploy", "init", str(tmp_path / "d"), "--robot", "r/1"])
+    assert plain.exit_code == 2 and not plain.stdout and "error:" in plain.stderr
+
+
 def test_each_service_may_serve_only_its_own_keys(tmp_path: Path) -> None:
     deployment.init(tmp_path, ["r1"])
     control = acl(tmp_path)
