@@ -16,7 +16,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import msgspec
 import typer
@@ -30,7 +30,7 @@ from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig, r
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
-from tether.output import literal, printable, shown
+from tether.output import conclude, literal, printable, shown
 
 console = Console(stderr=True)
 
@@ -58,6 +58,12 @@ class PlannerFailed(Exception):
         super().__init__(reason)
         self.reason = reason
         self.unreachable = unreachable
+
+
+def refuse(reason: str, as_json: bool) -> NoReturn:
+    """End `tether ask` before asking anything: exit 2, the reason as an error (with --json, as one
+    JSON object on stdout, as the command's other errors are)."""
+    conclude(console, as_json, {"status": "error", "reason": reason}, f"[red]error:[/] {literal(reason)}", 2)
 
 
 def show(reply: AskReply, as_json: bool) -> None:
@@ -134,17 +140,14 @@ def ask(
     try:
         text.encode()
     except UnicodeEncodeError as exc:
-        console.print(f"[red]error:[/] the request is not UTF-8 text (a byte at character {exc.start + 1})")
-        raise typer.Exit(2) from None
+        refuse(f"the request is not UTF-8 text (a byte at character {exc.start + 1})", as_json)
     if not text.strip() or len(text) > MAX_REQUEST_CHARS:
-        console.print(f"[red]error:[/] the request must be 1 to {MAX_REQUEST_CHARS} characters, not {len(text)}")
-        raise typer.Exit(2)
+        refuse(f"the request must be 1 to {MAX_REQUEST_CHARS} characters, not {len(text)}", as_json)
     try:
         planner_config = load_config(PlannerConfig, config, "planner")
         endpoint = resolve_endpoint(planner_config)
     except (ConfigError, NotConfigured) as exc:
-        console.print(f"[red]error:[/] {literal(exc)}", highlight=False)
-        raise typer.Exit(2) from None
+        refuse(str(exc), as_json)
     recoveries = planner_config.max_recoveries if max_recoveries is None else max_recoveries
     in_process = endpoint is not None
     ask_request = AskRequest(
