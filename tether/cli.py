@@ -142,12 +142,100 @@ def lazy_command(group: typer.Typer, name: str, target: str) -> None:
     group.command(name)(not_loaded)
 
 
+# click's UsageError as typer raises it: typer 0.28 brings a click of its own (typer._click), older ones click's.
+UsageError: Any = sys.modules[typer.BadParameter.__module__].UsageError
+# Where MainGroup keeps the command line after the shared flags: the command's name and its own arguments.
+COMMAND_LINE = "tether.command_line"
+
+
 class MainGroup(LazyGroup):
+    """The `tether` group: a usage error click finds (a bad option value, an unknown option, a missing
+    argument) of a command given --json is one JSON object on stdout (exit 2), as a script reads it."""
+
     lazy: dict[str, str] = {}
+
+    def resolve_command(self, ctx: Any, args: list[str]) -> tuple[str | None, Command | None, list[str]]:
+        ctx.meta[COMMAND_LINE] = list(args)
+        return super().resolve_command(ctx, args)
+
+    def invoke(self, ctx: Any) -> Any:
+        try:
+            return super().invoke(ctx)
+        except UsageError as exc:
+            document = usage_error_json(self, ctx, exc)
+            if document is None:
+                raise
+            print(json.dumps(document))
+            raise typer.Exit(exc.exit_code) from None
 
 
 class DeployGroup(LazyGroup):
     lazy: dict[str, str] = {}
+
+
+def usage_error_json(root: MainGroup, ctx: Any, error: Any) -> dict[str, Any] | None:
+    """The JSON object that says `error` (a click UsageError) when the command it is of was given --json,
+    in that command's own shape of an error; None when it was not (typer then shows it as ever)."""
+    line = ctx.meta.get(COMMAND_LINE)
+    if line is None:  # no command named yet: the shared flags have no --json
+        return None
+    levels = list(invoked(root, ctx, line))
+    if error.ctx is not None:
+        levels = [level for level in levels if level[1] is error.ctx.command]
+    # Without a context (an option's value missing at the end of the line), the error is the last command's.
+    if not levels:
+        return None
+    path, command, args = levels[-1]
+    if not given_json(command, args):
+        return None
+    return usage_error_document(path, error.format_message())
+
+
+def invoked(group: Command, ctx: Any, line: list[str]) -> Iterator[tuple[str, Command, list[str]]]:
+    """Each command `line` (a command's name and what follows it) runs below `group`: its path ("world
+    move"), itself and its own arguments, split as click splits them (a group's options stand before
+    its command's name)."""
+    path, args = "", line
+    while args and (command := group.get_command(ctx, args[0])) is not None:
+        path, args = f"{path} {args[0]}".lstrip(), args[1:]
+        yield path, command, args
+        if not isinstance(command, TyperGroup):
+            return
+        group, ctx = command, typer.Context(command, resilient_parsing=True)
+        _, args, _ = command.make_parser(ctx).parse_args(list(args))
+
+
+def given_json(command: Command, args: list[str]) -> bool:
+    """Do `args` give `command` its --json option? Read as click reads them, as far as they can be
+    read: `--` ends the options (`send -- --json` sends the text "--json"), and the value of another
+    option is that option's (`--format --json`)."""
+    ctx = typer.Context(command, resilient_parsing=True)  # a line it cannot read to the end: what it read
+    parser = command.make_parser(ctx)
+    parser.ignore_unknown_options = True  # an unknown option does not hide a --json after it
+    options, _, _ = parser.parse_args(list(args))
+    return any("--json" in param.opts and options.get(param.name) for param in command.params)
+
+
+def usage_error_document(path: str, message: str) -> dict[str, Any]:
+    """A usage error of the command `path` ("send", "world move") as that command's --json says an
+    error of its own; else {"error": message}."""
+    match path.split():
+        case ["send"]:
+            return {"status": "rejected", "stage": None, "reason": message, "steps": []}
+        case ["cancel" | "goal" | "estop" | "ask"]:
+            return {"status": "error", "reason": message}  # as output.command_node says a bad config (exit 2)
+        case ["reset"]:
+            return {"status": "error", "message": message}
+        case ["status"]:
+            return {"ok": False, "alive": [], "heartbeat": False, "problems": [message]}
+        case ["world", _]:
+            error = ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+            return {"status": "refused", "error": msgspec.to_builtins(error)}
+        case ["teleop"]:
+            return {"ended": "error", "error": message}
+        case ["policy" | "view" | "mode" | "approve" | "deny" | "pause" | "resume" | "pending"] | ["incidents", *_]:
+            return {"ok": False, "error": message}
+    return {"error": message}
 
 
 app = typer.Typer(help=HELP, no_args_is_help=True, cls=MainGroup)
@@ -916,14 +1004,13 @@ def status(
     ] = None,
 ) -> None:
     """Which services are alive, the e-stop latch, the robot's pose and problems, and where objects are."""
+    why = ""
     if service and not check:
-        console.print("[red]error:[/] --service goes with --check")
-        raise typer.Exit(2)
-    if unknown := [s for s in service or [] if s not in ALL_SERVICES]:
-        console.print(
-            f"[red]error:[/] unknown service {literal(', '.join(unknown))}; services are {', '.join(ALL_SERVICES)}"
-        )
-        raise typer.Exit(2)
+        why = "--service goes with --check"
+    elif unknown := [s for s in service or [] if s not in ALL_SERVICES]:
+        why = f"unknown service {', '.join(unknown)}; services are {', '.join(ALL_SERVICES)}"
+    if why:
+        conclude(console, as_json, usage_error_document("status", why), f"[red]error:[/] {shown(why)}", 2)
     if check:
         try:
             node = Node("cli", settings_of(ctx))
