@@ -987,7 +987,14 @@ def memory_line(processes: dict[str, dict[str, Any]]) -> str:
 @app.command()
 def status(
     ctx: typer.Context,
-    as_json: Annotated[bool, typer.Option("--json")] = False,
+    as_json: Annotated[
+        bool,
+        typer.Option(
+            "--json",
+            help="Print one JSON object: services, processes, mode, recording, estop, robot and objects "
+            "(with --check: ok, alive, heartbeat, problems).",
+        ),
+    ] = False,
     check: Annotated[
         bool,
         typer.Option(
@@ -1048,10 +1055,7 @@ def status(
         console.print(f"recording: {shown(rec['path'])} ({counts})", highlight=False)
         if rec["error"]:
             console.print(f"[red]recording FAILING:[/] {shown(rec['error'])}", highlight=False)
-    e = state["estop"]
-    console.print(
-        f"e-stop: {'[red]LATCHED[/] by ' + shown(e['source'] + ': ' + e['reason']) if e['latched'] else e['latched']}"
-    )
+    console.print(f"e-stop: {estop_line(state['estop'])}", highlight=False)
     robot = state["robot"] or {"pose": None, "problems": []}
     if p := robot["pose"]:
         console.print(f"robot at x={p['x']:.2f} y={p['y']:.2f} yaw={math.degrees(p['yaw']):.0f} deg")
@@ -1059,11 +1063,24 @@ def status(
         console.print("[red]robot problems[/] (the latest first):")
         for problem in robot["problems"]:
             console.print(f"  {problem['age']:.0f} s ago: {shown(problem['text'])}")
+    if not state["objects"]:
+        console.print("objects: none reported")
+        return
     table = Table("object", "room", "on", "x", "y", "z")
     for o in state["objects"]:
         names = (shown(o[k] or "-") for k in ("name", "room", "on"))
         table.add_row(*names, *(f"{o['pose'][k]:.2f}" for k in "xyz"))
     console.print(table)
+
+
+def estop_line(estop: dict[str, Any]) -> str:
+    """The e-stop latch as `tether status` says it (markup): latched by whom and why, clear, or unknown
+    and why (no heartbeat from safety, or one that was not safety's)."""
+    if estop["latched"]:
+        return f"[red]LATCHED[/] by {shown(estop['source'] + ': ' + estop['reason'])}"
+    if estop["latched"] is None:
+        return f"unknown ({shown(estop['reason'])})"
+    return "clear"
 
 
 # The simulated world

@@ -267,3 +267,18 @@ def test_each_command_is_listed_on_one_line_of_its_own() -> None:
         if path and "\n" in (command.short_help or (command.help or "").strip().split("\n\n")[0])
     ]
     assert not broken, "\n".join(broken)
+
+
+@pytest.mark.parametrize(
+    ("estop", "said"),
+    [
+        ({"latched": True, "source": "operator", "reason": "[red]x[/red]"}, "LATCHED by operator: [red]x[/red]"),
+        ({"latched": False, "source": "", "reason": ""}, "clear"),
+        ({"latched": None, "source": "", "reason": "no heartbeat from safety"}, "unknown (no heartbeat from safety)"),
+    ],
+)
+def test_status_says_the_latch_in_words(estop: dict[str, Any], said: str) -> None:
+    """It said "e-stop: False" for a clear latch and "e-stop: None" with no heartbeat."""
+    console = Console(file=io.StringIO(), width=200)
+    console.print(f"e-stop: {cli.estop_line(estop)}", highlight=False)
+    assert console.file.getvalue().strip() == f"e-stop: {said}"  # type: ignore[attr-defined]
