@@ -625,7 +625,9 @@ class Node:
         if self.closed:  # the session was closed under the query, not that nothing serves the key
             message = f"no reply from {service.path}: this {self.service} session closed after {waited:.2f} s"
         elif waited < timeout * 0.9:  # Zenoh ended the query early: nothing serving the key answered it
-            message = f"no reply from {service.path}: nothing answered it within {waited:.2f} s (is it running?)"
+            # At once: nothing serves it here ("within 0.00 s" said nothing).
+            within = f" within {waited:.2f} s" if waited >= 0.01 else ""
+            message = f"no reply from {service.path}: nothing answered it{within} (is it running?)"
         else:
             message = f"no reply from {service.path} within {timeout:g} s"
         raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=message))
