@@ -1260,7 +1260,7 @@ def verify_demo(node: Node) -> bool:
         console.print("[red]ground truth has no red cup[/]")
         return False
     where = f"({cup.position.x:.2f}, {cup.position.y:.2f}, {cup.position.z:.2f})"
-    said = f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding}"
+    said = f"simulator: red cup at {where} on {cup.on} in {cup.room}; gripper holds {truth.holding or 'nothing'}"
     console.print(said, markup=False)
     return cup.on == "coffee_table" and truth.holding is None
 
