@@ -47,7 +47,9 @@ def inspect(
     png: Annotated[
         Path | None, typer.Option("--png", help="Also draw a top-down map of the run into this PNG file.")
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the rows as one JSON object.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print the rows as one JSON object, or the error as one (exit 2).")
+    ] = False,
     key_expr: Annotated[
         str | None,
         typer.Option(
@@ -75,19 +77,20 @@ def inspect(
     Messages that are not safety's are rows of their own; with --robot-key their MACs are checked too. The
     e-stop column shows "?" where the latch is unknown (heartbeats of several senders at once, without the key).
 
-    Exit 0; 2 for a missing or non-MCAP file, or files that are not consecutive parts of one recording.
+    Exit 0; 2 for a missing or non-MCAP file, files that are not consecutive parts of one recording, a bad
+    --keys or --robot-key, or a map that cannot be written.
     A file cut short is inspected as far as it is whole.
     """
-    robot_key = robot_key_of(robot_key_file)
+    robot_key = robot_key_of(robot_key_file, as_json)
     with progress_bar(progress) as bar:
-        recording = open_recording(files, bar=bar)
+        recording = open_recording(files, bar=bar, as_json=as_json)
         with bar.step("building the timeline"):
             timeline = build_timeline(recording, everything, robot_key)
         rows = timeline.rows
         if key_expr is not None:
-            rows = select(rows, recording.robot, key_expr)
+            rows = select(rows, recording.robot, key_expr, as_json)
         if png is not None:
-            write_map(png, recording, timeline, world, bar)
+            write_map(png, recording, timeline, world, bar, as_json)
     if as_json:
         print(json.dumps(as_document(recording, timeline, rows)))
         return
@@ -97,14 +100,19 @@ def inspect(
     screen.print(table(recording, timeline, rows, screen.width))
 
 
-def select(rows: list[Row], robot: str, expr: str) -> list[Row]:
+def select(rows: list[Row], robot: str, expr: str, as_json: bool = False) -> list[Row]:
     """The rows about keys `expr` matches: the key they are about or the one they were recorded on."""
-    match = key_matcher(robot, expr)
+    match = key_matcher(robot, expr, as_json)
     return [row for row in rows if match(row.key) or match(row.source)]
 
 
 def write_map(
-    png: Path, recording: RecordingFile, timeline: Timeline, world_name: str | None, bar: Bar | None = None
+    png: Path,
+    recording: RecordingFile,
+    timeline: Timeline,
+    world_name: str | None,
+    bar: Bar | None = None,
+    as_json: bool = False,
 ) -> None:
     world, keep_out = map_world(recording, world_name)
     robot = recording.robot or "unknown"
@@ -117,7 +125,7 @@ def write_map(
             warnings.filterwarnings("ignore", message="Glyph .* missing from font")
             draw_map(png, title, world, keep_out, track, vetoed, estops)
     except OSError as exc:
-        fail(f"cannot write the map to {png}: {exc.strerror or exc}")
+        fail(f"cannot write the map to {png}: {exc.strerror or exc}", as_json=as_json)
     console.print(f"map written to {shown(png)}", highlight=False)
 
 

@@ -72,39 +72,42 @@ RobotKeyOpt = Annotated[
 ]
 
 
-# C0 and C1 control characters and DEL, each as its Python escape: a file's text must not move the
-# cursor, clear the screen or retitle the terminal (rich passes ESC sequences through as they are).
-def fail(message: str, code: int = 2) -> NoReturn:
-    console.print(f"[red]error:[/] {shown(message)}", highlight=False)
+def fail(message: str, code: int = 2, as_json: bool = False) -> NoReturn:
+    """End the command with `message` as an error: with --json (`as_json`) one JSON object on stdout,
+    {"error": message}, so a script reading it gets one; else words on stderr."""
+    if as_json:
+        print(json.dumps({"error": message}))
+    else:
+        console.print(f"[red]error:[/] {shown(message)}", highlight=False)
     raise typer.Exit(code)
 
 
-def robot_key_of(path: Path | None) -> bytes | None:
+def robot_key_of(path: Path | None, as_json: bool = False) -> bytes | None:
     """The key in `--robot-key`'s file, or None without one; exit 2 naming what is wrong with the file."""
     if path is None:
         return None
     try:
         return read_key(path.expanduser())
     except KeyFileError as exc:
-        fail(f"--robot-key: {exc}")
+        fail(f"--robot-key: {exc}", as_json=as_json)
 
 
-def key_filter(robot: str, expr: str | None) -> zenoh.KeyExpr:
+def key_filter(robot: str, expr: str | None, as_json: bool = False) -> zenoh.KeyExpr:
     """`expr` as a key expression: absolute (tether/...) as it is, relative under the robot's prefix."""
     try:
         return zenoh.KeyExpr(_absolute(robot, expr or "**"))
     except zenoh.ZError as exc:
-        fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}")
+        fail(f"--keys {expr!r} is not a valid key expression: {str(exc).split(' at ')[0]}", as_json=as_json)
 
 
 def _absolute(robot: str, key: str) -> str:
     return key if key.startswith(f"{keys.ROOT}/") else f"{keys.prefix(robot)}/{key}"
 
 
-def key_matcher(robot: str, expr: str) -> Callable[[str], bool]:
+def key_matcher(robot: str, expr: str, as_json: bool = False) -> Callable[[str], bool]:
     """Whether a key (absolute, or relative to the robot's prefix) is one `expr` selects; each key is
     looked at once. A recorded key no Zenoh session could have published is never selected."""
-    selected = key_filter(robot, expr)
+    selected = key_filter(robot, expr, as_json)
     matches: dict[str, bool] = {}
 
     def match(key: str) -> bool:
@@ -119,18 +122,22 @@ def key_matcher(robot: str, expr: str) -> Callable[[str], bool]:
 
 
 def open_recording(
-    files: list[Path], expr: str | None = None, robot: str | None = None, bar: Bar | None = None
+    files: list[Path],
+    expr: str | None = None,
+    robot: str | None = None,
+    bar: Bar | None = None,
+    as_json: bool = False,
 ) -> RecordingFile:
     """The recording (the parts of a rotated one, joined), with the messages `expr` selects; errors
-    exit 2; a cut file is noted. The bytes read are counted on `bar`."""
+    exit 2 (said as JSON with `as_json`); a cut file is noted. The bytes read are counted on `bar`."""
     try:
         with (bar or Bar()).reading(files) as watched:
             parts = [read_recording(file) for file in watched]
         recording = join_recordings(parts)
     except RecordingError as exc:
-        fail(str(exc))
+        fail(str(exc), as_json=as_json)
     if expr is not None:
-        match = key_matcher(robot or recording.robot, expr)
+        match = key_matcher(robot or recording.robot, expr, as_json)
         recording.messages = [m for m in recording.messages if match(m.key)]
     for part in parts:
         if part.skipped:
@@ -383,7 +390,9 @@ def recheck_command(
         typer.Option("--world", help="The world to check in when the recording has none (a file or a bundled name)."),
     ] = None,
     show_all: Annotated[bool, typer.Option("--all", help="List every rechecked command, not only changes.")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print one JSON object: the report, or the error (exit 2).")
+    ] = False,
     robot_key_file: RobotKeyOpt = None,
     progress: ProgressOpt = None,
 ) -> None:
@@ -396,16 +405,16 @@ def recheck_command(
     something not safety's reached the robot's keys, or when the file is damaged (what its skipped records
     held was not rechecked), 2 on bad input or when nothing could be rechecked.
     """
-    robot_key = robot_key_of(robot_key_file)
+    robot_key = robot_key_of(robot_key_file, as_json)
     if policy is not None and not policy.is_file():
-        fail(f"policy file {policy} does not exist")
+        fail(f"policy file {policy} does not exist", as_json=as_json)
     with progress_bar(progress) as bar:
-        recording = open_recording(files, bar=bar)
+        recording = open_recording(files, bar=bar, as_json=as_json)
         name = recording.name
         try:
             if recording.world is None:
                 if world_name is None:
-                    fail(f"{name} carries no world file (recorded without one); give one with --world")
+                    fail(f"{name} carries no world file (recorded without one); give one with --world", as_json=as_json)
                 console.print(printable(f"{name} carries no world file: checking in {world_name}"), markup=False)
                 world, label = load_world(world_name), f"the world {world_name}"
             else:
@@ -415,9 +424,9 @@ def recheck_command(
                 world, label = recorded_world(recording), "the recorded world"
             safety = recorded_policy(recording, world, policy, label)
         except RecordingError as exc:
-            fail(str(exc))
+            fail(str(exc), as_json=as_json)
         except WorldFileError as exc:
-            fail(f"--world {world_name}: {exc}")
+            fail(f"--world {world_name}: {exc}", as_json=as_json)
         robot = recording.robot
         root = keys.prefix(robot) + "/"
         messages = (
@@ -436,7 +445,8 @@ def recheck_command(
     else:
         _print_report(report, name, start, show_all, policy)
     if not report.checked:
-        # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing.
+        # Not a pass: a file without safety's decisions (recorded with --keys, say) proves nothing. The
+        # report is the JSON object already printed (its checked is 0): the error goes to stderr only.
         fail(f"nothing in {name} could be rechecked: it holds no safety decision with the robot's state before it")
     if recording.skipped:
         # Not a pass either: the decisions in the damaged records went unchecked (open_recording named them).

@@ -654,9 +654,9 @@ def teleop(
         typer.Option(
             "--json",
             help="No live line; on exit print one JSON object on stdout: `ended` (why), `duration_s`, "
-            "`twists_sent`, `max_commanded` (m/s, rad/s), `scale`, and `safety` (`decisions`: approved, "
-            "clamped, vetoed counts; `clamped_by`: rule -> count; `veto_reasons`; `last` decision; "
-            "`estop_latched`; `mode`).",
+            "`twists_sent`, `max_commanded` (m/s, rad/s), `scale`, `gamepad` (its name or null), and `safety` "
+            "(`decisions`: approved, clamped, vetoed counts; `clamped_by`: rule -> count; `veto_reasons`; "
+            "`last` decision; `estop_latched`; `mode`); or, when it cannot start, `ended` error and the `error`.",
         ),
     ] = False,
 ) -> None:
