@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hmac
 import os
 import secrets
@@ -13,6 +14,8 @@ import msgspec
 from schemas.safety import EstopState
 
 TOKEN_ENV = "TETHER_OPERATOR_TOKEN_FILE"
+# The token is 48 hex digits; a file much larger than that is something else.
+MAX_TOKEN_BYTES = 4096
 
 
 def token_path(configured: str | None = None) -> Path:
@@ -55,7 +58,16 @@ def _write_new(path: Path, data: bytes) -> None:
 
 
 def read_token(path: Path) -> str:
-    return path.read_text().strip()
+    """The token in `path`. A file that is no token (not UTF-8 text, or more than MAX_TOKEN_BYTES:
+    /dev/zero would be read without end) is refused with an OSError, as one that cannot be read."""
+    with path.open("rb") as file:
+        data = file.read(MAX_TOKEN_BYTES + 1)
+    if len(data) > MAX_TOKEN_BYTES:
+        raise OSError(errno.EFBIG, f"over {MAX_TOKEN_BYTES} bytes: not a token file", str(path))
+    try:
+        return data.decode().strip()
+    except UnicodeDecodeError:
+        raise OSError(errno.EINVAL, "not text: not a token file", str(path)) from None
 
 
 def token_matches(expected: str, given: str) -> bool:

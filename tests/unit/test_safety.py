@@ -15,7 +15,7 @@ from schemas.safety import Rule
 from services.robotmodel import ArmModel
 from services.safety.errors import Unauthorized, Vetoed
 from services.safety.latch import EstopLatch
-from services.safety.operator import ensure_token
+from services.safety.operator import MAX_TOKEN_BYTES, ensure_token, read_token
 from services.safety.policy import SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
@@ -303,3 +303,22 @@ def test_a_malformed_alternative_is_refused(policy: SafetyPolicy) -> None:
     beyond = Fallback(first=0, last=3, steps=[SayStep(text="x")])
     with pytest.raises(Vetoed, match=r"covers steps 1\.\.4 of a plan of 1 steps"):
         policy.check_plan(GroundedPlan(steps=[SayStep(text="hi")], source=SOURCE, fallbacks=[beyond]), CLEAR)
+
+
+@pytest.mark.parametrize(
+    ("content", "complaint"),
+    [(b"\xd0\xff binary \x00", "not text"), (b"a" * (MAX_TOKEN_BYTES + 1), "not a token file")],
+)
+def test_a_token_file_that_is_no_token_is_refused_as_one_that_cannot_be_read(
+    tmp_path: Path, content: bytes, complaint: str
+) -> None:
+    """Every command that reads the token refuses an OSError with its message; a file not UTF-8 raised
+    UnicodeDecodeError (a traceback from `tether reset`), and /dev/zero was read without end."""
+    token_file = tmp_path / "operator-token"
+    token_file.write_bytes(content)
+    with pytest.raises(OSError, match=complaint):
+        read_token(token_file)
+    with pytest.raises(OSError, match="not a token file"):
+        read_token(Path("/dev/zero"))
+    token_file.write_text("  abc123\n")
+    assert read_token(token_file) == "abc123"
