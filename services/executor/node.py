@@ -31,7 +31,7 @@ from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, Goal
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
 from services.executor.errors import MotionNotStopped
-from services.executor.runner import FeedbackSink, Held, PlanRunner
+from services.executor.runner import FeedbackSink, Held, PlanRunner, clip
 from services.runtime import Node
 
 log = logging.getLogger(__name__)
@@ -297,7 +297,7 @@ class Supervision:
     from a failure of the plan's own by safety's approval: paused now, or paused more often than
     when the attempt began (a pause resumed before it was asked). `attempting`, as each attempt
     begins, notes how often the plan has been paused so far: a pause resumed while no motion ran (a
-    wait step, planning) explains no later failure."""
+    wait step, planning) explains no later failure; one still on as the attempt begins may."""
 
     def __init__(self, node: Node, goal_id: str, config: ExecutorConfig) -> None:
         self.node = node
@@ -341,7 +341,10 @@ class Supervision:
                 feedback(ExecutePlanFeedback(stage=Stage.SAFETY, status=status, message=message[:TEXT_CHARS]))
                 log.info("plan goal %s awaits an operator's approval", goal_id)
                 told = True
-        reason = "canceled while awaiting an operator's approval; nothing moved"
+        # Canceled before safety was asked (while the plan was parsed, resolved, checked): no operator
+        # was waited for, whatever the mode.
+        waited = "while awaiting an operator's approval" if told else "before the plan's first motion"
+        reason = f"canceled {waited}; nothing moved"
         return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
 
     def attempting(self) -> None:
@@ -353,7 +356,10 @@ class Supervision:
         except CallError as exc:  # the count stays: a pause before now may then be taken for this attempt's
             log.warning("plan goal %s: safety did not say how often it was paused: %s", self.goal_id, exc)
             return
-        self._pauses = max(self._pauses, reply.pauses)
+        # A pause still on as the attempt begins explains its failure (its first goal refused) even
+        # when it is resumed before `hold` asks: it is not counted as over.
+        ongoing = 1 if reply.state is ApprovalState.PAUSED else 0
+        self._pauses = max(self._pauses, reply.pauses - ongoing)
 
     def hold(self, cancel: threading.Event, feedback: FeedbackSink) -> Held | ExecutePlanResult:
         plan, goal_id = self._plan, self.goal_id
@@ -403,7 +409,8 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
         supervision = Supervision(node, handle.goal_id, config)
         result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, supervision.approve, supervision)
         if result.status is PlanStatus.CANCELED and handle.cancel_reason:
-            result = msgspec.structs.replace(result, reason=f"{handle.cancel_reason}; {result.reason}")
+            # Clipped again: the runner's reason fits, the cancel's words before it may not.
+            result = msgspec.structs.replace(result, reason=clip(f"{handle.cancel_reason}; {result.reason}"))
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)
         return Outcome(OUTCOME_STATE[result.status], result, result.reason)
 
