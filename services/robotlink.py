@@ -217,7 +217,9 @@ class Verifier:
     its heartbeat is taken, the session that beat it before is superseded and nothing more of it is
     taken (what the old safety signed and was held back on the way would run under a safety that never
     approved it). A session not heard within 2 x MAX_SKEW is forgotten: anything of it sent before
-    that is too old anyway."""
+    that is too old anyway. A superseded session is not: a safety frozen meanwhile (a suspended host,
+    a stopped process) would speak again with fresh stamps and take the robot back from the live one.
+    The last MAX_SESSIONS superseded are remembered (each is a start of safety, which needs the key)."""
 
     def __init__(self, key: bytes, clock: Callable[[], float] = time.time, max_skew: float = MAX_SKEW) -> None:
         if len(key) != KEY_BYTES:
@@ -228,9 +230,11 @@ class Verifier:
         self.started = clock()
         self._lock = threading.Lock()
         self._last: dict[tuple[bytes, str], int] = {}  # (session, key expr) -> counter last taken
-        self._newest: dict[bytes, float] = {}  # session -> its newest stamp heard (taken or superseded)
-        self._beating: bytes | None = None  # the session whose heartbeat was taken last
-        self._superseded: set[bytes] = set()
+        self._newest: dict[bytes, float] = {}  # session -> its newest stamp taken
+        # The session whose heartbeat was taken last, kept when it falls silent and is forgotten: a
+        # safety that starts while the last one is frozen supersedes it.
+        self._beating: bytes | None = None
+        self._superseded: dict[bytes, None] = {}  # oldest first, at most MAX_SESSIONS
 
     def check(self, key_expr: str, payload: bytes, attachment: bytes | None) -> Refusal | None:
         """None when the message is safety's, and it is taken (its counter remembered); else why not."""
@@ -253,12 +257,13 @@ class Verifier:
             if sig.counter <= last:
                 return Refusal(REPLAYED, f"counter {sig.counter} after {last} on {path_of(key_expr)}")
             if sig.session in self._superseded:
-                self._heard(sig)  # remembered, so superseded, for as long as it goes on signing
                 return Refusal(SUPERSEDED)
             self._last[(sig.session, key_expr)] = sig.counter
             if path_of(key_expr) == keys.HEARTBEAT.path and sig.session != self._beating:
                 if self._beating is not None:
-                    self._superseded.add(self._beating)
+                    self._superseded[self._beating] = None
+                    while len(self._superseded) > MAX_SESSIONS:
+                        del self._superseded[next(iter(self._superseded))]
                 self._beating = sig.session
             self._heard(sig)
         return None
@@ -275,9 +280,6 @@ class Verifier:
 
     def _drop(self, session: bytes) -> None:
         self._newest.pop(session, None)
-        self._superseded.discard(session)
-        if session == self._beating:
-            self._beating = None
         for k in [k for k in self._last if k[0] == session]:
             del self._last[k]
 
