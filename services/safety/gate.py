@@ -61,7 +61,7 @@ from services.safety.hazards import (
     zone_reason,
 )
 from services.safety.latch import EstopLatch
-from services.safety.modes import PLANS_REFUSED, ApprovalBook, ModeFile, plan_lines
+from services.safety.modes import PLANS_REFUSED, ApprovalBook, ModeFile, plan_lines, replace_approval
 from services.safety.monitor import (
     MotionMonitor,
     PeopleReports,
@@ -104,6 +104,8 @@ DECIDES = {
     ApprovalAction.PAUSE: ((ApprovalState.APPROVED,), "pause", "run with an approval"),
     ApprovalAction.RESUME: ((ApprovalState.PAUSED,), "resume", "wait paused"),
 }
+# Why the plans of an executor that went away end.
+EXECUTOR_GONE = "the executor went away (its liveliness ended): an approval holds only while its executor runs"
 
 
 class IncidentMemory(Protocol):
@@ -241,6 +243,8 @@ class SafetyGate:
         # by default none: a gate alone forwards nothing.
         self.running: Callable[[ActionKeys[Any, Any, Any]], str | None] = lambda _action: None
         self._approvals = ApprovalBook()
+        # How often the executor went away (under the lock): an ask checked meanwhile is its ask.
+        self._executor_gone = 0
         self._clock = clock
         # Only stamps the latch's state (when it latched, when it was reset), never a decision.
         self._wall_clock = wall_clock
@@ -844,6 +848,12 @@ class SafetyGate:
             self._sent_twist = (t, twist)
         return twist
 
+    def stopped(self) -> None:
+        """The node put a stop on robot/cmd_vel (a latch, a pause, a mode that stops programs):
+        teleop speeds up from standstill, not from the twist the stop cut off."""
+        with self._lock:
+            self._sent_twist = (self._advance(), Twist())
+
     # Commands: goals and plans
 
     def _one_motion(self, other: ActionKeys[Any, Any, Any], what: str) -> None:
@@ -1027,6 +1037,7 @@ class SafetyGate:
         with self._lock:
             known = self._approvals.get(req.goal_id, t)
             asked_for = self._approvals.plan(req.goal_id)
+            gone = self._executor_gone
         if known is not None:
             return self._asked_again(req, known, asked_for, mode, t)
         if mode is ControlMode.AUTONOMOUS:
@@ -1056,6 +1067,10 @@ class SafetyGate:
             known = self._approvals.get(req.goal_id, t)
             asked_for = self._approvals.plan(req.goal_id)
             if known is None:
+                if self._executor_gone != gone and approval.state is ApprovalState.PENDING:
+                    # Its executor went away while it was checked, after its plans were ended: held
+                    # pending, an operator could approve a plan no one runs, whose end never comes.
+                    approval = replace_approval(approval, ApprovalState.DENIED, EXECUTOR_GONE)
                 approval = self._approvals.add(approval, req.plan, t)
         if known is not None:
             # Another ask under this goal id was held while this one was checked. It stays: replacing
@@ -1198,8 +1213,9 @@ class SafetyGate:
         safety ran. Goals under way of a plan that was running are canceled, a program's twist stopped."""
         key = keys.APPROVAL_REQUEST.path
         t = self._time()
-        why = "the executor went away (its liveliness ended): an approval holds only while its executor runs"
+        why = EXECUTOR_GONE
         with self._lock:
+            self._executor_gone += 1
             running = self._approvals.running()
             ended = self._approvals.end_all(why, t)
         if not ended:

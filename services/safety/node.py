@@ -139,7 +139,12 @@ class SafetyNode:
         self._seq = 0
         self._beat_lock = threading.Lock()
         self._twist_lock = threading.Lock()
-        self._forwarded: dict[str, ActionKeys[Any, Any, Any]] = {}
+        # The goals forwarded that may still run: by goal id, each robot action it went to (a client
+        # may send one id on several; noted by id alone, a gripper goal took a navigation's place),
+        # with the count of sends the robot had answered once it answered this one (inf while it is
+        # on its way): the robot's "no such goal" is believed only of one it had answered before.
+        self._forwarded: dict[str, dict[ActionKeys[Any, Any, Any], float]] = {}
+        self._answered = 0
         self._forwarded_lock = threading.Lock()
         # A navigation and a trajectory are decided and forwarded one at a time (one_motion): decided
         # together, each asked the robot about the other before it had reached the robot, heard "no
@@ -206,7 +211,9 @@ class SafetyNode:
         node.serve(keys.PLAN_CHECK, self._on_check_plan)
         self._proxy(keys.CMD_NAVIGATE, keys.ROBOT_NAVIGATE, self.gate.navigate, self._motion_lock)
         self._proxy(keys.CMD_TRAJECTORY, keys.ROBOT_TRAJECTORY, self._decide_trajectory, self._motion_lock)
-        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, self.gate.gripper)
+        # Gripper goals one at a time too: two sent at once under one id, the one the robot refused
+        # (an id already used) forgot the one it runs.
+        self._proxy(keys.CMD_GRIPPER, keys.ROBOT_GRIPPER, self.gate.gripper, threading.Lock())
         self._beat_thread = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
         self._beat_thread.start()
 
@@ -230,14 +237,12 @@ class SafetyNode:
             # Out of cycle, so the robot hears it now rather than at the next beat; then written down.
             self._publish_heartbeat()
             # In order with the twists the gate decided (taken after _forward_twist let go of it).
-            with self._twist_lock:
-                self._robot_cmd_vel.put(Twist())
+            self._stop_base()
             self._persist()
         elif ruling.cancel_goals:
             # A pause or a mode that stops programs: a program's twist stops now, not when the robot's
             # hold of the last one runs out (0.5 s). Teleop, if it may drive, sends its next one.
-            with self._twist_lock:
-                self._robot_cmd_vel.put(Twist())
+            self._stop_base()
         for event in ruling.events:
             self._publish_event(event)
         if ruling.events:
@@ -248,6 +253,13 @@ class SafetyNode:
         if ruling.approvals_changed:
             with self._approvals_changed:
                 self._approvals_changed.notify_all()
+
+    def _stop_base(self) -> None:
+        with self._twist_lock:
+            self._robot_cmd_vel.put(Twist())
+            # Noted as the last twist sent, after any twist decided before it: teleop ramps up from
+            # the stop. Unnoted, it went on from the program's twist the stop had cut off.
+            self.gate.stopped()
 
     def _publish_event(self, event: GateEvent, logged: bool = False) -> None:
         """Publish `event`; a veto is logged too unless it was (`logged`)."""
@@ -319,7 +331,7 @@ class SafetyNode:
         noted); a goal it cannot answer for may run. One it knows nothing of is being decided or never reached it:
         not running, and left noted (a goal on its way must still be canceled by an e-stop)."""
         with self._forwarded_lock:
-            noted = [goal_id for goal_id, action in self._forwarded.items() if action is robot]
+            noted = [goal_id for goal_id, actions in self._forwarded.items() if robot in actions]
         for goal_id in noted:
             try:
                 progress = self.node.call(
@@ -331,13 +343,43 @@ class SafetyNode:
                 return goal_id
             if not progress.state.terminal:
                 return goal_id
-            with self._forwarded_lock:  # ended, the robot says: nothing left to cancel or to ask about
-                self._forwarded.pop(goal_id, None)
+            # Ended, the robot says: nothing left to cancel or to ask about.
+            self._forget_forwarded(goal_id, robot)
         return None
+
+    def _note_forwarded(self, goal_id: str, robot: ActionKeys[Any, Any, Any]) -> bool:
+        """Note `goal_id` as on its way to `robot`; whether it was noted already."""
+        with self._forwarded_lock:
+            actions = self._forwarded.setdefault(goal_id, {})
+            if robot in actions:
+                return True
+            actions[robot] = math.inf
+            return False
+
+    def _answered_now(self) -> int:
+        with self._forwarded_lock:
+            return self._answered
+
+    def _sent_forwarded(self, goal_id: str, robot: ActionKeys[Any, Any, Any]) -> None:
+        """The robot answered the send of `goal_id` (or the call failed): no longer on its way."""
+        with self._forwarded_lock:
+            self._answered += 1
+            actions = self._forwarded.get(goal_id, {})
+            if actions.get(robot) == math.inf:
+                actions[robot] = self._answered
+
+    def _forget_forwarded(self, goal_id: str, robot: ActionKeys[Any, Any, Any], answered_by: float = math.inf) -> None:
+        """Forget `goal_id` on `robot`; with `answered_by`, only if its send was answered by then."""
+        with self._forwarded_lock:
+            actions = self._forwarded.get(goal_id, {})
+            if actions.get(robot, -math.inf) <= answered_by:
+                actions.pop(robot, None)
+            if not actions:
+                self._forwarded.pop(goal_id, None)
 
     def _cancel_forwarded(self) -> None:
         with self._forwarded_lock:
-            goals = list(self._forwarded.items())
+            goals = [(goal_id, action) for goal_id, actions in self._forwarded.items() for action in actions]
         for goal_id, action in goals:
             try:
                 self.node.call(action.cancel_goal, CancelGoal(goal_id=goal_id), timeout=1.0)
@@ -391,6 +433,8 @@ class SafetyNode:
         return self.gate.pending()
 
     def _on_approval_request(self, req: ApprovalRequest) -> PlanApproval:
+        # Read before the ask is decided: a change after it ends the wait, however soon it comes.
+        mode = self.gate.mode
         ruling = self.gate.request_approval(req)
         self._carry_out(ruling)
         approval = ruling.forward
@@ -401,6 +445,10 @@ class SafetyNode:
         deadline = time.monotonic() + req.wait
 
         def decided() -> bool:
+            # A new mode leaves the book as it was (it is applied to the plan when asked again below):
+            # waited on for the plan's state alone, it held the executor until its wait ran out.
+            if self.gate.mode is not mode:
+                return True
             now = self.gate.approval(req.goal_id)
             return now is None or now.state is not approval.state
 
@@ -476,14 +524,12 @@ class SafetyNode:
         cmd: ActionKeys[Any, Any, Any],
         robot: ActionKeys[Any, Any, Any],
         decide: Callable[[Any], Ruling[GoalRuling]],
-        one_at_a_time: threading.Lock | None = None,
+        one_at_a_time: threading.Lock,
     ) -> None:
         """Serve `cmd`'s keys: goals as the gate rules, forwarded to `robot`; its feedback and status
         relayed. A goal holds `one_at_a_time` from its decision until the robot has answered it."""
 
         def send_goal(req: SendGoal[Any]) -> GoalResponse:
-            if one_at_a_time is None:
-                return decided(req)
             with one_at_a_time:
                 return decided(req)
 
@@ -491,41 +537,39 @@ class SafetyNode:
             # Noted as forwarded before it is decided on: an e-stop, pause or mode change decided after
             # this goal's check cancels it, also while it is on its way (the robot rejects a goal
             # canceled before it knew it). Noted only once accepted, such a goal ran on, uncanceled.
-            with self._forwarded_lock:
-                noted_before = req.goal_id in self._forwarded  # a goal id sent twice: the first's stays
-                self._forwarded[req.goal_id] = robot
+            noted_before = self._note_forwarded(req.goal_id, robot)  # a goal id sent twice: the first's stays
             ruling = decide(req)
             self._carry_out(ruling)
             if isinstance(ruling.forward, GoalResponse):
                 response = ruling.forward
             else:
                 # A call that fails leaves the goal noted: it may run, and a later sweep cancels it.
-                response = self.node.call(robot.send_goal, ruling.forward, timeout=self.config.forward_timeout)
+                try:
+                    response = self.node.call(robot.send_goal, ruling.forward, timeout=self.config.forward_timeout)
+                finally:
+                    self._sent_forwarded(req.goal_id, robot)
             if not response.accepted and not noted_before:
-                with self._forwarded_lock:
-                    self._forwarded.pop(req.goal_id, None)
+                self._forget_forwarded(req.goal_id, robot)
             return response
 
         def cancel_goal(req: CancelGoal) -> CancelResponse:
             return self.node.call(robot.cancel_goal, req, timeout=self.config.forward_timeout)
 
         def get_result(req: GetResult) -> Any:
-            # Forgotten once it ended, or once the robot says it knows no such goal. A get_result that
+            # Forgotten once it ended, or once the robot says it knows no such goal, unless it was
+            # still on its way when the robot was asked (then it knew none yet). A get_result that
             # failed on the way (no reply, the link down) leaves it noted: it may run on, and a pause
             # or e-stop must still cancel it.
+            asked = self._answered_now()
             try:
                 result = self.node.call(robot.get_result, req, timeout=MAX_RESULT_WAIT)
             except CallError as exc:
                 if exc.error.kind is ErrorKind.INVALID_REQUEST:
-                    forget(req.goal_id)
+                    self._forget_forwarded(req.goal_id, robot, answered_by=asked)
                 raise
             if result.state.terminal:
-                forget(req.goal_id)
+                self._forget_forwarded(req.goal_id, robot)
             return result
-
-        def forget(goal_id: str) -> None:
-            with self._forwarded_lock:
-                self._forwarded.pop(goal_id, None)
 
         def get_status(req: GetResult) -> Any:
             return self.node.call(robot.get_status, req, timeout=self.config.forward_timeout)
