@@ -39,6 +39,8 @@ R = TypeVar("R")
 
 # How long a finished goal's result stays available to get_result.
 RESULT_RETENTION = 300.0
+# At most this many finished goals are remembered, however fast goals come (the oldest forgotten first).
+MAX_RESULTS = 4096
 MAX_RESULT_WAIT = 3600.0
 CANCEL_POLL = 0.05
 # Cancels of goal ids not (yet) known an action server remembers, so the goal is rejected if it comes.
@@ -84,6 +86,9 @@ class GoalHandle(Generic[G, F]):
     latest_feedback: F | None = None
     # Why the goal is being canceled when someone other than its client asked (a preempting goal).
     cancel_reason: str = ""
+    # Whether its ACCEPTED and EXECUTING have gone out: a CANCELING before them would be followed by
+    # EXECUTING, and is said after them instead.
+    announced: bool = False
 
     def feedback(self, message: F) -> None:
         self.latest_feedback = message
@@ -249,7 +254,11 @@ class ActionServer(Generic[G, F, R]):
             return
         with self._lock:
             handle = self._goals[request.goal_id]
-        threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
+        try:
+            threading.Thread(target=self._run, args=(handle,), name=f"goal:{self._action.path}", daemon=True).start()
+        except RuntimeError as exc:  # no thread to be had (a process's task limit): the goal must not stay running
+            log.error("goal %s on %s could not start: %s", handle.goal_id, self._action.path, exc)
+            self._end(handle, Outcome(GoalState.ABORTED, None, f"{self._action.path} could not start the goal: {exc}"))
 
     def _blocking(self) -> list[GoalHandle[G, F]]:
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
@@ -263,7 +272,7 @@ class ActionServer(Generic[G, F, R]):
         for handle in running:
             handle.cancel_reason = f"preempted by goal {goal_id}"
             handle.cancel_requested.set()
-            self._publish_status(handle.goal_id, GoalState.CANCELING, handle.cancel_reason)
+            self._publish_canceling(handle, handle.cancel_reason)
         deadline = time.monotonic() + self._preempt_timeout
         for handle in running:
             if not handle.done.wait(max(0.0, deadline - time.monotonic())):
@@ -275,20 +284,40 @@ class ActionServer(Generic[G, F, R]):
     def _publish_feedback(self, goal_id: str, message: F) -> None:
         self._feedback.put(Feedback(goal_id=goal_id, feedback=message))
 
+    def _publish_canceling(self, handle: GoalHandle[G, F], message: str = "") -> None:
+        """Say a goal told to stop is canceling. The last status a goal publishes is its terminal one:
+        a goal that ended while CANCELING went out has its end said again after it, and a goal not yet
+        announced says CANCELING itself once it is (`_run`)."""
+        if handle.done.is_set() or not handle.announced:
+            return
+        self._publish_status(handle.goal_id, GoalState.CANCELING, message)
+        outcome = handle.outcome
+        if handle.done.is_set() and outcome is not None:
+            self._publish_status(handle.goal_id, outcome.state, outcome.message)
+
     def _run(self, handle: GoalHandle[G, F]) -> None:
         self._publish_status(handle.goal_id, GoalState.ACCEPTED)
         self._publish_status(handle.goal_id, GoalState.EXECUTING)
+        handle.announced = True
+        if handle.cancel_requested.is_set():  # canceled as it was accepted, before it was announced
+            self._publish_status(handle.goal_id, GoalState.CANCELING, handle.cancel_reason)
         try:
             outcome: Outcome[Any] = self._execute(handle)
         except Exception as exc:
             log.exception("goal %s on %s failed", handle.goal_id, self._action.path)
             outcome = Outcome(GoalState.ABORTED, None, f"{self._action.path} failed: {exc}")
         if handle.abort_reason and outcome.state is not GoalState.SUCCEEDED:
-            outcome = Outcome(GoalState.ABORTED, outcome.result, handle.abort_reason)
+            # A goal whose own words already give the reason (its result says it too) keeps them.
+            why = outcome.message if handle.abort_reason in outcome.message else handle.abort_reason
+            outcome = Outcome(GoalState.ABORTED, outcome.result, why)
         elif (
             handle.cancel_reason and outcome.state is GoalState.CANCELED and handle.cancel_reason not in outcome.message
         ):
             outcome = Outcome(outcome.state, outcome.result, f"{handle.cancel_reason}; {outcome.message}")
+        self._end(handle, outcome)
+
+    def _end(self, handle: GoalHandle[G, F], outcome: Outcome[Any]) -> None:
+        """The goal ended as `outcome`: its result kept, it no longer keeps others out, its end said."""
         handle.outcome = outcome
         with self._lock:
             handle.finished_at = time.monotonic()
@@ -302,7 +331,7 @@ class ActionServer(Generic[G, F, R]):
             running = self._sweep("every goal was canceled")
             for each in running:
                 each.cancel_requested.set()
-                self._publish_status(each.goal_id, GoalState.CANCELING)
+                self._publish_canceling(each)
             return CancelResponse(goal_id=request.goal_id, accepted=bool(running), reason=f"{len(running)} canceled")
         with self._lock:
             handle = self._goals.get(request.goal_id)
@@ -313,7 +342,7 @@ class ActionServer(Generic[G, F, R]):
         if handle is None or handle.done.is_set():
             return CancelResponse(goal_id=request.goal_id, accepted=False, reason="no such running goal")
         handle.cancel_requested.set()
-        self._publish_status(handle.goal_id, GoalState.CANCELING)
+        self._publish_canceling(handle)
         return CancelResponse(goal_id=request.goal_id, accepted=True)
 
     def _on_get_result(self, request: GetResult) -> ResultResponse[R]:
@@ -345,10 +374,11 @@ class ActionServer(Generic[G, F, R]):
         )
 
     def _forget_old(self) -> None:
-        """Forget the goals that ended more than RESULT_RETENTION ago. With the lock held."""
+        """Forget the goals that ended more than RESULT_RETENTION ago, and the oldest beyond MAX_RESULTS.
+        With the lock held."""
         cutoff = time.monotonic() - RESULT_RETENTION
         ended = self._ended
-        while ended and ended[0][0] < cutoff:
+        while ended and (ended[0][0] < cutoff or len(ended) > MAX_RESULTS):
             self._goals.pop(ended.popleft()[1], None)
 
 

@@ -408,7 +408,13 @@ def serve_execute_plan(node: Node, runner: PlanRunner, config: ExecutorConfig) -
         RUNNING_GOAL.set(handle.goal_id)
         supervision = Supervision(node, handle.goal_id, config)
         result = runner.run(handle.goal, handle.cancel_requested, handle.feedback, supervision.approve, supervision)
-        if result.status is PlanStatus.CANCELED and handle.cancel_reason:
+        if result.status is not PlanStatus.SUCCEEDED and handle.abort_reason:
+            # Stopped by abort_all (the executor shutting down): the goal ends aborted for that reason,
+            # and its result says the same; no client canceled it.
+            status = PlanStatus.FAILED if result.status is PlanStatus.CANCELED else result.status
+            reason = clip(f"{handle.abort_reason}; {result.reason}")
+            result = msgspec.structs.replace(result, status=status, reason=reason)
+        elif result.status is PlanStatus.CANCELED and handle.cancel_reason:
             # Clipped again: the runner's reason fits, the cancel's words before it may not.
             result = msgspec.structs.replace(result, reason=clip(f"{handle.cancel_reason}; {result.reason}"))
         log.info("plan goal %s %s at %s: %s", handle.goal_id, result.status, result.stage, result.reason)

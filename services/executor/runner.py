@@ -204,6 +204,9 @@ class PlanRunner:
         if isinstance(grounded, ExecutePlanResult):
             return grounded
         if goal.dry_run:
+            if cancel.is_set():  # canceled while it was checked: the check was not seen through
+                reason = "dry run canceled while the plan was being checked; nothing moved"
+                return ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.SAFETY, reason=reason)
             return ExecutePlanResult(
                 status=PlanStatus.SUCCEEDED,
                 stage=Stage.SAFETY,
