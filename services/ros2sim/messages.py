@@ -50,12 +50,15 @@ NAV_NONE = 0
 NAV_UNKNOWN = 9000
 # control_msgs FollowJointTrajectory result error codes.
 TRAJECTORY_SUCCESSFUL = 0
+TRAJECTORY_INVALID_GOAL = -1
 PATH_TOLERANCE_VIOLATED = -4
 GOAL_TOLERANCE_VIOLATED = -5
 # control_msgs JointTolerance: 0 leaves the default, -1 erases the tolerance (no limit).
 TOLERANCE_DEFAULT = 0.0
 TOLERANCE_ERASED = -1.0
 MAX_TOLERANCE = 1.0  # radians; the sim's FollowJointTrajectoryGoal bound
+# How much of a name from the network a refusal quotes: a frame_id may be megabytes long.
+QUOTED_CHARS = 80
 
 
 class BadMessage(ValueError):
@@ -71,6 +74,13 @@ def _at_most(what: str, count: int, limit: int) -> None:
     """Before converting item by item: a hostile message may hold millions."""
     if count > limit:
         raise BadMessage(f"{what} has {count} entries; at most {limit}")
+
+
+def _quoted(text: str) -> str:
+    """`text` as a refusal quotes it, cut short when long."""
+    if len(text) <= QUOTED_CHARS:
+        return repr(text)
+    return f"{text[:QUOTED_CHARS]!r}... ({len(text)} characters)"
 
 
 def _convert(data: Any, cls: type[Any], what: str) -> Any:
@@ -131,7 +141,7 @@ def pose2d(stamped: Any, what: str) -> Pose2D:
     """A geometry_msgs/PoseStamped goal as a floor pose in the map frame."""
     frame = stamped.header.frame_id
     if frame.lstrip("/") not in GOAL_FRAMES:
-        raise BadMessage(f"{what} is in frame {frame!r}; this robot takes goals in {' or '.join(GOAL_FRAMES)}")
+        raise BadMessage(f"{what} is in frame {_quoted(frame)}; this robot takes goals in {' or '.join(GOAL_FRAMES)}")
     position = stamped.pose.position
     x, y = float(position.x), float(position.y)
     _finite(f"{what} position", x, y, float(position.z))
@@ -158,12 +168,13 @@ def navigate_through_poses_goal(goal: Any) -> NavigateToPoseGoal:
 def _tolerance(tolerances: Sequence[Any], joints: Sequence[str], what: str) -> float | None:
     """The sim's one tolerance from control_msgs' per-joint ones: the tightest given, capped at
     MAX_TOLERANCE; erased (-1) counts as MAX_TOLERANCE; None when none is given (the sim's default)."""
+    _at_most(what, len(tolerances), MAX_JOINTS)
     tightest = math.inf
     for i, tolerance in enumerate(tolerances):
         name, value = str(tolerance.name), float(tolerance.position)
         _finite(f"{what}[{i}].position", value)
         if name not in joints:
-            raise BadMessage(f"{what}[{i}] names joint {name!r}, which the trajectory does not move")
+            raise BadMessage(f"{what}[{i}] names joint {_quoted(name)}, which the trajectory does not move")
         if value == TOLERANCE_DEFAULT:
             continue
         if value == TOLERANCE_ERASED:
@@ -173,6 +184,17 @@ def _tolerance(tolerances: Sequence[Any], joints: Sequence[str], what: str) -> f
         else:
             raise BadMessage(f"{what}[{i}].position is {value:g}; a tolerance is > 0, 0 (default) or -1 (none)")
     return None if tightest == math.inf else tightest
+
+
+def _as_the_controller_takes(point: Any, what: str, joints: int) -> None:
+    """What joint_trajectory_controller refuses in a point besides its positions: velocities or
+    accelerations not given for every joint, any effort."""
+    for field in ("velocities", "accelerations"):
+        given = len(getattr(point, field))
+        if given not in (0, joints):
+            raise BadMessage(f"{what}.{field} has {given} entries for {joints} joints; one per joint, or none")
+    if len(point.effort):
+        raise BadMessage(f"{what}.effort is given; this arm's controller takes no efforts")
 
 
 def trajectory_goal(goal: Any) -> FollowJointTrajectoryGoal:
@@ -185,10 +207,18 @@ def trajectory_goal(goal: Any) -> FollowJointTrajectoryGoal:
     _at_most("trajectory.points", len(trajectory.points), MAX_TRAJECTORY_POINTS)
     names = [str(n) for n in trajectory.joint_names]
     points = []
+    previous = -math.inf
     for k, point in enumerate(trajectory.points):
+        what = f"trajectory.points[{k}]"
+        _at_most(f"{what}.positions", len(point.positions), MAX_JOINTS)
+        _as_the_controller_takes(point, what, len(names))
         positions = [float(v) for v in point.positions]
-        _finite(f"trajectory.points[{k}].positions", *positions)
-        points.append({"positions": positions, "time_from_start": seconds_of(point.time_from_start)})
+        _finite(f"{what}.positions", *positions)
+        at = seconds_of(point.time_from_start)
+        if at <= previous:  # joint_trajectory_controller's rule, stricter than the sim's
+            raise BadMessage(f"{what}.time_from_start is {at:g} s, not after the point before it ({previous:g} s)")
+        previous = at
+        points.append({"positions": positions, "time_from_start": at})
     data: dict[str, Any] = {"joint_names": names, "points": points}
     for field in ("path_tolerance", "goal_tolerance"):
         tolerance = _tolerance(getattr(goal, field), names, field)
@@ -393,6 +423,16 @@ def trajectory_error_code(outcome: Outcome[Any]) -> int:
     if outcome.state is not GoalState.ABORTED:
         return TRAJECTORY_SUCCESSFUL  # canceled too, as joint_trajectory_controller reports it
     return PATH_TOLERANCE_VIOLATED if "path tolerance" in outcome.message else GOAL_TOLERANCE_VIOLATED
+
+
+# What joint_trajectory_controller says of the goal a new one preempted (it ends canceled).
+TRAJECTORY_PREEMPTED = "Current goal cancelled due to new incoming action."
+
+
+def trajectory_preempted(types: RosTypes) -> Any:
+    return types.new(
+        f"{FOLLOW_JOINT_TRAJECTORY}_Result", error_code=TRAJECTORY_INVALID_GOAL, error_string=TRAJECTORY_PREEMPTED
+    )
 
 
 def trajectory_result(types: RosTypes, outcome: Outcome[Any]) -> Any:

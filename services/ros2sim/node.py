@@ -25,7 +25,7 @@ from services.ros2sim.estop import STOP_REASON, EstopLock
 from services.ros2sim.messages import BadMessage
 from services.runtime import Node
 from services.sim.config import SimConfig
-from services.sim.controllers import Controllers
+from services.sim.controllers import Controllers, Navigation
 from services.sim.loop import Report, SimLoop
 from services.sim.renderer import Picture, Renderer
 from services.sim.simulation import Simulation
@@ -64,8 +64,14 @@ class ActionFace:
     goal: Callable[[Any], Any]  # the ROS goal -> the sim's goal; BadMessage when unusable
     start: Callable[[Controllers, Any], Motion[Any, Any]]
     feedback: Callable[[Any, Any, float], Any]  # (the sim's feedback, its goal, seconds since accepted) -> ROS
-    result: Callable[[Outcome[Any], Any], Any]  # (how it ended, the sim's goal) -> the ROS result
+    result: Callable[[Outcome[Any], Any], Any]  # (how it ended, the sim's goal or None) -> the ROS result
+    # How a goal that a new one preempted ends, as the real server ends it: its status and result.
+    preempted: Callable[[], tuple[GoalState, Any]]
     check: Callable[[Any], str | None] = lambda _goal: None  # the robot's own checks of the sim's goal
+    navigator: bool = False  # one of Nav2's navigators, which take goals one navigator at a time
+    # Takes every goal, aborting one it cannot carry out, as Nav2's servers and ros2_control's gripper
+    # controller do; else rejects it, as joint_trajectory_controller does.
+    takes_every_goal: bool = False
 
 
 class RosGoal:
@@ -104,13 +110,14 @@ class StandIn:
         self.sim = sim
         self.config = config
         self.types = ros.types
-        self._hold_cmd_vel = config.cmd_vel_timeout * sim_config.realtime_factor  # sim seconds
+        self._realtime_factor = sim_config.realtime_factor
         self._lock = threading.Lock()
         self._signal = threading.Condition(self._lock)  # notified on every emergency_stop message
         self._signals = 0
         self._estop = EstopLock(config.stop_timeout)  # emergency_stop, its silence, the stop service
         self._limits: tuple[float | None, float | None] = (None, None)
         self._refused_at: dict[str, float] = {}
+        self._navigating: dict[str, int] = {}  # navigation goals executing, per action (Nav2's navigator muxer)
         # The sim thread's own: what it last applied.
         self._stops_applied = 0
         self._stopped: str | None = None
@@ -182,6 +189,10 @@ class StandIn:
                 Controllers.navigate,
                 lambda fb, _goal, elapsed: messages.navigation_feedback(types, action_type, fb, now(), elapsed),
                 lambda outcome, _goal: messages.navigation_result(types, action_type, outcome),
+                # Nav2's SimpleActionServer aborts it with an empty result (accept_pending_goal).
+                lambda: (GoalState.ABORTED, types.new(f"{action_type}_Result")),
+                navigator=True,
+                takes_every_goal=True,
             )
 
         return (
@@ -196,6 +207,7 @@ class StandIn:
                 Controllers.follow_trajectory,
                 lambda fb, goal, _elapsed: messages.trajectory_feedback(types, fb, goal.joint_names, now()),
                 lambda outcome, _goal: messages.trajectory_result(types, outcome),
+                lambda: (GoalState.CANCELED, messages.trajectory_preempted(types)),
                 check=self.sim.controllers.arm.check_trajectory,
             ),
             ActionFace(
@@ -205,6 +217,9 @@ class StandIn:
                 Controllers.gripper,
                 lambda fb, _goal, _elapsed: messages.gripper_feedback(types, fb),
                 lambda outcome, goal: messages.gripper_result(types, outcome, goal),
+                # gripper_action_controller cancels it with an empty result (preempt_active_goal).
+                lambda: (GoalState.CANCELED, types.new(f"{messages.GRIPPER_COMMAND}_Result")),
+                takes_every_goal=True,
             ),
         )
 
@@ -249,7 +264,7 @@ class StandIn:
 
     def _obey(self) -> str | None:
         """On the sim thread, before every step and goal: stop at once on a new stop; hold still while
-        emergency_stop is set or silent; else move at full speed within the speed limit."""
+        emergency_stop is set or silent; else move at full speed, navigations within the speed limit."""
         with self._lock:
             state, limits = self._estop.poll(time.monotonic()), self._limits
         controllers = self.sim.controllers
@@ -262,7 +277,11 @@ class StandIn:
             controllers.set_speed_scale(0.0)
             return state.held
         self._stopped = None
-        controllers.set_speed_scale(1.0, *limits)
+        # speed_limit is Nav2's controller_server's: it limits navigation, never cmd_vel, which goes
+        # to the base controller past Nav2 (the backend clamps its own). SimLoop obeys again after
+        # running commands, so a navigation just started is limited from its first step.
+        navigating = Navigation.kind in controllers.motions
+        controllers.set_speed_scale(1.0, *(limits if navigating else (None, None)))
         return None
 
     # cmd_vel
@@ -277,10 +296,19 @@ class StandIn:
         if held is not None:
             log.debug("ignored cmd_vel: %s", held)
             return
-        self.loop.submit(lambda sim: self._apply_cmd_vel(sim, command))
+        # As diff_drive_controller: a stamped command holds cmd_vel_timeout from its stamp (0: from
+        # now), and one older than that is ignored. A stamp ahead of this clock counts as now, never
+        # holding it longer.
+        timeout = self.config.cmd_vel_timeout
+        age = max(0.0, time.time() - command.stamp) if command.stamp else 0.0
+        if age >= timeout:
+            self._refuse(NAMES.cmd_vel, f"stamped {age:.2f} s ago, older than cmd_vel_timeout ({timeout:g} s)")
+            return
+        hold = (timeout - age) * self._realtime_factor  # sim seconds
+        self.loop.submit(lambda sim: self._apply_cmd_vel(sim, command, hold))
 
-    def _apply_cmd_vel(self, sim: Simulation, command: Twist) -> None:
-        if self._stopped is None and not sim.controllers.set_cmd_vel(command, self._hold_cmd_vel):
+    def _apply_cmd_vel(self, sim: Simulation, command: Twist, hold: float) -> None:
+        if self._stopped is None and not sim.controllers.set_cmd_vel(command, hold):
             log.debug("ignored cmd_vel while a navigation goal runs")
 
     def _refuse(self, where: str, reason: str) -> None:
@@ -302,14 +330,21 @@ class StandIn:
             self._signal.wait_for(lambda: self._signals != heard, RELEASE_GRACE)
             return self._estop.poll(time.monotonic()).held
 
+    def _refusal(self, face: ActionFace, ros_goal: Any) -> str | None:
+        """Why the robot will not carry out a goal now, or None."""
+        reason = self._held_after_next_signal()
+        if reason is None:
+            try:
+                reason = face.check(face.goal(ros_goal))
+            except BadMessage as exc:
+                reason = str(exc)
+        return reason
+
     def _acceptor(self, face: ActionFace) -> Callable[[Any], bool]:
         def accept(ros_goal: Any) -> bool:
-            reason = self._held_after_next_signal()
-            if reason is None:
-                try:
-                    reason = face.check(face.goal(ros_goal))
-                except BadMessage as exc:
-                    reason = str(exc)
+            if face.takes_every_goal:
+                return True  # refused once it executes (_carry_out)
+            reason = self._refusal(face, ros_goal)
             if reason is not None:
                 log.warning("rejected a goal on %s: %s", face.name, reason)
                 return False
@@ -319,26 +354,54 @@ class StandIn:
 
     def _executor(self, face: ActionFace) -> Callable[[RosServerGoal], None]:
         def execute(server_goal: RosServerGoal) -> None:
-            goal = face.goal(server_goal.goal)  # accepted, so it converts
-            port = RosGoal(server_goal, lambda feedback, elapsed: face.feedback(feedback, goal, elapsed))
-            outcome = self.loop.relay(lambda controllers: face.start(controllers, goal), port)
-            result = face.result(outcome, goal)
-            match outcome.state:
-                case GoalState.SUCCEEDED:
-                    server_goal.succeed(result)
-                case GoalState.CANCELED:
-                    server_goal.canceled(result)
-                case _:
-                    server_goal.abort(result)
-            log.info(
-                "%s goal %s %s: %s",
-                face.name,
-                server_goal.goal_id.hex()[:8],
-                outcome.state.value,
-                outcome.message or "done",
-            )
+            if not face.navigator:
+                self._carry_out(face, server_goal)
+                return
+            with self._lock:
+                busy = next((name for name, n in self._navigating.items() if n and name != face.name), None)
+                if busy is None:
+                    self._navigating[face.name] = self._navigating.get(face.name, 0) + 1
+            if busy is not None:
+                # Nav2's bt_navigator takes the goal, then aborts it at once: the running one goes on.
+                server_goal.abort(face.preempted()[1])
+                log.warning("%s goal aborted: %s is navigating", face.name, busy)
+                return
+            try:
+                self._carry_out(face, server_goal)
+            finally:
+                with self._lock:
+                    self._navigating[face.name] -= 1
 
         return execute
+
+    def _carry_out(self, face: ActionFace, server_goal: RosServerGoal) -> None:
+        """Relay one accepted goal to the sim and end it as the real action server would."""
+        if face.takes_every_goal and (reason := self._refusal(face, server_goal.goal)) is not None:
+            log.warning("aborted a goal on %s: %s", face.name, reason)
+            server_goal.abort(face.result(Outcome(GoalState.ABORTED, None, reason), None))
+            return
+        goal = face.goal(server_goal.goal)  # accepted or refused above, so it converts
+        port = RosGoal(server_goal, lambda feedback, elapsed: face.feedback(feedback, goal, elapsed))
+        outcome = self.loop.relay(lambda controllers: face.start(controllers, goal), port)
+        result = face.result(outcome, goal)
+        if outcome.state is GoalState.CANCELED and not server_goal.cancel_requested.is_set():
+            # No client asked: the sim's controllers ended it for a new goal of its kind.
+            state, result = face.preempted()
+            outcome = Outcome(state, outcome.result, outcome.message)
+        match outcome.state:
+            case GoalState.SUCCEEDED:
+                server_goal.succeed(result)
+            case GoalState.CANCELED:
+                server_goal.canceled(result)
+            case _:
+                server_goal.abort(result)
+        log.info(
+            "%s goal %s %s: %s",
+            face.name,
+            server_goal.goal_id.hex()[:8],
+            outcome.state.value,
+            outcome.message or "done",
+        )
 
     # Reports, on the sim thread
 
