@@ -145,9 +145,10 @@ class Ruling(Generic[T]):
     `forward`: what goes on: the twist for robot/cmd_vel (None: nothing), the goal for the robot or
     the refusal for the caller, the reply to a query. `events`: to publish, in order. `latched`: the
     e-stop latched just now: tell the robot at once (a heartbeat, a stop on robot/cmd_vel), write the
-    latch down, then cancel every goal forwarded to the robot. `reset`: it was cleared: a heartbeat,
-    and write it down. `fresh_joints_may_pass`: a trajectory refused because its first point seems to
-    jump from the arm's last known position; decided again on a joint state measured since, it may pass.
+    latch down, publish the events `latch_told` gives, then cancel every goal forwarded to the robot.
+    `reset`: it was cleared: a heartbeat, write it down, publish the events `latch_told` gives.
+    `fresh_joints_may_pass`: a trajectory refused because its first point seems to jump from the
+    arm's last known position; decided again on a joint state measured since, it may pass.
     `mode_changed`: a heartbeat, and write the mode down. `cancel_goals`: the mode no longer lets
     the goals under way move the robot: cancel every goal forwarded. `approvals_changed`: wake whoever
     waits for an approval.
@@ -243,8 +244,15 @@ class SafetyGate:
         # by default none: a gate alone forwards nothing.
         self.running: Callable[[ActionKeys[Any, Any, Any]], str | None] = lambda _action: None
         self._approvals = ApprovalBook()
-        # How often the executor went away (under the lock): an ask checked meanwhile is its ask.
+        # How often the executor went away, and whether it is away now (under the lock): an ask that
+        # came while it was away, or was checked while it went, is its ask. Counted alive until its
+        # liveliness is seen to end: a token already held when safety starts is heard a moment later,
+        # perhaps after the first ask, and only an executor alive while safety watched can ask.
         self._executor_gone = 0
+        self._executor_away = False
+        # The latch's changes (latched, reset) in the order decided, by their event's id, with whether
+        # the event is out, kept until the thread that decided one has written it down (see latch_told).
+        self._changes: dict[int, tuple[GateEvent, bool]] = {}
         self._clock = clock
         # Only stamps the latch's state (when it latched, when it was reset), never a decision.
         self._wall_clock = wall_clock
@@ -692,7 +700,13 @@ class SafetyGate:
     def _latch(
         self, source: str, reason: str, command: object, rule: Rule, values: dict[str, float], t: float
     ) -> Ruling[None]:
-        latched, held = self.latch.request(source, reason, self._wall_clock())
+        event = GateEvent(keys.ESTOP.path, Decision.LATCHED, f"by {source}: {reason}", command, rule, (), values)
+        with self._lock:
+            # Under the gate's lock, as a reset is: each is decided before the other.
+            latched, held = self.latch.request(source, reason, self._wall_clock())
+            if latched:
+                self._sent_twist = (t, Twist())
+                self._changes[id(event)] = (event, False)
         if not latched:
             # The latch stays as the first one set it; who else asked, and why, is recorded (the first
             # reason may be stale by now). A flood from one source is one event and a count.
@@ -700,13 +714,31 @@ class SafetyGate:
             if (counted := self._repeated((keys.ESTOP.path, rule, source), why, t)) is None:
                 return Ruling(None)
             values = {**values, ALREADY_LATCHED: 1.0}
-            event = GateEvent(keys.ESTOP.path, Decision.LATCHED, why, command, rule, (), values)
-            return Ruling(None, (*counted, event))
-        with self._lock:
-            self._sent_twist = (t, Twist())
+            again = GateEvent(keys.ESTOP.path, Decision.LATCHED, why, command, rule, (), values)
+            return Ruling(None, (*counted, again))
         log.warning("E-STOP latched by %s: %s", source, reason)
-        event = GateEvent(keys.ESTOP.path, Decision.LATCHED, f"by {source}: {reason}", command, rule, (), values)
         return Ruling(None, (event,), latched=True)
+
+    def latch_told(self, events: tuple[GateEvent, ...]) -> tuple[GateEvent, ...]:
+        """A latching or resetting ruling's `events` to publish now that the latch is written down:
+        the latch's changes decided before its own and not out yet, then its own unless one decided
+        later has published it, then the rest. Each thread writes its change down before publishing
+        it; published by each thread alone, a reset decided while a latch was written down came out
+        before it (or a latch after a reset it followed), and the timeline showed the wrong state."""
+        with self._lock:
+            own = {id(e) for e in events if id(e) in self._changes}
+            left = set(own)
+            told: list[GateEvent] = []
+            for key, (event, out) in list(self._changes.items()):
+                if not left:
+                    break
+                if not out:
+                    told.append(event)
+                    self._changes[key] = (event, True)
+                if key in left:
+                    left.discard(key)
+                    del self._changes[key]
+        return (*told, *(e for e in events if id(e) not in own))
 
     def reset(self, req: ResetRequest) -> Ruling[ResetReply]:
         """Clear the latch with the operator's token; the token never leaves in an event."""
@@ -725,15 +757,18 @@ class SafetyGate:
             values = {"retry_after_s": wait, "limit_per_minute": float(limit)}
             event = GateEvent(keys.RESET.path, Decision.VETOED, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,), values)
             return Ruling(ResetReply(ok=False, message=why), (event,))
-        try:
-            self.latch.reset(req.operator, req.token, self._wall_clock())
-        except Unauthorized as exc:
-            event = GateEvent(keys.RESET.path, Decision.VETOED, str(exc), redacted, Rule.OPERATOR, (Rule.OPERATOR,))
-            return Ruling(ResetReply(ok=False, message=str(exc)), (event,))
-        log.warning("e-stop reset by operator %s", req.operator)
         event = GateEvent(
             keys.RESET.path, Decision.RESET, f"by operator {req.operator}", redacted, None, (Rule.OPERATOR,)
         )
+        try:
+            with self._lock:
+                # Under the gate's lock, as a latch is set: each is decided before the other.
+                self.latch.reset(req.operator, req.token, self._wall_clock())
+                self._changes[id(event)] = (event, False)
+        except Unauthorized as exc:
+            refused = GateEvent(keys.RESET.path, Decision.VETOED, str(exc), redacted, Rule.OPERATOR, (Rule.OPERATOR,))
+            return Ruling(ResetReply(ok=False, message=str(exc)), (refused,))
+        log.warning("e-stop reset by operator %s", req.operator)
         return Ruling(ResetReply(ok=True, message=f"e-stop reset by {req.operator}"), (event,), reset=True)
 
     def _estop_veto(self) -> Vetoed | None:
@@ -1038,6 +1073,7 @@ class SafetyGate:
             known = self._approvals.get(req.goal_id, t)
             asked_for = self._approvals.plan(req.goal_id)
             gone = self._executor_gone
+            away = self._executor_away
         if known is not None:
             return self._asked_again(req, known, asked_for, mode, t)
         if mode is ControlMode.AUTONOMOUS:
@@ -1067,9 +1103,10 @@ class SafetyGate:
             known = self._approvals.get(req.goal_id, t)
             asked_for = self._approvals.plan(req.goal_id)
             if known is None:
-                if self._executor_gone != gone and approval.state is ApprovalState.PENDING:
-                    # Its executor went away while it was checked, after its plans were ended: held
-                    # pending, an operator could approve a plan no one runs, whose end never comes.
+                if (away or self._executor_gone != gone) and approval.state is ApprovalState.PENDING:
+                    # Its executor had gone when it came (it waited for a worker), or went while it was
+                    # checked, after its plans were ended: held pending, an operator could approve a
+                    # plan no one runs, whose end never comes.
                     approval = replace_approval(approval, ApprovalState.DENIED, EXECUTOR_GONE)
                 approval = self._approvals.add(approval, req.plan, t)
         if known is not None:
@@ -1216,6 +1253,7 @@ class SafetyGate:
         why = EXECUTOR_GONE
         with self._lock:
             self._executor_gone += 1
+            self._executor_away = True
             running = self._approvals.running()
             ended = self._approvals.end_all(why, t)
         if not ended:
@@ -1226,6 +1264,11 @@ class SafetyGate:
         )
         stop = running is not None and self.modes.mode is ControlMode.SUPERVISED
         return Ruling(None, events, cancel_goals=stop, approvals_changed=True)
+
+    def executor_alive(self) -> None:
+        """The executor's liveliness token is held (it started, or came back): its asks are held again."""
+        with self._lock:
+            self._executor_away = False
 
     def plan_status(self, status: GoalStatus) -> Ruling[None]:
         """The executor's plan goal changed state: one that ended no longer waits or moves the robot."""

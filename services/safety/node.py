@@ -157,7 +157,8 @@ class SafetyNode:
         self._events = node.publisher(keys.SAFETY_EVENTS)
         # Events are decided on several threads (Zenoh's, the query workers'); one stamps and sends at a
         # time, so every subscriber (the recorder, a viewer, a test) gets them in the order of their stamps.
-        self._events_lock = threading.Lock()
+        # Re-entrant: a latch's events are claimed from the gate and published in one hold of it.
+        self._events_lock = threading.RLock()
         self._robot_cmd_vel = node.publisher(keys.ROBOT_CMD_VEL)
         self._stop = threading.Event()
         # Safety's memory of incidents (incidents.py): the watch says what is one; each is recorded on
@@ -196,12 +197,13 @@ class SafetyNode:
         node.serve(keys.SET_MODE, self._on_set_mode)
         node.serve(keys.APPROVAL_DECIDE, self._on_decide)
         node.serve(keys.PENDING_PLANS, self._on_pending)
-        # Waits (up to the request's `wait`) for an operator: on the pool for queries that wait.
-        node.serve(keys.APPROVAL_REQUEST, self._on_approval_request, waits=True)
         # The plans' goals ending: an approved plan may move the robot only until it ends, or until
-        # its executor goes away (it would never report the end).
+        # its executor goes away (it would never report the end). Watched before asks are served: an
+        # executor that can ask was alive when it was first watched, so its end is heard.
         node.subscribe(keys.EXECUTE_PLAN.status, self._on_plan_status)
         node.watch_alive(EXECUTOR, self._on_executor_alive)
+        # Waits (up to the request's `wait`) for an operator: on the pool for queries that wait.
+        node.serve(keys.APPROVAL_REQUEST, self._on_approval_request, waits=True)
         # The plan and step running, for the incidents.
         node.subscribe(keys.EXECUTE_PLAN.feedback, self._on_plan_feedback)
         node.subscribe(keys.INCIDENT_REPORT, self._on_incident_report)
@@ -233,6 +235,7 @@ class SafetyNode:
     # Carrying out the gate's rulings
 
     def _carry_out(self, ruling: Ruling[Any]) -> None:
+        events = ruling.events
         if ruling.latched:
             # Out of cycle, so the robot hears it now rather than at the next beat; then written down.
             self._publish_heartbeat()
@@ -243,10 +246,18 @@ class SafetyNode:
             # A pause or a mode that stops programs: a program's twist stops now, not when the robot's
             # hold of the last one runs out (0.5 s). Teleop, if it may drive, sends its next one.
             self._stop_base()
-        for event in ruling.events:
-            self._publish_event(event)
-        if ruling.events:
-            self._note_decided(ruling.events)
+        if ruling.latched or ruling.reset:
+            # Written down (a reset by _on_reset), and published in the order the gate decided the
+            # latch's changes: taken from the gate and sent in one hold of the events' lock.
+            with self._events_lock:
+                events = self.gate.latch_told(events)
+                for event in events:
+                    self._publish_event(event)
+        else:
+            for event in events:
+                self._publish_event(event)
+        if events:
+            self._note_decided(events)
         if ruling.latched or ruling.cancel_goals:
             # Queries take time; not on Zenoh's callback thread. The heartbeat already stops the robot.
             threading.Thread(target=self._cancel_forwarded, name="estop-cancel", daemon=True).start()
@@ -465,7 +476,9 @@ class SafetyNode:
         self._carry_out(self.gate.plan_status(status))
 
     def _on_executor_alive(self, alive: bool) -> None:
-        if not alive:
+        if alive:
+            self.gate.executor_alive()
+        else:
             self._carry_out(self.gate.executor_gone())
 
     def _on_plan_feedback(self, feedback: Feedback[ExecutePlanFeedback]) -> None:
