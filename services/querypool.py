@@ -7,6 +7,8 @@ import queue
 import threading
 from collections.abc import Callable
 
+from services.repeats import RepeatLog
+
 log = logging.getLogger(__name__)
 
 
@@ -37,9 +39,11 @@ class QueryPool:
         self._idle = 0  # workers in (or on their way into) a get
         self._waiting = 0  # tasks put and not yet taken
         self._busy = 0
+        self._unstarted = RepeatLog("workers not started")
 
     def submit(self, task: Callable[[], None]) -> bool:
-        """Run `task` on a worker, now or once one is free; False if the pool is full (it will not run)."""
+        """Run `task` on a worker, now or once one is free; False if the pool is full, or it needs a worker
+        and none can be started now (the task will not run)."""
         with self._lock:
             if self._busy + self._waiting >= self.workers + self.backlog:
                 return False
@@ -50,9 +54,18 @@ class QueryPool:
             if start:
                 self._threads += 1
             number = self._threads  # read under the lock: two submits at once give their threads two names
-        self._tasks.put(task)
         if start:
-            threading.Thread(target=self._work, name=f"{self.name}-{number}", daemon=True).start()
+            # Before the put: a task no worker will take is not queued, nor a worker counted that never ran.
+            try:
+                threading.Thread(target=self._work, name=f"{self.name}-{number}", daemon=True).start()
+            except RuntimeError as exc:  # out of threads (the process's or the system's limit)
+                with self._lock:
+                    self._threads -= 1
+                    self._waiting -= 1
+                if (line := self._unstarted.note(f"query pool {self.name}", exc)) is not None:
+                    log.warning("%s", line)
+                return False
+        self._tasks.put(task)
         return True
 
     @property

@@ -510,8 +510,8 @@ class Node:
                 if error is None:
                     try:
                         value = handler(request)
-                        answered = True
                         reply = encode(value)
+                        answered = True  # a value that does not encode is answered with an error, and nothing follows
                     except CallError as exc:
                         error = exc.error
                     except Exception as exc:
@@ -656,11 +656,12 @@ class Node:
         if request is None and raw:
             record = msgspec.structs.replace(record, error=f"{record.error} (request of {len(raw)} bytes not kept)")
         key = keys.trace_key(self.robot, self.service, path)
-        with self._lock:
-            pub = self._trace_publishers.get(key)
-            if pub is None:
-                pub = self._trace_publishers[key] = self.session.declare_publisher(key)
         try:
+            with self._lock:
+                pub = self._trace_publishers.get(key)
+                if pub is None:
+                    # A handler still running as the node closed declares on a closed session.
+                    pub = self._trace_publishers[key] = self.session.declare_publisher(key)
             pub.put(encode(record))
         except zenoh.ZError:
             log.debug("trace for %s not published: session closing", path)

@@ -1,0 +1,100 @@
+"""The serving machinery as a node closes under it: handlers still running, their replies and traces."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from schemas.keys import Service
+from schemas.plan import PlanText
+from services.errors import CallError
+from services.querypool import QueryPool
+from services.runtime import Node, NodeSettings
+from tests.sessions import free_port
+
+WAIT = 5.0
+SLOW: Service[PlanText, PlanText] = Service("test/slow", PlanText, PlanText)
+
+
+def wait_until(condition: Callable[[], bool], what: str) -> None:
+    """Poll `condition` (a pool's count, which nothing announces) until it holds, for at most WAIT."""
+    deadline = time.monotonic() + WAIT
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} not within {WAIT} s"
+        time.sleep(0.002)  # polling, with the deadline above
+
+
+@pytest.mark.parametrize("raises", [False, True], ids=["returns", "raises"])
+def test_a_handler_still_running_when_its_node_closes_ends_quietly(
+    caplog: pytest.LogCaptureFixture, raises: bool
+) -> None:
+    """The first query of a path, its handler still running as the node closed (a get_result waiting
+    for its goal at shutdown): declaring its trace's publisher on the closed session raised, logged
+    at ERROR with a traceback as a failed task of the pool."""
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    inside, release = threading.Event(), threading.Event()
+
+    def handler(request: PlanText) -> PlanText:
+        inside.set()
+        assert release.wait(WAIT), "never released"
+        if raises:
+            raise ValueError("gone wrong")
+        return request
+
+    server = Node("sim", settings)
+    try:
+        server.queries = QueryPool("q:test", workers=1)
+        server.serve(SLOW, handler)
+        with Node("executor", settings) as client, ThreadPoolExecutor(1) as callers:
+            call = callers.submit(client.call, SLOW, PlanText(text="hello"), timeout=WAIT)
+            assert inside.wait(WAIT), "the handler never ran"
+            server.close()
+            release.set()
+            wait_until(lambda: server.queries.busy == 0, "the handler's task done")
+            with pytest.raises(CallError):
+                call.result(WAIT)
+    finally:
+        release.set()
+        if not server.closed:
+            server.close()
+    failed = [r.getMessage() for r in caplog.records if r.name == "services.querypool"]
+    assert failed == []
+
+
+def test_a_worker_that_cannot_be_started_is_not_counted_and_the_query_is_answered_busy(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The system out of threads for a moment: submit raised into Zenoh's callback (no reply at all),
+    and the pool counted the worker it never started, so a pool of one never started another and
+    ran nothing again."""
+    pool = QueryPool("starved", workers=1)
+    ran = threading.Event()
+
+    def no_thread(_thread: threading.Thread) -> None:
+        raise RuntimeError("can't start new thread")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(threading.Thread, "start", no_thread)
+        assert not pool.submit(lambda: None)
+    assert pool.load() == "0 of 1 workers busy, 0 of 0 waiting"
+    assert "workers not started on query pool starved: can't start new thread" in caplog.messages
+    assert pool.submit(ran.set)
+    assert ran.wait(WAIT), "the task never ran"
+
+
+def test_what_follows_a_reply_does_not_run_when_the_reply_could_not_be_encoded() -> None:
+    """A handler's value that does not encode is answered with an internal error, yet `after` ran as if
+    the reply had gone: an action's send_goal would start a goal its asker was told had failed."""
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_port())
+    followed: list[tuple[PlanText, PlanText]] = []
+    with Node("sim", settings) as server, Node("executor", settings) as client:
+        server.serve(SLOW, lambda _request: PlanText(text=object()), after=lambda q, a: followed.append((q, a)))  # type: ignore[arg-type]
+        with pytest.raises(CallError, match="test/slow failed: Encoding objects of type object is unsupported"):
+            client.call(SLOW, PlanText(text="hello"), timeout=WAIT)
+        wait_until(lambda: server.queries.busy == 0, "the handler's task done")
+    assert followed == []
