@@ -209,6 +209,8 @@ class Recorder:
     def _rotation_due(self, current: Recording, twin: Ros2Recording | None) -> str | None:
         if current.error:  # tried each tick: recording goes on in a new file once one can be written
             return current.error
+        if twin is not None and twin.error:  # its name goes with tether's file's: a new pair
+            return twin.error
         if current.removed():
             log.error("%s was removed while it was written: what it held since its last rotation is lost", current.path)
             return "its file was removed"
@@ -266,7 +268,9 @@ class Recorder:
             messages=self._ros2_messages_before + (twin.messages if twin is not None else 0),
             skipped=self._ros2_skipped_before + (twin.skipped if twin is not None else 0),
             files=[str(p) for p in self.ros2_files],
-            error="; ".join(e for e in (self._ros2_link_error, self._ros2_file_error) if e),
+            error="; ".join(
+                e for e in (self._ros2_link_error, self._ros2_file_error, twin.error if twin is not None else "") if e
+            ),
         )
 
 

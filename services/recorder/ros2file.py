@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -199,6 +200,10 @@ class Ros2Recording:
         self._channels: dict[tuple[str, str], int] = {}  # (topic, ROS type) -> channel id
         self.messages = 0
         self.skipped = 0
+        # Why writing stopped (the disk full), "" while it goes on. As in tether's file, nothing is written
+        # after a failed write (no chunk after a torn one): every later sample is skipped and counted,
+        # and the recorder starts a new pair of files.
+        self.error = ""
         self.finished = False
         self._size_at_finish = 0
         self._writer.start(profile=Profile.ROS2, library=LIBRARY)
@@ -214,27 +219,39 @@ class Ros2Recording:
             return self._skip(skip)
         sent = publish_time(attachment)
         with self._lock:
-            if self.finished:
+            if self.finished or self.error:
                 self.skipped += 1
                 return False
             channel = self._channels.get((topic.name, topic.ros_type))
-            if channel is None:
-                if len(self._channels) >= MAX_CHANNELS:
-                    self.skipped += 1
-                    self._warn("too many topics", f"{topic.name}: the file has {MAX_CHANNELS} channels already")
-                    return False
-                channel = self._channels[topic.name, topic.ros_type] = self._register(topic)
+            if channel is None and len(self._channels) >= MAX_CHANNELS:
+                self.skipped += 1
+                self._warn("too many topics", f"{topic.name}: the file has {MAX_CHANNELS} channels already")
+                return False
             # Taken under the lock, so receive times rise with the sequence.
             now = self._clock() if log_time is None else log_time
-            self._writer.add_message(
-                channel_id=channel,
-                log_time=now,
-                publish_time=now if sent is None else sent,
-                data=payload,
-                sequence=self.messages,
-            )
+            try:
+                if channel is None:
+                    channel = self._channels[topic.name, topic.ros_type] = self._register(topic)
+                # A full chunk is written here, on the receiving thread.
+                self._writer.add_message(
+                    channel_id=channel,
+                    log_time=now,
+                    publish_time=now if sent is None else sent,
+                    data=payload,
+                    sequence=self.messages,
+                )
+            except OSError as exc:
+                self._failed(exc)
+                self.skipped += 1
+                return False
             self.messages += 1
         return True
+
+    def _failed(self, exc: OSError) -> None:
+        """With the lock held: writing failed (the disk full, read-only, gone); said once."""
+        if not self.error:
+            self.error = f"cannot write the ROS 2 recording {self.path}: {exc.strerror or exc}"
+            log.error("%s; its samples are skipped until the next file; tether's recording goes on", self.error)
 
     def _skip(self, skip: Skipped) -> bool:
         with self._lock:
@@ -260,10 +277,14 @@ class Ros2Recording:
         )
 
     def flush(self) -> None:
-        """Write the chunk in progress, so a crash loses at most what arrived since."""
+        """Write the chunk in progress, so a crash loses at most what arrived since. A write that fails
+        is `error`, not raised."""
         with self._lock:
-            if not self.finished:
-                self._writer.flush()
+            if not self.finished and not self.error:
+                try:
+                    self._writer.flush()
+                except OSError as exc:
+                    self._failed(exc)
 
     def finish(self) -> None:
         """Write the summary and index, and close the file if this recording opened it. Idempotent."""
@@ -272,13 +293,17 @@ class Ros2Recording:
                 return
             self.finished = True
             try:
-                self._writer.finish()
-                self._stream.flush()
+                if not self.error:
+                    self._writer.finish()
+                    self._stream.flush()
                 self._size_at_finish = self._stream.tell()
+            except OSError as exc:
+                self._failed(exc)
             finally:
                 # Closed even when the disk refuses the summary: the file is then cut, and recoverable.
                 if self._owns_stream:
-                    self._stream.close()
+                    with contextlib.suppress(OSError):
+                        self._stream.close()
 
     @property
     def size(self) -> int:
