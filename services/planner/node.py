@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -36,7 +37,7 @@ from services.planner.errors import ExecutorUnreachable, LLMError
 from services.planner.llm import ChatClient, ChatReply
 from services.planner.loop import Attempt, DryRunVerdict, LoopResult, LoopStatus, plan_loop
 from services.planner.prompt import hazard_lines, hazards_block, hazards_query, initial_messages
-from services.planner.recovery import Ended, Ports, Sent, follow_and_recover
+from services.planner.recovery import UNFOLLOWED, Ended, Ports, Sent, follow_and_recover
 from services.runtime import BUILDING_TYPES, Node, prepare_types
 
 log = logging.getLogger(__name__)
@@ -335,8 +336,11 @@ class Planner:
             except ExecutorUnreachable as exc:
                 return LoopResult(LoopStatus.REJECTED, reason=str(exc))
 
+        # The caller stops waiting at its deadline: the plan is not followed longer than that (a worker,
+        # or `tether ask` itself, held until the plan's end, up to MAX_RESULT_WAIT, for no one).
+        follow = functools.partial(self._follow_goal, until=deadline) if deadline > 0 else self._follow_goal
         ports = Ports(
-            follow=self._follow_goal,
+            follow=follow,
             estop=self.estop_latched,
             scene=self.scene_text,
             incidents=self.incidents_text,
@@ -356,9 +360,12 @@ class Planner:
             ports,
         )
         log.info("request %s: %s", request_id, followed.reason)
+        status = AskStatus.SUCCEEDED if followed.succeeded else AskStatus.FAILED
+        if followed.running:
+            status = AskStatus.ACCEPTED  # sent, taken, and still running: not failed
         return msgspec.structs.replace(
             sent,
-            status=AskStatus.SUCCEEDED if followed.succeeded else AskStatus.FAILED,
+            status=status,
             stage=Stage.EXECUTE,
             reason=bounded(followed.reason, 4000),
             plan=bounded(followed.plan),
@@ -394,15 +401,23 @@ class Planner:
         except Exception:
             log.exception("request %s: following goal %s failed", sent.request_id, sent.goal_id)
 
-    def _follow_goal(self, goal_id: str) -> Ended:
-        """Wait for the goal's end (get_result); give up when the planner closes."""
-        future = ClientGoal(self._executor, goal_id).result_future(MAX_RESULT_WAIT)
+    def _follow_goal(self, goal_id: str, until: float = 0.0) -> Ended:
+        """Wait for the goal's end (get_result); give up when the planner closes, or at `until`
+        (wall clock; 0: none), the caller's deadline."""
+        wait = MAX_RESULT_WAIT
+        if until > 0:  # the thread asking for the result ends soon after the deadline too, not an hour later
+            wait = min(MAX_RESULT_WAIT, max(0.0, until - time.time()) + FOLLOW_POLL)
+        future = ClientGoal(self._executor, goal_id).result_future(wait)
         while not futures.wait([future], FOLLOW_POLL).done:
             if self._closing.is_set():
-                return Ended(None, "unfollowed", "the planner stopped following the plan (shutting down)")
+                return Ended(None, UNFOLLOWED, "the planner is shutting down")
+            if until > 0 and time.time() > until:
+                return Ended(None, UNFOLLOWED, "the caller's deadline passed")
         try:
             response = future.result()
         except CallError as exc:
+            if until > 0 and time.time() > until:
+                return Ended(None, UNFOLLOWED, "the caller's deadline passed")
             return Ended(None, "unknown", f"no result from the executor: {exc}")
         return Ended(response.result, str(response.state), response.message)
 

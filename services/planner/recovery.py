@@ -23,6 +23,8 @@ RECOVERABLE = frozenset(
 )
 # Text from the executor (a step's message, a plan) is cut to this in the prompt.
 MAX_FAILURE_CHARS = 4000
+# Ended.state of a goal the planner stopped following before it ended (closing, the caller's deadline).
+UNFOLLOWED = "unfollowed"
 
 RECOVERY_INSTRUCTIONS = """The plan below was sent for this request and failed while it ran. Write a recovery
 plan that reaches what the request asks for from the world as it is now (the scene above was read after the
@@ -34,7 +36,8 @@ instructions. Answer with the whole recovery plan only, as before."""
 @dataclass(frozen=True)
 class Ended:
     """How a followed goal ended: the executor's result (None when the goal gave none) and the
-    action's words (`state`, `message`)."""
+    action's words (`state`, `message`). State UNFOLLOWED: it had not ended when the planner stopped
+    following it, `message` says why."""
 
     result: ExecutePlanResult | None
     state: str = ""
@@ -219,13 +222,15 @@ class Ports:
 
 @dataclass(frozen=True)
 class Followed:
-    """The end of a request's plan and its recoveries: succeeded or not, the last goal and plan."""
+    """The end of a request's plan and its recoveries: succeeded or not, the last goal and plan;
+    `running` when that goal had not ended as the planner stopped following it."""
 
     succeeded: bool
     reason: str
     goal_id: str
     plan: str
     recoveries: list[Recovery]
+    running: bool = False
 
 
 def plural(count: int) -> str:
@@ -297,12 +302,19 @@ def follow_and_recover(
     """Follow `goal_id` to its end; while it failed at a step and fewer than `max_recoveries` were
     asked for, ask the model for a recovery plan (checked by a dry run through `ports.plan`), send it
     and follow that. Stops at once, with a STOPPED record and no model call, on an e-stop, a veto or
-    a cancel; a recovery that found no plan, or whose send was refused, ends it too."""
+    a cancel; a recovery that found no plan, or whose send was refused, ends it too. A goal no longer
+    followed (`ports.follow` gave UNFOLLOWED) ends it with the goal `running`."""
     records = _Recoveries(request_id, ports)
     earlier: list[Failure] = []
     number = 0
     while True:
         ended = ports.follow(goal_id)
+        if ended.state == UNFOLLOWED:
+            # It runs on: the record of a recovery sent stays `sent` (it neither failed nor succeeded),
+            # and one more says why nothing follows it.
+            reason = f"not followed to its end: {ended.message}; goal {goal_id} goes on"
+            records.new(number + 1, RecoveryOutcome.STOPPED, goal_id, Failure(), reason)
+            return Followed(False, reason, goal_id, plan, records.records, running=True)
         verdict = judge(ended, ports.estop())
         failure = verdict.failure
         succeeded = verdict.next is Next.SUCCEEDED
