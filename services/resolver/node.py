@@ -46,15 +46,23 @@ class Perception:
     relative to the robot is refused rather than grounded from where it stood an hour ago. A person
     missing from the latest report (out of view: a people tracker lists only whom it sees) stays
     where last seen, not where the world file puts them; a report naming one id at two poses moves
-    no one of that id (which is meant is not known) and is logged."""
+    no one of that id (which is meant is not known) and is logged. `people`: the ids worth
+    remembering (the world's people; None: every id)."""
 
     def __init__(
-        self, memory: ObjectMemory, clock: Callable[[], float] = time.monotonic, odom_max_age: float = ODOM_MAX_AGE
+        self,
+        memory: ObjectMemory,
+        clock: Callable[[], float] = time.monotonic,
+        odom_max_age: float = ODOM_MAX_AGE,
+        people: Iterable[str] | None = None,
     ) -> None:
         self._lock = threading.Lock()
         self._memory = memory
         self._clock = clock
         self._odom_max_age = odom_max_age
+        # Only a person of the world has a name a plan can refer to: a tracker's (or a hostile
+        # peer's) made-up ids would otherwise push out where the operator was last seen.
+        self._known_people = frozenset(people) if people is not None else None
         self._robot: tuple[float, Pose2D] | None = None  # when it arrived, the pose
         self._people: dict[str, PerceivedHuman] = {}  # by id, as last seen
         self._people_stamp: float | None = None  # of the latest report; None before any
@@ -68,15 +76,17 @@ class Perception:
             self._robot = (self._clock(), message.pose)
 
     def on_humans(self, message: PerceivedHumans) -> None:
+        known = self._known_people
+        humans = [h for h in message.humans if known is None or h.id in known]
         poses: dict[str, set[tuple[float, float, float]]] = {}
-        for human in message.humans:
+        for human in humans:
             poses.setdefault(human.id, set()).add((human.pose.x, human.pose.y, human.pose.yaw))
         twice = sorted(i for i, p in poses.items() if len(p) > 1)
         if twice:
             log.warning("people reported at two poses at once, not moved: %s", ", ".join(twice[:5]))
         with self._lock:
             self._people_stamp = message.stamp
-            for human in message.humans:
+            for human in humans:
                 if human.id not in twice:
                     self._people.pop(human.id, None)  # to the end: the dict runs from longest unseen
                     self._people[human.id] = human
@@ -101,10 +111,10 @@ def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(WorldModel(load_world(config.world)), config)
 
 
-def build_perception(config: ResolverConfig, known: Iterable[str]) -> Perception:
-    """`known`: the world's object ids, the only ones remembered."""
+def build_perception(config: ResolverConfig, known: Iterable[str], people: Iterable[str]) -> Perception:
+    """`known`, `people`: the world's object and person ids, the only ones remembered."""
     memory = ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance, known=known)
-    return Perception(memory, odom_max_age=config.odom_max_age)
+    return Perception(memory, odom_max_age=config.odom_max_age, people=people)
 
 
 def handler(resolver: Resolver, perception: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
@@ -139,7 +149,8 @@ def scene_handler(resolver: Resolver, perception: Perception) -> Callable[[Empty
 
 
 def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Perception:
-    perception = build_perception(config, (o.id for o in resolver.world.objects))
+    world = resolver.world
+    perception = build_perception(config, (o.id for o in world.objects), (h.id for h in world.humans))
     node.subscribe(keys.OBJECTS, perception.on_objects)
     node.subscribe(keys.ODOM, perception.on_odom)
     node.subscribe(keys.HUMANS, perception.on_humans)

@@ -271,9 +271,20 @@ class Resolver:
                 names = " and ".join(self._display_name(h) for h in held)
                 holding = _Unknown(f"not known: the camera reports both {names} in the gripper")
                 notes.warnings.append(f"the camera reports both {names} in the gripper, which holds one thing")
+        people = {h.id: h for h in self.world.humans}
         human_poses = {h.id: h.pose for h in self.world.humans}
-        if humans is not None:
-            human_poses.update({h.id: h.pose for h in humans.humans if h.id in human_poses})
+        for seen_person in humans.humans if humans is not None else ():
+            if seen_person.id not in people:
+                continue
+            pose = seen_person.pose
+            if not self._map.covers(Point(pose.x, pose.y)):
+                # Evidence like an object's sighting: a delivery or "come to me" there would be grounded off the map.
+                notes.warnings.append(
+                    f"the report of the {people[seen_person.id].name} is not believed: it puts them at "
+                    f"({pose.x:.2f}, {pose.y:.2f}), off the map"
+                )
+                continue
+            human_poses[seen_person.id] = pose
         state = _State(beliefs, holding, robot, human_poses, notes)
         if isinstance(holding, str) and origins and holding in origins:
             state.origins[holding] = (origins[holding], "where the camera last saw it before it was in the gripper")
