@@ -533,7 +533,23 @@ class Controllers:
         return self._start(Navigation.kind, lambda: Navigation(self, goal))
 
     def _away_from(self, start: Pose2D) -> str | None:
-        return away_from(self.world.robot.base_pose(), start, self.world.model.base_radius)
+        here, radius = self.world.robot.base_pose(), self.world.model.base_radius
+        if (reason := away_from(here, start, radius)) is not None:
+            return reason
+        # A base still braking (the goal this one preempted was just canceled) is within reach of
+        # `start` now but comes to rest past it, off the legs checked from there.
+        (linear, angular), robot = self.base.actual, self.world.spec.robot
+        ahead = linear * abs(linear) / (2.0 * robot.max_linear_acceleration)
+        turned = angular * abs(angular) / (2.0 * robot.max_angular_acceleration)
+        yaw = here.yaw + turned
+        rest = Pose2D(x=here.x + ahead * math.cos(here.yaw), y=here.y + ahead * math.sin(here.yaw), yaw=yaw)
+        if away_from(rest, start, radius) is None:
+            return None
+        return (
+            f"the route was checked from ({start.x:.2f}, {start.y:.2f}, {start.yaw:.2f} rad) but the base is still "
+            f"moving ({linear:.2f} m/s, {angular:.2f} rad/s) and comes to rest at ({rest.x:.2f}, {rest.y:.2f}, "
+            f"{wrap_angle(yaw):.2f} rad)"
+        )
 
     def follow_trajectory(self, goal: FollowJointTrajectoryGoal) -> Motion[Any, Any]:
         reason = self.arm.check_trajectory(goal)

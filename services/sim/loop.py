@@ -32,6 +32,7 @@ ANSWER_TIMEOUT = 2.0
 MAX_LAG = 0.5
 # The sim thread looks at the heartbeat at least this often (seconds), even with nothing to step.
 MAX_WAIT = 0.05
+SHUTTING_DOWN = "the simulator is shutting down"
 
 
 @dataclass(frozen=True)
@@ -110,16 +111,26 @@ class SimLoop:
         self.schedule = ReportSchedule(reports)
         self._commands: queue.SimpleQueue[Command] = queue.SimpleQueue()
         self._wake = threading.Event()
+        # Set (under `_submitting`) as run() ends: no command is taken after its final drain.
+        self._submitting = threading.Lock()
+        self.ended: str | None = None
+        # The goals relay() started, by motion (sim thread only): ended before the next step once asked to stop.
+        self._relayed: dict[Motion[Any, Any], GoalPort] = {}
         # The reports whose last publish failed (sim thread only): the watchdog is not fed meanwhile.
         self.failing: set[str] = set()
 
     # From other threads
 
-    def submit(self, command: Command, changes: bool = True) -> None:
+    def submit(self, command: Command, changes: bool = True) -> bool:
         """Run `command` on the sim thread. One that may change the world (`changes`, unless it only
-        reads) wakes a resting sim first (Simulation.wake)."""
-        self._commands.put(functools.partial(_woken, command) if changes else command)
+        reads) wakes a resting sim first (Simulation.wake). False, and never run, once the thread has
+        ended (`ended`)."""
+        with self._submitting:
+            if self.ended is not None:
+                return False
+            self._commands.put(functools.partial(_woken, command) if changes else command)
         self._wake.set()
+        return True
 
     def ask(self, query: Callable[[Simulation], T], timeout: float, changes: bool = True) -> T | None:
         """Run `query` on the sim thread and wait for its value; None if the thread does not answer."""
@@ -132,8 +143,8 @@ class SimLoop:
             finally:
                 answered.set()
 
-        self.submit(run, changes)
-        answered.wait(timeout)
+        if self.submit(run, changes):
+            answered.wait(timeout)
         return box[0] if box else None
 
     def answer(self, query: Callable[[Simulation], T], changes: bool = True) -> T:
@@ -175,8 +186,9 @@ class SimLoop:
 
     def relay(self, start: Callable[[Controllers], Motion[Any, Any]], goal: GoalPort) -> Outcome[Any]:
         """Carry out one goal, on the calling (action server's) thread: start its motion on the sim
-        thread unless `obey` blocks it, relay the feedback, cancel the motion once the goal should
-        stop, and return how it ended. A goal that should stop before it started never moves."""
+        thread unless `obey` blocks it (or the thread has ended), relay the feedback, and return how
+        it ended; the sim thread cancels the motion before its next step once the goal should stop
+        (`_enforce`). A goal that should stop before it started never moves."""
         lock = threading.Lock()
         abandoned = False  # set under `lock` when the wait for `begin` gives up
         # What begin did: the motion it started, why it refused, or None when it did not start one
@@ -189,17 +201,23 @@ class SimLoop:
                 with lock:
                     if abandoned:
                         return  # its waiter gave up: started now, no cancel could reach it
-                    blocked = self._obey()  # as things stand now, not as of the last step
+                    # A motion started once the loop has ended would never be stepped nor end.
+                    blocked = self.ended or self._obey()  # as things stand now, not as of the last step
                     if goal.should_stop:
                         started.append(None)
+                    elif blocked:
+                        started.append(blocked)
                     else:
-                        started.append(blocked or start(sim.controllers))
+                        motion = start(sim.controllers)
+                        self._relayed[motion] = goal
+                        started.append(motion)
             finally:
                 answered.set()
 
         if goal.should_stop:
             return self._ended_before_start(goal)
-        self.submit(begin)
+        if not self.submit(begin):
+            return Outcome(GoalState.ABORTED, None, self.ended or "")
         answered.wait(START_TIMEOUT)
         with lock:
             if not started:
@@ -210,13 +228,8 @@ class SimLoop:
             return self._ended_before_start(goal)
         if isinstance(motion, str):
             return Outcome(GoalState.ABORTED, None, motion)
-        cancel_sent = False
-        while True:
-            if goal.should_stop and not cancel_sent:
-                cancel_sent = True
-                self.submit(self._canceller(motion, goal.abort_reason))
-            if motion.done.wait(FEEDBACK_PERIOD):
-                break
+        # Its cancel is the sim thread's to carry out (_enforce), at once: this thread only relays feedback.
+        while not motion.done.wait(FEEDBACK_PERIOD):
             if motion.feedback is not None:
                 goal.feedback(motion.feedback)
         return Outcome(motion.state, motion.result, motion.message)
@@ -228,12 +241,20 @@ class SimLoop:
             return Outcome(GoalState.ABORTED, None, goal.abort_reason)
         return Outcome(GoalState.CANCELED, None, "canceled before it started")
 
-    @staticmethod
-    def _canceller(motion: Motion[Any, Any], abort_reason: str) -> Command:
-        """Ends `motion` as aborted (safety, shutdown) when there is a reason, else as canceled."""
-        if abort_reason:
-            return lambda sim: sim.controllers.cancel(motion, GoalState.ABORTED, abort_reason)
-        return lambda sim: sim.controllers.cancel(motion, GoalState.CANCELED, "canceled")
+    def _enforce(self) -> None:
+        """Before every step: `obey`, then end each relayed goal asked to stop meanwhile, as aborted
+        (safety, shutdown) when it has a reason, else as canceled. A cancel that came before a step
+        is carried out before it, not once the goal's thread next looked (FEEDBACK_PERIOD later)."""
+        self._obey()
+        controllers = self.sim.controllers
+        for motion, goal in list(self._relayed.items()):
+            if motion.running and goal.should_stop:
+                if goal.abort_reason:
+                    controllers.cancel(motion, GoalState.ABORTED, goal.abort_reason)
+                else:
+                    controllers.cancel(motion, GoalState.CANCELED, "canceled")
+            if not motion.running:
+                del self._relayed[motion]
 
     # The sim thread
 
@@ -247,7 +268,7 @@ class SimLoop:
         try:
             while not stop.is_set():
                 self._drain()
-                self._obey()
+                self._enforce()
                 now = time.monotonic()
                 target = sim_start + (now - wall_start) * factor
                 if target - sim.sim_time > MAX_LAG:
@@ -261,7 +282,7 @@ class SimLoop:
                     # could end the rest, and commands are drained between passes.
                     sim.step(max(1, int((target - sim.sim_time) / sim.dt)) if sim.resting else 1)
                     self._drain()
-                    self._obey()
+                    self._enforce()
                     # Also while catching up: on a busy machine physics runs behind, but odometry
                     # and joint states must keep coming, or safety's watchdog sees a silent robot.
                     # Not objects nor people: the perception the robot reports at its own pace.
@@ -275,8 +296,11 @@ class SimLoop:
                 self._wake.wait(max(0.0, min(wake_at - time.monotonic(), MAX_WAIT)))
                 self._wake.clear()
         finally:
-            sim.controllers.stop("the simulator is shutting down")
+            # What was handed over before this runs still runs (a goal's start is refused); nothing after.
+            with self._submitting:
+                self.ended = SHUTTING_DOWN
             self._drain()
+            sim.controllers.stop(SHUTTING_DOWN)
 
     def _drain(self) -> None:
         while True:

@@ -527,7 +527,14 @@ class SimWorld:
         obj = self.model.objects[object_id]
         payload = min(self.spec.robot.payload, payload_limit or self.spec.robot.payload)
         if obj.mass > payload:
+            if self.holding == object_id:
+                self.release()  # as the words say
             return f"{object_id} weighs {obj.mass:g} kg, over the {payload:g} kg payload; it slips out"
+        if self.holding == object_id:
+            # Closed again on it: one grip. A second would hold it on after `release` removed the other.
+            return None
+        if self.holding is not None:
+            self.release()  # the hand holds one thing: the other's grip goes, not left behind
         body, robot = self.object_bodies[object_id], self.robot
         self._wake(body)
         hand_com = self.bullet.getLinkState(robot.id, robot.hand)[0:2]
