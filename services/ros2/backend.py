@@ -104,6 +104,14 @@ class RobotRefused(RobotCallFailed):
     """The robot's action server answered a goal with accepted = false."""
 
 
+class RobotLinkClosed(RobotCallFailed):
+    """The backend left the robot's network (closing): no call reaches the robot any more."""
+
+
+class RobotGoalForgotten(RobotCallFailed):
+    """The robot's action server says it knows no such goal (it restarted, or forgot it): it runs none."""
+
+
 class RobotGoalUnanswered(RobotCallFailed):
     """A goal's send_goal got no usable answer: the robot may still take it, as goal `goal_id`."""
 
@@ -774,6 +782,11 @@ def trajectory_error(result: Any) -> str:
     return f"{name}: {text}" if text else name
 
 
+# Nav2's result for a goal it aborted without a code or a word: so its SimpleActionServer ends a goal
+# a newer one preempted, on the same navigator or (the navigator muxer) the other one.
+NAV2_NO_REASON = "no reason given (Nav2 gives none when another goal on the robot preempts it)"
+
+
 def navigation_error(result: Any) -> str:
     if result is None:
         return ""
@@ -783,6 +796,20 @@ def navigation_error(result: Any) -> str:
         return text
     name = NAV2_ERRORS.get(code, f"error {code}")
     return f"{name}: {text}" if text else name
+
+
+def gripper_error(result: Any) -> str:
+    """A GripperCommand (or ParallelGripperCommand) result that did not succeed, in words; '' when it
+    says nothing. gripper_action_controller aborts a goal whose fingers stall short of it (unless
+    allow_stalling), saying so only in its result."""
+    if result is None or not bool(getattr(result, "stalled", False)):
+        return ""
+    if hasattr(result, "state"):  # ParallelGripperCommand: one finger joint, half the gap
+        position = float(result.state.position[0]) * 2 if len(result.state.position) else math.nan
+    else:
+        position = float(result.position)
+    where = f" at {position * 1000:.0f} mm" if math.isfinite(position) else ""
+    return f"the fingers stalled{where}, short of the goal"
 
 
 # What the robot reports, as the goal runs read it

@@ -37,13 +37,17 @@ from schemas.robot import (
 from services.footprint import TRACKING_TOLERANCE, Leg, route_legs, turn_angle
 from services.robotrules import FEEDBACK_PERIOD, SafetyNow, away_from
 from services.ros2.backend import (
+    NAV2_NO_REASON,
     TRAJECTORY_SETTLE,
     BaseLimits,
     Messages,
     RobotCallFailed,
+    RobotGoalForgotten,
     RobotGoalUnanswered,
+    RobotLinkClosed,
     RobotRefused,
     RobotState,
+    gripper_error,
     gripper_gap,
     navigation_error,
     ros_failure,
@@ -96,7 +100,7 @@ class RosGoal(Protocol):
 
     def cancel(self, timeout: float) -> bool:
         """Ask the robot to cancel the goal; True when its action server answers that the goal had
-        ended already (a goal it is canceling is not over yet)."""
+        ended already, or that it knows no such goal (a goal it is canceling is not over yet)."""
         ...
 
     def forget(self) -> None:
@@ -298,6 +302,8 @@ class _Flight:
         self.label = label
         self.ended = threading.Event()
         self.settled = threading.Event()
+        # The backend left the robot's network: nothing more can be asked of the goal, so no thread waits on it.
+        self.closed = threading.Event()
         self.outcome: tuple[int, Any, str] = (0, None, "")
         threading.Thread(target=self._fetch, name=f"result:{label}", daemon=True).start()
 
@@ -316,6 +322,20 @@ class _Flight:
         while not self.settled.is_set():
             try:
                 status, result = self.goal.result(RESULT_POLL)
+            except RobotLinkClosed as exc:
+                if not self.ended.is_set():
+                    self.outcome = (int(GoalStatus.UNKNOWN), None, f"its result could not be read: {exc}")
+                self.closed.set()
+                self.ended.set()
+                return
+            except RobotGoalForgotten as exc:
+                # Its own server says it has no such goal (it restarted): over, nothing there to cancel
+                # or wait for. Asked on, it would answer so forever, and the emergency stop held for it never lift.
+                if not self.ended.is_set():
+                    self.outcome = (int(GoalStatus.UNKNOWN), None, str(exc))
+                self.settled.set()
+                self.ended.set()
+                return
             except RobotCallFailed as exc:
                 status = int(self.goal.status)
                 if status in TERMINAL and not self.ended.is_set():
@@ -338,6 +358,8 @@ class _Flight:
         try:
             if self.goal.cancel(timeout):
                 self.settled.set()
+        except RobotLinkClosed:
+            self.closed.set()
         except RobotCallFailed as exc:
             log.warning("cancel of the %s goal failed: %s", self.label, exc)
 
@@ -555,6 +577,9 @@ class GoalRun:
         """Ask the robot to cancel the goal until its result (or its answer to a cancel) says it ended,
         then release it: never on its status topic alone, which anyone on its network can publish."""
         while not flight.settled.wait(CANCEL_RETRY):
+            if flight.closed.is_set():
+                log.warning("the backend left the robot's network with its %s goal not known to have ended", self.label)
+                return  # the robot's emergency stop stays as it was last told: true, by the backend's close
             try:
                 flight.cancel(self.ctx.cancel_timeout)
             except Exception:
@@ -774,7 +799,9 @@ class NavigationRun(GoalRun):
         return Ending(GoalState.SUCCEEDED, NavigateToPoseResult(pose=pose, message=message), message)
 
     def failure(self, status: int, result: Any, error: str) -> str:
-        return ros_failure(self.label, status, navigation_error(result) or error)
+        if not (error := navigation_error(result) or error) and status == GoalStatus.ABORTED and result is not None:
+            error = NAV2_NO_REASON
+        return ros_failure(self.label, status, error)
 
     def result_with(self, message: str) -> NavigateToPoseResult | None:
         odom = self.ctx.robot.latest_odometry
@@ -965,6 +992,9 @@ class GripperRun(GoalRun):
                 message += f" ({mass:g} kg, over the payload limit of {limit:g} kg)"
         result_value = GripperCommandResult(position=position, stalled=stalled, reached_goal=reached, holding=holding)
         return Ending(GoalState.SUCCEEDED, result_value, message)
+
+    def failure(self, status: int, result: Any, error: str) -> str:
+        return ros_failure(self.label, status, gripper_error(result) or error)
 
     def _holding(self) -> str | None:
         """The object the detections put in the gripper, from a report after the grasp."""

@@ -50,7 +50,9 @@ from services.ros2.backend import (
     Perception,
     RateLimit,
     RobotCallFailed,
+    RobotGoalForgotten,
     RobotGoalUnanswered,
+    RobotLinkClosed,
     RobotRefused,
     RobotReportError,
     RobotState,
@@ -60,7 +62,16 @@ from services.ros2.backend import (
 )
 from services.ros2.config import Ros2Config
 from services.ros2.goals import Ending, GoalRun, GripperRun, NavigationRun, RunContext, TrajectoryRun
-from services.ros2.rmw import MAX_PAYLOAD, RosActionClient, RosCallError, RosClientGoal, RosGoalRejected, RosNode
+from services.ros2.rmw import (
+    MAX_PAYLOAD,
+    RosActionClient,
+    RosCallError,
+    RosClientGoal,
+    RosGoalRejected,
+    RosGoalUnknown,
+    RosNode,
+    RosNodeClosed,
+)
 from services.ros2.types import RosTypes
 from services.ros2.wire import CancelReturn, Naming
 from services.runtime import ConfigError, Node
@@ -119,6 +130,10 @@ def check_class_map(config: Ros2Config, world: World) -> None:
             )
 
 
+def _call_failed(exc: RosCallError) -> RobotCallFailed:
+    return RobotLinkClosed(str(exc)) if isinstance(exc, RosNodeClosed) else RobotCallFailed(str(exc))
+
+
 class _Goal:
     """rmw's RosClientGoal, its errors as the backend's."""
 
@@ -133,17 +148,21 @@ class _Goal:
     def result(self, timeout: float) -> tuple[int, Any]:
         try:
             outcome = self._goal.result(timeout)
+        except RosGoalUnknown as exc:
+            raise RobotGoalForgotten(str(exc)) from None
         except RosCallError as exc:
-            raise RobotCallFailed(str(exc)) from None
+            raise _call_failed(exc) from None
         self._client.forget(self._goal)
         return outcome
 
     def cancel(self, timeout: float) -> bool:
-        """Ask the robot to cancel the goal; True when its server answers that the goal had ended already."""
+        """Ask the robot to cancel the goal; True when its server answers that the goal had ended already,
+        or that it knows no such goal now (restarted, or forgot it): either way it runs none."""
         try:
-            return self._goal.request_cancel(timeout) is CancelReturn.ERROR_GOAL_TERMINATED
+            answer = self._goal.request_cancel(timeout)
+            return answer in (CancelReturn.ERROR_GOAL_TERMINATED, CancelReturn.ERROR_UNKNOWN_GOAL_ID)
         except RosCallError as exc:
-            raise RobotCallFailed(str(exc)) from None
+            raise _call_failed(exc) from None
 
     def forget(self) -> None:
         self._client.forget(self._goal)
@@ -242,6 +261,7 @@ class Ros2Backend:
         # follows the stop (emergency_stop, zero cmd_vel) that blocked it.
         self._cmd_lock = threading.RLock()
         self._cmd_hold = CmdVelHold(config.cmd_vel_timeout)
+        self._cmd_stamp = 0.0  # when the held cmd_vel was sent (wall time): its stamp
         self._epoch = 0  # counts the stops the robot was told
         # Goals the robot would not end when canceled: its emergency stop is held until they end.
         self._holds: dict[int, str] = {}
@@ -466,7 +486,11 @@ class Ros2Backend:
                 self._complain("cmd_vel", reason)
                 return
             self._cmd_hold.sent(twist, linear, angular, time.monotonic())
-            self._put(self._cmd_vel, self.messages.cmd_vel(linear, angular, twist.stamp or time.time()))
+            # Stamped when sent, not with tether's stamp: diff_drive_controller holds a TwistStamped
+            # cmd_vel_timeout from its stamp and ignores one older, so a command that took longer
+            # through the pipeline would be dropped and a quicker one held for less than its hold here.
+            self._cmd_stamp = time.time()
+            self._put(self._cmd_vel, self.messages.cmd_vel(linear, angular, self._cmd_stamp))
 
     def _keep_cmd_vel_within(self) -> None:
         """A held cmd_vel above a limit that just dropped goes out again, clamped (never faster, never
@@ -479,7 +503,10 @@ class Ros2Backend:
             safety = self.guard.now()
             command = self._cmd_hold.due(lambda twist: self.limits.clamp(twist, safety), time.monotonic())
             if command is not None:
-                self._put(self._cmd_vel, self.messages.cmd_vel(*command, time.time()))
+                # A clamped re-send keeps the command's stamp, so the robot holds it no longer; the zero
+                # that ends the hold is stamped now.
+                stamp = self._cmd_stamp if command != (0.0, 0.0) else time.time()
+                self._put(self._cmd_vel, self.messages.cmd_vel(*command, stamp))
 
     # Goals
 

@@ -47,10 +47,16 @@ KEEP_TERMINAL_GOALS = 64  # finished goals still listed in status and answered b
 # a server that takes it after all (a late answer, a lost one) has it canceled.
 ABANDONED_WATCH = 60.0
 LATE_CANCEL_TIMEOUT = 2.0
-# The most a service reply or a sample may weigh (bytes), unless its subscription says otherwise: far
-# more than any goal status array, feedback or result. A peer sending more (anyone on the robot's
+# The most a service request or reply or a sample may weigh (bytes), unless its subscription says
+# otherwise: far more than any goal, goal status array, feedback or result. A peer sending more (anyone on the robot's
 # network can) is dropped before it is decoded, which would cost far more memory and time than its bytes.
 MAX_PAYLOAD = 1 << 20
+# What a failed service call keeps of the peers' error replies, which anyone on the robot's network
+# can send, as many as it likes until the call's timeout: this many, each cut to ERROR_TEXT_MAX
+# characters (one over ERROR_REPLY_MAX bytes is not read), the rest counted.
+MAX_CALL_ERRORS = 4
+ERROR_REPLY_MAX = 4096
+ERROR_TEXT_MAX = 300
 
 
 def _next_id() -> int:
@@ -64,6 +70,15 @@ class RosCallError(Exception):
 
 class RosGoalRejected(RosCallError):
     """The action server answered the goal with accepted = false."""
+
+
+class RosNodeClosed(RosCallError):
+    """A call on a node that was closed: nothing more goes to the robot from it."""
+
+
+class RosGoalUnknown(RosCallError):
+    """The action server answered get_result for a goal it took with status UNKNOWN: it knows no such
+    goal now (it restarted, or forgot it), so it runs none."""
 
 
 def _now_ns() -> int:
@@ -151,15 +166,27 @@ class RosClient:
     def call(self, request: object, timeout: float) -> Any:
         """The service's response; RosCallError naming the service when there is none in `timeout` s."""
         name = self.endpoint.name
+        if self._node.closed:
+            raise RosNodeClosed(f"service {name}: the node is closed")
         payload = self._node.types.encode(self.request_type, request)
         with self._lock:
             sequence = next(self._sequence)
-        options: dict[str, Any] = {"payload": payload, "timeout": timeout}
+        # The node's token: closing it ends a call still waiting (a get_result waits as long as its goal runs).
+        options: dict[str, Any] = {"payload": payload, "timeout": timeout, "cancellation_token": self._node.calls}
         if self._node.naming.style is Style.RMW_ZENOH:
             options["attachment"] = Attachment(sequence, _now_ns(), self._gid).encode()
             options["target"] = zenoh.QueryTarget.ALL_COMPLETE
             options["consolidation"] = zenoh.ConsolidationMode.NONE
         errors: list[str] = []
+        more = 0  # errors past MAX_CALL_ERRORS, counted only
+
+        def failed(text: str) -> None:
+            nonlocal more
+            if len(errors) < MAX_CALL_ERRORS:
+                errors.append(text)
+            else:
+                more += 1
+
         started = time.monotonic()
         try:
             replies = self._node.session.get(self.endpoint.key, **options)
@@ -167,27 +194,29 @@ class RosClient:
             raise RosCallError(f"service {name}: cannot send the request: {exc}") from exc
         for reply in replies:
             if reply.ok is None:
-                err = reply.err
-                text = err.payload.to_bytes().decode("utf-8", "replace") if err is not None else "?"
+                text = _error_text(reply.err)
                 if text == "Timeout" and time.monotonic() - started >= timeout * 0.9:
                     continue  # zenoh's own error reply for a server that did not answer in time
-                errors.append(text)
+                failed(text)
                 continue
             sample = reply.ok
             if (size := len(sample.payload)) > MAX_PAYLOAD:
-                errors.append(f"a response of {size} bytes, over the {MAX_PAYLOAD} it may take: dropped unread")
+                failed(f"a response of {size} bytes, over the {MAX_PAYLOAD} it may take: dropped unread")
                 continue
             if self._node.naming.style is Style.RMW_ZENOH:
                 problem = self._check_reply_attachment(sample, sequence)
                 if problem:
-                    errors.append(problem)
+                    failed(problem)
                     continue
             try:
                 return self._node.types.decode(self.response_type, sample.payload.to_bytes())
             except RosDecodeError as exc:
-                errors.append(f"undecodable response: {exc}")
+                failed(f"undecodable response: {_cut(str(exc))}")
+        if self._node.closed:
+            raise RosNodeClosed(f"service {name}: the node was closed")
         if errors:
-            raise RosCallError(f"service {name} ({self.endpoint.ros_type}) failed: {'; '.join(errors)}")
+            also = f" (and {more} more failed replies)" if more else ""
+            raise RosCallError(f"service {name} ({self.endpoint.ros_type}) failed: {'; '.join(errors)}{also}")
         other = self._node.served_elsewhere(name, EntityKind.SERVICE, self.endpoint)
         if other:
             raise RosCallError(
@@ -206,6 +235,19 @@ class RosClient:
         if attachment.sequence_number != sequence:
             return f"reply for request {attachment.sequence_number}, expected {sequence}"
         return ""
+
+
+def _cut(text: str) -> str:
+    return text if len(text) <= ERROR_TEXT_MAX else f"{text[:ERROR_TEXT_MAX]}... [{len(text)} characters in all]"
+
+
+def _error_text(err: zenoh.ReplyError | None) -> str:
+    """An error reply's text, cut; one too heavy to read is named by its size."""
+    if err is None:
+        return "?"
+    if (size := len(err.payload)) > ERROR_REPLY_MAX:
+        return f"an error reply of {size} bytes, over the {ERROR_REPLY_MAX} it may take: dropped unread"
+    return _cut(err.payload.to_bytes().decode("utf-8", "replace"))
 
 
 @dataclass
@@ -274,6 +316,11 @@ class _Server:
                         except ValueError as exc:
                             problem = f"request on service {where} with malformed attachment: {exc}"
             request = None
+            if not problem and query.payload is not None and (size := len(query.payload)) > MAX_PAYLOAD:
+                problem, kind = (
+                    f"request on service {where} of {size} bytes, over the {MAX_PAYLOAD} it may take",
+                    "size",
+                )
             if not problem:
                 raw = query.payload.to_bytes() if query.payload is not None else b""
                 try:
@@ -554,6 +601,11 @@ class RosClientGoal:
             request = types.new(self._client._type("GetResult_Request"), goal_id=_uuid(types, self.goal_id))
             response = self._client._get_result.call(request, timeout)
             code = int(response.status)
+            if code == GoalStatus.UNKNOWN:
+                raise RosGoalUnknown(
+                    f"action {self._client.name}: get_result answered status UNKNOWN for goal {self.goal_id.hex()}, "
+                    "which is not a final one: its server knows no such goal now (it restarted, or forgot it)"
+                )
             if code not in (GoalStatus.SUCCEEDED, GoalStatus.CANCELED, GoalStatus.ABORTED):
                 raise RosCallError(
                     f"action {self._client.name}: get_result answered status {code} "
@@ -744,7 +796,7 @@ class RosNode:
     """One ROS 2 node on a zenoh session: its liveliness token and those of each endpoint it declares.
 
     Samples and requests with another type hash, a missing or malformed attachment, or undecodable
-    CDR, and samples and replies over their size (MAX_PAYLOAD, or the subscription's), are never
+    CDR, and samples, requests and replies over their size (MAX_PAYLOAD, or the subscription's), are never
     delivered: on_error gets a sentence naming the endpoint and what was wrong (at most once per
     endpoint and kind per second, counting the rest). Callbacks run on zenoh's threads; service
     handlers and action `execute` on threads of their own.
@@ -771,6 +823,7 @@ class RosNode:
         self.node_id = _next_id()
         self._declared: list[Any] = []
         self._action_servers: list[RosActionServer] = []
+        self.calls = zenoh.CancellationToken()  # every service call's: canceled on close
         self._closed = False
         self._lock = threading.Lock()
         self._declare_token(self._token_key(EntityKind.NODE, self.node_id))
@@ -990,12 +1043,14 @@ class RosNode:
         """Undeclare every token, publisher, subscriber and queryable (the session stays open).
 
         Goals still executing see their cancel_requested set; what they publish afterwards is dropped.
+        Service calls still waiting end, and later ones fail at once (RosNodeClosed): nothing more goes out.
         """
         with self._lock:
             if self._closed:
                 return
             self._closed = True
             declared, self._declared = self._declared, []
+        self.calls.cancel()
         for server in self._action_servers:
             for goal in server.goals:
                 goal.cancel_requested.set()
