@@ -259,7 +259,10 @@ def test_recheck_of_a_file_without_a_world_asks_for_one_and_checks_in_the_world_
         copy.record(message.key, message.data, log_time=message.log_time)
     copy.finish()
     asked = tether_cli(incident.stack, "recheck", str(bare), "--json")
-    assert asked.returncode == 2 and "carries no world file" in asked.stderr and "--world" in asked.stderr
+    error = json.loads(asked.stdout)["error"]  # with --json, the error as one object on stdout
+    assert asked.returncode == 2 and "carries no world file" in error and "--world" in error
+    plain = tether_cli(incident.stack, "recheck", str(bare))
+    assert plain.returncode == 2 and "carries no world file" in plain.stderr and "--world" in plain.stderr
     done = tether_cli(incident.stack, "recheck", str(bare), "--json", "--world", "household")
     assert done.returncode == 0, done.stderr
     _, with_recorded_world = recheck(incident)

@@ -97,6 +97,13 @@ def test_a_flood_of_huge_error_replies_makes_a_short_error_not_one_the_size_of_t
             query.reply_err(b"short, but past the ones kept")
 
         queryable = pair.robot_session.declare_queryable(client.endpoint.key, answer, complete=True)
+        # Called before the backend's session knows of it, the call would reach no one: on a busy
+        # machine the declaration takes a while to arrive.
+        querier = pair.tether.session.declare_querier(client.endpoint.key)
+        deadline = time.monotonic() + DEADLINE
+        while not querier.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        querier.undeclare()
         try:
             with pytest.raises(RosCallError) as raised:
                 client.call(types.new(f"{ADD}_Request", a=1, b=2), timeout=DEADLINE)
