@@ -16,8 +16,9 @@ into it; only an operator forgets an incident or clears a zone.
 
 The caution zones are computed by the writer's thread (`refresh_zones`), never by a reader: a new
 incident (the newest) updates the clustering around it, anything else computes it afresh, and the
-new zones (a hazards.ZoneMap, indexed by a grid) are swapped in whole. `caution_zones` returns the
-ones in force without waiting.
+new zones (a hazards.ZoneMap, indexed by a grid) are swapped in whole. `forget` computes them too,
+before a clear (the zone it clears counts every incident recorded) and after (in force once it
+returns). `caution_zones` returns the ones in force without waiting.
 
 `IncidentWatch` decides which of safety's decisions and which reports are incidents; the node
 records what it returns.
@@ -94,6 +95,8 @@ _PLACE = (typing.get_args(Metres)[1].ge, typing.get_args(Metres)[1].le)
 _HEADING = (typing.get_args(Radians)[1].ge, typing.get_args(Radians)[1].le)
 # The longest list of names (JSON) a file's row is read for: MAX_INVOLVED names, escaped.
 MAX_NAMES_JSON = 64 * 1024
+# The highest incident number a file's row is read with: the numbers after it still fit SQLite's INTEGER.
+MAX_ID = 2**62
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS incidents (
@@ -246,14 +249,16 @@ def _text(value: Any, limit: int = MAX_SHORT) -> str:
 
 def _incident(row: Sequence[Any]) -> Incident | None:
     """The incident of a row (the columns of _NAMES), None for one this version cannot read (an
-    unknown kind, no id or time)."""
+    unknown kind, no time, no number or one beyond MAX_ID)."""
     (id_, stamp, kind, reason, x, y, yaw, hx, hy, hz, source, rule, goal_id, step, label, objects, people) = row[:17]
+    if not _numbered(id_):
+        return None
     try:
         known = IncidentKind(kind)
-        number, when = int(id_), float(stamp)
+        number, when = id_, float(stamp)
     except (TypeError, ValueError):
         return None
-    if number < 1 or not math.isfinite(when):
+    if not math.isfinite(when):
         return None
     hx, hy, hz = _number(hx, _PLACE), _number(hy, _PLACE), _number(hz, _PLACE)
     hand = Vec3(x=hx, y=hy, z=hz) if hx is not None and hy is not None and hz is not None else None
@@ -277,6 +282,17 @@ def _incident(row: Sequence[Any]) -> Incident | None:
         recording=_text(row[17], MAX_RECORDING),
         cleared=isinstance(row[18], int | float) and row[18] != 0,
     )
+
+
+def _numbered(id_: Any) -> bool:
+    """Whether a file's `id` is an incident number this version reads: an integer from 1 to MAX_ID. A
+    text or NULL one (a file not made by this code), or one next to SQLite's largest, is not: it
+    stopped safety from starting, or made every incident after it fail to be written."""
+    return isinstance(id_, int) and 1 <= id_ <= MAX_ID
+
+
+# The highest number in a file among those it reads (what _numbered takes).
+_TOP = f"SELECT max(id) FROM incidents WHERE typeof(id) = 'integer' AND id BETWEEN 1 AND {MAX_ID}"
 
 
 def _order(incident: Incident) -> tuple[float, int]:
@@ -341,6 +357,8 @@ class IncidentStore:
         # The zones: their clustering (the writer's thread's, under `_zone_lock`) and the map in force.
         self._zone_lock = threading.Lock()
         self._clusters: _Clusters | None = None
+        # What refresh_zones was last asked for (count, radius, speed scale): forget computes them too.
+        self._zone_params: tuple[int, float, float] | None = None
         self._zones: ZoneMap = NO_ZONES
         with self._db_lock:
             self._connect()
@@ -506,7 +524,11 @@ class IncidentStore:
         """The file's incidents into memory, those in memory it lacks to be written into it (an incident
         held under a number the file gives another is renumbered): a file replaced while safety runs
         never takes an incident out of memory. Raises sqlite3.Error."""
-        ident = {r[0]: (r[1], r[2], r[3]) for r in db.execute("SELECT id, stamp, kind, forgotten FROM incidents")}
+        ident = {
+            r[0]: (r[1], r[2], r[3])
+            for r in db.execute("SELECT id, stamp, kind, forgotten FROM incidents")
+            if _numbered(r[0])
+        }
         top = max(max(ident, default=0), self._next_id - 1)
         # Memory is only changed by this thread (`_db_lock`): read here without `_lock`.
         renumber: list[Incident] = []
@@ -596,7 +618,7 @@ class IncidentStore:
                 taken = {
                     r[0] for r in db.execute(f"SELECT id FROM incidents WHERE id IN ({marks})", list(self._pending))
                 }
-                top = max(int(db.execute("SELECT max(id) FROM incidents").fetchone()[0] or 0), self._next_id - 1)
+                top = max(int(db.execute(_TOP).fetchone()[0] or 0), self._next_id - 1)
                 written: list[Incident] = []
                 for incident in self._pending.values():
                     if incident.id in taken:
@@ -694,7 +716,8 @@ class IncidentStore:
     def forget(self, incident_id: int, action: ForgetAction, operator: str, reason: str, radius: float) -> list[int]:
         """FORGET: that incident no longer warns or counts. CLEAR: every incident not cleared within
         `radius` of its position, and those of the caution zone it is in, no longer count towards a
-        zone (they still warn). Returns the ids changed; KeyError for an unknown or forgotten id;
+        zone (they still warn). The zones are computed again (as refresh_zones was last asked) before a
+        clear and after either. Returns the ids changed; KeyError for an unknown or forgotten id;
         IncidentStoreError while the file cannot be written (it is tried now, whenever it failed)."""
         with self._db_lock:
             self._retry_at = -math.inf  # the operator asks: try the file now
@@ -723,6 +746,9 @@ class IncidentStore:
                 if x is not None and y is not None:
                     with self._lock:
                         ids += [s.id for s in self._within([(x, y)], radius) if not s.cleared]
+                    # The zone with every incident recorded so far: the writer adds one, then computes the
+                    # zones; a clear in between missed the new ones, which made the zone again at once.
+                    self._rezone()
                     ids += self._zone_mates(incident_id)
                 ids = sorted(set(ids))
                 sql = "UPDATE incidents SET cleared = 1, cleared_by = ?, cleared_reason = ?, cleared_stamp = ?"
@@ -744,7 +770,19 @@ class IncidentStore:
                         self._drop(i)
                     else:
                         self._mark_cleared(i)
+            # In force before the operator hears it is done: a query or the gate right after still
+            # found the zone until the writer's thread came round to it.
+            self._rezone()
             return ids
+
+    def _rezone(self) -> None:
+        """The zones computed again as last asked for (none asked yet: nothing to compute)."""
+        if (params := self._zone_params) is None:
+            return
+        try:
+            self.refresh_zones(*params)
+        except Exception:  # what is forgotten or cleared stays so: the writer's thread computes them next
+            log.exception("the caution zones could not be computed; those computed last stay in force")
 
     def _zone_mates(self, incident_id: int) -> list[int]:
         """The incidents not cleared of the caution zone `incident_id` is in (none: not in one)."""
@@ -840,6 +878,7 @@ class IncidentStore:
         outside the memory's lock; the new zones are then swapped in (`version` grows)."""
         params = (count, radius, speed_scale)
         with self._zone_lock:
+            self._zone_params = params
             # Incidents added while the zones were computed are added after, in another round.
             for _ in range(ZONE_ROUNDS):
                 nearby: list[tuple[_Spot, list[list[_Spot]]]] = []

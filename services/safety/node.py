@@ -20,6 +20,7 @@ from schemas.actions import CancelGoal, CancelResponse, Feedback, GetResult, Goa
 from schemas.common import DECODE_ERRORS, TEXT_CHARS, ErrorKind, Pose2D, fmt_point
 from schemas.executor import ExecutePlanFeedback
 from schemas.incidents import (
+    MAX_LISTED,
     ForgetAction,
     ForgetIncident,
     ForgetReply,
@@ -781,4 +782,5 @@ class SafetyNode:
             decision = Decision.FORGOTTEN if forget else Decision.CLEARED
             values = {"incidents": float(len(changed))}
             self._publish_event(GateEvent(key, decision, why, redacted, Rule.OPERATOR, (Rule.OPERATOR,), values))
-        return ForgetReply(ok=True, message=why, changed=changed)
+        # The message counts them all; a reply lists at most MAX_LISTED (more, and no tether could read it).
+        return ForgetReply(ok=True, message=why, changed=changed[:MAX_LISTED])
