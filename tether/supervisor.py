@@ -10,7 +10,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
@@ -108,6 +110,26 @@ class Restarts:
         return delay
 
 
+@contextlib.contextmanager
+def _ctrl_c_held() -> Iterator[None]:
+    """SIGINT's handler (KeyboardInterrupt) run when the block ends, not inside it: a Ctrl-C while
+    services were started or stopped left some running after their supervisor ended (raised in Popen
+    after its fork, a service nobody knew of; raised while stopping, the stages after it unsignalled).
+    Only the main thread runs handlers, and only it can set them."""
+    handler = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or not callable(handler):
+        yield
+        return
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, _frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        if held:
+            signal.raise_signal(signal.SIGINT)
+
+
 class Supervisor:
     """Each service in its own process group, its output in `log_dir/<service>.log`; each stops by
     itself when the process that started it is gone, also when killed before it could stop them.
@@ -192,16 +214,17 @@ class Supervisor:
             self._lifeline = os.pipe()
         env = self.env(service)
         env[SUPERVISOR_FD_ENV] = str(self._lifeline[0])
-        proc = subprocess.Popen(
-            cmd,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            env=env,
-            start_new_session=True,
-            pass_fds=(self._lifeline[0],),
-        )
-        self.procs[service] = proc
+        with _ctrl_c_held():
+            proc = subprocess.Popen(
+                cmd,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                start_new_session=True,
+                pass_fds=(self._lifeline[0],),
+            )
+            self.procs[service] = proc
         log.info("started %s (pid %d)", service, proc.pid)
         return proc
 
@@ -221,8 +244,14 @@ class Supervisor:
         return out
 
     def start_all(self, services: tuple[str, ...] = SERVICES) -> None:
-        for service in services:
-            self.start(service)
+        """Each of `services`; interrupted (Ctrl-C), every service started is stopped before it goes on:
+        `tether up` ended while its services went on starting, each until it found its supervisor gone."""
+        try:
+            for service in services:
+                self.start(service)
+        except BaseException:
+            self.stop_all()
+            raise
 
     def exited(self) -> dict[str, int]:
         """Services whose process has ended, with their exit codes."""
@@ -235,7 +264,8 @@ class Supervisor:
         proc.wait(timeout=10)
 
     def stop(self, service: str, timeout: float = 10.0) -> int | None:
-        return self._stop_together((service,), timeout).get(service)
+        with _ctrl_c_held():
+            return self._stop_together((service,), timeout).get(service)
 
     def _stop_together(self, services: tuple[str, ...], timeout: float) -> dict[str, int | None]:
         """SIGTERM to each, then wait for each (killing one that outlives `timeout`)."""
@@ -259,17 +289,19 @@ class Supervisor:
         return {service: proc.returncode for service, proc in procs.items()}
 
     def stop_all(self, timeout: float = 10.0) -> dict[str, int | None]:
+        """Stage by stage (STOP_STAGES); a Ctrl-C meanwhile (the demo's second) is raised once all stopped."""
         staged = {s for stage in STOP_STAGES for s in stage}
         stages = [*STOP_STAGES, tuple(s for s in self.procs if s not in staged)]
         codes: dict[str, int | None] = {}
-        for stage in stages:
-            codes.update(self._stop_together(stage, timeout))
-        for out in self._logs.values():
-            out.close()
-        if self._lifeline is not None:
-            for fd in self._lifeline:
-                os.close(fd)
-            self._lifeline = None
+        with _ctrl_c_held():
+            for stage in stages:
+                codes.update(self._stop_together(stage, timeout))
+            for out in self._logs.values():
+                out.close()
+            if self._lifeline is not None:
+                for fd in self._lifeline:
+                    os.close(fd)
+                self._lifeline = None
         return codes
 
     def log_tail(self, service: str, lines: int = 40) -> str:
