@@ -311,13 +311,18 @@ def start_services(
             soft_wrap=True,
         )
         raise typer.Exit(1) from None
-    with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
-        while True:
-            missing = node.wait_alive(services, min(UP_POLL, max(0.0, deadline - time.monotonic())))
-            # One that exited (a config it refuses, a port taken) will not come up: said now, not at the timeout.
-            exited = {name: code for name in missing if (code := supervisor.procs[name].poll()) is not None}
-            if not missing or exited or time.monotonic() >= deadline:
-                break
+    try:
+        with console.status(f"starting {len(services)} services for robot {settings.robot}..."):
+            while True:
+                missing = node.wait_alive(services, min(UP_POLL, max(0.0, deadline - time.monotonic())))
+                # One that exited (a config it refuses, a port taken) will not come up: said now, not at the timeout.
+                exited = {name: code for name in missing if (code := supervisor.procs[name].poll()) is not None}
+                if not missing or exited or time.monotonic() >= deadline:
+                    break
+    except BaseException:  # Ctrl-C while waiting for them: they stop with this process, in order, now
+        node.close()
+        supervisor.stop_all()
+        raise
     table = Table("service", "pid", "state")
     for name in services:
         table.add_row(name, str(supervisor.procs[name].pid), "[red]not up[/]" if name in missing else "[green]up[/]")

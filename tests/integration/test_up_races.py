@@ -7,11 +7,12 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
 
-from services.runtime import ALL_SERVICES
+from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.integration.conftest import STARTUP_TIMEOUT
 from tests.sessions import free_ports
 
@@ -86,6 +87,39 @@ def test_ctrl_c_while_services_start_stops_each_started_before_their_supervisor_
         if supervising.poll() is None:
             supervising.kill()
             supervising.communicate()
+        for pid in running_for(robot):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_ctrl_c_while_tether_up_waits_for_its_services_stops_them_before_it_ends(tmp_path: Path) -> None:
+    """Once all were started, `tether up` waits for them to come up: a Ctrl-C there ended it at once
+    (exit 130), its services left running until each found its supervisor gone."""
+    robot = f"t{uuid.uuid4().hex[:8]}"
+    base_port = free_ports(len(ALL_SERVICES))
+    services = SERVICES.split(",")
+    command = [sys.executable, "-m", "tether", "--robot", robot, "--base-port", str(base_port), "up"]
+    command += ["--only", SERVICES, "--log-dir", str(tmp_path / "logs")]
+    first_alive = threading.Event()
+    up = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        with Node("cli", NodeSettings(robot=robot, base_port=base_port)) as watcher:
+            for service in services:
+                watcher.watch_alive(service, lambda alive: first_alive.set() if alive else None)
+            # One service up: `up` has started them all and waits for the others (each takes a second
+            # or more to import and open its session; `up`'s own session opened long before).
+            deadline = time.monotonic() + STARTUP_TIMEOUT
+            while not first_alive.wait(0.01):
+                assert time.monotonic() < deadline and up.poll() is None, up.communicate()[0]
+            os.kill(up.pid, signal.SIGINT)
+        out, _ = up.communicate(timeout=60)
+        left = running_for(robot)
+        assert not left, f"still running after tether up ended: {left}\n{out.decode(errors='replace')}"
+        assert up.returncode != 0, out.decode(errors="replace")
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.communicate()
         for pid in running_for(robot):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
