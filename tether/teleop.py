@@ -26,7 +26,7 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import IO, Annotated, Any
+from typing import IO, TYPE_CHECKING, Annotated, Any
 
 import msgspec
 import typer
@@ -35,6 +35,9 @@ from schemas import keys
 from schemas.robot import Twist
 from schemas.safety import Decision, SafetyEvent, SafetyStatus
 from tether.output import printable
+
+if TYPE_CHECKING:
+    from services.runtime import Node
 
 # Until the terminal starts repeating a held key (250 to 660 ms on common desktops) one key press
 # holds its command this long; a key released before then moves the robot this long at most.
@@ -205,11 +208,13 @@ class Axis:
 
 @dataclass
 class Stick:
-    """The gamepad: stick deflections in [-1, 1] and whether the enable button is held."""
+    """The gamepad: stick deflections in [-1, 1] and whether the enable button is held; not `known`
+    while events the kernel dropped are not read anew (neither held nor let go, then)."""
 
     linear: float = 0.0
     angular: float = 0.0
     enabled: bool = False
+    known: bool = True
 
 
 class Deadman:
@@ -280,8 +285,8 @@ class Deadman:
         for axis in self.axes:
             axis.direction, axis.repeats = 0, 0
 
-    def set_stick(self, linear: float, angular: float, enabled: bool) -> None:
-        self.stick = Stick(linear, angular, enabled)
+    def set_stick(self, linear: float, angular: float, enabled: bool, known: bool = True) -> None:
+        self.stick = Stick(linear, angular, enabled, known)
 
     def quit(self) -> None:
         self.quitting = True
@@ -289,12 +294,17 @@ class Deadman:
     def safety(self, estop_latched: bool, now: float) -> None:
         """What safety's heartbeat says of the e-stop, every pass: latched, the inputs held stop
         counting; cleared, they count again once no key has come for INITIAL_HOLD (longer than a
-        terminal's repeat delay: the key was let go) and the gamepad's enable button is up."""
+        terminal's repeat delay: the key was let go) and the gamepad's enable button is known to be up."""
         if estop_latched:
             if not self.rearming:
                 self.release_keys()
             self.rearming = True
-        elif self.rearming and now - self._key_while_stopped > self.initial_hold and not self.stick.enabled:
+        elif (
+            self.rearming
+            and now - self._key_while_stopped > self.initial_hold
+            and not self.stick.enabled
+            and self.stick.known
+        ):
             self.rearming = False
 
     # Output
@@ -573,6 +583,7 @@ class Gamepad:
             linear=-stick_fraction(self._values[y], *self._ranges[y]),
             angular=-stick_fraction(self._values[x], *self._ranges[x]),
             enabled=bool(self._held) and not self._dropped,
+            known=not self._dropped,
         )
 
     def _resync(self) -> None:
@@ -695,7 +706,7 @@ def teleop(
 def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: bool, as_json: bool) -> int:
     # The transport only here: the pure part above loads without Zenoh.
     from services.runtime import Node
-    from tether.client import next_heartbeat, signature_shaped
+    from tether.client import next_heartbeat
 
     try:
         opened = Node("cli", ctx.obj)
@@ -705,28 +716,12 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
     ending = Ending()
     started = time.monotonic()
     with opened as node:
-        try:
-            waited = next_heartbeat(node, HEARTBEAT_WAIT)
-        except KeyboardInterrupt:  # Ctrl-C before anything was sent: it ends as teleop always ends
-            ending.set(SIGNAL_ENDINGS[signal.SIGINT])
-            return report(ending, started, deadman, pad, view, as_json)
-        if waited.status is None:
-            raise usage_error(f"{waited.why_not(HEARTBEAT_WAIT)}: is safety running?", as_json, EXIT_NO_SAFETY)
-        view.beat(waited.status, time.monotonic())
-
-        node.subscribe(keys.HEARTBEAT, lambda s: view.beat(s, time.monotonic()), verify=signature_shaped)
-        node.subscribe(keys.SAFETY_EVENTS, lambda e: view.event(e, time.monotonic()))
-        publisher = node.publisher(keys.TELEOP_CMD_VEL)
-
-        def send(twist: Twist) -> None:
-            stamped = msgspec.structs.replace(twist, stamp=time.time())
-            view.sent(stamped)
-            publisher.put(stamped)
-
-        stream = None if not keyboard else terminal_stream(as_json)
+        waiting = True  # for safety's first heartbeat: nothing is sent yet
 
         def on_signal(number: int, _frame: FrameType | None) -> None:
             ending.set(SIGNAL_ENDINGS[signal.Signals(number)], lost_input=number == signal.SIGHUP)
+            if waiting:
+                raise Interrupted  # out of the wait at once; once driving, the loop ends it
 
         # A signal also writes a byte to this pipe, which wakes the loop's select at once.
         wake_r, wake_w = os.pipe()
@@ -735,14 +730,21 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
         previous = {s: signal.signal(s, on_signal) for s in SIGNAL_ENDINGS}
         previous_wakeup = signal.set_wakeup_fd(wake_w)
         try:
-            with raw_terminal(sys.stdin.fileno(), stream) if keyboard else _nothing():
+            try:
                 try:
-                    inputs = Inputs(sys.stdin.fileno() if keyboard else None, pad, wake_r)
-                    loop(deadman, view, send, inputs, None if as_json else stream, ending)
+                    waited = next_heartbeat(node, HEARTBEAT_WAIT)
                 finally:
-                    # Whatever ended it (also an exception): a moving robot is told to stop now.
-                    if deadman.moving:
-                        send(Twist())
+                    waiting = False
+            except Interrupted:
+                pass
+            except KeyboardInterrupt:  # Ctrl-C raised as Python does by default: it ends the same
+                ending.set(SIGNAL_ENDINGS[signal.SIGINT])
+            else:
+                if waited.status is None:
+                    why = f"{waited.why_not(HEARTBEAT_WAIT)}: is safety running?"
+                    raise usage_error(why, as_json, EXIT_NO_SAFETY)
+                view.beat(waited.status, time.monotonic())
+                drive_until_ended(node, deadman, pad, keyboard, as_json, view, ending, wake_r)
         finally:
             signal.set_wakeup_fd(previous_wakeup)
             for s, handler in previous.items():
@@ -750,6 +752,43 @@ def drive(ctx: typer.Context, deadman: Deadman, pad: Gamepad | None, keyboard: b
             os.close(wake_r)
             os.close(wake_w)
     return report(ending, started, deadman, pad, view, as_json)
+
+
+class Interrupted(Exception):
+    """A signal while teleop waits for safety's first heartbeat: it ends there, as teleop always ends."""
+
+
+def drive_until_ended(
+    node: Node,
+    deadman: Deadman,
+    pad: Gamepad | None,
+    keyboard: bool,
+    as_json: bool,
+    view: SafetyView,
+    ending: Ending,
+    wake: int,
+) -> None:
+    """Safety heard from: the keys and the gamepad drive until the operator, a signal or lost input ends it."""
+    from tether.client import signature_shaped
+
+    node.subscribe(keys.HEARTBEAT, lambda s: view.beat(s, time.monotonic()), verify=signature_shaped)
+    node.subscribe(keys.SAFETY_EVENTS, lambda e: view.event(e, time.monotonic()))
+    publisher = node.publisher(keys.TELEOP_CMD_VEL)
+
+    def send(twist: Twist) -> None:
+        stamped = msgspec.structs.replace(twist, stamp=time.time())
+        view.sent(stamped)
+        publisher.put(stamped)
+
+    stream = None if not keyboard else terminal_stream(as_json)
+    with raw_terminal(sys.stdin.fileno(), stream) if keyboard else _nothing():
+        try:
+            inputs = Inputs(sys.stdin.fileno() if keyboard else None, pad, wake)
+            loop(deadman, view, send, inputs, None if as_json else stream, ending)
+        finally:
+            # Whatever ended it (also an exception): a moving robot is told to stop now.
+            if deadman.moving:
+                send(Twist())
 
 
 def report(
@@ -837,7 +876,7 @@ def loop(
                 ending.set("gamepad lost", lost_input=True)
                 deadman.quit()
             else:
-                deadman.set_stick(stick.linear, stick.angular, stick.enabled)
+                deadman.set_stick(stick.linear, stick.angular, stick.enabled, stick.known)
         deadman.safety(view.estop_latched(), now)
         if (twist := deadman.tick(now)) is not None:
             send(twist)

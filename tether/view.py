@@ -57,10 +57,17 @@ LOOPBACK = ("127.0.0.1", "localhost", "::1")
 DEFAULT_PORT = 8765
 PUBLISH_PERIOD = 0.05  # s: 20 Hz is as fast as the 3D panel is worth updating
 STATIC_PERIOD = 5.0  # s: the static scene again, for a viewer whose first copy was dropped
+# s between two copies of the static scene for viewers that subscribed: the SDK sends it to every
+# subscriber, so a client subscribing in a loop must not have it broadcast on each pass.
+SCENE_AGAIN = 0.5
 LOG_BACKLOG = 256  # log lines waiting for the publishing thread; the oldest go first
 CLIENT_BACKLOG = 64  # messages the SDK holds per viewer before dropping its oldest
 CAMERA_TIMEOUT = 2.0  # s for one camera picture
 TELEOP_TICK = 0.02  # s between two looks of the deadman: a stop goes out at most this late
+# s between two status messages to Foxglove users; what came in between goes out in one. A status
+# goes to every viewer's control queue, which the SDK holds to CLIENT_BACKLOG and disconnects a
+# viewer when full: one client's refusals in a loop must not cost the others their connection.
+NOTICE_PERIOD = 0.5
 HELPER_JOIN = CAMERA_TIMEOUT + 1.0  # s to wait for the teleop and camera threads to end at exit
 EXIT_USAGE, EXIT_UNREACHABLE, EXIT_SERVE = 2, 3, 1
 
@@ -285,7 +292,8 @@ class LiveView:
         (self.logs if source.every else self.latest).put(source.kind, key, payload)
 
     def viewer_subscribed(self, topic: str) -> None:
-        """A viewer that subscribes to the scene gets it again (the protocol keeps no last message)."""
+        """A viewer that subscribes to the scene gets it again (the protocol keeps no last message),
+        within SCENE_AGAIN."""
         if topic == scene3d.SCENE_TOPIC:
             self._static_due.set()
 
@@ -304,7 +312,8 @@ class LiveView:
 
     def publish_once(self) -> None:
         now = self._clock()
-        if self._static_due.is_set() or now - self._static_sent >= STATIC_PERIOD:
+        wait = SCENE_AGAIN if self._static_due.is_set() else STATIC_PERIOD
+        if not 0.0 <= now - self._static_sent < wait:
             self._static_due.clear()
             self._static_sent = now
             self._log(scene3d.SCENE_TOPIC, self.scene.static(now))
@@ -692,11 +701,15 @@ def shut_down(
 
 def teleop_loop(bridge: TeleopBridge, server: foxglove.WebSocketServer, stop: threading.Event) -> None:
     """The deadman's clock, and the notices for Foxglove users (sent here, not in the SDK's callbacks)."""
+    told = -math.inf
     while not stop.wait(TELEOP_TICK):
         try:
             bridge.tick()
-            while bridge.notices:
-                server.publish_status(bridge.notices.popleft(), StatusLevel.Warning)
+            now = time.monotonic()
+            if bridge.notices and now - told >= NOTICE_PERIOD:
+                told = now
+                pending = [bridge.notices.popleft() for _ in range(len(bridge.notices))]
+                server.publish_status("\n".join(pending), StatusLevel.Warning)
         except Exception:  # a failed send: logged, the deadman keeps looking
             log.exception("teleop deadman")
 
