@@ -113,6 +113,9 @@ def bench_count_key(robot: str) -> str:
 class Topic(Generic[T]):
     path: str
     type: type[T]
+    # Sent ahead of all other traffic and never dropped on a congested link (the stop, the heartbeat,
+    # what safety lets the base do): a camera stream or a recording's flood must not hold them up.
+    urgent: bool = False
 
     def key(self, robot: str) -> str:
         return f"{prefix(robot)}/{self.path}"
@@ -183,8 +186,8 @@ CMD_VEL = Topic("cmd/cmd_vel", Twist)
 TELEOP_CMD_VEL = Topic("cmd/teleop/cmd_vel", Twist)
 
 # Safety itself.
-HEARTBEAT = Topic("safety/heartbeat", SafetyStatus)
-ESTOP = Topic("safety/estop", EStop)
+HEARTBEAT = Topic("safety/heartbeat", SafetyStatus, urgent=True)
+ESTOP = Topic("safety/estop", EStop, urgent=True)
 SAFETY_EVENTS = Topic("safety/events", SafetyEvent)
 RESET: Service[ResetRequest, ResetReply] = Service("safety/reset", ResetRequest, ResetReply, redact=("token",))
 # The control mode (operator only, with the token); the heartbeat says which is in force.
@@ -217,7 +220,7 @@ ROBOT_TRAJECTORY = ActionKeys(
     FollowJointTrajectoryResult,
 )
 ROBOT_GRIPPER = ActionKeys("robot/gripper_command", GripperCommandGoal, GripperCommandFeedback, GripperCommandResult)
-ROBOT_CMD_VEL = Topic("robot/cmd_vel", Twist)
+ROBOT_CMD_VEL = Topic("robot/cmd_vel", Twist, urgent=True)
 JOINT_STATES = Topic("robot/joint_states", JointState)
 ODOM = Topic("robot/odom", Odometry)
 

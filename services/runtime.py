@@ -376,14 +376,19 @@ class Node:
     # Topics
 
     def publisher(self, topic: Topic[T]) -> Publisher[T]:
-        pub = self.session.declare_publisher(topic.key(self.robot))
+        pub = self.session.declare_publisher(topic.key(self.robot), **_qos(topic))
         self._declared.append(pub)
         return Publisher(pub, self)
 
     def publish(self, topic: Topic[T], message: T) -> None:
         key = topic.key(self.robot)
         self._until_matched(key, lambda: self.session.declare_publisher(key), DISCOVERY)
-        self._send(key, encode(message), lambda payload, **signature: self.session.put(key, payload, **signature))
+        qos = _qos(topic)
+
+        def put(payload: bytes, **signature: Any) -> None:
+            self.session.put(key, payload, **qos, **signature)
+
+        self._send(key, encode(message), put)
 
     def _send(self, key: str, payload: bytes, put: Callable[..., object]) -> None:
         """`put(payload)` for `key`, with safety's MAC as its attachment when this node signs and the
@@ -944,6 +949,14 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
 CONTROLS = {code: f"\\x{code:02x}" for code in (*range(0x20), *range(0x7F, 0xA0))}
 # Those a log line escapes (newlines and tabs stay: tracebacks).
 _LOG_CONTROLS = {code: escaped for code, escaped in CONTROLS.items() if chr(code) not in "\n\t"}
+
+
+def _qos(topic: Topic[Any]) -> dict[str, Any]:
+    """How a topic's messages are sent: an urgent one (keys.Topic) at Zenoh's real-time priority,
+    blocking rather than dropped when the link's queue is full, and sent at once, not batched."""
+    if not topic.urgent:
+        return {}
+    return {"priority": zenoh.Priority.REAL_TIME, "congestion_control": zenoh.CongestionControl.BLOCK, "express": True}
 
 
 class _EscapingFormatter(logging.Formatter):
