@@ -11,6 +11,8 @@ import base64
 import binascii
 import io
 import json
+import logging
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -29,6 +31,8 @@ from services.errors import CallError, GoalRejected
 from services.planner.prompt import hazards_block, hazards_query
 from services.runtime import Node
 from tether.client import PlanSender, next_message, trigger_estop
+
+log = logging.getLogger(__name__)
 
 # How long an action tool waits for its plan to be parsed, resolved and approved before it returns
 # the goal id (the plan goes on after that; a model polls get_goal_status).
@@ -54,6 +58,41 @@ class Picture:
     caption: str
 
 
+class Call:
+    """One tool call, as seen from the thread carrying it out: whether its caller has gone (it canceled
+    the call, or disconnected) and the goal the call sent. A goal whose id was only in the answer
+    nobody got is canceled: no one else could follow it or stop it. `sent` and `abandon` decide under
+    one lock, so it is canceled once, by whichever of the two comes second."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._abandoned = False
+        self._goal_id: str | None = None
+
+    @property
+    def abandoned(self) -> bool:
+        with self._lock:
+            return self._abandoned
+
+    def sent(self, goal_id: str) -> bool:
+        """Note the goal this call sent; True when its caller has already gone (the goal is to be canceled)."""
+        with self._lock:
+            self._goal_id = goal_id
+            return self._abandoned
+
+    def answered(self) -> None:
+        """The answer, goal id and all, is on its way to the caller: nothing is canceled after this."""
+        with self._lock:
+            self._goal_id = None
+
+    def abandon(self) -> str | None:
+        """Mark the caller gone; the goal this call sent, if any, for the caller of this to cancel."""
+        with self._lock:
+            self._abandoned = True
+            goal_id, self._goal_id = self._goal_id, None
+            return goal_id
+
+
 class AgentAPI:
     def __init__(self, node: Node) -> None:
         self.node = node
@@ -61,12 +100,12 @@ class AgentAPI:
 
     # Actions: each one a plan for the executor
 
-    def action(self, name: str, arguments: dict[str, Any]) -> str:
+    def action(self, name: str, arguments: dict[str, Any], call: Call | None = None) -> str:
         """One action as a one-step plan (the parser checks names, types, units and bounds)."""
         step = {**arguments, "action": name}  # the tool's name decides the action, never an argument
-        return self.execute_plan({"plan": [step]})
+        return self.execute_plan({"plan": [step]}, call)
 
-    def execute_plan(self, plan: Any) -> str:
+    def execute_plan(self, plan: Any, call: Call | None = None) -> str:
         # As written: escaped, an "é" took six bytes and a plan within the tool's bounds went over the
         # executor's limit.
         text = plan if isinstance(plan, str) else json.dumps(plan, ensure_ascii=False)
@@ -74,12 +113,18 @@ class AgentAPI:
             # The executor drops a goal this long undecoded, which read as "not reachable".
             return f"rejected: the plan is {size} bytes as JSON; the limit is {MAX_PLAN_BYTES}: shorten its texts"
         goal = ExecutePlanGoal(text=text, format="auto")
+        call = call or Call()
+        if call.abandoned:
+            return "not sent: the call was canceled"
         try:
             handle = self.sender.send(goal)
         except GoalRejected as exc:
             return feedback.rejected_text(exc.reason)
         except CallError as exc:
             raise AgentError(f"the executor is not reachable: {exc}") from None
+        if call.sent(handle.goal_id):
+            self.sender.forget(handle.goal_id)
+            return self.cancel_unheard(handle.goal_id)
         try:
             run = self.sender.wait(handle, START_WAIT, until_started=True)
         except CallError:  # not ended, and not started within START_WAIT: still being checked
@@ -88,7 +133,10 @@ class AgentAPI:
             self.sender.forget(handle.goal_id)  # the agent follows it with get_goal_status from here
         return feedback.started_text(handle.goal_id, run.result, run.latest, checked=run.executing)
 
-    def plan_and_execute(self, request: str, dry_run: bool) -> str:
+    def plan_and_execute(self, request: str, dry_run: bool, call: Call | None = None) -> str:
+        call = call or Call()
+        if call.abandoned:
+            return "not asked: the call was canceled"
         try:
             # The planner never sends a plan after the deadline: a call that timed out here moves nothing.
             deadline = time.time() + ASK_TIMEOUT
@@ -97,6 +145,8 @@ class AgentAPI:
             )
         except CallError as exc:
             raise AgentError(f"the planner did not answer: {exc.error.message}") from None
+        if reply.goal_id and call.sent(reply.goal_id):
+            return self.cancel_unheard(reply.goal_id)
         return feedback.ask_text(reply)
 
     # Following and stopping
@@ -118,6 +168,15 @@ class AgentAPI:
         if not reply.accepted:
             return f"not canceled: {reply.reason or 'no such running goal'}"
         return f"canceling {goal_id}: the robot stops; get_goal_status shows when it has ended"
+
+    def cancel_unheard(self, goal_id: str) -> str:
+        """Cancel a goal whose caller went before it heard the goal's id (Call)."""
+        log.warning("canceling goal %s: the agent that sent it went before it was told its id", goal_id)
+        try:
+            return self.cancel(goal_id)
+        except AgentError as exc:
+            log.error("goal %s goes on: %s", goal_id, exc)
+            return str(exc)
 
     def emergency_stop(self, reason: str) -> str:
         status = trigger_estop(self.node, EstopSource.AGENT, reason)

@@ -2,8 +2,10 @@
 
 The tools and their input schemas are generated (services/agent/tools.py); each call runs on a
 worker thread against the robot's Zenoh keys (tether/agentapi.py) and comes back as short text a
-model can act on, or an image. A call that fails is an error result naming what was wrong, never a
-crash of the server.
+model can act on (at most MAX_RESULT_CHARS), or an image. A call that fails is an error result naming
+what was wrong, never a crash of the server. A call whose client goes before the answer (it cancels
+the call, its timeout fires, it disconnects) cancels the plan the call sent: its goal id was only in
+that answer, so nobody else could follow or stop it. Over HTTP the server keeps no sessions.
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
 
 from schemas.plan import MAX_NESTING, MAX_STEPS
+from services.agent.feedback import DATA_CLOSE, DATA_OPEN
 from services.agent.tools import ToolSpec, all_tools, render
 from services.recorder.mcapfile import version
 from services.runtime import Node, NodeSettings
-from tether.agentapi import AgentAPI, AgentError, Picture
+from tether.agentapi import AgentAPI, AgentError, Call, Picture
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +48,14 @@ CALL_LIMITER = anyio.CapacityLimiter(32)
 ESTOP_LIMITER = anyio.CapacityLimiter(4)
 CANCEL_LIMITER = anyio.CapacityLimiter(4)
 
-Handler = Callable[[dict[str, Any]], "str | Picture"]
+# The most text one tool result carries. Claude Code keeps a result over 50,000 characters out of the
+# conversation and refuses one over 25,000 tokens; other hosts put all of it in the model's context,
+# sent again with every later request. What the robot's services say is not bounded so: a world model
+# listing thousands of objects, a plan the planner's model wrote up to the executor's 256 KiB.
+MAX_RESULT_CHARS = 40_000
+DATA_OPENING = DATA_OPEN.split("{", 1)[0]
+
+Handler = Callable[[dict[str, Any], Call], "str | Picture"]
 
 
 class ArgumentCheck:
@@ -117,15 +127,15 @@ class Tools:
         self.validators = {spec.name: ArgumentCheck(spec.parameters) for spec in specs}
         self.kinds = {spec.name: spec.kind for spec in specs}
         fixed: dict[str, Handler] = {
-            "execute_plan": lambda a: api.execute_plan(a),
-            "plan_and_execute": lambda a: api.plan_and_execute(str(a.get("request", "")), bool(a.get("dry_run"))),
-            "get_goal_status": lambda a: api.goal_status(str(a.get("goal_id", ""))),
-            "cancel_goal": lambda a: api.cancel(str(a.get("goal_id", ""))),
-            "emergency_stop": lambda a: api.emergency_stop(str(a.get("reason") or "emergency stop by an agent")),
-            "get_robot_state": lambda _a: api.robot_state(),
-            "describe_scene": lambda _a: api.scene(),
-            "list_objects": lambda _a: api.objects(),
-            "get_camera_image": lambda _a: api.picture(),
+            "execute_plan": lambda a, c: api.execute_plan(a, c),
+            "plan_and_execute": lambda a, c: api.plan_and_execute(str(a.get("request", "")), bool(a.get("dry_run")), c),
+            "get_goal_status": lambda a, _c: api.goal_status(str(a.get("goal_id", ""))),
+            "cancel_goal": lambda a, _c: api.cancel(str(a.get("goal_id", ""))),
+            "emergency_stop": lambda a, _c: api.emergency_stop(str(a.get("reason") or "emergency stop by an agent")),
+            "get_robot_state": lambda _a, _c: api.robot_state(),
+            "describe_scene": lambda _a, _c: api.scene(),
+            "list_objects": lambda _a, _c: api.objects(),
+            "get_camera_image": lambda _a, _c: api.picture(),
         }
         self.handlers: dict[str, Handler] = {}
         for spec in specs:
@@ -137,9 +147,9 @@ class Tools:
                 raise ValueError(f"tool {spec.name!r} has no handler")
 
     def _action(self, name: str) -> Handler:
-        return lambda arguments: self.api.action(name, arguments)
+        return lambda arguments, call: self.api.action(name, arguments, call)
 
-    def call(self, name: str, arguments: dict[str, Any]) -> types.CallToolResult:
+    def call(self, name: str, arguments: dict[str, Any], call: Call | None = None) -> types.CallToolResult:
         handler = self.handlers.get(name)
         if handler is None:
             return _error(f"unknown tool {name!r}; the tools are {', '.join(sorted(self.handlers))}")
@@ -153,7 +163,7 @@ class Tools:
                 # A stop is never refused over its arguments (a missing or overlong reason left the
                 # robot moving): it goes out with the default reason, and the model hears why.
                 arguments, ignored = {}, f"\n(the arguments were not used: {problem})"
-            answer = handler(arguments)
+            answer = handler(arguments, call or Call())
         except AgentError as exc:
             return _error(f"{name}: {exc}")
         except Exception as exc:  # a bug here must not take the server down: the model gets the error
@@ -169,7 +179,7 @@ class Tools:
         # A read reports what it found (a goal that was rejected, say); only a call that did not do
         # what it was asked is an error result.
         failed = self.kinds[name] != "read" and _refused(answer)
-        return types.CallToolResult(content=[types.TextContent(type="text", text=answer + ignored)], is_error=failed)
+        return _text(answer + ignored, failed)
 
     def listing(self) -> list[types.Tool]:
         rendered = render(self.specs, "mcp")
@@ -193,7 +203,18 @@ class Tools:
 
 
 def _error(text: str) -> types.CallToolResult:
-    return types.CallToolResult(content=[types.TextContent(type="text", text=text)], is_error=True)
+    return _text(text, True)
+
+
+def _text(text: str, is_error: bool) -> types.CallToolResult:
+    """`text` as a tool result, cut at MAX_RESULT_CHARS, saying so (outside any data block it cut)."""
+    if len(text) > MAX_RESULT_CHARS:
+        kept = text[:MAX_RESULT_CHARS]
+        # Closing markers inside a data block are defused (feedback.as_data): the last one is a block's end.
+        inside = kept.rfind(DATA_OPENING) > kept.rfind(DATA_CLOSE)
+        cut = f"({len(text) - MAX_RESULT_CHARS} more characters cut: the whole result is too long for a model)"
+        text = "\n".join([kept, DATA_CLOSE, cut] if inside else [kept, cut])
+    return types.CallToolResult(content=[types.TextContent(type="text", text=text)], is_error=is_error)
 
 
 def _refused(text: str) -> bool:
@@ -214,7 +235,15 @@ def build_server(api: AgentAPI) -> Server[Any]:
         arguments = params.arguments or {}
         # Zenoh calls block: a worker thread, so one slow call does not hold the others up.
         limiter = {"emergency_stop": ESTOP_LIMITER, "cancel_goal": CANCEL_LIMITER}.get(params.name, CALL_LIMITER)
-        return await anyio.to_thread.run_sync(tools.call, params.name, arguments, limiter=limiter)
+        call = Call()
+        async with anyio.create_task_group() as group:
+            group.start_soon(_cancel_when_abandoned, api, call)
+            # Not abandoned on cancel: the thread holds its worker until it ends, so a client that
+            # cancels call after call cannot start threads without bound.
+            result = await anyio.to_thread.run_sync(tools.call, params.name, arguments, call, limiter=limiter)
+            call.answered()
+            group.cancel_scope.cancel()
+        return result
 
     return Server(
         "tether",
@@ -223,6 +252,17 @@ def build_server(api: AgentAPI) -> Server[Any]:
         on_list_tools=list_tools,
         on_call_tool=call_tool,
     )
+
+
+async def _cancel_when_abandoned(api: AgentAPI, call: Call) -> None:
+    """Wait until the tool call ends; if its caller went first (a cancel, a timeout, a disconnect), cancel
+    the goal the call sent, at once: the thread may be waiting for it to start, up to START_WAIT."""
+    try:
+        await anyio.sleep_forever()
+    finally:
+        if (goal_id := call.abandon()) is not None:
+            with anyio.CancelScope(shield=True):
+                await anyio.to_thread.run_sync(api.cancel_unheard, goal_id, limiter=CANCEL_LIMITER)
 
 
 async def _serve_stdio(server: Server[Any]) -> None:
@@ -237,4 +277,7 @@ def serve(settings: NodeSettings, http: bool, host: str, port: int) -> None:
         if not http:
             anyio.run(_serve_stdio, server)
             return
-        uvicorn.run(server.streamable_http_app(host=host), host=host, port=port, log_level="warning")
+        # Stateless: no tool needs a session, and the SDK kept each one a client opened for 30 minutes
+        # (40 kB each, up to 10,000, then refused new ones: an agent could no longer connect to stop).
+        app = server.streamable_http_app(host=host, stateless_http=True)
+        uvicorn.run(app, host=host, port=port, log_level="warning")
