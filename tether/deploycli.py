@@ -13,7 +13,8 @@ from rich.table import Table
 from tether import deployment
 from tether.output import conclude, literal
 
-console = Console(stderr=True)
+# An error names paths: one line, never wrapped (and a path broken) at the terminal's width.
+console = Console(stderr=True, soft_wrap=True)
 out = Console()
 
 
@@ -29,9 +30,19 @@ def deploy_init(
             f"{deployment.DEFAULT_ROUTER_PORT}).",
         ),
     ] = None,
+    backend: Annotated[
+        str | None,
+        typer.Option(
+            "--backend",
+            help="The backend of the robots named here: sim, ros2 (a real robot) or any (both); only its "
+            "identity may report the robot's state. Default: a new robot any, a robot already there its own.",
+        ),
+    ] = None,
     as_json: Annotated[
         bool,
-        typer.Option("--json", help="Print one JSON object: directory, robots, tls and the files, or the error."),
+        typer.Option(
+            "--json", help="Print one JSON object: directory, robots, backends, tls and the files, or the error."
+        ),
     ] = False,
 ) -> None:
     """Write a deployment for these robots, or add them to one: existing secrets, keys and certificates stay.
@@ -40,7 +51,7 @@ def deploy_init(
     """
     try:
         address = deployment.RouterAddress.parse(router) if router is not None else None
-        written = deployment.init(directory, robot, tls=tls, router=address)
+        written = deployment.init(directory, robot, tls=tls, router=address, backend=backend)
         made = deployment.Deployment.load(directory)
     except (deployment.DeploymentError, OSError) as exc:
         conclude(console, as_json, {"error": str(exc)}, f"[red]error:[/] {literal(exc)}", 2)
@@ -48,7 +59,9 @@ def deploy_init(
         console.print(f"[yellow]warning:[/] {literal(warning)}", soft_wrap=True)
     if as_json:
         files = [{"path": str(w.path), "created": w.created, "secret": w.secret} for w in written]
-        print(json.dumps({"directory": str(directory.resolve()), "robots": robot, "tls": tls, "files": files}))
+        backends = {name: made.backend(name) for name in robot}
+        summary = {"directory": str(directory.resolve()), "robots": robot, "backends": backends, "tls": tls}
+        print(json.dumps(summary | {"files": files}))
         return
     table = Table("file", "", "mode")
     for w in written:

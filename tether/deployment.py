@@ -8,8 +8,8 @@ import json
 import os
 import secrets
 import stat
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,11 @@ DEFAULT_ROUTER_HOST = "localhost"
 SERVICE_IDENTITIES = ("sim", "safety", "parser", "resolver", "executor", "recorder", "planner", "ros2")
 IDENTITIES = (*SERVICE_IDENTITIES, "operator", "agent")
 ROBOT_BACKEND_IDENTITIES = ("sim", "ros2")
+# A robot's backend (`deploy init --backend`): only its identity reports the robot's state and serves
+# its actions; the other backend gets no login. ANY_BACKEND, for a robot that runs either (the sim now,
+# the real one later), has both.
+ANY_BACKEND = "any"
+BACKENDS_OF_A_ROBOT = (*ROBOT_BACKEND_IDENTITIES, ANY_BACKEND)
 MANIFEST = "deployment.json"
 ROUTER_CONFIG = "router.json5"
 USERS_FILE = "router-users.txt"
@@ -139,10 +144,31 @@ def check_robot_name(robot: str) -> str:
     return robot
 
 
+def robot_identities(backend: str) -> tuple[str, ...]:
+    """The identities of a robot with this backend: all but the other backend's."""
+    if backend == ANY_BACKEND:
+        return IDENTITIES
+    return tuple(i for i in IDENTITIES if i not in ROBOT_BACKEND_IDENTITIES or i == backend)
+
+
+def check_backend(backend: str) -> str:
+    if backend not in BACKENDS_OF_A_ROBOT:
+        raise DeploymentError(f"backend {backend!r} is none of {', '.join(BACKENDS_OF_A_ROBOT)}")
+    return backend
+
+
 def init(
-    directory: Path, robots: Sequence[str], *, tls: bool = False, router: RouterAddress | None = None
+    directory: Path,
+    robots: Sequence[str],
+    *,
+    tls: bool = False,
+    router: RouterAddress | None = None,
+    backend: str | None = None,
 ) -> list[Written]:
     """Write (or extend) the deployment in `directory` for `robots`; return every file, written or kept.
+
+    `backend` is that of `robots`: a new one without it gets ANY_BACKEND, one already there keeps its
+    own. A robot whose backend narrows loses the other backend's identity (login, files and unit).
 
     A secret, key or certificate already there is never changed, but for a certificate the CA in
     `ca/` did not sign (a CA replaced: delete `ca/` and rerun), one out of date, or one not for the
@@ -152,6 +178,8 @@ def init(
     """
     for robot in robots:
         check_robot_name(robot)
+    if backend is not None:
+        check_backend(backend)
     if not robots:
         raise DeploymentError("name at least one robot (--robot NAME)")
     directory = directory.resolve()
@@ -173,7 +201,16 @@ def init(
             )
         router = known
     router = router or RouterAddress()
+    if tls and ":" in router.host:
+        # zenoh's TLS link takes the bracketed IPv6 address for a DNS name and never connects.
+        raise DeploymentError(
+            f"--tls with the router at an IPv6 address ({router}) cannot connect (Zenoh's TLS client refuses "
+            "IPv6 address literals): give --router a host name that resolves to it"
+        )
     all_robots = list(dict.fromkeys([*(manifest["robots"] if manifest else []), *robots]))
+    backends = {r: (manifest["backends"].get(r, ANY_BACKEND) if manifest else ANY_BACKEND) for r in all_robots}
+    if backend is not None:
+        backends |= dict.fromkeys(robots, backend)
     private_dir(directory, ours=False)
     written: list[Written] = []
 
@@ -182,11 +219,14 @@ def init(
         ca = _certificate_authority(directory, written)
         _router_certificate(directory, router, ca, written)
 
-    passwords = _passwords(directory, all_robots, written)
+    passwords = _passwords(directory, backends, written)
     for robot in all_robots:
-        _robot_files(directory, robot, router, tls, ca, passwords, written)
-    written.append(_write_text(directory / ROUTER_CONFIG, router_config(all_robots, router, tls), replace=True))
-    manifest_text = json.dumps({"robots": all_robots, "tls": tls, "router": str(router)}, indent=2) + "\n"
+        _robot_files(directory, robot, router, tls, ca, passwords, robot_identities(backends[robot]), written)
+    written.append(
+        _write_text(directory / ROUTER_CONFIG, router_config(all_robots, router, tls, backends), replace=True)
+    )
+    made = {"robots": all_robots, "tls": tls, "router": str(router), "backends": backends}
+    manifest_text = json.dumps(made, indent=2) + "\n"
     written.append(_write_text(directory / MANIFEST, manifest_text, replace=True))
     # The systemd units and compose files of the same deployment, by their own module.
     from tether import deployunits
@@ -197,12 +237,14 @@ def init(
 
 @dataclass(frozen=True)
 class Deployment:
-    """A deployment directory made by `init`: its robots, whether it uses TLS, where its router is."""
+    """A deployment directory made by `init`: its robots, whether it uses TLS, where its router is,
+    each robot's backend."""
 
     directory: Path
     robots: tuple[str, ...]
     tls: bool
     router: RouterAddress
+    backends: Mapping[str, str] = field(default_factory=dict)
 
     @classmethod
     def load(cls, directory: Path) -> Deployment:
@@ -213,8 +255,15 @@ class Deployment:
                 "--robot NAME`"
             )
         return cls(
-            directory.resolve(), tuple(manifest["robots"]), manifest["tls"], RouterAddress.parse(manifest["router"])
+            directory.resolve(),
+            tuple(manifest["robots"]),
+            manifest["tls"],
+            RouterAddress.parse(manifest["router"]),
+            manifest["backends"],
         )
+
+    def backend(self, robot: str) -> str:
+        return self.backends.get(robot, ANY_BACKEND)
 
     def client_config(self, robot: str, identity: str) -> Path:
         """The Zenoh config of `identity` on `robot`; a clear error when the deployment has none."""
@@ -222,6 +271,11 @@ class Deployment:
             raise DeploymentError(f"robot {robot!r} is not in {self.directory} (robots: {', '.join(self.robots)})")
         if identity not in IDENTITIES:
             raise DeploymentError(f"{identity!r} is not an identity of a deployment ({', '.join(IDENTITIES)})")
+        if identity not in robot_identities(backend := self.backend(robot)):
+            raise DeploymentError(
+                f"robot {robot!r} of {self.directory} has the {backend} backend, so no {identity} identity: "
+                f"start its backend with --backend {backend}"
+            )
         path = self.directory / robot / f"{identity}.json5"
         if not path.is_file():
             raise DeploymentError(f"{path} is missing: is {identity} installed on this host?")
@@ -251,8 +305,12 @@ def _read_manifest(directory: Path) -> dict[str, Any] | None:
     try:
         data = json.loads(path.read_text())
         robots = [check_robot_name(str(r)) for r in data["robots"]]
-        return {"robots": robots, "tls": bool(data["tls"]), "router": str(data["router"])}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        # Made before robots had a backend: each has both (ANY_BACKEND), as it was made.
+        backends = {str(r): check_backend(str(b)) for r, b in data.get("backends", {}).items()}
+        if not backends.keys() <= set(robots):
+            raise ValueError(f"backends of robots it does not list: {', '.join(backends.keys() - set(robots))}")
+        return {"robots": robots, "tls": bool(data["tls"]), "router": str(data["router"]), "backends": backends}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, DeploymentError) as exc:
         raise DeploymentError(f"{path} is unreadable or damaged: {exc}") from None
 
 
@@ -333,8 +391,10 @@ def write_generated(path: Path, text: str) -> Written:
     return _write_text(path, text, replace=True)
 
 
-def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -> dict[str, str]:
-    """Every identity's password: those in router-users.txt kept, new ones for new identities."""
+def _passwords(directory: Path, backends: Mapping[str, str], written: list[Written]) -> dict[str, str]:
+    """Every identity's password: those in router-users.txt kept, else the one its client config
+    holds (the list lost, its robots' copies still installed), new ones for new identities. An
+    identity a robot's backend leaves out has none: it cannot log in."""
     path = directory / USERS_FILE
     known: dict[str, str] = {}
     if path.exists():
@@ -349,16 +409,31 @@ def _passwords(directory: Path, robots: Iterable[str], written: list[Written]) -
             if not sep or not password:
                 raise DeploymentError(f"{path}:{number} is not a `user:password` line")
             known[user] = password
-    passwords = dict(known)
-    for robot in robots:
-        for identity in IDENTITIES:
-            passwords.setdefault(username(robot, identity), secrets.token_urlsafe(24))
+    dropped = {username(r, i) for r, b in backends.items() for i in IDENTITIES if i not in robot_identities(b)}
+    passwords = {user: password for user, password in known.items() if user not in dropped}
+    for robot, backend in backends.items():
+        for identity in robot_identities(backend):
+            if (user := username(robot, identity)) not in passwords:
+                installed = _client_password(directory / robot / f"{identity}.json5", user)
+                passwords[user] = installed or secrets.token_urlsafe(24)
     if passwords != known or not path.exists():
         text = "".join(f"{user}:{password}\n" for user, password in passwords.items())
         written.append(_write_text(path, text, secret=True, replace=True))
     else:
         written.append(_kept(path, secret=True))
     return passwords
+
+
+def _client_password(path: Path, user: str) -> str | None:
+    """The password of `user` in the client config `client_config` wrote at `path`, if it is there."""
+    try:
+        lines = path.read_text().splitlines()
+        auth = json.loads("\n".join(line for line in lines if not line.startswith("//")))["transport"]["auth"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    found = auth.get("usrpwd", {}) if isinstance(auth, dict) else {}
+    password = found.get("password") if isinstance(found, dict) and found.get("user") == user else None
+    return password if isinstance(password, str) and password and "\n" not in password else None
 
 
 def _robot_files(
@@ -368,14 +443,19 @@ def _robot_files(
     tls: bool,
     ca: tuple[ec.EllipticCurvePrivateKey, x509.Certificate] | None,
     passwords: dict[str, str],
+    identities: Sequence[str],
     written: list[Written],
 ) -> None:
     home = directory / robot
     private_dir(home)
+    for dropped in (i for i in IDENTITIES if i not in identities):
+        # Its login is gone from the router; its files would only mislead an installer copying them.
+        for suffix in (".json5", ".key", ".pem"):
+            (home / f"{dropped}{suffix}").unlink(missing_ok=True)
     if ca is not None:
         ca_pem = ca[1].public_bytes(serialization.Encoding.PEM)
         written.append(_write_bytes(home / "ca.pem", ca_pem, replace=True))  # the CA's, should it be replaced
-    for identity in IDENTITIES:
+    for identity in identities:
         user = username(robot, identity)
         if ca is not None:
             key_path, cert_path = home / f"{identity}.key", home / f"{identity}.pem"
@@ -442,9 +522,14 @@ def client_config(robot: str, identity: str, router: RouterAddress, password: st
     return header + json.dumps(conf, indent=2) + "\n"
 
 
-def router_config(robots: Sequence[str], router: RouterAddress, tls: bool) -> str:
-    """The router: every client authenticated, every message denied unless a rule of its robot allows it."""
-    listen = f"{'tls' if tls else 'tcp'}/0.0.0.0:{router.port}"
+def router_config(
+    robots: Sequence[str], router: RouterAddress, tls: bool, backends: Mapping[str, str] | None = None
+) -> str:
+    """The router: every client authenticated, every message denied unless a rule of its robot allows it.
+    `backends`: each robot's (ANY_BACKEND for one it does not name)."""
+    # Every interface of the family of the address its clients use: 0.0.0.0 takes no IPv6 client.
+    wildcard = "[::]" if ":" in router.host else "0.0.0.0"
+    listen = f"{'tls' if tls else 'tcp'}/{wildcard}:{router.port}"
     transport: dict[str, Any] = {"auth": {"usrpwd": {"dictionary_file": USERS_FILE}}}
     if tls:
         transport["link"] = {
@@ -459,7 +544,7 @@ def router_config(robots: Sequence[str], router: RouterAddress, tls: bool) -> st
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for robot in robots:
-        r, s, p = access_rules(robot, tls)
+        r, s, p = access_rules(robot, tls, (backends or {}).get(robot, ANY_BACKEND))
         rules += r
         subjects += s
         policies += p
@@ -604,8 +689,11 @@ def rights(identity: str) -> dict[str, list[str]]:
     return found
 
 
-def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
-    """Rules, subjects and policies of one robot, all scoped to tether/<robot>/.
+def access_rules(
+    robot: str, tls: bool, backend: str = ANY_BACKEND
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+    """Rules, subjects and policies of one robot, all scoped to tether/<robot>/, for the identities
+    its `backend` has (the other backend's is no subject: denied everything).
 
     Deny by default. Every one of the robot's identities may subscribe to and receive its robot's keys;
     beyond that each gets exactly what OWNERS grants it: it publishes only the topics (and the feedback
@@ -617,6 +705,8 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
     the operator ask `_process/*`.
     """
     root = keys.prefix(robot)
+    identities = robot_identities(backend)
+    services = [s for s in SERVICE_IDENTITIES if s in identities]
 
     def rule(name: str, messages: list[str], key_exprs: Iterable[str], flow: str = "ingress") -> dict[str, Any]:
         return {
@@ -637,7 +727,7 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
         rule("ask-processes", ["query"], [own(keys.process_key(robot))]),
     ]
     policies_of: dict[str, list[str]] = {}
-    for identity in IDENTITIES:
+    for identity in identities:
         granted = rights(identity)
         names = []
         for what, messages in (("publish", PUT), ("serve", SERVE), ("ask", ASK)):
@@ -645,15 +735,15 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
                 rules.append(rule(f"{what}-{identity}", messages, granted[what]))
                 names.append(f"{what}-{identity}")
         policies_of[identity] = names
-    for identity in IDENTITIES:
+    for identity in identities:
         rules.append(rule(f"alive-{identity}", ["liveliness_token"], [own(keys.alive_key(robot, identity))]))
         rules.append(rule(f"trace-{identity}", ["put"], [own(keys.trace_key(robot, identity, "**"))]))
     # Each service answers for its own process only (services/runtime.py `declare_process_status`).
-    for service in SERVICE_IDENTITIES:
+    for service in services:
         rules.append(rule(f"process-{service}", SERVE, [own(keys.process_key(robot, service))]))
 
     subjects = []
-    for identity in IDENTITIES:
+    for identity in identities:
         name = username(robot, identity)
         # Within one subject the properties must all match: with TLS the password and the certificate
         # must both be this identity's.
@@ -662,21 +752,21 @@ def access_rules(robot: str, tls: bool) -> tuple[list[dict[str, Any]], list[dict
             subject["cert_common_names"] = [name]
         subjects.append(subject)
 
-    def policy(name: str, rule_names: Sequence[str], identities: Sequence[str]) -> dict[str, Any]:
+    def policy(name: str, rule_names: Sequence[str], members: Sequence[str]) -> dict[str, Any]:
         return {
             "id": f"{robot}-{name}",
             "rules": [f"{robot}-{r}" for r in rule_names],
-            "subjects": [username(robot, i) for i in identities],
+            "subjects": [username(robot, i) for i in members],
         }
 
-    people_and_services = [i for i in IDENTITIES if i != "agent"]
+    people_and_services = [i for i in identities if i != "agent"]
     policies = [
-        policy("everyone", ["receive", "subscribe"], IDENTITIES),
+        policy("everyone", ["receive", "subscribe"], identities),
         policy("ask-processes", ["ask-processes"], people_and_services),
     ]
-    policies += [policy(f"rights-{i}", policies_of[i], [i]) for i in IDENTITIES if policies_of[i]]
-    policies += [policy(f"own-{i}", [f"alive-{i}", f"trace-{i}"], [i]) for i in IDENTITIES]
-    policies += [policy(f"own-process-{s}", [f"process-{s}"], [s]) for s in SERVICE_IDENTITIES]
+    policies += [policy(f"rights-{i}", policies_of[i], [i]) for i in identities if policies_of[i]]
+    policies += [policy(f"own-{i}", [f"alive-{i}", f"trace-{i}"], [i]) for i in identities]
+    policies += [policy(f"own-process-{s}", [f"process-{s}"], [s]) for s in services]
     return rules, subjects, policies
 
 

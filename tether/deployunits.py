@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import re
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,26 +90,29 @@ def write_all(
     DIR/compose.secured.yaml for `robots` (all of the deployment's); return each file, `created`
     when its content is new or changed.
 
-    `router` defaults to the one of the deployment's manifest. `executable` is the absolute `tether`
-    in ExecStart (tests point it at one that exists, for `systemd-analyze verify`). Nothing here is
-    secret, and every file is generated: a rerun overwrites an edit made to one of them."""
-    if router is None:
-        try:
-            router = deployment.Deployment.load(directory).router
-        except deployment.DeploymentError:
-            router = RouterAddress()
+    `router` and each robot's backend default to those of the deployment's manifest. `executable` is
+    the absolute `tether` in ExecStart (tests point it at one that exists, for `systemd-analyze
+    verify`). Nothing here is secret, and every file is generated: a rerun overwrites an edit made to one of them."""
+    try:
+        made: deployment.Deployment | None = deployment.Deployment.load(directory)
+    except deployment.DeploymentError:
+        made = None
+    router = router or (made.router if made else RouterAddress())
+    backends = {robot: made.backend(robot) if made else deployment.ANY_BACKEND for robot in robots}
     written: list[Written] = []
     units = directory / "systemd"
     for own in (units, directory / "compose", *(directory / robot for robot in robots)):
         deployment.private_dir(own)
     written.append(write_generated(units / "tether-router.service", router_unit(tls, executable)))
     for robot in robots:
+        identities = deployment.robot_identities(backends[robot])
         for service in SERVICE_IDENTITIES:
-            written.append(
-                write_generated(
-                    units / f"tether-{robot}-{service}.service", service_unit(Identity(robot, service), tls, executable)
-                )
-            )
+            path = units / f"tether-{robot}-{service}.service"
+            if service not in identities:
+                path.unlink(missing_ok=True)  # the other backend's, of a robot that had both: it has no login now
+                continue
+            alone = service in deployment.ROBOT_BACKEND_IDENTITIES and backends[robot] != deployment.ANY_BACKEND
+            written.append(write_generated(path, service_unit(Identity(robot, service), tls, executable, alone=alone)))
         source = directory / robot / "tether.toml"
         base = _installer_config(source)
         written.append(
@@ -121,11 +124,15 @@ def write_all(
     port, name = router.port, router.container_alias
     written.append(write_generated(directory / "compose" / "router.json5", open_router_config(port)))
     written.append(write_generated(directory / "compose" / "client.json5", open_client_config(port)))
-    written.append(write_generated(directory / "compose.yaml", compose_yaml(robots, tls=tls, secured=False, port=port)))
+    written.append(
+        write_generated(
+            directory / "compose.yaml", compose_yaml(robots, tls=tls, secured=False, port=port, backends=backends)
+        )
+    )
     written.append(
         write_generated(
             directory / "compose.secured.yaml",
-            compose_yaml(robots, tls=tls, secured=True, port=port, router_host=name),
+            compose_yaml(robots, tls=tls, secured=True, port=port, router_host=name, backends=backends),
         )
     )
     return written
@@ -172,7 +179,8 @@ SystemCallErrorNumber=EPERM
 """
 
 
-def service_unit(identity: Identity, tls: bool, executable: Path) -> str:
+def service_unit(identity: Identity, tls: bool, executable: Path, *, alone: bool = False) -> str:
+    """The unit of one service; `alone`: a robot backend whose robot has no other one to conflict with."""
     robot, service, unit = identity.robot, identity.service, identity.unit
     home = INSTALL_DIR / robot
     # The config too: a DynamicUser reads nothing of root's 600 files in /etc/tether but what
@@ -180,10 +188,14 @@ def service_unit(identity: Identity, tls: bool, executable: Path) -> str:
     credentials = "\n".join(
         f"LoadCredential={name}:{home / name}" for name in (*identity.credentials(tls), CONFIG_CREDENTIAL)
     )
-    backend = {
-        "sim": f"Conflicts={unit.replace('-sim', '-' + ROS2)}.service\n",
-        ROS2: f"Conflicts={unit.replace('-' + ROS2, '-sim')}.service\n",
-    }.get(service, "")
+    backend = (
+        ""
+        if alone
+        else {
+            "sim": f"Conflicts={unit.replace('-sim', '-' + ROS2)}.service\n",
+            ROS2: f"Conflicts={unit.replace('-' + ROS2, '-sim')}.service\n",
+        }.get(service, "")
+    )
     start = (
         "# It is ready once the robot reports, which may take a while after boot; until then it holds the robot.\n"
         "TimeoutStartSec=infinity\n"
@@ -393,7 +405,15 @@ def open_client_config(port: int) -> str:
     )
 
 
-def compose_yaml(robots: Sequence[str], *, tls: bool, secured: bool, port: int, router_host: str | None = None) -> str:
+def compose_yaml(
+    robots: Sequence[str],
+    *,
+    tls: bool,
+    secured: bool,
+    port: int,
+    router_host: str | None = None,
+    backends: Mapping[str, str] | None = None,
+) -> str:
     secrets: dict[str, Any] = {}
     configs: dict[str, Any] = {}
     volumes: dict[str, Any] = {}
@@ -404,8 +424,13 @@ def compose_yaml(robots: Sequence[str], *, tls: bool, secured: bool, port: int, 
         configs[f"{robot}-config"] = {"file": f"./{robot}/compose.toml"}
         volumes[f"{robot}-safety-state"] = {}
         volumes[f"{robot}-recordings"] = {}
-        for service in SERVICE_IDENTITIES:
-            services[f"{robot}-{service}"] = _service(Identity(robot, service), secured, tls, secrets)
+        backend = (backends or {}).get(robot, deployment.ANY_BACKEND)
+        for service in deployment.robot_identities(backend):
+            if service in SERVICE_IDENTITIES:
+                entry = _service(Identity(robot, service), secured, tls, secrets)
+                if service == ROS2 and backend == deployment.ANY_BACKEND:
+                    entry["profiles"] = [ROS2]  # a robot that may run either: the sim unless asked
+                services[f"{robot}-{service}"] = entry
     document = {
         "services": services,
         "networks": {"tether": {"driver": "bridge"}},
@@ -429,7 +454,8 @@ def compose_yaml(robots: Sequence[str], *, tls: bool, secured: bool, port: int, 
 # reaching the router by its service name; each gets only its own files as secrets. Compose mounts
 # them as they are on the host: they must be readable by uid {IMAGE_UID}, the image's user
 # (sudo chown -R {IMAGE_UID} <robot>/). Safety's latch and the recordings live on named volumes.
-# ros2 (a real robot's backend instead of sim) starts only with `--profile ros2`. The planner's LLM
+# A robot of either backend (`deploy init` without --backend) has sim and ros2 (a real robot's backend),
+# which starts only with `--profile ros2`; a robot of one backend has only that one. The planner's LLM
 # endpoint: $TETHER_LLM_URL and $TETHER_LLM_MODEL of the shell that runs compose; its API key, if it
 # wants one, in <robot>/{deployment.LLM_KEY_FILE} (a secret file, not a variable `docker inspect` shows).
 {"" if secured else OPEN_ROUTER_NOTE}"""
@@ -501,6 +527,4 @@ def _service(identity: Identity, secured: bool, tls: bool, secrets: dict[str, An
             "TETHER_LLM_MODEL": "${TETHER_LLM_MODEL:-}",
             KEY_FILE_ENV: f"/run/secrets/{deployment.LLM_KEY_FILE}",
         }
-    if service == ROS2:
-        entry["profiles"] = [ROS2]
     return entry
