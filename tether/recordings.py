@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent import futures
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
@@ -17,6 +19,7 @@ from rich.table import Table
 from schemas import keys
 from schemas.actions import CancelGoal
 from schemas.robot import Twist
+from schemas.safety import SafetyStatus
 from services.recorder.config import RecorderConfig
 from services.recorder.main import provenance
 from services.recorder.mcapfile import MAX_CHANNELS, SourceFile
@@ -34,7 +37,7 @@ from services.recorder.replay import (
     plan_replay,
 )
 from services.robotlink import KeyFileError, read_key
-from services.runtime import ConfigError, Node, NodeSettings, encode, load_config, stop_event
+from services.runtime import SIGNAL_POLL, ConfigError, Node, NodeSettings, encode, load_config, stop_event
 from services.safety.recheck import Message, RecheckReport, recheck
 from services.worldmodel import WorldFileError, load_world
 from tether.output import literal, printable, shown
@@ -46,6 +49,9 @@ QUERY_TIMEOUT = 5.0
 # crafted file) each message is put without one, for Zenoh takes ever longer to declare each further
 # publisher (tens of thousands hold a replay for minutes).
 MAX_PUBLISHERS = MAX_CHANNELS
+# What drives the base: a replay stopped after sending either stops it (the robot drops a twist only
+# after its own timeout).
+BASE_COMMANDS = (f"/{keys.CMD_VEL.path}", f"/{keys.TELEOP_CMD_VEL.path}")
 
 FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", show_default=False)]
 FilesArg = Annotated[
@@ -294,8 +300,11 @@ def _replay(
             ),
             markup=False,
         )
-        sent = Player(node).play(plan, speed, bar)
-    console.print(f"replayed {sent} messages")
+        # Ctrl-C and SIGTERM stop the replay between two of its steps, never inside one.
+        player = Player(node, stop_event(), watch_estop=live_commands)
+        sent = player.play(plan, speed, bar)
+    refused = f"; {player.sent_latched} of them while the e-stop was latched (safety refused them)"
+    console.print(f"replayed {sent} messages" + (refused if player.sent_latched else ""), markup=False)
 
 
 def key_error(key: str) -> str | None:
@@ -310,43 +319,64 @@ def key_error(key: str) -> str | None:
 class Player:
     """Puts and asks a replay's items on time. Goal queries go one after the other, in order, on a
     worker (so a goal's cancel never overtakes it, and the clock does not wait for replies); a
-    replay stopped with Ctrl-C cancels the goals it started and stops the base."""
+    replay stopped (`stop` set: Ctrl-C or SIGTERM) cancels the goals it asked, also while it waits
+    for the last answers, asks none still queued, and stops the base. With `watch_estop` it says when
+    the robot's e-stop latches or clears, and counts what it sends while latched (safety refuses it)."""
 
-    def __init__(self, node: Node) -> None:
+    def __init__(self, node: Node, stop: threading.Event | None = None, watch_estop: bool = False) -> None:
         self.node = node
+        self.stop = stop or threading.Event()
         self.publishers: dict[str, zenoh.Publisher] = {}
         self.asker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="replay-query")
-        self.started: list[Item] = []  # the goals sent, to cancel if the replay is stopped
+        self.started: list[Item] = []  # the goals asked, to cancel if the replay is stopped
         self.base: str | None = None  # the robot whose base this replay sent velocities, to stop if stopped
+        self.latched: str | None = None  # why the robot's e-stop is latched, as its heartbeat says; None if not
+        self.sent_latched = 0  # messages sent while it was
+        if watch_estop:
+            node.subscribe(keys.HEARTBEAT, self._heartbeat)
 
     def play(self, plan: ReplayPlan, speed: float, bar: Bar | None = None) -> int:
         """Send the items on the recorded clock, `speed` times as fast, counting the recorded seconds on `bar`."""
         sent = 0
         played = 0.0  # recorded seconds
         task = (bar or Bar()).task(f"replaying at {speed:g}x (recorded seconds)", plan.duration)
+        asked: Future[None] | None = None  # the last goal query queued: the worker asks them in order
         start = time.monotonic()
         try:
             for item in plan.items:
-                delay = start + item.at / speed - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)  # the recorded clock: this is the replay's pacing
-                self._send(item)
+                # The recorded clock: this is the replay's pacing.
+                if self.stop.wait(max(0.0, start + item.at / speed - time.monotonic())):
+                    break
+                asked = self._send(item) or asked
                 sent += 1
                 task.advance(item.at - played)
                 played = item.at
-        except KeyboardInterrupt:
-            console.print("replay stopped: canceling the goals it sent")
-            self.asker.shutdown(wait=True, cancel_futures=True)
-            self._stop_what_was_started()
+            # The queries still queued are the replay's too: a stop while they are asked cancels them.
+            while asked is not None and not asked.done() and not self.stop.is_set():
+                futures.wait([asked], SIGNAL_POLL)  # woken to see a signal's stop
+            if self.stop.is_set():
+                console.print("replay stopped: canceling the goals it sent")
+                self.asker.shutdown(wait=True, cancel_futures=True)
+                self._stop_what_was_started()
         finally:
             self.asker.shutdown(wait=True)
             for publisher in self.publishers.values():
                 publisher.undeclare()
         return sent
 
-    def _send(self, item: Item) -> None:
+    def _heartbeat(self, status: SafetyStatus) -> None:
+        latched = f"{status.estop.source}: {status.estop.reason}" if status.estop.latched else None
+        if (latched is None) != (self.latched is None):
+            said = f"e-stop latched by {latched}; safety refuses what the replay sends" if latched else "e-stop reset"
+            console.print(f"[yellow]robot {shown(self.node.robot)}: {shown(said)}[/]", highlight=False)
+        self.latched = latched
+
+    def _send(self, item: Item) -> Future[None] | None:
+        """Put `item`, or queue its query; the query's future."""
+        if self.latched is not None:
+            self.sent_latched += 1
         if item.kind is ReplayKind.PUT:
-            if item.key.endswith(f"/{keys.CMD_VEL.path}"):
+            if item.key.endswith(BASE_COMMANDS):
                 self.base = item.key.split("/")[1]
             publisher = self.publishers.get(item.key)
             if publisher is None and len(self.publishers) < MAX_PUBLISHERS:
@@ -355,10 +385,13 @@ class Player:
                 self.node.session.put(item.key, item.payload)
             else:
                 publisher.put(item.payload)
-            return
+            return None
+        return self.asker.submit(self._ask_item, item)
+
+    def _ask_item(self, item: Item) -> None:
         if item.goal_id is not None:
-            self.started.append(item)
-        self.asker.submit(self._ask, item.key, item.payload)
+            self.started.append(item)  # before it is asked: its answer may come after a stop
+        self._ask(item.key, item.payload)
 
     def _stop_what_was_started(self) -> None:
         for item in self.started:
