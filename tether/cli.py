@@ -17,6 +17,7 @@ import sys
 import tempfile
 import threading
 import time
+import uuid
 from collections.abc import Iterator, MutableMapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
@@ -60,6 +61,7 @@ from tether.client import (
     STEP_ENDS,
     PlanRun,
     PlanSender,
+    ended_without_result,
     next_heartbeat,
     next_message,
     operator_name,
@@ -533,6 +535,11 @@ def read_plan(plan: str) -> str:
     return plan
 
 
+# The most of a step's action and of the places it searched a step's line shows.
+SHOWN_ACTION_CHARS = 100
+SHOWN_PLACES = 10
+
+
 def print_feedback(fb: ExecutePlanFeedback) -> None:
     if fb.step is None:
         console.print(f"[dim]{fb.stage}[/]: {shown(fb.message)}")
@@ -554,8 +561,13 @@ def print_step(
     mark = {StepStatus.SUCCEEDED: "[green]done[/]", StepStatus.FAILED: failed}.get(status, "...")
     if status is StepStatus.RUNNING and attempt > 1:
         mark = "[yellow]retrying[/]"
+    # Feedback is anyone's publication, its action and places unbounded in the schema: shown bounded.
+    action = action[:SHOWN_ACTION_CHARS]
+    places = ", ".join(searched[:SHOWN_PLACES]) + (
+        f" and {len(searched) - SHOWN_PLACES} more" if len(searched) > SHOWN_PLACES else ""
+    )
     # Where a detect or pick searched, once the step has ended (the notes said it as it went).
-    where = f" [dim](searched: {shown(', '.join(searched))})[/]" if searched and status in STEP_ENDS else ""
+    where = f" [dim](searched: {shown(places)})[/]" if searched and status in STEP_ENDS else ""
     said = shown(f"step {label or index + 1} {action}: {message}")
     console.print(f"{said} {mark}{where}")
 
@@ -597,6 +609,24 @@ def unreachable(as_json: bool, reason: str) -> NoReturn:
     else:
         console.print(f"[red]{shown(reason)}[/]")
     raise typer.Exit(EXIT_UNREACHABLE)
+
+
+# How long a Ctrl-C waits for the canceled plan to end: beyond the executor's own grace for a motion
+# that does not stop (10 s, then it latches the e-stop and ends the plan failed).
+CANCEL_WAIT = 30.0
+
+
+def interrupted(sender: PlanSender, goal_id: str, as_json: bool) -> PlanRun:
+    """Ctrl-C while sending or waiting: the plan is canceled (one the executor has not answered for
+    yet too) and its end waited for, the cancel's grace at most. Exit 3 when no end came (the plan
+    may still be moving), or on a second Ctrl-C."""
+    console.print("canceling...")
+    try:
+        return sender.cancel(sender.handle(goal_id), CANCEL_WAIT)
+    except CallError as exc:
+        unreachable(as_json, f"no outcome: canceled (Ctrl-C), but goal {goal_id} did not end: {exc}")
+    except KeyboardInterrupt:
+        unreachable(as_json, f"no outcome: interrupted while canceling goal {goal_id} (`tether goal` follows it)")
 
 
 @app.command()
@@ -669,9 +699,10 @@ def send(
         if not node.is_alive("executor", 2.0):
             unreachable(as_json, "no executor reachable: start the services with `tether up`")
         sender = PlanSender(node, None if as_json else print_feedback)
+        goal_id = uuid.uuid4().hex  # known before the send: a Ctrl-C before its answer cancels it by id
         try:
             goal = ExecutePlanGoal(text=text, format=fmt, dry_run=dry_run, preempt=preempt)  # type: ignore[arg-type]
-            handle = sender.send(goal)
+            handle = sender.send(goal, goal_id)
         except GoalRejected as exc:
             if as_json:
                 print(json.dumps({"status": "rejected", "stage": "execute", "reason": exc.reason, "steps": []}))
@@ -680,14 +711,15 @@ def send(
             raise typer.Exit(2) from None
         except CallError as exc:
             unreachable(as_json, f"executor unreachable: {exc}")
-        try:
-            run_ = sender.wait(handle, timeout, until_started=not (wait or dry_run))
         except KeyboardInterrupt:
-            console.print("canceling...")
-            handle.cancel()
-            run_ = sender.wait(handle, 30.0)
-        except CallError as exc:
-            unreachable(as_json, f"no outcome: {exc}")
+            run_ = interrupted(sender, goal_id, as_json)
+        else:
+            try:
+                run_ = sender.wait(handle, timeout, until_started=not (wait or dry_run))
+            except KeyboardInterrupt:
+                run_ = interrupted(sender, goal_id, as_json)
+            except CallError as exc:
+                unreachable(as_json, f"no outcome: {exc}")
         print_result(run_, as_json)
         raise typer.Exit(EXIT_CODES[run_.result.status] if run_.result else 0)
 
@@ -739,6 +771,8 @@ def goal(
                 raise typer.Exit(2) from None
             unreachable(as_json, f"executor unreachable: {exc}")
     result = progress.result
+    if result is None and progress.state.terminal:  # ended with none (its run raised): not still running
+        result = ended_without_result(progress.state, progress.message)
     code = EXIT_CODES[result.status] if result is not None else 0
     if as_json:
         print(json.dumps(msgspec.to_builtins(progress)))
