@@ -104,12 +104,14 @@ class PlayedSafety:
         self.node.close()
 
 
-def turned(odom: Watch[Odometry], safety: PlayedSafety, timeout: float = 1.0) -> None:
-    """Turns the base with a twist `safety` signs, once its heartbeat is heard: the robot moves on it."""
+def turned(odom: Watch[Odometry], safety: PlayedSafety, timeout: float = 1.0, way: float = 1.0) -> None:
+    """Turns the base `way` (+1 left, -1 right) with a twist `safety` signs, once its heartbeat is heard:
+    the robot moves on it. A turn the other way than the last safety's tells this one's twist from the
+    one the robot still holds (up to 0.5 s), which turned the base as well."""
     n, deadline = len(odom), time.monotonic() + timeout
-    while odom.wait_for(lambda o: abs(o.angular_z) > 0.1, timeout=0.1, after=n) is None:
+    while odom.wait_for(lambda o: o.angular_z * way > 0.1, timeout=0.1, after=n) is None:
         assert time.monotonic() < deadline, "a played safety's twist did not turn the base"
-        safety.node.publish(keys.ROBOT_CMD_VEL, Twist(angular_z=0.3))
+        safety.node.publish(keys.ROBOT_CMD_VEL, Twist(angular_z=0.3 * way))
 
 
 def test_a_twist_the_old_safety_signed_and_was_held_back_is_refused_once_the_new_one_beats(stack: Stack) -> None:
@@ -130,7 +132,9 @@ def test_a_twist_the_old_safety_signed_and_was_held_back_is_refused_once_the_new
                 old.close()  # safety restarts
             new.start()
             assert new.beating.wait(1.0), "the new safety does not beat"
-            turned(odom, new, timeout=1.5)  # after a heartbeat of its own (one link: they arrive in order)
+            # After a heartbeat of its own (one link: they arrive in order); the other way, so that the old
+            # safety's twist, held by the robot for a moment after it went, cannot pass for this one's.
+            turned(odom, new, timeout=1.5, way=-1.0)
             n = len(odom)
             attacker.session.put(cmd_vel, held, attachment=attachment)
             assert time.monotonic() - signed_at < 1.8, "delivered too late to test (the link's window is 2 s)"
