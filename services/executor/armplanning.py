@@ -26,6 +26,7 @@ from __future__ import annotations
 import itertools
 import math
 import random
+import threading
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -42,7 +43,7 @@ from shapely.geometry import Point
 from schemas.common import Pose2D, Vec3
 from schemas.robot import ARM_JOINTS, FINGER_JOINTS, GRIPPER_MAX_GAP, MAX_TRAJECTORY_POINTS, TrajectoryPoint
 from schemas.world import WorldObject
-from services.executor.errors import IKFailed, PlanningFailed
+from services.executor.errors import Canceled, IKFailed, PlanningFailed
 from services.executor.grasps import Grasp, Placement
 from services.executor.kinematics import ArmKinematics, arm_from_map, rotation_z
 from services.executor.omplsetup import Guard, solving
@@ -721,17 +722,20 @@ def plan_pick(
     support: str | None,
     *,
     q_stow: Sequence[float] | np.ndarray | None = None,
+    cancel: threading.Event | None = None,
 ) -> PickPlan:
     """The first grasp of `candidates` (in order) that the arm can carry out from q_start: pre-grasp
     by collision-free IK, a straight approach (fingers may touch the target), a straight lift with
     the target held (it may touch its `support`), then a path to the pre-grasp (tried last: the
     costliest) and, given q_stow, from the lift to it with the object. `scene` holds `target` as an
-    object. Raises PlanningFailed with each grasp's reason."""
+    object. Raises PlanningFailed with each grasp's reason; Canceled once `cancel` is set (looked at
+    before each grasp: each may take seconds of search, and there may be dozens)."""
     if not candidates:
         raise PlanningFailed(f"no grasp for {target.name}: nothing about it fits between the fingers")
     reasons: list[str] = []
     reachable, unreachable = _within_reach(scene, candidates, lambda g: (g.pregrasp, g.pose, g.lift))
     for grasp in reachable:
+        _may_go_on(cancel, f"planning the pick of {target.name}")
         try:
             q_pre = scene.ik(grasp.pregrasp, q_start, what=f"above {target.name}")
             approach = scene.cartesian(
@@ -763,10 +767,12 @@ def plan_place(
     surface: str,
     *,
     q_stow: Sequence[float] | np.ndarray | None = None,
+    cancel: threading.Event | None = None,
 ) -> PlacePlan:
     """The first placement of `candidates` the arm can carry out from q_start, holding scene.held:
     above the spot by collision-free IK, straight down, and after letting go straight back along
-    the approach (the fingers may touch the object). Raises PlanningFailed with each one's reason."""
+    the approach (the fingers may touch the object). Raises PlanningFailed with each one's reason;
+    Canceled once `cancel` is set (looked at before each placement, as plan_pick does)."""
     held = scene.held
     if held is None:
         raise PlanningFailed("placing needs a scene with an object in the hand")
@@ -774,6 +780,7 @@ def plan_place(
     reasons: list[str] = []
     reachable, unreachable = _within_reach(scene, candidates, lambda p: (p.preplace, p.pose, p.retreat))
     for placement in reachable:
+        _may_go_on(cancel, f"planning how to put {name} on {surface}")
         try:
             q_pre = scene.ik(placement.preplace, q_start, what=f"{name} above {surface}")
             lower = scene.cartesian(
@@ -795,6 +802,11 @@ def plan_place(
 
 
 C = TypeVar("C", Grasp, Placement)
+
+
+def _may_go_on(cancel: threading.Event | None, what: str) -> None:
+    if cancel is not None and cancel.is_set():
+        raise Canceled(f"{what} canceled")
 
 
 def _within_reach(

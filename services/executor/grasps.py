@@ -117,6 +117,12 @@ def fits(width: float, config: GraspConfig) -> bool:
     return width <= GRIPPER_MAX_GAP - config.gap_margin
 
 
+def narrowest_width(obj: WorldObject) -> float:
+    """The narrowest width of `obj` the candidates put the fingers across: a box's shorter side, a
+    round object's diameter. Wider than fits, no grasp of it exists wherever it stands."""
+    return min(obj.size.x, obj.size.y) if obj.shape == "box" else obj.size.x
+
+
 def grasps(
     obj: WorldObject, position: Vec3, yaw: float, base: Pose2D, mount: Vec3, config: GraspConfig | None = None
 ) -> list[Grasp]:

@@ -61,7 +61,7 @@ from services.executor.errors import (
     PostconditionFailed,
     PreconditionFailed,
 )
-from services.executor.grasps import GraspConfig, grasps, object_pose, placements
+from services.executor.grasps import GraspConfig, fits, grasps, narrowest_width, object_pose, placements
 from services.executor.navigation import BasePlanner
 from services.executor.ports import Robot
 from services.executor.search import Look, SearchPlan, narrowest, not_found, plan_search, step_scope
@@ -91,6 +91,13 @@ Note = Callable[[str], None]
 # An object the resolver's memory has this far from where its pick step was grounded has been seen
 # elsewhere since (metres): the pick goes there first.
 MOVED_SINCE_GROUNDED = 0.1
+# An object seen this far (metres, across the floor) from where its grasp was planned, once the hand
+# is above it, has moved meanwhile: reaching in, the fingers would push it or come down on it. Well
+# above perception's error with the hand hiding part of the object (under 1 cm).
+MOVED_BEFORE_GRASP = 0.03
+# A placed object whose centre perception sees this much (metres) lower than standing upright puts
+# it has fallen over: on its side a cup's centre is its height less its width lower (4 cm).
+FALLEN_OVER = 0.015
 
 
 def _quiet(_: str) -> None:
@@ -548,8 +555,15 @@ class Manipulator:
         if held_now is not None:
             held = self.world.objects.get(held_now)
             raise PreconditionFailed(f"the gripper already holds {held.name if held else held_now}")
-        target = self.locate(step, cancel, note, attempt, searched)
         obj = self.world.objects[step.object_id]
+        width = narrowest_width(obj)
+        if not fits(width, self.grasp_config):
+            # Known before anything moves, and no retry makes it fit.
+            raise PreconditionFailed(
+                f"{step.object_name} is too big for the gripper: {width * 100:.0f} cm across at its narrowest, "
+                f"the fingers open to {GRIPPER_MAX_GAP * 100:.0f} cm"
+            )
+        target = self.locate(step, cancel, note, attempt, searched)
         base, q = self._base(), self._arm_now()
         seen = self._look()
         scene = self._scene(base, seen)
@@ -557,10 +571,11 @@ class Manipulator:
         failed = self._failed.setdefault(step.object_id, set())
         candidates = grasps(obj, target.position, yaw, base, self.mount, self.grasp_config)
         fresh = [g for g in candidates if g.description not in failed] or candidates
-        plan = plan_pick(scene, q, fresh, obj, target.on, q_stow=self.home)
+        plan = plan_pick(scene, q, fresh, obj, target.on, q_stow=self.home, cancel=cancel)
         grasp = plan.grasp
         self.gripper(GRIPPER_OPEN, cancel)
         self._follow(plan.to_pregrasp, f"moving above {step.object_name}", cancel)
+        self._check_not_moved(step, target, base)
         self._follow(plan.approach, f"reaching {step.object_name}", cancel)
         result = self.gripper(GRIPPER_CLOSED, cancel, object_id=step.object_id)
         holding = None if result is None else result.holding
@@ -586,6 +601,21 @@ class Manipulator:
         self._follow(plan.to_stow, f"stowing {step.object_name}", cancel)
         failed.clear()
         return f"holding {step.object_name} ({grasp.kind} grasp)"
+
+    def _check_not_moved(self, step: PickStep, target: PerceivedObject, base: Pose2D) -> None:
+        """The object still where its grasp was planned, as perception sees it with the hand above:
+        moved meanwhile (pushed, taken and put back), it is not reached for where it was; a retry
+        sees it anew. Hidden under the hand, it is taken as still there (closing checks it)."""
+        now = self._seen(step.object_id)
+        if now is None or now.on == "gripper":
+            return
+        moved = math.hypot(now.position.x - target.position.x, now.position.y - target.position.y)
+        if moved > MOVED_BEFORE_GRASP:
+            raise ExecutionError(
+                f"{step.object_name} moved while the arm moved above it: seen "
+                f"{offset_words(target.position, now.position, base)} where its grasp was planned; "
+                "not reaching for where it was"
+            )
 
     def _map_point(self, base: Pose2D, point: np.ndarray) -> Vec3:
         return arm_to_world(base, self.mount, point)
@@ -634,7 +664,7 @@ class Manipulator:
         failed = self._failed.setdefault(held_id, set())
         candidates = placements(obj, held.in_grasp, step.position, base, self.mount, self.grasp_config)
         fresh = [p for p in candidates if p.description not in failed] or candidates
-        plan = plan_place(scene, q, fresh, step.surface_name, q_stow=self.home)
+        plan = plan_place(scene, q, fresh, step.surface_name, q_stow=self.home, cancel=cancel)
         self._follow(plan.to_preplace, f"moving {obj.name} above the {step.surface_name}", cancel)
         self._follow(plan.lower, f"lowering {obj.name} onto the {step.surface_name}", cancel)
         self.gripper(GRIPPER_OPEN, cancel)
@@ -657,6 +687,13 @@ class Manipulator:
             where = "nowhere in view" if seen is None else f"on the {self._surface_name(seen.on)}"
             raise PostconditionFailed(
                 f"after placing, perception has {obj.name} {where}, not on the {step.surface_name}"
+            )
+        # On its side it is still on the surface: only its height tells.
+        lower = step.position.z + obj.size.z / 2 - seen.position.z
+        if lower > FALLEN_OVER:
+            raise PostconditionFailed(
+                f"after placing, perception has {obj.name} on the {step.surface_name} but not upright: its "
+                f"centre {_cm(lower)} lower than standing, it has fallen over"
             )
         self._failed.pop(obj.id, None)
         return f"placed {obj.name} on the {step.surface_name}"
