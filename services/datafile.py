@@ -62,12 +62,15 @@ def read_struct(path: Path, type_: type[T], what: str, error: type[Exception]) -
 
 
 def read_bytes(path: Path, what: str, error: type[Exception]) -> bytes:
-    """The bytes of `path`, refusing a file of more than MAX_FILE_BYTES without reading it all."""
+    """The bytes of `path`, refusing a file of more than MAX_FILE_BYTES without reading it all, and
+    anything but a regular file: a FIFO named as the world hung start-up, a device was read to the limit."""
     try:
-        with path.open("rb") as file:
-            return file.read(MAX_FILE_BYTES + 1)  # one more: decode_struct refuses it
+        mode, data = read_regular(path, MAX_FILE_BYTES)  # one more byte than allowed: decode_struct refuses it
     except OSError as exc:
         raise error(f"cannot read {what} file {path}: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{what} file {path} is not a regular file")
+    return data
 
 
 def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: type[Exception]) -> T:
@@ -80,9 +83,9 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
             # msgspec keeps the last of two equal keys: a second "keep_out" would drop the first's zones.
             if key := _json_duplicate_key(data):
                 raise error(f"{what} file {path}: key {key!r} appears twice in one object")
-            return msgspec.json.decode(data, type=type_)
+            return msgspec.json.decode(_utf8(data), type=type_)
         if kind == "TOML":
-            return _toml(data, type_)  # TOML itself refuses a key given twice
+            return _toml(_utf8(data), type_)  # TOML itself refuses a key given twice
         root = _yaml_compose(data)
         if (nodes := _yaml_nodes(root)) > MAX_YAML_NODES:
             raise error(
@@ -92,7 +95,7 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
         if duplicate := _yaml_duplicate_key(root):
             key, line = duplicate
             raise error(f"{what} file {path}: key {key!r} appears twice in one mapping (line {line})")
-        return msgspec.yaml.decode(data, type=type_)
+        return _yaml(data, type_)
     except msgspec.ValidationError as exc:
         raise error(f"{what} file {path}: {exc}") from None
     except msgspec.DecodeError as exc:
@@ -102,14 +105,18 @@ def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: typ
 _ENDLESS = MAX_YAML_NODES + 1
 
 
-def _toml(data: bytes, type_: type[T]) -> T:
-    """msgspec's TOML decode, its reader's other errors as DecodeErrors: bytes that are not UTF-8, arrays
-    nested past the interpreter's recursion limit, an integer of thousands of digits (a recording's
-    policy file is anyone's)."""
+def _utf8(data: bytes) -> str:
+    """The file's text; bytes that are not UTF-8 as a DecodeError (msgspec's JSON decoder raised
+    UnicodeDecodeError for them, and its builds differ in what TOML's raises)."""
     try:
-        text = data.decode()  # here, not in msgspec: its builds differ in what they raise for it
+        return data.decode()
     except UnicodeDecodeError as exc:
         raise msgspec.DecodeError(f"not UTF-8 text (byte {exc.start})") from None
+
+
+def _toml(text: str, type_: type[T]) -> T:
+    """msgspec's TOML decode, its reader's other errors as DecodeErrors: arrays nested past the
+    interpreter's recursion limit, an integer of thousands of digits (a recording's policy file is anyone's)."""
     try:
         return msgspec.toml.decode(text, type=type_)
     except msgspec.MsgspecError:  # what the file says against its type, named by decode_struct
@@ -118,6 +125,18 @@ def _toml(data: bytes, type_: type[T]) -> T:
         raise msgspec.DecodeError("arrays or tables nested too deeply") from None
     except ValueError as exc:  # past Python's limit on the digits of an integer it parses
         raise msgspec.DecodeError(str(exc)) from None
+
+
+def _yaml(data: bytes, type_: type[T]) -> T:
+    """msgspec's YAML decode, its loader's other errors as DecodeErrors. PyYAML builds each scalar with
+    Python's own int(), date() or a dict look-up, and lets what they raise out: ValueError for an integer
+    of thousands of digits or a 13th month, KeyError for `!!bool x`, AttributeError for `!!timestamp x`."""
+    try:
+        return msgspec.yaml.decode(data, type=type_)
+    except msgspec.MsgspecError:
+        raise
+    except Exception as exc:
+        raise msgspec.DecodeError(f"a value it cannot build ({type(exc).__name__}: {exc})") from None
 
 
 def _json_duplicate_key(data: bytes) -> str | None:

@@ -86,6 +86,13 @@ def _check_world(world: World, path: Path) -> None:
         if j < i and rooms[i].intersection(rooms[j]).area > ROOM_OVERLAP_TOLERANCE:
             raise bad(f"rooms[{i}] ({world.rooms[i].id})", f"overlaps rooms[{j}] ({world.rooms[j].id})")
     floor = unary_union(rooms)
+    for i, (zone, shape) in enumerate(zip(world.keep_out, zones, strict=True)):
+        # Corners typed in the wrong place (or frame) keep the robot out of nothing, and what the
+        # zone was for goes unguarded.
+        if not floor.intersects(shape):
+            raise bad(
+                f"keep_out[{i}] ({zone.id}).polygon", "is outside every room; it would keep the robot out of nothing"
+            )
     for i, wall in enumerate(world.walls):
         if wall.start == wall.end:
             raise bad(f"walls[{i}] ({wall.id})", "starts where it ends")

@@ -863,7 +863,7 @@ def policy(
             arm = ArmModel(model.robot.arm_urdf)
         except (OSError, ValueError, RuntimeError) as exc:
             raise WorldFileError(f"robot.arm_urdf {model.robot.arm_urdf!r} cannot be loaded: {exc}") from None
-        limits = load_policy(file, model.robot, arm, model.keep_out)
+        limits = load_policy(file, model.robot, arm, model.keep_out, model.rooms)
     except (PolicyError, WorldFileError) as exc:
         if as_json:
             print(json.dumps({"ok": False, "error": str(exc)}))

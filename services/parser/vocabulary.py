@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import re
 from importlib import resources
 from pathlib import Path
@@ -203,6 +204,10 @@ def _check(vocabulary: Vocabulary, path: Path) -> None:
             for alias, unit in pspec.unit_aliases.items():
                 if unit not in vocabulary.units.get(pspec.unit, {}):
                     raise VocabularyError(f"{where}: unit alias {alias!r} names {unit!r}, not a unit of {pspec.unit!r}")
+            for side, bound in (("min", pspec.min), ("max", pspec.max)):
+                # A NaN bound compares false with every number: the parser would let any value through.
+                if bound is not None and not math.isfinite(bound):
+                    raise VocabularyError(f"{where}: {side} {bound} is not a finite number")
             if pspec.min is not None and pspec.max is not None and pspec.min > pspec.max:
                 raise VocabularyError(f"{where} has min > max")
             if pspec.signed_by is not None:

@@ -902,7 +902,7 @@ def load_safety_policy(world: World, policy: Path | None, world_label: str, data
     except (OSError, ValueError, RuntimeError) as exc:
         raise PolicyError(f"{world_label}: robot.arm_urdf {world.robot.arm_urdf!r} cannot be loaded: {exc}") from None
     if data is None:
-        limits = load_policy(policy, world.robot, arm, world.keep_out)
+        limits = load_policy(policy, world.robot, arm, world.keep_out, world.rooms)
     else:
-        limits = parse_policy(data, policy or Path("policy.toml"), world.robot, arm, world.keep_out)
+        limits = parse_policy(data, policy or Path("policy.toml"), world.robot, arm, world.keep_out, world.rooms)
     return SafetyPolicy(WorldModel(world), limits, arm)

@@ -11,7 +11,7 @@ changing the policy means restarting safety.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -20,10 +20,11 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 from shapely.geometry import Polygon as ShapelyPolygon
+from shapely.ops import unary_union
 
 from schemas.common import Id, Name, Text
 from schemas.robot import ARM_JOINTS
-from schemas.world import KeepOut, Polygon, RobotSpec
+from schemas.world import KeepOut, Polygon, RobotSpec, Room
 from services.bundled import DEFAULT_POLICY
 from services.datafile import decode_struct, read_bytes
 
@@ -192,25 +193,36 @@ class Limits:
         }
 
 
-def load_policy(path: Path | None, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut]) -> Limits:
-    """Read, validate and resolve the policy; PolicyError names the entry that is wrong."""
+def load_policy(
+    path: Path | None, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut], rooms: Sequence[Room] = ()
+) -> Limits:
+    """Read, validate and resolve the policy; PolicyError names the entry that is wrong. With the
+    world's `rooms`, a keep-out zone outside every one of them is refused too (safety passes them)."""
     path = path or DEFAULT_POLICY
     if path.suffix not in (".toml", ".yaml", ".yml"):
         raise PolicyError(f"policy file {path}: use .toml, .yaml or .yml")
-    return parse_policy(read_bytes(path, "policy", PolicyError), path, robot, arm, world_zones)
+    return parse_policy(read_bytes(path, "policy", PolicyError), path, robot, arm, world_zones, rooms)
 
 
-def parse_policy(data: bytes, path: Path, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut]) -> Limits:
+def parse_policy(
+    data: bytes, path: Path, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut], rooms: Sequence[Room] = ()
+) -> Limits:
     """The policy from the bytes of a file named `path` (a file kept in a recording, say)."""
     if path.suffix not in (".toml", ".yaml", ".yml"):
         raise PolicyError(f"policy file {path}: use .toml, .yaml or .yml")
     policy = decode_struct(data, path, Policy, "policy", PolicyError)
     digest = "sha256:" + hashlib.sha256(data).hexdigest()
-    return resolve(policy, path, digest, robot, arm, world_zones)
+    return resolve(policy, path, digest, robot, arm, world_zones, rooms)
 
 
 def resolve(
-    policy: Policy, path: Path, digest: str, robot: RobotSpec, arm: ArmModel, world_zones: list[KeepOut]
+    policy: Policy,
+    path: Path,
+    digest: str,
+    robot: RobotSpec,
+    arm: ArmModel,
+    world_zones: list[KeepOut],
+    rooms: Sequence[Room] = (),
 ) -> Limits:
     def bad(entry: str, why: str) -> PolicyError:
         return PolicyError(f"policy file {path}: {entry}: {why}")
@@ -251,6 +263,7 @@ def resolve(
     joints = _joint_limits(policy.arm, arm, bad)
     zones = list(world_zones)
     ids = {zone.id for zone in zones}
+    floor = unary_union([ShapelyPolygon(room.polygon) for room in rooms]) if rooms else None
     for i, zone in enumerate(policy.keep_out):
         entry = f"keep_out[{i}] ({zone.id})"
         if zone.id in ids:
@@ -258,6 +271,9 @@ def resolve(
         shape = ShapelyPolygon(zone.polygon)
         if not shape.is_valid or shape.area <= 0:
             raise bad(entry, "the polygon is not a simple polygon with an area")
+        if floor is not None and not floor.intersects(shape):
+            # Corners in the wrong place (or frame): the zone keeps the robot out of nothing.
+            raise bad(entry, "is outside every room of the world; it would keep the robot out of nothing")
         ids.add(zone.id)
         zones.append(KeepOut(id=zone.id, name=zone.name, polygon=zone.polygon, reason=zone.reason))
     return Limits(policy, path, digest, joints, tuple(zones))
