@@ -937,6 +937,12 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
         raise ConfigError(f"config file {path} nests arrays or tables too deeply") from None
     except ValueError:  # past Python's limit on the digits of an integer it parses
         raise ConfigError(f"config file {path} holds a number of too many digits") from None
+    # Every service reads its own table of one shared file: a misspelt one ([saftey]) was read by none,
+    # and its service ran on its defaults without a word.
+    if unknown := [name for name in data if name not in ALL_SERVICES]:
+        shown = ", ".join(f"[{name}]" for name in unknown[:5]).translate(_LOG_CONTROLS)[:300]
+        tables = ", ".join(f"[{name}]" for name in ALL_SERVICES)
+        raise ConfigError(f"config file {path}: {shown} is no service's table (the tables are {tables})")
     try:
         return msgspec.convert(data.get(section, {}), cls)
     except msgspec.ValidationError as exc:

@@ -116,6 +116,19 @@ def test_a_hostile_config_file_is_a_config_error_saying_what_is_wrong(tmp_path: 
     assert str(path) in str(refused.value) and said in str(refused.value)
 
 
+@pytest.mark.parametrize("content", ["[saftey]\nforward_timeout = 1.0\n", "forward_timeout = 1.0\n[parser]\n"])
+def test_a_table_no_service_reads_is_refused_naming_it(tmp_path: Path, content: str) -> None:
+    """A misspelt table ([saftey]) was read by no service: safety ran on its defaults without a word."""
+    path = tmp_path / "tether.toml"
+    path.write_text(content)
+    with pytest.raises(ConfigError) as refused:
+        load_config(ParserConfig, path, "parser")
+    said = str(refused.value)
+    assert str(path) in said and "is no service's table" in said and "[safety]" in said, said
+    name = "saftey" if "saftey" in content else "forward_timeout"
+    assert f"[{name}]" in said, said
+
+
 def test_an_unknown_fields_name_is_shown_with_its_control_characters_escaped(tmp_path: Path) -> None:
     path = tmp_path / "tether.toml"
     path.write_text('[parser]\n"\\u001b]0;owned\\u0007" = 1\n')
