@@ -1076,6 +1076,10 @@ VETO_WINDOW = 5.0
 # memory and file by about 100 KB a second for as long as a reporter looped.
 REPORT_BURST = 20
 REPORT_PERIOD = 10.0
+# Who reports each kind (README): each reporter's reports come out of a budget of its own, REPORT_BURST
+# at once then one every REPORT_PERIOD s. With one budget for all, an executor looping on grasp_failed
+# used it up and the robot's collisions and drops were dropped.
+REPORTER = {IncidentKind.GRASP_FAILED: "executor", IncidentKind.DROPPED: "robot", IncidentKind.COLLISION: "robot"}
 # A pause counts as a near-miss while a plan runs or the base moved this recently (seconds).
 MOVED_RECENTLY = 2.0
 # Refusals that say nothing about a place: the e-stop (its own incident), the control mode, a missing
@@ -1098,7 +1102,11 @@ class IncidentWatch:
     _vetoes: dict[tuple[str, str], float] = field(default_factory=dict)
     _moved: float = -math.inf
     _paused_noted: bool = False
-    _reports: RateLimit = field(default_factory=lambda: RateLimit(1.0 / REPORT_PERIOD, REPORT_BURST * REPORT_PERIOD))
+    _reports: dict[str, RateLimit] = field(
+        default_factory=lambda: {
+            who: RateLimit(1.0 / REPORT_PERIOD, REPORT_BURST * REPORT_PERIOD) for who in set(REPORTER.values())
+        }
+    )
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def plan_status(self, status: GoalStatus) -> None:
@@ -1183,10 +1191,12 @@ class IncidentWatch:
         if report.kind not in REPORTED_KINDS:
             allowed = ", ".join(sorted(str(k) for k in REPORTED_KINDS))
             return f"incident report of kind {report.kind} ignored: only {allowed} may be reported"
-        if not self._reports.allow(self.clock()):
+        who = REPORTER[report.kind]
+        if not self._reports[who].allow(self.clock()):
+            kinds = ", ".join(str(kind) for kind, by in REPORTER.items() if by == who)
             return (
-                f"incident report ({report.kind}) dropped: more than {REPORT_BURST} at once, or one every "
-                f"{REPORT_PERIOD:g} s on average"
+                f"incident report ({report.kind}) dropped: the {who}'s reports ({kinds}) came more than "
+                f"{REPORT_BURST} at once, or more than one every {REPORT_PERIOD:g} s on average"
             )
         goal_id, step, label = self.context()
         return Draft(

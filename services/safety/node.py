@@ -54,7 +54,14 @@ from services.errors import CallError
 from services.runtime import Node, decoder, encode
 from services.safety.config import SafetyConfig
 from services.safety.gate import MOVING, GateEvent, GoalRuling, Ruling, SafetyGate
-from services.safety.incidents import MAX_REASON, Draft, IncidentStore, IncidentStoreError, IncidentWatch
+from services.safety.incidents import (
+    MAX_REASON,
+    REPORTER,
+    Draft,
+    IncidentStore,
+    IncidentStoreError,
+    IncidentWatch,
+)
 from services.safety.latch import EstopLatch
 from services.safety.modes import ModeFile
 from services.safety.monitor import RateLimit
@@ -81,7 +88,7 @@ PUBLISH_BATCH = 50
 # garbage collector's full passes (gc.freeze): with 100 000 in memory a full pass takes about 0.2 s, on
 # whichever thread sets it off, the heartbeat's too. They live as long as safety anyway.
 FREEZE_AT = 10_000
-# A report refused is logged at most this often (seconds), however many come.
+# A report refused is logged at most this often (seconds) for each reporter, however many come.
 REPORT_LOG_INTERVAL = 1.0
 # safety/incidents answers at most this many queries a second (bursts of a second's worth); the agent
 # may ask it, and each goes through the memory.
@@ -173,7 +180,7 @@ class SafetyNode:
         self._drain_until = math.inf
         self._new_incident = node.publisher(keys.NEW_INCIDENT)
         self._recording: tuple[float, str] = (-math.inf, "")
-        self._report_warned = -math.inf
+        self._report_warned: dict[str, float] = {}  # by reporter (incidents.REPORTER)
         self._queries = RateLimit(QUERY_RATE, 1.0)
         if incidents is not None:
             self._refresh_zones()
@@ -630,9 +637,10 @@ class SafetyNode:
     def _on_incident_report(self, report: IncidentReport) -> None:
         taken = self.watch.report(report, source="reported")
         if isinstance(taken, str):
-            now = time.monotonic()
-            if now - self._report_warned >= REPORT_LOG_INTERVAL:
-                self._report_warned = now
+            # Logged per reporter: one's flood of warnings must not hide another's.
+            who, now = REPORTER.get(report.kind, ""), time.monotonic()
+            if now - self._report_warned.get(who, -math.inf) >= REPORT_LOG_INTERVAL:
+                self._report_warned[who] = now
                 log.warning("%s", taken)
             return
         self._note(taken)
