@@ -46,8 +46,10 @@ class Perception:
     relative to the robot is refused rather than grounded from where it stood an hour ago. A person
     missing from the latest report (out of view: a people tracker lists only whom it sees) stays
     where last seen, not where the world file puts them; a report naming one id at two poses moves
-    no one of that id (which is meant is not known) and is logged. `people`: the ids worth
-    remembering (the world's people; None: every id)."""
+    no one of that id (which is meant is not known) and is logged. A person reported where `on_map`
+    says no sighting can be stays where last believably seen; the report is kept beside it until a
+    believable one comes, so the resolver warns of it. `people`: the ids worth remembering (the
+    world's people; None: every id)."""
 
     def __init__(
         self,
@@ -55,6 +57,7 @@ class Perception:
         clock: Callable[[], float] = time.monotonic,
         odom_max_age: float = ODOM_MAX_AGE,
         people: Iterable[str] | None = None,
+        on_map: Callable[[float, float], bool] = lambda x, y: True,
     ) -> None:
         self._lock = threading.Lock()
         self._memory = memory
@@ -64,7 +67,11 @@ class Perception:
         # peer's) made-up ids would otherwise push out where the operator was last seen.
         self._known_people = frozenset(people) if people is not None else None
         self._robot: tuple[float, Pose2D] | None = None  # when it arrived, the pose
-        self._people: dict[str, PerceivedHuman] = {}  # by id, as last seen
+        self._on_map = on_map
+        self._people: dict[str, PerceivedHuman] = {}  # by id, as last believably seen
+        # By id, a report off the map since the last believable one, kept apart for the resolver's
+        # warning: kept as last seen, it sent "come to me" to the world file's pose instead.
+        self._doubted: dict[str, PerceivedHuman] = {}
         self._people_stamp: float | None = None  # of the latest report; None before any
 
     def on_objects(self, message: PerceivedObjects) -> None:
@@ -84,14 +91,19 @@ class Perception:
         twice = sorted(i for i, p in poses.items() if len(p) > 1)
         if twice:
             log.warning("people reported at two poses at once, not moved: %s", ", ".join(twice[:5]))
+        believable = {h.id: self._on_map(h.pose.x, h.pose.y) for h in humans if h.id not in twice}
         with self._lock:
             self._people_stamp = message.stamp
             for human in humans:
-                if human.id not in twice:
-                    self._people.pop(human.id, None)  # to the end: the dict runs from longest unseen
-                    self._people[human.id] = human
-            while len(self._people) > MAX_PEOPLE:  # ids invented without end must not grow it
-                del self._people[next(iter(self._people))]
+                if human.id in twice:
+                    continue
+                self._doubted.pop(human.id, None)
+                kept = self._people if believable[human.id] else self._doubted
+                kept.pop(human.id, None)  # to the end: each dict runs from longest unseen
+                kept[human.id] = human
+            for remembered in (self._people, self._doubted):
+                while len(remembered) > MAX_PEOPLE:  # ids invented without end must not grow it
+                    del remembered[next(iter(remembered))]
 
     def snapshot(self) -> Snapshot:
         with self._lock:
@@ -101,9 +113,16 @@ class Perception:
             if self._robot is not None and now - self._robot[0] <= self._odom_max_age:
                 robot = self._robot[1]
             humans = None
+            key: WorldKey = world_key(self._memory.version, robot, None)
             if self._people_stamp is not None:
-                humans = PerceivedHumans(stamp=self._people_stamp, humans=list(self._people.values()))
-            key = world_key(self._memory.version, robot, humans)
+                believed = PerceivedHumans(stamp=self._people_stamp, humans=list(self._people.values()))
+                doubted = PerceivedHumans(stamp=self._people_stamp, humans=list(self._doubted.values()))
+                # Both for the resolver: it believes the one on the map and warns of the other.
+                humans = PerceivedHumans(stamp=self._people_stamp, humans=believed.humans + doubted.humans)
+                # Both in the key too (the cache's reads one pose per id): a warning of one report, or
+                # a goal at one believed pose, is never served for another.
+                version = self._memory.version
+                key = (world_key(version, robot, believed), world_key(version, robot, doubted))
             return Snapshot(objects, robot, humans, key, self._memory.origins())
 
 
@@ -111,10 +130,16 @@ def build_resolver(config: ResolverConfig) -> Resolver:
     return Resolver(WorldModel(load_world(config.world)), config)
 
 
-def build_perception(config: ResolverConfig, known: Iterable[str], people: Iterable[str]) -> Perception:
-    """`known`, `people`: the world's object and person ids, the only ones remembered."""
+def build_perception(
+    config: ResolverConfig,
+    known: Iterable[str],
+    people: Iterable[str],
+    on_map: Callable[[float, float], bool] = lambda x, y: True,
+) -> Perception:
+    """`known`, `people`: the world's object and person ids, the only ones remembered; `on_map`:
+    where a person may believably be seen (the resolver's map check)."""
     memory = ObjectMemory(stale_after=config.stale_after, move_tolerance=config.move_tolerance, known=known)
-    return Perception(memory, odom_max_age=config.odom_max_age, people=people)
+    return Perception(memory, odom_max_age=config.odom_max_age, people=people, on_map=on_map)
 
 
 def handler(resolver: Resolver, perception: Perception, cache: ResolutionCache) -> Callable[[Plan], ResolveReply]:
@@ -150,7 +175,9 @@ def scene_handler(resolver: Resolver, perception: Perception) -> Callable[[Empty
 
 def declare(node: Node, resolver: Resolver, config: ResolverConfig) -> Perception:
     world = resolver.world
-    perception = build_perception(config, (o.id for o in world.objects), (h.id for h in world.humans))
+    perception = build_perception(
+        config, (o.id for o in world.objects), (h.id for h in world.humans), on_map=resolver.on_map
+    )
     node.subscribe(keys.OBJECTS, perception.on_objects)
     node.subscribe(keys.ODOM, perception.on_odom)
     node.subscribe(keys.HUMANS, perception.on_humans)

@@ -277,7 +277,7 @@ class Resolver:
             if seen_person.id not in people:
                 continue
             pose = seen_person.pose
-            if not self._map.covers(Point(pose.x, pose.y)):
+            if not self.on_map(pose.x, pose.y):
                 # Evidence like an object's sighting: a delivery or "come to me" there would be grounded off the map.
                 notes.warnings.append(
                     f"the report of the {people[seen_person.id].name} is not believed: it puts them at "
@@ -290,10 +290,14 @@ class Resolver:
             state.origins[holding] = (origins[holding], "where the camera last saw it before it was in the gripper")
         return state
 
+    def on_map(self, x: float, y: float) -> bool:
+        """Whether a sighting at (x, y) may be believed: over the map, give or take MAP_MARGIN."""
+        return bool(self._map.covers(Point(x, y)))
+
     def _implausible(self, position: Vec3) -> str | None:
         """Why a sighting at `position` cannot be right (off the map, under the floor, in the air), or None."""
         where = f"({position.x:.2f}, {position.y:.2f}, {position.z:.2f})"
-        if not self._map.covers(Point(position.x, position.y)):
+        if not self.on_map(position.x, position.y):
             return f"it puts it at {where}, off the map"
         if not -BELOW_FLOOR <= position.z <= self._highest:
             return f"it puts it at {where}, {'under the floor' if position.z < 0 else 'in the air'}"
