@@ -12,10 +12,16 @@ it exits, so with an endpoint here and recoveries allowed `tether ask` waits for
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from concurrent import futures
 from pathlib import Path
+from types import FrameType
 from typing import Annotated, NoReturn
 
 import msgspec
@@ -24,12 +30,16 @@ import zenoh
 from rich.console import Console
 
 from schemas import keys
+from schemas.common import Stage
+from schemas.executor import ExecutePlanResult, PlanStatus
 from schemas.planner import MAX_ATTEMPTS, MAX_RECOVERIES, MAX_REQUEST_CHARS, AskReply, AskRequest, AskStatus
 from services.errors import CallError
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
+from tether.client import EXIT_CODES as SEND_EXIT_CODES
+from tether.client import EXIT_UNREACHABLE, PlanSender
 from tether.output import conclude, literal, printable, shown
 
 console = Console(stderr=True)
@@ -49,6 +59,8 @@ EXIT_CODES = {
 # The planner service answered with an error of its own (not an AskReply): `tether ask` exits this.
 EXIT_PLANNER_ERROR = 1
 GREEN = (AskStatus.APPROVED, AskStatus.ACCEPTED, AskStatus.SUCCEEDED)
+# How long a Ctrl-C waits for the planner service's answer: the goal it sent is named only there.
+ANSWER_WAIT = 30.0
 
 
 class PlannerFailed(Exception):
@@ -58,6 +70,84 @@ class PlannerFailed(Exception):
         super().__init__(reason)
         self.reason = reason
         self.unreachable = unreachable
+
+
+class Interrupted(Exception):
+    """Ctrl-C (or SIGTERM) during the ask. `goals` are the goals it sent, first to last (the last
+    canceled); `result` how the last ended, None when no end came (it may still be moving) or
+    nothing was sent and that is not known for sure; `reason` says which."""
+
+    def __init__(self, goals: list[str], result: ExecutePlanResult | None, reason: str = "") -> None:
+        super().__init__(reason or (result.reason if result else ""))
+        self.goals = goals
+        self.result = result
+        self.reason = reason or (result.reason if result else "")
+
+    @property
+    def goal_id(self) -> str:
+        return self.goals[-1] if self.goals else ""
+
+    @property
+    def status(self) -> str:
+        return self.result.status if self.result is not None else "unreachable"
+
+    @property
+    def code(self) -> int:
+        """`tether send`'s exit code for the end: 1 canceled, 3 no end came."""
+        return SEND_EXIT_CODES[self.result.status] if self.result is not None else EXIT_UNREACHABLE
+
+
+def canceled(node: Node, goals: list[str]) -> Interrupted:
+    """Cancel the last goal the ask sent (or was sending) and wait for its end, as `tether send` does
+    at a Ctrl-C."""
+    from tether.cli import CANCEL_WAIT
+
+    if not goals:
+        said = "interrupted (Ctrl-C) before any plan was sent"
+        return Interrupted([], ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.EXECUTE, reason=said))
+    goal_id = goals[-1]
+    console.print("canceling...")
+    sender = PlanSender(node)
+    try:
+        run = sender.cancel(sender.handle(goal_id), CANCEL_WAIT)
+    except CallError as exc:
+        return Interrupted(goals, None, f"no outcome: canceled (Ctrl-C), but goal {goal_id} did not end: {exc}")
+    except KeyboardInterrupt:
+        said = f"no outcome: interrupted while canceling goal {goal_id} (`tether goal` follows it)"
+        return Interrupted(goals, None, said)
+    return Interrupted(goals, run.result)
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM stops the ask as a Ctrl-C does: what it sent is canceled, not left moving."""
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def show_interrupted(stop: Interrupted, as_json: bool) -> NoReturn:
+    """`tether ask`'s object for an interrupted ask: status as `tether send` says a canceled plan's
+    end (canceled, or how it ended first; unreachable when no end came), send's exit codes."""
+    stage = stop.result.stage if stop.result is not None else None
+    document = {
+        "status": stop.status,
+        "request_id": "",
+        "attempts": 0,
+        "stage": stage,
+        "reason": stop.reason,
+        "plan": "",
+        "goal_id": stop.goal_id,
+        "recoveries": [],
+    }
+    goal = f" (goal {stop.goal_id})" if stop.goal_id else ""
+    conclude(console, as_json, document, f"[red]{stop.status}[/]{shown(goal)}: {shown(stop.reason)}", stop.code)
 
 
 def refuse(reason: str, as_json: bool) -> NoReturn:
@@ -131,7 +221,8 @@ def ask(
     all: nothing is asked of the model or sent after it. Exit 0 approved, sent or succeeded, 1 the LLM
     endpoint (or the planner service) failed, 2 rejected or no endpoint configured, 3 no services
     reachable, 4 the plan failed (after any recoveries; `tether send --recover` exits 1 for that, as
-    `tether send` does).
+    `tether send` does). A Ctrl-C (or SIGTERM) cancels the plan sent and waits for its end, as
+    `tether send` does: exit 1 canceled, 3 when no end came.
     """
     settings: NodeSettings = ctx.obj
     # Bytes that are not UTF-8 (from stdin, or in the argument) are kept as surrogates, then refused
@@ -162,6 +253,8 @@ def ask(
     )
     try:
         reply = ask_planner(settings, ask_request, planner_config, endpoint, timeout)
+    except Interrupted as stop:
+        show_interrupted(stop, as_json)
     except PlannerFailed as exc:
         code = 3 if exc.unreachable else EXIT_PLANNER_ERROR
         if as_json:
@@ -177,21 +270,60 @@ def ask_planner(
     settings: NodeSettings, request: AskRequest, config: PlannerConfig, endpoint: Endpoint | None, timeout: float
 ) -> AskReply:
     """The planner's reply: in this process with an endpoint of its own, else from the planner service,
-    else UNCONFIGURED. PlannerFailed when the service answered with an error instead."""
+    else UNCONFIGURED. PlannerFailed when the service answered with an error instead; Interrupted at a
+    Ctrl-C or SIGTERM, once what the ask sent was canceled."""
     try:
         node = Node("cli", settings)
     except zenoh.ZError as exc:  # the router down, the login refused: exit 3, saying so
         raise PlannerFailed(f"cannot open a Zenoh session: {exc}", unreachable=True) from None
-    with node:
+    with node, sigterm_interrupts():
         if endpoint is not None:
-            planner = Planner(node, config, endpoint)
+            goals: list[str] = []
+            planner = Planner(node, config, endpoint, on_send=goals.append)
             try:
                 return planner.ask(request)
+            except KeyboardInterrupt:
+                raise canceled(node, goals) from None
             finally:
                 planner.close()
-        if "planner" in node.alive_services(timeout=2.0):
-            try:
-                return node.call(keys.PLAN_ASK, request, timeout=timeout)
-            except CallError as exc:
-                raise PlannerFailed(exc.error.message, exc.error.kind == "unavailable") from None
+        try:
+            alive = "planner" in node.alive_services(timeout=2.0)
+        except KeyboardInterrupt:
+            raise canceled(node, []) from None
+        if alive:
+            return ask_service(node, request, timeout)
     return AskReply(status=AskStatus.UNCONFIGURED, request_id="none", reason=HOW_TO_CONFIGURE)
+
+
+def ask_service(node: Node, request: AskRequest, timeout: float) -> AskReply:
+    """The planner service's reply, asked on a thread of its own: at a Ctrl-C the answer naming the
+    goal sent (it comes at the goal's acceptance) is waited for, ANSWER_WAIT at most, and that goal
+    canceled. With `wait` it comes only at the plan's end: nothing names the goal before that."""
+    answer: futures.Future[AskReply] = futures.Future()
+
+    def call() -> None:
+        try:
+            answer.set_result(node.call(keys.PLAN_ASK, request, timeout=timeout))
+        except Exception as exc:  # CallError, or the session closed under the call
+            answer.set_exception(exc)
+
+    threading.Thread(target=call, name="plan/ask", daemon=True).start()
+    try:
+        return answer.result()
+    except CallError as exc:
+        raise PlannerFailed(exc.error.message, exc.error.kind == "unavailable") from None
+    except KeyboardInterrupt:
+        pass
+    unknown = "a plan it sent may be moving; `tether cancel` stops the plan running"
+    if request.wait:
+        said = f"no outcome: interrupted; the planner service names the goal it sent only at the plan's end: {unknown}"
+        raise Interrupted([], None, said)
+    console.print("waiting for the planner's answer, to cancel the plan it sent...")
+    try:
+        reply = answer.result(ANSWER_WAIT)
+    except KeyboardInterrupt:
+        raise Interrupted([], None, f"no outcome: interrupted again before the planner answered: {unknown}") from None
+    except (CallError, futures.TimeoutError) as exc:
+        said = f"no outcome: interrupted; the planner service gave no answer ({exc or 'none yet'}): {unknown}"
+        raise Interrupted([], None, said) from None
+    raise canceled(node, [reply.goal_id] if reply.goal_id else [])

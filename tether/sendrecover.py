@@ -28,7 +28,7 @@ from schemas.planner import MAX_RECORDED_CHARS, MAX_REQUEST_CHARS, AskReply, Ask
 from services.planner.config import PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.runtime import ConfigError, NodeSettings, load_config
-from tether.ask import PlannerFailed, ask_planner, show
+from tether.ask import Interrupted, PlannerFailed, ask_planner, show
 from tether.client import EXIT_CODES, EXIT_UNREACHABLE, PlanRun
 from tether.output import literal, shown
 
@@ -140,6 +140,8 @@ def send_recover(
     )
     try:
         reply = ask_planner(settings, request, config, endpoint, timeout)
+    except Interrupted as stop:
+        interrupted(stop, as_json)
     except PlannerFailed as exc:
         reason = f"the planner service failed: {exc.reason}"
         if exc.unreachable:
@@ -159,6 +161,24 @@ def send_recover(
         show(reply, as_json=False)
     sys.stdout.flush()
     raise typer.Exit(code)
+
+
+def interrupted(stop: Interrupted, as_json: bool) -> NoReturn:
+    """A Ctrl-C (or SIGTERM): what was sent is canceled (tether.ask.canceled) and its end said as
+    `tether send` says a canceled plan's: 1 canceled, 3 when no end came."""
+    first = stop.goals[0] if stop.goals else ""
+    if stop.result is not None:
+        document = {**PlanRun(goal_id=first, result=stop.result).as_json(), "request_id": "", "recoveries": []}
+    else:
+        document = {**unsent("unreachable", stop.reason), "goal_id": first}
+    document["final_goal_id"] = stop.goal_id
+    if as_json:
+        print(json.dumps(document))
+    else:
+        goal = f" (goal {stop.goal_id})" if stop.goal_id else ""
+        console.print(f"[red]{stop.status}[/]{shown(goal)}: {shown(stop.reason)}", highlight=False)
+    sys.stdout.flush()
+    raise typer.Exit(stop.code)
 
 
 def refuse(as_json: bool, reason: str) -> NoReturn:

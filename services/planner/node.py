@@ -92,8 +92,18 @@ def tool_schemas() -> list[dict[str, Any]]:
 class Planner:
     """Words to a checked plan for one robot, on one node; used by the service and by `tether ask`."""
 
-    def __init__(self, node: Node, config: PlannerConfig, endpoint: Endpoint | None, client: Any = None) -> None:
+    def __init__(
+        self,
+        node: Node,
+        config: PlannerConfig,
+        endpoint: Endpoint | None,
+        client: Any = None,
+        on_send: Callable[[str], None] | None = None,
+    ) -> None:
         self.node = node
+        # Told each goal's id right before it is sent (the plan, then any recovery): `tether ask`,
+        # interrupted, cancels the last by id, whether or not the executor had answered its send.
+        self._on_send = on_send
         self.config = config
         self.endpoint = endpoint
         self._chat = client if client is not None else (ChatClient(endpoint) if endpoint is not None else None)
@@ -297,9 +307,7 @@ class Planner:
     def send(self, approved: AskReply, plan: str, preempt: bool) -> AskReply:
         """The approved plan for real: the goal id once the executor has accepted it."""
         try:
-            handle = self._executor.send(
-                ExecutePlanGoal(text=plan, preempt=preempt), timeout=SEND_TIMEOUT + PREEMPT_TIMEOUT
-            )
+            handle = self._send_goal(ExecutePlanGoal(text=plan, preempt=preempt), SEND_TIMEOUT + PREEMPT_TIMEOUT)
         except GoalRejected as exc:
             return msgspec.structs.replace(
                 approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=bounded(exc.reason, 4000)
@@ -312,6 +320,14 @@ class Planner:
         return msgspec.structs.replace(
             approved, status=AskStatus.ACCEPTED, goal_id=handle.goal_id, reason="approved by a dry run and sent"
         )
+
+    def _send_goal(self, goal: ExecutePlanGoal, timeout: float) -> ClientGoal[Any, Any, Any]:
+        """Send for real; the goal's id told to `on_send` before the send, when it wants it."""
+        if self._on_send is None:
+            return self._executor.send(goal, timeout=timeout)
+        goal_id = uuid.uuid4().hex
+        self._on_send(goal_id)
+        return self._executor.send(goal, timeout=timeout, goal_id=goal_id)
 
     # Following a sent plan to its end, and recovering when it failed at a step.
 
@@ -431,7 +447,7 @@ class Planner:
             if (latched := self.estop_latched()) is not None:
                 return Sent(refused=latched, kind=ErrorKind.ESTOP, stop=True)
             try:
-                handle = self._executor.send(ExecutePlanGoal(text=plan), timeout=SEND_TIMEOUT)
+                handle = self._send_goal(ExecutePlanGoal(text=plan), SEND_TIMEOUT)
             except GoalRejected as exc:
                 return Sent(refused=exc.reason, kind=exc.kind)
             except CallError as exc:

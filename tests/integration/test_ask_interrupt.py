@@ -1,0 +1,182 @@
+"""A Ctrl-C (or SIGTERM) to `tether ask` and `tether send --recover` with an endpoint in this process:
+the plan the planner sent is canceled by its id and its end printed as one JSON object, with `tether
+send`'s exit codes. The executor is played by this test (a real action server on real Zenoh) and holds
+the plan until it is canceled; the model is the scripted one of test_agents. Short: no stack to start."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import pytest
+
+from schemas import keys
+from schemas.actions import GoalState
+from schemas.common import Stage
+from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
+from schemas.incidents import IncidentList
+from schemas.world import SceneDescription
+from services.actionlib import ActionServer, GoalHandle, Outcome
+from services.runtime import ALL_SERVICES, Node, NodeSettings
+from tests.integration import test_agents
+from tests.integration.test_agents import ScriptedLLM, text_reply
+from tests.sessions import free_ports
+
+WAIT = 30.0
+PLAN = json.dumps({"plan": [{"action": "navigate_to", "target": "kitchen"}]})
+
+llm_server = test_agents.llm_server
+
+
+@dataclass
+class StandIn:
+    """The executor: a dry run passes at once; a plan sent for real runs (`running` names it) until
+    canceled, then ends as `ended` says."""
+
+    running: threading.Event = field(default_factory=threading.Event)
+    goal_id: str = ""
+    ended: list[GoalState] = field(default_factory=list)
+
+    def execute(self, handle: GoalHandle[ExecutePlanGoal, ExecutePlanFeedback]) -> Outcome[ExecutePlanResult]:
+        if handle.goal.dry_run:
+            passed = ExecutePlanResult(status=PlanStatus.SUCCEEDED, stage=Stage.SAFETY)
+            return Outcome(GoalState.SUCCEEDED, passed, "")
+        self.goal_id = handle.goal_id
+        self.running.set()
+        stopped = handle.cancel_requested.wait(WAIT)
+        state = GoalState.CANCELED if stopped else GoalState.SUCCEEDED
+        self.ended.append(state)
+        status = PlanStatus.CANCELED if stopped else PlanStatus.SUCCEEDED
+        return Outcome(state, ExecutePlanResult(status=status, stage=Stage.EXECUTE, reason=state), state)
+
+
+@pytest.fixture
+def executor(llm_server: ScriptedLLM) -> Iterator[tuple[StandIn, dict[str, str]]]:
+    with serving(llm_server) as (stand_in, _, env):
+        yield stand_in, env
+
+
+@contextlib.contextmanager
+def serving(llm_server: ScriptedLLM) -> Iterator[tuple[StandIn, Node, dict[str, str]]]:
+    settings = NodeSettings(robot=f"t{uuid.uuid4().hex[:8]}", base_port=free_ports(len(ALL_SERVICES)))
+    node = Node("executor", settings)
+    try:
+        stand_in = StandIn()
+        ActionServer(node, keys.EXECUTE_PLAN, stand_in.execute, concurrent=lambda goal: goal.dry_run)
+        # What the planner reads for its prompt, answered at once.
+        node.serve(keys.SCENE, lambda _: SceneDescription(stamp=0.0, text="a kitchen"))
+        node.serve(keys.INCIDENTS, lambda _: IncidentList())
+        node.declare_alive()
+        env = {
+            **os.environ,
+            "TETHER_ROBOT": settings.robot,
+            "TETHER_BASE_PORT": str(settings.base_port),
+            "TETHER_LLM_URL": llm_server.url,
+            "TETHER_LLM_MODEL": "scripted",
+        }
+        yield stand_in, node, env
+    finally:
+        node.close()
+
+
+@contextlib.contextmanager
+def running(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
+    command = [sys.executable, "-m", "tether", *args]
+    process = subprocess.Popen(
+        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+
+
+def stopped_while_running(
+    stand_in: StandIn, env: dict[str, str], stop: signal.Signals, *args: str
+) -> tuple[int, dict[str, object], str]:
+    """Run the command until the plan it sent runs, then `stop` it: its exit code, its JSON, its stderr."""
+    with running(env, *args) as process:
+        assert stand_in.running.wait(WAIT), process.communicate()
+        os.kill(process.pid, stop)
+        out, err = process.communicate(timeout=WAIT)
+    try:
+        document = json.loads(out)
+    except ValueError:
+        pytest.fail(f"no JSON object: {out!r} {err!r}")
+    return process.returncode, document, err
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_ask_cancels_the_plan_it_sent(
+    executor: tuple[StandIn, dict[str, str]], llm_server: ScriptedLLM, stop: signal.Signals
+) -> None:
+    """`tether ask` waits for the plan's end in this process (recoveries allowed): a Ctrl-C printed
+    click's 'Aborted!' and no JSON, and the plan drove on with nobody to cancel it."""
+    stand_in, env = executor
+    llm_server.play(text_reply(PLAN))
+    code, document, err = stopped_while_running(stand_in, env, stop, "ask", "go to the kitchen", "--json")
+    assert (code, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), (document, err)
+    assert stand_in.ended == [GoalState.CANCELED], err
+
+
+def test_an_interrupted_send_recover_cancels_the_plan_it_sent(executor: tuple[StandIn, dict[str, str]]) -> None:
+    """The same for `tether send --recover` with an endpoint here: its JSON is `tether send`'s."""
+    stand_in, env = executor
+    code, document, err = stopped_while_running(stand_in, env, signal.SIGINT, "send", PLAN, "--recover", "--json")
+    assert (code, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), (document, err)
+    assert document["final_goal_id"] == stand_in.goal_id and document["recoveries"] == [], document
+    assert stand_in.ended == [GoalState.CANCELED], err
+
+
+def test_an_ask_interrupted_before_the_planner_service_answered_cancels_the_plan_it_sent(
+    llm_server: ScriptedLLM,
+) -> None:
+    """Through the planner service the goal sent is named only in its answer, which comes once the
+    executor took the plan: a Ctrl-C before it printed 'Aborted!' and left the plan moving. Now the
+    answer is waited for and its goal canceled."""
+    asked, interrupted = threading.Event(), threading.Event()
+
+    def thinking() -> None:
+        asked.set()
+        interrupted.wait(WAIT)
+
+    with serving(llm_server) as (stand_in, node, env):
+        planner_env = {**env, "TETHER_LOG_LEVEL": "WARNING"}
+        cli_env = {k: v for k, v in env.items() if not k.startswith("TETHER_LLM_")}
+        planner = subprocess.Popen([sys.executable, "-m", "services.planner"], env=planner_env, start_new_session=True)
+        try:
+            assert node.is_alive("planner", WAIT), "the planner service did not come up"
+            # The model answers only once the command has been interrupted, waiting for the answer.
+            llm_server.play(text_reply(PLAN), meanwhile=thinking)
+            with running(cli_env, "ask", "go to the kitchen", "--json", "--max-recoveries", "0") as process:
+                assert process.stderr is not None
+                deadline = threading.Timer(WAIT, process.kill)
+                deadline.start()
+                try:
+                    assert asked.wait(WAIT), process.communicate()
+                    os.kill(process.pid, signal.SIGINT)
+                    said = ""
+                    while "waiting for the planner" not in said and (line := process.stderr.readline()):
+                        said += line
+                    interrupted.set()
+                    out, err = process.communicate(timeout=WAIT)
+                finally:
+                    deadline.cancel()
+        finally:
+            interrupted.set()
+            planner.terminate()
+            planner.wait(WAIT)
+    assert "waiting for the planner's answer" in said and out, (said, out, err)
+    document = json.loads(out)
+    assert (process.returncode, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), err
+    assert stand_in.ended == [GoalState.CANCELED], err

@@ -1,0 +1,62 @@
+"""What `tether ask` and `tether send --recover` print when interrupted: their usual JSON object, with
+`tether send`'s status and exit code for the canceled plan's end."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from typing import NoReturn
+
+import msgspec
+import pytest
+import typer
+
+from schemas.common import Stage
+from schemas.executor import ExecutePlanResult, PlanStatus
+from schemas.planner import AskReply, AskStatus
+from tether import sendrecover
+from tether.ask import Interrupted, show_interrupted
+
+CANCELED = ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.EXECUTE, reason="canceled")
+SENT = AskReply(status=AskStatus.ACCEPTED, request_id="r1", goal_id="g2")
+
+
+def printed(
+    capsys: pytest.CaptureFixture[str], conclude: Callable[[Interrupted, bool], NoReturn], stop: Interrupted
+) -> tuple[int, dict[str, object]]:
+    with pytest.raises(typer.Exit) as ended:
+        conclude(stop, True)
+    return ended.value.exit_code, json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize(
+    ("stop", "code", "status"),
+    [
+        (Interrupted(["g1", "g2"], CANCELED), 1, "canceled"),
+        (Interrupted(["g1", "g2"], None, "no outcome: it did not end"), 3, "unreachable"),
+        (Interrupted([], CANCELED), 1, "canceled"),
+    ],
+)
+def test_an_interrupted_ask_prints_its_usual_object_with_sends_codes(
+    capsys: pytest.CaptureFixture[str], stop: Interrupted, code: int, status: str
+) -> None:
+    exit_code, document = printed(capsys, show_interrupted, stop)
+    assert (exit_code, document["status"], document["goal_id"]) == (code, status, stop.goal_id)
+    assert set(document) == set(msgspec.to_builtins(SENT)) and document["reason"] == stop.reason
+
+
+@pytest.mark.parametrize(
+    ("stop", "code", "status", "like"),
+    [
+        (Interrupted(["g1", "g2"], CANCELED), 1, "canceled", AskStatus.FAILED),
+        (Interrupted(["g1", "g2"], None, "no outcome: it did not end"), 3, "unreachable", AskStatus.UNREACHABLE),
+    ],
+)
+def test_an_interrupted_send_recover_prints_sends_object_first_and_final_goal(
+    capsys: pytest.CaptureFixture[str], stop: Interrupted, code: int, status: str, like: AskStatus
+) -> None:
+    """The keys of the object --recover prints for a plan that ended (or for no outcome)."""
+    exit_code, document = printed(capsys, sendrecover.interrupted, stop)
+    assert (exit_code, document["status"], document["goal_id"], document["final_goal_id"]) == (code, status, "g1", "g2")
+    usual, _ = sendrecover.outcome(msgspec.structs.replace(SENT, status=like))
+    assert set(document) == set(usual)
