@@ -13,18 +13,14 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-import pybullet_data
 
 from schemas.common import Pose2D, Vec3
 from schemas.robot import ARM_JOINTS, FINGER_JOINTS
+from services.worldmodel import arm_urdf_path as arm_urdf_path  # importable from here too, as before
+from services.worldmodel import read_arm_urdf
 
 GRASP_FRAME = "panda_grasptarget"
 DEFAULT_ARM_URDF = "franka_panda/panda.urdf"
-
-
-def arm_urdf_path(arm_urdf: str | Path = DEFAULT_ARM_URDF) -> Path:
-    """A path inside pybullet_data (the world file's `arm_urdf`), or an absolute path as is."""
-    return Path(pybullet_data.getDataPath()) / arm_urdf
 
 
 def map_to_base(base: Pose2D, x: float, y: float) -> tuple[float, float]:
@@ -56,7 +52,14 @@ class ArmModel:
     """The seven arm joints of the Panda, fingers locked open, with the grasp target as end effector."""
 
     def __init__(self, arm_urdf: str | Path = DEFAULT_ARM_URDF) -> None:
-        full = pin.buildModelFromUrdf(str(arm_urdf_path(arm_urdf)))
+        """ValueError naming robot.arm_urdf when it is no regular file, too large, or not UTF-8 (read_arm_urdf);
+        pinocchio's own error when it is not a URDF."""
+        # Read here, bounded, then parsed from memory: given the path, pinocchio opened anything.
+        try:
+            text = read_arm_urdf(arm_urdf).decode()
+        except UnicodeDecodeError as exc:
+            raise ValueError(f"robot.arm_urdf {str(arm_urdf)!r}: not UTF-8 text (byte {exc.start})") from None
+        full = pin.buildModelFromXML(text)
         fingers = [full.getJointId(name) for name in FINGER_JOINTS if full.existJointName(name)]
         self.model = pin.buildReducedModel(full, fingers, pin.neutral(full))
         self.data = self.model.createData()

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+import stat
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
+import pybullet_data
 import shapely
 from shapely.geometry import LineString, Point, Polygon, box
 from shapely.geometry.base import BaseGeometry
@@ -17,7 +19,7 @@ from shapely.ops import unary_union
 from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, Wall, World, WorldObject
 from services.bundled import DEFAULT_WORLD, world_path  # importable from here too, as before
-from services.datafile import decode_struct, read_struct
+from services.datafile import MAX_FILE_BYTES, decode_struct, read_regular, read_struct
 from services.footprint import footprint
 
 # The base drives the last leg straight in from this far behind the goal, along the goal's
@@ -37,6 +39,30 @@ ROOM_OVERLAP_TOLERANCE = 1e-6
 
 class WorldFileError(Exception):
     """The world file is missing or does not validate; the message names the file and the field."""
+
+
+def arm_urdf_path(arm_urdf: str | Path) -> Path:
+    """Where the world file's `robot.arm_urdf` is: a relative path inside pybullet_data's folder
+    (the URDFs that ship with it: "franka_panda/panda.urdf"), an absolute path as is."""
+    return Path(pybullet_data.getDataPath()) / arm_urdf
+
+
+def read_arm_urdf(arm_urdf: str | Path) -> bytes:
+    """The bytes of the arm's URDF as the other data files are read (services/datafile.py): a regular
+    file of at most MAX_FILE_BYTES, or ValueError naming robot.arm_urdf and where it was looked for.
+    The world file may name any path, and pinocchio read whatever it was given: a FIFO hung the load,
+    /dev/zero was read until memory ran out."""
+    path = arm_urdf_path(arm_urdf)
+    field = f"robot.arm_urdf {str(arm_urdf)!r}"
+    try:
+        mode, data = read_regular(path, MAX_FILE_BYTES)
+    except OSError as exc:
+        raise ValueError(f"{field}: cannot read {path}: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{field}: {path} is not a regular file")
+    if len(data) > MAX_FILE_BYTES:
+        raise ValueError(f"{field}: {path} is more than {MAX_FILE_BYTES} bytes; not read")
+    return data
 
 
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:
@@ -119,6 +145,12 @@ def _check_world(world: World, path: Path) -> None:
             raise bad("robot.start", f"the base would start in {obstacle.id!r}")
     if not all(math.isfinite(q) for q in world.robot.home_joints):
         raise bad("robot.home_joints", "every joint position must be a finite number")
+    # Every part that reads the URDF (the sim, safety, the executor, the robot bridge) loads the
+    # world first: one that is no file to read stops them all here, with one error.
+    try:
+        read_arm_urdf(world.robot.arm_urdf)
+    except ValueError as exc:
+        raise WorldFileError(f"world file {path}: {exc}") from None
 
 
 def _area(entry: str, points: list[list[float]], bad: Callable[[str, str], WorldFileError]) -> Polygon:

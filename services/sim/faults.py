@@ -20,7 +20,7 @@ from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
 from schemas.incidents import IncidentKind, IncidentReport
 from schemas.world import FaultInjected, FaultKind, FaultReply, InjectFault, World
 from services.footprint import distance_to_footprint, footprint
-from services.sim.world import HUMAN_RADIUS, BlockShape, Drop, SimWorld
+from services.sim.world import DROP_HEIGHT, HUMAN_RADIUS, BlockShape, Drop, SimWorld
 from services.worldmodel import WorldModel
 
 log = logging.getLogger(__name__)
@@ -314,10 +314,9 @@ class Faults:
             raise _Refused(block.kind, block.message, block.candidates)
         if block.id in self.world.blocks:
             raise _Refused(ErrorKind.PRECONDITION, f"{block.id} is blocked already")
-        robot = self.world.robot.base_pose()
-        size = self.world.spec.robot.base_size
-        if footprint(robot.x, robot.y, robot.yaw, size.x, size.y).intersects(block_outline(block)):
-            raise _Refused(ErrorKind.PRECONDITION, f"the robot stands where {block.name} would go")
+        part = self.world.robot_part_in(self.world.box_shape(block.half), block.centre, block.yaw)
+        if part is not None:
+            raise _Refused(ErrorKind.PRECONDITION, f"{self._robots(part)} where {block.name} would go")
         self.world.add_block(block)
         x, y, z = block.centre
         message = f"{block.name} at ({x:.2f}, {y:.2f}) blocks the way until `clear`"
@@ -351,6 +350,17 @@ class Faults:
     def _clear(self, target: str) -> FaultInjected:
         if target:
             raise _Refused(ErrorKind.INVALID_REQUEST, f"clear takes no target (got {target!r}): it clears everything")
+        # Checked before anything changes: clear does all of it, or nothing.
+        for object_id, (x, y, bottom) in self.hidden.items():
+            obj = self.model.objects[object_id]
+            centre = (x, y, bottom + obj.size.z / 2 + DROP_HEIGHT)
+            part = self.world.robot_part_in(self.world.object_shapes[object_id], centre)
+            if part is not None:
+                raise _Refused(
+                    ErrorKind.PRECONDITION,
+                    f"{self._robots(part)} where the {obj.name} would be put back, at ({x:.2f}, {y:.2f}); "
+                    "move the robot, or the object elsewhere (sim/move), first",
+                )
         done = []
         if self.slip is not None:
             self.slip = None
@@ -366,6 +376,14 @@ class Faults:
         message = "cleared " + "; ".join(done) if done else "no fault was in force"
         log.info("fault: %s", message)
         return FaultInjected(kind=FaultKind.CLEAR, message=message)
+
+    def _robots(self, part: str) -> str:
+        """What `robot_part_in` found, as the subject of a refusal."""
+        if part == "base":
+            return "the robot stands"
+        if part == "arm":
+            return "the robot's arm reaches"
+        return f"the {self.model.objects[part].name} in the robot's gripper is"
 
     def moved(self, entity_id: str) -> None:
         """sim/move put it somewhere: hidden no more (`clear` leaves it there, `hide` takes it again),

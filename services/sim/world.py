@@ -61,6 +61,8 @@ SETTLE_TIMEOUT = 3.0
 # sim/move's `z` is where an object is set down, not thrown from: below the floor Bullet shot it
 # metres up, from far above it was still falling when the reply said where it was.
 MOVE_MAX_Z = 2.0
+# A fault puts nothing nearer than this to the robot: its base, its arm, or what the hand holds.
+ROBOT_CLEARANCE = 0.01
 
 
 def wrap_angle(angle: float) -> float:
@@ -396,12 +398,16 @@ class SimWorld:
         self.floor: int = self.bullet.loadURDF("plane.urdf")
         self.wall_bodies = {w.id: self._add_wall(w) for w in world.walls}
         self.furniture_bodies = {f.id: self._add_furniture(f.center, f.size, f.rgba) for f in world.furniture}
+        self.object_shapes: dict[str, int] = {}  # each object's collision shape (robot_part_in)
         self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
         # Where people stand now: they move (sim/move), the world file only says where they start.
         self.human_poses = {h.id: h.pose for h in world.humans}
         # Temporary obstacles (sim/fault block), by id, with their bodies.
         self.blocks: dict[str, tuple[BlockShape, int]] = {}
+        # Box collision shapes by half extents: a block's, made once however often it is put up
+        # (pybullet never frees a shape), and asked where the robot is before it goes up (robot_part_in).
+        self._box_shapes: dict[Position, int] = {}
         self.robot = RobotBody(self.bullet, world, visuals=visuals, detailed_arm=detailed_arm)
         log.info("world %s loaded: %d furniture, %d objects", world.name, len(world.furniture), len(world.objects))
 
@@ -439,6 +445,7 @@ class SimWorld:
             half = [size.x / 2, size.y / 2, size.z / 2]
             shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=half)
             visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=half, rgbaColor=obj.rgba)
+        self.object_shapes[obj.id] = shape
         where = self.model.initial_position(obj)
         body: int = self.bullet.createMultiBody(obj.mass, shape, visual, [where.x, where.y, where.z])
         # An object at rest sleeps (Bullet stops solving its contacts) until something active touches
@@ -466,12 +473,42 @@ class SimWorld:
 
     def add_block(self, block: BlockShape) -> int:
         """A static box the base cannot drive through and the camera sees, until remove_block."""
-        shape = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(block.half))
+        shape = self.box_shape(block.half)
         visual = self.bullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=list(block.half), rgbaColor=BLOCK_RGBA)
         orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, block.yaw])
         body: int = self.bullet.createMultiBody(0.0, shape, visual, list(block.centre), orientation)
         self.blocks[block.id] = (block, body)
         return body
+
+    def box_shape(self, half: Position) -> int:
+        """The collision shape of a box `half` its sides."""
+        if half not in self._box_shapes:
+            self._box_shapes[half] = self.bullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(half))
+        shape: int = self._box_shapes[half]
+        return shape
+
+    def robot_part_in(self, shape: int, centre: Position, yaw: float = 0.0) -> str | None:
+        """Which part of the robot is within ROBOT_CLEARANCE of collision shape `shape` were it put
+        at `centre`, turned `yaw`: "base", "arm" (any link above the base, fingers too), the id of
+        the object the hand holds, or None. Every link is asked, not the base's outline alone: an arm
+        reaching out of it would have a box or an object put up inside it, and pybullet then throws
+        the robot or the object off."""
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+        held = [(self.holding, self.object_bodies[self.holding])] if self.holding is not None else []
+        for name, body in [(None, self.robot.id), *held]:
+            points = self.bullet.getClosestPoints(
+                bodyA=body,
+                bodyB=-1,
+                distance=ROBOT_CLEARANCE,
+                collisionShapeB=shape,
+                collisionShapePositionB=list(centre),
+                collisionShapeOrientationB=orientation,
+            )
+            if points:
+                if name is not None:
+                    return name
+                return "base" if any(p[3] == self.robot.base_link for p in points) else "arm"
+        return None
 
     def remove_block(self, block_id: str) -> None:
         _, body = self.blocks.pop(block_id)
