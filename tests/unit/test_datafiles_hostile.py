@@ -125,21 +125,23 @@ def test_a_json_vocabulary_that_is_not_utf8_is_refused_naming_it(tmp_path: Path)
 @pytest.mark.parametrize(
     ("old", "new", "error"),
     [
-        ("payload: 3.0", "payload: " + "1" * 5000, r"ValueError: Exceeds the limit \(4300 digits\)"),
-        ("name: household", "name: 2026-13-01", r"ValueError: month must be in 1\.\.12"),
-        ("name: household", "name: !!bool household", r"KeyError: 'household'"),
-        ("name: household", "name: !!timestamp household", r"AttributeError"),
+        ("payload: 3.0", "payload: " + "1" * 5000, "Exceeds the limit (4300 digits)"),
+        ("name: household", "name: 2026-13-01", "month must be in 1..12"),
+        ("name: household", "name: !!bool household", "'household'"),
+        ("name: household", "name: !!timestamp household", "has no attribute"),
     ],
 )
 def test_a_yaml_value_its_loader_cannot_build_is_refused_naming_the_file(
     tmp_path: Path, old: str, new: str, error: str
 ) -> None:
     # PyYAML let Python's own errors out of its loader (int() past its limit on digits, a 13th month,
-    # a look-up of a word that is no boolean): a traceback, the file not named.
+    # a look-up of a word that is no boolean): a traceback, the file not named. (msgspec 0.23 wraps
+    # them in its DecodeError itself; 0.22 let them out, and datafile's wrapper says so.)
     path = world_file(tmp_path, old, new)
-    prefix = rf"^world file {re.escape(str(path))} is not valid YAML: a value it cannot build \("
-    with pytest.raises(WorldFileError, match=prefix + error):
+    with pytest.raises(WorldFileError) as refused:
         load_world(path)
+    said = str(refused.value)
+    assert said.startswith(f"world file {path} is not valid YAML: ") and error in said, said
 
 
 def test_a_keep_out_zone_outside_every_room_is_refused(tmp_path: Path) -> None:
