@@ -39,7 +39,7 @@ from services.planner.errors import NotConfigured
 from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
 from tether.client import EXIT_CODES as SEND_EXIT_CODES
-from tether.client import EXIT_UNREACHABLE, PlanSender
+from tether.client import EXIT_UNREACHABLE, PlanSender, cancel_interrupted
 from tether.output import conclude, literal, printable, shown
 
 console = Console(stderr=True)
@@ -100,22 +100,15 @@ class Interrupted(Exception):
 def canceled(node: Node, goals: list[str]) -> Interrupted:
     """Cancel the last goal the ask sent (or was sending) and wait for its end, as `tether send` does
     at a Ctrl-C."""
-    from tether.cli import CANCEL_WAIT
-
     if not goals:
         said = "interrupted (Ctrl-C) before any plan was sent"
         return Interrupted([], ExecutePlanResult(status=PlanStatus.CANCELED, stage=Stage.EXECUTE, reason=said))
     goal_id = goals[-1]
     console.print("canceling...")
-    sender = PlanSender(node)
-    try:
-        run = sender.cancel(sender.handle(goal_id), CANCEL_WAIT)
-    except CallError as exc:
-        return Interrupted(goals, None, f"no outcome: canceled (Ctrl-C), but goal {goal_id} did not end: {exc}")
-    except KeyboardInterrupt:
-        said = f"no outcome: interrupted while canceling goal {goal_id} (`tether goal` follows it)"
-        return Interrupted(goals, None, said)
-    return Interrupted(goals, run.result)
+    ended = cancel_interrupted(PlanSender(node), goal_id)
+    if isinstance(ended, str):
+        return Interrupted(goals, None, ended)
+    return Interrupted(goals, ended.result)
 
 
 @contextlib.contextmanager

@@ -61,6 +61,7 @@ from tether.client import (
     STEP_ENDS,
     PlanRun,
     PlanSender,
+    cancel_interrupted,
     ended_without_result,
     next_heartbeat,
     next_message,
@@ -611,22 +612,15 @@ def unreachable(as_json: bool, reason: str) -> NoReturn:
     raise typer.Exit(EXIT_UNREACHABLE)
 
 
-# How long a Ctrl-C waits for the canceled plan to end: beyond the executor's own grace for a motion
-# that does not stop (10 s, then it latches the e-stop and ends the plan failed).
-CANCEL_WAIT = 30.0
-
-
 def interrupted(sender: PlanSender, goal_id: str, as_json: bool) -> PlanRun:
     """Ctrl-C while sending or waiting: the plan is canceled (one the executor has not answered for
-    yet too) and its end waited for, the cancel's grace at most. Exit 3 when no end came (the plan
-    may still be moving), or on a second Ctrl-C."""
+    yet too) and its end waited for, CANCEL_WAIT at most. Exit 3 when no end came (the plan may
+    still be moving), or on a second Ctrl-C."""
     console.print("canceling...")
-    try:
-        return sender.cancel(sender.handle(goal_id), CANCEL_WAIT)
-    except CallError as exc:
-        unreachable(as_json, f"no outcome: canceled (Ctrl-C), but goal {goal_id} did not end: {exc}")
-    except KeyboardInterrupt:
-        unreachable(as_json, f"no outcome: interrupted while canceling goal {goal_id} (`tether goal` follows it)")
+    ended = cancel_interrupted(sender, goal_id)
+    if isinstance(ended, str):
+        unreachable(as_json, ended)
+    return ended
 
 
 @app.command()

@@ -36,6 +36,9 @@ EXIT_CODES = {
 EXIT_UNREACHABLE = 3
 # How long the executor may take to accept or reject a plan.
 SEND_TIMEOUT = 5.0
+# How long a Ctrl-C waits for the canceled plan to end: beyond the executor's own grace for a motion
+# that does not stop (10 s, then it latches the e-stop and ends the plan failed).
+CANCEL_WAIT = 30.0
 # A get_result that nothing answered (a router restarting, the executor's pool for waiting queries
 # full) is asked again this often while the plan runs on; for this long, then the executor is gone.
 RESULT_RETRY = 0.5
@@ -357,6 +360,17 @@ class PlanSender:
 
     def run(self, goal: ExecutePlanGoal, timeout: float) -> PlanRun:
         return self.wait(self.send(goal), timeout)
+
+
+def cancel_interrupted(sender: PlanSender, goal_id: str) -> PlanRun | str:
+    """A Ctrl-C's cancel of `goal_id` (sent, or being sent) and the wait for its end, CANCEL_WAIT at
+    most: the run with its end, or why none came (the plan may still be moving), a second Ctrl-C too."""
+    try:
+        return sender.cancel(sender.handle(goal_id), CANCEL_WAIT)
+    except CallError as exc:
+        return f"no outcome: canceled (Ctrl-C), but goal {goal_id} did not end: {exc}"
+    except KeyboardInterrupt:
+        return f"no outcome: interrupted while canceling goal {goal_id} (`tether goal` follows it)"
 
 
 def cancel_reached(handle: ClientGoal[Any, Any, Any], timeout: float = 2.0) -> bool:

@@ -12,7 +12,7 @@ from schemas.planner import MAX_REQUEST_CHARS
 from services import robotlink, robotrules, runtime
 from services.actionlib import MAX_RESULTS, RESULT_RETENTION
 from services.safety.operator import MAX_TOKEN_BYTES
-from tether import cli, client, teleop
+from tether import client, teleop
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -27,7 +27,7 @@ CLAIMS = [
     ("services/safety/README.md", f"is over {MAX_TOKEN_BYTES // 1024} KiB is no token"),
     ("services/sim/README.md", f"(within `PREEMPT_TIMEOUT`, {robotrules.PREEMPT_TIMEOUT:g} s,"),
     ("README.md", f"over {MAX_REQUEST_CHARS} characters, not UTF-8"),
-    ("README.md", f"waits up to {cli.CANCEL_WAIT:g} s for its end"),
+    ("README.md", f"waits up to {client.CANCEL_WAIT:g} s for its end"),
     ("README.md", f"asked again for up to {client.RESULT_GONE:g} s"),
     ("README.md", f"ended over {RESULT_RETENTION / 60:g} minutes ago or before {MAX_RESULTS} newer ones ended"),
     ("README.md", f"no heartbeat from safety within {teleop.HEARTBEAT_WAIT:g} s"),
