@@ -47,6 +47,16 @@ def children(pid: int) -> set[int]:
     return found
 
 
+def forked(pid: int, service: str) -> int | None:
+    """The process `pid` started for `tether run SERVICE`, if it has started it yet."""
+    for child in children(pid):
+        with contextlib.suppress(OSError):
+            argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+            if b"run" in argv and service.encode() in argv:
+                return child
+    return None
+
+
 def running_for(robot: str) -> set[int]:
     """Live processes (not zombies) whose environment names `robot`: the stack's, wherever they went."""
     marker = f"TETHER_ROBOT={robot}".encode()
@@ -102,16 +112,24 @@ def test_ctrl_c_while_tether_up_waits_for_its_services_stops_them_before_it_ends
     command += ["--only", SERVICES, "--log-dir", str(tmp_path / "logs")]
     first_alive = threading.Event()
     up = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    held: int | None = None
     try:
         with Node("cli", NodeSettings(robot=robot, base_port=base_port)) as watcher:
             for service in services:
                 watcher.watch_alive(service, lambda alive: first_alive.set() if alive else None)
-            # One service up: `up` has started them all and waits for the others (each takes a second
-            # or more to import and open its session; `up`'s own session opened long before).
+            # The last service held (SIGSTOP) as soon as it is forked, a second or more before it could
+            # have imported and come up: `up` is still waiting for it when the Ctrl-C comes, however
+            # quickly the others came up (on a loaded machine they all did before the Ctrl-C landed).
             deadline = time.monotonic() + STARTUP_TIMEOUT
+            while held is None:
+                assert time.monotonic() < deadline and up.poll() is None, up.communicate()[0]
+                held = forked(up.pid, services[-1])
+            os.kill(held, signal.SIGSTOP)
+            # One service up: `up` has started them all and waits for the others.
             while not first_alive.wait(0.01):
                 assert time.monotonic() < deadline and up.poll() is None, up.communicate()[0]
             os.kill(up.pid, signal.SIGINT)
+            os.kill(held, signal.SIGCONT)  # to stop as it is told
         out, _ = up.communicate(timeout=60)
         left = running_for(robot)
         assert not left, f"still running after tether up ended: {left}\n{out.decode(errors='replace')}"
