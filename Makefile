@@ -19,7 +19,7 @@ demo: $(STAMP)
 	$(BIN)/tether demo
 
 # The suite sized for two cores (tests/suite.py): the wall-clock tests (`-m realtime`) one at a time
-# at normal priority, beside the tests that start services on two pytest-xdist workers at low
+# at normal priority, beside the tests that start services on three pytest-xdist workers at low
 # priority; then the tests marked `alone` (multi-host, ROS 2 stand-in, robot contract) one at a time,
 # without other stacks, with the unit tests (`-m unit`, all of tests/unit) on two workers at the lowest
 # priority; from the start, on idle CPU, the unit tests that only compute (`-m idle`) and mypy

@@ -9,7 +9,7 @@ from tether.supervisor import free_base_port
 
 # How long the robot goes on without safety's heartbeat, and the oldest heartbeat it takes (the sim's
 # [sim] heartbeat_timeout and heartbeat_max_age, 0.2 and 0.5 s by default), where a test is not about
-# those bounds: `make test` runs two workers on two cores (tests/suite.py), and a loaded machine can
+# those bounds: `make test` runs three workers of stacks on two cores (tests/suite.py), and a loaded machine can
 # keep a process off the CPU for longer than the defaults. The robot then stops as it should, and a
 # test about something else fails for a reason it does not test.
 LOADED_HEARTBEAT_TIMEOUT = 1.0

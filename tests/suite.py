@@ -3,8 +3,8 @@
 First, two pytest runs at once:
 - the tests marked `realtime` (they bound halts, report rates and watchdogs in wall seconds), one at a
   time at normal priority; their output goes to a file and is shown when they end;
-- the tests that start services (tests/integration, all but those marked realtime or alone) on two
-  pytest-xdist workers (`--dist loadscope`: whole modules, so a module's shared stack stays on one
+- the tests that start services (tests/integration, all but those marked realtime or alone) on three
+  pytest-xdist workers (STACK_WORKERS) (`--dist loadscope`: whole modules, so a module's shared stack stays on one
   worker, in the order tests/conftest.py explains), at low priority (nice 15), their output on the
   terminal.
 Then the tests marked `alone` (realtime too: the multi-host tests, two robots' stacks in network
@@ -74,10 +74,16 @@ from xml.etree import ElementTree
 from tests.conftest import IDLE_UNIT, INTEGRATION, REALTIME_UNIT
 from tests.conftest import UNIT as UNIT_TESTS
 
-# pytest-xdist workers of the parallel part and of the unit tests' run.
-# Three workers for the parallel part were tried on 2026-11-27: it took 275.0 s (276.1 s on two), and
-# the realtime run beside it 126 s (98 s). Its two cores are busy, not waiting.
+# pytest-xdist workers of the unit tests' run (two cores, computing).
 WORKERS = 2
+# Workers of the parallel part: three on two cores, since its stacks mostly wait (real-time and fast
+# sims, outages, watchdogs, services starting). Measured on 2026-11-29 without the runs beside it:
+# on two workers it took 220.6 s and left 42 % of the machine idle (vmstat), on three 170.8 s with
+# 27 % idle; in the whole suite, 173.6 s against 233 s, the suite 296 s against 353 to 365 s, the
+# tests marked realtime beside it as quick as before (84 s against 82), those marked idle 95 s
+# against 88. (Three were tried on 2026-11-27 too, when the unit tests still ran in this part and
+# kept both cores busy: 275.0 s against 276.1.)
+STACK_WORKERS = 3
 # Low priority for the parallel part: at nice 15 a process weighs 1/28 of one at nice 0.
 NICE = 15
 # The unit tests' group, beside the tests marked alone: at nice 19 it weighs 15 against a service's 1024.
@@ -116,9 +122,9 @@ def pytest(*args: str) -> list[str]:
     return [sys.executable, "-m", "pytest", "-q", "--durations=15", *args]
 
 
-def on_workers(*args: str) -> list[str]:
-    """pytest on WORKERS pytest-xdist workers, each taking whole modules (tests/conftest.py)."""
-    return pytest("-n", str(WORKERS), "--dist", "loadscope", *args)
+def on_workers(*args: str, workers: int = WORKERS) -> list[str]:
+    """pytest on `workers` pytest-xdist workers, each taking whole modules (tests/conftest.py)."""
+    return pytest("-n", str(workers), "--dist", "loadscope", *args)
 
 
 def idle() -> None:
@@ -216,8 +222,8 @@ def run(argv: list[str], reports: Path) -> int:
     # module again, and collecting the suite took 13 s of CPU instead of 6. The first pytest
     # processes of a fresh clone write it; those after them, and every later `make test`, reuse it.
     env = {name: value for name, value in os.environ.items() if name != WRITE_NO_BYTECODE}
-    env |= {"TETHER_TEST_PORT_BANDS": str(WORKERS + 1)}
-    alone = env | {"TETHER_TEST_PORT_BAND": str(WORKERS)}
+    env |= {"TETHER_TEST_PORT_BANDS": str(STACK_WORKERS + 1)}
+    alone = env | {"TETHER_TEST_PORT_BAND": str(STACK_WORKERS)}
     junit = {name: reports / f"{name}.xml" for name in ("realtime", "parallel", "alone", "unit", "idle")}
     with (
         tempfile.NamedTemporaryFile("w+b", prefix="tether-idle-", suffix=".log") as idle_log,
@@ -274,7 +280,7 @@ def runs(
         print(f"tests marked realtime: running alongside at normal priority, output in {log.name}", flush=True)
         try:
             parallel = subprocess.run(
-                on_workers("-m", STACKS, f"--junitxml={junit['parallel']}", *given(STACKS)),
+                on_workers("-m", STACKS, f"--junitxml={junit['parallel']}", *given(STACKS), workers=STACK_WORKERS),
                 preexec_fn=lambda: os.nice(NICE),
                 env=env,
                 check=False,
