@@ -90,7 +90,7 @@ class QueryPool:
                 self._busy += 1
             try:
                 task()
-            except Exception:
+            except BaseException:  # SystemExit too: it would end this worker, still counted idle
                 log.exception("a task of query pool %s failed", self.name)
             finally:
                 with self._lock:

@@ -87,6 +87,24 @@ def test_a_worker_that_cannot_be_started_is_not_counted_and_the_query_is_answere
     assert ran.wait(WAIT), "the task never ran"
 
 
+def test_a_task_that_raises_systemexit_leaves_its_pool_serving(caplog: pytest.LogCaptureFixture) -> None:
+    """A task ending in a BaseException (SystemExit, from a library's sys.exit) ended its worker's
+    thread, still counted idle: a pool of one queued every later task for a worker that was gone."""
+    pool = QueryPool("exiting", workers=1)
+    ran = threading.Event()
+
+    def exits() -> None:
+        raise SystemExit(3)
+
+    assert pool.submit(exits)
+    wait_until(lambda: pool.load() == "0 of 1 workers busy, 0 of 0 waiting", "the task done")
+    assert pool.submit(ran.set)
+    assert ran.wait(WAIT), "the task after it never ran"
+    wait_until(lambda: pool.busy == 0, "the pool idle")
+    assert pool.load() == "0 of 1 workers busy, 0 of 0 waiting"
+    assert "a task of query pool exiting failed" in caplog.messages
+
+
 def test_what_follows_a_reply_does_not_run_when_the_reply_could_not_be_encoded() -> None:
     """A handler's value that does not encode is answered with an internal error, yet `after` ran as if
     the reply had gone: an action's send_goal would start a goal its asker was told had failed."""
