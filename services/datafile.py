@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -23,16 +24,32 @@ MAX_YAML_NODES = 1_000_000
 MAX_FILE_BYTES = 16 * 1024 * 1024
 
 
-def read_regular(path: Path, limit: int) -> tuple[int, bytes]:
-    """`path`'s mode and, when it is a regular file, at most `limit` + 1 of its bytes (one more than a
-    caller allows, so it tells a file over its limit by the length); b"" for anything else. Opened
+def read_bounded(path: Path, limit: int, what: str, error: Callable[[str], Exception]) -> tuple[int, bytes]:
+    """`path`'s mode and bytes when it is a regular file of at most `limit` bytes; else `error(message)`,
+    the message naming the `what` file ("config", "robot key"), its path and what is wrong. Opened
     without blocking and checked on the open file: a FIFO named in its place would hang the reader, a
-    device (/dev/zero) feed it without end, and the file checked is the file read. OSError as
-    os.open raises it."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    with os.fdopen(fd, "rb") as file:
-        mode = os.fstat(file.fileno()).st_mode
-        return mode, file.read(limit + 1) if stat.S_ISREG(mode) else b""
+    device (/dev/zero) feed it without end, and the file checked is the file read."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        try:
+            mode, data = os.fstat(fd).st_mode, b""
+            if stat.S_ISREG(mode):  # only then: opening a directory's descriptor as a file raised, leaving it open
+                with open(fd, "rb", closefd=False) as file:
+                    # One byte more than allowed: a file over the limit is told by the length, not read to its end.
+                    data = file.read(limit + 1)
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise error(f"cannot read {what} file {path}: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{what} file {path} is not a regular file")
+    if len(data) > limit:
+        raise error(_too_long(what, path, limit))
+    return mode, data
+
+
+def _too_long(what: str, path: Path, limit: int) -> str:
+    return f"{what} file {path}: more than {limit} bytes; not read"
 
 
 class DuplicateKey(ValueError):
@@ -62,22 +79,16 @@ def read_struct(path: Path, type_: type[T], what: str, error: type[Exception]) -
 
 
 def read_bytes(path: Path, what: str, error: type[Exception]) -> bytes:
-    """The bytes of `path`, refusing a file of more than MAX_FILE_BYTES without reading it all, and
-    anything but a regular file: a FIFO named as the world hung start-up, a device was read to the limit."""
-    try:
-        mode, data = read_regular(path, MAX_FILE_BYTES)  # one more byte than allowed: decode_struct refuses it
-    except OSError as exc:
-        raise error(f"cannot read {what} file {path}: {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        raise error(f"{what} file {path} is not a regular file")
-    return data
+    """The bytes of `path`, a regular file of at most MAX_FILE_BYTES (read_bounded): a FIFO named as the
+    world hung start-up, a device was read to the limit."""
+    return read_bounded(path, MAX_FILE_BYTES, what, error)[1]
 
 
 def decode_struct(data: bytes, path: Path, type_: type[T], what: str, error: type[Exception]) -> T:
     """Decode the bytes read from `path`; the same rules and errors as read_struct."""
     kind = {".json": "JSON", ".toml": "TOML"}.get(path.suffix, "YAML")
     if len(data) > MAX_FILE_BYTES:
-        raise error(f"{what} file {path}: more than {MAX_FILE_BYTES} bytes; not read")
+        raise error(_too_long(what, path, MAX_FILE_BYTES))
     try:
         if kind == "JSON":
             # msgspec keeps the last of two equal keys: a second "keep_out" would drop the first's zones.

@@ -7,7 +7,6 @@ import hmac
 import logging
 import os
 import secrets
-import stat
 import struct
 import threading
 import time
@@ -16,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from schemas import keys
-from services.datafile import read_regular
+from services.datafile import read_bounded
 from services.repeats import Problems, RepeatLog
 
 log = logging.getLogger(__name__)
@@ -105,17 +104,10 @@ def robot_key(configured: str | None, default_dir: Path, robot: str) -> tuple[by
 
 
 def read_key(path: Path) -> bytes:
-    # A FIFO or device configured as the key would hang start-up or be read without end (read_regular).
-    try:
-        mode, data = read_regular(path, MAX_KEY_FILE_BYTES)
-    except OSError as exc:
-        raise KeyFileError(f"robot key file {path}: {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        raise KeyFileError(f"robot key file {path} is not a regular file")
+    # A FIFO or device configured as the key would hang start-up or be read without end (read_bounded).
+    mode, data = read_bounded(path, MAX_KEY_FILE_BYTES, "robot key", KeyFileError)
     if mode & 0o077:
         raise KeyFileError(f"robot key file {path} is readable by others (mode {mode & 0o777:o}); chmod 600 it")
-    if len(data) > MAX_KEY_FILE_BYTES:
-        raise KeyFileError(f"robot key file {path} is over {MAX_KEY_FILE_BYTES} bytes; a robot key is {KEY_BYTES}")
     try:
         key = bytes.fromhex(data.decode("ascii").strip())
     except ValueError:  # also bytes that are not ASCII

@@ -10,7 +10,6 @@ import logging
 import math
 import os
 import signal
-import stat
 import threading
 import time
 import tomllib
@@ -27,7 +26,7 @@ from schemas.common import DECODE_ERRORS, ErrorKind, ServiceError
 from schemas.keys import Service, Topic
 from schemas.process import ProcessStatus
 from schemas.trace import TraceRecord
-from services.datafile import read_regular
+from services.datafile import read_bounded
 from services.errors import CallError
 from services.listening import listening_ports
 from services.procstat import process_status
@@ -919,14 +918,7 @@ def load_config(cls: type[C], path: Path | None, section: str) -> C:
     if path is None:
         return msgspec.convert({}, cls)
     # A FIFO given as the config hung start-up, and a device (/dev/zero) would be read without end.
-    try:
-        mode, raw = read_regular(path, MAX_CONFIG_BYTES)
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        raise ConfigError(f"config file {path} is not a regular file")
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"config file {path} is over {MAX_CONFIG_BYTES} bytes; a config file is a few KB")
+    _, raw = read_bounded(path, MAX_CONFIG_BYTES, "config", ConfigError)
     try:
         data = tomllib.loads(raw.decode())
     except UnicodeDecodeError as exc:

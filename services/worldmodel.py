@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import stat
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,7 +18,7 @@ from shapely.ops import unary_union
 from schemas.common import Pose2D, Vec3
 from schemas.world import Furniture, Wall, World, WorldObject
 from services.bundled import DEFAULT_WORLD, world_path  # importable from here too, as before
-from services.datafile import MAX_FILE_BYTES, decode_struct, read_regular, read_struct
+from services.datafile import MAX_FILE_BYTES, decode_struct, read_bounded, read_struct
 from services.footprint import footprint
 
 # The base drives the last leg straight in from this far behind the goal, along the goal's
@@ -54,15 +53,7 @@ def read_arm_urdf(arm_urdf: str | Path) -> bytes:
     /dev/zero was read until memory ran out."""
     path = arm_urdf_path(arm_urdf)
     field = f"robot.arm_urdf {str(arm_urdf)!r}"
-    try:
-        mode, data = read_regular(path, MAX_FILE_BYTES)
-    except OSError as exc:
-        raise ValueError(f"{field}: cannot read {path}: {exc.strerror}") from None
-    if not stat.S_ISREG(mode):
-        raise ValueError(f"{field}: {path} is not a regular file")
-    if len(data) > MAX_FILE_BYTES:
-        raise ValueError(f"{field}: {path} is more than {MAX_FILE_BYTES} bytes; not read")
-    return data
+    return read_bounded(path, MAX_FILE_BYTES, "URDF", lambda message: ValueError(f"{field}: {message}"))[1]
 
 
 def load_world(name_or_path: str | Path = DEFAULT_WORLD) -> World:

@@ -93,11 +93,16 @@ def test_a_device_named_as_a_world_is_refused_unread() -> None:
         load_world(Path("/dev/zero"))
 
 
-def test_a_directory_named_as_a_world_is_refused(tmp_path: Path) -> None:
+def test_a_directory_named_as_a_world_is_refused_and_its_descriptor_closed(tmp_path: Path) -> None:
+    """Each refusal of a directory left the descriptor opened on it open: a service asked again and
+    again (a reloaded world, a config) ran out of descriptors."""
     path = tmp_path / "world.yaml"
     path.mkdir()
-    with pytest.raises(WorldFileError, match=rf"^cannot read world file {re.escape(str(path))}: Is a directory$"):
-        load_world(path)
+    descriptors = len(os.listdir("/proc/self/fd"))
+    for _ in range(20):
+        with pytest.raises(WorldFileError, match=rf"^world file {re.escape(str(path))} is not a regular file$"):
+            load_world(path)
+    assert len(os.listdir("/proc/self/fd")) == descriptors
 
 
 def test_a_symlink_loop_named_as_a_world_is_refused(tmp_path: Path) -> None:

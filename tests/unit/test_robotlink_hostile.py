@@ -115,8 +115,9 @@ def test_a_key_file_far_too_long_to_be_a_key_is_refused_unread(tmp_path: Path) -
     path = tmp_path / "robot.key"
     path.write_text("ab" * 32 + " " * 5000 + "\n")
     path.chmod(0o600)
-    with pytest.raises(KeyFileError, match="over 1024 bytes"):
+    with pytest.raises(KeyFileError) as refused:
         read_key(path)
+    assert str(refused.value) == f"robot key file {path}: more than 1024 bytes; not read"
 
 
 def test_a_key_with_surrounding_whitespace_and_crlf_is_the_same_key(tmp_path: Path) -> None:

@@ -88,7 +88,10 @@ def test_a_fifo_named_as_the_arm_urdf_is_refused_not_waited_on(tmp_path: Path, f
 
 
 def test_the_world_refuses_a_device_or_a_huge_file_as_its_arm_urdf(tmp_path: Path, huge: Path) -> None:
-    for arm_urdf, why in [("/dev/zero", "is not a regular file"), (str(huge), f"is more than {MAX_FILE_BYTES} bytes")]:
+    for arm_urdf, why in [
+        ("/dev/zero", "is not a regular file"),
+        (str(huge), f"{huge}: more than {MAX_FILE_BYTES} bytes; not read"),
+    ]:
         with pytest.raises(WorldFileError) as refused:
             load_world(world_naming(tmp_path, arm_urdf))
         assert f"robot.arm_urdf {arm_urdf!r}" in str(refused.value) and why in str(refused.value)
@@ -96,7 +99,10 @@ def test_the_world_refuses_a_device_or_a_huge_file_as_its_arm_urdf(tmp_path: Pat
 
 def test_arm_model_reads_its_urdf_bounded_not_whatever_the_path_is(huge: Path) -> None:
     # Not /dev/zero here: the code before read it until memory ran out.
-    for arm_urdf, why in [(Path("/dev/null"), "is not a regular file"), (huge, f"is more than {MAX_FILE_BYTES} bytes")]:
+    for arm_urdf, why in [
+        (Path("/dev/null"), "is not a regular file"),
+        (huge, f"{huge}: more than {MAX_FILE_BYTES} bytes; not read"),
+    ]:
         with pytest.raises(ValueError) as refused:
             ArmModel(arm_urdf)
         assert f"robot.arm_urdf {str(arm_urdf)!r}" in str(refused.value) and why in str(refused.value)
