@@ -291,7 +291,9 @@ def prepare_types() -> None:
                 stack.append(struct)
                 if struct not in _prepared:
                     _prepared.add(struct)
-                    with contextlib.suppress(TypeError, ValueError):  # one msgspec cannot decode never is
+                    # One msgspec cannot decode never is. A NameError: a type whose module's import was cut
+                    # short (a Ctrl-C in a lazy import) names what that module never got to define.
+                    with contextlib.suppress(TypeError, ValueError, NameError):
                         msgspec.json.Decoder(struct)
 
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import pytest
 
@@ -14,7 +16,7 @@ from schemas.keys import Service
 from schemas.plan import PlanText
 from services.errors import CallError
 from services.querypool import QueryPool
-from services.runtime import Node, NodeSettings
+from services.runtime import Node, NodeSettings, prepare_types
 from tests.sessions import free_port
 
 WAIT = 5.0
@@ -103,6 +105,22 @@ def test_a_task_that_raises_systemexit_leaves_its_pool_serving(caplog: pytest.Lo
     wait_until(lambda: pool.busy == 0, "the pool idle")
     assert pool.load() == "0 of 1 workers busy, 0 of 0 waiting"
     assert "a task of query pool exiting failed" in caplog.messages
+
+
+def test_a_struct_type_left_by_an_import_cut_short_does_not_stop_the_types_being_prepared() -> None:
+    """A Ctrl-C in `tether send --recover` landed in a lazy import: the half-imported module's struct
+    type names what the module never got to define, and prepare_types (every Node opening) raised
+    NameError, so the cancel the Ctrl-C asked for crashed the command, no JSON printed."""
+    half_imported: dict[str, Any] = {"__name__": "cut_short"}
+    exec(
+        "from __future__ import annotations\nimport msgspec\nclass Cut(msgspec.Struct):\n    kind: NeverDefined\n",
+        half_imported,
+    )
+    try:
+        prepare_types()
+    finally:
+        del half_imported["Cut"]
+        gc.collect()  # Struct.__subclasses__ holds it weakly: gone for the tests after this one
 
 
 def test_what_follows_a_reply_does_not_run_when_the_reply_could_not_be_encoded() -> None:
