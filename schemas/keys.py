@@ -23,7 +23,7 @@ from schemas.actions import (
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult
 from schemas.incidents import ForgetIncident, ForgetReply, Incident, IncidentList, IncidentQuery, IncidentReport
 from schemas.plan import GroundedPlan, ParseReply, Plan, PlanCheckReply, PlanText, ResolveReply
-from schemas.planner import AskReply, AskRequest, PlannerAttempt, Recovery
+from schemas.planner import AskCancel, AskCancelReply, AskReply, AskRequest, PlannerAttempt, Recovery
 from schemas.robot import (
     FollowJointTrajectoryFeedback,
     FollowJointTrajectoryGoal,
@@ -168,6 +168,8 @@ PLAN_RESOLVE: Service[Plan, ResolveReply] = Service("plan/resolve", Plan, Resolv
 EXECUTE_PLAN = ActionKeys("plan/execute", ExecutePlanGoal, ExecutePlanFeedback, ExecutePlanResult)
 # Words to a checked plan: the planner asks an LLM, dry-runs each answer, feeds refusals back.
 PLAN_ASK: Service[AskRequest, AskReply] = Service("plan/ask", AskRequest, AskReply)
+# A caller stops the request it started (by the request id it chose): nothing more is sent for it.
+PLAN_ASK_CANCEL: Service[AskCancel, AskCancelReply] = Service("plan/ask_cancel", AskCancel, AskCancelReply)
 # Each model call and the dry run of its plan.
 PLANNER_ATTEMPTS = Topic("planner/attempts", PlannerAttempt)
 # Each recovery the planner asked the model for after a plan failed at execution, and its outcome.

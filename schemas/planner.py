@@ -20,6 +20,9 @@ MAX_RECOVERIES = 5
 
 RecordedText = Annotated[str, Meta(max_length=MAX_RECORDED_CHARS)]
 RequestId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+# An id a caller chooses for its request (a uuid's hex, say), to cancel it by: empty, the planner picks
+# one. (?!\n): Python's `$` also matches before a last newline, which would let "id\n" through.
+CallerRequestId = Annotated[str, Meta(max_length=64, pattern=r"^[A-Za-z0-9_-]*(?!\n)$")]
 
 
 class AskStatus(enum.StrEnum):
@@ -64,6 +67,28 @@ class AskRequest(Frozen):
     max_recoveries: Annotated[int, Meta(ge=0, le=MAX_RECOVERIES)] | None = None
     # Answer only once the plan (and any recovery) has ended, with SUCCEEDED or FAILED.
     wait: bool = False
+    # The caller's name for the request (plan/ask_cancel stops it by this; refused while one with the
+    # same id is in flight or ended lately); empty: the planner picks one.
+    request_id: CallerRequestId = ""
+
+
+class AskCancel(Frozen):
+    """Stop the request the caller started with this `request_id`: no plan, nor recovery, is sent for
+    it after this, and the goal it sent last is canceled."""
+
+    request_id: Annotated[CallerRequestId, Meta(min_length=1)]
+
+
+class AskCancelReply(Frozen):
+    """What a cancel found. `known`: the planner had the request (in flight, or ended lately);
+    `running`: it was still in flight (now canceled); `goal_id`: its last goal, which the planner asked
+    the executor to cancel (a caller follows it to its end); empty when it sent none."""
+
+    request_id: RequestId
+    known: bool
+    running: bool = False
+    goal_id: Annotated[str, Meta(max_length=64)] = ""
+    reason: Text = ""
 
 
 class RecoveryOutcome(enum.StrEnum):

@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from concurrent import futures
 from pathlib import Path
@@ -32,7 +33,16 @@ from rich.console import Console
 from schemas import keys
 from schemas.common import Stage
 from schemas.executor import ExecutePlanResult, PlanStatus
-from schemas.planner import MAX_ATTEMPTS, MAX_RECOVERIES, MAX_REQUEST_CHARS, AskReply, AskRequest, AskStatus
+from schemas.planner import (
+    MAX_ATTEMPTS,
+    MAX_RECOVERIES,
+    MAX_REQUEST_CHARS,
+    AskCancel,
+    AskCancelReply,
+    AskReply,
+    AskRequest,
+    AskStatus,
+)
 from services.errors import CallError
 from services.planner.config import HOW_TO_CONFIGURE, Endpoint, PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
@@ -59,8 +69,12 @@ EXIT_CODES = {
 # The planner service answered with an error of its own (not an AskReply): `tether ask` exits this.
 EXIT_PLANNER_ERROR = 1
 GREEN = (AskStatus.APPROVED, AskStatus.ACCEPTED, AskStatus.SUCCEEDED)
-# How long a Ctrl-C waits for the planner service's answer: the goal it sent is named only there.
+# How long a Ctrl-C waits for the planner service's answer, when the service cannot cancel by request
+# id (an older one): the goal it sent is named only there.
 ANSWER_WAIT = 30.0
+# How long a Ctrl-C waits for the planner to cancel the request: a send under way holds it up to
+# its timeout (the executor preempting a plan), then the cancel of the goal.
+CANCEL_ASK_WAIT = 20.0
 
 
 class PlannerFailed(Exception):
@@ -284,14 +298,17 @@ def ask_planner(
         except KeyboardInterrupt:
             raise canceled(node, []) from None
         if alive:
-            return ask_service(node, request, timeout)
+            # Named here, so that a Ctrl-C can stop the request by it (plan/ask_cancel).
+            return ask_service(node, msgspec.structs.replace(request, request_id=uuid.uuid4().hex), timeout)
     return AskReply(status=AskStatus.UNCONFIGURED, request_id="none", reason=HOW_TO_CONFIGURE)
 
 
 def ask_service(node: Node, request: AskRequest, timeout: float) -> AskReply:
-    """The planner service's reply, asked on a thread of its own: at a Ctrl-C the answer naming the
-    goal sent (it comes at the goal's acceptance) is waited for, ANSWER_WAIT at most, and that goal
-    canceled. With `wait` it comes only at the plan's end: nothing names the goal before that."""
+    """The planner service's reply, asked on a thread of its own. At a Ctrl-C the request is canceled
+    by its id (plan/ask_cancel: nothing more is sent for it, and the goal it sent is canceled) and
+    that goal's end waited for. A service that cannot cancel it (an older one) names the goal only in
+    its answer, which comes at acceptance: that answer is waited for, ANSWER_WAIT at most, and its
+    goal canceled; with `wait` it comes only at the plan's end, so nothing names the goal."""
     answer: futures.Future[AskReply] = futures.Future()
 
     def call() -> None:
@@ -308,6 +325,22 @@ def ask_service(node: Node, request: AskRequest, timeout: float) -> AskReply:
     except KeyboardInterrupt:
         pass
     unknown = "a plan it sent may be moving; `tether cancel` stops the plan running"
+    console.print("asking the planner to cancel the request...")
+    try:
+        stopped: AskCancelReply = node.call(
+            keys.PLAN_ASK_CANCEL, AskCancel(request_id=request.request_id), timeout=CANCEL_ASK_WAIT
+        )
+    except KeyboardInterrupt:
+        raise Interrupted([], None, f"no outcome: interrupted again before the planner canceled: {unknown}") from None
+    except CallError as exc:
+        console.print(f"the planner did not cancel the request ({shown(str(exc))})", highlight=False)
+        answered_then_canceled(node, request, answer, unknown)
+    # A request that ended just now (its answer on the way) is found by id as well, with its goal.
+    raise canceled(node, [stopped.goal_id] if stopped.goal_id else [])
+
+
+def answered_then_canceled(node: Node, request: AskRequest, answer: futures.Future[AskReply], unknown: str) -> NoReturn:
+    """The goal named in the service's answer canceled, once it comes (ANSWER_WAIT at most)."""
     if request.wait:
         said = f"no outcome: interrupted; the planner service names the goal it sent only at the plan's end: {unknown}"
         raise Interrupted([], None, said)

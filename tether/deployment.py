@@ -597,6 +597,7 @@ OWNERS: dict[str, Owners] = {
     keys.PLAN_RESOLVE.path: Owners(("resolver",), asked_by=("executor",)),
     keys.EXECUTE_PLAN.path: Owners(("executor",), asked_by=("planner", "operator", "agent")),
     keys.PLAN_ASK.path: Owners(("planner",), asked_by=("operator", "agent")),
+    keys.PLAN_ASK_CANCEL.path: Owners(("planner",), asked_by=("operator", "agent")),
     keys.PLANNER_ATTEMPTS.path: Owners(("planner",)),
     keys.PLANNER_RECOVERIES.path: Owners(("planner",)),
     keys.SCENE.path: Owners(("resolver",), asked_by=("executor", "planner", "operator", "agent")),

@@ -7,8 +7,10 @@ import logging
 import threading
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent import futures
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -21,6 +23,8 @@ from schemas.planner import (
     MAX_RECORDED_CHARS,
     MAX_RECOVERIES,
     MAX_REQUEST_CHARS,
+    AskCancel,
+    AskCancelReply,
     AskReply,
     AskRequest,
     AskStatus,
@@ -51,6 +55,12 @@ INCIDENTS_TIMEOUT = 3.0
 MAX_FOLLOWERS = 8
 # How often a follower looks whether the planner is closing while it waits for a plan's end.
 FOLLOW_POLL = 0.25
+# Requests in flight at once (plan/ask's workers and the followers behind replies are fewer), and the
+# ended ones remembered (a cancel still finds their last goal; their ids are not taken again).
+MAX_IN_FLIGHT = 128
+MAX_ENDED = 256
+# How long a cancel waits for the executor to take the cancel of a request's goal.
+CANCEL_TIMEOUT = 2.0
 LOOP_STATUS = {
     LoopStatus.APPROVED: AskStatus.APPROVED,
     LoopStatus.REJECTED: AskStatus.REJECTED,
@@ -64,6 +74,93 @@ ATTEMPT_OUTCOME = {
 
 
 DEADLINE_PASSED = "the caller's deadline passed: nothing more was asked of the model and no plan was sent"
+CANCELED = "the request was canceled (plan/ask_cancel)"
+
+
+@dataclass
+class InFlight:
+    """A request as a cancel sees it: the goal it sent last (the plan, then each recovery), and
+    whether its caller canceled it (`arrived` False: the cancel came before the request did)."""
+
+    goal_id: str = ""
+    canceled: bool = False
+    arrived: bool = True
+
+
+class Requests:
+    """The requests in flight by id, and the ones that ended lately with their last goal (a plan
+    answered at acceptance runs on after its request ended). Pure bookkeeping, bounded, used under
+    the planner's lock: a send holds that lock too, so a cancel either sees the goal sent, or comes
+    first and no goal is sent."""
+
+    def __init__(self, max_in_flight: int = MAX_IN_FLIGHT, max_ended: int = MAX_ENDED) -> None:
+        self._in_flight: dict[str, InFlight] = {}
+        self._ended: OrderedDict[str, InFlight] = OrderedDict()
+        self._max_in_flight = max_in_flight
+        self._max_ended = max_ended
+
+    def start(self, request_id: str) -> str | None:
+        """Take the request in: None, or why it is refused."""
+        if request_id in self._in_flight:
+            return f"request id {request_id} is in flight already: each request needs an id of its own"
+        ended = self._ended.get(request_id)
+        if ended is not None and not ended.arrived:
+            return f"request {request_id} was canceled before it arrived: nothing was asked or sent"
+        if ended is not None:
+            return f"request id {request_id} was used by a request that ended lately: each needs an id of its own"
+        if len(self._in_flight) >= self._max_in_flight:
+            return f"the planner has {len(self._in_flight)} requests in flight, its most: ask again later"
+        self._in_flight[request_id] = InFlight()
+        return None
+
+    def end(self, request_id: str) -> None:
+        """The request is over (its last goal may still run); again, or for an unknown id, nothing."""
+        entry = self._in_flight.pop(request_id, None)
+        if entry is not None:
+            self._remember(request_id, entry)
+
+    def sending(self, request_id: str, goal_id: str) -> None:
+        """The request's next goal, named before it goes: a send that got no answer may have been taken."""
+        entry = self._in_flight.get(request_id)
+        if entry is not None:
+            entry.goal_id = goal_id
+
+    def canceled(self, request_id: str) -> bool:
+        entry = self._in_flight.get(request_id) or self._ended.get(request_id)
+        return entry is not None and entry.canceled
+
+    def cancel(self, request_id: str) -> AskCancelReply:
+        """Mark the request canceled; the answer names the goal to cancel, if it sent one. An id not
+        known is remembered as canceled: a request arriving with it later (the cancel overtook it, or
+        it waited for a worker) is refused."""
+        entry = self._in_flight.get(request_id)
+        if entry is not None:
+            entry.canceled = True
+            if entry.goal_id:
+                said = f"canceled: goal {entry.goal_id} is canceled and no recovery is sent after it"
+            else:
+                said = "canceled before any plan was sent: none is sent"
+            return AskCancelReply(request_id=request_id, known=True, running=True, goal_id=entry.goal_id, reason=said)
+        entry = self._ended.get(request_id)
+        if entry is not None:
+            entry.canceled = True
+            if entry.goal_id:
+                said = f"the request had ended; its last goal {entry.goal_id} is canceled (it may have ended already)"
+            else:
+                said = "the request had ended without sending a plan: nothing to cancel"
+            return AskCancelReply(request_id=request_id, known=True, goal_id=entry.goal_id, reason=said)
+        self._remember(request_id, InFlight(canceled=True, arrived=False))
+        said = (
+            f"no request {request_id} is in flight or ended lately: nothing was canceled; "
+            "a request with this id arriving later is refused"
+        )
+        return AskCancelReply(request_id=request_id, known=False, reason=said)
+
+    def _remember(self, request_id: str, entry: InFlight) -> None:
+        self._ended[request_id] = entry
+        self._ended.move_to_end(request_id)
+        while len(self._ended) > self._max_ended:
+            self._ended.popitem(last=False)
 
 
 def past_deadline(request: AskRequest) -> bool:
@@ -119,6 +216,8 @@ class Planner:
         self._lock = threading.Lock()
         self._followers: dict[str, threading.Thread] = {}
         self._closing = threading.Event()
+        # The requests in flight, for plan/ask_cancel: under `_lock`, which each send of a plan holds.
+        self._requests = Requests()
         # The e-stop as the heartbeat last said: while it is latched no plan can pass, and asking the
         # model to "fix" one would spend attempts on what only an operator can change.
         self._heartbeat: SafetyStatus | None = None
@@ -175,7 +274,19 @@ class Planner:
         return DryRunVerdict(False, result.stage, result.reason)
 
     def ask(self, request: AskRequest) -> AskReply:
-        request_id = uuid.uuid4().hex[:16]
+        request_id = request.request_id or uuid.uuid4().hex[:16]
+        with self._lock:
+            refused = self._requests.start(request_id)
+        if refused is not None:
+            return AskReply(status=AskStatus.REJECTED, request_id=request_id, reason=refused)
+        try:
+            return self._ask(request, request_id)
+        finally:
+            with self._lock:
+                if request_id not in self._followers:  # else its follower ends it
+                    self._requests.end(request_id)
+
+    def _ask(self, request: AskRequest, request_id: str) -> AskReply:
         if self._chat is None:
             return AskReply(status=AskStatus.UNCONFIGURED, request_id=request_id, reason=HOW_TO_CONFIGURE)
         if "executor" not in self.node.alive_services(timeout=2.0):
@@ -218,7 +329,7 @@ class Planner:
         messages = initial_messages(request.text, self._tools(), self.config.native_tools, scene, hazards)
         result = plan_loop(
             messages,
-            self._model_call(request, request.deadline),
+            self._model_call(request_id, request.deadline),
             self.check,
             max_attempts,
             self._recorder(request, request_id, max_attempts, 0),
@@ -256,8 +367,9 @@ class Planner:
                     self._tool_schemas = tool_schemas()
         return self._tool_schemas
 
-    def _model_call(self, request: AskRequest, deadline: float) -> Callable[[list[dict[str, Any]]], ChatReply]:
-        """One model call, not started after `deadline` (0: none) nor once the planner is closing."""
+    def _model_call(self, request_id: str, deadline: float) -> Callable[[list[dict[str, Any]]], ChatReply]:
+        """One model call, not started after `deadline` (0: none), once the planner is closing, nor
+        once the request was canceled."""
         chat = self._chat
         assert chat is not None, "asked only with an endpoint"
         tools = self._tools() if self.config.native_tools else None
@@ -267,6 +379,8 @@ class Planner:
                 raise LLMError(DEADLINE_PASSED)
             if self._closing.is_set():
                 raise LLMError("the planner is shutting down")
+            if self._requests.canceled(request_id):  # a read of a flag: the send looks again under the lock
+                raise LLMError(CANCELED)
             if (latched := self.estop_latched()) is not None:
                 raise LLMError(latched)  # latched since the loop began: no model is asked to fix anything
             reply: ChatReply = chat.chat(conversation, tools)
@@ -305,28 +419,36 @@ class Planner:
         return record
 
     def send(self, approved: AskReply, plan: str, preempt: bool) -> AskReply:
-        """The approved plan for real: the goal id once the executor has accepted it."""
-        try:
-            handle = self._send_goal(ExecutePlanGoal(text=plan, preempt=preempt), SEND_TIMEOUT + PREEMPT_TIMEOUT)
-        except GoalRejected as exc:
-            return msgspec.structs.replace(
-                approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=bounded(exc.reason, 4000)
-            )
-        except CallError as exc:
-            return msgspec.structs.replace(
-                approved, status=AskStatus.UNREACHABLE, reason=bounded(f"executor unreachable: {exc}", 4000)
-            )
-        log.info("request %s: plan sent as goal %s", approved.request_id, handle.goal_id)
+        """The approved plan for real: the goal id once the executor has accepted it. Not sent once the
+        request was canceled: looked at under the lock a cancel takes, held through the send."""
+        request_id = approved.request_id
+        with self._lock:
+            if self._requests.canceled(request_id):
+                said = f"{CANCELED}: no plan was sent"
+                return msgspec.structs.replace(approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=said)
+            try:
+                goal = ExecutePlanGoal(text=plan, preempt=preempt)
+                handle = self._send_goal(request_id, goal, SEND_TIMEOUT + PREEMPT_TIMEOUT)
+            except GoalRejected as exc:
+                return msgspec.structs.replace(
+                    approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=bounded(exc.reason, 4000)
+                )
+            except CallError as exc:
+                return msgspec.structs.replace(
+                    approved, status=AskStatus.UNREACHABLE, reason=bounded(f"executor unreachable: {exc}", 4000)
+                )
+        log.info("request %s: plan sent as goal %s", request_id, handle.goal_id)
         return msgspec.structs.replace(
             approved, status=AskStatus.ACCEPTED, goal_id=handle.goal_id, reason="approved by a dry run and sent"
         )
 
-    def _send_goal(self, goal: ExecutePlanGoal, timeout: float) -> ClientGoal[Any, Any, Any]:
-        """Send for real; the goal's id told to `on_send` before the send, when it wants it."""
-        if self._on_send is None:
-            return self._executor.send(goal, timeout=timeout)
+    def _send_goal(self, request_id: str, goal: ExecutePlanGoal, timeout: float) -> ClientGoal[Any, Any, Any]:
+        """Send for real, under `_lock`; the goal's id is named before the send (to the request, for a
+        cancel, and to `on_send` when it wants it): an unanswered send may have been taken."""
         goal_id = uuid.uuid4().hex
-        self._on_send(goal_id)
+        self._requests.sending(request_id, goal_id)
+        if self._on_send is not None:
+            self._on_send(goal_id)
         return self._executor.send(goal, timeout=timeout, goal_id=goal_id)
 
     # Following a sent plan to its end, and recovering when it failed at a step.
@@ -341,6 +463,8 @@ class Planner:
         def stopped() -> str | None:
             if self._closing.is_set():
                 return "the planner is shutting down"
+            if self._requests.canceled(request_id):
+                return CANCELED
             if deadline > 0 and time.time() > deadline:
                 return DEADLINE_PASSED
             return None
@@ -348,7 +472,7 @@ class Planner:
         def plan(messages: list[dict[str, Any]], number: int) -> LoopResult:
             record = self._recorder(request, request_id, max_attempts, number)
             try:
-                return plan_loop(messages, self._model_call(request, deadline), self.check, max_attempts, record)
+                return plan_loop(messages, self._model_call(request_id, deadline), self.check, max_attempts, record)
             except ExecutorUnreachable as exc:
                 return LoopResult(LoopStatus.REJECTED, reason=str(exc))
 
@@ -361,7 +485,7 @@ class Planner:
             scene=self.scene_text,
             incidents=self.incidents_text,
             plan=plan,
-            send=self._send_recovery,
+            send=functools.partial(self._send_recovery, request_id=request_id),
             record=self._publish_recovery,
             stopped=stopped,
         )
@@ -416,6 +540,9 @@ class Planner:
             self.follow(request, sent, max_recoveries)
         except Exception:
             log.exception("request %s: following goal %s failed", sent.request_id, sent.goal_id)
+        finally:
+            with self._lock:
+                self._requests.end(sent.request_id)
 
     def _follow_goal(self, goal_id: str, until: float = 0.0) -> Ended:
         """Wait for the goal's end (get_result); give up when the planner closes, or at `until`
@@ -437,22 +564,40 @@ class Planner:
             return Ended(None, "unknown", f"no result from the executor: {exc}")
         return Ended(response.result, str(response.state), response.message)
 
-    def _send_recovery(self, plan: str) -> Sent:
+    def _send_recovery(self, plan: str, request_id: str = "") -> Sent:
         """A recovery plan for real; never preempting: whatever runs now was started by someone else.
-        Looked at again right before it goes, under the lock close() takes: not sent once the planner
-        is closing, nor while the e-stop is latched (the executor would refuse it; it is not asked)."""
+        Looked at again right before it goes, under the lock close() and a cancel take: not sent once
+        the planner is closing or the request was canceled, nor while the e-stop is latched (the
+        executor would refuse it; it is not asked)."""
         with self._lock:
             if self._closing.is_set():
                 return Sent(refused="the planner is shutting down", stop=True)
+            if self._requests.canceled(request_id):
+                return Sent(refused=CANCELED, stop=True)
             if (latched := self.estop_latched()) is not None:
                 return Sent(refused=latched, kind=ErrorKind.ESTOP, stop=True)
             try:
-                handle = self._send_goal(ExecutePlanGoal(text=plan), SEND_TIMEOUT)
+                handle = self._send_goal(request_id, ExecutePlanGoal(text=plan), SEND_TIMEOUT)
             except GoalRejected as exc:
                 return Sent(refused=exc.reason, kind=exc.kind)
             except CallError as exc:
                 return Sent(refused=f"executor unreachable: {exc}")
         return Sent(goal_id=handle.goal_id)
+
+    def ask_cancel(self, cancel: AskCancel) -> AskCancelReply:
+        """Stop a request by the id its caller chose: nothing more is asked or sent for it, and its
+        last goal is canceled here (the reply names it, for the caller to follow to its end)."""
+        with self._lock:  # held through each send: no goal goes after this but the one named here
+            found = self._requests.cancel(cancel.request_id)
+        log.info("request %s: %s", cancel.request_id, found.reason)
+        if not found.goal_id:
+            return found
+        try:
+            ClientGoal(self._executor, found.goal_id).cancel(CANCEL_TIMEOUT)
+        except CallError as exc:
+            said = f"{found.reason}; but the executor did not take the cancel: {exc}"
+            return msgspec.structs.replace(found, reason=bounded(said, 4000))
+        return found
 
     def _publish_recovery(self, recovery: Recovery) -> None:
         log.info(
@@ -478,3 +623,5 @@ class Planner:
 def declare(node: Node, planner: Planner) -> None:
     # A request that waits for its plan's end takes as long as the plan runs: the pool for such waits.
     node.serve(keys.PLAN_ASK, planner.ask, waits=True)
+    # Quick (a send under way may hold it a few seconds), on the other pool: never behind the waits.
+    node.serve(keys.PLAN_ASK_CANCEL, planner.ask_cancel)

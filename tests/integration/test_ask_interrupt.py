@@ -1,13 +1,16 @@
-"""A Ctrl-C (or SIGTERM) to `tether ask` and `tether send --recover` with an endpoint in this process:
-the plan the planner sent is canceled by its id and its end printed as one JSON object, with `tether
-send`'s exit codes. The executor is played by this test (a real action server on real Zenoh) and holds
-the plan until it is canceled; the model is the scripted one of test_agents. Short: no stack to start."""
+"""A Ctrl-C (or SIGTERM) to `tether ask` and `tether send --recover` with an endpoint in this process,
+and to `tether ask` through the planner service: the plan the planner sent is canceled by its id and
+its end printed as one JSON object, with `tether send`'s exit codes. The executor is played by this
+test (a real action server on real Zenoh) and holds the plan until it is canceled; the model is the
+scripted one of test_agents; the planner service, when there is one, is the real one. Short: no
+stack to start."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -16,6 +19,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+import msgspec
 import pytest
 
 from schemas import keys
@@ -23,8 +27,10 @@ from schemas.actions import GoalState
 from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from schemas.incidents import IncidentList
+from schemas.planner import AskReply, AskRequest, AskStatus, RecoveryOutcome
+from schemas.trace import TraceRecord
 from schemas.world import SceneDescription
-from services.actionlib import ActionServer, GoalHandle, Outcome
+from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.integration import test_agents
 from tests.integration.test_agents import ScriptedLLM, text_reply
@@ -138,27 +144,105 @@ def test_an_interrupted_send_recover_cancels_the_plan_it_sent(executor: tuple[St
     assert stand_in.ended == [GoalState.CANCELED], err
 
 
-def test_an_ask_interrupted_before_the_planner_service_answered_cancels_the_plan_it_sent(
-    llm_server: ScriptedLLM,
-) -> None:
-    """Through the planner service the goal sent is named only in its answer, which comes once the
-    executor took the plan: a Ctrl-C before it printed 'Aborted!' and left the plan moving. Now the
-    answer is waited for and its goal canceled."""
-    asked, interrupted = threading.Event(), threading.Event()
-
-    def thinking() -> None:
-        asked.set()
-        interrupted.wait(WAIT)
-
+@contextlib.contextmanager
+def planner_service(llm_server: ScriptedLLM) -> Iterator[tuple[StandIn, Node, dict[str, str]]]:
+    """The stand-in executor and a real planner service asking the scripted model; the environment
+    for a `tether ask` that has no endpoint of its own, so goes through the service."""
     with serving(llm_server) as (stand_in, node, env):
         planner_env = {**env, "TETHER_LOG_LEVEL": "WARNING"}
         cli_env = {k: v for k, v in env.items() if not k.startswith("TETHER_LLM_")}
         planner = subprocess.Popen([sys.executable, "-m", "services.planner"], env=planner_env, start_new_session=True)
         try:
             assert node.is_alive("planner", WAIT), "the planner service did not come up"
-            # The model answers only once the command has been interrupted, waiting for the answer.
-            llm_server.play(text_reply(PLAN), meanwhile=thinking)
+            yield stand_in, node, cli_env
+        finally:
+            planner.terminate()
+            planner.wait(WAIT)
+
+
+def planner_answers(node: Node) -> queue.Queue[AskReply]:
+    """The planner service's answers to plan/ask, as its trace publishes them once each has gone: what
+    it did with a request whose caller is gone."""
+    answers: queue.Queue[AskReply] = queue.Queue()
+    topic = keys.Topic(f"_trace/planner/{keys.PLAN_ASK.path}", TraceRecord)
+    node.subscribe(topic, lambda record: answers.put(msgspec.json.decode(record.reply, type=AskReply)))
+    return answers
+
+
+def test_an_ask_waiting_through_the_planner_service_is_stopped_by_a_ctrl_c(llm_server: ScriptedLLM) -> None:
+    """`tether ask --wait` through the planner service: the goal was named only at the plan's end, so a
+    Ctrl-C exited 3 ("a plan it sent may be moving") and the robot drove on. Now the request is
+    canceled by the id the command chose: its goal ends canceled, nothing follows it."""
+    with planner_service(llm_server) as (stand_in, node, cli_env):
+        answers = planner_answers(node)
+        llm_server.play(text_reply(PLAN))
+        args = ("ask", "go to the kitchen", "--wait", "--json")
+        code, document, err = stopped_while_running(stand_in, cli_env, signal.SIGINT, *args)
+        assert (code, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), (document, err)
+        assert stand_in.ended == [GoalState.CANCELED], err
+        # The planner's own answer, for no one now: the plan canceled, no recovery asked for or sent.
+        answer = answers.get(timeout=WAIT)
+        assert answer.status is AskStatus.FAILED and answer.goal_id == stand_in.goal_id, answer
+        assert "canceled" in answer.reason and [r.outcome for r in answer.recoveries] == [RecoveryOutcome.STOPPED]
+    assert stand_in.ended == [GoalState.CANCELED] and len(llm_server.received) == 1
+
+
+def test_an_ask_interrupted_before_the_planner_service_answered_sends_no_plan(llm_server: ScriptedLLM) -> None:
+    """Through the planner service the goal sent was named only in its answer, which came once the
+    executor took the plan: a Ctrl-C while the model thought waited for that answer, then canceled a
+    plan already moving. Now the request is canceled by its id at once, and the plan the model
+    gives after that is never sent."""
+    asked, interrupted = threading.Event(), threading.Event()
+
+    def thinking() -> None:
+        asked.set()
+        interrupted.wait(WAIT)
+
+    with planner_service(llm_server) as (stand_in, node, cli_env):
+        answers = planner_answers(node)
+        # The model answers only once the command has been interrupted and has exited.
+        llm_server.play(text_reply(PLAN), meanwhile=thinking)
+        try:
             with running(cli_env, "ask", "go to the kitchen", "--json", "--max-recoveries", "0") as process:
+                deadline = threading.Timer(WAIT, process.kill)
+                deadline.start()
+                try:
+                    assert asked.wait(WAIT), process.communicate()
+                    os.kill(process.pid, signal.SIGINT)
+                    out, err = process.communicate(timeout=WAIT)
+                finally:
+                    deadline.cancel()
+        finally:
+            interrupted.set()
+        document = json.loads(out)
+        assert (process.returncode, document["status"], document["goal_id"]) == (1, "canceled", ""), err
+        answer = answers.get(timeout=WAIT)
+    assert answer.status is AskStatus.REJECTED and "canceled" in answer.reason and not answer.goal_id, answer
+    assert stand_in.goal_id == "" and stand_in.ended == [], "a plan was sent for a canceled request"
+
+
+def test_an_ask_through_an_older_planner_service_falls_back_to_cancel_the_goal_its_answer_names(
+    llm_server: ScriptedLLM,
+) -> None:
+    """A planner service that does not serve plan/ask_cancel (an older one, played here by a node of
+    the test answering plan/ask at acceptance): a Ctrl-C waits for its answer, then cancels the goal
+    it names, as before."""
+    asked, interrupted = threading.Event(), threading.Event()
+    with serving(llm_server) as (stand_in, _, env):
+        cli_env = {k: v for k, v in env.items() if not k.startswith("TETHER_LLM_")}
+        planner = Node("planner", NodeSettings(robot=env["TETHER_ROBOT"], base_port=int(env["TETHER_BASE_PORT"])))
+        try:
+            executor = ActionClient(planner, keys.EXECUTE_PLAN)
+
+            def ask(request: AskRequest) -> AskReply:
+                asked.set()
+                assert interrupted.wait(WAIT)  # thinking until the command is interrupted and waits for this
+                handle = executor.send(ExecutePlanGoal(text=PLAN), timeout=WAIT)
+                return AskReply(status=AskStatus.ACCEPTED, request_id="older", goal_id=handle.goal_id)
+
+            planner.serve(keys.PLAN_ASK, ask, waits=True)
+            planner.declare_alive()
+            with running(cli_env, "ask", "go to the kitchen", "--json") as process:
                 assert process.stderr is not None
                 deadline = threading.Timer(WAIT, process.kill)
                 deadline.start()
@@ -174,8 +258,7 @@ def test_an_ask_interrupted_before_the_planner_service_answered_cancels_the_plan
                     deadline.cancel()
         finally:
             interrupted.set()
-            planner.terminate()
-            planner.wait(WAIT)
+            planner.close()
     assert "waiting for the planner's answer" in said and out, (said, out, err)
     document = json.loads(out)
     assert (process.returncode, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), err

@@ -98,6 +98,7 @@ def test_the_review_s_forgeries_are_denied() -> None:
         (keys.PLAN_PARSE.path, ["parser"], ["executor"]),
         (keys.PLAN_RESOLVE.path, ["resolver"], ["executor"]),
         (keys.PLAN_ASK.path, ["planner"], ["operator", "agent"]),
+        (keys.PLAN_ASK_CANCEL.path, ["planner"], ["operator", "agent"]),
         (keys.EXECUTE_PLAN.send_goal.path, ["executor"], ["planner", "operator", "agent"]),
         (keys.CMD_NAVIGATE.send_goal.path, ["safety"], ["executor", "operator"]),
         (keys.CMD_GRIPPER.cancel_goal.path, ["safety"], ["executor", "operator"]),

@@ -296,7 +296,7 @@ def test_each_service_may_serve_only_its_own_keys(tmp_path: Path) -> None:
         }
 
     assert served_by("parser") == {"tether/r1/plan/parse", "tether/r1/_process/parser"}
-    assert served_by("planner") == {"tether/r1/plan/ask", "tether/r1/_process/planner"}
+    assert served_by("planner") == {"tether/r1/plan/ask", "tether/r1/plan/ask_cancel", "tether/r1/_process/planner"}
     assert "tether/r1/cmd/navigate_to_pose/_action/send_goal" in served_by("safety")
     assert "tether/r1/safety/reset" in served_by("safety")
     assert all(

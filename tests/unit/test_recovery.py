@@ -379,7 +379,7 @@ class FakeExecutor:
         result = ExecutePlanResult(status=PlanStatus.SUCCEEDED, stage=Stage.SAFETY, reason="dry run: approved")
         return ResultResponse(goal_id="dry", state=GoalState.SUCCEEDED, result=result)
 
-    def send(self, goal: ExecutePlanGoal, *, timeout: float) -> Any:
+    def send(self, goal: ExecutePlanGoal, *, timeout: float, goal_id: str = "") -> Any:
         assert not goal.dry_run
         self.sent.append(goal.text)
         return SimpleNamespace(goal_id=f"goal{len(self.sent)}")
