@@ -59,6 +59,9 @@ FOLLOW_POLL = 0.25
 # ended ones remembered (a cancel still finds their last goal; their ids are not taken again).
 MAX_IN_FLIGHT = 128
 MAX_ENDED = 256
+# Cancels of ids no request had, remembered apart (their request is refused if it comes): a caller
+# flooding plan/ask_cancel with made-up ids pushes out only these, never a request's own record.
+MAX_EARLY_CANCELS = 256
 # How long a cancel waits for the executor to take the cancel of a request's goal.
 CANCEL_TIMEOUT = 2.0
 LOOP_STATUS = {
@@ -79,34 +82,38 @@ CANCELED = "the request was canceled (plan/ask_cancel)"
 
 @dataclass
 class InFlight:
-    """A request as a cancel sees it: the goal it sent last (the plan, then each recovery), and
-    whether its caller canceled it (`arrived` False: the cancel came before the request did)."""
+    """A request as a cancel sees it: the goal it sent last (the plan, then each recovery), whether
+    the executor is still deciding on it (`sending`), and whether its caller canceled it."""
 
     goal_id: str = ""
+    sending: bool = False
     canceled: bool = False
-    arrived: bool = True
 
 
 class Requests:
-    """The requests in flight by id, and the ones that ended lately with their last goal (a plan
-    answered at acceptance runs on after its request ended). Pure bookkeeping, bounded, used under
-    the planner's lock: a send holds that lock too, so a cancel either sees the goal sent, or comes
-    first and no goal is sent."""
+    """The requests in flight by id, the ones that ended lately with their last goal (a plan
+    answered at acceptance runs on after its request ended), and the ids canceled before any request
+    had them. Pure bookkeeping, bounded, used under the planner's lock: a send looks at the cancel
+    and names its goal in one hold of that lock, so a cancel either comes first and no goal is sent,
+    or finds the goal named (and waits for the send's end before canceling it)."""
 
-    def __init__(self, max_in_flight: int = MAX_IN_FLIGHT, max_ended: int = MAX_ENDED) -> None:
+    def __init__(
+        self, max_in_flight: int = MAX_IN_FLIGHT, max_ended: int = MAX_ENDED, max_early: int = MAX_EARLY_CANCELS
+    ) -> None:
         self._in_flight: dict[str, InFlight] = {}
         self._ended: OrderedDict[str, InFlight] = OrderedDict()
+        self._early: OrderedDict[str, None] = OrderedDict()
         self._max_in_flight = max_in_flight
         self._max_ended = max_ended
+        self._max_early = max_early
 
     def start(self, request_id: str) -> str | None:
         """Take the request in: None, or why it is refused."""
         if request_id in self._in_flight:
             return f"request id {request_id} is in flight already: each request needs an id of its own"
-        ended = self._ended.get(request_id)
-        if ended is not None and not ended.arrived:
+        if request_id in self._early:
             return f"request {request_id} was canceled before it arrived: nothing was asked or sent"
-        if ended is not None:
+        if request_id in self._ended:
             return f"request id {request_id} was used by a request that ended lately: each needs an id of its own"
         if len(self._in_flight) >= self._max_in_flight:
             return f"the planner has {len(self._in_flight)} requests in flight, its most: ask again later"
@@ -124,6 +131,20 @@ class Requests:
         entry = self._in_flight.get(request_id)
         if entry is not None:
             entry.goal_id = goal_id
+            entry.sending = True
+
+    def sent(self, request_id: str) -> None:
+        """The executor answered the send (or it failed): a cancel need not wait for it any longer."""
+        entry = self._in_flight.get(request_id)
+        if entry is not None:
+            entry.sending = False
+
+    def in_send(self, request_id: str | None = None) -> bool:
+        """Whether the request (None: any) has a send the executor has not answered yet."""
+        if request_id is None:
+            return any(entry.sending for entry in self._in_flight.values())
+        entry = self._in_flight.get(request_id)
+        return entry is not None and entry.sending
 
     def canceled(self, request_id: str) -> bool:
         entry = self._in_flight.get(request_id) or self._ended.get(request_id)
@@ -149,7 +170,10 @@ class Requests:
             else:
                 said = "the request had ended without sending a plan: nothing to cancel"
             return AskCancelReply(request_id=request_id, known=True, goal_id=entry.goal_id, reason=said)
-        self._remember(request_id, InFlight(canceled=True, arrived=False))
+        self._early[request_id] = None
+        self._early.move_to_end(request_id)
+        while len(self._early) > self._max_early:
+            self._early.popitem(last=False)
         said = (
             f"no request {request_id} is in flight or ended lately: nothing was canceled; "
             "a request with this id arriving later is refused"
@@ -211,13 +235,18 @@ class Planner:
         # Where the scene last put the robot: the recovery prompt lists the incidents near it.
         self._last_robot: Pose2D | None = None
         # Followers of plans sent without waiting (request id -> thread, each started before it is
-        # listed); closing stops them. `_closing` is set under `_lock`, and a recovery is sent only
-        # while holding `_lock` and seeing it unset: no recovery goes out once close() has begun.
+        # listed, each taking itself off as it ends); closing stops them. `_closing` is set under
+        # `_lock`, and a recovery goes only if its send saw it unset under `_lock`: no recovery is
+        # sent once close() has begun, but the one whose send was under way (close waits for it).
         self._lock = threading.Lock()
         self._followers: dict[str, threading.Thread] = {}
         self._closing = threading.Event()
-        # The requests in flight, for plan/ask_cancel: under `_lock`, which each send of a plan holds.
+        # The requests in flight, for plan/ask_cancel, under `_lock`. A send names its goal under it,
+        # then lets it go while the executor decides (up to SEND_TIMEOUT + PREEMPT_TIMEOUT; held that
+        # long, it kept every other request, cancel and close() waiting); `_sends_ended` is notified
+        # as each send ends, for a cancel of that request and close() to wait on.
         self._requests = Requests()
+        self._sends_ended = threading.Condition(self._lock)
         # The e-stop as the heartbeat last said: while it is latched no plan can pass, and asking the
         # model to "fix" one would spend attempts on what only an operator can change.
         self._heartbeat: SafetyStatus | None = None
@@ -238,11 +267,12 @@ class Planner:
 
     def close(self, timeout: float = 5.0) -> None:
         """Stop following: no model call starts and no recovery is sent after this; the plans go on.
-        Waits (up to `timeout`) for the followers to end, and for a recovery send already under way."""
+        Waits (up to `timeout` in all) for a send already under way, and for the followers to end."""
+        deadline = time.monotonic() + timeout
         with self._lock:
             self._closing.set()
             followers = list(self._followers.values())
-        deadline = time.monotonic() + timeout
+            self._sends_ended.wait_for(lambda: not self._requests.in_send(), timeout)
         for thread in followers:
             thread.join(max(0.0, deadline - time.monotonic()))
         if isinstance(self._chat, ChatClient):
@@ -283,7 +313,7 @@ class Planner:
             return self._ask(request, request_id)
         finally:
             with self._lock:
-                if request_id not in self._followers:  # else its follower ends it
+                if request_id not in self._followers:  # else its follower ends it, as it takes itself off
                     self._requests.end(request_id)
 
     def _ask(self, request: AskRequest, request_id: str) -> AskReply:
@@ -420,36 +450,48 @@ class Planner:
 
     def send(self, approved: AskReply, plan: str, preempt: bool) -> AskReply:
         """The approved plan for real: the goal id once the executor has accepted it. Not sent once the
-        request was canceled: looked at under the lock a cancel takes, held through the send."""
+        request was canceled: looked at under the lock a cancel takes, as the goal is named."""
         request_id = approved.request_id
         with self._lock:
             if self._requests.canceled(request_id):
                 said = f"{CANCELED}: no plan was sent"
                 return msgspec.structs.replace(approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=said)
-            try:
-                goal = ExecutePlanGoal(text=plan, preempt=preempt)
-                handle = self._send_goal(request_id, goal, SEND_TIMEOUT + PREEMPT_TIMEOUT)
-            except GoalRejected as exc:
-                return msgspec.structs.replace(
-                    approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=bounded(exc.reason, 4000)
-                )
-            except CallError as exc:
-                return msgspec.structs.replace(
-                    approved, status=AskStatus.UNREACHABLE, reason=bounded(f"executor unreachable: {exc}", 4000)
-                )
+            goal_id = self._name_goal(request_id)
+        try:
+            goal = ExecutePlanGoal(text=plan, preempt=preempt)
+            handle = self._send_named(request_id, goal, goal_id, SEND_TIMEOUT + PREEMPT_TIMEOUT)
+        except GoalRejected as exc:
+            return msgspec.structs.replace(
+                approved, status=AskStatus.REJECTED, stage=Stage.EXECUTE, reason=bounded(exc.reason, 4000)
+            )
+        except CallError as exc:
+            return msgspec.structs.replace(
+                approved, status=AskStatus.UNREACHABLE, reason=bounded(f"executor unreachable: {exc}", 4000)
+            )
         log.info("request %s: plan sent as goal %s", request_id, handle.goal_id)
         return msgspec.structs.replace(
             approved, status=AskStatus.ACCEPTED, goal_id=handle.goal_id, reason="approved by a dry run and sent"
         )
 
-    def _send_goal(self, request_id: str, goal: ExecutePlanGoal, timeout: float) -> ClientGoal[Any, Any, Any]:
-        """Send for real, under `_lock`; the goal's id is named before the send (to the request, for a
-        cancel, and to `on_send` when it wants it): an unanswered send may have been taken."""
+    def _name_goal(self, request_id: str) -> str:
+        """The next goal's id, under `_lock`, named before the send (to the request, for a cancel, and
+        to `on_send` when it wants it): an unanswered send may have been taken."""
         goal_id = uuid.uuid4().hex
         self._requests.sending(request_id, goal_id)
         if self._on_send is not None:
             self._on_send(goal_id)
-        return self._executor.send(goal, timeout=timeout, goal_id=goal_id)
+        return goal_id
+
+    def _send_named(
+        self, request_id: str, goal: ExecutePlanGoal, goal_id: str, timeout: float
+    ) -> ClientGoal[Any, Any, Any]:
+        """Send for real, `_lock` let go; its end is told to a cancel of the request, and to close()."""
+        try:
+            return self._executor.send(goal, timeout=timeout, goal_id=goal_id)
+        finally:
+            with self._lock:
+                self._requests.sent(request_id)
+                self._sends_ended.notify_all()
 
     # Following a sent plan to its end, and recovering when it failed at a step.
 
@@ -542,6 +584,10 @@ class Planner:
             log.exception("request %s: following goal %s failed", sent.request_id, sent.goal_id)
         finally:
             with self._lock:
+                # Off the list as it ends: a listed follower that ended kept a later request with the
+                # same id (its own forgotten) in flight for good, since ask() leaves the end to it.
+                if self._followers.get(sent.request_id) is threading.current_thread():
+                    del self._followers[sent.request_id]
                 self._requests.end(sent.request_id)
 
     def _follow_goal(self, goal_id: str, until: float = 0.0) -> Ended:
@@ -576,19 +622,25 @@ class Planner:
                 return Sent(refused=CANCELED, stop=True)
             if (latched := self.estop_latched()) is not None:
                 return Sent(refused=latched, kind=ErrorKind.ESTOP, stop=True)
-            try:
-                handle = self._send_goal(request_id, ExecutePlanGoal(text=plan), SEND_TIMEOUT)
-            except GoalRejected as exc:
-                return Sent(refused=exc.reason, kind=exc.kind)
-            except CallError as exc:
-                return Sent(refused=f"executor unreachable: {exc}")
+            goal_id = self._name_goal(request_id)
+        try:
+            handle = self._send_named(request_id, ExecutePlanGoal(text=plan), goal_id, SEND_TIMEOUT)
+        except GoalRejected as exc:
+            return Sent(refused=exc.reason, kind=exc.kind)
+        except CallError as exc:
+            return Sent(refused=f"executor unreachable: {exc}")
         return Sent(goal_id=handle.goal_id)
 
     def ask_cancel(self, cancel: AskCancel) -> AskCancelReply:
         """Stop a request by the id its caller chose: nothing more is asked or sent for it, and its
         last goal is canceled here (the reply names it, for the caller to follow to its end)."""
-        with self._lock:  # held through each send: no goal goes after this but the one named here
+        with self._lock:  # each send names its goal under it: no goal goes after this but the one named here
             found = self._requests.cancel(cancel.request_id)
+            # A send of it under way ends first (its own timeout bounds it): the goal is canceled once
+            # the executor has decided on it, not while it may not know it yet.
+            self._sends_ended.wait_for(
+                lambda: not self._requests.in_send(cancel.request_id), SEND_TIMEOUT + PREEMPT_TIMEOUT
+            )
         log.info("request %s: %s", cancel.request_id, found.reason)
         if not found.goal_id:
             return found

@@ -20,7 +20,7 @@ from schemas.world import SceneDescription
 from services.errors import CallError
 from services.planner.config import PlannerConfig
 from services.planner.llm import ChatReply
-from services.planner.node import Planner, Requests
+from services.planner.node import MAX_ENDED, Planner, Requests
 from services.planner.recovery import Ended
 
 PLAN = '{"plan": [{"action": "navigate_to", "target": "kitchen"}]}'
@@ -158,16 +158,22 @@ def test_a_cancel_names_the_goal_the_request_sent_last_and_marks_it_canceled() -
 
 
 def test_the_requests_in_flight_and_those_remembered_are_bounded() -> None:
-    requests = Requests(max_in_flight=2, max_ended=2)
+    requests = Requests(max_in_flight=2, max_ended=2, max_early=2)
     assert requests.start("a") is None and requests.start("b") is None
     assert "2 requests in flight" in (requests.start("c") or "")
     requests.end("a")
     assert requests.start("c") is None
+    requests.end("b")
+    requests.end("c")
+    # Only the last two that ended are remembered: "a" is forgotten, and its id free again.
+    assert requests.cancel("b").known and requests.cancel("c").known
+    assert requests.start("a") is None
+    # Cancels of ids never seen are remembered apart, the last two: they push out no request.
     for request_id in ("x", "y", "z"):
-        requests.cancel(request_id)
-    # Only the last two ended or canceled are remembered: "a" and "x" are forgotten.
-    assert requests.cancel("y").known and requests.cancel("z").known
-    assert not requests.cancel("a").known
+        assert not requests.cancel(request_id).known
+    assert requests.cancel("b").known and requests.cancel("c").known
+    assert requests.start("x") is None
+    assert "canceled before it arrived" in (requests.start("y") or "")
     assert "canceled before it arrived" in (requests.start("z") or "")
 
 
@@ -265,3 +271,126 @@ def test_a_cancel_of_a_request_answered_at_acceptance_cancels_its_plan() -> None
     said = planner.ask_cancel(AskCancel(request_id="req-1"))
     assert (said.known, said.running, said.goal_id) == (True, False, reply.goal_id), said
     assert node.cancels == [reply.goal_id] and len(executor.sent) == 1
+
+
+class HeldExecutor(StandInExecutor):
+    """The first real send is held until `release` (a preempt that takes its time, an executor slow
+    to answer); the others go at once."""
+
+    def __init__(self, node: StandInNode) -> None:
+        super().__init__(node)
+        self.release = threading.Event()
+
+    def send(self, goal: ExecutePlanGoal, *, timeout: float, goal_id: str) -> Any:
+        held = not self.sent
+        handle = super().send(goal, timeout=timeout, goal_id=goal_id)
+        if held:
+            assert self.release.wait(3 * WAIT)  # released by the test, which waits WAIT at most for anything
+        return handle
+
+
+def finished_within(what: Any, seconds: float = WAIT) -> bool:
+    """Whether `what()` returned within `seconds` (its thread is left to end on its own)."""
+    thread = threading.Thread(target=what, daemon=True)
+    thread.start()
+    thread.join(seconds)
+    return not thread.is_alive()
+
+
+def test_a_slow_send_holds_up_neither_other_requests_nor_their_cancels_nor_close() -> None:
+    """One request's send waits on the executor (up to SEND_TIMEOUT + PREEMPT_TIMEOUT): another
+    request is answered, a cancel of another id answered, and close() keeps to its bound meanwhile."""
+    planner, node, _ = planner_with(StandInChat())
+    executor = HeldExecutor(node)
+    planner._executor = executor  # type: ignore[assignment]
+    thread, replies = asking(planner, AskRequest(text="go to the kitchen", request_id="slow", max_recoveries=0))
+    try:
+        assert executor.sending.wait(WAIT)
+        other: list[AskReply] = []
+        asked = finished_within(
+            lambda: other.append(planner.ask(AskRequest(text="look", request_id="b", dry_run=True)))
+        )
+        assert asked and other[0].status is AskStatus.APPROVED, other
+        assert finished_within(lambda: planner.ask_cancel(AskCancel(request_id="c")))
+        assert finished_within(lambda: planner.close(timeout=0.5), 0.5 + WAIT / 2), "close() waited for the send"
+    finally:
+        executor.release.set()
+        thread.join(WAIT)
+    [reply] = replies
+    assert reply.status is AskStatus.ACCEPTED, reply
+
+
+def test_a_cancel_during_the_send_waits_for_it_and_cancels_the_goal_sent() -> None:
+    """The send under way is the request's own: the cancel answers once the executor took the goal,
+    and cancels it (not before: a goal the executor is deciding on would be unknown to it)."""
+    planner, node, _ = planner_with(StandInChat())
+    executor = HeldExecutor(node)
+    planner._executor = executor  # type: ignore[assignment]
+    thread, replies = asking(planner, AskRequest(text="go to the kitchen", request_id="req-1", max_recoveries=0))
+    said: list[Any] = []
+    canceling = threading.Thread(target=lambda: said.append(planner.ask_cancel(AskCancel(request_id="req-1"))))
+    try:
+        assert executor.sending.wait(WAIT)
+        canceling.start()
+        canceling.join(0.3)
+        assert canceling.is_alive() and node.cancels == [], "canceled before the executor took the goal"
+    finally:
+        executor.release.set()
+        thread.join(WAIT)
+        canceling.join(WAIT)
+    [(goal_id, _)] = executor.sent
+    [reply] = replies
+    assert reply.status is AskStatus.ACCEPTED and reply.goal_id == goal_id, reply
+    assert said[0].goal_id == goal_id and node.cancels == [goal_id], said
+
+
+def test_a_request_reusing_a_forgotten_id_after_a_follower_ended_is_not_kept_in_flight() -> None:
+    """A follower's request, once it ended and was forgotten, leaves nothing behind: a later request
+    with that id ends when it is answered (kept in flight, it took a place for good, and at the most
+    every request was refused)."""
+    planner, _, _ = planner_with(StandInChat())
+    planner._requests = Requests(max_in_flight=1, max_ended=1)
+    done = ExecutePlanResult(status=PlanStatus.SUCCEEDED, stage=Stage.EXECUTE, reason="done")
+    planner._follow_goal = lambda goal_id, until=0.0: Ended(done, "succeeded", "")  # type: ignore[method-assign]
+    followed = planner.ask(AskRequest(text="go to the kitchen", request_id="a", max_recoveries=1))
+    assert followed.status is AskStatus.ACCEPTED, followed
+    planner._followers["a"].join(WAIT)
+    for request_id in ("b", "a", "c"):  # "b" pushes "a" out of those remembered; "a" comes again
+        reply = planner.ask(AskRequest(text="look", request_id=request_id, dry_run=True))
+        assert reply.status is AskStatus.APPROVED, reply
+
+
+def test_a_flood_of_cancels_of_unknown_ids_forgets_no_request() -> None:
+    """Cancels of ids no request had (a caller trying ids, or flooding) are remembered apart: a
+    request answered at acceptance is still found by its id, and its plan canceled."""
+    planner, node, _ = planner_with(StandInChat())
+    reply = planner.ask(AskRequest(text="go to the kitchen", request_id="req-1", max_recoveries=0))
+    assert reply.status is AskStatus.ACCEPTED, reply
+    for number in range(MAX_ENDED + 1):
+        assert not planner.ask_cancel(AskCancel(request_id=f"junk-{number}")).known
+    said = planner.ask_cancel(AskCancel(request_id="req-1"))
+    assert (said.known, said.goal_id) == (True, reply.goal_id), said
+    assert node.cancels == [reply.goal_id]
+    # The cancels remembered are bounded too; the last ones still refuse their request.
+    refused = planner.ask(AskRequest(text="look", request_id=f"junk-{MAX_ENDED}", dry_run=True))
+    assert "canceled before it arrived" in refused.reason, refused
+
+
+def test_close_waits_within_its_bound_for_a_send_under_way() -> None:
+    """The lock is let go during a send, yet close() still waits for that send's end: after it, no
+    send is under way."""
+    planner, node, _ = planner_with(StandInChat())
+    executor = HeldExecutor(node)
+    planner._executor = executor  # type: ignore[assignment]
+    thread, _ = asking(planner, AskRequest(text="go to the kitchen", request_id="slow", max_recoveries=0))
+    closing = threading.Thread(target=planner.close, kwargs={"timeout": WAIT})
+    try:
+        assert executor.sending.wait(WAIT)
+        closing.start()
+        closing.join(0.3)
+        assert closing.is_alive(), "close() did not wait for the send under way"
+    finally:
+        executor.release.set()
+        closing.join(WAIT)
+        thread.join(WAIT)
+    assert not closing.is_alive()
