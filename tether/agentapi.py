@@ -14,6 +14,7 @@ import json
 import logging
 import threading
 import time
+import uuid
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +24,7 @@ from schemas.common import Pose2D
 from schemas.executor import ExecutePlanGoal
 from schemas.incidents import IncidentList
 from schemas.plan import MAX_PLAN_BYTES
-from schemas.planner import AskReply, AskRequest
+from schemas.planner import AskCancel, AskCancelReply, AskReply, AskRequest
 from schemas.safety import EstopSource
 from schemas.world import CameraImage, Empty
 from services.agent import feedback
@@ -43,6 +44,9 @@ HAZARDS_TIMEOUT = 1.0
 # plan_and_execute asks the model up to a few times, each answer dry-run through the pipeline; it
 # answers within this (below the 60 s MCP clients commonly wait), or gives up having sent nothing.
 ASK_TIMEOUT = 50.0
+# How long the cancel of a request whose caller went waits for the planner: a send under way holds it
+# up to its timeout (the executor preempting a plan), then the cancel of the goal sent.
+CANCEL_ASK_TIMEOUT = 20.0
 # The most base64 a camera picture may be: Anthropic's API refuses an image over 5 MB.
 MAX_PICTURE_CHARS = 5 * 1024 * 1024
 
@@ -60,14 +64,16 @@ class Picture:
 
 class Call:
     """One tool call, as seen from the thread carrying it out: whether its caller has gone (it canceled
-    the call, or disconnected) and the goal the call sent. A goal whose id was only in the answer
-    nobody got is canceled: no one else could follow it or stop it. `sent` and `abandon` decide under
-    one lock, so it is canceled once, by whichever of the two comes second."""
+    the call, or disconnected), the goal the call sent and the planner request it is making. A goal
+    whose id was only in the answer nobody got is canceled: no one else could follow it or stop it; a
+    request still with the planner is canceled there, before it sends a plan. `sent`, `asking` and
+    `abandon` decide under one lock, so each is canceled once, by whichever side comes second."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._abandoned = False
         self._goal_id: str | None = None
+        self._request_id: str | None = None
 
     @property
     def abandoned(self) -> bool:
@@ -80,17 +86,31 @@ class Call:
             self._goal_id = goal_id
             return self._abandoned
 
+    def asking(self, request_id: str) -> bool:
+        """Note the planner request this call is about to make; True when its caller has already gone
+        (it is not to be made)."""
+        with self._lock:
+            self._request_id = request_id
+            return self._abandoned
+
+    def asked(self) -> None:
+        """The planner answered (or the ask failed): the request is over, a goal it names goes by `sent`."""
+        with self._lock:
+            self._request_id = None
+
     def answered(self) -> None:
         """The answer, goal id and all, is on its way to the caller: nothing is canceled after this."""
         with self._lock:
             self._goal_id = None
 
-    def abandon(self) -> str | None:
-        """Mark the caller gone; the goal this call sent, if any, for the caller of this to cancel."""
+    def abandon(self) -> tuple[str | None, str | None]:
+        """Mark the caller gone; for the caller of this to cancel: the goal this call sent and the
+        planner request it is making, each None when there is none."""
         with self._lock:
             self._abandoned = True
             goal_id, self._goal_id = self._goal_id, None
-            return goal_id
+            request_id, self._request_id = self._request_id, None
+            return goal_id, request_id
 
 
 class AgentAPI:
@@ -135,16 +155,20 @@ class AgentAPI:
 
     def plan_and_execute(self, request: str, dry_run: bool, call: Call | None = None) -> str:
         call = call or Call()
-        if call.abandoned:
+        # Named here, so that a caller who goes stops the request in the planner (cancel_unheard_ask).
+        request_id = uuid.uuid4().hex
+        if call.asking(request_id):
             return "not asked: the call was canceled"
         try:
             # The planner never sends a plan after the deadline: a call that timed out here moves nothing.
             deadline = time.time() + ASK_TIMEOUT
-            reply: AskReply = self.node.call(
-                keys.PLAN_ASK, AskRequest(text=request, dry_run=dry_run, deadline=deadline), timeout=ASK_TIMEOUT + 5.0
-            )
+            asked = AskRequest(text=request, dry_run=dry_run, deadline=deadline, request_id=request_id)
+            reply: AskReply = self.node.call(keys.PLAN_ASK, asked, timeout=ASK_TIMEOUT + 5.0)
         except CallError as exc:
             raise AgentError(f"the planner did not answer: {exc.error.message}") from None
+        finally:
+            call.asked()
+        # A plan sent before a cancel reached the planner, or by one that cannot cancel (an older one).
         if reply.goal_id and call.sent(reply.goal_id):
             return self.cancel_unheard(reply.goal_id)
         return feedback.ask_text(reply)
@@ -177,6 +201,25 @@ class AgentAPI:
         except AgentError as exc:
             log.error("goal %s goes on: %s", goal_id, exc)
             return str(exc)
+
+    def cancel_unheard_ask(self, request_id: str) -> None:
+        """Cancel a planner request whose caller went before its answer (Call): the planner sends no
+        plan for it after this, and cancels the one it sent already. A planner that does not serve
+        plan/ask_cancel (an older one) sends its plan anyway: that goal is canceled once its answer
+        names it."""
+        log.warning("canceling planner request %s: the agent that made it went before the answer", request_id)
+        try:
+            found: AskCancelReply = self.node.call(
+                keys.PLAN_ASK_CANCEL, AskCancel(request_id=request_id), timeout=CANCEL_ASK_TIMEOUT
+            )
+        except CallError as exc:
+            log.warning(
+                "the planner did not cancel request %s (%s): a plan it sends is canceled as its answer comes",
+                request_id,
+                exc.error.message,
+            )
+            return
+        log.info("planner request %s: %s", request_id, found.reason)
 
     def emergency_stop(self, reason: str) -> str:
         status = trigger_estop(self.node, EstopSource.AGENT, reason)

@@ -5,7 +5,8 @@ worker thread against the robot's Zenoh keys (tether/agentapi.py) and comes back
 model can act on (at most MAX_RESULT_CHARS), or an image. A call that fails is an error result naming
 what was wrong, never a crash of the server. A call whose client goes before the answer (it cancels
 the call, its timeout fires, it disconnects) cancels the plan the call sent: its goal id was only in
-that answer, so nobody else could follow or stop it. Over HTTP the server keeps no sessions.
+that answer, so nobody else could follow or stop it; a plan_and_execute still with the planner is
+canceled there (plan/ask_cancel), so no plan is sent for it. Over HTTP the server keeps no sessions.
 """
 
 from __future__ import annotations
@@ -256,12 +257,17 @@ def build_server(api: AgentAPI) -> Server[Any]:
 
 async def _cancel_when_abandoned(api: AgentAPI, call: Call) -> None:
     """Wait until the tool call ends; if its caller went first (a cancel, a timeout, a disconnect), cancel
-    the goal the call sent, at once: the thread may be waiting for it to start, up to START_WAIT."""
+    the goal the call sent, at once: the thread may be waiting for it to start, up to START_WAIT; and
+    the planner request it is making, at once: the planner may think for up to ASK_TIMEOUT, then send
+    a plan to no one."""
     try:
         await anyio.sleep_forever()
     finally:
-        if (goal_id := call.abandon()) is not None:
-            with anyio.CancelScope(shield=True):
+        goal_id, request_id = call.abandon()
+        with anyio.CancelScope(shield=True):
+            if request_id is not None:
+                await anyio.to_thread.run_sync(api.cancel_unheard_ask, request_id, limiter=CANCEL_LIMITER)
+            if goal_id is not None:
                 await anyio.to_thread.run_sync(api.cancel_unheard, goal_id, limiter=CANCEL_LIMITER)
 
 

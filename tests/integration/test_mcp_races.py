@@ -1,5 +1,7 @@
 """`tether mcp` as an MCP host runs it, its clients going away: over stdio, a host that quits while a
-plan it sent is being checked leaves no goal running that nobody knows of, and the server exits; over
+plan it sent is being checked leaves no goal running that nobody knows of, and the server exits; a
+host that quits while the planner service asks its model for a plan_and_execute leaves nothing to
+send: the request is canceled in the planner, which sends no plan; over
 HTTP, a client that opens session after session and never closes one holds no memory in the server
 (there were up to 10,000 kept for 30 minutes each, and then no agent could connect, to stop the robot
 either). The executor on the other side holds the goal until it is canceled."""
@@ -8,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -20,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import anyio
+import msgspec
 import pytest
 from mcp import Client
 from mcp.client.stdio import StdioServerParameters
@@ -28,15 +32,21 @@ from schemas import keys
 from schemas.actions import CancelGoal, CancelResponse, GetResult, GoalResponse, ResultResponse, SendGoal
 from schemas.common import ErrorKind, ServiceError
 from schemas.executor import ExecutePlanGoal, ExecutePlanResult
+from schemas.planner import AskCancel, AskCancelReply, AskReply, AskRequest, AskStatus
+from schemas.trace import TraceRecord
 from services.errors import CallError
 from services.runtime import Node, NodeSettings
-from tests.integration.test_agents import wait_listening
+from tests.integration import test_agents
+from tests.integration.test_agents import ScriptedLLM, text_reply, wait_listening
+from tests.integration.test_ask_interrupt import PLAN, planner_service
 from tests.sessions import free_port
 
 WAIT = 10.0
 SESSIONS = 1500
 # What the server may grow by for them: each session kept took about 40 kB.
 SESSIONS_GROWTH_KB = 20_000
+
+llm_server = test_agents.llm_server
 
 
 @dataclass
@@ -107,6 +117,51 @@ def test_a_host_that_quits_mid_call_leaves_no_plan_running(executor: tuple[Execu
     while alive(pids[0]) and time.monotonic() < deadline:
         time.sleep(0.02)
     assert not alive(pids[0]), "tether mcp still runs after its host quit"
+
+
+def test_a_host_that_quits_while_the_planner_thinks_leaves_no_plan_to_send(llm_server: ScriptedLLM) -> None:
+    """plan_and_execute through the real planner service: the host quit while the model thought; the
+    planner sent the plan it wrote later, to no one, the robot started, and only then was the goal
+    canceled. Now the server cancels the request by its id (plan/ask_cancel) at once: no plan goes."""
+    thinking, answer = threading.Event(), threading.Event()
+
+    def think() -> None:
+        thinking.set()
+        answer.wait(WAIT)
+
+    with planner_service(llm_server) as (stand_in, node, env):
+        asks: queue.Queue[TraceRecord] = queue.Queue()
+        cancels: queue.Queue[TraceRecord] = queue.Queue()
+        node.subscribe(keys.Topic(f"_trace/planner/{keys.PLAN_ASK.path}", TraceRecord), asks.put)
+        node.subscribe(keys.Topic(f"_trace/planner/{keys.PLAN_ASK_CANCEL.path}", TraceRecord), cancels.put)
+        llm_server.play(text_reply(PLAN), meanwhile=think)
+        params = StdioServerParameters(command=sys.executable, args=["-m", "tether", "mcp"], env=env)
+
+        async def main() -> None:
+            async with Client(params, read_timeout_seconds=30.0) as client:
+                await client.list_tools()
+                async with anyio.create_task_group() as group:
+                    arguments = {"request": "go to the kitchen", "dry_run": False}
+                    group.start_soon(client.call_tool, "plan_and_execute", arguments)
+                    with anyio.fail_after(WAIT):
+                        while not thinking.is_set():
+                            await anyio.sleep(0.02)
+                    group.cancel_scope.cancel()  # the host quits while the model thinks
+
+        try:
+            anyio.run(main)
+            canceled = cancels.get(timeout=WAIT)  # while the model still thinks
+        finally:
+            answer.set()  # the model's plan comes now
+        asked = asks.get(timeout=WAIT)
+    request = msgspec.json.decode(asked.query, type=AskRequest)
+    reply = msgspec.json.decode(asked.reply, type=AskReply)
+    cancel = msgspec.json.decode(canceled.query, type=AskCancel)
+    found = msgspec.json.decode(canceled.reply, type=AskCancelReply)
+    assert request.request_id and cancel.request_id == request.request_id, (request, cancel)
+    assert found.running and not found.goal_id, found
+    assert reply.status is AskStatus.REJECTED and "canceled" in reply.reason and not reply.goal_id, reply
+    assert stand_in.goal_id == "" and stand_in.ended == [], "the executor was sent a plan for a canceled request"
 
 
 def server_pids(robot: str) -> list[int]:
