@@ -96,6 +96,7 @@ class Interrupted(Exception):
         self.goals = goals
         self.result = result
         self.reason = reason or (result.reason if result else "")
+        self.request_id = ""  # the request it interrupted, when this command named it (the planner service's)
 
     @property
     def goal_id(self) -> str:
@@ -145,7 +146,7 @@ def show_interrupted(stop: Interrupted, as_json: bool) -> NoReturn:
     stage = stop.result.stage if stop.result is not None else None
     document = {
         "status": stop.status,
-        "request_id": "",
+        "request_id": stop.request_id,
         "attempts": 0,
         "stage": stage,
         "reason": stop.reason,
@@ -324,6 +325,15 @@ def ask_service(node: Node, request: AskRequest, timeout: float) -> AskReply:
         raise PlannerFailed(exc.error.message, exc.error.kind == "unavailable") from None
     except KeyboardInterrupt:
         pass
+    try:
+        stop_request(node, request, answer)
+    except Interrupted as stop:
+        stop.request_id = request.request_id  # named by this command: the planner's records know it by it
+        raise
+
+
+def stop_request(node: Node, request: AskRequest, answer: futures.Future[AskReply]) -> NoReturn:
+    """After a Ctrl-C: the request canceled by its id, and its goal's end waited for (Interrupted)."""
     unknown = "a plan it sent may be moving; `tether cancel` stops the plan running"
     console.print("asking the planner to cancel the request...")
     try:

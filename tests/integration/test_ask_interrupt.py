@@ -184,6 +184,7 @@ def test_an_ask_waiting_through_the_planner_service_is_stopped_by_a_ctrl_c(llm_s
         answer = answers.get(timeout=WAIT)
         assert answer.status is AskStatus.FAILED and answer.goal_id == stand_in.goal_id, answer
         assert "canceled" in answer.reason and [r.outcome for r in answer.recoveries] == [RecoveryOutcome.STOPPED]
+        assert document["request_id"] == answer.request_id != "", "the command's JSON names the request it stopped"
     assert stand_in.ended == [GoalState.CANCELED] and len(llm_server.received) == 1
 
 
