@@ -159,6 +159,32 @@ class SimLoop:
         """sim/ground_truth: every object exactly where it is."""
         return self.answer(lambda sim: sim.scene.ground_truth(), changes=False)
 
+    def change(self, query: Callable[[Simulation], T]) -> T:
+        """`answer` for a query that changes the world: one whose caller was told the simulator did
+        not answer is not carried out later (it would change the world behind them), and one carried
+        out just as the wait ended is answered with what it did."""
+        lock = threading.Lock()
+        gave_up = False  # set under `lock` once the caller has been told the simulator did not answer
+        done: list[T] = []
+
+        def once(sim: Simulation) -> T | None:
+            with lock:
+                if gave_up:
+                    return None
+                done.append(query(sim))
+                return done[0]
+
+        try:
+            value = self.answer(once)  # None only for a caller that has gone
+        except CallError:
+            with lock:
+                gave_up = True
+                if not done:
+                    raise
+                return done[0]
+        assert value is not None
+        return value
+
     def move(self, request: MoveEntity) -> MoveReply:
         """sim/move: the reply once the moved thing is at rest, or why it was not moved."""
 
@@ -168,19 +194,21 @@ class SimLoop:
                 sim.faults.moved(request.id)
             return moved
 
-        moved = self.answer(move_now)
+        moved = self.change(move_now)
         if not isinstance(moved, Drop):
             return moved
         # The object falls and comes to rest while the sim thread keeps stepping (and obeying safety).
         if not moved.done.wait(SETTLE_TIMEOUT / self.realtime_factor + ANSWER_TIMEOUT):
             message = f"{request.id} was moved but the simulator did not report it at rest"
             raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
+        if moved.state is GoalState.CANCELED:
+            raise CallError(ServiceError(kind=ErrorKind.CANCELED, message=moved.message))
         assert moved.result is not None
         return moved.result
 
     def fault(self, request: InjectFault) -> FaultReply:
         """sim/fault: the fault injected (services/sim/faults.py), or why not."""
-        return self.answer(lambda sim: sim.faults.inject(request))
+        return self.change(lambda sim: sim.faults.inject(request))
 
     # Goals
 

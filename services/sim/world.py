@@ -401,6 +401,11 @@ class SimWorld:
         self.object_shapes: dict[str, int] = {}  # each object's collision shape (robot_part_in)
         self.object_bodies = {o.id: self._add_object(o) for o in world.objects}
         self.human_bodies = {h.id: self._add_human(h.pose) for h in world.humans}
+        # A person's body as a collision shape, only ever asked where it would go (sim/move): the
+        # bodies themselves have none, so nothing in the physics pushes them or is pushed by them.
+        self.human_shape: int = self.bullet.createCollisionShape(
+            pybullet.GEOM_CYLINDER, radius=HUMAN_RADIUS, height=HUMAN_HEIGHT
+        )
         # Where people stand now: they move (sim/move), the world file only says where they start.
         self.human_poses = {h.id: h.pose for h in world.humans}
         # Temporary obstacles (sim/fault block), by id, with their bodies.
@@ -746,6 +751,73 @@ class SimWorld:
         if furniture is not None and request.z is not None and request.z < furniture.size.z:
             message = f"z = {request.z:g} m is inside the {furniture.name}, whose top is at {furniture.size.z:g} m"
             return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        # The whole body, not only its centre: pybullet throws out what is put inside something solid
+        # (a cup put among the fingers landed 9 cm off, on its side; a book put into a wall sank
+        # through the floor), and a person's body over the base reads as the robot running into them.
+        name = self._entity_name(request.id)
+        shape, centre, yaw = self._placed(request)
+        part = self.robot_part_in(shape, centre, yaw)
+        if part is not None:
+            message = f"({request.x:g}, {request.y:g}) is {self._robot_there(part)}: the {name} would be put into it"
+            return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        if request.id in self.object_bodies:
+            solid = self._solid_in(shape, centre, yaw, request.id)
+            if solid is not None:
+                message = f"the {name} set down at ({request.x:g}, {request.y:g}) would go into {solid}"
+                return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        return None
+
+    def _entity_name(self, entity_id: str) -> str:
+        if entity_id in self.model.objects:
+            return self.model.objects[entity_id].name
+        return next(h.name for h in self.spec.humans if h.id == entity_id)
+
+    def _robot_there(self, part: str) -> str:
+        """What `robot_part_in` found, as where a refused move would have put something."""
+        if part == "base":
+            return "where the robot stands"
+        if part == "arm":
+            return "where the robot's arm reaches"
+        return f"where the {self.model.objects[part].name} in the robot's gripper is"
+
+    def _placed(self, request: MoveEntity) -> tuple[int, Position, float]:
+        """The collision shape of what `request` moves, and the centre and yaw it would be put at."""
+        if request.id in self.human_bodies:
+            yaw = self.human_poses[request.id].yaw if request.yaw is None else request.yaw
+            return self.human_shape, (request.x, request.y, HUMAN_HEIGHT / 2), yaw
+        obj = self.model.objects[request.id]
+        if request.z is not None:
+            bottom = request.z
+        else:
+            furniture = self._furniture_at(request.x, request.y)
+            bottom = furniture.size.z if furniture is not None else 0.0
+        if request.yaw is not None:
+            yaw = request.yaw
+        else:
+            _, orientation = self.bullet.getBasePositionAndOrientation(self.object_bodies[request.id])
+            yaw = self.bullet.getEulerFromQuaternion(orientation)[2]
+        return self.object_shapes[request.id], (request.x, request.y, bottom + obj.size.z / 2 + DROP_HEIGHT), yaw
+
+    def _solid_in(self, shape: int, centre: Position, yaw: float, moving: str) -> str | None:
+        """The wall, furniture, fault's box or other object that collision shape `shape` would touch
+        or cut into were it put at `centre`, turned `yaw` (the object `moving` itself aside), named
+        as a refusal says it, or None."""
+        solids = [(f"the {w.name}", self.wall_bodies[w.id]) for w in self.spec.walls]
+        solids += [(f"the {f.name}", self.furniture_bodies[f.id]) for f in self.spec.furniture]
+        solids += [(f"the {o.name}", self.object_bodies[o.id]) for o in self.spec.objects if o.id != moving]
+        solids += [(block.name, body) for block, body in self.blocks.values()]  # "a box in the ..."
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+        for name, body in solids:
+            points = self.bullet.getClosestPoints(
+                bodyA=body,
+                bodyB=-1,
+                distance=0.0,
+                collisionShapeB=shape,
+                collisionShapePositionB=list(centre),
+                collisionShapeOrientationB=orientation,
+            )
+            if points:
+                return name
         return None
 
     def _under_the_robot(self, x: float, y: float) -> bool:
@@ -783,16 +855,14 @@ class SimWorld:
 
     def _drop_object(self, request: MoveEntity) -> Drop:
         """Upright at (x, y) with its bottom at z, or on whatever furniture is there, else the floor."""
-        obj = self.model.objects[request.id]
         body = self.object_bodies[request.id]
-        if request.z is not None:
-            bottom = request.z
-        else:
-            furniture = self._furniture_at(request.x, request.y)
-            bottom = furniture.size.z if furniture is not None else 0.0
-        _, orientation = self.bullet.getBasePositionAndOrientation(body)
-        yaw = self.bullet.getEulerFromQuaternion(orientation)[2] if request.yaw is None else request.yaw
-        centre = [request.x, request.y, bottom + obj.size.z / 2 + DROP_HEIGHT]
+        # Put elsewhere while it still fell from an earlier move (or a fault's): that move's reply
+        # would have said it came to rest where this one put it.
+        for earlier in self._drops:
+            if earlier.object_id == request.id:
+                message = f"{request.id} was moved again before it came to rest where this move put it"
+                earlier.finish(GoalState.CANCELED, earlier.result_now(self), message)
+        _, centre, yaw = self._placed(request)
         self.bullet.resetBasePositionAndOrientation(body, centre, self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw]))
         self.bullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
         self._wake(body)
