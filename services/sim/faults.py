@@ -316,7 +316,7 @@ class Faults:
             raise _Refused(ErrorKind.PRECONDITION, f"{block.id} is blocked already")
         part = self.world.robot_part_in(self.world.box_shape(block.half), block.centre, block.yaw)
         if part is not None:
-            raise _Refused(ErrorKind.PRECONDITION, f"{self._robots(part)} where {block.name} would go")
+            raise _Refused(ErrorKind.PRECONDITION, f"{self.world.robot_part_said(part)} where {block.name} would go")
         self.world.add_block(block)
         x, y, z = block.centre
         message = f"{block.name} at ({x:.2f}, {y:.2f}) blocks the way until `clear`"
@@ -358,7 +358,8 @@ class Faults:
             if part is not None:
                 raise _Refused(
                     ErrorKind.PRECONDITION,
-                    f"{self._robots(part)} where the {obj.name} would be put back, at ({x:.2f}, {y:.2f}); "
+                    f"{self.world.robot_part_said(part)} where the {obj.name} would be put back, "
+                    f"at ({x:.2f}, {y:.2f}); "
                     "move the robot, or the object elsewhere (sim/move), first",
                 )
         done = []
@@ -376,14 +377,6 @@ class Faults:
         message = "cleared " + "; ".join(done) if done else "no fault was in force"
         log.info("fault: %s", message)
         return FaultInjected(kind=FaultKind.CLEAR, message=message)
-
-    def _robots(self, part: str) -> str:
-        """What `robot_part_in` found, as the subject of a refusal."""
-        if part == "base":
-            return "the robot stands"
-        if part == "arm":
-            return "the robot's arm reaches"
-        return f"the {self.model.objects[part].name} in the robot's gripper is"
 
     def moved(self, entity_id: str) -> None:
         """sim/move put it somewhere: hidden no more (`clear` leaves it there, `hide` takes it again),

@@ -758,7 +758,9 @@ class SimWorld:
         shape, centre, yaw = self._placed(request)
         part = self.robot_part_in(shape, centre, yaw)
         if part is not None:
-            message = f"({request.x:g}, {request.y:g}) is {self._robot_there(part)}: the {name} would be put into it"
+            message = (
+                f"({request.x:g}, {request.y:g}) is where {self.robot_part_said(part)}: the {name} would be put into it"
+            )
             return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
         if request.id in self.object_bodies:
             solid = self._solid_in(shape, centre, yaw, request.id)
@@ -772,13 +774,13 @@ class SimWorld:
             return self.model.objects[entity_id].name
         return next(h.name for h in self.spec.humans if h.id == entity_id)
 
-    def _robot_there(self, part: str) -> str:
-        """What `robot_part_in` found, as where a refused move would have put something."""
+    def robot_part_said(self, part: str) -> str:
+        """What `robot_part_in` found, as the subject of a refusal ("the robot's arm reaches")."""
         if part == "base":
-            return "where the robot stands"
+            return "the robot stands"
         if part == "arm":
-            return "where the robot's arm reaches"
-        return f"where the {self.model.objects[part].name} in the robot's gripper is"
+            return "the robot's arm reaches"
+        return f"the {self.model.objects[part].name} in the robot's gripper is"
 
     def _placed(self, request: MoveEntity) -> tuple[int, Position, float]:
         """The collision shape of what `request` moves, and the centre and yaw it would be put at."""

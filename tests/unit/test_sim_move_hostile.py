@@ -6,7 +6,7 @@ world is as it was."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -193,33 +193,18 @@ def test_the_earlier_caller_of_an_object_moved_again_while_it_falls_is_told_so(l
     assert error.kind is ErrorKind.CANCELED and "moved again" in error.message
 
 
-def test_a_move_given_up_on_is_not_done_later(loop: SimLoop, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(loop_module, "ANSWER_TIMEOUT", 0.2)
-    before = loop.answer(lambda sim: sim.scene.object_position("red_cup"), changes=False)
-    busy = threading.Event()
-    release = threading.Event()
-
-    def hold(_sim: Simulation) -> None:
-        busy.set()
-        release.wait(10.0)
-
-    # The sim thread held up past the caller's wait: the caller hears "unavailable".
-    assert loop.submit(hold)
-    assert busy.wait(5.0)
-    try:
-        with pytest.raises(CallError) as raised:
-            loop.move(MoveEntity(id="red_cup", x=7.0, y=1.5))
-        assert raised.value.error.kind is ErrorKind.UNAVAILABLE
-    finally:
-        release.set()
-    # Before: the move was done once the thread got to it, behind the caller's back.
-    after = loop.answer(lambda sim: (sim.scene.object_position("red_cup"), sim.scene.settling), changes=False)
-    assert after == (before, False)
+GIVEN_UP = {
+    "move": lambda loop: loop.move(MoveEntity(id="red_cup", x=7.0, y=1.5)),
+    "fault": lambda loop: loop.fault(InjectFault(kind=FaultKind.HIDE, target="red_cup")),
+}
 
 
-def test_a_fault_given_up_on_is_not_injected_later(loop: SimLoop, monkeypatch: pytest.MonkeyPatch) -> None:
-    """sim/fault, as sim/move: its caller heard "unavailable", and the cup was hidden once the sim
-    thread got to it, behind their back."""
+@pytest.mark.parametrize("change", GIVEN_UP.values(), ids=GIVEN_UP.keys())
+def test_a_change_given_up_on_is_not_done_later(
+    loop: SimLoop, monkeypatch: pytest.MonkeyPatch, change: Callable[[SimLoop], object]
+) -> None:
+    """sim/move and sim/fault: the caller heard "unavailable" (the sim thread held up past its wait),
+    and the cup was moved or hidden once the thread got to it, behind their back."""
     monkeypatch.setattr(loop_module, "ANSWER_TIMEOUT", 0.2)
     before = loop.answer(lambda sim: sim.scene.object_position("red_cup"), changes=False)
     busy = threading.Event()
@@ -233,7 +218,7 @@ def test_a_fault_given_up_on_is_not_injected_later(loop: SimLoop, monkeypatch: p
     assert busy.wait(5.0)
     try:
         with pytest.raises(CallError) as raised:
-            loop.fault(InjectFault(kind=FaultKind.HIDE, target="red_cup"))
+            change(loop)
         assert raised.value.error.kind is ErrorKind.UNAVAILABLE
     finally:
         release.set()
