@@ -227,9 +227,11 @@ class ActionServer(Generic[G, F, R]):
                 reason = f"goal id {request.goal_id} was already used"
         exclusive = self._exclusive and not self._concurrent(request.goal)
         if reason is None and exclusive and self._preempts is not None and self._preempts(request.goal):
-            reason = self._preempt(request.goal_id)
-            if reason is None and self._accept:
-                reason = self._accept(request.goal)  # what may have changed while it waited
+            preempted, reason = self._preempt(request.goal_id)
+            # Asked again for what may have changed while it waited. With no goal to wait for, the answer
+            # just given stands: every goal paid its check twice (the sim's keep-out check of a navigation).
+            if reason is None and preempted and self._accept:
+                reason = self._accept(request.goal)
         with self._lock:
             self._forget_old()
             if reason is None and request.goal_id in self._goals:
@@ -264,9 +266,9 @@ class ActionServer(Generic[G, F, R]):
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
         return [g for g in self._running.values() if not self._concurrent(g.goal)]
 
-    def _preempt(self, goal_id: str) -> str | None:
-        """Cancel every running goal for `goal_id` and wait for them to end; the reason to reject
-        the new goal if they do not end in time."""
+    def _preempt(self, goal_id: str) -> tuple[bool, str | None]:
+        """Cancel every running goal for `goal_id` and wait for them to end: (whether there were any,
+        the reason to reject the new goal if they do not end in time)."""
         with self._lock:
             running = self._blocking()
         for handle in running:
@@ -276,10 +278,10 @@ class ActionServer(Generic[G, F, R]):
         deadline = time.monotonic() + self._preempt_timeout
         for handle in running:
             if not handle.done.wait(max(0.0, deadline - time.monotonic())):
-                return f"goal {handle.goal_id} did not stop within {self._preempt_timeout:g} s of being preempted"
+                return True, f"goal {handle.goal_id} did not stop within {self._preempt_timeout:g} s of being preempted"
         if running:
             log.info("goal %s preempted %s", goal_id, ", ".join(h.goal_id for h in running))
-        return None
+        return bool(running), None
 
     def _publish_feedback(self, goal_id: str, message: F) -> None:
         self._feedback.put(Feedback(goal_id=goal_id, feedback=message))

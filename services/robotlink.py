@@ -120,14 +120,23 @@ def read_key(path: Path) -> bytes:
 # Signing and checking
 
 
-def _mac(key: bytes, key_expr: str, payload: bytes, session: bytes, counter: int, stamp: float) -> bytes:
+def _keyed(key: bytes) -> hmac.HMAC:
+    """HMAC-SHA256 set up with `key`, copied for each message (_mac)."""
+    return hmac.new(key, digestmod="sha256")
+
+
+def _mac(keyed: hmac.HMAC, key_expr: str, payload: bytes, session: bytes, counter: int, stamp: float) -> bytes:
     expr = key_expr.encode()
     message = b"".join(
         (_DOMAIN, struct.pack("!I", len(expr)), expr, session, struct.pack("!Qd", counter, stamp), payload)
     )
-    # One call into OpenSSL (hmac.digest), rather than an HMAC object made and finished in Python:
-    # the same bytes, in 2.4 us against 4.0 here; the robot checks every heartbeat and goal with it.
-    return hmac.digest(key, message, "sha256")
+    # A copy of OpenSSL's context keyed once, rather than hmac.digest, which finds the digest and sets
+    # the key up again on every call: the same bytes, in 1.4 us against 1.9 back to back, and 30 against
+    # 63 after 40 ms asleep (the pace of goals: code run then takes many times its warm time on a VM).
+    # Safety signs, and the robot checks, every heartbeat and goal with it.
+    mac = keyed.copy()
+    mac.update(message)
+    return mac.digest()
 
 
 class Signer:
@@ -138,7 +147,7 @@ class Signer:
     def __init__(self, key: bytes, clock: Callable[[], float] = time.time, session: bytes | None = None) -> None:
         if len(key) != KEY_BYTES:
             raise ValueError(f"a robot key is {KEY_BYTES} bytes, not {len(key)}")
-        self._key = key
+        self._keyed = _keyed(key)
         self._clock = clock
         self.session = session or secrets.token_bytes(SESSION_BYTES)
         self._counter = 0
@@ -150,7 +159,7 @@ class Signer:
             self._counter += 1
             counter = self._counter
         stamp = self._clock()
-        mac = _mac(self._key, key_expr, payload, self.session, counter, stamp)
+        mac = _mac(self._keyed, key_expr, payload, self.session, counter, stamp)
         return _ATTACHMENT.pack(MAGIC, self.session, counter, stamp, mac)
 
 
@@ -176,7 +185,11 @@ def unpack(attachment: bytes | None) -> Signature | None:
 
 def mac_matches(key: bytes, key_expr: str, payload: bytes, signature: Signature) -> bool:
     """Whether `signature` was made with `key` over `payload` on `key_expr` (for checking a recording)."""
-    expected = _mac(key, key_expr, payload, signature.session, signature.counter, signature.stamp)
+    return _matches(_keyed(key), key_expr, payload, signature)
+
+
+def _matches(keyed: hmac.HMAC, key_expr: str, payload: bytes, signature: Signature) -> bool:
+    expected = _mac(keyed, key_expr, payload, signature.session, signature.counter, signature.stamp)
     return hmac.compare_digest(expected, signature.mac)
 
 
@@ -216,7 +229,7 @@ class Verifier:
     def __init__(self, key: bytes, clock: Callable[[], float] = time.time, max_skew: float = MAX_SKEW) -> None:
         if len(key) != KEY_BYTES:
             raise ValueError(f"a robot key is {KEY_BYTES} bytes, not {len(key)}")
-        self._key = key
+        self._keyed = _keyed(key)
         self._clock = clock
         self.max_skew = max_skew
         self.started = clock()
@@ -235,7 +248,7 @@ class Verifier:
         sig = unpack(attachment)
         if sig is None:
             return Refusal(MALFORMED, f"{len(attachment)} bytes")
-        if not mac_matches(self._key, key_expr, payload, sig):
+        if not _matches(self._keyed, key_expr, payload, sig):
             return Refusal(BAD_MAC)
         now = self._clock()
         age = now - sig.stamp
