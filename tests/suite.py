@@ -81,8 +81,8 @@ WORKERS = 2
 # on two workers it took 220.6 s and left 42 % of the machine idle (vmstat), on three 170.8 s with
 # 27 % idle; in the whole suite, 173.6 s against 233 s, the suite 296 s against 353 to 365 s, the
 # tests marked realtime beside it as quick as before (84 s against 82), those marked idle 95 s
-# against 88. (Three were tried on 2026-11-27 too, when the unit tests still ran in this part and
-# kept both cores busy: 275.0 s against 276.1.)
+# against 88. (Three were tried on 2026-11-27 too and made no difference then, 275.0 s against 276.1;
+# what this part holds and what runs beside it have changed since.)
 STACK_WORKERS = 3
 # Low priority for the parallel part: at nice 15 a process weighs 1/28 of one at nice 0.
 NICE = 15
