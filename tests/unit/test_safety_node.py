@@ -448,7 +448,8 @@ def test_close_returns_with_the_queue_full_and_the_store_stuck_on_a_locked_file(
     try:
         for n in range(MAX_NOTED + 2):
             safety._note(Draft(IncidentKind.VETO, f"veto {n}"))
-        assert safety._noted.full(), "one taken by the stuck thread at most: the queue is full"
+        # Full, but for the one the recording thread takes to get stuck on: it may take it after the last put.
+        assert safety._noted.qsize() >= MAX_NOTED - 1, "the queue is full"
         threading.Thread(target=lambda: (safety.close(drain=0.2), closed.set()), daemon=True).start()
         assert closed.wait(30.0), "close waited for the store"
         assert safety._incident_thread.is_alive(), "the recording thread was stuck in the file all along"
