@@ -38,6 +38,7 @@ from schemas.safety import Decision, Rule, SafetyEvent
 from services.actionlib import ActionClient
 from services.recorder import scene3d
 from services.recorder.reader import read_recording
+from services.runtime import DUMP_STACKS
 from tests.integration.conftest import Stack, dump_logs, start_stack, stop_stack
 from tether.viewteleop import BURST, DEADMAN, RATE_HZ, TELEOP_TOPIC
 
@@ -156,6 +157,12 @@ def running_view(stack: Stack, args: list[str], log: Path) -> Iterator[tuple[sub
         assert view.wait(timeout=20) == 0
     finally:
         if view.poll() is None:
+            # Its threads' stacks into its log first (faulthandler, as a service's: runtime.DUMP_STACKS),
+            # for the teardown's print of the log to say where it hung.
+            os.kill(view.pid, DUMP_STACKS)
+            deadline = time.monotonic() + 5.0
+            while "most recent call first" not in log.read_text(errors="replace") and time.monotonic() < deadline:
+                time.sleep(0.05)
             os.killpg(view.pid, signal.SIGKILL)
             view.wait(timeout=10)
         assert view.stdout is not None
