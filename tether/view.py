@@ -48,6 +48,7 @@ from services.repeats import RepeatLog
 from services.runtime import ConfigError, Node, NodeSettings
 from services.safety.config import SafetyConfig
 from tether.client import signature_shaped
+from tether.runservice import leave
 from tether.teleop import finite
 from tether.viewteleop import TELEOP_TOPIC, Refused, TeleopGate
 
@@ -69,6 +70,9 @@ TELEOP_TICK = 0.02  # s between two looks of the deadman: a stop goes out at mos
 # viewer when full: one client's refusals in a loop must not cost the others their connection.
 NOTICE_PERIOD = 0.5
 HELPER_JOIN = CAMERA_TIMEOUT + 1.0  # s to wait for the teleop and camera threads to end at exit
+# s to wait for Foxglove's server to stop: its stop waits for every viewer to take what was sent to it,
+# and one that stopped reading (a laptop asleep, a hostile client) never does: Ctrl-C never ended the view.
+SERVER_STOP_WAIT = 3.0
 EXIT_USAGE, EXIT_UNREACHABLE, EXIT_SERVE = 2, 3, 1
 
 
@@ -623,6 +627,7 @@ def view(
         node = Node("view", settings)
     except Exception as exc:  # zenoh.ZError: no router, refused login
         raise fail(EXIT_UNREACHABLE, f"cannot open a Zenoh session: {exc}", as_json) from None
+    stopped = True
     with node:
         bridge = None if teleop_off else TeleopBridge(node.publisher(keys.TELEOP_CMD_VEL).put)
         if bridge is not None:
@@ -675,7 +680,11 @@ def view(
             while not stop.wait(PUBLISH_PERIOD):
                 live.publish_once()
         finally:
-            shut_down(bridge, stop, helpers, server)
+            stopped = shut_down(bridge, stop, helpers, server)
+    if not stopped:
+        # A thread is still in the server's stop (Rust): Python's finalization would abort the process
+        # (tether/runservice.py, leave). The session is closed; the port goes with the process.
+        leave(0)
 
 
 def shut_down(
@@ -683,12 +692,12 @@ def shut_down(
     stop: threading.Event,
     helpers: list[threading.Thread],
     server: foxglove.WebSocketServer,
-) -> None:
+) -> bool:
     """The view's end. Teleop first: from here no twist goes out and a moving robot is told to stop,
     before the wait for the helpers (the camera's may be in a call for seconds, and the deadman's
     thread ends with `stop`). The helpers end before the server and the session do, and before
     Python finalizes: one still in a Zenoh or Foxglove call then (both Rust) would abort the process
-    as it exits (tether/runservice.py, leave)."""
+    as it exits (tether/runservice.py, leave). Whether the server stopped (stop_server)."""
     try:
         if bridge is not None:
             bridge.close()
@@ -696,7 +705,20 @@ def shut_down(
         stop.set()
         for helper in helpers:
             helper.join(timeout=HELPER_JOIN)
-        server.stop()
+        stopped = stop_server(server)
+    return stopped
+
+
+def stop_server(server: foxglove.WebSocketServer, wait: float = SERVER_STOP_WAIT) -> bool:
+    """The server stopped, waited for `wait` seconds at most: False while it still waits for a viewer
+    that does not read (its connection full), which it would do for good."""
+    stopping = threading.Thread(target=server.stop, name="view-stop", daemon=True)
+    stopping.start()
+    stopping.join(wait)
+    if stopping.is_alive():
+        log.warning("a viewer takes nothing of what was sent to it: the view stops without waiting for it")
+        return False
+    return True
 
 
 def teleop_loop(bridge: TeleopBridge, server: foxglove.WebSocketServer, stop: threading.Event) -> None:
