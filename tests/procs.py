@@ -1,9 +1,13 @@
-"""Other processes as /proc shows them: whether one has exited, and whose parent is whom (Linux)."""
+"""Other processes as /proc shows them: whether one has exited, and whose parent is whom (Linux); and a
+`tether` command run as one."""
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -21,16 +25,34 @@ def gone(pid: int) -> bool:
 
 
 def children(pid: int) -> list[int]:
-    """The processes whose parent is `pid`."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                if int(_stat(int(entry.name))[1]) == pid:
-                    found.append(int(entry.name))
-            except (OSError, IndexError):
-                continue  # exited meanwhile
+    """The processes whose parent is `pid` (started by any of its threads), from its own /proc entry:
+    quick enough to poll for a fork as it happens, where scanning all of /proc is not."""
+    found: list[int] = []
+    with contextlib.suppress(OSError):  # `pid` gone: none
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            with contextlib.suppress(OSError):  # the thread ended meanwhile
+                found += [int(child) for child in (task / "children").read_text().split()]
     return found
+
+
+@contextlib.contextmanager
+def tether_process(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
+    """`tether ARGS` in a session of its own (a signal sent to it reaches it alone), its output piped
+    as text; killed at the end if it still runs."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "tether", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
 
 
 def wait_until(condition: Callable[[], bool], timeout: float) -> bool:

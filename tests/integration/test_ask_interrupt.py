@@ -34,6 +34,7 @@ from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.integration import test_agents
 from tests.integration.test_agents import ScriptedLLM, text_reply
+from tests.procs import tether_process
 from tests.sessions import free_ports
 
 WAIT = 30.0
@@ -93,25 +94,11 @@ def serving(llm_server: ScriptedLLM) -> Iterator[tuple[StandIn, Node, dict[str, 
         node.close()
 
 
-@contextlib.contextmanager
-def running(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
-    command = [sys.executable, "-m", "tether", *args]
-    process = subprocess.Popen(
-        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-    )
-    try:
-        yield process
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-
-
 def stopped_while_running(
     stand_in: StandIn, env: dict[str, str], stop: signal.Signals, *args: str
 ) -> tuple[int, dict[str, object], str]:
     """Run the command until the plan it sent runs, then `stop` it: its exit code, its JSON, its stderr."""
-    with running(env, *args) as process:
+    with tether_process(env, *args) as process:
         assert stand_in.running.wait(WAIT), process.communicate()
         os.kill(process.pid, stop)
         out, err = process.communicate(timeout=WAIT)
@@ -204,7 +191,7 @@ def test_an_ask_interrupted_before_the_planner_service_answered_sends_no_plan(ll
         # The model answers only once the command has been interrupted and has exited.
         llm_server.play(text_reply(PLAN), meanwhile=thinking)
         try:
-            with running(cli_env, "ask", "go to the kitchen", "--json", "--max-recoveries", "0") as process:
+            with tether_process(cli_env, "ask", "go to the kitchen", "--json", "--max-recoveries", "0") as process:
                 deadline = threading.Timer(WAIT, process.kill)
                 deadline.start()
                 try:
@@ -243,7 +230,7 @@ def test_an_ask_through_an_older_planner_service_falls_back_to_cancel_the_goal_i
 
             planner.serve(keys.PLAN_ASK, ask, waits=True)
             planner.declare_alive()
-            with running(cli_env, "ask", "go to the kitchen", "--json") as process:
+            with tether_process(cli_env, "ask", "go to the kitchen", "--json") as process:
                 assert process.stderr is not None
                 deadline = threading.Timer(WAIT, process.kill)
                 deadline.start()

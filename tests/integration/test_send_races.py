@@ -22,6 +22,7 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
+from tests.procs import tether_process
 from tests.sessions import free_ports
 
 WAIT = 20.0
@@ -72,18 +73,8 @@ def executor() -> Iterator[tuple[StandIn, dict[str, str]]]:
         node.close()
 
 
-@contextlib.contextmanager
-def sending(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
-    command = [sys.executable, "-m", "tether", "send", PLAN, "--json", *args]
-    sender = subprocess.Popen(
-        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-    )
-    try:
-        yield sender
-    finally:
-        if sender.poll() is None:
-            sender.kill()
-            sender.communicate()
+def sending(env: dict[str, str], *args: str) -> contextlib.AbstractContextManager[subprocess.Popen[str]]:
+    return tether_process(env, "send", PLAN, "--json", *args)
 
 
 def test_ctrl_c_before_the_executor_answered_the_send_cancels_the_plan(

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.integration.conftest import STARTUP_TIMEOUT
+from tests.procs import children
 from tests.sessions import free_ports
 
 # Services quick to start and to stop: the longer starting them takes, the likelier the Ctrl-C lands
@@ -35,16 +36,6 @@ except BaseException:
     supervisor.stop_all()
     raise
 """
-
-
-def children(pid: int) -> set[int]:
-    """The processes `pid` started (any of its threads), from /proc."""
-    found: set[int] = set()
-    with contextlib.suppress(OSError):
-        for task in Path(f"/proc/{pid}/task").iterdir():
-            with contextlib.suppress(OSError):
-                found |= {int(child) for child in (task / "children").read_text().split()}
-    return found
 
 
 def forked(pid: int, service: str) -> int | None:
