@@ -11,48 +11,38 @@ from typing import Any
 import msgspec
 import pytest
 
-from schemas import keys
 from schemas.actions import CancelResponse, GoalState, ResultResponse
-from schemas.common import ErrorKind, ServiceError, Stage
+from schemas.common import Stage
 from schemas.executor import ExecutePlanGoal, ExecutePlanResult, FailureKind, PlanStatus, StepResult, StepStatus
 from schemas.planner import AskCancel, AskReply, AskRequest, AskStatus, RecoveryOutcome
-from schemas.world import SceneDescription
-from services.errors import CallError
 from services.planner.config import PlannerConfig
 from services.planner.llm import ChatReply
 from services.planner.node import MAX_ENDED, Planner, Requests
 from services.planner.recovery import Ended
+from tests.plannerparts import PlannerNode
 
 PLAN = '{"plan": [{"action": "navigate_to", "target": "kitchen"}]}'
 WAIT = 10.0  # s: a deadline for what must happen at once
 
 
-class StandInNode:
-    """What Planner touches of a Node: publishers keeping what is put, the executor alive, the scene
-    answered, cancels kept (and `canceled` set); every other query unanswered."""
+class StandInNode(PlannerNode):
+    """The executor alive, the scene answered, cancels kept (and `canceled` set); every other query
+    unanswered."""
 
     def __init__(self) -> None:
-        self.published: list[Any] = []
+        super().__init__("a kitchen")
         self.cancels: list[str] = []
         self.canceled = threading.Event()
-
-    def publisher(self, topic: Any) -> Any:
-        return SimpleNamespace(put=self.published.append)
-
-    def subscribe(self, topic: Any, callback: Any) -> None:
-        pass
 
     def alive_services(self, timeout: float) -> set[str]:
         return {"executor"}
 
-    def call(self, service: Any, request: Any, timeout: float) -> Any:
-        if service is keys.SCENE:
-            return SceneDescription(stamp=0.0, text="a kitchen")
+    def answer(self, service: Any, request: Any, timeout: float) -> Any:
         if service == "cancel_goal":
             self.cancels.append(request.goal_id)
             self.canceled.set()
             return CancelResponse(goal_id=request.goal_id, accepted=True)
-        raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=f"no {service} here"))
+        return super().answer(service, request, timeout)
 
 
 class StandInExecutor:

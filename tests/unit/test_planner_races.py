@@ -8,50 +8,38 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
-from schemas import keys
 from schemas.actions import GoalState, ResultResponse
 from schemas.common import ErrorKind, ServiceError, Stage
 from schemas.executor import ExecutePlanGoal, ExecutePlanResult, FailureKind, PlanStatus, StepResult, StepStatus
 from schemas.planner import AskReply, AskRequest, AskStatus, Recovery, RecoveryOutcome
-from schemas.world import SceneDescription
 from services.errors import CallError
 from services.planner.config import PlannerConfig
 from services.planner.llm import ChatReply
 from services.planner.loop import DryRunVerdict, LoopResult, plan_loop
 from services.planner.node import Planner
 from services.planner.recovery import Ended, Ports, Sent, follow_and_recover
+from tests.plannerparts import PlannerNode
 
 REQUEST = "put the red cup on the coffee table"
 PLAN = '{"plan": [{"action": "pick", "target": "red cup"}, {"action": "place", "target": "coffee table"}]}'
 WAIT = 10.0  # s: a deadline for what must happen at once
 
 
-class StandInNode:
-    """What Planner touches of a Node: publishers keeping what is put, the scene answered, safety's
-    incidents not; get_result (how the planner follows a goal) blocks until `ended` is set."""
+class StandInNode(PlannerNode):
+    """The scene answered, safety's incidents not; get_result (how the planner follows a goal) blocks
+    until `ended` is set."""
 
     def __init__(self) -> None:
-        self.published: list[Any] = []
+        super().__init__("the red cup is on the kitchen counter")
         self.ended = threading.Event()
         self.asked_result = threading.Event()
 
-    def publisher(self, topic: Any) -> Any:
-        return SimpleNamespace(put=self.published.append)
-
-    def subscribe(self, topic: Any, callback: Any) -> None:
-        pass
-
-    def call(self, service: Any, request: Any, timeout: float) -> Any:
-        if service is keys.SCENE:
-            return SceneDescription(stamp=0.0, text="the red cup is on the kitchen counter")
+    def answer(self, service: Any, request: Any, timeout: float) -> Any:
         if service == "get_result":
             self.asked_result.set()
             self.ended.wait(timeout)
             raise CallError(ServiceError(kind=ErrorKind.TIMEOUT, message="the test ended"))
-        raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=f"no {service.path} here"))
-
-    def recoveries(self) -> list[Recovery]:
-        return [m for m in self.published if isinstance(m, Recovery)]
+        return super().answer(service, request, timeout)
 
 
 class StandInExecutor:

@@ -12,15 +12,12 @@ from typing import Any
 import msgspec
 import pytest
 
-from schemas import keys
 from schemas.actions import GoalState, ResultResponse
-from schemas.common import ErrorKind, Pose2D, ServiceError, Stage
+from schemas.common import ErrorKind, Pose2D, Stage
 from schemas.executor import ExecutePlanGoal, ExecutePlanResult, FailureKind, PlanStatus, StepResult, StepStatus
 from schemas.planner import MAX_RECOVERIES, AskReply, AskRequest, AskStatus, Recovery, RecoveryOutcome
 from schemas.safety import EstopState, SafetyStatus
-from schemas.world import SceneDescription
 from services.agent.feedback import DATA_CLOSE
-from services.errors import CallError
 from services.planner.config import PlannerConfig
 from services.planner.errors import LLMError
 from services.planner.llm import ChatReply
@@ -36,6 +33,7 @@ from services.planner.recovery import (
     follow_and_recover,
     judge,
 )
+from tests.plannerparts import PlannerNode
 from tether.sendrecover import outcome
 
 REQUEST = "put the red cup on the coffee table"
@@ -346,28 +344,6 @@ def test_the_planner_and_the_scene_tool_ask_for_the_hazards_around_the_robot_ali
 # The planner's own follower threads and its send, with a stand-in node, executor and model (no Zenoh).
 
 
-class FakeNode:
-    """What Planner touches of a Node: publishers keeping what is put, subscriptions, the scene query
-    answered, every other query (safety's incidents) unanswered."""
-
-    def __init__(self) -> None:
-        self.published: list[Any] = []
-
-    def publisher(self, topic: Any) -> Any:
-        return SimpleNamespace(put=self.published.append)
-
-    def subscribe(self, topic: Any, callback: Any) -> None:
-        pass
-
-    def call(self, service: Any, request: Any, timeout: float) -> Any:
-        if service is keys.SCENE:
-            return SceneDescription(stamp=0.0, text=SCENE)
-        raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=f"no {service.path} here"))
-
-    def recoveries(self) -> list[Recovery]:
-        return [m for m in self.published if isinstance(m, Recovery)]
-
-
 class FakeExecutor:
     """Dry runs pass; real sends are kept."""
 
@@ -397,8 +373,8 @@ class FakeChat:
         return ChatReply(AGAIN)
 
 
-def planner_with(chat: FakeChat) -> tuple[Planner, FakeNode, FakeExecutor]:
-    node, executor = FakeNode(), FakeExecutor()
+def planner_with(chat: FakeChat) -> tuple[Planner, PlannerNode, FakeExecutor]:
+    node, executor = PlannerNode(SCENE), FakeExecutor()  # safety's incidents unanswered
     planner = Planner(node, PlannerConfig(), None, client=chat)  # type: ignore[arg-type]
     planner._executor = executor  # type: ignore[assignment]
     planner._tool_schemas = []
