@@ -21,6 +21,7 @@ from services.sim.world import Drop
 from services.worldmodel import load_world
 from tests.fastsim import FAST_PHYSICS_HZ
 from tests.procs import wait_until
+from tests.simthread import sim_thread
 
 WORLD = load_world("household")
 # The arm reaching forward and down: the hand 0.74 m ahead of the base's centre, 0.56 m up, well
@@ -39,13 +40,8 @@ def sim() -> Iterator[Simulation]:
 @pytest.fixture
 def loop(sim: Simulation) -> Iterator[SimLoop]:
     """The sim thread as the services run it (real time), without Zenoh."""
-    looping = SimLoop(sim, 1.0, lambda: None)
-    stop = threading.Event()
-    thread = threading.Thread(target=looping.run, args=(stop,), daemon=True)
-    thread.start()
-    yield looping
-    stop.set()
-    thread.join(5.0)
+    with sim_thread(sim, 1.0) as looping:
+        yield looping
 
 
 def pose_arm(sim: Simulation, arm: Sequence[float]) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import threading
 import time
 from collections.abc import Iterator
 
@@ -24,6 +23,7 @@ from services.sim.renderer import Renderer
 from services.sim.simulation import Simulation
 from services.sim.world import Drop
 from tests.procs import wait_until
+from tests.simthread import sim_thread
 from tests.unit.test_sim import PREGRASP_HEIGHT, above, approach, drive, gripper, reach
 from tests.unit.test_sim import sim as sim  # the fixtures, shared
 from tests.unit.test_sim import world as world
@@ -108,13 +108,8 @@ def test_sim_move_sets_an_object_down_from_up_to_two_metres(sim: Simulation) -> 
 @pytest.fixture
 def loop(sim: Simulation) -> Iterator[SimLoop]:
     """The sim thread as the services run it, without Zenoh: sim/move and sim/fault answered by it."""
-    looping = SimLoop(sim, 4.0, lambda: None)
-    stop = threading.Event()
-    thread = threading.Thread(target=looping.run, args=(stop,), daemon=True)
-    thread.start()
-    yield looping
-    stop.set()
-    thread.join(5.0)
+    with sim_thread(sim, 4.0) as looping:
+        yield looping
 
 
 def test_an_object_moved_out_of_hiding_is_hidden_no_more(loop: SimLoop) -> None:
