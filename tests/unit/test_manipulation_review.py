@@ -158,33 +158,32 @@ class Tipping(Recording):
         return result
 
 
+def red_cup_picked(
+    robot: Recording, sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]
+) -> tuple[Manipulator, PlaceStep]:
+    """The red cup picked by `robot`, and the step that places it near the coffee table's edge."""
+    world = WorldModel(sim.world)
+    manipulator = Manipulator(robot, *planners, world, ExecutorConfig())
+    manipulator.pick(pick_step(world, sim, "red_cup"), threading.Event())
+    table = world.furniture["coffee_table"]
+    spot = Vec3(x=table.center[0], y=table.center[1] - table.size.y / 2 + 0.15, z=table.size.z)
+    return manipulator, PlaceStep(surface_id=table.id, surface_name=table.name, position=spot, approach=table.approach)
+
+
 def test_a_placed_cup_that_fell_over_fails_the_place(sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]) -> None:
     """On its side on the table, it was reported placed."""
     robot = Tipping(sim)
-    world = WorldModel(sim.world)
-    manipulator = Manipulator(robot, *planners, world, ExecutorConfig())
-    cancel = threading.Event()
-    manipulator.pick(pick_step(world, sim, "red_cup"), cancel)
-    table = world.furniture["coffee_table"]
-    spot = Vec3(x=table.center[0], y=table.center[1] - table.size.y / 2 + 0.15, z=table.size.z)
-    place = PlaceStep(surface_id=table.id, surface_name=table.name, position=spot, approach=table.approach)
+    manipulator, place = red_cup_picked(robot, sim, planners)
     robot.tip = "red_cup"
     with pytest.raises(
         PostconditionFailed, match=r"red cup on the coffee table but not upright: its centre [34] cm lower"
     ):
-        manipulator.place(place, cancel)
+        manipulator.place(place, threading.Event())
 
 
 def test_a_placed_cup_standing_upright_is_placed(sim: Simulation, planners: tuple[ArmPlanner, BasePlanner]) -> None:
-    robot = Recording(sim)
-    world = WorldModel(sim.world)
-    manipulator = Manipulator(robot, *planners, world, ExecutorConfig())
-    cancel = threading.Event()
-    manipulator.pick(pick_step(world, sim, "red_cup"), cancel)
-    table = world.furniture["coffee_table"]
-    spot = Vec3(x=table.center[0], y=table.center[1] - table.size.y / 2 + 0.15, z=table.size.z)
-    place = PlaceStep(surface_id=table.id, surface_name=table.name, position=spot, approach=table.approach)
-    assert manipulator.place(place, cancel) == "placed red cup on the coffee table"
+    manipulator, place = red_cup_picked(Recording(sim), sim, planners)
+    assert manipulator.place(place, threading.Event()) == "placed red cup on the coffee table"
 
 
 class TimedOut(ArmScene):
