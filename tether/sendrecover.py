@@ -164,14 +164,15 @@ def send_recover(
 
 
 def interrupted(stop: Interrupted, as_json: bool) -> NoReturn:
-    """A Ctrl-C (or SIGTERM): what was sent is canceled (tether.ask.canceled) and its end said as
-    `tether send` says a canceled plan's: 1 canceled, 3 when no end came."""
+    """A Ctrl-C (or SIGTERM): what was sent is canceled (tether.ask: through the planner service, the
+    request by its id) and its end said as `tether send` says a canceled plan's: 1 canceled, 3 when no
+    end came. `request_id` names the service's request this command made ("" when it made none)."""
     first = stop.goals[0] if stop.goals else ""
     if stop.result is not None:
-        document = {**PlanRun(goal_id=first, result=stop.result).as_json(), "request_id": "", "recoveries": []}
+        document = {**PlanRun(goal_id=first, result=stop.result).as_json(), "recoveries": []}
     else:
         document = {**unsent("unreachable", stop.reason), "goal_id": first}
-    document["final_goal_id"] = stop.goal_id
+    document.update(request_id=stop.request_id, final_goal_id=stop.goal_id)
     if as_json:
         print(json.dumps(document))
     else:

@@ -175,6 +175,23 @@ def test_an_ask_waiting_through_the_planner_service_is_stopped_by_a_ctrl_c(llm_s
     assert stand_in.ended == [GoalState.CANCELED] and len(llm_server.received) == 1
 
 
+def test_a_send_recover_waiting_through_the_planner_service_is_stopped_by_a_ctrl_c(llm_server: ScriptedLLM) -> None:
+    """`tether send --recover --wait` through the planner service: the request is canceled by the id
+    the command chose, as `tether ask`'s, and its JSON names that request (it said "")."""
+    with planner_service(llm_server) as (stand_in, node, cli_env):
+        answers = planner_answers(node)
+        llm_server.play()  # nothing to answer: the plan is given, and no recovery follows a cancel
+        args = ("send", PLAN, "--recover", "--wait", "--json")
+        code, document, err = stopped_while_running(stand_in, cli_env, signal.SIGINT, *args)
+        assert (code, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), (document, err)
+        assert document["final_goal_id"] == stand_in.goal_id and stand_in.ended == [GoalState.CANCELED], err
+        answer = answers.get(timeout=WAIT)
+        assert answer.status is AskStatus.FAILED and answer.goal_id == stand_in.goal_id, answer
+        assert [r.outcome for r in answer.recoveries] == [RecoveryOutcome.STOPPED], answer
+        assert document["request_id"] == answer.request_id != "", "the command's JSON names the request it stopped"
+    assert stand_in.ended == [GoalState.CANCELED] and llm_server.received == [], "the model was asked"
+
+
 def test_an_ask_interrupted_before_the_planner_service_answered_sends_no_plan(llm_server: ScriptedLLM) -> None:
     """Through the planner service the goal sent was named only in its answer, which came once the
     executor took the plan: a Ctrl-C while the model thought waited for that answer, then canceled a

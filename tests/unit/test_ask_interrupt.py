@@ -60,3 +60,19 @@ def test_an_interrupted_send_recover_prints_sends_object_first_and_final_goal(
     assert (exit_code, document["status"], document["goal_id"], document["final_goal_id"]) == (code, status, "g1", "g2")
     usual, _ = sendrecover.outcome(msgspec.structs.replace(SENT, status=like))
     assert set(document) == set(usual)
+
+
+@pytest.mark.parametrize("request_id", ["4f1c2a", ""], ids=["through the service", "none made"])
+def test_an_interrupted_send_recover_names_the_request_it_stopped(
+    capsys: pytest.CaptureFixture[str], request_id: str
+) -> None:
+    """As `tether ask`'s: the planner service's request this command made and canceled by its id,
+    "" only when it made none (it printed "" always)."""
+    stop = Interrupted(["g1"], CANCELED)
+    stop.request_id = request_id
+    _, document = printed(capsys, sendrecover.interrupted, stop)
+    assert document["request_id"] == request_id
+    no_end = Interrupted([], None, "no outcome: interrupted again before the planner canceled")
+    no_end.request_id = request_id
+    _, document = printed(capsys, sendrecover.interrupted, no_end)
+    assert (document["status"], document["request_id"]) == ("unreachable", request_id)
