@@ -726,9 +726,14 @@ class SimWorld:
         refusal = self._move_refusal(request)
         if refusal is not None:
             return refusal
+        # Where the body would go, found once: checked for room there, then put there.
+        shape, centre, yaw = self._placed(request)
+        refusal = self._placing_refusal(request, shape, centre, yaw)
+        if refusal is not None:
+            return refusal
         if request.id in self.human_bodies:
-            return self._move_human(request)
-        return self._drop_object(request)
+            return self._move_human(request.id, centre, yaw)
+        return self._drop_object(request.id, centre, yaw)
 
     def _move_refusal(self, request: MoveEntity) -> ServiceError | None:
         entities = [*self.object_bodies, *self.human_bodies]
@@ -751,11 +756,14 @@ class SimWorld:
         if furniture is not None and request.z is not None and request.z < furniture.size.z:
             message = f"z = {request.z:g} m is inside the {furniture.name}, whose top is at {furniture.size.z:g} m"
             return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        return None
+
+    def _placing_refusal(self, request: MoveEntity, shape: int, centre: Position, yaw: float) -> ServiceError | None:
+        """Why the body `request` moves cannot be put at `centre`, turned `yaw` (see _placed), or None."""
         # The whole body, not only its centre: pybullet throws out what is put inside something solid
         # (a cup put among the fingers landed 9 cm off, on its side; a book put into a wall sank
         # through the floor), and a person's body over the base reads as the robot running into them.
         name = self._entity_name(request.id)
-        shape, centre, yaw = self._placed(request)
         part = self.robot_part_in(shape, centre, yaw)
         if part is not None:
             message = (
@@ -833,21 +841,19 @@ class SimWorld:
         point = Point(x, y)
         return next((f for f in self.spec.furniture if self.model.footprint(f).covers(point)), None)
 
-    def _move_human(self, request: MoveEntity) -> Moved:
-        current = self.human_poses[request.id]
-        yaw = current.yaw if request.yaw is None else request.yaw
-        self.human_poses[request.id] = Pose2D(x=request.x, y=request.y, yaw=yaw)
+    def _move_human(self, human_id: str, centre: Position, yaw: float) -> Moved:
+        x, y, _ = centre
+        self.human_poses[human_id] = Pose2D(x=x, y=y, yaw=yaw)
         orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
-        self.bullet.resetBasePositionAndOrientation(
-            self.human_bodies[request.id], [request.x, request.y, HUMAN_HEIGHT / 2], orientation
-        )
-        log.info("moved %s to (%.2f, %.2f)", request.id, request.x, request.y)
-        return Moved(id=request.id, position=Vec3(x=request.x, y=request.y, z=0.0))
+        self.bullet.resetBasePositionAndOrientation(self.human_bodies[human_id], centre, orientation)
+        log.info("moved %s to (%.2f, %.2f)", human_id, x, y)
+        return Moved(id=human_id, position=Vec3(x=x, y=y, z=0.0))
 
     def set_down(self, object_id: str, x: float, y: float, bottom: float | None = None) -> Drop:
         """Put an object upright at (x, y) with its bottom at `bottom` (None: on the furniture there,
         else the floor) and let it settle: for faults, which choose the spot themselves."""
-        return self._drop_object(MoveEntity(id=object_id, x=x, y=y, z=bottom))
+        _, centre, yaw = self._placed(MoveEntity(id=object_id, x=x, y=y, z=bottom))
+        return self._drop_object(object_id, centre, yaw)
 
     def settle(self, object_id: str) -> Drop:
         """Watch an object that is falling where it is until it comes to rest."""
@@ -855,20 +861,19 @@ class SimWorld:
         self._drops.append(drop)
         return drop
 
-    def _drop_object(self, request: MoveEntity) -> Drop:
-        """Upright at (x, y) with its bottom at z, or on whatever furniture is there, else the floor."""
-        body = self.object_bodies[request.id]
+    def _drop_object(self, object_id: str, centre: Position, yaw: float) -> Drop:
+        """Upright at `centre`, turned `yaw` (see _placed), let go to settle."""
+        body = self.object_bodies[object_id]
         # Put elsewhere while it still fell from an earlier move (or a fault's): that move's reply
         # would have said it came to rest where this one put it.
         for earlier in self._drops:
-            if earlier.object_id == request.id:
-                message = f"{request.id} was moved again before it came to rest where this move put it"
+            if earlier.object_id == object_id:
+                message = f"{object_id} was moved again before it came to rest where this move put it"
                 earlier.finish(GoalState.CANCELED, earlier.result_now(self), message)
-        _, centre, yaw = self._placed(request)
         self.bullet.resetBasePositionAndOrientation(body, centre, self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw]))
         self.bullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
         self._wake(body)
-        log.info("moved %s to (%.2f, %.2f, %.2f); letting it settle", request.id, *centre)
-        drop = Drop(self, request.id)
+        log.info("moved %s to (%.2f, %.2f, %.2f); letting it settle", object_id, *centre)
+        drop = Drop(self, object_id)
         self._drops.append(drop)
         return drop
