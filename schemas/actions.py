@@ -14,7 +14,7 @@ G = TypeVar("G")
 F = TypeVar("F")
 R = TypeVar("R")
 
-GoalId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
+GoalId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+(?!\n)$")]
 
 
 class GoalState(enum.StrEnum):

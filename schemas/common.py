@@ -24,7 +24,9 @@ Name = Annotated[str, Meta(min_length=1, max_length=200)]
 # The longest free text a message carries (a reason, a step's message); code that builds one cuts it to this.
 TEXT_CHARS = 4000
 Text = Annotated[str, Meta(max_length=TEXT_CHARS)]
-Id = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+# (?!\n): Python's `$` also matches before a last newline, which would let "id\n" through; JSON
+# Schema's (ECMA) regexes have no \Z, and read this the same.
+Id = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+(?!\n)$")]
 
 
 class Frozen(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):

@@ -19,7 +19,7 @@ MAX_RECORDED_CHARS = 8000
 MAX_RECOVERIES = 5
 
 RecordedText = Annotated[str, Meta(max_length=MAX_RECORDED_CHARS)]
-RequestId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+RequestId = Annotated[str, Meta(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+(?!\n)$")]
 # An id a caller chooses for its request (a uuid's hex, say), to cancel it by: empty, the planner picks
 # one. (?!\n): Python's `$` also matches before a last newline, which would let "id\n" through.
 CallerRequestId = Annotated[str, Meta(max_length=64, pattern=r"^[A-Za-z0-9_-]*(?!\n)$")]

@@ -250,7 +250,7 @@ class InjectFault(Frozen):
     and clear; a slip may name the object whose carry it waits for)."""
 
     kind: FaultKind
-    target: Annotated[str, Meta(max_length=64, pattern=r"^[A-Za-z0-9_.:-]*$")] = ""
+    target: Annotated[str, Meta(max_length=64, pattern=r"^[A-Za-z0-9_.:-]*(?!\n)$")] = ""
 
 
 class FaultInjected(Frozen, tag="injected"):

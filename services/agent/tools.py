@@ -72,17 +72,30 @@ _RETURNS = (
 _JSON_TYPES = {"float": "number", "int": "integer", "bool": "boolean", "str": "string"}
 
 
+# An id's pattern ends so in the schemas (schemas.common.Id): Python's `$` also matches before a last
+# newline. A JSON Schema regex is ECMA's, whose `$` is the end of the text already, and constrained
+# decoding (strict mode) may not take a lookahead: tools get the plain `$`, which means the same there.
+_WHOLE_TEXT = "(?!\\n)$"
+
+
+def _ecma(schema: dict[str, Any]) -> dict[str, Any]:
+    pattern = schema.get("pattern")
+    if isinstance(pattern, str) and pattern.endswith(_WHOLE_TEXT):
+        schema["pattern"] = pattern.removesuffix(_WHOLE_TEXT) + "$"
+    return schema
+
+
 def _struct_field(struct: type[msgspec.Struct], field: str) -> dict[str, Any]:
     """The JSON Schema of one field of a Struct, with its bounds (maxLength, pattern, minItems...)."""
     document = msgspec.json.schema(struct)
     schema = dict(document["$defs"][struct.__name__]["properties"][field])
     schema.pop("default", None)  # the Struct's default, not the tool's: an agent says what it means
-    return schema
+    return _ecma(schema)
 
 
 def _type_schema(type_: Any) -> dict[str, Any]:
     """The JSON Schema of a bounded scalar type (schemas.common.Name, Text, GoalId)."""
-    return dict(msgspec.json.schema(type_))
+    return _ecma(dict(msgspec.json.schema(type_)))
 
 
 def _number(value: float) -> str:
