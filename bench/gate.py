@@ -71,7 +71,11 @@ p50 1.31 and 1.29 ms, relay 0.53 and 0.55, p99 3.04 and 2.98). Signing now copie
 (58 to 91 us asleep; services/robotlink.py); end to end that is within the noise of three runs each
 (gate p50 1.11 ms before and after). Relaying the goals' status topics, which the sim publishes as
 its reply goes, costs the goals nothing measurable (two runs each: ratio 2.42 and 2.46 with it, 2.42
-and 2.41 without).
+and 2.41 without). The trajectory check in plain floats, a point tested against a zone's bounding box
+before shapely, and the grasp frame placed alone (2026-11-29): check_trajectory of the bench's goal
+192 us after 40 ms asleep against 340 (21 against 40 back to back); end to end, three interleaved
+runs each, `ratio_p50` 2.11, 2.15 and 2.15 against 2.28, 2.22 and 2.28 (gate p50 0.96 to 1.07 ms
+against 1.01 to 1.14, the relay's 0.45 to 0.50 in both).
 
 `ratio_p50` is the gate's median over the relay's; `rejected` counts goals not accepted (the first
 reason in `errors`; a rejected goal is not timed), `failed` goals accepted whose result was not

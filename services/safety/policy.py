@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Generic, TypeVar, assert_never
@@ -49,12 +48,14 @@ from services.worldmodel import WorldModel, drive_route
 T = TypeVar("T")
 
 # Up to this many trajectory points, or end effector positions along the arm's path, are checked one
-# by one; more, all at once (numpy, shapely), then one by one only to name what fails. One by one costs
-# less for a few (numpy's calls cost more than a few floats' arithmetic). A 25-point trajectory's
-# check in process, against the point-by-point code before: 0.65 ms against 1.38, 1.07 against 2.33
-# in a slower minute; 100 points, 2.8 times faster (2026-11-28, this machine).
-FEW_POINTS = 4
-FEW_ARM_POINTS = 4
+# by one in plain floats; more, all at once (numpy, shapely), then one by one only to name what fails.
+# One by one costs less for a few: numpy's calls cost more than a few floats' arithmetic, the more so
+# in a check run after idling, as safety's are. check_trajectory in process, back to back and after
+# 40 ms asleep (2026-11-29, this machine): a one-point goal whose path has 16 end effector positions
+# 61 and 241 us one by one against 74 and 440 at once, 24 positions 85 and 247 against 86 and 447; 12
+# points (the joint checks) 97 and 216 against 107 and 386, 16 points 125 and 274 against 124 and 441.
+FEW_POINTS = 12
+FEW_ARM_POINTS = 16
 
 # Joint positions may not come closer than this to the limits.
 JOINT_LIMIT_MARGIN = 0.01
@@ -153,6 +154,14 @@ def _joint_checks_pass(
     return (float(speeds.max()) if speeds.size else 0.0), positions
 
 
+def _largest_move(q0: list[float], q1: list[float]) -> float:
+    """The most any joint moves from q0 to q1: NaN when a move is NaN, as numpy's max has it (max()
+    keeps a NaN only when it comes first)."""
+    moves = [abs(b - a) for a, b in zip(q0, q1, strict=True)]
+    total = sum(moves)
+    return max(moves, default=0.0) if math.isfinite(total) else total
+
+
 def _held_path(pose: Pose2D, linear: float, angular: float, seconds: float) -> list[tuple[float, float]]:
     """The base centre's path holding (`linear`, `angular`) for `seconds` from `pose`: the arc it
     drives, as chords that cut inside it by at most ARC_TOLERANCE (a chord over a turn of theta,
@@ -198,6 +207,8 @@ class SafetyPolicy:
         self.radius = world.base_radius + base.footprint_margin
         self.zone_shapes: dict[str, BaseGeometry] = {zone.id: Polygon(zone.polygon) for zone in limits.keep_out}
         self.zones = {zone_id: shape.buffer(self.radius) for zone_id, shape in self.zone_shapes.items()}
+        # Each zone's bounding box (min x, min y, max x, max y): a point outside it is outside the zone.
+        self._zone_boxes = [(zone, self.zone_shapes[zone.id].bounds) for zone in limits.keep_out]
         self.payload = self.policy.payload.max_mass
         self._floor = unary_union(list(world.room_shapes.values()))
         self.base_size = robot.base_size
@@ -229,9 +240,18 @@ class SafetyPolicy:
                 return zone
         return None
 
+    def _zone_hit_point(self, x: float, y: float) -> KeepOut | None:
+        """_zone_hit(Point(x, y), grown=False), building the Point only for a zone whose bounding box
+        holds it (GEOS answers False outside the box too): building and testing a Point after idling
+        took some 60 of check_trajectory's 190 us (one position, in process, 2026-11-29)."""
+        for zone, (x0, y0, x1, y1) in self._zone_boxes:
+            if x0 <= x <= x1 and y0 <= y <= y1 and Point(x, y).intersects(self.zone_shapes[zone.id]):
+                return zone
+        return None
+
     def zone_at(self, x: float, y: float) -> KeepOut | None:
         """The keep-out zone the base's centre stands in (not grown), for the monitors."""
-        return self._zone_hit(Point(x, y), grown=False)
+        return self._zone_hit_point(x, y)
 
     def check_spot(self, pose: Pose2D) -> None:
         """Where a plan sends the base: on the map, its footprint out of keep-out zones and as far
@@ -526,19 +546,22 @@ class SafetyPolicy:
         if base is None:
             raise Vetoed("the robot's pose is unknown (no recent odometry)", Rule.POSE_KNOWN)
         index = [self.arm.joint_names.index(n) for n in goal.joint_names]
-        full = np.array([current[n] for n in self.arm.joint_names], dtype=float)
-        start = [float(current[n]) for n in goal.joint_names]
+        full = [float(current[n]) for n in self.arm.joint_names]
+        if not all(map(math.isfinite, full)):
+            broken = [n for n, q in zip(self.arm.joint_names, full, strict=True) if not math.isfinite(q)]
+            raise Vetoed(f"the arm's joint states give no position for {', '.join(broken)}", Rule.POSE_KNOWN)
+        start = [full[i] for i in index]
         limits = [self.joint_limits[name] for name in goal.joint_names]
         # All points at once; point by point only when that finds something, to name the first.
         passed = _joint_checks_pass(goal, start, limits) if len(goal.points) > FEW_POINTS else None
-        path: Sequence[np.ndarray]
+        path: list[list[float]]
         if passed is None:
             fastest, path = self._joint_checks(goal, start, limits, full, index)
         else:
             fastest, rows = passed
             table = np.tile(full, (len(rows) + 1, 1))
             table[1:, index] = rows
-            path = list(table)
+            path = table.tolist()
         reach = self._check_arm_path(path, base)
         values = {"points": float(len(goal.points)), "fastest_rps": fastest, **reach}
         checks = (
@@ -556,15 +579,15 @@ class SafetyPolicy:
         goal: FollowJointTrajectoryGoal,
         start: list[float],
         limits: list[JointLimit],
-        full: np.ndarray,
+        full: list[float],
         index: list[int],
-    ) -> tuple[float, list[np.ndarray]]:
+    ) -> tuple[float, list[list[float]]]:
         """The joint checks point by point, raising at the first point and joint that fails: the
         fastest joint speed and the joint path (every arm joint, from `full`). In plain floats (a numpy
         scalar's arithmetic costs several times a float's): the same IEEE doubles."""
         previous, previous_time = start, 0.0
         fastest = 0.0
-        path = [full.copy()]
+        path = [full]
         for i, point in enumerate(goal.points):
             if len(point.positions) != len(goal.joint_names):
                 raise Vetoed(
@@ -615,29 +638,29 @@ class SafetyPolicy:
                         limit_rps=limit,
                     )
             row = path[-1].copy()
-            row[index] = positions
+            for j, q in zip(index, positions, strict=True):
+                row[j] = q
             path.append(row)
             previous, previous_time = positions, point.time_from_start
         return fastest, path
 
-    def _check_arm_path(self, path: Sequence[np.ndarray], base: Pose2D) -> dict[str, float]:
+    def _check_arm_path(self, path: list[list[float]], base: Pose2D) -> dict[str, float]:
         """Forward kinematics along the joint path, interpolated finely; raises at the first point out.
         Past a few points, the workspace and the zones are checked for every point at once, and point
         by point only when that finds one out, to name the first."""
         segments = list(itertools.pairwise(path))
-        steps = [
-            max(1, math.ceil(float(np.max(np.abs(q1 - q0), initial=0.0)) / INTERPOLATION_STEP)) for q0, q1 in segments
-        ]
+        steps = [max(1, math.ceil(_largest_move(q0, q1) / INTERPOLATION_STEP)) for q0, q1 in segments]
         if sum(steps) <= FEW_ARM_POINTS:
             return self._arm_path_point_by_point(segments, steps, base)
         # The same configurations, in order, as q0 + (q1 - q0) * k / n for k = 1 .. n on each segment.
+        rows = np.array(path, dtype=float)
         configurations = np.concatenate(
             [
                 q0 + (q1 - q0) * np.arange(1, n + 1)[:, np.newaxis] / n
-                for (q0, q1), n in zip(segments, steps, strict=True)
+                for (q0, q1), n in zip(itertools.pairwise(rows), steps, strict=True)
             ]
         )
-        hand = np.array([self.arm.grasp_point(q) for q in configurations])
+        hand = np.array([self.arm.grasp_xyz(q) for q in configurations])
         x, y, z = hand[:, 0] + self.mount.x, hand[:, 1] + self.mount.y, hand[:, 2] + self.mount.z
         low, high = self.policy.workspace.min, self.policy.workspace.max
         inside = (low.x <= x) & (x <= high.x) & (low.y <= y) & (y <= high.y) & (low.z <= z) & (z <= high.z)
@@ -655,19 +678,20 @@ class SafetyPolicy:
         return {"lowest_m": float(z.min()), "farthest_m": max(0.0, float(x.max()))}
 
     def _arm_path_point_by_point(
-        self, segments: list[tuple[np.ndarray, np.ndarray]], steps: list[int], base: Pose2D
+        self, segments: list[tuple[list[float], list[float]]], steps: list[int], base: Pose2D
     ) -> dict[str, float]:
         """`_check_arm_path` one point at a time: raises for the first whose end effector leaves the
-        workspace or reaches into a keep-out zone."""
+        workspace or reaches into a keep-out zone. In plain floats, as numpy's q0 + (q1 - q0) * k / n
+        would work them out element by element."""
         lowest, farthest = math.inf, 0.0
         for (q0, q1), n in zip(segments, steps, strict=True):
             for k in range(1, n + 1):
-                px, py, pz = self.arm.grasp_point(q0 + (q1 - q0) * k / n).tolist()
+                px, py, pz = self.arm.grasp_xyz([a + (b - a) * k / n for a, b in zip(q0, q1, strict=True)])
                 x, y, z = px + self.mount.x, py + self.mount.y, pz + self.mount.z
                 self.check_in_workspace(x, y, z, "the end effector")
                 lowest, farthest = min(lowest, z), max(farthest, x)
                 world = base_to_map(base, x, y)
-                if zone := self._zone_hit(Point(world), grown=False):
+                if zone := self._zone_hit_point(*world):
                     raise Vetoed(
                         f"the end effector would reach into keep-out zone '{zone.name}' at "
                         f"({_fmt(world[0])}, {_fmt(world[1])}){_why(zone)}",
@@ -699,7 +723,7 @@ class SafetyPolicy:
         """The end effector can go to `position` (map frame) from `approach` without leaving the
         workspace or reaching into a keep-out zone."""
         self.check_in_workspace(*map_to_base(approach, position.x, position.y), position.z, what)
-        if zone := self._zone_hit(Point(position.x, position.y), grown=False):
+        if zone := self._zone_hit_point(position.x, position.y):
             raise Vetoed(
                 f"{what} at ({_fmt(position.x)}, {_fmt(position.y)}) is inside keep-out zone '{zone.name}'{_why(zone)}",
                 Rule.ARM_KEEP_OUT,
