@@ -99,6 +99,11 @@ class GoalHandle(Generic[G, F]):
         return self.cancel_requested.is_set()
 
 
+def _events() -> tuple[threading.Event, threading.Event]:
+    """A goal handle's cancel_requested and done."""
+    return threading.Event(), threading.Event()
+
+
 class ActionServer(Generic[G, F, R]):
     """Serves one action. Each accepted goal runs `execute` on its own thread, started once the
     goal's acceptance is on its way back; until then it counts as running (it keeps others out, a
@@ -148,7 +153,8 @@ class ActionServer(Generic[G, F, R]):
         self._exclusive = exclusive
         self._preempts = preempts
         self._preempt_timeout = preempt_timeout
-        self._concurrent = concurrent or (lambda _goal: False)
+        # None: every goal moves the robot (no call made to say so, on every goal's path).
+        self._concurrent = concurrent
         self._accept_waits = accept_waits or (lambda _goal: accept is not None)
         # Every goal accepted and not yet forgotten, by id; of them, those running (accepted, not yet
         # ended: a goal leaves as its `done` is set, under the lock), and those ended, oldest first
@@ -167,6 +173,10 @@ class ActionServer(Generic[G, F, R]):
         # MAX_EARLY_CANCELS): a client that had no answer to its send_goal cancels the goal by id, and
         # the server may still be deciding on it. Such a goal is rejected when its turn comes.
         self._canceled_early: dict[str, None] = {}
+        # The Events of the next accepted goal's handle, made before it comes (again in `_start`, once
+        # the reply has gone): made on the reply's path they cost the sim's send_goal some 40 us, as the
+        # robot mostly answers a goal after sleeping, when such code takes many times its warm time.
+        self._spare_events: tuple[threading.Event, threading.Event] | None = _events()
         self._feedback = node.publisher(action.feedback)
         self._status = node.publisher(action.status)
         # An accepted goal starts once its acceptance has gone back (`_start`): the sender does not
@@ -213,7 +223,12 @@ class ActionServer(Generic[G, F, R]):
         goal = request.goal
         if self._accept_waits(goal):
             return False
-        if not (self._exclusive and self._preempts is not None) or self._concurrent(goal) or not self._preempts(goal):
+        concurrent = self._concurrent
+        if (
+            not (self._exclusive and self._preempts is not None)
+            or (concurrent and concurrent(goal))
+            or not self._preempts(goal)
+        ):
             return True
         with self._lock:
             return not self._blocking()
@@ -225,7 +240,7 @@ class ActionServer(Generic[G, F, R]):
         with self._lock:
             if reason is None and request.goal_id in self._goals:
                 reason = f"goal id {request.goal_id} was already used"
-        exclusive = self._exclusive and not self._concurrent(request.goal)
+        exclusive = self._exclusive and not (self._concurrent and self._concurrent(request.goal))
         if reason is None and exclusive and self._preempts is not None and self._preempts(request.goal):
             preempted, reason = self._preempt(request.goal_id)
             # Asked again for what may have changed while it waited. With no goal to wait for, the answer
@@ -246,7 +261,11 @@ class ActionServer(Generic[G, F, R]):
             if reason is not None:
                 log.info("rejected goal %s on %s: %s", request.goal_id, self._action.path, reason)
                 return GoalResponse(goal_id=request.goal_id, accepted=False, reason=reason)
-            handle: GoalHandle[G, F] = GoalHandle(request.goal_id, request.goal, self._publish_feedback)
+            cancel_requested, done = self._spare_events or _events()
+            self._spare_events = None
+            handle: GoalHandle[G, F] = GoalHandle(
+                request.goal_id, request.goal, self._publish_feedback, cancel_requested=cancel_requested, done=done
+            )
             self._goals[request.goal_id] = self._running[request.goal_id] = handle
         return GoalResponse(goal_id=request.goal_id, accepted=True)
 
@@ -261,9 +280,14 @@ class ActionServer(Generic[G, F, R]):
         except RuntimeError as exc:  # no thread to be had (a process's task limit): the goal must not stay running
             log.error("goal %s on %s could not start: %s", handle.goal_id, self._action.path, exc)
             self._end(handle, Outcome(GoalState.ABORTED, None, f"{self._action.path} could not start the goal: {exc}"))
+        spare = _events()  # for the next goal (see __init__)
+        with self._lock:
+            self._spare_events = self._spare_events or spare
 
     def _blocking(self) -> list[GoalHandle[G, F]]:
         """The running goals that keep others out (not the concurrent ones). With the lock held."""
+        if self._concurrent is None:
+            return list(self._running.values())
         return [g for g in self._running.values() if not self._concurrent(g.goal)]
 
     def _preempt(self, goal_id: str) -> tuple[bool, str | None]:

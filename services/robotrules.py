@@ -93,7 +93,10 @@ class HeartbeatGuard:
         self.max_age = max_age
         self._clock = clock
         self._wall_clock = wall_clock
-        self._beat = threading.Condition()
+        # Taken alone where nothing waits or is told (C's enter and exit, not the Condition's own in
+        # Python): `accept` takes it twice for every goal.
+        self._lock = threading.RLock()
+        self._beat = threading.Condition(self._lock)
         self._status: SafetyStatus | None = None
         self._heard_at = 0.0  # when the heartbeat counting longest arrived
         self._stale_at = -math.inf  # when it stops counting
@@ -115,17 +118,17 @@ class HeartbeatGuard:
 
     @property
     def status(self) -> SafetyStatus | None:
-        with self._beat:
+        with self._lock:
             return self._status
 
     def stale_at(self) -> float | None:
         """When the heartbeats heard stop counting (clock seconds); None before the first that counts."""
-        with self._beat:
+        with self._lock:
             return None if self._stale_at == -math.inf else self._stale_at
 
     def block(self) -> str | None:
         """Why the robot must stay still right now, or None when safety says it may move."""
-        with self._beat:
+        with self._lock:
             status, at, stale_at, late = self._status, self._heard_at, self._stale_at, self._late
         if status is None:
             return NO_HEARTBEAT_YET
@@ -154,7 +157,8 @@ class HeartbeatGuard:
     def accept(self) -> str | None:
         """None when a goal may be accepted now, else why not. Never moves without a heartbeat: this
         only waits (bounded) for the first one to arrive, and for one more when the e-stop shows latched."""
-        self._first.wait(self.first_heartbeat_wait)
+        if not self._first.is_set():
+            self._first.wait(self.first_heartbeat_wait)
         reason = self.block()
         status = self.status
         if status is not None and status.estop.latched:
@@ -196,25 +200,36 @@ def _log_speed_change(previous: float, scale: float, why: str) -> None:
         log.debug("speed scale %.2f (%s)", scale, why)
 
 
+_ARM_JOINT_SET = frozenset(ARM_JOINTS)
+_ARM_JOINT_LIST = list(ARM_JOINTS)
+
+
 def check_trajectory(goal: FollowJointTrajectoryGoal, lower: Sequence[float], upper: Sequence[float]) -> str | None:
     """Why the arm cannot follow a trajectory goal, or None when it can; `lower` and `upper` are the
     limits of ARM_JOINTS, in order."""
-    unknown = [n for n in goal.joint_names if n not in ARM_JOINTS]
-    if unknown:
+    names = goal.joint_names
+    if not _ARM_JOINT_SET.issuperset(names):
+        unknown = [n for n in names if n not in _ARM_JOINT_SET]
         return f"unknown joints {unknown}; this arm has {list(ARM_JOINTS)}"
-    if len(set(goal.joint_names)) != len(goal.joint_names):
-        return f"joint names repeat: {goal.joint_names}"
+    if len(set(names)) != len(names):
+        return f"joint names repeat: {names}"
+    # Each joint's limits looked up once for the goal, not per point, and not at all for the arm's
+    # joints in their order (what safety sends): the robot checks every goal as it comes, after
+    # sleeping between goals, when each call costs many times its warm time.
+    lows, highs = lower, upper
+    if names != _ARM_JOINT_LIST:
+        lows = [lower[ARM_JOINTS.index(name)] for name in names]
+        highs = [upper[ARM_JOINTS.index(name)] for name in names]
     previous = -1.0
     for k, point in enumerate(goal.points):
-        if len(point.positions) != len(goal.joint_names):
-            return f"point {k} has {len(point.positions)} positions for {len(goal.joint_names)} joints"
+        if len(point.positions) != len(names):
+            return f"point {k} has {len(point.positions)} positions for {len(names)} joints"
         if point.time_from_start < previous:
             return f"point {k} goes back in time ({point.time_from_start:g} s after {previous:g} s)"
         previous = point.time_from_start
-        for name, value in zip(goal.joint_names, point.positions, strict=True):
-            i = ARM_JOINTS.index(name)
-            if not lower[i] <= value <= upper[i]:
-                return f"point {k}: {name} = {value:.3f} rad is outside [{lower[i]:.3f}, {upper[i]:.3f}]"
+        for name, value, low, high in zip(names, point.positions, lows, highs, strict=True):
+            if not low <= value <= high:
+                return f"point {k}: {name} = {value:.3f} rad is outside [{low:.3f}, {high:.3f}]"
     return None
 
 
