@@ -20,6 +20,7 @@ from services.safety.errors import Vetoed
 from services.safety.policy import SafetyPolicy
 from services.safety.policyfile import load_policy
 from services.worldmodel import WorldModel, load_world
+from tests.unit.test_safety_rules import decision
 
 WORLD = load_world()
 STAIRS = next(zone for zone in WORLD.keep_out if zone.id == "stairs")
@@ -66,14 +67,6 @@ def trajectory(rng: np.random.Generator, policy: SafetyPolicy) -> tuple[FollowJo
     return FollowJointTrajectoryGoal(joint_names=names, points=points), base
 
 
-def decision(policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, base: Pose2D) -> tuple[object, ...]:
-    try:
-        verdict = policy.check_trajectory(goal, NOW, base)
-    except Vetoed as exc:
-        return ("vetoed", str(exc), exc.rule, exc.values)
-    return ("approved", verdict.values)
-
-
 def test_trajectories_checked_point_by_point_and_all_at_once_are_decided_alike(
     policy: SafetyPolicy, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -81,10 +74,10 @@ def test_trajectories_checked_point_by_point_and_all_at_once_are_decided_alike(
     cases = [trajectory(rng, policy) for _ in range(300)]
     monkeypatch.setattr(policy_module, "FEW_POINTS", 0)
     monkeypatch.setattr(policy_module, "FEW_ARM_POINTS", 0)
-    at_once = [decision(policy, goal, base) for goal, base in cases]
+    at_once = [decision(policy, goal, base, NOW) for goal, base in cases]
     monkeypatch.setattr(policy_module, "FEW_POINTS", 10**9)
     monkeypatch.setattr(policy_module, "FEW_ARM_POINTS", 10**9)
-    assert [decision(policy, goal, base) for goal, base in cases] == at_once
+    assert [decision(policy, goal, base, NOW) for goal, base in cases] == at_once
     assert sum(d[0] == "approved" for d in at_once) > 30
     rules = {d[2] for d in at_once if d[0] == "vetoed"}
     assert {Rule.JOINT_LIMITS, Rule.JOINT_SPEED, Rule.WORKSPACE, Rule.ARM_KEEP_OUT} <= rules, rules

@@ -887,9 +887,12 @@ def random_trajectory(rng: np.random.Generator, policy: SafetyPolicy) -> tuple[F
     return goal, Pose2D(x=spot[0], y=spot[1], yaw=yaw)
 
 
-def decision(policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, base: Pose2D) -> tuple[object, ...]:
+def decision(
+    policy: SafetyPolicy, goal: FollowJointTrajectoryGoal, base: Pose2D, now: dict[str, float] = NOW
+) -> tuple[object, ...]:
+    """check_trajectory's verdict or refusal, as values to compare (the arm standing at `now`)."""
     try:
-        verdict = policy.check_trajectory(goal, NOW, base)
+        verdict = policy.check_trajectory(goal, now, base)
     except Vetoed as exc:
         return ("vetoed", str(exc), exc.rule, exc.values)
     return ("approved", verdict.values)
@@ -902,6 +905,8 @@ def test_a_long_trajectory_checked_all_at_once_is_decided_as_point_by_point(
     # point by point only to name the first that fails: the same decisions, messages and values.
     rng = np.random.default_rng(21)
     cases = [random_trajectory(rng, policy) for _ in range(300)]
+    monkeypatch.setattr(policy_module, "FEW_POINTS", 0)  # all at once, whatever the thresholds
+    monkeypatch.setattr(policy_module, "FEW_ARM_POINTS", 0)
     at_once = [decision(policy, goal, base) for goal, base in cases]
     monkeypatch.setattr(policy_module, "FEW_POINTS", 10**9)
     monkeypatch.setattr(policy_module, "FEW_ARM_POINTS", 10**9)
