@@ -105,7 +105,7 @@ def stopped_while_running(
     try:
         document = json.loads(out)
     except ValueError:
-        pytest.fail(f"no JSON object: {out!r} {err!r}")
+        pytest.fail(f"no JSON object (exit {process.returncode}): {out!r} {err!r}")
     return process.returncode, document, err
 
 
