@@ -41,7 +41,9 @@ def tether_process(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen
     as text; killed at the end if it still runs."""
     process = subprocess.Popen(
         [sys.executable, "-m", "tether", *args],
-        env=env,
+        # A crash (a signal's SIGSEGV or SIGABRT) says where on stderr: CI saw a command stopped by a
+        # Ctrl-C end with no output at all, twice, never here.
+        env={**env, "PYTHONFAULTHANDLER": "1"},
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

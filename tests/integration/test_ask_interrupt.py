@@ -264,7 +264,7 @@ def test_an_ask_through_an_older_planner_service_falls_back_to_cancel_the_goal_i
         finally:
             interrupted.set()
             planner.close()
-    assert "waiting for the planner's answer" in said and out, (said, out, err)
+    assert "waiting for the planner's answer" in said and out, (process.returncode, said, out, err)
     document = json.loads(out)
     assert (process.returncode, document["status"], document["goal_id"]) == (1, "canceled", stand_in.goal_id), err
     assert stand_in.ended == [GoalState.CANCELED], err
