@@ -318,8 +318,10 @@ def ask_service(node: Node, request: AskRequest, timeout: float) -> AskReply:
         except Exception as exc:  # CallError, or the session closed under the call
             answer.set_exception(exc)
 
-    threading.Thread(target=call, name="plan/ask", daemon=True).start()
     try:
+        # Started inside the try: a Ctrl-C can come while start() waits for the thread to run, by which
+        # time the request may have gone (the planner may be acting on it), and must cancel it too.
+        threading.Thread(target=call, name="plan/ask", daemon=True).start()
         return answer.result()
     except CallError as exc:
         raise PlannerFailed(exc.error.message, exc.error.kind == "unavailable") from None
