@@ -1,5 +1,5 @@
-"""The sim thread as a service runs it (services/sim/loop.py SimLoop), without Zenoh, for unit tests
-that ask it what sim/move, sim/fault and goals ask it."""
+"""The sim without Zenoh for unit tests: its thread as a service runs it (services/sim/loop.py SimLoop),
+asked what sim/move, sim/fault and goals ask it; a move done in the Simulation itself."""
 
 from __future__ import annotations
 
@@ -7,8 +7,10 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from schemas.world import Moved, MoveEntity
 from services.sim.loop import SimLoop
 from services.sim.simulation import Simulation
+from services.sim.world import Drop
 
 
 @contextmanager
@@ -23,3 +25,12 @@ def sim_thread(sim: Simulation, realtime_factor: float) -> Iterator[SimLoop]:
     finally:
         stop.set()
         thread.join(5.0)
+
+
+def moved(sim: Simulation, request: MoveEntity) -> Moved:
+    """`request` done (it must be taken) and the object let settle, stepped here: what sim/move replies."""
+    drop = sim.scene.move(request)
+    assert isinstance(drop, Drop), drop
+    sim.run(drop, timeout=5.0)
+    assert drop.result is not None
+    return drop.result

@@ -14,14 +14,14 @@ import pytest
 from schemas.actions import GoalState
 from schemas.common import Pose2D, Vec3
 from schemas.robot import NavigateToPoseGoal
-from schemas.world import Moved, MoveEntity, PerceivedObject
+from schemas.world import MoveEntity, PerceivedObject
 from services.executor.navigation import BasePlanner
 from services.runtime import ConfigError, load_config
 from services.sim.config import CameraConfig, SimConfig
 from services.sim.simulation import Simulation
-from services.sim.world import Drop
 from services.worldmodel import WorldModel, load_world
 from tests.fastsim import FAST_PHYSICS_HZ
+from tests.simthread import moved
 
 WORLD = load_world("household")
 GRASP_TOLERANCE = 0.015
@@ -62,14 +62,6 @@ def seen(sim: Simulation) -> dict[str, PerceivedObject]:
 
 def error(a: Vec3, b: Vec3) -> float:
     return math.dist((a.x, a.y, a.z), (b.x, b.y, b.z))
-
-
-def move(sim: Simulation, request: MoveEntity) -> Moved:
-    drop = sim.scene.move(request)
-    assert isinstance(drop, Drop), drop
-    sim.run(drop, timeout=5.0)
-    assert drop.result is not None
-    return drop.result
 
 
 def pixel_of(sim: Simulation, point: Vec3) -> tuple[int, int] | None:
@@ -130,7 +122,7 @@ def test_from_the_start_the_coffee_table_and_its_book_are_seen_and_the_kitchen_i
 
 def test_an_object_hidden_behind_furniture_is_not_reported(sim: Simulation) -> None:
     drive(sim, approach("kitchen_table"))
-    behind_the_table = move(sim, MoveEntity(id="red_cup", x=2.5, y=4.4))
+    behind_the_table = moved(sim, MoveEntity(id="red_cup", x=2.5, y=4.4))
     assert behind_the_table.position.z == pytest.approx(0.05, abs=0.005)
     assert pixel_of(sim, behind_the_table.position) is not None, "only the table is in the way"
     assert "red_cup" not in seen(sim)
@@ -170,12 +162,12 @@ def test_without_noise_every_frame_agrees(sim: Simulation) -> None:
 def test_an_object_moved_onto_furniture_rests_on_it_and_the_camera_sees_it_there(sim: Simulation) -> None:
     drive(sim, approach("kitchen_counter"))
     assert "blue_book" not in seen(sim)
-    moved = move(sim, MoveEntity(id="blue_book", x=2.5, y=0.45, yaw=0.3))
-    assert (moved.position.x, moved.position.y) == pytest.approx((2.5, 0.45), abs=0.005)
-    assert moved.position.z == pytest.approx(0.9 + 0.015, abs=0.003)
+    put = moved(sim, MoveEntity(id="blue_book", x=2.5, y=0.45, yaw=0.3))
+    assert (put.position.x, put.position.y) == pytest.approx((2.5, 0.45), abs=0.005)
+    assert put.position.z == pytest.approx(0.9 + 0.015, abs=0.003)
     book = seen(sim)["blue_book"]
     assert book.on == "kitchen_counter" and book.room == "kitchen"
-    assert error(book.position, moved.position) < GRASP_TOLERANCE
+    assert error(book.position, put.position) < GRASP_TOLERANCE
 
 
 def test_the_floor_is_drawn_in_pictures_only_and_hides_nothing_the_detector_looks_for(sim: Simulation) -> None:
@@ -183,7 +175,7 @@ def test_the_floor_is_drawn_in_pictures_only_and_hides_nothing_the_detector_look
     per pixel drawn); what the camera sees is the same with it, an object lying on it too, and
     pictures, for people, draw it."""
     camera, base, floor = sim.sensors.camera, sim.robot.base_pose(), sim.scene.floor
-    dropped = move(sim, MoveEntity(id="apple", x=base.x + 1.4, y=base.y - 0.2))  # on the floor, in view
+    dropped = moved(sim, MoveEntity(id="apple", x=base.x + 1.4, y=base.y - 0.2))  # on the floor, in view
     assert dropped.position.z < 0.1, dropped
     assert not (camera.render(base).segmentation == floor).any()
     without = seen(sim)

@@ -21,7 +21,7 @@ from services.sim.world import Drop
 from services.worldmodel import load_world
 from tests.fastsim import FAST_PHYSICS_HZ
 from tests.procs import wait_until
-from tests.simthread import sim_thread
+from tests.simthread import moved, sim_thread
 
 WORLD = load_world("household")
 # The arm reaching forward and down: the hand 0.74 m ahead of the base's centre, 0.56 m up, well
@@ -60,14 +60,6 @@ def refused(sim: Simulation, request: MoveEntity, kind: ErrorKind, *words: str) 
     assert reply.kind is kind and all(w in reply.message for w in words), reply
     assert (sim.scene.ground_truth(), dict(sim.scene.human_poses)) == before
     assert not sim.scene.settling
-
-
-def settled(sim: Simulation, request: MoveEntity) -> Moved:
-    drop = sim.scene.move(request)
-    assert isinstance(drop, Drop), drop
-    sim.run(drop, timeout=5.0)
-    assert drop.result is not None
-    return drop.result
 
 
 def test_an_object_is_not_put_among_the_fingers_of_the_arm_reaching_out(sim: Simulation) -> None:
@@ -124,13 +116,13 @@ def test_an_object_is_not_put_inside_a_faults_box(sim: Simulation) -> None:
 
 def test_objects_set_down_close_to_things_but_clear_of_them_still_move(sim: Simulation) -> None:
     # 2 cm from the outer wall's face; 1 cm beside the apple on the kitchen table; on the book's top.
-    near_wall = settled(sim, MoveEntity(id="red_cup", x=0.05 + 0.03 + 0.02, y=2.0))
+    near_wall = moved(sim, MoveEntity(id="red_cup", x=0.05 + 0.03 + 0.02, y=2.0))
     assert (near_wall.position.x, near_wall.position.y) == pytest.approx((0.1, 2.0), abs=0.005)
     apple = sim.scene.object_position("apple")
     beside = apple.x + 0.0375 + 0.03 + 0.01
-    assert settled(sim, MoveEntity(id="coffee_mug", x=beside, y=apple.y)).position.x == pytest.approx(beside, abs=0.005)
+    assert moved(sim, MoveEntity(id="coffee_mug", x=beside, y=apple.y)).position.x == pytest.approx(beside, abs=0.005)
     book = sim.scene.object_position("blue_book")
-    on_book = settled(sim, MoveEntity(id="blue_cup", x=book.x, y=book.y, z=book.z + 0.015))
+    on_book = moved(sim, MoveEntity(id="blue_cup", x=book.x, y=book.y, z=book.z + 0.015))
     assert on_book.position.z == pytest.approx(book.z + 0.015 + 0.05, abs=0.005)
 
 
@@ -160,7 +152,7 @@ def test_an_object_moved_again_while_it_falls_ends_the_earlier_move(sim: Simulat
     assert isinstance(first, Drop)
     sim.step(2)
     assert first.running
-    second = settled(sim, MoveEntity(id="red_cup", x=8.0, y=1.0))
+    second = moved(sim, MoveEntity(id="red_cup", x=8.0, y=1.0))
     # Before: both said the cup had come to rest at (8, 1), the first as if it had fallen there.
     assert not first.running and first.message and "moved again" in first.message
     assert (second.position.x, second.position.y) == pytest.approx((8.0, 1.0), abs=0.01)

@@ -9,8 +9,8 @@ import pytest
 from schemas.common import ErrorKind, ServiceError, Vec3
 from schemas.world import Moved, MoveEntity
 from services.sim.simulation import Simulation
-from services.sim.world import Drop
 from services.worldmodel import load_world
+from tests.simthread import moved
 
 WORLD = load_world("household")
 
@@ -20,14 +20,6 @@ def sim() -> Iterator[Simulation]:
     simulation = Simulation(WORLD)
     yield simulation
     simulation.close()
-
-
-def move(sim: Simulation, request: MoveEntity) -> Moved:
-    drop = sim.scene.move(request)
-    assert isinstance(drop, Drop), drop
-    sim.run(drop, timeout=5.0)
-    assert drop.result is not None
-    return drop.result
 
 
 def test_the_world_starts_as_the_file_says(sim: Simulation) -> None:
@@ -41,9 +33,9 @@ def test_the_world_starts_as_the_file_says(sim: Simulation) -> None:
 
 
 def test_an_object_moved_to_the_floor_or_given_a_height_settles_there(sim: Simulation) -> None:
-    on_floor = move(sim, MoveEntity(id="blue_cup", x=7.0, y=1.5))
+    on_floor = moved(sim, MoveEntity(id="blue_cup", x=7.0, y=1.5))
     assert on_floor.position.z == pytest.approx(0.05, abs=0.003)
-    dropped = move(sim, MoveEntity(id="coffee_mug", x=7.2, y=1.0, z=0.3))
+    dropped = moved(sim, MoveEntity(id="coffee_mug", x=7.2, y=1.0, z=0.3))
     assert dropped.position.z < 0.055, "let go in the air, it falls to the floor (and may tip over)"
     truth = {o.id: o for o in sim.scene.ground_truth().objects}
     assert (truth["blue_cup"].on, truth["blue_cup"].room) == (None, "living_room")
