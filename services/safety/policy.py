@@ -231,19 +231,18 @@ class SafetyPolicy:
 
     # Navigation
 
-    def _zone_hit(
-        self, geometry: BaseGeometry, grown: bool = True, shapes: dict[str, BaseGeometry] | None = None
-    ) -> KeepOut | None:
-        shapes = shapes or (self.zones if grown else self.zone_shapes)
+    def _zone_hit(self, geometry: BaseGeometry, shapes: dict[str, BaseGeometry] | None = None) -> KeepOut | None:
+        """The first zone `geometry` touches, of `shapes` (default: the zones grown by the base's radius)."""
+        shapes = shapes or self.zones
         for zone in self.limits.keep_out:
             if geometry.intersects(shapes[zone.id]):
                 return zone
         return None
 
     def _zone_hit_point(self, x: float, y: float) -> KeepOut | None:
-        """_zone_hit(Point(x, y), grown=False), building the Point only for a zone whose bounding box
-        holds it (GEOS answers False outside the box too): building and testing a Point after idling
-        took some 60 of check_trajectory's 190 us (one position, in process, 2026-11-29)."""
+        """The first zone (not grown) the point (x, y) is in or on. A Point is built only for a zone whose
+        bounding box holds it (GEOS answers False outside the box too): building and testing one after
+        idling took some 60 of check_trajectory's 190 us (one position, in process, 2026-11-29)."""
         for zone, (x0, y0, x1, y1) in self._zone_boxes:
             if x0 <= x <= x1 and y0 <= y <= y1 and Point(x, y).intersects(self.zone_shapes[zone.id]):
                 return zone
