@@ -317,6 +317,10 @@ class Faults:
         part = self.world.robot_part_in(self.world.box_shape(block.half), block.centre, block.yaw)
         if part is not None:
             raise _Refused(ErrorKind.PRECONDITION, f"{self.world.robot_part_said(part)} where {block.name} would go")
+        # People have no collision body: a box put up over one would stand inside them, unnoticed.
+        person = self.world.person_in(self.world.box_shape(block.half), block.centre, block.yaw)
+        if person is not None:
+            raise _Refused(ErrorKind.PRECONDITION, f"{person} stands where {block.name} would go")
         self.world.add_block(block)
         x, y, z = block.centre
         message = f"{block.name} at ({x:.2f}, {y:.2f}) blocks the way until `clear`"

@@ -770,12 +770,16 @@ class SimWorld:
                 f"({request.x:g}, {request.y:g}) is where {self.robot_part_said(part)}: the {name} would be put into it"
             )
             return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
+        # People have no collision body (nothing in the physics pushes them), so a person is kept out of
+        # solids, and objects and other people out of a person, here.
+        solid = self._solid_in(shape, centre, yaw, request.id) or self.person_in(shape, centre, yaw, request.id)
+        if solid is None:
+            return None
         if request.id in self.object_bodies:
-            solid = self._solid_in(shape, centre, yaw, request.id)
-            if solid is not None:
-                message = f"the {name} set down at ({request.x:g}, {request.y:g}) would go into {solid}"
-                return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
-        return None
+            message = f"the {name} set down at ({request.x:g}, {request.y:g}) would go into {solid}"
+        else:
+            message = f"the {name} put at ({request.x:g}, {request.y:g}) would stand in {solid}"
+        return ServiceError(kind=ErrorKind.INVALID_REQUEST, message=message)
 
     def _entity_name(self, entity_id: str) -> str:
         if entity_id in self.model.objects:
@@ -828,6 +832,29 @@ class SimWorld:
             )
             if points:
                 return name
+        return None
+
+    def person_in(self, shape: int, centre: Position, yaw: float, moving: str = "") -> str | None:
+        """The person (`moving` aside) whose body collision shape `shape` would touch or cut into were
+        it put at `centre`, turned `yaw`, named as a refusal says it ("the operator"), or None."""
+        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
+        for human in self.spec.humans:
+            if human.id == moving:
+                continue
+            stands = self.human_poses[human.id]
+            points = self.bullet.getClosestPoints(
+                bodyA=-1,
+                bodyB=-1,
+                distance=0.0,
+                collisionShapeA=self.human_shape,
+                collisionShapeB=shape,
+                collisionShapePositionA=[stands.x, stands.y, HUMAN_HEIGHT / 2],
+                collisionShapePositionB=list(centre),
+                collisionShapeOrientationA=self.bullet.getQuaternionFromEuler([0.0, 0.0, stands.yaw]),
+                collisionShapeOrientationB=orientation,
+            )
+            if points:
+                return f"the {human.name}"
         return None
 
     def _under_the_robot(self, x: float, y: float) -> bool:

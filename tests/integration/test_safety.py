@@ -137,7 +137,7 @@ def test_a_person_near_slows_the_base_and_a_person_close_pauses_it(robot_stack: 
     events = Watch(stack.node, keys.SAFETY_EVENTS)
     odom = Watch(stack.node, keys.ODOM)
     # The operator steps away: full speed.
-    move(stack, "operator", 2.0, 5.0)
+    move(stack, "operator", 2.0, 5.5)
     assert beats.wait_for(lambda b: b.speed_scale == 1.0, timeout=10.0), "never at full speed"
     statuses = Watch(stack.node, keys.CMD_NAVIGATE.status)
     handle = ActionClient(stack.node, keys.CMD_NAVIGATE).send(NavigateToPoseGoal(pose=Pose2D(x=9.5, y=1.2)))
@@ -163,7 +163,7 @@ def test_a_person_near_slows_the_base_and_a_person_close_pauses_it(robot_stack: 
     assert not [s for s in statuses.messages if s.goal_id == handle.goal_id and s.state.terminal]
 
     # The person steps back: the goal finishes.
-    move(stack, "operator", 2.0, 5.0)
+    move(stack, "operator", 2.0, 5.5)
     assert handle.result(timeout=60.0).state is GoalState.SUCCEEDED
     limited = [e for e in events.messages if e.decision is Decision.LIMITED]
     scales = [e.values["scale"] for e in limited]
@@ -182,7 +182,7 @@ def test_teleop_is_clamped_and_reported_while_a_program_over_the_limit_is_refuse
     events = Watch(stack.node, keys.SAFETY_EVENTS)
     sent = Watch(stack.node, keys.ROBOT_CMD_VEL)
     odom = Watch(stack.node, keys.ODOM)
-    move(stack, "operator", 2.0, 5.0)
+    move(stack, "operator", 2.0, 5.5)
     assert Watch(stack.node, keys.HEARTBEAT).wait_for(lambda b: b.speed_scale == 1.0, timeout=10.0)
 
     stop = threading.Event()

@@ -52,7 +52,7 @@ def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     )
     try:
         # The operator away from the base's way: full speed, no separation limit.
-        s.node.call(keys.SIM_MOVE, MoveEntity(id="operator", x=2.0, y=7.0), timeout=10.0)
+        s.node.call(keys.SIM_MOVE, MoveEntity(id="operator", x=3.0, y=7.0), timeout=10.0)
         yield s
     finally:
         stop_stack(s)

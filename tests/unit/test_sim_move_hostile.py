@@ -141,6 +141,55 @@ def test_a_person_is_not_put_over_the_base_nor_into_the_arm(sim: Simulation) -> 
     assert moved == Moved(id="operator", position=Vec3(x=behind, y=START[1], z=0.0))
 
 
+@pytest.mark.parametrize(
+    ("request_", "words"),
+    [
+        # Their centre 10 cm from the outer wall's face (x = 0.05): their body (0.2 m around it) in the wall.
+        (MoveEntity(id="operator", x=0.15, y=2.0), "outer wall"),
+        # Beside the kitchen table, 5 cm from its west edge (x = 1.8): half inside its top.
+        (MoveEntity(id="operator", x=1.75, y=3.9), "kitchen table"),
+    ],
+)
+def test_a_person_is_not_put_into_a_wall_or_furniture(sim: Simulation, request_: MoveEntity, words: str) -> None:
+    # Before: done; people have no collision body, so the operator stood in the wall or the table.
+    refused(sim, request_, ErrorKind.INVALID_REQUEST, "operator", "would stand in", words)
+
+
+def test_an_object_is_not_set_down_where_a_person_stands(sim: Simulation) -> None:
+    # Before: done, the cup dropped at the operator's feet, inside their body.
+    operator = sim.scene.human_poses["operator"]
+    at_their_feet = MoveEntity(id="red_cup", x=operator.x + 0.1, y=operator.y)
+    refused(sim, at_their_feet, ErrorKind.INVALID_REQUEST, "red cup", "operator")
+    # Nor a person moved onto it where it stands on the floor.
+    cup = moved(sim, MoveEntity(id="red_cup", x=8.5, y=1.5)).position
+    refused(sim, MoveEntity(id="operator", x=cup.x + 0.15, y=cup.y), ErrorKind.INVALID_REQUEST, "red cup")
+
+
+def test_a_faults_box_is_not_put_up_where_a_person_stands(sim: Simulation) -> None:
+    # Before: put up, standing inside the operator (people have no collision body to push it off).
+    blocked = sim.faults.inject(InjectFault(kind=FaultKind.BLOCK, target="office"))
+    assert isinstance(blocked, FaultInjected) and blocked.position is not None
+    box = blocked.position
+    assert isinstance(sim.faults.inject(InjectFault(kind=FaultKind.CLEAR)), FaultInjected)
+    assert sim.scene.move(MoveEntity(id="operator", x=box.x, y=box.y)) == Moved(
+        id="operator", position=Vec3(x=box.x, y=box.y, z=0.0)
+    )
+    refusal = sim.faults.inject(InjectFault(kind=FaultKind.BLOCK, target="office"))
+    assert isinstance(refusal, ServiceError) and refusal.kind is ErrorKind.PRECONDITION, refusal
+    assert "operator stands where a box" in refusal.message, refusal
+    assert not sim.scene.blocks
+
+
+def test_a_person_and_an_object_close_to_things_but_clear_of_them_still_move(sim: Simulation) -> None:
+    # 2 cm from the outer wall's face; a cup set down 2 cm beside the operator's body.
+    near_wall = 0.05 + 0.2 + 0.02
+    assert sim.scene.move(MoveEntity(id="operator", x=near_wall, y=2.0)) == Moved(
+        id="operator", position=Vec3(x=near_wall, y=2.0, z=0.0)
+    )
+    beside = near_wall + 0.2 + 0.03 + 0.02
+    assert moved(sim, MoveEntity(id="red_cup", x=beside, y=2.0)).position.x == pytest.approx(beside, abs=0.005)
+
+
 @pytest.mark.parametrize("entity", ["kitchen_table", "wall_south", "robot", "charging_dock", "kitchen"])
 def test_what_is_neither_an_object_nor_a_person_is_not_moved(sim: Simulation, entity: str) -> None:
     # Not a defect before: refused as unknown, the movable ones listed.
