@@ -144,15 +144,15 @@ def exit_status(exc: SystemExit) -> int:
 
 
 def leave(code: int) -> NoReturn:
-    """The service process ends here, its logs and output flushed, without the interpreter's
-    finalization. A service's threads outlive its main (the query pool's workers are daemon threads,
-    one may wait an hour on a goal); one still inside a Zenoh call when Python finalizes is made to exit
-    by the interpreter as it takes the GIL back, and that thread exit unwinds through zenoh's Rust
-    frames, which catch it: glibc aborts the process ("FATAL: exception not rethrown", SIGABRT). A
-    recorder stopped just after answering a status query died so, its recording complete, with -6 for
-    its supervisor (or systemd) to see as a crash. By now the service has closed its session and
-    files; nothing else registered at exit has work to do. Output that can no longer go anywhere (a
-    closed pipe, no stdout at all) does not change the exit status."""
+    """The service process (or a CLI command's, tether/__main__.py) ends here, its logs and output
+    flushed, without the interpreter's finalization. A service's threads outlive its main (the query
+    pool's workers are daemon threads, one may wait an hour on a goal); one still inside a Zenoh call
+    when Python finalizes is made to exit by the interpreter as it takes the GIL back, and that thread
+    exit unwinds through zenoh's Rust frames, which catch it: glibc aborts the process ("FATAL:
+    exception not rethrown", SIGABRT). A recorder stopped just after answering a status query died so,
+    its recording complete, with -6 for its supervisor (or systemd) to see as a crash. By now the
+    service has closed its session and files; nothing else registered at exit has work to do. Output
+    that can no longer go anywhere (a closed pipe, no stdout at all) does not change the exit status."""
     try:
         logging.shutdown()
         for stream in (sys.stdout, sys.stderr):
