@@ -547,7 +547,7 @@ def bench_main(
         reporter(prog)("interrupted")
         sys.exit(130)
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(result), flush=True)  # before finalization, which a thread left in Zenoh may abort
     else:
         print_table(result)
     if result["errors"]:

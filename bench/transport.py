@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> None:
     runtime.configure_logging("WARNING")
     result = run(args.samples, max(0, args.warmup), args.max_seconds)
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(result), flush=True)  # before finalization, which a thread left in Zenoh may abort
     else:
         print_table(result)
 
