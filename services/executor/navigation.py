@@ -12,7 +12,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from functools import cached_property
 from typing import NamedTuple
 
@@ -66,6 +66,15 @@ PEOPLE_NEARBY = 2.0
 # MAX_REVERSE backwards or this far forwards.
 EXIT_STEP = 0.05
 MAX_EXIT_FORWARD = 1.0
+# Well short of MAX_REVERSE, so the sim backs a leg out this long rather than turning round.
+MAX_EXIT_BACK = MAX_REVERSE - LENGTH_MARGIN
+# When no straight leg gets there (a base left by teleop beside a wall, nearly along it, can turn
+# only a little before a corner comes closer), the way out may be up to EXIT_LEGS legs, each turning
+# first by a multiple of EXIT_TURN as far as it keeps clear: a little, a leg away, a little more. The
+# ends of each round of legs farthest from everything (EXIT_BEAM of them) are where the next starts.
+EXIT_TURN = math.radians(2.0)
+EXIT_LEGS = 4
+EXIT_BEAM = 8
 # When the straight approach is blocked (a room's centre facing furniture) and the base can turn at
 # the goal, the path may end this far from the goal instead (within PRE_GOAL_MIN_LEG, so drive_route
 # adds no pre-goal point), at one of this many points round it.
@@ -103,6 +112,15 @@ class _Blocker(NamedTuple):
 
     name: str
     shape: BaseGeometry
+
+
+class _Exit(NamedTuple):
+    """A way out of a tight spot so far: its points, where it ends facing which way (the start when
+    it has none) and about how long driving it takes."""
+
+    points: tuple[tuple[float, float], ...]
+    end: State
+    time: float
 
 
 class _Floorplan:
@@ -472,8 +490,9 @@ class BasePlanner:
     footprint against walls and furniture (and people, for planning only), each motion checked as
     the sim drives it (footprint.route_legs: turn in place, straight legs, short legs behind
     backwards). The footprint keeps `clearance` (at least TRACKING_TOLERANCE, what safety keeps)
-    from everything; the start may be closer (parked at a counter), and the base then first drives
-    straight out, never getting closer. The route ends with a straight approach along the goal's
+    from everything; the start may be closer (parked at a counter, left by a wall by teleop), and
+    the base then first drives out, straight or by a few legs turning a little before each, never
+    getting closer. The route ends with a straight approach along the goal's
     heading from PRE_GOAL_DISTANCE behind it or, when that is blocked or out of reach and the base
     can turn freely at the goal, with a short last leg from any side. Plans are reproducible: the
     same seed gives the same path.
@@ -691,10 +710,11 @@ class BasePlanner:
 
     def _way_out(self, plan: _Floorplan, start: Pose2D) -> tuple[list[tuple[float, float]], State]:
         """Where planning starts: the start itself when the base can turn there, else the nearest
-        point straight behind (less than MAX_REVERSE) or ahead of it where it can, driven to keeping
-        the margin or, when the start is closer than that, getting no closer to anything than the
-        start is (footprint.clearance_problem). Returns that leg's point (if any) and the state
-        planning starts from."""
+        point straight behind (less than MAX_REVERSE) or ahead of it where it can or, when there is
+        none, the end of the quickest few legs there (_legs_out), driven to keeping the margin or,
+        when the start is closer than that, getting no closer to anything than the start is
+        (footprint.clearance_problem). Returns the way out's points (if any) and the state planning
+        starts from."""
         yaw = math.remainder(start.yaw, math.tau)
         origin = (start.x, start.y, yaw)
         if plan.roomy(start.x, start.y):
@@ -705,8 +725,7 @@ class BasePlanner:
         if near := plan.zone_near(Point(start.x, start.y), reach):
             reach = near[1] - EPSILON
         steps = [EXIT_STEP * k for k in range(1, round(MAX_EXIT_FORWARD / EXIT_STEP) + 1)]
-        # Well short of MAX_REVERSE, so the sim backs it rather than turning round.
-        candidates = sorted([-d for d in steps if d <= MAX_REVERSE - LENGTH_MARGIN + EPSILON] + steps, key=abs)
+        candidates = sorted([-d for d in steps if d <= MAX_EXIT_BACK + EPSILON] + steps, key=abs)
         fallback: tuple[list[tuple[float, float]], State] | None = None
         for d in candidates:
             point = (start.x + d * math.cos(yaw), start.y + d * math.sin(yaw))
@@ -720,6 +739,8 @@ class BasePlanner:
                 return [point], (*point, yaw)
             if fallback is None and plan.fits(*point, yaw):
                 fallback = ([point], (*point, yaw))
+        if legs := self._legs_out(plan, Pose2D(x=start.x, y=start.y, yaw=yaw), reach):
+            return legs
         if not tight:
             return [], origin
         if fallback is not None:
@@ -729,8 +750,70 @@ class BasePlanner:
         name = near_blocker[0].name if near_blocker else "something"
         raise PlanningFailed(
             f"the robot at {_at(start.x, start.y)} is {_cm(plan.distance(start_footprint))} from {name} and cannot "
-            f"drive straight out of there to where it could turn"
+            f"drive out of there, in up to {EXIT_LEGS} legs coming no closer to anything, to where it could turn"
         )
+
+    def _legs_out(
+        self, plan: _Floorplan, start: Pose2D, reach: float
+    ) -> tuple[list[tuple[float, float]], State] | None:
+        """The quickest way out of up to EXIT_LEGS legs that ends where the base can turn, fewest
+        legs first, or None: its points and where it ends facing which way. Each round of legs
+        starts from the ends of the last farthest from everything. The first leg leaves the start
+        keeping the margin or getting no closer than the start is, its line `reach` from keep-out
+        zones (footprint.clearance_problem, as the route is checked); later legs keep the margin."""
+        size = (plan.length, plan.width)
+        ends = [_Exit((), (start.x, start.y, start.yaw), 0.0)]
+        for _ in range(EXIT_LEGS):
+            found = [way for end in ends for way in self._exit_legs(plan, end, reach)]
+            for way in sorted((way for way in found if plan.roomy(way.end[0], way.end[1])), key=lambda way: way.time):
+                sweeps = route_sweeps(start, way.points, way.end[2], *size)
+                if not clearance_problem(start, sweeps, plan.blockers, plan.margin, *size):
+                    return list(way.points), way.end
+            found.sort(key=lambda way: -plan.distance(Point(way.end[0], way.end[1])))
+            ends = found[:EXIT_BEAM]
+        return None
+
+    def _exit_legs(self, plan: _Floorplan, way: _Exit, reach: float) -> Iterator[_Exit]:
+        """`way` and one more leg, every one that keeps clear: turning by a multiple of EXIT_TURN either
+        way (no further than the turn keeps clear), then forwards up to MAX_EXIT_FORWARD or backwards
+        up to MAX_EXIT_BACK in steps of EXIT_STEP (no further than the leg keeps clear). The first leg
+        is measured as footprint.clearance_problem measures leaving the start; later ones keep the
+        margin as every motion of the planner does."""
+        x, y, yaw = way.end
+        here = (x, y)
+        first = not way.points
+        # Leaving the start, the base may stay as close as it starts (later legs: plan.turn_clear, leg_clear).
+        required = (
+            min(plan.margin, plan.distance(footprint(x, y, yaw, plan.length, plan.width))) - EPSILON if first else 0.0
+        )
+        robot = self.world.world.robot
+        for sense in (1.0, -1.0):
+            for k in range(0 if sense > 0 else 1, round(math.pi / EXIT_TURN)):
+                heading = math.remainder(yaw + sense * k * EXIT_TURN, math.tau)
+                if first and k:
+                    turn = turn_footprints(x, y, yaw, heading, plan.length, plan.width, 0.0)
+                    if shapely.distance(turn, plan.blocked).min() < required:
+                        break
+                elif not first and not plan.turn_clear(x, y, yaw, heading):
+                    break
+                turning = k * EXIT_TURN / robot.max_angular_speed
+                for direction, farthest in ((1.0, MAX_EXIT_FORWARD), (-1.0, MAX_EXIT_BACK)):
+                    for step in range(1, round(farthest / EXIT_STEP) + 1):
+                        length = step * EXIT_STEP
+                        point = (x + direction * length * math.cos(heading), y + direction * length * math.sin(heading))
+                        held = _headings(yaw, here, point)
+                        if len(held) > 1 or abs(turn_angle(held[0], heading)) > MIN_TURN:
+                            continue  # the sim would not drive it holding this heading
+                        if first:
+                            line: LineString = shapely.linestrings([here, point])
+                            if not plan.floor.covers(line) or plan.zone_near(line, reach):
+                                break
+                            if plan.distance(plan.drive_shape(here, point, heading, 0.0)) < required:
+                                break
+                        elif not plan.leg_clear(here, point, heading):
+                            break
+                        time = way.time + turning + length / robot.max_linear_speed
+                        yield _Exit((*way.points, point), (*point, heading), time)
 
     def _check_connected(self, plan: _Floorplan, start: Pose2D, origin: State, goal: Pose2D) -> None:
         """Fail fast, naming why, when no opening as wide as the base leads from start to goal."""

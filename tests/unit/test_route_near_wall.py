@@ -1,5 +1,6 @@
 """A route the base planner gives from a few centimetres off a wall is one safety accepts from where
-the base stands when it checks it, not only from the very pose the planner read.
+the base stands when it checks it, not only from the very pose the planner read; and there is one
+from where teleop can leave the base, along a wall, whenever it can leave without coming closer.
 
 The executor plans from its latest odometry; safety checks the goal a moment later from its own
 (services/safety/gate.py, SafetyGate.navigate). A base standing under its motors creeps (about 2e-5
@@ -22,6 +23,7 @@ import pytest
 from shapely.geometry import LineString
 
 from schemas.common import Pose2D
+from services.executor.errors import PlanningFailed
 from services.executor.navigation import BasePlanner
 from services.footprint import START_SLACK, TRACKING_TOLERANCE, Sweep, clearance_problem, footprint
 from services.robotmodel import ArmModel
@@ -51,6 +53,27 @@ NEAR_WALL = [
 ]
 
 
+# Bases teleop can leave (its guard stops the footprint 1 to 5 cm short, services/safety/shared.py)
+# from which no straight leg reaches where the base can turn: nearly along the living room's south
+# wall (facing west; 4 cm off, so it may turn, but only by a hair); in its south-east corner; along
+# the kitchen table; at an angle to the kitchen counter. Each needs a few legs out, turning a little
+# before each, coming no closer to anything than it starts ("cannot drive straight out", or OMPL
+# finding nothing, before).
+ALONG_A_WALL = [
+    Pose2D(x=10.36, y=0.3255, yaw=3.118),
+    Pose2D(x=6.401, y=0.3573, yaw=3.096),
+    Pose2D(x=11.088, y=0.3842, yaw=0.278),
+    Pose2D(x=1.975, y=3.228, yaw=0.034),
+    Pose2D(x=3.893, y=0.4253, yaw=2.855),
+]
+
+
+def gap_of(start: Pose2D) -> float:
+    """How far the base's footprint at `start` is from the nearest wall or piece of furniture."""
+    shape = footprint(start.x, start.y, start.yaw, ROBOT.base_size.x, ROBOT.base_size.y)
+    return min(shape.distance(o.shape) for o in WORLD.obstacles)
+
+
 def drifted(pose: Pose2D) -> list[Pose2D]:
     """`pose` and the poses around it within the drift, every combination of the extremes."""
     yaws = (-DRIFT_YAW, 0.0, DRIFT_YAW)
@@ -68,8 +91,7 @@ def planner() -> BasePlanner:
 
 @pytest.mark.parametrize("start", NEAR_WALL, ids=lambda p: f"{p.x}-{p.y}-{p.yaw}")
 def test_the_way_out_from_beside_a_wall_is_accepted_from_a_hair_away(planner: BasePlanner, start: Pose2D) -> None:
-    walls = [o.shape for o in WORLD.obstacles]
-    gap = min(footprint(start.x, start.y, start.yaw, ROBOT.base_size.x, ROBOT.base_size.y).distance(w) for w in walls)
+    gap = gap_of(start)
     assert gap < TRACKING_TOLERANCE, f"the start is {gap:.4f} m from the nearest wall: not the situation tested"
     path = planner.plan(start, KITCHEN_TABLE)
     # From the planner's own start the route passes (the planner verifies every route with safety's
@@ -82,6 +104,28 @@ def test_the_way_out_from_beside_a_wall_is_accepted_from_a_hair_away(planner: Ba
         except Vetoed as exc:
             refused.append(f"from ({there.x}, {there.y}, {there.yaw}): {exc}")
     assert not refused, "\n".join(refused)
+
+
+@pytest.mark.parametrize("start", ALONG_A_WALL, ids=lambda p: f"{p.x}-{p.y}-{p.yaw}")
+def test_a_base_left_along_a_wall_leaves_by_a_few_legs_safety_accepts(planner: BasePlanner, start: Pose2D) -> None:
+    assert 0.01 <= gap_of(start) <= 0.05, "not where teleop leaves the base"
+    path = planner.plan(start, KITCHEN_TABLE)
+    refused = []
+    for there in drifted(start):
+        try:
+            POLICY.check_route(there, path, KITCHEN_TABLE)
+        except Vetoed as exc:
+            refused.append(f"from ({there.x}, {there.y}, {there.yaw}): {exc}")
+    assert not refused, "\n".join(refused)
+
+
+def test_a_base_exactly_along_a_wall_says_why_it_cannot_leave(planner: BasePlanner) -> None:
+    # Any turn swings a corner closer to the wall, and no leg along it gets farther: safety's rule
+    # (leaving, no closer than it starts) leaves no way out, and the reason says so.
+    start = Pose2D(x=8.0, y=0.05 + 0.02 + ROBOT.base_size.y / 2, yaw=0.0)
+    reason = r"is 2 cm from the outer wall and cannot drive out of there, in up to \d legs coming no closer to anything"
+    with pytest.raises(PlanningFailed, match=reason):
+        planner.plan(start, KITCHEN_TABLE)
 
 
 @pytest.mark.parametrize(("closer", "refused"), [(0.0, False), (0.0009, False), (0.0011, True), (0.01, True)])
