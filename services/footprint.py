@@ -39,12 +39,6 @@ MAX_REVERSE = 0.35
 TRACKING_TOLERANCE = 0.03
 # Distances equal up to this count as equal (a leg straight away from furniture keeps its distance).
 EPSILON = 1e-9
-# How much closer than its start (metres) safety lets a route leaving a start within the margin come
-# (clearance_problem's `slack`). The executor plans from its reading of the base's pose and safety
-# checks the goal from its own a moment later: a base standing under its motors creeps, a turn dies
-# out. The executor's way out of a tight spot comes exactly as close as its start, so a start read a
-# hair off (1e-6 rad) had the route refused. Far within TRACKING_TOLERANCE, which the sim allows.
-START_SLACK = 0.001
 
 
 def footprint(x: float, y: float, yaw: float, length: float, width: float, margin: float = 0.0) -> Polygon:
@@ -229,13 +223,11 @@ def clearance_problem(
     margin: float,
     length: float,
     width: float,
-    slack: float = 0.0,
 ) -> tuple[Sweep, str] | None:
     """The first of a route's `sweeps` (route_sweeps at margin 0) that comes within `margin` of one
     of the named `obstacles` ("the kitchen counter", its outline), with why; None when every one
     keeps clear. Leaving the start (until the base first stands somewhere else) the footprint may
-    stay as close as it already is there, never closer (by more than `slack`: safety's START_SLACK;
-    a planner keeps none): a base parked near furniture can leave."""
+    stay as close as it already is there, never closer: a base parked near furniture can leave."""
     if not obstacles:
         return None
     at_start = footprint(start.x, start.y, start.yaw, length, width)
@@ -243,7 +235,7 @@ def clearance_problem(
     leaving = True
     for sweep in sweeps:
         name, distance = nearest_to_parts(sweep.parts, obstacles)
-        required = min(margin, start_distance - slack) if leaving else margin
+        required = min(margin, start_distance) if leaving else margin
         leaving = leaving and (sweep.x, sweep.y) == (start.x, start.y)
         if distance >= required - EPSILON:
             continue

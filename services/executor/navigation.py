@@ -73,6 +73,13 @@ MAX_EXIT_BACK = MAX_REVERSE - LENGTH_MARGIN
 # first by a multiple of EXIT_TURN as far as it keeps clear: a little, a leg away, a little more. The
 # ends of each round of legs farthest from everything (EXIT_BEAM of them) are where the next starts.
 EXIT_TURN = math.radians(2.0)
+# A way out that must turn first (from closer than TRACKING_TOLERANCE: BasePlanner._way_out) may turn
+# by these first (radians), then by multiples of EXIT_TURN: a base nearly along a wall can turn only a
+# little away from it. Each well over MIN_TURN, so safety draws the turn from the pose it reads.
+FIRST_TURNS = (0.005, 0.01, 0.02)
+# Turned a little from nearly along a wall, the base gets away from it slowly: such a first leg may go
+# this far ahead (metres) to where the margin is kept again.
+MAX_TURNED_EXIT_FORWARD = 2.0
 EXIT_LEGS = 4
 EXIT_BEAM = 8
 # When the straight approach is blocked (a room's centre facing furniture) and the base can turn at
@@ -724,6 +731,15 @@ class BasePlanner:
         reach = plan.zone_reach
         if near := plan.zone_near(Point(start.x, start.y), reach):
             reach = near[1] - EPSILON
+        start_footprint = footprint(start.x, start.y, yaw, *size)
+        # Closer than TRACKING_TOLERANCE, safety lets the base leave only as close as it starts, as it
+        # reads the pose a moment after this: a leg straight out ties with that exactly, and a start read
+        # a hair off (a standing base creeps, a teleop turn dies out) had it refused. A turn first is
+        # drawn by safety from its own start, beginning with exactly the footprint it measures there.
+        if plan.distance(start_footprint) < TRACKING_TOLERANCE and (
+            legs := self._legs_out(plan, Pose2D(x=start.x, y=start.y, yaw=yaw), reach, turn_first=True)
+        ):
+            return legs
         steps = [EXIT_STEP * k for k in range(1, round(MAX_EXIT_FORWARD / EXIT_STEP) + 1)]
         candidates = sorted([-d for d in steps if d <= MAX_EXIT_BACK + EPSILON] + steps, key=abs)
         fallback: tuple[list[tuple[float, float]], State] | None = None
@@ -745,7 +761,6 @@ class BasePlanner:
             return [], origin
         if fallback is not None:
             return fallback
-        start_footprint = footprint(start.x, start.y, yaw, *size)
         near_blocker = plan.nearest(start_footprint)
         name = near_blocker[0].name if near_blocker else "something"
         raise PlanningFailed(
@@ -754,17 +769,18 @@ class BasePlanner:
         )
 
     def _legs_out(
-        self, plan: _Floorplan, start: Pose2D, reach: float
+        self, plan: _Floorplan, start: Pose2D, reach: float, turn_first: bool = False
     ) -> tuple[list[tuple[float, float]], State] | None:
         """The quickest way out of up to EXIT_LEGS legs that ends where the base can turn, fewest
         legs first, or None: its points and where it ends facing which way. Each round of legs
         starts from the ends of the last farthest from everything. The first leg leaves the start
         keeping the margin or getting no closer than the start is, its line `reach` from keep-out
-        zones (footprint.clearance_problem, as the route is checked); later legs keep the margin."""
+        zones (footprint.clearance_problem, as the route is checked); later legs keep the margin.
+        `turn_first`: the first leg turns by EXIT_TURN at least before it drives."""
         size = (plan.length, plan.width)
         ends = [_Exit((), (start.x, start.y, start.yaw), 0.0)]
         for _ in range(EXIT_LEGS):
-            found = [way for end in ends for way in self._exit_legs(plan, end, reach)]
+            found = [way for end in ends for way in self._exit_legs(plan, end, reach, turn_first)]
             for way in sorted((way for way in found if plan.roomy(way.end[0], way.end[1])), key=lambda way: way.time):
                 sweeps = route_sweeps(start, way.points, way.end[2], *size)
                 if not clearance_problem(start, sweeps, plan.blockers, plan.margin, *size):
@@ -773,7 +789,7 @@ class BasePlanner:
             ends = found[:EXIT_BEAM]
         return None
 
-    def _exit_legs(self, plan: _Floorplan, way: _Exit, reach: float) -> Iterator[_Exit]:
+    def _exit_legs(self, plan: _Floorplan, way: _Exit, reach: float, turn_first: bool = False) -> Iterator[_Exit]:
         """`way` and one more leg, every one that keeps clear: turning by a multiple of EXIT_TURN either
         way (no further than the turn keeps clear), then forwards up to MAX_EXIT_FORWARD or backwards
         up to MAX_EXIT_BACK in steps of EXIT_STEP (no further than the leg keeps clear). The first leg
@@ -787,17 +803,21 @@ class BasePlanner:
             min(plan.margin, plan.distance(footprint(x, y, yaw, plan.length, plan.width))) - EPSILON if first else 0.0
         )
         robot = self.world.world.robot
+        turns = [k * EXIT_TURN for k in range(round(math.pi / EXIT_TURN))]
+        if first and turn_first:
+            turns = [*FIRST_TURNS, *turns[1:]]
         for sense in (1.0, -1.0):
-            for k in range(0 if sense > 0 else 1, round(math.pi / EXIT_TURN)):
-                heading = math.remainder(yaw + sense * k * EXIT_TURN, math.tau)
-                if first and k:
+            for angle in turns if sense > 0 else [a for a in turns if a]:
+                heading = math.remainder(yaw + sense * angle, math.tau)
+                if first and angle:
                     turn = turn_footprints(x, y, yaw, heading, plan.length, plan.width, 0.0)
                     if shapely.distance(turn, plan.blocked).min() < required:
                         break
                 elif not first and not plan.turn_clear(x, y, yaw, heading):
                     break
-                turning = k * EXIT_TURN / robot.max_angular_speed
-                for direction, farthest in ((1.0, MAX_EXIT_FORWARD), (-1.0, MAX_EXIT_BACK)):
+                turning = angle / robot.max_angular_speed
+                ahead = MAX_TURNED_EXIT_FORWARD if first and turn_first else MAX_EXIT_FORWARD
+                for direction, farthest in ((1.0, ahead), (-1.0, MAX_EXIT_BACK)):
                     for step in range(1, round(farthest / EXIT_STEP) + 1):
                         length = step * EXIT_STEP
                         point = (x + direction * length * math.cos(heading), y + direction * length * math.sin(heading))

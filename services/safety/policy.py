@@ -39,14 +39,7 @@ from schemas.plan import (
 from schemas.robot import FollowJointTrajectoryGoal, GripperCommandGoal, NavigateToPoseGoal, Odometry, Twist
 from schemas.safety import Rule
 from schemas.world import KeepOut, World
-from services.footprint import (
-    START_SLACK,
-    TRACKING_TOLERANCE,
-    clearance_problem,
-    footprint,
-    nearest,
-    route_sweeps,
-)
+from services.footprint import TRACKING_TOLERANCE, clearance_problem, footprint, nearest, route_sweeps
 from services.robotmodel import ArmModel, base_to_map, map_to_base
 from services.safety.errors import Vetoed
 from services.safety.policyfile import JointLimit, Limits, PolicyError, load_policy, parse_policy
@@ -343,8 +336,7 @@ class SafetyPolicy:
         # sticking out beyond the footprint sweeps further, as far as it reaches.
         hand = max(0.0, reach - min(size.x, size.y) / 2) if reach > self.radius else 0.0
         sweeps = route_sweeps(start, points[1:], goal.yaw, size.x, size.y)
-        margin = TRACKING_TOLERANCE + hand
-        if problem := clearance_problem(start, sweeps, self.obstacles, margin, size.x, size.y, START_SLACK):
+        if problem := clearance_problem(start, sweeps, self.obstacles, TRACKING_TOLERANCE + hand, size.x, size.y):
             sweep, why = problem
             with_hand = f" with the hand {reach:.2f} m from the base's centre (stow the arm to drive)" if hand else ""
             raise Vetoed(f"{why}{with_hand}; plan a path around it", Rule.OBSTACLE, x=sweep.x, y=sweep.y)

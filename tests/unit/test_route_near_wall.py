@@ -11,8 +11,9 @@ rule (footprint.clearance_problem) lets the base leave only as close as it start
 planner's way out ties with that rule exactly, so a start a micrometre or 1e-6 rad off had it
 refused: "backing from (7.12, 0.39) to (7.22, 0.41) the base would come 2.5 cm from the outer wall,
 closer than it starts" (test_modes.py's supervised pause, once in CI, after teleop had turned the
-base by the south wall and the plan was resumed). Safety now lets such a route come up to
-START_SLACK (1 mm) closer than the start it reads; the planner keeps its own routes to no slack.
+base by the south wall and the plan was resumed). From so close to a wall the planner now turns
+first (BasePlanner._way_out): safety draws that turn from its own start, beginning with exactly the
+footprint it measures there, so its rule holds from whatever pose it reads.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from shapely.geometry import LineString
 from schemas.common import Pose2D
 from services.executor.errors import PlanningFailed
 from services.executor.navigation import BasePlanner
-from services.footprint import START_SLACK, TRACKING_TOLERANCE, Sweep, clearance_problem, footprint
+from services.footprint import TRACKING_TOLERANCE, Sweep, clearance_problem, footprint
 from services.robotmodel import ArmModel
 from services.safety.errors import Vetoed
 from services.safety.policy import SafetyPolicy
@@ -128,19 +129,21 @@ def test_a_base_exactly_along_a_wall_says_why_it_cannot_leave(planner: BasePlann
         planner.plan(start, KITCHEN_TABLE)
 
 
-@pytest.mark.parametrize(("closer", "refused"), [(0.0, False), (0.0009, False), (0.0011, True), (0.01, True)])
-def test_safetys_slack_is_a_millimetre_and_a_planners_none(closer: float, refused: bool) -> None:
-    # A base 2 cm from a wall (its face at y = 0) leaving by a piece of route that ends elsewhere and
-    # comes `closer` to it on the way: safety (START_SLACK) lets it come a millimetre closer than it
-    # starts, not more; a planner checking its own route (no slack) not even that.
+@pytest.mark.parametrize(
+    ("gap", "closer", "why"), [(0.02, 0.0, None), (0.02, 1e-4, "closer than it starts"), (5e-4, 0.1, "would hit")]
+)
+def test_safetys_rule_leaving_a_wall_has_no_slack(gap: float, closer: float, why: str | None) -> None:
+    # A base `gap` from a wall (its face at y = 0) leaving by a piece of route that comes `closer` to it:
+    # not even a tenth of a millimetre, and not into it from half a millimetre off. A slack here (tried,
+    # 1 mm) let each goal come that much closer than the last, and one from within it drive into the wall.
     length, width = ROBOT.base_size.x, ROBOT.base_size.y
     wall = [("the wall", LineString([(-5.0, 0.0), (5.0, 0.0)]))]
-    start = Pose2D(x=0.0, y=0.02 + width / 2, yaw=0.0)
+    start = Pose2D(x=0.0, y=gap + width / 2, yaw=0.0)
     dipped = footprint(start.x + 0.1, start.y - closer, 0.0, length, width)
-    sweeps = [Sweep("driving", (dipped,), start.x + 0.2, start.y)]
-    with_slack = clearance_problem(start, sweeps, wall, TRACKING_TOLERANCE, length, width, START_SLACK)
-    assert (with_slack is not None) is refused, with_slack
-    strict = clearance_problem(start, sweeps, wall, TRACKING_TOLERANCE, length, width)
-    assert (strict is not None) is (closer > 0.0), strict
-    if strict is not None:
-        assert "closer than it starts" in strict[1]
+    problem = clearance_problem(
+        start, [Sweep("driving", (dipped,), start.x + 0.2, start.y)], wall, TRACKING_TOLERANCE, length, width
+    )
+    if why is None:
+        assert problem is None, problem
+    else:
+        assert problem is not None and why in problem[1], problem
