@@ -773,6 +773,9 @@ class SimWorld:
         # People have no collision body (nothing in the physics pushes them), so a person is kept out of
         # solids, and objects and other people out of a person, here.
         solid = self._solid_in(shape, centre, yaw, request.id) or self.person_in(shape, centre, yaw, request.id)
+        if solid is None and request.id in self.object_bodies:
+            # Let go over a person's head, an object falls through them to the floor: their whole height.
+            solid = self.person_in(shape, (centre[0], centre[1], HUMAN_HEIGHT / 2), yaw, request.id)
         if solid is None:
             return None
         if request.id in self.object_bodies:

@@ -160,6 +160,9 @@ def test_an_object_is_not_set_down_where_a_person_stands(sim: Simulation) -> Non
     operator = sim.scene.human_poses["operator"]
     at_their_feet = MoveEntity(id="red_cup", x=operator.x + 0.1, y=operator.y)
     refused(sim, at_their_feet, ErrorKind.INVALID_REQUEST, "red cup", "operator")
+    # Nor let go over their head (z 1.75 m, they are 1.7 m tall): it fell through them and came to rest inside.
+    over_their_head = MoveEntity(id="apple", x=operator.x, y=operator.y, z=1.75)
+    refused(sim, over_their_head, ErrorKind.INVALID_REQUEST, "apple", "operator")
     # Nor a person moved onto it where it stands on the floor.
     cup = moved(sim, MoveEntity(id="red_cup", x=8.5, y=1.5)).position
     refused(sim, MoveEntity(id="operator", x=cup.x + 0.15, y=cup.y), ErrorKind.INVALID_REQUEST, "red cup")
