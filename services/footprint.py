@@ -39,6 +39,9 @@ MAX_REVERSE = 0.35
 TRACKING_TOLERANCE = 0.03
 # Distances equal up to this count as equal (a leg straight away from furniture keeps its distance).
 EPSILON = 1e-9
+# Overlaps of the footprint with something it touches at the start count as grown beyond this (m^2:
+# a square millimetre), not by the rounding of shapely's intersections.
+OVERLAP_EPSILON = 1e-6
 
 
 def footprint(x: float, y: float, yaw: float, length: float, width: float, margin: float = 0.0) -> Polygon:
@@ -227,21 +230,48 @@ def clearance_problem(
     """The first of a route's `sweeps` (route_sweeps at margin 0) that comes within `margin` of one
     of the named `obstacles` ("the kitchen counter", its outline), with why; None when every one
     keeps clear. Leaving the start (until the base first stands somewhere else) the footprint may
-    stay as close as it already is there, never closer: a base parked near furniture can leave."""
+    stay as close to each obstacle as it already is there, never closer: a base parked near
+    furniture can leave. One it already touches or overlaps (odometry's drift, a bump), 0 away however
+    deep, it may not overlap more (by area): backing off or sliding along passes, further in does not.
+    Every other obstacle keeps the margin from the first sweep on."""
     if not obstacles:
         return None
+    outlines = _array([outline for _, outline in obstacles])
+    empty = shapely.is_empty(outlines)
     at_start = footprint(start.x, start.y, start.yaw, length, width)
-    start_distance = min(at_start.distance(shape) for _, shape in obstacles)
+    from_start = shapely.distance(at_start, outlines)
+    from_start[empty] = np.inf
+    leaving_required = np.minimum(margin, from_start)
+    touching = np.flatnonzero(from_start <= EPSILON)
+    overlaps = shapely.area(shapely.intersection(at_start, outlines[touching])) if touching.size else None
     leaving = True
     for sweep in sweeps:
-        name, distance = nearest_to_parts(sweep.parts, obstacles)
-        required = min(margin, start_distance) if leaving else margin
-        leaving = leaving and (sweep.x, sweep.y) == (start.x, start.y)
-        if distance >= required - EPSILON:
+        distances = shapely.distance(_array(sweep.parts)[:, np.newaxis], outlines).min(axis=0)
+        distances[empty] = np.inf
+        required = leaving_required if leaving else margin
+        if leaving and overlaps is not None:
+            deeper = _deeper(sweep, outlines[touching], overlaps)
+            if deeper is not None:
+                return sweep, f"{sweep.what} the base would go further into {obstacles[int(touching[deeper])][0]}"
+        was_leaving, leaving = leaving, leaving and (sweep.x, sweep.y) == (start.x, start.y)
+        short = np.flatnonzero(distances < required - EPSILON)
+        if was_leaving:  # one the start touches: the overlap's area tells, above
+            short = short[from_start[short] > EPSILON]
+        if not short.size:
             continue
+        k = int(short[np.argmin(distances[short])])  # the first of the nearest, as min() gives
+        name, distance = obstacles[k][0], float(distances[k])
         if distance <= 0.0:
             return sweep, f"{sweep.what} the base would hit {name}"
-        if required < margin:
+        if was_leaving and from_start[k] < margin:
             return sweep, f"{sweep.what} the base would come {_cm(distance)} from {name}, closer than it starts"
         return sweep, f"{sweep.what} the base would come {_cm(distance)} from {name} (it keeps {_cm(margin)})"
     return None
+
+
+def _deeper(sweep: Sweep, touched: NDArray[np.object_], overlaps: NDArray[np.float64]) -> int | None:
+    """The index of the first of the `touched` outlines that `sweep` overlaps more (by area, beyond
+    a square millimetre) than the start did (`overlaps`), or None."""
+    covered = shapely.union_all(_array(sweep.parts))
+    grown = np.flatnonzero(shapely.area(shapely.intersection(covered, touched)) > overlaps + OVERLAP_EPSILON)
+    return int(grown[0]) if grown.size else None
