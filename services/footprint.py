@@ -1,8 +1,9 @@
 """The base on the floor plan: the rectangle it covers at a pose, and what it sweeps driving a route.
 
 The sim drives a route leg by leg (`route_legs`): it turns in place to face the next point and
-drives straight to it; a short leg behind it (at most MAX_REVERSE) it drives backwards instead of
-turning round. At the last point it turns to the goal's heading. It keeps its footprint within
+drives straight to it (a turn of MIN_TURN or less is not drawn, and the leg is drawn facing as the
+base does); a short leg behind it (at most MAX_REVERSE) it drives backwards instead of turning
+round. At the last point it turns to the goal's heading. It keeps its footprint within
 TRACKING_TOLERANCE of what those legs sweep, and aborts the goal otherwise. The sim, the executor's
 base planner and safety all take the legs, the sweeps and the clearance rule from here, so the
 route the planner found clear is the one safety checks and the one the sim drives. Pure logic.
@@ -40,8 +41,9 @@ TRACKING_TOLERANCE = 0.03
 # Distances equal up to this count as equal (a leg straight away from furniture keeps its distance).
 EPSILON = 1e-9
 # Overlaps of the footprint with something it touches at the start count as grown beyond this (m^2:
-# a square millimetre), not by the rounding of shapely's intersections.
-OVERLAP_EPSILON = 1e-6
+# a hundredth of a square millimetre; m for an outline that is a line), not by the rounding of
+# shapely's intersections.
+OVERLAP_EPSILON = 1e-8
 
 
 def footprint(x: float, y: float, yaw: float, length: float, width: float, margin: float = 0.0) -> Polygon:
@@ -179,10 +181,14 @@ def route_sweeps(
         if abs(turn_angle(yaw, leg.heading)) > MIN_TURN:
             parts = tuple(turn_footprints(leg.start[0], leg.start[1], yaw, leg.heading, length, width, margin))
             sweeps.append(Sweep(f"turning at {_at(leg.start)}", parts, leg.start[0], leg.start[1]))
-        shape = drive_sweep(leg.start, leg.end, leg.heading, length, width, margin)
+            yaw = leg.heading
+        # A leg that needs no turn is drawn facing as the base does: the first then begins with exactly
+        # the start's footprint. Drawn at its own heading, a hair off a start read a moment after the
+        # route was planned, a leg straight out of a tight spot came closer than the start (by 25 um).
+        shape = drive_sweep(leg.start, leg.end, yaw, length, width, margin)
         verb = "backing" if leg.backwards else "driving"
         sweeps.append(Sweep(f"{verb} from {_at(leg.start)} to {_at(leg.end)}", (shape,), leg.end[0], leg.end[1]))
-        here, yaw = leg.end, leg.heading
+        here = leg.end
     if abs(turn_angle(yaw, final_yaw)) > MIN_TURN:
         parts = tuple(turn_footprints(here[0], here[1], yaw, final_yaw, length, width, margin))
         sweeps.append(Sweep(f"turning at {_at(here)}", parts, here[0], here[1]))
@@ -243,14 +249,14 @@ def clearance_problem(
     from_start[empty] = np.inf
     leaving_required = np.minimum(margin, from_start)
     touching = np.flatnonzero(from_start <= EPSILON)
-    overlaps = shapely.area(shapely.intersection(at_start, outlines[touching])) if touching.size else None
+    overlaps = _overlaps(at_start, outlines[touching]) if touching.size else None
     leaving = True
     for sweep in sweeps:
         distances = shapely.distance(_array(sweep.parts)[:, np.newaxis], outlines).min(axis=0)
         distances[empty] = np.inf
         required = leaving_required if leaving else margin
         if leaving and overlaps is not None:
-            deeper = _deeper(sweep, outlines[touching], overlaps)
+            deeper = _deeper(at_start, sweep, outlines[touching], overlaps)
             if deeper is not None:
                 return sweep, f"{sweep.what} the base would go further into {obstacles[int(touching[deeper])][0]}"
         was_leaving, leaving = leaving, leaving and (sweep.x, sweep.y) == (start.x, start.y)
@@ -269,9 +275,18 @@ def clearance_problem(
     return None
 
 
-def _deeper(sweep: Sweep, touched: NDArray[np.object_], overlaps: NDArray[np.float64]) -> int | None:
-    """The index of the first of the `touched` outlines that `sweep` overlaps more (by area, beyond
-    a square millimetre) than the start did (`overlaps`), or None."""
-    covered = shapely.union_all(_array(sweep.parts))
-    grown = np.flatnonzero(shapely.area(shapely.intersection(covered, touched)) > overlaps + OVERLAP_EPSILON)
+def _overlaps(shape: BaseGeometry, touched: NDArray[np.object_]) -> NDArray[np.float64]:
+    """How much of each of the `touched` outlines `shape` covers: its area, or for an outline with
+    none (a wall drawn as a line) its length."""
+    common = shapely.intersection(shape, touched)
+    return np.where(shapely.get_dimensions(touched) == 2, shapely.area(common), shapely.length(common))
+
+
+def _deeper(at_start: Polygon, sweep: Sweep, touched: NDArray[np.object_], overlaps: NDArray[np.float64]) -> int | None:
+    """The index of the first of the `touched` outlines that the start's footprint and `sweep`
+    together cover more of (beyond OVERLAP_EPSILON) than the start did (`overlaps`), or None. With the
+    start: a sweep after a turn begins elsewhere, and could give up one part of the overlap to enter
+    another."""
+    covered = shapely.union_all(_array([at_start, *sweep.parts]))
+    grown = np.flatnonzero(_overlaps(covered, touched) > overlaps + OVERLAP_EPSILON)
     return int(grown[0]) if grown.size else None

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from shapely.geometry import box
+from shapely.geometry import LineString, box
 from shapely.geometry.base import BaseGeometry
 
 from schemas.common import Pose2D
@@ -83,3 +83,18 @@ def test_safety_refuses_a_navigation_into_the_wall_the_base_touches() -> None:
     start = Pose2D(x=8.0, y=0.05 + robot.base_size.x / 2, yaw=SOUTH)
     with pytest.raises(Vetoed, match="further into the outer wall"):
         policy.check_route(start, [], Pose2D(x=8.0, y=start.y - 0.1, yaw=SOUTH))
+
+
+def test_a_turn_first_does_not_trade_one_part_of_an_overlap_for_another() -> None:
+    # A corner 11 mm into the wall; the turn lifts it out, and the drive after it would enter the wall
+    # 0.7 m along, 3 mm deep: the area the drive covers alone is no more than the start's was.
+    start = Pose2D(x=0.0, y=0.2714, yaw=0.1152)
+    sweeps = route_sweeps(start, [(0.72, 0.254)], -0.024, LENGTH, WIDTH)
+    found = clearance_problem(start, sweeps, [WALL], TRACKING_TOLERANCE, LENGTH, WIDTH)
+    assert found is not None and "further into the wall" in found[1], found
+
+
+def test_a_wall_drawn_as_a_line_is_not_driven_through_from_touching_it() -> None:
+    # Its overlap has no area: the length of it tells.
+    wall = [("the wall", LineString([(-5.0, 0.0), (5.0, 0.0)]))]
+    assert "further into the wall" in (problem(Pose2D(x=0.0, y=LENGTH / 2, yaw=SOUTH), (0.0, -0.5), wall) or "")

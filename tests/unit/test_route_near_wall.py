@@ -19,6 +19,7 @@ footprint it measures there, so its rule holds from whatever pose it reads.
 from __future__ import annotations
 
 import itertools
+import math
 
 import pytest
 from shapely.geometry import LineString
@@ -51,6 +52,10 @@ DRIFT_XY = 1e-5
 NEAR_WALL = [
     Pose2D(x=7.125, y=0.3885, yaw=-2.905),
     Pose2D(x=6.476, y=0.3931, yaw=-0.262),
+    # Square to the wall, facing it and facing away: no turn out keeps clear, so the way out is a leg
+    # straight back or ahead, which safety draws facing as the base does (footprint.route_sweeps).
+    Pose2D(x=8.0, y=0.37, yaw=-math.pi / 2),
+    Pose2D(x=8.0, y=0.37, yaw=math.pi / 2),
 ]
 
 
