@@ -98,3 +98,13 @@ def test_a_wall_drawn_as_a_line_is_not_driven_through_from_touching_it() -> None
     # Its overlap has no area: the length of it tells.
     wall = [("the wall", LineString([(-5.0, 0.0), (5.0, 0.0)]))]
     assert "further into the wall" in (problem(Pose2D(x=0.0, y=LENGTH / 2, yaw=SOUTH), (0.0, -0.5), wall) or "")
+
+
+@pytest.mark.parametrize("deep", [0.015, 0.04])
+def test_backing_straight_off_an_overlap_passes_from_a_start_read_a_hair_off(deep: float) -> None:
+    # Planned facing north from a base `deep` into the wall; safety reads its yaw 0.9 mrad off, so the
+    # leg runs that far off the base's axis and covers a sliver more of the wall (0.2 mm^2 at 2 cm).
+    planned = Pose2D(x=0.0, y=LENGTH / 2 - deep, yaw=NORTH)
+    read = Pose2D(x=planned.x, y=planned.y, yaw=NORTH + 9e-4)
+    sweeps = route_sweeps(read, [(0.0, planned.y + 0.5)], NORTH, LENGTH, WIDTH)
+    assert clearance_problem(read, sweeps, [WALL], TRACKING_TOLERANCE, LENGTH, WIDTH) is None
