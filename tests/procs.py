@@ -36,9 +36,10 @@ def children(pid: int) -> list[int]:
 
 
 @contextlib.contextmanager
-def tether_process(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
+def tether_process(env: dict[str, str], *args: str, own_session: bool = True) -> Iterator[subprocess.Popen[str]]:
     """`tether ARGS` in a session of its own (a signal sent to it reaches it alone), its output piped
-    as text; killed at the end if it still runs."""
+    as text; killed at the end if it still runs. `own_session` False: in the caller's session, sharing
+    its CPU (Linux's autogroup scheduling gives each session a share of its own)."""
     process = subprocess.Popen(
         [sys.executable, "-m", "tether", *args],
         # A crash (a signal's SIGSEGV or SIGABRT) says where on stderr: CI saw a command stopped by a
@@ -47,7 +48,7 @@ def tether_process(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        start_new_session=True,
+        start_new_session=own_session,
     )
     try:
         yield process

@@ -8,8 +8,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import subprocess
-import sys
 import threading
 import uuid
 from collections.abc import Iterator
@@ -22,6 +20,7 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
+from tests.procs import tether_process
 from tests.sessions import free_ports
 from tether.client import EXIT_UNREACHABLE
 
@@ -55,26 +54,6 @@ def executor() -> Iterator[dict[str, str]]:
         node.close()
 
 
-@contextlib.contextmanager
-def sharing_cpu(env: dict[str, str], *args: str) -> Iterator[subprocess.Popen[str]]:
-    """`tether ARGS` as tests.procs.tether_process runs it (the fault handler on, output piped), but in
-    this test's own session: Linux's autogroup scheduling gives a process in a session of its own a
-    CPU share of its own, and the commands then ran too freely to show the race (at most 1 abort in 120)."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "tether", *args],
-        env={**env, "PYTHONFAULTHANDLER": "1"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        yield process
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.communicate()
-
-
 def test_send_returns_with_its_json_while_the_fetch_of_the_result_still_waits(executor: dict[str, str]) -> None:
     """`tether send` without --wait returns once the plan moves, its goal's result still being
     fetched on a thread of its own, inside Zenoh (and zenoh's own thread that runs the callback of
@@ -84,7 +63,10 @@ def test_send_returns_with_its_json_while_the_fetch_of_the_result_still_waits(ex
     ended: list[tuple[int, str, str]] = []
     for _ in range(ROUNDS):
         with contextlib.ExitStack() as stack:
-            senders = [stack.enter_context(sharing_cpu(executor, "send", PLAN, "--json")) for _ in range(AT_ONCE)]
+            # In this test's session: in sessions of their own the sends ran too freely to show the race
+            # (at most 1 abort in 120).
+            sending = [tether_process(executor, "send", PLAN, "--json", own_session=False) for _ in range(AT_ONCE)]
+            senders = [stack.enter_context(process) for process in sending]
             for sender in senders:
                 out, err = sender.communicate(timeout=WAIT)
                 ended.append((sender.returncode, out, err))

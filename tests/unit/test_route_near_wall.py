@@ -90,6 +90,17 @@ def drifted(pose: Pose2D) -> list[Pose2D]:
     ]
 
 
+def refusals(start: Pose2D, path: list[Pose2D]) -> list[str]:
+    """Safety's refusals of `path` to the kitchen table, checked from each of the poses `drifted` from `start`."""
+    refused = []
+    for there in drifted(start):
+        try:
+            POLICY.check_route(there, path, KITCHEN_TABLE)
+        except Vetoed as exc:
+            refused.append(f"from ({there.x}, {there.y}, {there.yaw}): {exc}")
+    return refused
+
+
 @pytest.fixture(scope="module")
 def planner() -> BasePlanner:
     return BasePlanner(WORLD, clearance=CLEARANCE, time_limit=1.0)
@@ -103,26 +114,14 @@ def test_the_way_out_from_beside_a_wall_is_accepted_from_a_hair_away(planner: Ba
     # From the planner's own start the route passes (the planner verifies every route with safety's
     # rule), and it must pass from where safety may find the base a moment later too.
     POLICY.check_route(start, path, KITCHEN_TABLE)
-    refused = []
-    for there in drifted(start):
-        try:
-            POLICY.check_route(there, path, KITCHEN_TABLE)
-        except Vetoed as exc:
-            refused.append(f"from ({there.x}, {there.y}, {there.yaw}): {exc}")
-    assert not refused, "\n".join(refused)
+    assert not (refused := refusals(start, path)), "\n".join(refused)
 
 
 @pytest.mark.parametrize("start", ALONG_A_WALL, ids=lambda p: f"{p.x}-{p.y}-{p.yaw}")
 def test_a_base_left_along_a_wall_leaves_by_a_few_legs_safety_accepts(planner: BasePlanner, start: Pose2D) -> None:
     assert 0.01 <= gap_of(start) <= 0.05, "not where teleop leaves the base"
     path = planner.plan(start, KITCHEN_TABLE)
-    refused = []
-    for there in drifted(start):
-        try:
-            POLICY.check_route(there, path, KITCHEN_TABLE)
-        except Vetoed as exc:
-            refused.append(f"from ({there.x}, {there.y}, {there.yaw}): {exc}")
-    assert not refused, "\n".join(refused)
+    assert not (refused := refusals(start, path)), "\n".join(refused)
 
 
 def test_a_base_exactly_along_a_wall_says_why_it_cannot_leave(planner: BasePlanner) -> None:
