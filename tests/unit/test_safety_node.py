@@ -467,11 +467,15 @@ def test_incident_queries_are_answered_from_memory_at_a_bounded_rate(start: Star
     node, _safety = start(incidents=store)
     store.add(IncidentKind.DROPPED, "the cup slipped", x=1.0, y=1.0)
     ask = node.callbacks[keys.INCIDENTS.path]
+    started = time.monotonic()
     answers = [ask(IncidentQuery()) for _ in range(100)]  # far more than a second's worth, at once
+    took = time.monotonic() - started
     served = [a for a in answers if not a.store]
     refused = [a for a in answers if a.store]
     assert served and all(a.total == 1 for a in served)
-    assert len(served) <= QUERY_RATE + 1, "a burst of at most a second's worth"
+    # A second's worth at once, and what the bucket refilled while the queries were asked (on a loaded
+    # machine the hundred took 0.15 s, and 23 were served).
+    assert len(served) <= QUERY_RATE * (1.0 + took) + 1, f"{len(served)} served in {took:.3f} s"
     assert refused and all("too many queries" in a.store and not a.incidents for a in refused)
     store.close()
 
