@@ -28,7 +28,7 @@ from schemas.planner import MAX_RECORDED_CHARS, MAX_REQUEST_CHARS, AskReply, Ask
 from services.planner.config import PlannerConfig, resolve_endpoint
 from services.planner.errors import NotConfigured
 from services.runtime import ConfigError, NodeSettings, load_config
-from tether.ask import Interrupted, PlannerFailed, ask_planner, show
+from tether.ask import Interrupted, PlannerFailed, ask_planner, end_interrupted, show
 from tether.client import EXIT_CODES, EXIT_UNREACHABLE, PlanRun
 from tether.output import literal, shown
 
@@ -141,7 +141,7 @@ def send_recover(
     try:
         reply = ask_planner(settings, request, config, endpoint, timeout)
     except Interrupted as stop:
-        interrupted(stop, as_json)  # as `tether ask` ends one (tether/__main__.py)
+        end_interrupted(interrupted, stop, as_json)
     except PlannerFailed as exc:
         reason = f"the planner service failed: {exc.reason}"
         if exc.unreachable:
