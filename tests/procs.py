@@ -4,11 +4,14 @@
 from __future__ import annotations
 
 import contextlib
+import signal
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+
+import pytest
 
 
 def _stat(pid: int) -> list[str]:
@@ -56,6 +59,22 @@ def tether_process(env: dict[str, str], *args: str, own_session: bool = True) ->
         if process.poll() is None:
             process.kill()
             process.communicate()
+
+
+def output_of(process: subprocess.Popen[str], timeout: float) -> tuple[str, str]:
+    """What a `tether_process` printed (stdout, stderr) once it ended. One still running after
+    `timeout` fails the test with its output and, from the fault handler, every thread's stack: it
+    is sent SIGABRT (a CI run saw `send --wait` not end after a Ctrl-C, and nothing to go on)."""
+    try:
+        return process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.send_signal(signal.SIGABRT)
+        try:
+            out, err = process.communicate(timeout=10.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            out, err = process.communicate()
+        pytest.fail(f"still running after {timeout:g} s; stdout {out!r}; stderr (the stacks at the end): {err[-6000:]}")
 
 
 def wait_until(condition: Callable[[], bool], timeout: float) -> bool:

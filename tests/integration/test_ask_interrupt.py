@@ -34,7 +34,7 @@ from services.actionlib import ActionClient, ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
 from tests.integration import test_agents
 from tests.integration.test_agents import ScriptedLLM, text_reply
-from tests.procs import tether_process
+from tests.procs import output_of, tether_process
 from tests.sessions import free_ports
 
 WAIT = 30.0
@@ -101,7 +101,7 @@ def stopped_while_running(
     with tether_process(env, *args) as process:
         assert stand_in.running.wait(WAIT), process.communicate()
         os.kill(process.pid, stop)
-        out, err = process.communicate(timeout=WAIT)
+        out, err = output_of(process, WAIT)
     try:
         document = json.loads(out)
     except ValueError:
@@ -214,7 +214,7 @@ def test_an_ask_interrupted_before_the_planner_service_answered_sends_no_plan(ll
                 try:
                     assert asked.wait(WAIT), process.communicate()
                     os.kill(process.pid, signal.SIGINT)
-                    out, err = process.communicate(timeout=WAIT)
+                    out, err = output_of(process, WAIT)
                 finally:
                     deadline.cancel()
         finally:
@@ -258,7 +258,7 @@ def test_an_ask_through_an_older_planner_service_falls_back_to_cancel_the_goal_i
                     while "waiting for the planner" not in said and (line := process.stderr.readline()):
                         said += line
                     interrupted.set()
-                    out, err = process.communicate(timeout=WAIT)
+                    out, err = output_of(process, WAIT)
                 finally:
                     deadline.cancel()
         finally:

@@ -22,7 +22,7 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
-from tests.procs import tether_process
+from tests.procs import output_of, tether_process
 from tests.sessions import free_ports
 
 WAIT = 20.0
@@ -88,7 +88,7 @@ def test_ctrl_c_before_the_executor_answered_the_send_cancels_the_plan(
         assert stand_in.deciding.wait(WAIT), sender.communicate()
         os.kill(sender.pid, signal.SIGINT)
         stand_in.decide.set()
-        out, err = sender.communicate(timeout=WAIT)
+        out, err = output_of(sender, WAIT)
     assert sender.returncode == 1, out + err
     document = json.loads(out)
     assert document["status"] == "canceled", document
@@ -107,7 +107,7 @@ def test_a_plan_that_ended_without_a_result_is_no_success(executor: tuple[StandI
 
     stand_in.run = breaks
     with sending(env, "--wait") as sender:
-        out, err = sender.communicate(timeout=WAIT)
+        out, err = output_of(sender, WAIT)
     assert sender.returncode == 1, out + err
     document = json.loads(out)
     assert (document["status"], document["stage"]) == ("failed", "execute"), document
@@ -125,7 +125,7 @@ def test_ctrl_c_while_waiting_cancels_the_plan_and_says_so(executor: tuple[Stand
     with sending(env, "--wait") as sender:
         assert stand_in.running.wait(WAIT), sender.communicate()
         os.kill(sender.pid, signal.SIGINT)
-        out, err = sender.communicate(timeout=WAIT)
+        out, err = output_of(sender, WAIT)
     assert sender.returncode == 1, out + err
     document = json.loads(out)
     assert (document["status"], document["reason"]) == ("canceled", "stopped"), document
