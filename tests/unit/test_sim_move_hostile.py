@@ -262,5 +262,8 @@ def test_a_change_given_up_on_is_not_done_later(
         assert raised.value.error.kind is ErrorKind.UNAVAILABLE
     finally:
         release.set()
-    after = loop.answer(lambda sim: (sim.scene.object_position("red_cup"), sim.scene.settling), changes=False)
-    assert after == (before, False)
+    after, settling = loop.answer(lambda sim: (sim.scene.object_position("red_cup"), sim.scene.settling), changes=False)
+    # Where it was, to within the millimetre a cup at rest may still creep in the physics (0.1 mm seen
+    # once in CI); done, the change would have put it 4.8 m away, or outside the house.
+    assert (after.x, after.y, after.z) == pytest.approx((before.x, before.y, before.z), abs=0.001)
+    assert not settling
