@@ -212,10 +212,19 @@ def nearest_to_parts(parts: Sequence[BaseGeometry], obstacles: Sequence[tuple[st
     if not obstacles:
         return "nothing", math.inf
     outlines = _array([outline for _, outline in obstacles])
-    distances = shapely.distance(_array(parts)[:, np.newaxis], outlines).min(axis=0)
-    distances[shapely.is_empty(outlines)] = np.inf
+    distances = _distances(parts, outlines, shapely.is_empty(outlines))
     best = int(np.argmin(distances))
     return obstacles[best][0], float(distances[best])
+
+
+def _distances(
+    parts: Sequence[BaseGeometry], outlines: NDArray[np.object_], empty: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """Each of `outlines`' distance to the nearest of `parts`, in one call; infinite for an `empty`
+    one (a wall of no length), not NaN."""
+    distances: NDArray[np.float64] = shapely.distance(_array(parts)[:, np.newaxis], outlines).min(axis=0)
+    distances[empty] = np.inf
+    return distances
 
 
 def _array(geometries: Sequence[BaseGeometry]) -> NDArray[np.object_]:
@@ -245,15 +254,13 @@ def clearance_problem(
     outlines = _array([outline for _, outline in obstacles])
     empty = shapely.is_empty(outlines)
     at_start = footprint(start.x, start.y, start.yaw, length, width)
-    from_start = shapely.distance(at_start, outlines)
-    from_start[empty] = np.inf
+    from_start = _distances((at_start,), outlines, empty)
     leaving_required = np.minimum(margin, from_start)
     touching = np.flatnonzero(from_start <= EPSILON)
     overlaps = _overlaps(at_start, outlines[touching]) if touching.size else None
     leaving = True
     for sweep in sweeps:
-        distances = shapely.distance(_array(sweep.parts)[:, np.newaxis], outlines).min(axis=0)
-        distances[empty] = np.inf
+        distances = _distances(sweep.parts, outlines, empty)
         required = leaving_required if leaving else margin
         if leaving and overlaps is not None:
             deeper = _deeper(at_start, sweep, outlines[touching], overlaps)

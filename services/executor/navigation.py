@@ -736,8 +736,9 @@ class BasePlanner:
         # reads the pose a moment after this: a leg straight out ties with that exactly, and a start read
         # a hair off (a standing base creeps, a teleop turn dies out) had it refused. A turn first is
         # drawn by safety from its own start, beginning with exactly the footprint it measures there.
+        facing = Pose2D(x=start.x, y=start.y, yaw=yaw)  # the start, its yaw in [-pi, pi]
         if plan.distance(start_footprint) < TRACKING_TOLERANCE and (
-            legs := self._legs_out(plan, Pose2D(x=start.x, y=start.y, yaw=yaw), reach, turn_first=True)
+            legs := self._legs_out(plan, facing, reach, turn_first=True)
         ):
             return legs
         steps = [EXIT_STEP * k for k in range(1, round(MAX_EXIT_FORWARD / EXIT_STEP) + 1)]
@@ -755,7 +756,7 @@ class BasePlanner:
                 return [point], (*point, yaw)
             if fallback is None and plan.fits(*point, yaw):
                 fallback = ([point], (*point, yaw))
-        if legs := self._legs_out(plan, Pose2D(x=start.x, y=start.y, yaw=yaw), reach):
+        if legs := self._legs_out(plan, facing, reach):
             return legs
         if not tight:
             return [], origin
@@ -776,7 +777,7 @@ class BasePlanner:
         starts from the ends of the last farthest from everything. The first leg leaves the start
         keeping the margin or getting no closer than the start is, its line `reach` from keep-out
         zones (footprint.clearance_problem, as the route is checked); later legs keep the margin.
-        `turn_first`: the first leg turns by EXIT_TURN at least before it drives."""
+        `turn_first`: the first leg turns before it drives (see _exit_legs)."""
         size = (plan.length, plan.width)
         ends = [_Exit((), (start.x, start.y, start.yaw), 0.0)]
         for _ in range(EXIT_LEGS):
@@ -794,7 +795,8 @@ class BasePlanner:
         way (no further than the turn keeps clear), then forwards up to MAX_EXIT_FORWARD or backwards
         up to MAX_EXIT_BACK in steps of EXIT_STEP (no further than the leg keeps clear). The first leg
         is measured as footprint.clearance_problem measures leaving the start; later ones keep the
-        margin as every motion of the planner does."""
+        margin as every motion of the planner does. With `turn_first` the first leg turns by one of
+        FIRST_TURNS or a multiple of EXIT_TURN, never not at all, and may go MAX_TURNED_EXIT_FORWARD ahead."""
         x, y, yaw = way.end
         here = (x, y)
         first = not way.points
@@ -804,8 +806,9 @@ class BasePlanner:
         )
         robot = self.world.world.robot
         turns = [k * EXIT_TURN for k in range(round(math.pi / EXIT_TURN))]
+        ahead = MAX_EXIT_FORWARD
         if first and turn_first:
-            turns = [*FIRST_TURNS, *turns[1:]]
+            turns, ahead = [*FIRST_TURNS, *turns[1:]], MAX_TURNED_EXIT_FORWARD
         for sense in (1.0, -1.0):
             for angle in turns if sense > 0 else [a for a in turns if a]:
                 heading = math.remainder(yaw + sense * angle, math.tau)
@@ -816,7 +819,6 @@ class BasePlanner:
                 elif not first and not plan.turn_clear(x, y, yaw, heading):
                     break
                 turning = angle / robot.max_angular_speed
-                ahead = MAX_TURNED_EXIT_FORWARD if first and turn_first else MAX_EXIT_FORWARD
                 for direction, farthest in ((1.0, ahead), (-1.0, MAX_EXIT_BACK)):
                     for step in range(1, round(farthest / EXIT_STEP) + 1):
                         length = step * EXIT_STEP

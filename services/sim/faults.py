@@ -314,11 +314,12 @@ class Faults:
             raise _Refused(block.kind, block.message, block.candidates)
         if block.id in self.world.blocks:
             raise _Refused(ErrorKind.PRECONDITION, f"{block.id} is blocked already")
-        part = self.world.robot_part_in(self.world.box_shape(block.half), block.centre, block.yaw)
+        shape = self.world.box_shape(block.half)
+        part = self.world.robot_part_in(shape, block.centre, block.yaw)
         if part is not None:
             raise _Refused(ErrorKind.PRECONDITION, f"{self.world.robot_part_said(part)} where {block.name} would go")
         # People have no collision body: a box put up over one would stand inside them, unnoticed.
-        person = self.world.person_in(self.world.box_shape(block.half), block.centre, block.yaw)
+        person = self.world.person_in(shape, block.centre, block.yaw)
         if person is not None:
             raise _Refused(ErrorKind.PRECONDITION, f"{person} stands where {block.name} would go")
         self.world.add_block(block)

@@ -20,7 +20,7 @@ from schemas.common import Stage
 from schemas.executor import ExecutePlanFeedback, ExecutePlanGoal, ExecutePlanResult, PlanStatus
 from services.actionlib import ActionServer, GoalHandle, Outcome
 from services.runtime import ALL_SERVICES, Node, NodeSettings
-from tests.procs import tether_process
+from tests.procs import output_of, tether_process
 from tests.sessions import free_ports
 from tether.client import EXIT_UNREACHABLE
 
@@ -68,7 +68,7 @@ def test_send_returns_with_its_json_while_the_fetch_of_the_result_still_waits(ex
             sending = [tether_process(executor, "send", PLAN, "--json", own_session=False) for _ in range(AT_ONCE)]
             senders = [stack.enter_context(process) for process in sending]
             for sender in senders:
-                out, err = sender.communicate(timeout=WAIT)
+                out, err = output_of(sender, WAIT)
                 ended.append((sender.returncode, out, err))
     crashed = [(code, out, err[-600:]) for code, out, err in ended if code < 0]
     assert not crashed, f"{len(crashed)} of {len(ended)} sends were killed by a signal: {crashed[0]}"
