@@ -140,6 +140,7 @@ class _Goal:
     def __init__(self, goal: RosClientGoal, client: RosActionClient) -> None:
         self._goal = goal
         self._client = client
+        self._canceling = False  # the server took (or may have taken) a cancel of ours: the goal may be CANCELING
 
     @property
     def status(self) -> int:
@@ -156,13 +157,22 @@ class _Goal:
         return outcome
 
     def cancel(self, timeout: float) -> bool:
-        """Ask the robot to cancel the goal; True when its server answers that the goal had ended already,
-        or that it knows no such goal now (restarted, or forgot it): either way it runs none."""
+        """Ask the robot to cancel the goal; True when its server answers that the goal had ended already
+        (before it may have taken a cancel of ours), or that it knows no such goal now (restarted, or
+        forgot it): either way it runs none."""
         try:
             answer = self._goal.request_cancel(timeout)
-            return answer in (CancelReturn.ERROR_GOAL_TERMINATED, CancelReturn.ERROR_UNKNOWN_GOAL_ID)
         except RosCallError as exc:
+            self._canceling = True  # the server may have taken it, and its answer been lost
             raise _call_failed(exc) from None
+        if answer is CancelReturn.ERROR_NONE:
+            self._canceling = True
+        elif answer is CancelReturn.ERROR_GOAL_TERMINATED and self._canceling:
+            # rcl_action answers so for a goal still CANCELING too (no longer cancelable): once the
+            # server may have taken a cancel, only the goal's result says it ended.
+            log.debug("the robot still cancels goal %s (or it ended): waiting for its result", self._goal.goal_id.hex())
+            return False
+        return answer in (CancelReturn.ERROR_GOAL_TERMINATED, CancelReturn.ERROR_UNKNOWN_GOAL_ID)
 
     def forget(self) -> None:
         self._client.forget(self._goal)

@@ -518,7 +518,9 @@ class RosActionServer:
                 goal = self._goals.get(goal_id)
                 if goal is None:
                     code = CancelReturn.ERROR_UNKNOWN_GOAL_ID
-                elif goal.status.terminal:
+                elif goal.status.terminal or goal.status is GoalStatus.CANCELING:
+                    # As rcl_action: a goal being canceled is no longer cancelable, which it answers
+                    # so, as for one that ended (a client must wait for its result).
                     code = CancelReturn.ERROR_GOAL_TERMINATED
                 else:
                     chosen.append(goal)
@@ -529,8 +531,6 @@ class RosActionServer:
             for goal in chosen:
                 if goal.status in (GoalStatus.ACCEPTED, GoalStatus.EXECUTING):
                     goal.status = GoalStatus.CANCELING
-                    canceling.append(goal)
-                elif goal.status is GoalStatus.CANCELING:
                     canceling.append(goal)
             if not canceling and code is CancelReturn.ERROR_NONE:
                 code = CancelReturn.ERROR_REJECTED
@@ -621,8 +621,8 @@ class RosClientGoal:
 
     def request_cancel(self, timeout: float) -> CancelReturn:
         """Ask the server to cancel this goal; its answer: ERROR_NONE when it is canceling it,
-        ERROR_GOAL_TERMINATED when the goal had ended already (the server's own word, where its
-        status topic is anyone's), else why not."""
+        ERROR_GOAL_TERMINATED when the goal had ended already, or (rcl_action's way) was being canceled
+        already (the server's own word, where its status topic is anyone's), else why not."""
         response = self._client._cancel(self.goal_id, 0, timeout)
         code = int(response.return_code)
         if code == CancelReturn.ERROR_NONE:
