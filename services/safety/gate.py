@@ -72,7 +72,7 @@ from services.safety.monitor import (
     nearest_person,
     separation,
 )
-from services.safety.policy import JOINTS_STAMP, PLAN_RULES, SafetyPolicy, Verdict, base_moving
+from services.safety.policy import JOINTS_STAMP, PLAN_RULES, STILL, SafetyPolicy, Verdict, base_moving
 from services.safety.shared import SharedFilter, SharedLimits, Surroundings, combine
 from services.worldmodel import drive_route
 
@@ -178,6 +178,10 @@ def _positions(joints: JointState | None) -> dict[str, float] | None:
     return None if joints is None else dict(zip(joints.name, joints.position, strict=False))
 
 
+def _moves(twist: Twist) -> bool:
+    return abs(twist.linear_x) > STILL or abs(twist.angular_z) > STILL
+
+
 def _refusal_kind(exc: Vetoed) -> ErrorKind:
     return ErrorKind.ESTOP if exc.rule is Rule.ESTOP else ErrorKind.VETOED
 
@@ -243,6 +247,9 @@ class SafetyGate:
         # Which goal of a robot action may still run (the node's, which knows what it forwarded);
         # by default none: a gate alone forwards nothing.
         self.running: Callable[[ActionKeys[Any, Any, Any]], str | None] = lambda _action: None
+        # Which goal of a robot action was forwarded and is not known to have ended, from the node's
+        # notes alone (the robot is not asked: a twist may not wait on it); by default none.
+        self.noted: Callable[[ActionKeys[Any, Any, Any]], str | None] = lambda _action: None
         self._approvals = ApprovalBook()
         # How often the executor went away, and whether it is away now (under the lock): an ask that
         # came while it was away, or was checked while it went, is its ask. Counted alive until its
@@ -796,7 +803,7 @@ class SafetyGate:
         # A stop is never refused by the mode: only motion is.
         moves = twist.linear_x != 0.0 or twist.angular_z != 0.0
         mode_veto = self._mode_veto() if moves else None
-        return self._twist(keys.CMD_VEL.path, twist, check, self._time(), mode_veto)
+        return self._twist(keys.CMD_VEL.path, twist, check, self._time(), mode_veto, self._arm_goal_veto)
 
     def teleop(self, twist: Twist) -> Ruling[Twist | None]:
         """A velocity from a person: clamped to the limits, and speeding up from what was last sent."""
@@ -859,10 +866,12 @@ class SafetyGate:
         check: Callable[[float], Verdict[Twist]],
         t: float,
         mode_veto: Vetoed | None = None,
+        unless: Callable[[], Vetoed | None] | None = None,
     ) -> Ruling[Twist | None]:
         """The twist to put on robot/cmd_vel, if any. The node puts it before the next twist is
         decided: the teleop ramp starts from what was sent last. `mode_veto`: the control mode refuses
-        this motion (the base is stopped)."""
+        this motion (the base is stopped). `unless`: what refuses a twist that moves, asked as it is
+        noted as sent (see _sent)."""
         if refused := self._estop_veto():
             return Ruling(None, tuple(self._veto_repeated(key, refused, twist, t)))
         if mode_veto is not None:
@@ -872,16 +881,50 @@ class SafetyGate:
             return Ruling(self._sent(Twist(), t), tuple(events))
         try:
             verdict = check(t)
+            sent = self._sent(verdict.command, t, unless)
         except Vetoed as exc:
             # Dropping it is not enough: the last approved twist would carry on until it expires.
             event = GateEvent(key, Decision.VETOED, f"{exc}; base stopped", twist, exc.rule, (exc.rule,), exc.values)
             return Ruling(self._sent(Twist(), t), (event,))
-        return Ruling(self._sent(verdict.command, t), (_approval(key, verdict, verdict.command),))
+        return Ruling(sent, (_approval(key, verdict, verdict.command),))
 
-    def _sent(self, twist: Twist, t: float) -> Twist:
+    def _sent(self, twist: Twist, t: float, unless: Callable[[], Vetoed | None] | None = None) -> Twist:
+        """Note `twist` as the last sent, unless it moves and `unless` refuses it (raised). Asked in
+        the same hold of the lock as the note: a trajectory, noted by the node before it is decided,
+        either is seen here or sees this twist (_twist_may_drive), so of the two at once one is refused."""
         with self._lock:
+            if unless is not None and _moves(twist) and (refused := unless()) is not None:
+                raise refused
             self._sent_twist = (t, twist)
         return twist
+
+    def _arm_goal_veto(self) -> Vetoed | None:
+        """A program's twist while an arm trajectory forwarded may still run: the arm's path was
+        checked from where the base stood, and the hand's reach on the way is not the one measured now."""
+        if (goal_id := self.noted(keys.ROBOT_TRAJECTORY)) is None:
+            return None
+        return Vetoed(
+            f"an arm trajectory (goal {goal_id}) may still be under way: the arm and the base do not move at "
+            "once; send this once it has ended and its result is fetched",
+            Rule.ONE_MOTION,
+        )
+
+    def _twist_may_drive(self, t: float) -> None:
+        """Refused while a twist put on robot/cmd_vel may still drive the base: the robot holds one for
+        up to the horizon, and a base just told to move still stands in its odometry (base_still)."""
+        with self._lock:
+            at, twist = self._sent_twist
+        held = self.policy.policy.base.cmd_vel_horizon
+        if _moves(twist) and t - at <= held:
+            raise Vetoed(
+                f"the base was sent a cmd_vel of {twist.linear_x:g} m/s, {twist.angular_z:g} rad/s "
+                f"{max(0.0, t - at):.2f} s ago and may still be moving (the robot holds one for up to {held:g} s): "
+                "the arm and the base do not move at once; stop the base first",
+                Rule.ONE_MOTION,
+                speed_mps=twist.linear_x,
+                turn_rps=twist.angular_z,
+                age_s=max(0.0, t - at),
+            )
 
     def stopped(self) -> None:
         """The node put a stop on robot/cmd_vel (a latch, a pause, a mode that stops programs):
@@ -926,6 +969,7 @@ class SafetyGate:
 
         def check(goal: FollowJointTrajectoryGoal) -> Verdict[FollowJointTrajectoryGoal]:
             self._one_motion(keys.ROBOT_NAVIGATE, "a navigation")
+            self._twist_may_drive(t)
             try:
                 verdict = self.policy.check_trajectory(goal, positions, self._pose(t), self._base_moving())
             except Vetoed as exc:

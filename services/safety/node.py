@@ -142,6 +142,7 @@ class SafetyNode:
         self.wall_clock = wall_clock
         self.gate = SafetyGate(policy, latch, clock, wall_clock, config.max_resets_per_minute, modes)
         self.gate.running = self._running
+        self.gate.noted = self._forwarded_to
         # Wakes an executor waiting for a plan's approval when an operator decides (or the mode changes).
         self._approvals_changed = threading.Condition()
         self._seq = 0
@@ -365,6 +366,12 @@ class SafetyNode:
             # Ended, the robot says: nothing left to cancel or to ask about.
             self._forget_forwarded(goal_id, robot)
         return None
+
+    def _forwarded_to(self, robot: ActionKeys[Any, Any, Any]) -> str | None:
+        """A goal forwarded on `robot` (or being decided) not known to have ended; the robot is not
+        asked (see _running)."""
+        with self._forwarded_lock:
+            return next((goal_id for goal_id, actions in self._forwarded.items() if robot in actions), None)
 
     def _note_forwarded(self, goal_id: str, robot: ActionKeys[Any, Any, Any]) -> bool:
         """Note `goal_id` as on its way to `robot`; whether it was noted already."""
