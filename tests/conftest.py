@@ -14,6 +14,8 @@ they are written in (some share a stack and depend on it).
 
 from __future__ import annotations
 
+import signal
+
 import pytest
 
 # Every test under it is marked `unit`: its work is done in the pytest process or in children it
@@ -97,3 +99,13 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             item.add_marker(pytest.mark.unit)
             if item.path.relative_to(root).as_posix() in IDLE_UNIT:
                 item.add_marker(pytest.mark.idle)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Tests interrupt tether commands with SIGINT, as a Ctrl-C does. A run started with SIGINT ignored
+    # (`nohup make test &`, a background job of a shell without job control) handed that on to every
+    # process it started, and a Python started with SIGINT ignored never raises KeyboardInterrupt:
+    # each such test waited out its deadline (ten failed in one run). With a handler here, the
+    # children start with the default again (an exec resets handled signals, not ignored ones).
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
