@@ -767,6 +767,7 @@ def goal(
     result = progress.result
     if result is None and progress.state.terminal:  # ended with none (its run raised): not still running
         result = ended_without_result(progress.state, progress.message)
+        progress = msgspec.structs.replace(progress, result=result)  # --json says so too, not "result": null
     code = EXIT_CODES[result.status] if result is not None else 0
     if as_json:
         print(json.dumps(msgspec.to_builtins(progress)))
@@ -1226,6 +1227,18 @@ def world_scene(
 # The demo
 
 
+def demo_config(sim_speed: float, recordings: Path, ros2_endpoint: str | None) -> str:
+    """The demo's TOML: the sim's speed, where the recorder writes, the ROS 2 endpoint when on ros2.
+    Strings as JSON writes them, which TOML reads the same: a directory named with a quote or a
+    backslash is still that directory."""
+    text = f"[sim]\nrealtime_factor = {sim_speed}\n\n[recorder]\noutput_dir = {json.dumps(str(recordings))}\n"
+    if ros2_endpoint is not None:
+        endpoint = json.dumps(ros2_endpoint)
+        text += f"\n[ros2]\nendpoint = {endpoint}\n\n[ros2sim]\nlisten = {endpoint}\n"
+        text += f"\n[recorder.ros2]\nendpoint = {endpoint}\n"
+    return text
+
+
 @app.command()
 def demo(
     ctx: typer.Context,
@@ -1249,15 +1262,9 @@ def demo(
         raise typer.Exit(2)
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "demo.toml"
-        text = f'[sim]\nrealtime_factor = {sim_speed}\n\n[recorder]\noutput_dir = "{recordings.resolve()}"\n'
-        if backend == "ros2":
-            # The stand-in robot's ROS 2 side on a port of its own, not 7447: a real robot's router may be there.
-            endpoint = f"tcp/127.0.0.1:{free_base_port(1)}"
-            text += (
-                f'\n[ros2]\nendpoint = "{endpoint}"\n\n[ros2sim]\nlisten = "{endpoint}"\n'
-                f'\n[recorder.ros2]\nendpoint = "{endpoint}"\n'
-            )
-        config.write_text(text)
+        # The stand-in robot's ROS 2 side on a port of its own, not 7447: a real robot's router may be there.
+        endpoint = f"tcp/127.0.0.1:{free_base_port(1)}" if backend == "ros2" else None
+        config.write_text(demo_config(sim_speed, recordings.resolve(), endpoint))
         stack = "ros2-standin" if backend == "ros2" else "sim"
         supervisor, node = start_services(ctx, config, log_dir, timeout=90.0, backend=stack)
         ok = False
@@ -1333,7 +1340,7 @@ def mcp_command(
     ctx: typer.Context,
     http: Annotated[bool, typer.Option("--http", help="Serve streamable HTTP instead of stdio.")] = False,
     host: Annotated[str, typer.Option(help="With --http: the loopback address to bind.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="With --http: the port (tether view takes 8765).")] = 8766,
+    port: Annotated[int, typer.Option(help="With --http: the port (tether view takes 8765).", min=1, max=65535)] = 8766,
 ) -> None:
     """Serve the robot's tools over MCP: stdio for an MCP client that starts this command, or --http.
 

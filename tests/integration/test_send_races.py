@@ -116,7 +116,10 @@ def test_a_plan_that_ended_without_a_result_is_no_success(executor: tuple[StandI
     command = [sys.executable, "-m", "tether", "goal", document["goal_id"], "--json"]
     asked = subprocess.run(command, env=env, capture_output=True, text=True, timeout=WAIT, start_new_session=True)
     assert asked.returncode == 1, asked.stdout + asked.stderr
-    assert json.loads(asked.stdout)["state"] == "aborted", asked.stdout
+    progress = json.loads(asked.stdout)
+    assert progress["state"] == "aborted", asked.stdout
+    # Its --json said "result": null with that exit 1; the words said the plan failed.
+    assert progress["result"]["status"] == "failed" and "the runner broke" in progress["result"]["reason"], progress
 
 
 def test_ctrl_c_while_waiting_cancels_the_plan_and_says_so(executor: tuple[StandIn, dict[str, str]]) -> None:
