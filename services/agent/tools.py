@@ -43,10 +43,12 @@ PARAM_HINTS: dict[tuple[Action, str] | str, str] = {
     (Action.DRIVE, "distance"): "Positive drives forward, negative backward.",
     (Action.TURN, "angle"): "Positive turns left (counter-clockwise), negative right, as in ROS.",
     (Action.SAY, "text"): "The words to say.",
-    (Action.SAY, "volume"): "Loudness: 0 silent, 1 loudest.",
-    (Action.OPEN_GRIPPER, "width"): "How far to open the fingers; left out, fully.",
-    (Action.CLOSE_GRIPPER, "force"): "How hard to grip; left out, the gripper's own force.",
-    "approach": "How the hand comes to it: from the top or from the side; left out, the robot chooses.",
+    # Taken (models write them) but carried out by nothing: the resolver warns of each given
+    # (services/resolver/resolver.py UNUSED_PARAMS), and the hint says so, so a model need not send one.
+    (Action.SAY, "volume"): "Not used: this robot has no speaker.",
+    (Action.OPEN_GRIPPER, "width"): "Not used: the gripper opens fully.",
+    (Action.CLOSE_GRIPPER, "force"): "Not used: the gripper closes with its own force.",
+    "approach": "Not used: the robot chooses how the hand comes to it.",
     "speed": "Left out, the robot's own speed; safety may slow it further near people.",
 }
 # The SI unit symbols of the vocabulary, in words.

@@ -62,6 +62,15 @@ MAX_TURN_PER_GOAL = math.tau / 3
 SAME_POSITION = 1e-3
 SAME_YAW = 1e-3
 ECHO_CHARS = 60
+# Parameters the vocabulary takes (a model writes them) that nothing carries out, and why: a plan
+# giving one is told so in its warnings, not left to think the robot did it.
+UNUSED_PARAMS = {
+    (Action.PICK, "approach"): "the executor chooses the grasp",
+    (Action.PLACE, "approach"): "the executor chooses how the hand comes down",
+    (Action.OPEN_GRIPPER, "width"): "the gripper opens fully",
+    (Action.CLOSE_GRIPPER, "force"): "the gripper closes with its own force",
+    (Action.SAY, "volume"): "this robot has no speaker",
+}
 # A spot a plan gives for place must be this far in from the edge of the top.
 PLACE_EDGE_MARGIN = 0.05
 # A delivery spot is at least this far (xy) from where the person stands or sits, and the base's
@@ -388,6 +397,9 @@ class Resolver:
     # One step
 
     def _step(self, at: _At, action: Action, step: Step, state: _State) -> list[GroundedStep]:
+        for name in step.params:
+            if (why := UNUSED_PARAMS.get((action, name))) is not None:
+                at.warn(state, f"parameter '{name}' is not used: {why}")
         match action:
             case Action.NAVIGATE_TO:
                 return [self._navigate(at, step, state)]
