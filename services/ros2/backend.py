@@ -80,6 +80,8 @@ _HELD_BACK = re.compile(r" \(\d+ more like it since the last report\)$")
 JOINTS_MAX_LAG = 0.5
 # A robot stamp further than this from our wall clock is not believed: the report is stamped on arrival.
 CLOCK_TOLERANCE = 1.0
+# builtin_interfaces Duration's seconds are an int32: a trajectory re-timed past this cannot be sent.
+DURATION_MAX = 2**31 - 1
 # emergency_stop goes out this often, `true` or `false` (docs/robot.md: the controller's rate): a
 # dead-man signal, so a robot with a watchdog on it stops when the backend goes quiet.
 ESTOP_PERIOD = 0.05
@@ -118,6 +120,10 @@ class RobotGoalUnanswered(RobotCallFailed):
     def __init__(self, message: str, goal_id: bytes) -> None:
         super().__init__(message)
         self.goal_id = goal_id
+
+
+class UnsendableGoal(ValueError):
+    """A goal the robot's messages cannot carry (a time beyond a ROS Duration): nothing was sent."""
 
 
 class RobotReportError(ValueError):
@@ -223,12 +229,19 @@ class Messages:
     """The ROS messages tether's commands and goals become."""
 
     def __init__(
-        self, types: Builder, frames: Frames, *, stamped_cmd_vel: bool, parallel_gripper_joint: str = ""
+        self,
+        types: Builder,
+        frames: Frames,
+        *,
+        stamped_cmd_vel: bool,
+        parallel_gripper_joint: str = "",
+        gripper_position_per_gap: float = 1.0,
     ) -> None:
         self.types = types
         self.frames = frames
         self.stamped_cmd_vel = stamped_cmd_vel
         self.parallel_gripper_joint = parallel_gripper_joint
+        self.gripper_position_per_gap = gripper_position_per_gap
 
     @property
     def cmd_vel_type(self) -> str:
@@ -240,6 +253,9 @@ class Messages:
         return self.types.new("builtin_interfaces/msg/Time", sec=int(sec), nanosec=nanosec)
 
     def duration(self, seconds: float) -> Any:
+        """UnsendableGoal past DURATION_MAX (a Duration's seconds are an int32), rather than failing to encode."""
+        if not 0.0 <= seconds < DURATION_MAX + 1:
+            raise UnsendableGoal(f"a duration of {seconds:.3g} s, where a ROS Duration holds 0 to {DURATION_MAX} s")
         sec = math.floor(seconds)
         nanosec = min(round((seconds - sec) * 1e9), 999_999_999)
         return self.types.new("builtin_interfaces/msg/Duration", sec=int(sec), nanosec=nanosec)
@@ -334,7 +350,8 @@ class Messages:
                 effort=np.array([max_effort], dtype=np.float64),
             )
             return new(f"{PARALLEL_GRIPPER_COMMAND}_Goal", command=command)
-        command = new("control_msgs/msg/GripperCommand", position=float(gap), max_effort=float(max_effort))
+        position = float(gap) * self.gripper_position_per_gap
+        command = new("control_msgs/msg/GripperCommand", position=position, max_effort=float(max_effort))
         return new(f"{GRIPPER_COMMAND}_Goal", command=command)
 
 
@@ -798,16 +815,16 @@ def navigation_error(result: Any) -> str:
     return f"{name}: {text}" if text else name
 
 
-def gripper_error(result: Any) -> str:
+def gripper_error(result: Any, position_per_gap: float = 1.0) -> str:
     """A GripperCommand (or ParallelGripperCommand) result that did not succeed, in words; '' when it
     says nothing. gripper_action_controller aborts a goal whose fingers stall short of it (unless
-    allow_stalling), saying so only in its result."""
+    allow_stalling), saying so only in its result. `position_per_gap`: Messages.gripper_position_per_gap."""
     if result is None or not bool(getattr(result, "stalled", False)):
         return ""
     if hasattr(result, "state"):  # ParallelGripperCommand: one finger joint, half the gap
         position = float(result.state.position[0]) * 2 if len(result.state.position) else math.nan
     else:
-        position = float(result.position)
+        position = float(result.position) / position_per_gap
     where = f" at {position * 1000:.0f} mm" if math.isfinite(position) else ""
     return f"the fingers stalled{where}, short of the goal"
 
@@ -895,6 +912,21 @@ class RobotState:
         why = "no odometry from the robot yet" if odom is None else f"no odometry from the robot for {age:.1f} s"
         if problem := self.recent_problem(about=("odometry", self.odom_topic.strip("/"))):
             why += f"; {robot_text(problem)}"  # it may quote the robot (a frame id) at any length
+        return why
+
+    def joint_states(self, max_age: float) -> JointState | str:
+        """The latest joint states if they are at most `max_age` old; else why there are none."""
+        with self._changed:
+            joints, age = self._joints, self.clock() - self._joints_at
+        if joints is not None and age <= max_age:
+            return joints
+        why = (
+            "no joint states from the robot yet"
+            if joints is None
+            else f"no joint states from the robot for {age:.1f} s"
+        )
+        if problem := self.recent_problem(about=("joint states",)):
+            why += f"; {robot_text(problem)}"
         return why
 
     @property

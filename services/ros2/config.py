@@ -80,6 +80,9 @@ class Ros2Config(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     # control_msgs GripperCommand, or ParallelGripperCommand naming `gripper_joint`.
     gripper_action: Literal["gripper_command", "parallel_gripper_command"] = "gripper_command"
     gripper_joint: Annotated[str, Meta(min_length=1, max_length=64)] = "panda_finger_joint1"
+    # GripperCommand's position per metre of finger gap, both ways: 1.0 when it is the gap, 0.5 when
+    # it is one finger joint's travel (a Panda's gripper_action_controller on panda_finger_joint1).
+    gripper_position_per_gap: Annotated[float, Meta(gt=0.0, le=100.0)] = 1.0
     # The camera on `names.camera`: sensor_msgs CompressedImage, or Image (rgb8, bgr8, rgba8, mono8).
     camera_format: Literal["compressed", "raw"] = "compressed"
     # Call the robot's std_srvs/srv/Trigger `names.stop` when safety stops it (besides emergency_stop).
@@ -114,6 +117,8 @@ class Ros2Config(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
     cmd_vel_timeout: Annotated[float, Meta(gt=0.0, le=1.0)] = 0.5
     # A navigation aborts when odometry is older than this (safety's watchdog latches at 0.5 s).
     odom_timeout: WallSeconds = 0.5
+    # A trajectory aborts when joint states are older than this (safety's state_max_age is 0.5 s).
+    joint_states_timeout: WallSeconds = 0.5
     # ... or when the base makes no progress for this long (seconds of scaled time; a pause never counts).
     stall_timeout: WallSeconds = 10.0
     # The key safety signs robot commands and heartbeats with (services/robotlink.py); None:
@@ -125,6 +130,11 @@ class Ros2Config(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_field
             raise ValueError(
                 f"distro {self.distro!r} is not supported: {UNSUPPORTED_DISTROS[self.distro]}; "
                 f"supported: {', '.join(SUPPORTED_DISTROS)} (style rmw_zenoh or bridge)"
+            )
+        if self.gripper_action == "parallel_gripper_command" and self.gripper_position_per_gap != 1.0:
+            raise ValueError(
+                f"gripper_position_per_gap = {self.gripper_position_per_gap:g} is for gripper_action = "
+                "'gripper_command': a ParallelGripperCommand names gripper_joint and gets half the gap"
             )
 
     def ros_domain(self) -> int:

@@ -47,6 +47,7 @@ from services.ros2.backend import (
     RobotLinkClosed,
     RobotRefused,
     RobotState,
+    UnsendableGoal,
     gripper_error,
     gripper_gap,
     navigation_error,
@@ -497,7 +498,13 @@ class GoalRun:
 
     def _send(self, scale: float) -> _Flight | Ending | None:
         """Send the next ROS goal; None when safety stopped the robot just before (nothing sent)."""
-        action, goal = self.next_goal(scale)
+        try:
+            action, goal = self.next_goal(scale)
+        except UnsendableGoal as exc:
+            message = f"the {self.label} goal cannot be sent at speed scale {scale:.3g}: {exc}"
+            log.warning("%s", message)
+            self.make_safe()
+            return Ending(GoalState.ABORTED, self.result_now(), message)
         epoch = self.ctx.motion_epoch()
         if self.handle.should_stop or self.ctx.safety().blocked is not None or not self.ctx.robot_released():
             return None
@@ -828,10 +835,21 @@ class TrajectoryRun(GoalRun):
 
     label = "follow_joint_trajectory"
 
-    def __init__(self, ctx: RunContext, action: RosAction, handle: TetherGoal, messages: Messages) -> None:
+    def __init__(
+        self,
+        ctx: RunContext,
+        action: RosAction,
+        handle: TetherGoal,
+        messages: Messages,
+        *,
+        joint_states_timeout: float,
+    ) -> None:
         super().__init__(ctx, action, handle)
         self.goal: FollowJointTrajectoryGoal = handle.goal
         self.messages = messages
+        # As NavigationRun's odom_timeout: joint states older than this end the goal (node.py passes
+        # `[ros2] joint_states_timeout`).
+        self.joint_states_timeout = joint_states_timeout
         self.plan: TrajectoryPlan | None = None
         self.t = 0.0  # trajectory time reached when last sent or held
         self.sent_at: float | None = None  # clock time of the last send while the goal runs
@@ -844,6 +862,8 @@ class TrajectoryRun(GoalRun):
         return [joints.position[joints.name.index(n)] for n in self.goal.joint_names]
 
     def prepare(self) -> str | None:
+        if isinstance(joints := self.ctx.robot.joint_states(self.joint_states_timeout), str):
+            return joints  # the trajectory would start from where the arm was, not where it is
         actual = self._actual()
         if actual is None:
             return "no joint states from the robot for the trajectory's joints"
@@ -879,6 +899,8 @@ class TrajectoryRun(GoalRun):
 
     def check(self, now: float, moving: bool, scale: float) -> str | None:
         assert self.plan is not None
+        if isinstance(joints := self.ctx.robot.joint_states(self.joint_states_timeout), str):
+            return joints
         limit = self.plan.end + TRAJECTORY_SETTLE + TRAJECTORY_GRACE
         if moving and self.clock_at(now) > limit:
             return f"the arm controller did not finish the trajectory within {limit:g} s of trajectory time"
@@ -974,7 +996,7 @@ class GripperRun(GoalRun):
         if hasattr(result, "state"):  # ParallelGripperCommand
             position = float(result.state.position[0]) * 2 if len(result.state.position) else 0.0
         else:
-            position = float(result.position)
+            position = float(result.position) / self.messages.gripper_position_per_gap
         if not math.isfinite(position):
             # Passed on, no one could decode the result (JSON has no NaN): the goal ends aborted instead.
             message = (
@@ -994,7 +1016,7 @@ class GripperRun(GoalRun):
         return Ending(GoalState.SUCCEEDED, result_value, message)
 
     def failure(self, status: int, result: Any, error: str) -> str:
-        return ros_failure(self.label, status, gripper_error(result) or error)
+        return ros_failure(self.label, status, gripper_error(result, self.messages.gripper_position_per_gap) or error)
 
     def _holding(self) -> str | None:
         """The object the detections put in the gripper, from a report after the grasp."""

@@ -263,6 +263,7 @@ class Ros2Backend:
             config.frames,
             stamped_cmd_vel=config.stamped_cmd_vel,
             parallel_gripper_joint=config.gripper_joint if parallel else "",
+            gripper_position_per_gap=config.gripper_position_per_gap,
         )
         self._wake = threading.Event()
         self._estop_signal = EstopSignal()
@@ -547,7 +548,9 @@ class Ros2Backend:
         )
 
     def _trajectory_run(self, handle: GoalHandle[Any, Any]) -> GoalRun:
-        return TrajectoryRun(self.context, self._trajectory, handle, self.messages)
+        return TrajectoryRun(
+            self.context, self._trajectory, handle, self.messages, joint_states_timeout=self.config.joint_states_timeout
+        )
 
     def _gripper_run(self, handle: GoalHandle[Any, Any]) -> GoalRun:
         return GripperRun(self.context, self._gripper, handle, self.messages, self.masses, 1.0 / self.config.objects_hz)

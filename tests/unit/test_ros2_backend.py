@@ -85,6 +85,9 @@ MODEL = WorldModel(WORLD)
 TYPES = RosTypes()
 FRAMES = Frames()
 MESSAGES = Messages(TYPES, FRAMES, stamped_cmd_vel=False)
+# Trajectories here run on a clock the test moves, without joint states coming in: their age is not
+# watched (test_ros2_followups46 tests that it ends a trajectory).
+UNWATCHED = math.inf
 NOW = 1_700_000_000.0  # a wall-clock time, seconds
 HOME = [0.0, -1.3, 0.0, -2.35, 0.0, 1.05, 0.785]
 LOWER = [-2.9, -1.8, -2.9, -3.1, -2.9, -0.08, -2.9]
@@ -895,7 +898,7 @@ def trajectory_result(code: int = 0, text: str = "") -> Any:
 
 def test_a_trajectory_runs_as_one_ros_goal_and_succeeds_with_the_error_the_joints_show(rig: Rig) -> None:
     action, handle = FakeAction("arm"), FakeHandle(swing(2.0))
-    run = TrajectoryRun(rig.context, action, handle, MESSAGES)
+    run = TrajectoryRun(rig.context, action, handle, MESSAGES, joint_states_timeout=UNWATCHED)
     rig.clock.at(101.0, lambda: rig.joints([0.6, *HOME[1:]]))
     rig.clock.at(101.0, lambda: action.goals[0].finish(SUCCEEDED, trajectory_result()))
     ending = run.run()
@@ -908,7 +911,7 @@ def test_a_trajectory_runs_as_one_ros_goal_and_succeeds_with_the_error_the_joint
 
 def test_a_trajectory_paused_at_scale_zero_is_canceled_and_the_rest_sent_re_timed_on_resume(rig: Rig) -> None:
     action, handle = FakeAction("arm"), FakeHandle(swing(2.0))
-    run = TrajectoryRun(rig.context, action, handle, MESSAGES)
+    run = TrajectoryRun(rig.context, action, handle, MESSAGES, joint_states_timeout=UNWATCHED)
     rig.clock.at(100.5, lambda: rig.set(clear(0.0)))  # paused half a second in
     rig.clock.at(103.0, lambda: rig.set(clear(0.5)))  # resumed at half speed
     rig.clock.once(lambda: len(action.goals) == 2, lambda: action.goals[1].finish(SUCCEEDED, trajectory_result()))
@@ -927,6 +930,7 @@ def test_a_trajectory_the_robot_refuses_or_aborts_ends_aborted_with_what_it_said
         FakeAction("arm", refuse=RobotRefused("goal rejected by the server")),
         FakeHandle(swing()),
         MESSAGES,
+        joint_states_timeout=UNWATCHED,
     ).run()
     assert (
         refused.state is GoalState.ABORTED
@@ -938,7 +942,7 @@ def test_a_trajectory_the_robot_refuses_or_aborts_ends_aborted_with_what_it_said
         lambda: bool(action.goals),
         lambda: action.goals[0].finish(ABORTED, trajectory_result(-4, "panda_joint2 blocked")),
     )
-    aborted = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES).run()
+    aborted = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert aborted.state is GoalState.ABORTED
     assert (
         aborted.message
@@ -948,7 +952,7 @@ def test_a_trajectory_the_robot_refuses_or_aborts_ends_aborted_with_what_it_said
     rig.clock.once(
         lambda: bool(action.goals), lambda: action.goals[0].finish(SUCCEEDED, trajectory_result(-5, "off by 0.1"))
     )
-    failed = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES).run()
+    failed = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert failed.state is GoalState.ABORTED and "GOAL_TOLERANCE_VIOLATED" in failed.message
 
 
@@ -966,7 +970,7 @@ def test_the_robots_words_too_long_for_a_message_are_cut_saying_so(rig: Rig) -> 
         lambda: bool(action.goals),
         lambda: action.goals[0].finish(ABORTED, trajectory_result(-4, "panda_joint2 blocked " + "x" * 10_000)),
     )
-    arm = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES).run()
+    arm = TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert arm.state is GoalState.ABORTED
     assert arm.message.startswith(
         "the robot aborted the follow_joint_trajectory goal: PATH_TOLERANCE_VIOLATED: panda_joint2 blocked xxx"
@@ -1032,7 +1036,7 @@ def test_a_robot_that_never_answers_a_goal_ends_it_aborted_and_is_left_still(rig
 def test_a_canceled_goal_cancels_its_ros_goal_and_ends_canceled(rig: Rig) -> None:
     action, handle = FakeAction("arm"), FakeHandle(swing(10.0))
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(handle, "stop", True))
-    ending = TrajectoryRun(rig.context, action, handle, MESSAGES).run()
+    ending = TrajectoryRun(rig.context, action, handle, MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert ending.state is GoalState.CANCELED and ending.message == "canceled"
     assert action.goals[0].cancels == 1
 
@@ -1071,7 +1075,9 @@ def test_a_cancel_the_robot_never_confirms_holds_its_emergency_stop_and_is_asked
 
     action, handle = FakeAction("arm", ends_on_cancel=False), FakeHandle(swing(10.0))
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(handle, "stop", True))
-    ending = TrajectoryRun(replace(rig.context, block_robot=block_robot), action, handle, MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=block_robot), action, handle, MESSAGES, joint_states_timeout=UNWATCHED
+    ).run()
     assert "did not confirm" in ending.message and "emergency stop is held" in ending.message
     assert blocks == [
         "the robot did not end its follow_joint_trajectory goal when canceled: its emergency stop is "
@@ -1087,7 +1093,7 @@ def test_a_cancel_the_robot_never_confirms_holds_its_emergency_stop_and_is_asked
 
 def test_a_goal_stopped_while_it_is_made_is_never_sent(rig: Rig) -> None:
     action, handle = FakeAction("arm"), FakeHandle(swing())
-    run = TrajectoryRun(rig.context, action, handle, MESSAGES)
+    run = TrajectoryRun(rig.context, action, handle, MESSAGES, joint_states_timeout=UNWATCHED)
     made = run.next_goal
 
     def next_goal(scale: float) -> Any:
@@ -1105,7 +1111,7 @@ def test_a_goal_sent_while_safety_stopped_the_robot_is_canceled_at_once_and_sent
     action = FakeAction("arm", during_send=lambda: epoch.__setitem__(0, 1))  # a stop, then a release
     rig.clock.once(lambda: len(action.goals) == 2, lambda: action.goals[1].finish(SUCCEEDED, trajectory_result()))
     context = replace(rig.context, motion_epoch=lambda: epoch[0])
-    ending = TrajectoryRun(context, action, FakeHandle(swing()), MESSAGES).run()
+    ending = TrajectoryRun(context, action, FakeHandle(swing()), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert ending.state is GoalState.SUCCEEDED, ending.message
     first, _again = action.goals
     assert first.cancels == 1
@@ -1131,7 +1137,7 @@ class BrokenResult(FakeGoal):
 
 def test_a_result_that_fails_unexpectedly_ends_the_goal_and_cancels_it_on_the_robot(rig: Rig) -> None:
     action = FakeAction("arm", make=BrokenResult)
-    ending = TrajectoryRun(rig.context, action, FakeHandle(swing(10.0)), MESSAGES).run()
+    ending = TrajectoryRun(rig.context, action, FakeHandle(swing(10.0)), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert ending.state is GoalState.ABORTED and "a decoder bug" in ending.message
     assert action.goals[0].cancels == 1
 
@@ -1149,7 +1155,7 @@ def test_a_goal_whose_status_says_it_ended_but_whose_result_never_comes_is_cance
     action = FakeAction("arm", make=ResultNeverComes)
     # A terminal status on the action's status topic, as anyone on the robot's network could publish.
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(action.goals[0], "status", ABORTED))
-    ending = TrajectoryRun(rig.context, action, FakeHandle(swing(4.0)), MESSAGES).run()
+    ending = TrajectoryRun(rig.context, action, FakeHandle(swing(4.0)), MESSAGES, joint_states_timeout=UNWATCHED).run()
     assert ending.state is GoalState.ABORTED and "its result could not be read" in ending.message
     assert action.goals[0].cancels == 1
 
@@ -1157,7 +1163,10 @@ def test_a_goal_whose_status_says_it_ended_but_whose_result_never_comes_is_cance
 def test_a_finished_goal_is_forgotten_by_the_action_client(rig: Rig) -> None:
     action = FakeAction("arm")
     rig.clock.once(lambda: bool(action.goals), lambda: action.goals[0].finish(SUCCEEDED, trajectory_result()))
-    assert TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES).run().state is GoalState.SUCCEEDED
+    assert (
+        TrajectoryRun(rig.context, action, FakeHandle(swing()), MESSAGES, joint_states_timeout=UNWATCHED).run().state
+        is GoalState.SUCCEEDED
+    )
     assert wait_until(lambda: action.goals[0].forgotten)
 
 

@@ -22,6 +22,7 @@ from tests.unit.test_ros2_backend import (
     MESSAGES,
     NOW,
     SUCCEEDED,
+    UNWATCHED,
     FakeAction,
     FakeGoal,
     FakeHandle,
@@ -73,7 +74,9 @@ def test_an_emergency_stop_held_for_a_goal_is_not_released_by_a_status_anyone_ca
     holds = Holds()
     action, handle = FakeAction("arm", ends_on_cancel=False), FakeHandle(swing(10.0))
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(handle, "stop", True))
-    ending = TrajectoryRun(replace(rig.context, block_robot=holds), action, handle, MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=holds), action, handle, MESSAGES, joint_states_timeout=UNWATCHED
+    ).run()
     assert "emergency stop is held" in ending.message
     [goal] = action.goals
     goal.status = CANCELED  # on the status topic; the robot's action server runs the goal on
@@ -89,7 +92,13 @@ def test_a_goal_whose_status_says_it_ended_is_held_stopped_until_the_robot_itsel
     holds = Holds()
     action = FakeAction("arm", make=SlowResult, ends_on_cancel=False)
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(action.goals[0], "status", ABORTED))
-    ending = TrajectoryRun(replace(rig.context, block_robot=holds), action, FakeHandle(swing(10.0)), MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=holds),
+        action,
+        FakeHandle(swing(10.0)),
+        MESSAGES,
+        joint_states_timeout=UNWATCHED,
+    ).run()
     assert ending.state is GoalState.ABORTED
     assert "its result could not be read" in ending.message and "emergency stop is held" in ending.message
     assert len(holds.reasons) == 1 and not holds.released.is_set()
@@ -106,7 +115,13 @@ def test_a_pause_the_robot_did_not_carry_out_is_not_taken_for_one_on_its_status(
     rig.clock.at(100.5, lambda: rig.set(clear(0.0)))
     rig.clock.at(103.0, lambda: rig.set(clear(1.0)))
     rig.clock.once(lambda: len(action.goals) == 2, lambda: action.goals[1].finish(SUCCEEDED, trajectory_result()))
-    ending = TrajectoryRun(replace(rig.context, block_robot=holds), action, FakeHandle(swing(2.0)), MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=holds),
+        action,
+        FakeHandle(swing(2.0)),
+        MESSAGES,
+        joint_states_timeout=UNWATCHED,
+    ).run()
     assert ending.state is GoalState.ABORTED and "emergency stop is held" in ending.message, ending.message
     assert len(action.goals) == 1, "nothing more sent while the first goal may run"
     assert len(holds.reasons) == 1
@@ -123,7 +138,9 @@ def test_a_cancel_the_robot_answers_with_the_goal_already_ended_settles_it(rig: 
 
     action, handle = FakeAction("arm", make=Ended), FakeHandle(swing(10.0))
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(handle, "stop", True))
-    ending = TrajectoryRun(replace(rig.context, block_robot=holds), action, handle, MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=holds), action, handle, MESSAGES, joint_states_timeout=UNWATCHED
+    ).run()
     assert ending.state is GoalState.CANCELED and ending.message == "canceled"
     assert holds.reasons == [] and action.goals[0].cancels == 1
 

@@ -14,7 +14,7 @@ from services.ros2.goals import TrajectoryRun
 from services.ros2.node import _Goal
 from services.ros2.rmw import RosCallError
 from services.ros2.wire import CancelReturn, GoalStatus
-from tests.unit.test_ros2_backend import MESSAGES, FakeHandle, Rig, swing, wait_until
+from tests.unit.test_ros2_backend import MESSAGES, UNWATCHED, FakeHandle, Rig, swing, wait_until
 from tests.unit.test_ros2_backend import rig as rig  # the fixture, shared
 from tests.unit.test_ros2_hostile_robot import Holds
 
@@ -76,7 +76,9 @@ def test_an_emergency_stop_held_for_a_goal_still_canceling_is_not_released_by_rc
     holds = Holds()
     action, handle = RclAction(), FakeHandle(swing(10.0))
     rig.clock.once(lambda: bool(action.goals), lambda: setattr(handle, "stop", True))
-    ending = TrajectoryRun(replace(rig.context, block_robot=holds), action, handle, MESSAGES).run()
+    ending = TrajectoryRun(
+        replace(rig.context, block_robot=holds), action, handle, MESSAGES, joint_states_timeout=UNWATCHED
+    ).run()
     assert ending.state is GoalState.CANCELED and "emergency stop is held" in ending.message, ending.message
     [goal] = action.goals
     assert wait_until(lambda: goal.cancels >= 3 or holds.released.is_set())
