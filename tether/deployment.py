@@ -28,6 +28,9 @@ DEFAULT_ROUTER_HOST = "localhost"
 # The services of a robot, each its own identity, then the two that are not services: a person and an LLM agent.
 SERVICE_IDENTITIES = ("sim", "safety", "parser", "resolver", "executor", "recorder", "planner", "ros2")
 IDENTITIES = (*SERVICE_IDENTITIES, "operator", "agent")
+# An identity's name (`username`: ROBOT-IDENTITY) is its certificate's common name, which holds at
+# most 64 characters (RFC 5280's ub-common-name): this leaves the rest for the robot's name.
+MAX_ROBOT_NAME = 64 - len("-") - max(len(i) for i in IDENTITIES)
 ROBOT_BACKEND_IDENTITIES = ("sim", "ros2")
 # A robot's backend (`deploy init --backend`): only its identity reports the robot's state and serves
 # its actions; the other backend gets no login. ANY_BACKEND, for a robot that runs either (the sim now,
@@ -89,6 +92,11 @@ class RouterAddress:
             raise DeploymentError(f"router address {text!r} has no host")
         if not _is_ip(host) and not all(part.replace("-", "").isalnum() for part in host.split(".")):
             raise DeploymentError(f"router address {text!r}: {host!r} is neither a host name nor an IP address")
+        if not host.isascii():
+            # A certificate names a host in ASCII (DNS's A-labels), and so does a resolver.
+            raise DeploymentError(
+                f"router address {text!r}: a host name is ASCII; give {host!r} in its IDNA form (xn--...)"
+            )
         if not port_text:
             return cls(host)
         try:
@@ -178,6 +186,12 @@ def init(
     """
     for robot in robots:
         check_robot_name(robot)
+        if len(robot) > MAX_ROBOT_NAME:
+            # Refused whatever --tls: a longer one also names unit files longer than a file name may be.
+            raise DeploymentError(
+                f"robot name {robot!r} has {len(robot)} characters: at most {MAX_ROBOT_NAME} characters, for "
+                f"its identities' names ({username('ROBOT', 'operator')}) to fit a certificate's 64"
+            )
     if backend is not None:
         check_backend(backend)
     if not robots:

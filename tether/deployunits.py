@@ -188,14 +188,9 @@ def service_unit(identity: Identity, tls: bool, executable: Path, *, alone: bool
     credentials = "\n".join(
         f"LoadCredential={name}:{home / name}" for name in (*identity.credentials(tls), CONFIG_CREDENTIAL)
     )
-    backend = (
-        ""
-        if alone
-        else {
-            "sim": f"Conflicts={unit.replace('-sim', '-' + ROS2)}.service\n",
-            ROS2: f"Conflicts={unit.replace('-' + ROS2, '-sim')}.service\n",
-        }.get(service, "")
-    )
+    # Its robot's other backend, by name: never one of another robot's units (robot `sim`, `lab-ros2`).
+    other = {"sim": ROS2, ROS2: "sim"}.get(service)
+    backend = "" if alone or other is None else f"Conflicts={Identity(robot, other).unit}.service\n"
     start = (
         "# It is ready once the robot reports, which may take a while after boot; until then it holds the robot.\n"
         "TimeoutStartSec=infinity\n"
