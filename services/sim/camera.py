@@ -44,14 +44,17 @@ class Frame:
 class Camera:
     """A camera on the mobile base, rendered with the CPU renderer (pybullet DIRECT has no GPU)."""
 
-    def __init__(self, bullet: Any, config: CameraConfig, floor: int | None = None) -> None:
+    def __init__(self, bullet: Any, config: CameraConfig, floor: int | None = None, robot: int | None = None) -> None:
         """`floor`: the body the world stands on, drawn only in pictures. It hides nothing the
         detector looks for, yet fills about two thirds of a frame from the start pose, and pybullet's
-        CPU renderer pays per pixel drawn: about 7.5 ms a frame with it, 3 without."""
+        CPU renderer pays per pixel drawn: about 7.5 ms a frame with it, 3 without. `robot`: the
+        robot's body, whose hand above an object hides part of it, and the part left would put its
+        centre off (detection.detect leaves such an object out)."""
         self.bullet = bullet
         self.config = config
         self._floor = floor
         self.show_floor(False)
+        self._robot = () if robot is None else (robot,)
         self.intrinsics = Intrinsics(
             width=config.width,
             height=config.height,
@@ -122,7 +125,8 @@ class Camera:
 
     def look(self, base: Pose2D, targets: Mapping[int, Target]) -> dict[str, Detection]:
         """Where the camera, from a base at `base`, sees each of `targets` (by name): map-frame centres
-        with the configured noise, and headings. Targets out of view, out of range or hidden are missing."""
+        with the configured noise, and headings. Targets out of view, out of range, hidden, or partly
+        hidden by the robot itself are missing."""
         frame = self.render(base)
         seen = detect(
             frame.segmentation,
@@ -132,6 +136,7 @@ class Camera:
             targets,
             min_pixels=self.config.min_pixels,
             max_range=self.config.max_range,
+            occluders=self._robot,
         )
         return {
             name: Detection(found.centre + self._noise.normal(0.0, self.config.noise, 3), found.yaw)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,15 +144,18 @@ def detect(
     *,
     min_pixels: int,
     max_range: float,
+    occluders: Collection[int] = (),
 ) -> dict[str, Detection]:
     """The estimated centres (map frame), and headings where they tell, of the bodies in `bodies`
     (segmentation id -> target) seen in the image, by name.
 
     A body counts when at least `min_pixels` of its pixels lie within `max_range` metres along the
-    optical axis (beyond that the sensor returns nothing) and none of them touches the image border:
-    half an object would put its centre half a size off.
+    optical axis (beyond that the sensor returns nothing), none of them touches the image border and
+    none borders a nearer pixel of one of `occluders` (the robot): half an object would put its
+    centre half a size off, and so would the end of one the robot's hand above it hides.
     """
     ids = np.fromiter(bodies, dtype=segmentation.dtype, count=len(bodies))
+    hidden = _beside_nearer(segmentation, depth_buffer, occluders)
     rows, cols = np.nonzero(np.isin(segmentation, ids))
     depth = linear_depth(depth_buffer[rows, cols], camera.near, camera.far)
     in_range = depth <= max_range
@@ -161,7 +164,11 @@ def detect(
     found: dict[str, Detection] = {}
     for body in np.unique(labels):
         mine = labels == body
-        if np.count_nonzero(mine) < min_pixels or _touches_border(rows[mine], cols[mine], camera):
+        if (
+            np.count_nonzero(mine) < min_pixels
+            or _touches_border(rows[mine], cols[mine], camera)
+            or hidden[rows[mine], cols[mine]].any()
+        ):
             continue
         points = unproject(rows[mine], cols[mine], depth[mine], camera, pose)
         target = bodies[int(body)]
@@ -172,3 +179,15 @@ def detect(
 
 def _touches_border(rows: np.ndarray, cols: np.ndarray, camera: Intrinsics) -> bool:
     return bool(rows.min() == 0 or cols.min() == 0 or rows.max() == camera.height - 1 or cols.max() == camera.width - 1)
+
+
+def _beside_nearer(segmentation: np.ndarray, depth_buffer: np.ndarray, occluders: Collection[int]) -> np.ndarray:
+    """Which pixels have a neighbour (above, below, left or right) of one of `occluders` nearer the
+    camera: where one of those hides what lies beyond. (Depth-buffer values grow with distance.)"""
+    near = np.where(np.isin(segmentation, list(occluders)), depth_buffer, np.inf)
+    hidden = np.zeros(segmentation.shape, dtype=bool)
+    hidden[1:, :] |= near[:-1, :] < depth_buffer[1:, :]
+    hidden[:-1, :] |= near[1:, :] < depth_buffer[:-1, :]
+    hidden[:, 1:] |= near[:, :-1] < depth_buffer[:, 1:]
+    hidden[:, :-1] |= near[:, 1:] < depth_buffer[:, :-1]
+    return hidden

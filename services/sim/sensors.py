@@ -26,7 +26,9 @@ class Sensors:
         self.world = world
         # Only a world that can be drawn has its floor hidden from detection frames (Camera): the sim's
         # own world, physics only (visuals=False), is left exactly as loaded.
-        self.camera = Camera(world.bullet, camera or CameraConfig(), floor=world.floor if world.visuals else None)
+        self.camera = Camera(
+            world.bullet, camera or CameraConfig(), floor=world.floor if world.visuals else None, robot=world.robot.id
+        )
         self._camera_targets = {world.object_bodies[o.id]: _target(o) for o in world.spec.objects}
 
     def _can_render(self) -> None:
