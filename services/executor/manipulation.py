@@ -93,7 +93,8 @@ Note = Callable[[str], None]
 MOVED_SINCE_GROUNDED = 0.1
 # An object seen this far (metres, across the floor) from where its grasp was planned, once the hand
 # is above it, has moved meanwhile: reaching in, the fingers would push it or come down on it. Well
-# above perception's error with the hand hiding part of the object (under 1 cm).
+# above perception's error (under 1 cm): an object the hand partly hides is not reported at all, as
+# the part left would put its centre off (up to 8 cm for the blue book; services/sim/detection.py).
 MOVED_BEFORE_GRASP = 0.03
 # A placed object whose centre perception sees this much (metres) lower than standing upright puts
 # it has fallen over: on its side a cup's centre is its height less its width lower (4 cm).
@@ -555,7 +556,13 @@ class Manipulator:
         if held_now is not None:
             held = self.world.objects.get(held_now)
             raise PreconditionFailed(f"the gripper already holds {held.name if held else held_now}")
-        obj = self.world.objects[step.object_id]
+        obj = self.world.objects.get(step.object_id)
+        if obj is None:
+            # Grounded against another world file (the resolver's config), or by a hostile peer.
+            raise PreconditionFailed(
+                f"{step.object_name} ({step.object_id}) is not in the executor's world file "
+                f"({self.config.world}): it has no shape to plan a grasp of"
+            )
         width = narrowest_width(obj)
         if not fits(width, self.grasp_config):
             # Known before anything moves, and no retry makes it fit.
@@ -622,15 +629,17 @@ class Manipulator:
 
     def _held_now(self, held_id: str, base: Pose2D, q: np.ndarray) -> HeldObject:
         """How the hand holds `held_id` now: the grasp's orientation remembered from the pick, the
-        offset from where perception sees the object (it may have slipped)."""
+        offset from where perception sees the object (it may have slipped). Perception always reports
+        what the hand holds (docs/robot.md): not in the gripper now, it fell out on the way here."""
         obj = self.world.objects[held_id]
         grasp_pose = self.arm.kin.forward(q)
         seen = self._seen_twice(held_id)
         remembered = self._held if self._held is not None and self._held.obj.id == held_id else None
-        if seen is None:
-            if remembered is None:
-                raise PreconditionFailed(f"perception does not report {obj.name} in the hand")
-            return remembered
+        if seen is None or seen.on != "gripper":
+            where = "nowhere in view" if seen is None else f"on the {self._surface_name(seen.on)}"
+            raise PreconditionFailed(
+                f"{obj.name} is no longer in the gripper: it was as the step began, perception has it {where} now"
+            )
         # Upright: the pick kept it so; without a remembered grasp, its heading along the hand's.
         yaw = seen.yaw
         if yaw is None:
@@ -746,7 +755,7 @@ class Manipulator:
                 return f"said: {step.text}"
             case WaitStep():
                 if cancel.wait(step.duration):
-                    raise Canceled("canceled while waiting")
+                    raise Canceled("waiting canceled")  # "WHAT canceled": a timeout says "during WHAT"
                 return f"waited {step.duration:g} s"
             case StopStep():
                 self.robot.cmd_vel(Twist())

@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 STATE_TIMEOUT = 1.0
 # Safety beats at 20 Hz or more; this long without a beat means it is not there.
 HEARTBEAT_STALE = 0.5
+# Perception reports a few times a second: its latest report, received longer ago than this, is from
+# a perception that stopped, and what it saw may have moved since (by teleop, by people).
+OBJECTS_STALE = 2.0
 # The resolver answers world/scene from memory; this is generous.
 SCENE_TIMEOUT = 2.0
 # Each ask for a plan's approval waits this long in safety for an operator's decision, then asks
@@ -189,8 +192,9 @@ class NodeRobot:
         detected, sent: a tenth of a second or more on a busy machine, seconds of a sim running
         ten times faster); one taken while the base still drove in has what the hand holds where
         the hand no longer is. Asked again without a motion between, the same frame answers at
-        once. With `new`, the next such report from now on."""
-        after = time.monotonic() if new else self._motion_ended
+        once, if received within OBJECTS_STALE. With `new`, the next such report from now on."""
+        now = time.monotonic()
+        after = now if new else max(self._motion_ended, now - OBJECTS_STALE)
 
         def taken_after() -> bool:
             latest, ended = self._objects, self._ended_stamp
@@ -324,8 +328,11 @@ class Supervision:
                 return ExecutePlanResult(status=PlanStatus.REJECTED, stage=Stage.SAFETY, reason=why)
             if reply.state is ApprovalState.NOT_NEEDED:
                 return None
-            if reply.state is ApprovalState.APPROVED:
-                self._plan, self._pauses = plan, reply.pauses
+            if reply.state in (ApprovalState.APPROVED, ApprovalState.PAUSED):
+                # Paused already (approved, then paused before this ask was answered): the plan was
+                # approved, and its pause, not over yet, is waited out as any (`hold`).
+                ongoing = 1 if reply.state is ApprovalState.PAUSED else 0
+                self._plan, self._pauses = plan, max(0, reply.pauses - ongoing)
                 feedback(ExecutePlanFeedback(stage=Stage.SAFETY, message=reply.reason))
                 return None
             if reply.state is not ApprovalState.PENDING:

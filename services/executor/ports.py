@@ -35,8 +35,9 @@ class Robot(Protocol):
 
     def look(self, timeout: float, *, new: bool = False) -> list[PerceivedObject] | None:
         """Every object perception reports (in view, or in the gripper) in its latest report made
-        after the last motion ended, or with `new` in its next report from now on, waiting up to
-        `timeout` for one; None if none comes."""
+        after the last motion ended (and received lately: a stopped perception's last report is not
+        what is there now), or with `new` in its next report from now on, waiting up to `timeout`
+        for one; None if none comes."""
         ...
 
     def safety_stop(self) -> str | None:

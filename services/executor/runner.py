@@ -369,7 +369,10 @@ class PlanRunner:
                 if isinstance(held, ExecutePlanResult):
                     if held.status is PlanStatus.CANCELED:
                         failure = _Failure(
-                            f"step {label} ({action}) canceled while paused", PlanStatus.CANCELED, "canceled"
+                            f"step {label} ({action}) canceled while paused",
+                            PlanStatus.CANCELED,
+                            "canceled",
+                            FailureKind.CANCELED,
                         )
                         return result(StepStatus.CANCELED, held.reason, attempt, FailureKind.CANCELED), failure
                     why = f"step {label} ({action}) stopped while paused: {held.reason}"
