@@ -22,10 +22,10 @@ from schemas.robot import Twist
 from schemas.safety import SafetyStatus
 from services.recorder.config import RecorderConfig
 from services.recorder.main import provenance
-from services.recorder.mcapfile import MAX_CHANNELS, SourceFile
+from services.recorder.mcapfile import MAX_CHANNELS, WORLD_ATTACHMENT, SourceFile
 from services.recorder.node import bind
 from services.recorder.reader import RecordingError, RecordingFile, join_recordings, read_recording, recover
-from services.recorder.recorded import recorded_policy, recorded_world
+from services.recorder.recorded import no_file, recorded_policy, recorded_world
 from services.recorder.recorder import Recorder
 from services.recorder.replay import (
     REPLAY_SUFFIX,
@@ -186,7 +186,7 @@ def record(
     node_settings = settings(ctx)
     if output is not None and output.exists():
         fail(f"{output} exists; choose another name or remove it")
-    if duration is not None and duration <= 0:
+    if duration is not None and not duration > 0:  # nan too: it would never be reached
         fail(f"--duration must be positive, not {duration:g}")
     selected = key_filter(node_settings.robot, key_expr)
     try:
@@ -302,7 +302,14 @@ def _replay(
         )
         # Ctrl-C and SIGTERM stop the replay between two of its steps, never inside one.
         player = Player(node, stop_event(), watch_estop=live_commands)
+        if not live_commands:
+            player.stop_when_a_service_comes_up()
         sent = player.play(plan, speed, bar)
+    if player.came_up is not None:
+        fail(
+            f"robot {target}'s {player.came_up} came up during the replay, and would act on it: stopped "
+            f"after {sent} of {len(plan.items)} messages. Replay under another name (--to)"
+        )
     refused = f"; {player.sent_latched} of them while the e-stop was latched (safety refused them)"
     console.print(f"replayed {sent} messages" + (refused if player.sent_latched else ""), markup=False)
 
@@ -332,8 +339,23 @@ class Player:
         self.base: str | None = None  # the robot whose base this replay sent velocities, to stop if stopped
         self.latched: str | None = None  # why the robot's e-stop is latched, as its heartbeat says; None if not
         self.sent_latched = 0  # messages sent while it was
+        self.came_up: str | None = None  # the service whose coming up stopped the replay
         if watch_estop:
             node.subscribe(keys.HEARTBEAT, self._heartbeat)
+
+    def stop_when_a_service_comes_up(self) -> None:
+        """Stop the replay when a tether service other than a recorder comes up under its robot name:
+        checked once before it starts, a driver started later would act on the replayed robot/cmd_vel
+        with no safety between."""
+
+        def on_token(sample: zenoh.Sample) -> None:
+            service = str(sample.key_expr).rsplit("/", 1)[-1]
+            if sample.kind == zenoh.SampleKind.PUT and service != "recorder" and self.came_up is None:
+                self.came_up = service
+                self.stop.set()
+
+        alive = keys.alive_key(self.node.robot, "*")
+        self._watch = self.node.session.liveliness().declare_subscriber(alive, on_token, history=True)
 
     def play(self, plan: ReplayPlan, speed: float, bar: Bar | None = None) -> int:
         """Send the items on the recorded clock, `speed` times as fast, counting the recorded seconds on `bar`."""
@@ -447,7 +469,7 @@ def recheck_command(
         try:
             if recording.world is None:
                 if world_name is None:
-                    fail(f"{name} carries no world file (recorded without one); give one with --world", as_json=as_json)
+                    fail(f"{name} {no_file(recording, WORLD_ATTACHMENT)}; give one with --world", as_json=as_json)
                 console.print(printable(f"{name} carries no world file: checking in {world_name}"), markup=False)
                 world, label = load_world(world_name), f"the world {world_name}"
             else:

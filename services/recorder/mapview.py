@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from shapely.geometry import Point, Polygon
 
@@ -33,6 +34,10 @@ HEIGHT_RANGE = (4.0, 12.0)
 DPI = 100
 # Times listed in one marker's label before the rest are counted.
 LABEL_TIMES = 3
+# Marks of one kind, and people, named on the map at most: more labels only cover the map, and each
+# takes matplotlib milliseconds (a file of thousands of vetoes at distinct spots took minutes). The
+# rest are drawn unnamed, the legend says how many.
+MAX_LABELS = 100
 ROOM_COLOURS = ("#e8f1fa", "#eef7e6", "#fbf3e4", "#f3eafa", "#e9f6f5", "#faeaea", "#f4f4e2")
 
 
@@ -81,12 +86,23 @@ def track_of(recording: RecordingFile) -> Track:
 def _grouped(points: Iterable[tuple[float, float, str, float]]) -> list[Mark]:
     """Marks at one spot become one, labelled "what @ t1, t2 s"."""
     spots: list[tuple[float, float, str, list[float]]] = []
+    # Each spot by its cell of a SAME_SPOT grid (one spot to a cell): a point's spot is in its own
+    # cell or one next to it, so each point is grouped in constant time, not against every spot.
+    cells: dict[tuple[str, int, int], int] = {}
     for x, y, what, t in points:
-        for sx, sy, swhat, times in spots:
-            if swhat == what and abs(sx - x) <= SAME_SPOT and abs(sy - y) <= SAME_SPOT:
-                times.append(t)
-                break
+        cx, cy = _cell(x), _cell(y)
+        near = [
+            i
+            for dx in (-1, 0, 1)
+            for dy in (-1, 0, 1)
+            if (i := cells.get((what, cx + dx, cy + dy))) is not None
+            and abs(spots[i][0] - x) <= SAME_SPOT
+            and abs(spots[i][1] - y) <= SAME_SPOT
+        ]
+        if near:
+            spots[min(near)][3].append(t)  # the first spot made, as when every spot was tried in order
         else:
+            cells[what, cx, cy] = len(spots)
             spots.append((x, y, what, [t]))
     marks = []
     for x, y, what, times in spots:
@@ -94,6 +110,11 @@ def _grouped(points: Iterable[tuple[float, float, str, float]]) -> list[Mark]:
         more = f" (+{len(times) - LABEL_TIMES})" if len(times) > LABEL_TIMES else ""
         marks.append(Mark(x, y, f"{what} @ {shown} s{more}"))
     return marks
+
+
+def _cell(value: float) -> int:
+    # Clamped: a coordinate of 1e308 from a crafted file would overflow; nothing is drawn that far out.
+    return math.floor(max(-1e12, min(1e12, value / SAME_SPOT)))
 
 
 def vetoed_goals(rows: Iterable[Row]) -> list[Mark]:
@@ -158,14 +179,8 @@ def draw_map(
         ax.plot(*track.path[0], "o", color="tab:green", markersize=10, markeredgecolor="black", label="start", zorder=6)
         # Above the e-stop marker: a run often ends where the e-stop stopped it.
         ax.plot(*track.path[-1], "s", color="tab:blue", markersize=8, markeredgecolor="white", label="end", zorder=9)
-    for i, mark in enumerate(vetoes):
-        label = "vetoed goal" if i == 0 else None
-        ax.plot(mark.x, mark.y, "X", color="red", markersize=13, markeredgecolor="darkred", label=label, zorder=7)
-        _label(ax, mark, "darkred")
-    for i, mark in enumerate(estops):
-        label = "e-stop latched" if i == 0 else None
-        ax.plot(mark.x, mark.y, "H", color="gold", markersize=15, markeredgecolor="red", label=label, zorder=8)
-        _label(ax, mark, "red")
+    _draw_marks(ax, vetoes, "vetoed goal", "darkred", marker="X", color="red", markersize=13, zorder=7)
+    _draw_marks(ax, estops, "e-stop latched", "red", marker="H", color="gold", markersize=15, zorder=8)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
@@ -208,12 +223,29 @@ def _draw_world(ax: Axes, world: World, keep_out: Sequence[KeepOut]) -> None:
         ax.text(spot.x, spot.y, zone.name, ha="center", va="bottom", fontsize=9, color="darkred", weight="bold")
 
 
+def _draw_marks(ax: Axes, marks: Sequence[Mark], name: str, edge: str, **style: Any) -> None:
+    """The marks as one series, the first MAX_LABELS labelled."""
+    if not marks:
+        return
+    xs, ys = [m.x for m in marks], [m.y for m in marks]
+    ax.plot(xs, ys, linestyle="none", markeredgecolor=edge, label=name + _unnamed(len(marks), "labelled"), **style)
+    for mark in marks[:MAX_LABELS]:
+        _label(ax, mark, edge)
+
+
+def _unnamed(count: int, verb: str) -> str:
+    """For the legend: how many of `count` things are drawn without their label."""
+    return f" ({count - MAX_LABELS} of {count} not {verb})" if count > MAX_LABELS else ""
+
+
 def _draw_people(ax: Axes, people: dict[str, list[tuple[float, float]]]) -> None:
     for i, (name, seen) in enumerate(people.items()):
         xs, ys = zip(*seen, strict=True)
         ax.plot(xs, ys, ":", color="darkorange", linewidth=1.0, zorder=4)
-        ax.plot(xs, ys, "o", color="darkorange", markersize=6, label="people seen" if i == 0 else None, zorder=4)
-        ax.annotate(name, seen[-1], xytext=(6, 6), textcoords="offset points", fontsize=8, color="darkorange")
+        label = "people seen" + _unnamed(len(people), "named") if i == 0 else None
+        ax.plot(xs, ys, "o", color="darkorange", markersize=6, label=label, zorder=4)
+        if i < MAX_LABELS:
+            ax.annotate(name, seen[-1], xytext=(6, 6), textcoords="offset points", fontsize=8, color="darkorange")
 
 
 def _patch(

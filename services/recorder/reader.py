@@ -225,7 +225,15 @@ def _parse(opcode: int, body: bytes) -> Any:
     stream = ReadDataStream(io.BytesIO(body))
     if kind is Message:
         return Message.read(stream, len(body))
-    return kind.read(stream)
+    record = kind.read(stream)
+    if kind is Attachment:
+        # The mcap library skips an attachment's CRC; the world and policy a recording carries are what
+        # recheck decides with, so one changed on disk must not pass for the files the robot ran with.
+        crc_at = stream.count - 4
+        (expected,) = struct.unpack_from("<I", body, crc_at)
+        if expected != 0 and (actual := zlib.crc32(body[:crc_at])) != expected:
+            raise CRCValidationError(expected, actual, record)
+    return record
 
 
 def _is_chunk_at(head: bytes, room: int) -> bool:
@@ -473,7 +481,9 @@ def join_recordings(parts: list[RecordingFile]) -> RecordingFile:
             raise RecordingError(f"{first.path} is of robot {first.robot!r} and {after.path} of {after.robot!r}")
         for kind in (WORLD_ATTACHMENT, POLICY_ATTACHMENT):
             if _content(first.attachment(kind)) != _content(after.attachment(kind)):
-                raise RecordingError(f"{first.path} and {after.path} carry different {kind} files")
+                # A part's file may be missing for a damaged record, not for another file: said.
+                damage = "".join(f"; {part.path}: {part.problem}" for part in (first, after) if part.skipped)
+                raise RecordingError(f"{first.path} and {after.path} carry different {kind} files{damage}")
     _check_follow(ordered)
     return RecordingFile(
         first.path,

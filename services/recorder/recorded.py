@@ -5,17 +5,27 @@ from __future__ import annotations
 from pathlib import Path, PurePosixPath
 
 from schemas.world import World
+from services.recorder.mcapfile import METADATA_NAME, POLICY_ATTACHMENT, WORLD_ATTACHMENT
 from services.recorder.reader import RecordingError, RecordingFile
 from services.safety.policy import SafetyPolicy, load_safety_policy
 from services.safety.policyfile import PolicyError
 from services.worldmodel import WorldFileError, parse_world
 
 
+def no_file(recording: RecordingFile, kind: str) -> str:
+    """Why `recording` gives no `kind` file ("world" or "policy"): recorded without one, or the one its
+    metadata names is not in it whole (its record damaged)."""
+    named = recording.metadata.get(METADATA_NAME, {}).get(kind)
+    if named:
+        return f"carries no {kind} file it can read: the {named!r} its metadata names is missing or damaged"
+    return f"carries no {kind} file (recorded without one)"
+
+
 def recorded_world(recording: RecordingFile) -> World:
     """The world file kept in the recording; RecordingError if there is none or it does not load."""
     attachment = recording.world
     if attachment is None:
-        raise RecordingError(f"{recording.path} carries no world file (recorded without one)")
+        raise RecordingError(f"{recording.path} {no_file(recording, WORLD_ATTACHMENT)}")
     try:
         world = parse_world(attachment.data, Path(attachment.name))
     except WorldFileError as exc:
@@ -41,7 +51,7 @@ def recorded_policy(
             return load_safety_policy(world, policy, world_label)
         attachment = recording.policy
         if attachment is None:
-            raise RecordingError(f"{recording.path} carries no policy file; give one with --policy")
+            raise RecordingError(f"{recording.path} {no_file(recording, POLICY_ATTACHMENT)}; give one with --policy")
         return load_safety_policy(world, Path(attachment.name), world_label, data=attachment.data)
     except PolicyError as exc:
         raise RecordingError(str(exc)) from None

@@ -295,7 +295,7 @@ class _Known:
     """What a first pass over the file finds, so that one row is not made twice from two messages."""
 
     decided: dict[str, Decision] = field(default_factory=dict)  # goal id -> safety's decision on it
-    event_times: dict[str, list[int]] = field(default_factory=dict)  # event key -> log times
+    event_times: dict[str, list[int]] = field(default_factory=dict)  # event key -> log times, sorted
     with_result: set[str] = field(default_factory=set)  # goal ids whose get_result trace is recorded
 
 
@@ -320,6 +320,8 @@ def _first_pass(messages: Iterable[Recorded], prefix: str) -> _Known:
             held = bytes(record.reply) != b"null" or record.error
             if record.key in RESULT_TYPES and held and (goal_id := goal_id_in(record.query)):
                 known.with_result.add(goal_id)
+    for times in known.event_times.values():
+        times.sort()  # looked up by bisection: a file of many plan checks is not quadratic
     return known
 
 
@@ -818,7 +820,9 @@ class _Builder:
         """A plan check or reset: safety's event about it is the row; the trace only when that is missing."""
         path = record.key
         window = SAME_CHANGE * 1e9
-        if any(abs(t - self.now) <= window for t in self.known.event_times.get(path, ())):
+        times = self.known.event_times.get(path, [])
+        nearest = bisect.bisect_left(times, self.now - window)  # the first event from now - window on
+        if nearest < len(times) and times[nearest] <= self.now + window:
             return
         reply = self._reply(record, reply_type)
         if (failed := _failure(reply)) is not None:
