@@ -73,8 +73,18 @@ def test_a_flood_on_made_up_wildcard_keys_is_one_kind_in_the_log_and_diagnostics
             attacker.session.put(key_expr, encode(unlatched()))
     found = wait_reported(stack, f"refused {WILDCARD}: {NOT_SIGNED} (")
     assert not any("$*" in text for text in found), found
-    logged = [line for line in stack.supervisor.log_tail("sim", 10_000).splitlines() if REFUSED_LINE in line]
-    assert 1 <= len(logged) <= 2, f"{len(logged)} lines for one flood: {logged[:3]}"
+    # The problem is noted for robot/diagnostics before its log line is written (services/repeats.py
+    # Problems.note): a CI run read the log in between and found none.
+    deadline = time.monotonic() + 10.0
+    while not (logged := refused_lines(stack)):
+        assert time.monotonic() < deadline, "no log line for the flood"
+        time.sleep(0.05)  # polling the log file with a deadline
+    logged = refused_lines(stack)
+    assert len(logged) <= 2, f"{len(logged)} lines for one flood: {logged[:3]}"
+
+
+def refused_lines(stack: Stack) -> list[str]:
+    return [line for line in stack.supervisor.log_tail("sim", 10_000).splitlines() if REFUSED_LINE in line]
 
 
 class PlayedSafety:

@@ -338,14 +338,18 @@ def test_a_service_whose_token_is_heard_after_the_question_is_alive() -> None:
         resolver.declare_alive()
         assert not cli.wait_alive(["resolver"], WAIT)
         tokens: list[Any] = []
+        declaring = threading.Event()
 
         def declare() -> None:
+            # Set first: the token can reach `cli` before declare_token returns here (a CI run saw
+            # is_alive answer while this thread had yet to append the token).
+            declaring.set()
             tokens.append(resolver.session.liveliness().declare_token(keys.alive_key(settings.robot, "sim")))
 
         late = threading.Timer(0.3, declare)
         late.start()
         try:
             assert cli.is_alive("sim", WAIT)
-            assert tokens, "alive before its token was declared"
+            assert declaring.is_set(), "alive before its token was declared"
         finally:
             late.cancel()
