@@ -11,7 +11,7 @@ from collections.abc import Callable
 from concurrent import futures
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, NoReturn, TypeVar
 
 from schemas.actions import (
     CANCEL_ALL,
@@ -46,7 +46,8 @@ CANCEL_POLL = 0.05
 # Cancels of goal ids not (yet) known an action server remembers, so the goal is rejected if it comes.
 MAX_EARLY_CANCELS = 1024
 # After a client cancels a goal, it waits this long for the server to report it ended; then it
-# raises GoalNotStopped: the goal may still be moving the robot.
+# raises GoalNotStopped: the goal may still be moving the robot. A goal whose end it cannot learn (its
+# send_goal or get_result failed) it cancels, and raises GoalUnanswered if no cancel was answered by then.
 CANCEL_GRACE = 10.0
 # A cancel that did not reach the server (no answer, or the server too busy) is sent again this often
 # while the goal's cancel grace lasts.
@@ -60,6 +61,11 @@ UNSENT = "unsent"
 class GoalNotStopped(CallError):
     """A goal did not end within the grace after its cancel: it may still be moving the robot, and
     whoever sent it must not go on as if it had stopped."""
+
+
+class GoalUnanswered(GoalNotStopped):
+    """A goal whose end could not be learned (its send_goal or get_result failed), and no cancel of it
+    reached the server within the grace: it may have been accepted and may still be moving the robot."""
 
 
 @dataclass(frozen=True)
@@ -467,23 +473,23 @@ class ActionClient(Generic[G, F, R]):
 
     def run(self, goal: G, *, timeout: float, cancel: threading.Event | None = None) -> ResultResponse[R]:
         """Send `goal` and wait for its result; cancel it if `cancel` is set meanwhile. Already
-        canceled, the goal is not sent at all: nothing may start moving after a cancel."""
+        canceled, the goal is not sent at all: nothing may start moving after a cancel. CallError when
+        the goal's end could not be learned but a cancel of it was answered; GoalNotStopped when it
+        did not end within the grace of its cancel, or GoalUnanswered when no cancel was answered."""
         if cancel is not None and cancel.is_set():
             return ResultResponse(goal_id=UNSENT, state=GoalState.CANCELED, message="canceled before it was sent")
         goal_id = uuid.uuid4().hex
         try:
             handle = self.send(goal, goal_id=goal_id)
-        except CallError:
+        except CallError as exc:
             # No answer, or an error instead of one: the goal may have been accepted all the same and
             # move the robot. Canceled by its id; a server still deciding on it rejects it then.
-            self._cancel_quietly(ClientGoal(self, goal_id))
-            raise
+            self._give_up(ClientGoal(self, goal_id), "send_goal", exc)
         if cancel is None:
             try:
                 return self._ended(handle, handle.result(timeout))
-            except CallError:
-                self._cancel_quietly(handle)
-                raise
+            except CallError as exc:
+                self._give_up(handle, "get_result", exc)
         future = handle.result_future(timeout)
         canceled_at: float | None = None
         answered, asked = False, 0.0  # whether the server took a cancel of it, and when one was last sent
@@ -491,23 +497,23 @@ class ActionClient(Generic[G, F, R]):
         while not futures.wait([future], CANCEL_POLL).done:
             if cancel.is_set() and canceled_at is None:
                 canceled_at = asked = time.monotonic()
-                answered = self._cancel_quietly(handle)
+                answered = self._cancel_reached(handle, canceled_at + self._cancel_grace)
             elif canceled_at is not None and not answered and time.monotonic() - asked >= CANCEL_RESEND:
                 # A cancel lost on the way, or the server too busy: asked again, within the grace.
                 asked = time.monotonic()
-                answered = self._cancel_quietly(handle)
+                answered = self._cancel_reached(handle, canceled_at + self._cancel_grace)
             if canceled_at is not None and time.monotonic() - canceled_at > self._cancel_grace:
+                unanswered = "" if answered else " (no cancel of it was answered)"
                 message = (
                     f"{self._action.path} goal {handle.goal_id} did not end within {self._cancel_grace:g} s "
-                    "of its cancel"
+                    f"of its cancel{unanswered}"
                 )
                 raise GoalNotStopped(ServiceError(kind=ErrorKind.TIMEOUT, message=message))
         try:
             return self._ended(handle, future.result())
-        except CallError:
+        except CallError as exc:
             # No result in time: the goal must not go on moving the robot behind our back.
-            self._cancel_quietly(handle)
-            raise
+            self._give_up(handle, "get_result", exc)
 
     def _ended(self, handle: ClientGoal[G, F, R], response: ResultResponse[R]) -> ResultResponse[R]:
         """`response` as this goal's end; CallError when it is not one (a peer answering with another
@@ -520,13 +526,34 @@ class ActionClient(Generic[G, F, R]):
             return response
         raise CallError(ServiceError(kind=ErrorKind.INTERNAL, message=message))
 
+    def _give_up(self, handle: ClientGoal[G, F, R], call: str, failure: CallError) -> NoReturn:
+        """The goal's end cannot be learned (`call` failed with `failure`): cancel it, asking again every
+        CANCEL_RESEND within the grace while no cancel reaches the server. Raises `failure` once one has;
+        GoalUnanswered when none did: the goal may have been accepted and still be moving the robot."""
+        deadline = time.monotonic() + self._cancel_grace
+        while not self._cancel_reached(handle, deadline):
+            left = deadline - time.monotonic()
+            if left <= 0 or self._node.closed:  # a closed node reaches no one: no use waiting out the grace
+                message = (
+                    f"{self._action.path} goal {handle.goal_id}: its {call} failed ({failure.error.message}), "
+                    f"and no cancel of it was answered within {self._cancel_grace:g} s"
+                )
+                raise GoalUnanswered(ServiceError(kind=ErrorKind.TIMEOUT, message=message)) from failure
+            time.sleep(min(CANCEL_RESEND, left))
+        raise failure
+
     @staticmethod
-    def _cancel_quietly(handle: ClientGoal[G, F, R]) -> bool:
-        """Ask the server to cancel; False when the cancel did not reach it (no answer, or too busy to
-        take it): worth asking again. An answer that it knows no such running goal is an answer."""
+    def _cancel_reached(handle: ClientGoal[G, F, R], deadline: float) -> bool:
+        """Ask the server to cancel, waiting until `deadline` at most; whether it answered the cancel of
+        this goal. An answer that it knows no such running goal is an answer (it rejects the goal should
+        it come yet); an error in its stead (no answer, too busy, a robot behind it that did not answer)
+        is not: worth asking again."""
         try:
-            handle.cancel()
+            response = handle.cancel(max(CANCEL_POLL, min(2.0, deadline - time.monotonic())))
         except CallError as exc:
             log.warning("cancel of %s failed: %s", handle.goal_id, exc)
-            return exc.error.kind is not ErrorKind.UNAVAILABLE
+            return False
+        if response.goal_id != handle.goal_id:
+            log.warning("cancel of %s was answered for goal %s", handle.goal_id, response.goal_id)
+            return False
         return True

@@ -27,7 +27,15 @@ from schemas.robot import (
 )
 from schemas.safety import ApprovalRequest, ApprovalState, EStop, EstopSource, PlanApproval, SafetyStatus
 from schemas.world import Empty, PerceivedHumans, PerceivedObject, PerceivedObjects
-from services.actionlib import MAX_RESULT_WAIT, ActionClient, ActionServer, GoalHandle, GoalNotStopped, Outcome
+from services.actionlib import (
+    MAX_RESULT_WAIT,
+    ActionClient,
+    ActionServer,
+    GoalHandle,
+    GoalNotStopped,
+    GoalUnanswered,
+    Outcome,
+)
 from services.errors import CallError
 from services.executor.config import ExecutorConfig
 from services.executor.errors import MotionNotStopped
@@ -216,11 +224,15 @@ class NodeRobot:
         return self._move(self._gripper, goal, cancel)
 
     def _move(self, client: ActionClient[Any, Any, Any], goal: Any, cancel: threading.Event) -> ResultResponse[Any]:
-        """Run one motion to its end. One that goes on past its cancel may still be moving the robot:
+        """Run one motion to its end. One that goes on past its cancel may still be moving the robot,
+        as may one whose end the robot side did not tell and whose cancel it did not answer either:
         nothing of this plan or the next may move beside it, so the e-stop is latched (an operator
         looks and resets it)."""
         try:
             return client.run(goal, timeout=MAX_RESULT_WAIT, cancel=cancel)
+        except GoalUnanswered as exc:
+            why = f"the robot side did not answer: {exc.error.message}: it may still be moving the robot"
+            raise MotionNotStopped(f"{why}; {self._halt(why)}") from None
         except GoalNotStopped as exc:
             why = f"{exc.error.message}: it may still be moving the robot"
             raise MotionNotStopped(f"{why}; {self._halt(why)}") from None
