@@ -98,11 +98,18 @@ def mode(
         why = f"unknown mode {new!r}; modes are {known}"
         _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_REFUSED)
     token = _token(token_file, as_json)
+    try:
+        # Bounds (the token's length) are the schema's: checked here as safety would, so a file that
+        # holds no token is refused as such (exit 2), not taken for safety unreachable (its error reply).
+        request = msgspec.json.decode(
+            msgspec.json.encode(ModeRequest(operator=operator_name(), token=token, mode=wanted)), type=ModeRequest
+        )
+    except msgspec.ValidationError as exc:
+        why = f"bad request: {exc}"
+        _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_REFUSED)
     with command_node(ctx, console) as node:
         try:
-            reply = node.call(
-                keys.SET_MODE, ModeRequest(operator=operator_name(), token=token, mode=wanted), timeout=CALL_TIMEOUT
-            )
+            reply = node.call(keys.SET_MODE, request, timeout=CALL_TIMEOUT)
         except CallError as exc:
             _unreachable(as_json, exc)
     data = {"ok": reply.ok, "mode": str(reply.mode), "message": reply.message}

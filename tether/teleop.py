@@ -514,10 +514,11 @@ def write(stream: IO[str] | None, text: str) -> None:
 def raw_terminal(fd: int, stream: IO[str] | None) -> Iterator[None]:
     """Raw keys from `fd` (no echo, no line editing, Ctrl-C as a byte), focus reports on, the cursor
     hidden; all of it undone on the way out, also on an exception, and keys typed but not read are
-    dropped rather than left for the shell."""
+    dropped rather than left for the shell. Keys typed before (while teleop started and waited for
+    safety) are dropped too: a press from then is no command now, and was read as one."""
     saved = termios.tcgetattr(fd)
     try:
-        tty.setraw(fd, termios.TCSANOW)
+        tty.setraw(fd, termios.TCSAFLUSH)
         write(stream, FOCUS_ON + CURSOR_OFF)
         yield
     finally:

@@ -17,6 +17,7 @@ import collections
 import json
 import logging
 import math
+import signal
 import sys
 import threading
 import time
@@ -409,6 +410,10 @@ class TeleopBridge:
         self._send, self._clock, self._wall = send, clock, wall
         self._lock = threading.Lock()
         self.refusals = RepeatLog("teleop input refused")
+        # The channels taken and the stops for one gone are logged as refusals are: a client advertising
+        # and unadvertising in a loop wrote a line for each, thousands a second.
+        self.taken = RepeatLog("teleop channels taken")
+        self.gone = RepeatLog("teleop stops for a channel gone while driving")
         # What a Foxglove user should see (the server's status messages), sent by the deadman's thread.
         self.notices: collections.deque[str] = collections.deque(maxlen=16)
         self._closed = False  # the view ends: no twist goes out any more but close()'s stop
@@ -425,13 +430,18 @@ class TeleopBridge:
         if notify:
             self.notices.append(f"tether view: {detail}")
 
+    @staticmethod
+    def _note(repeats: RepeatLog, detail: str) -> None:
+        if (line := repeats.note(TELEOP_TOPIC, detail)) is not None:
+            log.warning("%s", line)
+
     def advertise(self, client: int, channel: ClientChannel) -> None:
         try:
             self.gate.advertise(client, channel.id, channel.topic, channel.encoding, channel.schema_name)
         except Refused as exc:
             self._refused(exc, f"client {client} channel {channel.id} not taken: {exc}", notify=True)
             return
-        log.warning("teleop: client %d drives through channel %d (%s)", client, channel.id, channel.topic)
+        self._note(self.taken, f"client {client} drives through channel {channel.id}")
 
     def message(self, client: int, channel: int, data: bytes) -> None:
         with self._lock:
@@ -450,7 +460,7 @@ class TeleopBridge:
         with self._lock:
             if (stop := self.gate.unadvertise(client, channel)) is not None and not self._closed:
                 self._put(stop)
-                log.warning("teleop: client %d channel %d gone while driving: stopped", client, channel)
+                self._note(self.gone, f"client {client} channel {channel} gone while driving: stopped")
 
     def tick(self) -> None:
         """The deadman: a stop once the messages stopped coming."""
@@ -591,7 +601,8 @@ def view(
     Runs until Ctrl-C. With --json: one object once serving, {"ok", "url", "port", "robot", "topics",
     "teleop"} (teleop: the topic taken, or null), or {"ok": false, "error"}.
 
-    Exit codes: 0 stopped by Ctrl-C or SIGTERM, 1 the port cannot be served, 2 bad option or config, 3 no Zenoh session.
+    Exit codes: 0 stopped by Ctrl-C, SIGTERM or SIGHUP (its terminal closed), 1 the port cannot be served,
+    2 bad option or config, 3 no Zenoh session.
     """
     settings: NodeSettings = ctx.obj
     if host not in LOOPBACK and not allow_remote:
@@ -616,6 +627,9 @@ def view(
         except Exception as exc:  # a URDF pinocchio cannot read: the base alone is shown
             log.warning("arm links not shown: %s", exc)
     stop = runtime.stop_event()
+    # Its terminal closed ends it as Ctrl-C does: by default SIGHUP killed it, and a robot the Teleop
+    # panel drove went on with the last twist, no stop sent.
+    signal.signal(signal.SIGHUP, lambda _signum, _frame: stop.set())
     context = foxglove.Context()
     live = LiveView(settings.robot, scene, context, arm_frames)
     teleop_off = None
