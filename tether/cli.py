@@ -818,8 +818,8 @@ def reset(
     """Clear a latched e-stop (operator only: needs the operator token file).
 
     Exit 0 when safety reset it (status 'reset'), 2 when safety refused (status 'refused': a wrong
-    token, a cause still present) or the token file cannot be read (status 'no_token'), 3 when safety
-    is unreachable (status 'unreachable').
+    token, a cause still present) or the token file cannot be read or holds no token (status
+    'no_token'), 3 when safety is unreachable (status 'unreachable').
     """
     with client(ctx) as node:
         try:
@@ -827,6 +827,9 @@ def reset(
         except OSError as exc:
             document = {"status": "no_token", "message": f"cannot read the operator token: {exc}"}
             conclude(console, as_json, document, f"[red]cannot read the operator token[/]: {literal(exc)}", 2)
+        except msgspec.ValidationError as exc:  # a file that holds no token: safety would refuse it unread
+            document = {"status": "no_token", "message": f"the operator token file holds no token: {exc}"}
+            conclude(console, as_json, document, f"[red]no operator token[/]: {literal(exc)}", 2)
         except CallError as exc:
             document = {"status": "unreachable", "message": f"safety unreachable: {exc}"}
             conclude(console, as_json, document, f"[red]safety unreachable[/]: {shown(exc)}", EXIT_UNREACHABLE)

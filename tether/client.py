@@ -171,9 +171,18 @@ def trigger_estop(node: Node, source: EstopSource, reason: str, timeout: float =
         subscription.undeclare()
 
 
+def within_schema(request: T) -> T:
+    """`request` as safety will read it: msgspec.ValidationError, naming the field, for a value out of
+    its schema's bounds (a Struct's constructor checks none). An operator's token file that holds no
+    token (a certificate given by mistake) is refused so, not taken for safety unreachable."""
+    return msgspec.json.decode(msgspec.json.encode(request), type=type(request))
+
+
 def reset_estop(node: Node, token_file: str | None = None, timeout: float = 3.0) -> ResetReply:
-    token = read_token(token_path(token_file))
-    return node.call(keys.RESET, ResetRequest(operator=operator_name(), token=token), timeout=timeout)
+    """Ask safety to clear its latch with the operator token: OSError for a token file that cannot be
+    read, msgspec.ValidationError for one that holds no token, CallError when safety does not answer."""
+    request = within_schema(ResetRequest(operator=operator_name(), token=read_token(token_path(token_file))))
+    return node.call(keys.RESET, request, timeout=timeout)
 
 
 def plan_result(goal_id: str, response: ResultResponse[Any]) -> ExecutePlanResult:

@@ -22,7 +22,7 @@ from schemas.safety import ApprovalAction, ApprovalDecision, ApprovalReply, Cont
 from schemas.world import Empty
 from services.errors import CallError
 from services.safety.operator import read_token, token_path
-from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name
+from tether.client import EXIT_UNREACHABLE, next_heartbeat, operator_name, within_schema
 from tether.output import command_node, printable
 
 # Exit codes of these commands.
@@ -101,9 +101,7 @@ def mode(
     try:
         # Bounds (the token's length) are the schema's: checked here as safety would, so a file that
         # holds no token is refused as such (exit 2), not taken for safety unreachable (its error reply).
-        request = msgspec.json.decode(
-            msgspec.json.encode(ModeRequest(operator=operator_name(), token=token, mode=wanted)), type=ModeRequest
-        )
+        request = within_schema(ModeRequest(operator=operator_name(), token=token, mode=wanted))
     except msgspec.ValidationError as exc:
         why = f"bad request: {exc}"
         _emit(as_json, {"ok": False, "mode": None, "error": why}, f"error: {why}", EXIT_REFUSED)
@@ -127,9 +125,10 @@ def _decide(
     if action in (ApprovalAction.APPROVE, ApprovalAction.DENY):
         decision = {"approve": action is ApprovalAction.APPROVE}
     try:
-        request = ApprovalDecision(operator=operator_name(), token=token, goal_id=goal_id, reason=reason, **decision)
         # Bounds (the goal id's shape, the reason's length) are the schema's: checked here as safety would.
-        request = msgspec.json.decode(msgspec.json.encode(request), type=ApprovalDecision)
+        request = within_schema(
+            ApprovalDecision(operator=operator_name(), token=token, goal_id=goal_id, reason=reason, **decision)
+        )
     except msgspec.ValidationError as exc:
         why = f"bad request: {exc}"
         _emit(as_json, {"ok": False, "goal_id": goal_id, "error": why}, f"error: {why}", EXIT_REFUSED)

@@ -133,6 +133,11 @@ def test_mode_with_a_token_file_that_holds_no_token_is_refused_naming_it(stack: 
         # Safety reached and answering is not "safety unreachable" (exit 3): the token is what is wrong.
         assert (done.returncode, reply["ok"]) == (2, False), (args, done.returncode, reply)
         assert "token" in reply["error"], reply
+    # tether reset the same (its own document: status no_token).
+    done = tether_cli(stack, "reset", "--token-file", str(wrong), "--json")
+    reply = json.loads(done.stdout)
+    assert (done.returncode, reply["status"]) == (2, "no_token"), (done.returncode, reply)
+    assert "holds no token" in reply["message"] and "$.token" in reply["message"], reply
     beat = tether_cli(stack, "mode", "--json")
     assert json.loads(beat.stdout)["mode"] == "autonomous", beat.stdout
 
