@@ -458,7 +458,8 @@ class PlanRunner:
         if isinstance(exc, Interrupted):
             return "the robot side ended the motion"
         if isinstance(exc, MotionNotStopped):
-            return "the robot did not stop its motion when canceled"
+            # Past its cancel's grace, or neither its end nor a cancel answered (GoalUnanswered).
+            return "the motion may still be running: the executor latched the e-stop"
         if isinstance(exc, CallError):
             # A goal sent but never answered for may still be moving the robot.
             return f"the robot side did not answer ({exc})"
