@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import hmac
 import logging
+import math
 import os
 import secrets
 import struct
@@ -222,8 +223,10 @@ class Verifier:
     its heartbeat is taken, the session that beat it before is superseded and nothing more of it is
     taken (what the old safety signed and was held back on the way would run under a safety that never
     approved it). A session not heard within 2 x MAX_SKEW is forgotten: anything of it sent before
-    that is too old anyway. A superseded session is not: a safety frozen meanwhile (a suspended host,
-    a stopped process) would speak again with fresh stamps and take the robot back from the live one.
+    that is too old anyway, and should the robot's clock step back, what is stamped no later than the
+    newest of a forgotten session is still refused. A superseded session is not forgotten: a safety
+    frozen meanwhile (a suspended host, a stopped process) would speak again with fresh stamps and take
+    the robot back from the live one.
     The last MAX_SESSIONS superseded are remembered (each is a start of safety, which needs the key)."""
 
     def __init__(self, key: bytes, clock: Callable[[], float] = time.time, max_skew: float = MAX_SKEW) -> None:
@@ -236,6 +239,9 @@ class Verifier:
         self._lock = threading.Lock()
         self._last: dict[tuple[bytes, str], int] = {}  # (session, key expr) -> counter last taken
         self._newest: dict[bytes, float] = {}  # session -> its newest stamp taken
+        # The newest stamp of the sessions forgotten as silent: a robot clock stepped back (NTP) puts
+        # what they sent inside the window again, with their counters gone.
+        self._forgotten = -math.inf
         # The session whose heartbeat was taken last, kept when it falls silent and is forgotten: a
         # safety that starts while the last one is frozen supersedes it.
         self._beating: bytes | None = None
@@ -265,7 +271,11 @@ class Verifier:
         with self._lock:
             for heard, at in list(newest.items()):  # forget the sessions not heard lately
                 if now - at > 2 * self.max_skew:
+                    self._forgotten = max(self._forgotten, at)
                     self._drop(heard)
+            if stamp <= self._forgotten:
+                detail = "stamped no later than a sender forgotten as silent (the robot's clock stepped back?)"
+                return Refusal(REPLAYED, detail)
             last = self._last.get((session, key_expr), 0)
             if counter <= last:
                 return Refusal(REPLAYED, f"counter {counter} after {last} on {path_of(key_expr)}")

@@ -433,7 +433,10 @@ class Node:
             try:
                 message = dec.decode(payload)
             except DECODE_ERRORS as exc:
-                self._undecodable(sample.key_expr, "sample", exc)
+                # Counted under the topic's key: a peer's puts on endless made-up wildcard expressions
+                # ("tether/r1/robot/o$*dom") all reach this subscriber, each a line and a report of its own.
+                sent = str(sample.key_expr)
+                self._undecodable(key, "sample" if sent == key else f"sample sent to {sent[:200]!r}", exc)
                 return
             try:
                 callback(message)
@@ -609,11 +612,19 @@ class Node:
         self._until_matched(key, lambda: self.session.declare_querier(key), timeout)
         asked = time.monotonic()  # after any wait for a queryable: `waited` below is the query's own
         signer = self.signer
-        if signer is None or not signed(key):
-            replies = self.session.get(key, payload=payload, timeout=timeout)
-        else:
-            with signer.lock:  # the get only sends here; its replies are read below, outside the lock
-                replies = self.session.get(key, payload=payload, timeout=timeout, attachment=signer.sign(key, payload))
+        try:
+            if signer is None or not signed(key):
+                replies = self.session.get(key, payload=payload, timeout=timeout)
+            else:
+                with signer.lock:  # the get only sends here; its replies are read below, outside the lock
+                    attachment = signer.sign(key, payload)
+                    replies = self.session.get(key, payload=payload, timeout=timeout, attachment=attachment)
+        except (zenoh.ZError, RuntimeError) as exc:
+            if not (self.closed and closing_error(exc)):
+                raise
+            # A thread of the service still at work as it shuts down: what its callers handle.
+            message = f"no reply from {service.path}: this {self.service} session closed"
+            raise CallError(ServiceError(kind=ErrorKind.UNAVAILABLE, message=message)) from None
         for reply in replies:
             if reply.ok is not None:
                 try:
@@ -679,7 +690,12 @@ class Node:
         left = min(self._discovering_until - time.monotonic(), longest)
         if left <= 0 or key in self._matched:
             return
-        entity = declare()
+        try:
+            entity = declare()
+        except (zenoh.ZError, RuntimeError) as exc:
+            if not (self.closed and closing_error(exc)):
+                raise
+            return  # the node closed: the put or get that follows says so
         try:
             matched = threading.Event()
             listener = entity.declare_matching_listener(lambda status: matched.set() if status.matching else None)
