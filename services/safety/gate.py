@@ -459,6 +459,13 @@ class SafetyGate:
 
     def _find_separation(self, t: float) -> Separation:
         humans = self.policy.policy.humans
+        if self._people.flooded(t):
+            # A report not kept may have had someone beside the robot.
+            why = (
+                f"more than {self._people.limit} people and reports came within {humans.unseen_after:g} s; "
+                "the ones beyond were not counted: paused"
+            )
+            return Separation(0.0, why)
         people = self._people.people(t)
         if people is None:
             return separation(None, False, humans)
@@ -538,23 +545,27 @@ class SafetyGate:
     def _with_caution(self, found: Separation, t: float) -> tuple[Separation, CautionZone | None]:
         """`found`, or the caution zone's lower scale while the base (its centre within the zone's
         radius grown by the half-diagonal) is in one; the zone, when it decided. Leaving a zone takes
-        the separation's `release_margin` more, so its edge does not flip the speed back and forth."""
+        the separation's `release_margin` more, so its edge does not flip the speed back and forth.
+        With the pose unknown, the zone the base was last in (while it still stands) holds."""
         try:
             zones = self.refresh_zones()
-            pose = self._pose(t) if zones.zones else None
-            if pose is None:
-                with self._lock:
-                    self._in_zone = None
-                return found, None
-            half = self.policy.world.base_radius
             with self._lock:
                 previous = self._in_zone
+
+            def same(z: CautionZone) -> bool:
+                assert previous is not None
+                return (z.x, z.y) == (previous.x, previous.y) or z.incidents[:1] == previous.incidents[:1]
+
+            pose = self._pose(t) if zones.zones else None
+            if pose is None:
+                # Stale odometry says nothing of the base having left: dropping the zone would loosen.
+                kept = previous if previous is not None and any(map(same, zones.zones)) else None
+                with self._lock:
+                    self._in_zone = kept
+                return self._caution_limited(found, kept)
+            half = self.policy.world.base_radius
             zone = zones.at(pose.x, pose.y, half, self._zone_scale())
             if zone is None and previous is not None:
-
-                def same(z: CautionZone) -> bool:
-                    return (z.x, z.y) == (previous.x, previous.y) or z.incidents[:1] == previous.incidents[:1]
-
                 margin = half + self.policy.policy.humans.release_margin
                 zone = zones.at(pose.x, pose.y, margin, self._zone_scale(), same)
             with self._lock:
@@ -562,6 +573,10 @@ class SafetyGate:
         except Exception:
             log.exception("the caution zone check failed; the limits apply as without one")
             return found, None
+        return self._caution_limited(found, zone)
+
+    @staticmethod
+    def _caution_limited(found: Separation, zone: CautionZone | None) -> tuple[Separation, CautionZone | None]:
         if zone is None or zone.speed_scale >= found.scale:
             return found, None
         return Separation(zone.speed_scale, zone_reason(zone), found.distance, found.person), zone

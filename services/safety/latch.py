@@ -10,6 +10,7 @@ from pathlib import Path
 import msgspec
 
 from schemas.safety import EstopState
+from services.datafile import read_bytes
 from services.safety.errors import Unauthorized
 from services.safety.operator import token_matches
 
@@ -58,7 +59,8 @@ class EstopLatch:
             log.error("e-stop state file %s is missing: starting latched; an operator must reset it", self._file)
             return EstopState(latched=True, source="safety", reason=f"e-stop state file {self._file} is missing")
         try:
-            state = msgspec.json.decode(self._file.read_bytes(), type=EstopState)
+            # Bounded and not blocking: a FIFO or a device in its place hung safety's start.
+            state = msgspec.json.decode(read_bytes(self._file, "e-stop state", OSError), type=EstopState)
         except (OSError, msgspec.DecodeError) as exc:
             # Fail closed: a state we cannot read might have been a latched one.
             log.error("e-stop state file %s is unreadable (%s): starting latched", self._file, exc)

@@ -12,6 +12,7 @@ import msgspec
 from schemas.common import TEXT_CHARS
 from schemas.plan import GroundedPlan, fallback_labels, step_labels
 from schemas.safety import MAX_PLAN_LINES, ApprovalState, ControlMode, ModeState, PlanApproval
+from services.datafile import read_bytes
 from services.safety.latch import write_durably
 
 log = logging.getLogger(__name__)
@@ -47,7 +48,8 @@ class ModeFile:
         if self._file is None or not self._file.exists():
             return ModeState(mode=ControlMode.AUTONOMOUS, source="default")
         try:
-            state = msgspec.json.decode(self._file.read_bytes(), type=ModeState)
+            # Bounded and not blocking, as the e-stop state file.
+            state = msgspec.json.decode(read_bytes(self._file, "mode state", OSError), type=ModeState)
         except (OSError, msgspec.DecodeError) as exc:
             log.error("mode state file %s is unreadable (%s): starting supervised", self._file, exc)
             return ModeState(mode=ControlMode.SUPERVISED, source=f"safety: unreadable mode state file {self._file}")

@@ -82,23 +82,46 @@ def nearest_person(
     return best
 
 
+# Reports and people kept for the window at most: every heartbeat measures the distance to each
+# person kept (a few microseconds each), and it must stay well within the heartbeat's period. A
+# household's cameras report a few people some tens of times a second.
+MAX_PEOPLE_REPORTED = 4000
+
+
 class PeopleReports:
     """Reports of where people are. Every report of the last `window` seconds counts, so a report
-    with nobody in it cannot hide someone another recent report saw; none within it: unknown."""
+    with nobody in it cannot hide someone another recent report saw; none within it: unknown.
 
-    def __init__(self, window: float) -> None:
+    At most `limit` entries (each report, and each person in it) are kept. A report beyond that (a
+    flood, hostile or broken) is not kept, so anyone in it is nowhere counted: until it too is older
+    than the window, `flooded` says so and the robot is paused."""
+
+    def __init__(self, window: float, limit: int = MAX_PEOPLE_REPORTED) -> None:
         self.window = window
+        self.limit = limit
         self._reports: deque[tuple[float, list[Person]]] = deque()
+        self._kept = 0
+        self._dropped_at: float | None = None
         self._lock = threading.Lock()
 
     def add(self, now: float, people: list[Person]) -> None:
         with self._lock:
-            self._reports.append((now, people))
             self._forget(now)
+            if self._kept + 1 + len(people) > self.limit:
+                self._dropped_at = now if self._dropped_at is None else max(self._dropped_at, now)
+                return
+            self._reports.append((now, people))
+            self._kept += 1 + len(people)
 
     def _forget(self, now: float) -> None:
         while self._reports and now - self._reports[0][0] > self.window:
-            self._reports.popleft()
+            _, people = self._reports.popleft()
+            self._kept -= 1 + len(people)
+
+    def flooded(self, now: float) -> bool:
+        """Whether a report within the window was not kept (more than `limit` entries came in it)."""
+        with self._lock:
+            return self._dropped_at is not None and now - self._dropped_at <= self.window
 
     def people(self, now: float) -> list[Person] | None:
         """Everyone reported within the window, or None when nothing was reported in it."""
