@@ -55,8 +55,9 @@ _NAME_FIELDS = ("target", "target_object", "target_location")
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
 # A list marker at the start of one English sentence of a JSON array ("1. Go to the kitchen").
 _LIST_MARK = re.compile(r"^\s*(?:[-*\u2022+]|\(?\d{1,3}[.):])?\s*")
-# A list item or a heading-like line: the text may be English steps.
-_LIST_ITEM = re.compile(r"^\s*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)", re.IGNORECASE | re.MULTILINE)
+# A list item or a heading-like line: the text may be English steps. Indented within its own line
+# (as _yaml_start).
+_LIST_ITEM = re.compile(r"^[^\S\n]*(?:[-*\u2022+]\s|\(?\d{1,3}[.):]\s|\**step\s+\d)", re.IGNORECASE | re.MULTILINE)
 _YAML_FENCES = ("yaml", "yml")
 # "plan:" followed by an indented list or key: YAML, not a prose heading like "Plan:".
 _YAML_BODY = re.compile(r"[^\n]*\n[ \t]+(?:-\s|[\w\"']+\s*:)")
@@ -228,9 +229,11 @@ class Parser:
             for word, (action, preset) in self.actions.items()
         }
         keys = sorted({*self.plan_keys, *self.fields}, key=len, reverse=True)
-        # A line that starts a YAML plan: "plan:", "- action: pick", "steps:".
+        # A line that starts a YAML plan: "plan:", "- action: pick", "steps:". Its indent is on that
+        # line: one that ran on over newlines would be tried from every blank line to the end of a
+        # run of them (seconds for a few thousand).
         self._yaml_start = re.compile(
-            r"^\s*(?:-\s+)?[\"']?(?:" + "|".join(re.escape(k) for k in keys) + r")[\"']?\s*:(?:\s|$)",
+            r"^[^\S\n]*(?:-\s+)?[\"']?(?:" + "|".join(re.escape(k) for k in keys) + r")[\"']?\s*:(?:\s|$)",
             re.IGNORECASE | re.MULTILINE,
         )
 
@@ -322,7 +325,7 @@ class Parser:
         if fences_only:
             strict = False
         elif not blocks and not strict:
-            blocks = [(at, body) for lang, at, body in fences if not lang and self._yaml_start.match(body)]
+            blocks = [(at, body) for lang, at, body in fences if not lang and self._yaml_start.match(body.lstrip())]
         if not blocks and not fences_only:
             if not strict and not self._yaml_start.search(text):
                 return []

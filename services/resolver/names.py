@@ -33,6 +33,9 @@ POINTING_WORDS = frozenset(
 # A near-miss is read as a name only if each of its words is at most this many typos (a letter
 # added, dropped or changed, or two swapped) from the name's word in the same place.
 TYPOS_PER_WORD = 1
+# ...but in a word this short a changed letter most often spells another word ("cap" for "cup",
+# "pen" for "pan", "bed" for "red"): only a letter added, dropped or swapped is a typo there.
+SHORT_WORD = 3
 MAX_SUGGESTIONS = 3
 # Near-misses scoring below this (0..100) are not even suggested.
 SUGGESTION_CUTOFF = 60.0
@@ -55,14 +58,21 @@ def normalise_name(text: str) -> str:
 
 def is_misspelling(written: str, known: str) -> bool:
     """Whether the normalised name `written` may be `known` mistyped: as many words in the same order,
-    each at most TYPOS_PER_WORD typos from its counterpart, none a pointing word. An extra word
-    ("living room sofa") or another head noun ("coffee pot", not "coffee cup") is another name."""
+    each at most TYPOS_PER_WORD typos from its counterpart (`_typo`), none a pointing word. An extra
+    word ("living room sofa") or another head noun ("coffee pot", not "coffee cup") is another name."""
     said, meant = written.split(), known.split()
     return (
         len(said) == len(meant)
         and POINTING_WORDS.isdisjoint(said)
-        and all(OSA.distance(a, b) <= TYPOS_PER_WORD for a, b in zip(said, meant, strict=True))
+        and all(_typo(a, b) for a, b in zip(said, meant, strict=True))
     )
+
+
+def _typo(said: str, meant: str) -> bool:
+    if OSA.distance(said, meant) > TYPOS_PER_WORD:
+        return False
+    changed_letter = len(said) == len(meant) and said != meant and sorted(said) != sorted(meant)
+    return not (changed_letter and len(meant) <= SHORT_WORD)
 
 
 @dataclass(frozen=True)

@@ -730,6 +730,14 @@ class Resolver:
             entity = self._find(
                 at, target, state, ("object", "human"), hint=step.location, coordinates=step.coordinates
             )
+            if entity.kind == "human":
+                # The executor's detect waits for the camera's object detections; people come from the
+                # person tracker, so a detect of one could only fail (after driving round to search).
+                raise at.error(
+                    f"cannot detect {_echo(target)}: the {entity.name} is a person, and detect looks for "
+                    f"objects with the camera (people are followed by the person tracker); use look_at to "
+                    f"face the {entity.name}, or navigate_to to go to them"
+                )
             self._expect_kind(at, "detect", target, entity, ("object", "human"))
         self._handled(state, entity)
         return DetectStep(object_id=entity.id, object_name=entity.name, search=_search_scope(step))
