@@ -64,6 +64,9 @@ MAX_ENDED = 256
 MAX_EARLY_CANCELS = 256
 # How long a cancel waits for the executor to take the cancel of a request's goal.
 CANCEL_TIMEOUT = 2.0
+# How long a dry run whose end could not be learned is canceled for before it is given up on
+# (actionlib's CANCEL_GRACE, 10 s, is for motions).
+DRY_RUN_CANCEL_GRACE = 1.0
 LOOP_STATUS = {
     LoopStatus.APPROVED: AskStatus.APPROVED,
     LoopStatus.REJECTED: AskStatus.REJECTED,
@@ -228,7 +231,11 @@ class Planner:
         self.config = config
         self.endpoint = endpoint
         self._chat = client if client is not None else (ChatClient(endpoint) if endpoint is not None else None)
-        self._executor: ActionClient[Any, Any, Any] = ActionClient(node, keys.EXECUTE_PLAN)
+        # Its `run` is only the dry run's, which moves nothing: a goal whose end cannot be learned is
+        # given up on after a short try at canceling it (an executor that is down fails the ask at once).
+        self._executor: ActionClient[Any, Any, Any] = ActionClient(
+            node, keys.EXECUTE_PLAN, cancel_grace=DRY_RUN_CANCEL_GRACE
+        )
         self._attempts = node.publisher(keys.PLANNER_ATTEMPTS)
         self._recoveries = node.publisher(keys.PLANNER_RECOVERIES)
         self._tool_schemas: list[dict[str, Any]] | None = None

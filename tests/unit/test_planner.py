@@ -329,3 +329,21 @@ def test_an_answer_that_trickles_in_ends_at_the_timeout() -> None:
     with pytest.raises(LLMError, match=r"did not answer within 0.5 s"):
         streaming_client(trickle(), timeout=0.5).chat([])
     assert time.monotonic() - begun < 3.0
+
+
+@pytest.mark.realtime  # a bound in wall seconds: at normal priority, not beside the rest (tests/suite.py)
+def test_a_dry_run_with_no_executor_is_unreachable_at_once_not_after_a_motions_cancel_grace() -> None:
+    # The dry run's send_goal unanswered, its client cancels it before giving up; with a motion's grace
+    # (10 s) `tether ask` said "executor unreachable" only after it, though a dry run moves nothing.
+    from services.planner.errors import ExecutorUnreachable
+    from services.planner.node import DRY_RUN_CANCEL_GRACE, Planner
+    from services.runtime import Node, NodeSettings
+    from tests.sessions import free_ports
+
+    settings = NodeSettings(robot="tdryrun", base_port=free_ports(1))
+    with Node("planner", settings) as node:
+        planner = Planner(node, PlannerConfig(), None)
+        begun = time.monotonic()
+        with pytest.raises(ExecutorUnreachable, match="executor unreachable"):
+            planner.check('{"plan": [{"action": "wait", "duration": 1}]}')
+        assert time.monotonic() - begun < DRY_RUN_CANCEL_GRACE + 4.0
