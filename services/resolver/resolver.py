@@ -738,7 +738,7 @@ class Resolver:
                     f"objects with the camera (people are followed by the person tracker); use look_at to "
                     f"face the {entity.name}, or navigate_to to go to them"
                 )
-            self._expect_kind(at, "detect", target, entity, ("object", "human"))
+            self._expect_kind(at, "detect", target, entity, ("object",))
         self._handled(state, entity)
         return DetectStep(object_id=entity.id, object_name=entity.name, search=_search_scope(step))
 

@@ -501,7 +501,7 @@ def test_the_other_actions(resolver: Resolver) -> None:
         ({"action": "wait", "params": {"duration": 90}}, "outside 0..60 s"),
         ({"action": "say"}, "say needs the words"),
         ({"action": "navigate_to"}, "navigate_to needs a target"),
-        ({"action": "detect", "target": "bed"}, "bed is furniture, not an object or a person"),
+        ({"action": "detect", "target": "bed"}, "bed is furniture, not an object"),
     ],
 )
 def test_incomplete_steps_are_refused(resolver: Resolver, step: dict[str, Any], expected: str) -> None:
