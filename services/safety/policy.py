@@ -776,37 +776,51 @@ class SafetyPolicy:
         """Check every way the plan can go, on_failure alternatives included, before anything moves.
 
         Each step is checked from every state (base pose, object held) it can start from: the plan's
-        own steps in order, each alternative from every state the steps it covers start from (a
-        failure can come at any of them), and the steps after it from where it ends. Returns what
-        was checked; raises Vetoed naming the step by its label ("step 2.1 (pick): ...").
+        own steps in order, each alternative from every state a failure of the steps it covers can
+        leave (where each started, and for a pick also holding its object: a lift or stow that fails
+        after the grasp leaves it in the hand), and the steps after it from where it ends. Returns
+        what was checked; raises Vetoed naming the step by its label ("step 2.1 (pick): ...").
         """
         labels = step_labels(plan)
         self._check_structure(plan)
         checks: dict[str, None] = {}
-        # before[i]: the states step i can start from.
+        # before[i]: the states step i can start from; grasped[i]: those a pick at step i leaves
+        # when it grasped its object and then failed.
         before: list[dict[_PlanState, None]] = [{} for _ in range(len(plan.steps) + 1)]
+        grasped: list[dict[_PlanState, None]] = [{} for _ in plan.steps]
         before[0][_PlanState.at(start, None)] = None
-        # States met inside each alternative: an enclosing one may take over from any of them.
+        # States a failure inside each alternative can leave: an enclosing one may take over there.
         met: dict[int, dict[_PlanState, None]] = {}
         innermost_first = sorted(range(len(plan.fallbacks)), key=lambda k: _span(plan.fallbacks[k]))
         for i, step in enumerate(plan.steps):
             for state in before[i]:
-                before[i + 1][self._check_step(step, labels[i], state, checks)] = None
+                after = self._check_step(step, labels[i], state, checks)
+                before[i + 1][after] = None
+                if isinstance(step, PickStep):
+                    grasped[i][_grasped(after, labels[i])] = None
             for k in (k for k in innermost_first if plan.fallbacks[k].last == i):
                 fallback = plan.fallbacks[k]
+                covered = range(fallback.first, fallback.last + 1)
+                # The states reached anyway first: of two equal states, a refusal names the first.
                 starts: dict[_PlanState, None] = {}
-                for j in range(fallback.first, fallback.last + 1):
+                for j in covered:
                     starts.update(before[j])
                 for inner, states in met.items():
                     if _within(plan.fallbacks[inner], fallback):
                         starts.update(states)
+                for j in covered:
+                    starts.update(grasped[j])
                 met[k] = {}
+                picks: dict[_PlanState, None] = {}
                 alternative_labels = fallback_labels(fallback, labels)
                 for state in starts:
                     for step_, label in zip(fallback.steps, alternative_labels, strict=True):
                         met[k][state] = None
                         state = self._check_step(step_, label, state, checks)
+                        if isinstance(step_, PickStep):
+                            picks[_grasped(state, label)] = None
                     before[i + 1][state] = None
+                met[k].update(picks)
         return list(checks)
 
     def _check_structure(self, plan: GroundedPlan) -> None:
@@ -838,7 +852,7 @@ class SafetyPolicy:
                     if step.max_speed is not None:
                         self.check_speed(step.max_speed)
                     checks[f"step {label}: {step.target} is on the map, clear of keep-out zones and obstacles"] = None
-                    return _PlanState.at(step.goal, state.holding)
+                    return _PlanState.at(step.goal, state.holding, state.grasped_by)
                 case PickStep():
                     self.check_payload(step.object_id)
                     self.check_spot(step.approach)
@@ -868,8 +882,13 @@ class SafetyPolicy:
         if step.open:
             if name is not None:
                 # Outside place, the arm is stowed over the base: opening drops the object.
+                how = (
+                    f" (held if the pick at step {state.grasped_by} grasped it and then failed)"
+                    if state.grasped_by
+                    else ""
+                )
                 raise Vetoed(
-                    f"opening the gripper would drop {name} from the stowed arm; use place to put it down",
+                    f"opening the gripper would drop {name} from the stowed arm{how}; use place to put it down",
                     Rule.GRIPPER_DROP,
                 )
             checks[f"step {label}: the gripper opens with nothing in it"] = None
@@ -886,16 +905,25 @@ class _PlanState:
 
     position: tuple[float, float, float] | None
     holding: str | None
+    # The label of the pick whose failure after grasping left `holding` in the hand, for a refusal
+    # to say why the hand would hold it; not part of the state (the same state, however reached).
+    grasped_by: str | None = field(default=None, compare=False)
 
     @staticmethod
-    def at(pose: Pose2D | None, holding: str | None) -> _PlanState:
+    def at(pose: Pose2D | None, holding: str | None, grasped_by: str | None = None) -> _PlanState:
         if pose is None:
-            return _PlanState(None, holding)
-        return _PlanState((round(pose.x, 3), round(pose.y, 3), round(pose.yaw, 3)), holding)
+            return _PlanState(None, holding, grasped_by)
+        return _PlanState((round(pose.x, 3), round(pose.y, 3), round(pose.yaw, 3)), holding, grasped_by)
 
     @property
     def pose(self) -> Pose2D | None:
         return None if self.position is None else Pose2D(x=self.position[0], y=self.position[1], yaw=self.position[2])
+
+
+def _grasped(picked: _PlanState, label: str) -> _PlanState:
+    """Where a pick that grasped its object and then failed (lifting, stowing) leaves the robot:
+    as one that succeeded (at its approach pose, holding the object), named as such."""
+    return _PlanState(picked.position, picked.holding, label)
 
 
 def _span(fallback: Fallback) -> tuple[int, int]:
