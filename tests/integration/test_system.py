@@ -257,7 +257,8 @@ def test_estop_stops_the_base_and_latches_until_the_operator_resets(realtime_sta
 def test_killing_safety_stops_the_base_and_the_sim_refuses_goals_until_it_returns(realtime_stack: Stack) -> None:
     stack = realtime_stack
     odom = Watch(stack.node, keys.ODOM)
-    PlanSender(stack.node).send(ExecutePlanGoal(text=FAR_PLAN))
+    sender = PlanSender(stack.node)
+    far = sender.send(ExecutePlanGoal(text=FAR_PLAN))
     assert odom.wait_for(lambda o: abs(o.linear_x) > 0.2, timeout=60.0), "the base never started moving"
 
     n = len(odom)
@@ -281,6 +282,11 @@ def test_killing_safety_stops_the_base_and_the_sim_refuses_goals_until_it_return
     assert not stack.node.wait_alive(["safety"], 60.0)
     beats = Watch(stack.node, keys.HEARTBEAT)
     assert beats.wait_for(lambda b: not b.estop.latched, timeout=5.0)
+    # The executor learns the first plan's motion ended only once a cancel of it reaches the robot
+    # through the safety that came back (services/actionlib.py: a motion whose end it cannot learn
+    # is not taken for stopped): the plan fails then, and not before the next is sent.
+    ended = sender.wait(far, 30.0)
+    assert ended.result is not None and ended.result.status is not PlanStatus.SUCCEEDED, ended.result
     status, _, reason = run_plan(stack, BACK_PLAN)
     assert status is PlanStatus.SUCCEEDED, reason
 
