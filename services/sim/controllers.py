@@ -312,6 +312,10 @@ class Navigation(GoalMotion[NavigateToPoseFeedback, NavigateToPoseResult]):
             self.legs = self._legs(pose)
             self.deadline = self._deadline()
             self.last_progress = self.clock
+            # Checked against the keep-out zones as the goal came, from where the base then was.
+            if (reason := ctl.route_check(self.goal, pose)) is not None:
+                self._fail(ctl, pose, reason)
+                return
         remaining = sum(leg.length for leg in self.legs)
         self.feedback = NavigateToPoseFeedback(pose=pose, distance_remaining=remaining)
 
@@ -488,6 +492,9 @@ class Controllers:
         self._cmd_vel: Twist | None = None
         self._cmd_vel_until = 0.0
         self.motions: dict[str, GoalMotion[Any, Any]] = {}
+        # The robot's keep-out check of a route it plans itself (a goal without `start`, from where the
+        # base comes to rest): why not, or None. The sim node sets it to KeepOut.goal.
+        self.route_check: Callable[[NavigateToPoseGoal, Pose2D], str | None] = lambda _goal, _here: None
 
     @property
     def idle(self) -> bool:

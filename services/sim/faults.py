@@ -20,7 +20,7 @@ from schemas.common import ErrorKind, Pose2D, ServiceError, Vec3
 from schemas.incidents import IncidentKind, IncidentReport
 from schemas.world import FaultInjected, FaultKind, FaultReply, InjectFault, World
 from services.footprint import distance_to_footprint, footprint
-from services.sim.world import DROP_HEIGHT, HUMAN_RADIUS, BlockShape, Drop, SimWorld
+from services.sim.world import DROP_HEIGHT, HUMAN_RADIUS, BlockShape, Drop, Position, SimWorld
 from services.worldmodel import WorldModel
 
 log = logging.getLogger(__name__)
@@ -322,6 +322,12 @@ class Faults:
         person = self.world.person_in(shape, block.centre, block.yaw)
         if person is not None:
             raise _Refused(ErrorKind.PRECONDITION, f"{person} stands where {block.name} would go")
+        # Bullet throws out what a static box goes up around: a cup under one sank through the floor.
+        thing = self.world.object_in(shape, block.centre, block.yaw)
+        if thing is not None:
+            raise _Refused(
+                ErrorKind.PRECONDITION, f"{thing} lies where {block.name} would go; move it (sim/move) first"
+            )
         self.world.add_block(block)
         x, y, z = block.centre
         message = f"{block.name} at ({x:.2f}, {y:.2f}) blocks the way until `clear`"
@@ -356,10 +362,12 @@ class Faults:
         if target:
             raise _Refused(ErrorKind.INVALID_REQUEST, f"clear takes no target (got {target!r}): it clears everything")
         # Checked before anything changes: clear does all of it, or nothing.
+        going_back: list[tuple[str, int, Position]] = []  # each hidden object checked: name, shape, centre
         for object_id, (x, y, bottom) in self.hidden.items():
             obj = self.model.objects[object_id]
             centre = (x, y, bottom + obj.size.z / 2 + DROP_HEIGHT)
-            part = self.world.robot_part_in(self.world.object_shapes[object_id], centre)
+            shape = self.world.object_shapes[object_id]
+            part = self.world.robot_part_in(shape, centre)
             if part is not None:
                 raise _Refused(
                     ErrorKind.PRECONDITION,
@@ -367,6 +375,18 @@ class Faults:
                     f"at ({x:.2f}, {y:.2f}); "
                     "move the robot, or the object elsewhere (sim/move), first",
                 )
+            thing = self.world.object_in(shape, centre, moving=object_id)
+            for name, other, at in going_back:
+                # Two hidden from one spot (one moved there while the other was away) go back into each other.
+                if thing is None and self.world.touch(other, at, shape, centre):
+                    thing = f"the {name}, hidden too,"
+            if thing is not None:
+                raise _Refused(
+                    ErrorKind.PRECONDITION,
+                    f"{thing} stands where the {obj.name} would be put back, at ({x:.2f}, {y:.2f}); "
+                    "move it elsewhere (sim/move) first",
+                )
+            going_back.append((obj.name, shape, centre))
         done = []
         if self.slip is not None:
             self.slip = None

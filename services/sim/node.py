@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from schemas import keys
+from schemas.common import Pose2D
 from schemas.robot import (
     MAX_PROBLEMS,
     FollowJointTrajectoryGoal,
@@ -73,6 +74,7 @@ class SimNode:
         # Its own check of the world's keep-out zones, also for a signed command (docs/robot.md).
         self.keep_out = KeepOut.of(sim.world)
         self.problems = Problems()
+        sim.controllers.route_check = self._route_refusal
         self._cmd_vel_lock = threading.Lock()
         self._cmd_vel: tuple[Twist, float] | None = None  # the latest, until the sim thread applies it
         self._blocked_reason: str | None = "no safety heartbeat received yet"  # as of the sim thread's last look
@@ -140,6 +142,11 @@ class SimNode:
         here = None
         if goal.start is None:
             here = self.loop.ask(lambda sim: sim.scene.robot.base_pose(), ANSWER_TIMEOUT, changes=False)
+        return self._route_refusal(goal, here)
+
+    def _route_refusal(self, goal: NavigateToPoseGoal, here: Pose2D | None) -> str | None:
+        """Why the route of `goal` from `here` (its `start` when given) would enter a keep-out zone, noted for
+        robot/diagnostics, or None. Also for a route the sim thread plans once the base came to rest."""
         if (reason := self.keep_out.goal(goal, here)) is not None:
             self.problems.note(f"refused a navigate_to_pose goal: {reason}", keys.ROBOT_NAVIGATE.path)
         return reason

@@ -821,8 +821,19 @@ class SimWorld:
         as a refusal says it, or None."""
         solids = [(f"the {w.name}", self.wall_bodies[w.id]) for w in self.spec.walls]
         solids += [(f"the {f.name}", self.furniture_bodies[f.id]) for f in self.spec.furniture]
-        solids += [(f"the {o.name}", self.object_bodies[o.id]) for o in self.spec.objects if o.id != moving]
+        solids += self._objects_but(moving)
         solids += [(block.name, body) for block, body in self.blocks.values()]  # "a box in the ..."
+        return self._first_touched(solids, shape, centre, yaw)
+
+    def object_in(self, shape: int, centre: Position, yaw: float = 0.0, moving: str = "") -> str | None:
+        """The object (`moving` aside) that collision shape `shape` would touch or cut into were it put
+        at `centre`, turned `yaw`, named as a refusal says it ("the red cup"), or None."""
+        return self._first_touched(self._objects_but(moving), shape, centre, yaw)
+
+    def _objects_but(self, moving: str) -> list[tuple[str, int]]:
+        return [(f"the {o.name}", self.object_bodies[o.id]) for o in self.spec.objects if o.id != moving]
+
+    def _first_touched(self, solids: list[tuple[str, int]], shape: int, centre: Position, yaw: float) -> str | None:
         orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
         for name, body in solids:
             points = self.bullet.getClosestPoints(
@@ -836,6 +847,20 @@ class SimWorld:
             if points:
                 return name
         return None
+
+    def touch(self, shape_a: int, centre_a: Position, shape_b: int, centre_b: Position) -> bool:
+        """Whether collision shapes `shape_a` and `shape_b`, upright at those centres, would touch or
+        cut into each other."""
+        points = self.bullet.getClosestPoints(
+            bodyA=-1,
+            bodyB=-1,
+            distance=0.0,
+            collisionShapeA=shape_a,
+            collisionShapeB=shape_b,
+            collisionShapePositionA=list(centre_a),
+            collisionShapePositionB=list(centre_b),
+        )
+        return bool(points)
 
     def person_in(self, shape: int, centre: Position, yaw: float, moving: str = "") -> str | None:
         """The person (`moving` aside) whose body collision shape `shape` would touch or cut into were
