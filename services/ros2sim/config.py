@@ -10,7 +10,7 @@ from msgspec import Meta
 
 from services.ros2.wire import Style
 from services.runtime import ConfigError
-from services.sim.config import Hz, WallSeconds
+from services.sim.config import CmdVelSeconds, Hz
 
 DomainId = Annotated[int, Meta(ge=0, le=232)]
 DOMAIN_ENV = "ROS_DOMAIN_ID"
@@ -28,8 +28,8 @@ class Ros2SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fi
     style: Style = Style.RMW_ZENOH
     # cmd_vel as geometry_msgs/TwistStamped rather than Twist (what the backend sends).
     stamped_cmd_vel: bool = False
-    # Wall seconds a cmd_vel holds; as the sim's, counted in sim time x [sim] realtime_factor.
-    cmd_vel_timeout: WallSeconds = 0.5
+    # Wall seconds a cmd_vel holds; as the sim's, counted in sim time x [sim] realtime_factor, and bounded alike.
+    cmd_vel_timeout: CmdVelSeconds = 0.5
     # Each picture renders a frame (about 20 ms) in the sim's renderer process, off the sim thread.
     camera_hz: Hz = 1.0
     # emergency_stop is also a dead-man signal (a twist_mux lock's timeout): the robot stops as on

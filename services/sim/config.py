@@ -9,6 +9,9 @@ from msgspec import Meta
 
 Hz = Annotated[float, Meta(gt=0.0, le=1000.0)]
 WallSeconds = Annotated[float, Meta(gt=0.0, le=60.0)]
+# How long a cmd_vel holds: at most the policy's default cmd_vel_horizon (1 s), the time safety checks
+# its path for, as [ros2] cmd_vel_timeout.
+CmdVelSeconds = Annotated[float, Meta(gt=0.0, le=1.0)]
 Pixels = Annotated[int, Meta(ge=16, le=1920)]
 
 
@@ -68,8 +71,8 @@ class SimConfig(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields
     # still connecting) waits this long for it before it is refused.
     first_heartbeat_wait: WallSeconds = 3.0
     # Held for this times realtime_factor sim seconds: wall time while the sim keeps pace (docs/robot.md).
-    # At most the policy's cmd_vel_horizon, the time safety checks a cmd_vel's path for.
-    cmd_vel_timeout: WallSeconds = 0.5
+    # At most the policy's cmd_vel_horizon, the time safety checks a cmd_vel's path for (it took 60 s).
+    cmd_vel_timeout: CmdVelSeconds = 0.5
     joint_states_hz: Hz = 50.0
     odom_hz: Hz = 50.0
     # Each report of objects renders a camera frame (about 3 ms of CPU, in the renderer process,

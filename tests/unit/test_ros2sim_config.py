@@ -40,6 +40,7 @@ def test_one_file_drives_the_sim_and_its_stand_in(tmp_path: Path) -> None:
         ('listen = "127.0.0.1:7447"', r"\$\.listen"),
         ("domain_id = 300", r"\$\.domain_id"),
         ("cmd_vel_timeout = 0", r"\$\.cmd_vel_timeout"),
+        ("cmd_vel_timeout = 5", r"\$\.cmd_vel_timeout"),  # longer than safety checked the path for
         ("stop_timeout = -0.5", r"\$\.stop_timeout"),
     ],
 )

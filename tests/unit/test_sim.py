@@ -123,6 +123,10 @@ def test_config_defaults_and_unknown_fields_are_errors(tmp_path: Path) -> None:
     bad.write_text("[sim]\nsolver_iterations = 0\n")
     with pytest.raises(ConfigError, match="solver_iterations"):
         load_config(SimConfig, bad, "sim")
+    # A cmd_vel held longer than safety checked its path for (the policy's cmd_vel_horizon, 1 s).
+    bad.write_text("[sim]\ncmd_vel_timeout = 5\n")
+    with pytest.raises(ConfigError, match="cmd_vel_timeout"):
+        load_config(SimConfig, bad, "sim")
 
 
 def test_the_solver_makes_the_passes_configured(world: World) -> None:
