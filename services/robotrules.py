@@ -226,6 +226,10 @@ def check_trajectory(goal: FollowJointTrajectoryGoal, lower: Sequence[float], up
             return f"point {k} has {len(point.positions)} positions for {len(names)} joints"
         if point.time_from_start < previous:
             return f"point {k} goes back in time ({point.time_from_start:g} s after {previous:g} s)"
+        if point.time_from_start == previous:
+            # Nothing to interpolate between them: the arm would jump (ros2_control's trajectory
+            # controller refuses such times too; safety sends only strictly increasing ones).
+            return f"point {k} comes at the same time as point {k - 1} ({previous:g} s): the arm would jump"
         previous = point.time_from_start
         for name, value, low, high in zip(names, point.positions, lows, highs, strict=True):
             if not low <= value <= high:

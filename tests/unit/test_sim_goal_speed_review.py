@@ -87,6 +87,12 @@ def test_unknown_repeated_or_missing_joints_are_refused_saying_which() -> None:
         points=[TrajectoryPoint(positions=[0.0] * 7, time_from_start=t) for t in (1.0, 0.5)],
     )
     assert check_trajectory(back, LOWER, UPPER) == "point 1 goes back in time (0.5 s after 1 s)"
+    # Two points at one time: taken, the sim stepped the arm from one to the other at once.
+    jump = FollowJointTrajectoryGoal(
+        joint_names=arm,
+        points=[TrajectoryPoint(positions=[q] * 7, time_from_start=1.0) for q in (0.0, 0.5)],
+    )
+    assert check_trajectory(jump, LOWER, UPPER) == "point 1 comes at the same time as point 0 (1 s): the arm would jump"
 
 
 # The robot link's check
