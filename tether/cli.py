@@ -261,6 +261,37 @@ DEMO_PLAN = json.dumps(
 
 app.callback()(common)
 
+# The longest --timeout: a week. Longer ones overflowed the clock's waits (a traceback, after the
+# plan was sent), and no plan nor start-up is meant to take longer.
+MAX_WAIT = 7 * 24 * 3600.0
+
+
+def wait_seconds(value: float) -> float:
+    """A --timeout, refused unless more than 0 and at most MAX_WAIT (NaN too: it compares false).
+    A negative or NaN one had `send` give up only after the plan was sent and moving, and `up`
+    start services it could not wait for."""
+    if not 0 < value <= MAX_WAIT:
+        raise typer.BadParameter(f"must be more than 0 and at most {MAX_WAIT:g} seconds, not {value}")
+    return value
+
+
+def utf8(value: str) -> str:
+    """An argument refused unless UTF-8 text: bytes that are not (Python keeps them as surrogates)
+    failed to encode into the message sent, with a traceback."""
+    try:
+        value.encode()
+    except UnicodeEncodeError as exc:
+        raise typer.BadParameter(f"not UTF-8 text (a byte at character {exc.start + 1})") from None
+    return value
+
+
+def sim_speed_in_range(value: float) -> float:
+    """--sim-speed, refused here as the sim would refuse it (services/sim/config.py), before the
+    demo starts any service, NaN too."""
+    if not 0.1 <= value <= 20.0:
+        raise typer.BadParameter(f"must be from 0.1 to 20, not {value}")
+    return value
+
 
 def settings_of(ctx: typer.Context) -> NodeSettings:
     settings: NodeSettings = ctx.obj
@@ -402,7 +433,9 @@ def up(
     ctx: typer.Context,
     config: ConfigOpt = None,
     log_dir: LogDirOpt = Path("logs"),
-    timeout: Annotated[float, typer.Option(help="Seconds to wait for every service to come up.")] = 60.0,
+    timeout: Annotated[
+        float, typer.Option(help="Seconds to wait for every service to come up.", callback=wait_seconds)
+    ] = 60.0,
     backend: BackendOpt = "sim",
     deploy: Annotated[
         Path | None,
@@ -528,8 +561,8 @@ def router(directory: Annotated[Path, typer.Argument(help="A directory from `tet
 
 
 def read_plan(plan: str) -> str:
-    if plan == "-":
-        return sys.stdin.read()
+    if plan == "-":  # bytes that are not UTF-8 replaced, as in a plan file
+        return sys.stdin.buffer.read().decode(errors="replace")
     path = Path(plan)
     if len(plan) < 4096 and "\n" not in plan and path.is_file():
         return path.read_text(errors="replace")
@@ -626,14 +659,14 @@ def interrupted(sender: PlanSender, goal_id: str, as_json: bool) -> PlanRun:
 @app.command()
 def send(
     ctx: typer.Context,
-    plan: Annotated[str, typer.Argument(help="Plan text, a file holding it, or - for stdin.")],
+    plan: Annotated[str, typer.Argument(help="Plan text, a file holding it, or - for stdin.", callback=utf8)],
     fmt: Annotated[
         str, typer.Option("--format", help="auto, json, yaml or text.", autocompletion=complete_plan_format)
     ] = "auto",
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Parse, resolve and check only; nothing moves.")] = False,
     wait: Annotated[bool, typer.Option("--wait", help="Wait until the plan has finished.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object with the outcome.")] = False,
-    timeout: Annotated[float, typer.Option(help="Seconds to wait for the outcome.")] = 600.0,
+    timeout: Annotated[float, typer.Option(help="Seconds to wait for the outcome.", callback=wait_seconds)] = 600.0,
     preempt: Annotated[
         bool, typer.Option("--preempt", help="Cancel a plan already running (the robot stops first) and run this one.")
     ] = False,
@@ -721,7 +754,7 @@ def send(
 @app.command()
 def cancel(
     ctx: typer.Context,
-    goal_id: Annotated[str, typer.Argument(help="A goal id, or all.")] = CANCEL_ALL,
+    goal_id: Annotated[str, typer.Argument(help="A goal id, or all.", callback=utf8)] = CANCEL_ALL,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object: status, goal_id, reason.")] = False,
 ) -> None:
     """Cancel the running plan (or the goal given).
@@ -745,7 +778,7 @@ def cancel(
 @app.command()
 def goal(
     ctx: typer.Context,
-    goal_id: Annotated[str, typer.Argument(help="The goal id `tether send` printed.")],
+    goal_id: Annotated[str, typer.Argument(help="The goal id `tether send` printed.", callback=utf8)],
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Where a plan is now, without waiting: its state, the step running, the result once it ended.
@@ -787,7 +820,9 @@ def goal(
 @app.command()
 def estop(
     ctx: typer.Context,
-    reason: Annotated[str, typer.Option(help="Why; kept in the latch and the recording.")] = "operator e-stop",
+    reason: Annotated[
+        str, typer.Option(help="Why; kept in the latch and the recording.", callback=utf8)
+    ] = "operator e-stop",
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object: status, source, reason.")] = False,
 ) -> None:
     """Trigger the e-stop. It latches until `tether reset`.
@@ -1149,7 +1184,9 @@ def world_failed(error: ServiceError, as_json: bool = False) -> NoReturn:
 @world_app.command("move")
 def world_move(
     ctx: typer.Context,
-    entity: Annotated[str, typer.Argument(metavar="ID", help="An object or person id: red_cup, operator, ...")],
+    entity: Annotated[
+        str, typer.Argument(metavar="ID", help="An object or person id: red_cup, operator, ...", callback=utf8)
+    ],
     x: Annotated[float, typer.Argument(help="Map x in metres.")],
     y: Annotated[float, typer.Argument(help="Map y in metres.")],
     z: Annotated[
@@ -1245,10 +1282,12 @@ def demo_config(sim_speed: float, recordings: Path, ros2_endpoint: str | None) -
 @app.command()
 def demo(
     ctx: typer.Context,
-    sim_speed: Annotated[float, typer.Option(help="Simulated seconds per wall-clock second.")] = 2.0,
+    sim_speed: Annotated[
+        float, typer.Option(help="Simulated seconds per wall-clock second.", callback=sim_speed_in_range)
+    ] = 2.0,
     log_dir: LogDirOpt = Path("logs"),
     recordings: Annotated[Path, typer.Option(help="Where the MCAP recording goes.")] = Path("recordings"),
-    timeout: Annotated[float, typer.Option(help="Seconds allowed for the plan.")] = 600.0,
+    timeout: Annotated[float, typer.Option(help="Seconds allowed for the plan.", callback=wait_seconds)] = 600.0,
     backend: Annotated[
         str,
         typer.Option(

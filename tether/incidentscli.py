@@ -118,6 +118,10 @@ def incident_json(incident: Incident) -> dict[str, Any]:
     return data
 
 
+# The options that set each field of an IncidentQuery.
+QUERY_OPTIONS = {"x": "--near", "y": "--near", "radius": "--radius", "since": "--since", "limit": "--limit"}
+
+
 def _list(
     ctx: typer.Context,
     near: list[float] | None,
@@ -139,7 +143,10 @@ def _list(
         if near is not None:
             fields["x"], fields["y"] = near
         query = msgspec.convert(fields, IncidentQuery)
-    except (ValueError, msgspec.ValidationError) as exc:
+    except msgspec.ValidationError as exc:  # it names the query's field (`$.x`), not the option given
+        field = str(exc).rpartition("`$.")[2].rstrip("`")
+        _fail(as_json, f"{QUERY_OPTIONS.get(field, field)}: {exc}", EXIT_REFUSED)
+    except ValueError as exc:
         _fail(as_json, str(exc), EXIT_REFUSED)
     answer = _ask(ctx, query, as_json)
     if as_json:
