@@ -11,6 +11,8 @@ canceled there (plan/ask_cancel), so no plan is sent for it. Over HTTP the serve
 
 from __future__ import annotations
 
+import itertools
+import json
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -22,8 +24,9 @@ import uvicorn
 from jsonschema import Draft202012Validator
 from mcp.server.lowlevel import Server
 from mcp.server.stdio import stdio_server
+from starlette.applications import Starlette
 
-from schemas.plan import MAX_NESTING, MAX_STEPS
+from schemas.plan import MAX_NESTING, MAX_PLAN_BYTES, MAX_STEPS
 from services.agent.feedback import DATA_CLOSE, DATA_OPEN
 from services.agent.tools import ToolSpec, all_tools, render
 from services.recorder.mcapfile import version
@@ -48,6 +51,9 @@ CALL_LIMITER = anyio.CapacityLimiter(32)
 # model); each has workers of its own, so a flood of cancels does not hold up the e-stop either.
 ESTOP_LIMITER = anyio.CapacityLimiter(4)
 CANCEL_LIMITER = anyio.CapacityLimiter(4)
+# Canceling the planner request of a call whose client went may wait up to CANCEL_ASK_TIMEOUT (the
+# planner sending a plan): on CANCEL_LIMITER, four of them kept an agent's cancel_goal waiting 20 s.
+ASK_CANCEL_LIMITER = anyio.CapacityLimiter(4)
 
 # The most text one tool result carries. Claude Code keeps a result over 50,000 characters out of the
 # conversation and refuses one over 25,000 tokens; other hosts put all of it in the model's context,
@@ -55,6 +61,8 @@ CANCEL_LIMITER = anyio.CapacityLimiter(4)
 # listing thousands of objects, a plan the planner's model wrote up to the executor's 256 KiB.
 MAX_RESULT_CHARS = 40_000
 DATA_OPENING = DATA_OPEN.split("{", 1)[0]
+# How many schema problems are looked for before the first of them is named.
+MAX_PROBLEMS = 20
 
 Handler = Callable[[dict[str, Any], Call], "str | Picture"]
 
@@ -86,6 +94,15 @@ class ArgumentCheck:
 
     def problem(self, arguments: dict[str, Any]) -> str | None:
         """The first way `arguments` break the schema, where ("plan/2/on_failure/0/target: ..."), or None."""
+        # The check's time grows with the arguments' size, and a worker checking them holds the GIL,
+        # which every other call (the e-stop's too) needs: a plan of 1.3 million wrong steps, 2.6 MB,
+        # took 43 s. No tool's arguments need more than the executor takes of a plan.
+        try:
+            size = len(json.dumps(arguments, ensure_ascii=False).encode())
+        except RecursionError:  # never from a client (the SDK's JSON stops at 200 levels): depth is checked below
+            size = 0
+        if size > MAX_PLAN_BYTES:
+            return f"arguments: {size} bytes as JSON; the limit is {MAX_PLAN_BYTES}"
         if (found := _first_problem(self.whole, arguments, "")) is not None or not self.branches:
             return found
         steps = arguments.get("plan")
@@ -110,11 +127,13 @@ class ArgumentCheck:
 
 
 def _first_problem(validator: Draft202012Validator, instance: Any, prefix: str) -> str | None:
-    problems = sorted(validator.iter_errors(instance), key=lambda e: list(e.absolute_path))
+    # The earliest of the first few: each one found takes time, a list of wrong items has one per item.
+    problems = list(itertools.islice(validator.iter_errors(instance), MAX_PROBLEMS))
     if not problems:
         return None
-    where = prefix + "/".join(str(p) for p in problems[0].absolute_path) or "arguments"
-    return f"{where.rstrip('/')}: {problems[0].message[:300]}"
+    first = min(problems, key=lambda e: list(e.absolute_path))
+    where = prefix + "/".join(str(p) for p in first.absolute_path) or "arguments"
+    return f"{where.rstrip('/')}: {first.message[:300]}"
 
 
 class Tools:
@@ -266,7 +285,7 @@ async def _cancel_when_abandoned(api: AgentAPI, call: Call) -> None:
         goal_id, request_id = call.abandon()
         with anyio.CancelScope(shield=True):
             if request_id is not None:
-                await anyio.to_thread.run_sync(api.cancel_unheard_ask, request_id, limiter=CANCEL_LIMITER)
+                await anyio.to_thread.run_sync(api.cancel_unheard_ask, request_id, limiter=ASK_CANCEL_LIMITER)
             if goal_id is not None:
                 await anyio.to_thread.run_sync(api.cancel_unheard, goal_id, limiter=CANCEL_LIMITER)
 
@@ -283,7 +302,13 @@ def serve(settings: NodeSettings, http: bool, host: str, port: int) -> None:
         if not http:
             anyio.run(_serve_stdio, server)
             return
-        # Stateless: no tool needs a session, and the SDK kept each one a client opened for 30 minutes
-        # (40 kB each, up to 10,000, then refused new ones: an agent could no longer connect to stop).
-        app = server.streamable_http_app(host=host, stateless_http=True)
-        uvicorn.run(app, host=host, port=port, log_level="warning")
+        uvicorn.run(http_app(server, host), host=host, port=port, log_level="warning")
+
+
+def http_app(server: Server[Any], host: str) -> Starlette:
+    """The server over streamable HTTP at /mcp, bound to `host`, a loopback name: given it, the SDK
+    refuses a request whose Host or Origin names another site (a page of one, its name pointed at
+    127.0.0.1, could otherwise move the robot)."""
+    # Stateless: no tool needs a session, and the SDK kept each one a client opened for 30 minutes
+    # (40 kB each, up to 10,000, then refused new ones: an agent could no longer connect to stop).
+    return server.streamable_http_app(host=host, stateless_http=True)
