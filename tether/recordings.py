@@ -186,6 +186,8 @@ def record(
     node_settings = settings(ctx)
     if output is not None and output.exists():
         fail(f"{output} exists; choose another name or remove it")
+    if output is not None and not output.parent.is_dir():  # made on the way, as root: /nonexistent
+        fail(f"{output}: no directory {output.parent}; make it first or choose another -o")
     if duration is not None and not duration > 0:  # nan too: it would never be reached
         fail(f"--duration must be positive, not {duration:g}")
     selected = key_filter(node_settings.robot, key_expr)
@@ -261,7 +263,7 @@ def _replay(
 ) -> None:
     recording = open_recording(files, key_expr, bar=bar)
     robot = recording.robot
-    target = to or default_target(robot)
+    target = default_target(robot) if to is None else to  # --to "" is refused below, not the default
     try:
         NodeSettings(robot=target)
     except ValueError as exc:
@@ -576,6 +578,8 @@ def recover_command(
     ] = None,
 ) -> None:
     """Write a complete copy of a recording cut short (the recorder was killed): every chunk flushed before the cut."""
+    if not file.is_file():  # "" is ".", a directory: with_suffix below would raise
+        fail(f"{file}: no such file" if not file.exists() else f"{file} is not a file")
     output = output or file.with_suffix(".recovered.mcap")
     if output.exists():
         fail(f"{output} exists; choose another name with -o or remove it")

@@ -202,3 +202,37 @@ def test_a_map_of_thousands_of_vetoes_at_distinct_spots_is_drawn_in_seconds(tmp_
     assert time.monotonic() - started < 10.0
     assert len(marks) == count and marks[0].label == "vetoed @ 0.0, 9000.0 s"  # one spot, two vetoes
     assert (tmp_path / "map.png").stat().st_size > 0
+
+
+def test_recover_of_a_directory_or_an_empty_name_is_a_usage_error(tmp_path: Path) -> None:
+    # "" is ".", a directory: its name has no suffix to replace, and recover ended in a ValueError traceback.
+    for name in ("", str(tmp_path)):
+        result = CliRunner().invoke(cli.app, ["recover", name])
+        assert result.exit_code == 2, result.output
+        assert "is not a file" in " ".join(result.stderr.split()), result.stderr
+
+
+def test_record_into_a_directory_that_does_not_exist_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # It made the missing directories on the way (as root, /nonexistent) and reported success.
+    def no_node(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a recording was started")
+
+    monkeypatch.setattr(recordings, "Node", no_node)
+    output = tmp_path / "missing" / "x.mcap"
+    result = CliRunner().invoke(cli.app, ["record", "-o", str(output), "--duration", "1"])
+    assert result.exit_code == 2, result.output
+    assert "no directory" in " ".join(result.stderr.split()), result.stderr
+    assert not output.parent.exists()
+
+
+def test_replay_to_an_empty_robot_name_is_refused(tmp_path: Path) -> None:
+    # --to "" fell back to the default robot name and replayed, exit 0.
+    path = tmp_path / "run.mcap"
+    recording = Recording(path, timeline.ROBOT, provenance=timeline.household())
+    recording.record(keys.ODOM.key(timeline.ROBOT), b"{}", log_time=timeline.T0)
+    recording.finish()
+    result = CliRunner().invoke(cli.app, ["replay", str(path), "--to", ""])
+    assert result.exit_code == 2, result.output
+    assert "--to" in result.stderr, result.stderr
