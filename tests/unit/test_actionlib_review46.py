@@ -86,10 +86,10 @@ class Peers:
     server: Node
     client: Node
 
-    def navigation(self, standin: Standin) -> Navigation:
+    def navigation(self, standin: Standin, grace: float = GRACE) -> Navigation:
         standin.serve(self.server, keys.ROBOT_NAVIGATE)
         self.found()
-        return ActionClient(self.client, keys.ROBOT_NAVIGATE, cancel_grace=GRACE)
+        return ActionClient(self.client, keys.ROBOT_NAVIGATE, cancel_grace=grace)
 
     def found(self) -> None:
         self.server.declare_alive()
@@ -115,8 +115,9 @@ def test_a_goal_whose_send_goal_and_every_cancel_went_unanswered_is_not_taken_fo
     message = raised.value.error.message
     assert f"goal {goal_id}: its send_goal failed (no reply from the robot's send_goal)" in message, message
     assert f"no cancel of it was answered within {GRACE:g} s" in message, message
-    assert len(standin.canceled) >= 2, "the cancel was not asked again within the grace"
-    assert set(standin.canceled) == {goal_id}, standin.canceled
+    # Asked again within the grace: test_a_cancel_answered_at_a_later_ask_is_enough (how many asks fit
+    # in this one's 1 s depends on the CPU it gets: a loaded CI run's unit tests fitted one).
+    assert standin.canceled and set(standin.canceled) == {goal_id}, standin.canceled
 
 
 @pytest.mark.parametrize("watched", [True, False], ids=["with a cancel to watch", "without"])
@@ -139,14 +140,15 @@ def test_a_goal_whose_result_and_every_cancel_went_unanswered_is_not_taken_for_s
     assert isinstance(raised.value, actionlib.GoalUnanswered)
     message = raised.value.error.message
     assert f"goal {standin.sent[0]}: its get_result failed" in message and why in message, message
-    assert len(standin.canceled) >= 2, "the cancel was not asked again within the grace"
+    assert standin.canceled, "no cancel was asked"
 
 
 def test_a_cancel_answered_at_a_later_ask_is_enough(peers: Peers) -> None:
     """The goal is known to be stopping (or never to start): the call fails as it did, with no e-stop's
     worth of error, once the second cancel is answered."""
     standin = Standin(send_lost=True, cancels_lost=1)
-    navigation = peers.navigation(standin)
+    # A grace long enough for a second ask on a loaded machine: it ends as soon as that is answered.
+    navigation = peers.navigation(standin, grace=10.0)
     with pytest.raises(CallError) as raised:
         navigation.run(NavigateToPoseGoal(pose=HERE), timeout=WAIT)
     assert not isinstance(raised.value, actionlib.GoalNotStopped), raised.value
