@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 STATE_TIMEOUT = 1.0
 # Safety beats at 20 Hz or more; this long without a beat means it is not there.
 HEARTBEAT_STALE = 0.5
+# How long an e-stop the executor sends may take to show latched in safety's heartbeat.
+LATCH_CONFIRM = 1.0
 # Perception reports a few times a second: its latest report, received longer ago than this, is from
 # a perception that stopped, and what it saw may have moved since (by teleop, by people).
 OBJECTS_STALE = 2.0
@@ -240,13 +242,20 @@ class NodeRobot:
             self._motion_end()
 
     def _halt(self, why: str) -> str:
-        """Latch the e-stop for `why`; what was done, in words."""
+        """Latch the e-stop for `why`; what was done, in words: that it latched only once a fresh
+        heartbeat says so (LATCH_CONFIRM at most), as safety may be what went away."""
         log.error("latching the e-stop: %s", why)
         try:
             self._estop.put(EStop(source=EstopSource.EXECUTOR, reason=why[:TEXT_CHARS]))
         except Exception as exc:  # the plan still fails; the words must not claim the e-stop latched
             log.exception("the e-stop could not be sent")
             return f"latching the e-stop failed: {exc}"
+        deadline = time.monotonic() + LATCH_CONFIRM
+        while (held := self.safety_stop()) is None or not held.startswith("e-stop latched"):
+            if time.monotonic() >= deadline:
+                shown = held or "not latched"
+                return f"the executor sent safety an e-stop, which no heartbeat showed latched ({shown})"
+            time.sleep(0.02)  # polling the latest heartbeat with a deadline
         return "the executor latched the e-stop"
 
     def cmd_vel(self, twist: Twist) -> None:

@@ -185,7 +185,11 @@ def test_the_executor_latches_the_e_stop_naming_the_goal_and_what_went_unanswere
     message = str(raised.value)
     assert message.startswith("the robot side did not answer: "), message
     assert f"goal {goal_id}: its send_goal failed" in message, message
-    assert message.endswith("it may still be moving the robot; the executor latched the e-stop"), message
+    # No safety beats here: the e-stop is sent, and the words do not claim it latched.
+    assert message.endswith(
+        "it may still be moving the robot; the executor sent safety an e-stop, which no heartbeat showed "
+        "latched (no safety heartbeat received)"
+    ), message
     assert heard.wait(WAIT), "no e-stop was published"
     [estop] = latched
     assert estop.source is EstopSource.EXECUTOR, estop
