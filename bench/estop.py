@@ -4,15 +4,17 @@
     python -m bench.estop                         a short table
     python -m bench.estop --backend ros2 --json   the same, through the ros2 backend to the stand-in robot
 
-Measured, in each trial: the base is driven with cmd_vel on `cmd/cmd_vel` (through safety, 20 Hz,
-0.3 m/s, forwards and backwards in turn so it stays in the room) while the arm follows a trajectory
-moving panda_joint1 by 0.8 rad over 2 s (the other way in the next trial). Once odometry shows
-|linear_x| > 0.1 m/s and joint states an arm joint faster than 0.1 rad/s, t0 = time.time() and
-`EStop(source=operator)` is published. The halt is the first sample, by the `stamp` the sim puts on
-odometry and joint states (its wall clock), from which the base's |linear_x| and |angular_z| and
-every arm joint's |velocity| are all below 0.01 (see `bench.service.RobotMotion`). The cmd_vel stream
-goes on until then, as a joystick's would. Then the operator resets the e-stop with the token, as
-`tether reset` does, and the next trial waits for a heartbeat showing the latch clear.
+Measured, in each trial, one of the two in turn (safety never lets the arm and the base move at
+once: `one_motion`): the base driven with cmd_vel on `cmd/cmd_vel` (through safety, 20 Hz, 0.3 m/s),
+or the arm following a trajectory moving panda_joint1 by 0.8 rad over 2 s; each the other way in its
+next trial, so the base stays in the room. Once odometry shows |linear_x| > 0.1 m/s, or joint states
+an arm joint faster than 0.1 rad/s, t0 = time.time() and `EStop(source=operator)` is published. The
+halt is the first sample, by the `stamp` the sim puts on odometry and joint states (its wall clock),
+from which the base's |linear_x| and |angular_z| and every arm joint's |velocity| are all below 0.01
+(see `bench.service.RobotMotion`). The cmd_vel stream goes on until then, as a joystick's would.
+`halts_base_ms` and `halts_arm_ms` are the two kinds' halts. Then the operator resets the e-stop with
+the token, as `tether reset` does, and the next trial waits for a heartbeat showing the latch clear.
+(Until 2026-11-30 both moved together in each trial; safety refuses that since.)
 
 The sim and safety are real processes started by the Supervisor on their own robot name and ports;
 the sim runs at real time and is asked for odometry and joint states at 500 Hz, but reports at most
@@ -41,11 +43,13 @@ import uuid
 from typing import Any
 
 from bench.service import (
+    MOVING,
     BenchError,
     Heartbeats,
     RobotMotion,
     Stack,
     add_backend_argument,
+    arm_speed,
     bench_main,
     bounded,
     drive,
@@ -107,14 +111,32 @@ def arm_goal_ended(stack: Stack, goal_id: str) -> str:
     return f" (the arm's trajectory ended {reply.state.value}: {reply.message or 'no reason given'})"
 
 
-def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: list[float]) -> float:
-    """One e-stop of the moving robot; ms to the halt. Appends to `heard` the ms to the latched beat."""
-    direction = 1.0 if i % 2 == 0 else -1.0
+def base_moving(state: RobotMotion) -> bool:
+    odom = state.odom.message
+    return odom is not None and abs(odom.linear_x) > MOVING
+
+
+def arm_moving(state: RobotMotion) -> bool:
+    joints = state.joints.message
+    return joints is not None and arm_speed(joints) > MOVING
+
+
+def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: list[float]) -> tuple[str, float]:
+    """One e-stop of the moving base (even trials) or arm (odd); its kind and ms to the halt.
+    Appends to `heard` the ms to the latched beat."""
+    direction = 1.0 if (i // 2) % 2 == 0 else -1.0
     estop = EStop(source=EstopSource.OPERATOR, reason=f"{PROG} trial {i + 1}")
-    with drive(stack.node, direction * SPEED):
+    goal_id: str | None = None
+    if i % 2 == 0:
+        kind = "base"
+        with drive(stack.node, direction * SPEED):
+            wait_until(lambda: base_moving(state), MOVE_TIMEOUT, "the base moving")
+            halt = state.halt_ms(lambda: stack.node.publish(keys.ESTOP, estop), HALT_TIMEOUT)
+    else:
+        kind = "arm"
         goal_id = swing_arm(stack, state, direction)
         try:
-            wait_until(state.moving, MOVE_TIMEOUT, "the base and the arm moving")
+            wait_until(lambda: arm_moving(state), MOVE_TIMEOUT, "the arm moving")
         except BenchError as exc:
             raise BenchError(f"{exc}{arm_goal_ended(stack, goal_id)}") from None
         halt = state.halt_ms(lambda: stack.node.publish(keys.ESTOP, estop), HALT_TIMEOUT)
@@ -122,19 +144,27 @@ def trial(stack: Stack, state: RobotMotion, beats: Heartbeats, i: int, heard: li
     latched_ms = beats.latched_after(state.t0)
     assert latched_ms is not None  # a latched beat arrived after t0, and the latch was clear before
     heard.append(round(latched_ms, 2))
-    # The e-stop ended the trajectory (aborted); collect it so safety forgets it.
-    try:
-        stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=10.0)
-    except CallError as exc:
-        raise BenchError(f"the arm's trajectory after the e-stop: {exc.error.message}") from None
+    if goal_id is not None:
+        # The e-stop ended the trajectory (aborted); collect it so safety forgets it.
+        try:
+            stack.node.call(keys.CMD_TRAJECTORY.get_result, GetResult(goal_id=goal_id), timeout=10.0)
+        except CallError as exc:
+            raise BenchError(f"the arm's trajectory after the e-stop: {exc.error.message}") from None
     reset_latch(stack, beats)
-    return halt
+    return kind, halt
 
 
 def bench(trials: int, backend: str) -> dict[str, Any]:
     with robot_ready("estop", progress, SIM, arm=True, backend=backend, ros2=ROS2) as (stack, state, beats):
         heard: list[float] = []
-        halts = halt_trials(trials, lambda i: trial(stack, state, beats, i, heard), progress, "the e-stop")
+        kinds: dict[str, list[float]] = {"base": [], "arm": []}
+
+        def one(i: int) -> float:
+            kind, halt = trial(stack, state, beats, i, heard)
+            kinds[kind].append(halt)
+            return halt
+
+        halts = halt_trials(trials, one, progress, "the e-stop")
         period = beats.period_ms()
     p50, p99 = ms_summary(halts)
     heard_p50, _ = ms_summary(heard)
@@ -143,6 +173,8 @@ def bench(trials: int, backend: str) -> dict[str, Any]:
         "halt_p99_ms": p99,
         "halt_max_ms": max(halts),
         "halts_ms": halts,
+        "halts_base_ms": kinds["base"],
+        "halts_arm_ms": kinds["arm"],
         "trials": len(halts),
         "heartbeat_period_ms": period,
         "ratio_p50": round(p50 / period, 3) if period else None,
@@ -169,9 +201,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     result = measured(defaults, lambda: bench(args.trials, args.backend), progress)
     result["notes"] = notes(
-        trial="base on a 20 Hz cmd_vel stream at 0.3 m/s and panda_joint1 on a 0.8 rad / 2 s trajectory; "
-        "e-stop once both move faster than 0.1; halt at the first odometry and joint states sample with "
-        "everything below 0.01 (m/s, rad/s), by the robot's stamps",
+        trial="in turn, the base on a 20 Hz cmd_vel stream at 0.3 m/s or panda_joint1 on a 0.8 rad / 2 s "
+        "trajectory (safety lets only one move at a time); e-stop once it moves faster than 0.1; halt at "
+        "the first odometry and joint states sample with everything below 0.01 (m/s, rad/s), by the robot's stamps",
         baseline="heartbeat_period_ms: median gap between safety heartbeats arriving here",
         ratio_p50="halt_p50_ms / heartbeat_period_ms",
         latch_heard="ms from t0 to the first heartbeat showing the latch arriving here: safety's part of the halt",
