@@ -195,7 +195,8 @@ def test_a_plan_too_long_for_the_executor_is_refused_by_its_size(stack: Stack) -
 
     too_long = with_client(stack, body)
     assert too_long.is_error, text(too_long)
-    assert text(too_long).startswith("rejected: the plan is ") and "the limit is 262144" in text(too_long)
+    # Refused before its schema is checked (tether/mcpserver.py: arguments over MAX_PLAN_BYTES as JSON).
+    assert text(too_long).startswith("execute_plan: arguments: ") and "the limit is 262144" in text(too_long)
     assert "reachable" not in text(too_long)
 
 
