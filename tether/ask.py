@@ -50,7 +50,7 @@ from services.planner.node import Planner
 from services.runtime import ConfigError, Node, NodeSettings, load_config
 from tether.client import EXIT_CODES as SEND_EXIT_CODES
 from tether.client import EXIT_UNREACHABLE, PlanSender, cancel_interrupted
-from tether.output import conclude, literal, printable, shown
+from tether.output import conclude, literal, printable, shown, wait_seconds
 from tether.runservice import leave
 
 console = Console(stderr=True)
@@ -217,7 +217,11 @@ def ask(
     config: Annotated[Path | None, typer.Option("--config", help=literal("TOML file with a [planner] table."))] = None,
     preempt: Annotated[bool, typer.Option("--preempt", help="Cancel a plan already running for this one.")] = False,
     timeout: Annotated[
-        float, typer.Option(help="Seconds to wait for the outcome; no model call starts and no plan is sent after.")
+        float,
+        typer.Option(
+            help="Seconds to wait for the outcome; no model call starts and no plan is sent after.",
+            callback=wait_seconds,
+        ),
     ] = 900.0,
     wait: Annotated[
         bool, typer.Option("--wait", help="Wait until the plan and any recovery have ended (succeeded or failed).")

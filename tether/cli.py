@@ -70,7 +70,7 @@ from tether.client import (
     trigger_estop,
 )
 from tether.completion import complete_backend, complete_plan_format, complete_service, complete_services, one_of
-from tether.output import command_node, conclude, literal, printable, shown
+from tether.output import command_node, conclude, literal, printable, shown, wait_seconds
 from tether.runcommand import HELP, common, run
 from tether.supervisor import Restarts, Supervisor, free_base_port
 
@@ -260,19 +260,6 @@ DEMO_PLAN = json.dumps(
 )
 
 app.callback()(common)
-
-# The longest --timeout: a week. Longer ones overflowed the clock's waits (a traceback, after the
-# plan was sent), and no plan nor start-up is meant to take longer.
-MAX_WAIT = 7 * 24 * 3600.0
-
-
-def wait_seconds(value: float) -> float:
-    """A --timeout, refused unless more than 0 and at most MAX_WAIT (NaN too: it compares false).
-    A negative or NaN one had `send` give up only after the plan was sent and moving, and `up`
-    start services it could not wait for."""
-    if not 0 < value <= MAX_WAIT:
-        raise typer.BadParameter(f"must be more than 0 and at most {MAX_WAIT:g} seconds, not {value}")
-    return value
 
 
 def utf8(value: str) -> str:

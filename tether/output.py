@@ -64,3 +64,17 @@ def shown(value: object, newlines: bool = True) -> str:
     """`value` as markup that prints as written, control characters escaped (see printable); on one
     line unless `newlines` (a table cell)."""
     return literal(printable(value, newlines))
+
+
+# The longest --timeout: a week. Longer ones overflowed the clock's waits (a traceback, after the
+# plan was sent), and no plan nor start-up is meant to take longer.
+MAX_WAIT = 7 * 24 * 3600.0
+
+
+def wait_seconds(value: float) -> float:
+    """A --timeout (a typer callback), refused unless more than 0 and at most MAX_WAIT (NaN too: it
+    compares false). A negative or NaN one had `send` give up only after the plan was sent and
+    moving, and `up` start services it could not wait for."""
+    if not 0 < value <= MAX_WAIT:
+        raise typer.BadParameter(f"must be more than 0 and at most {MAX_WAIT:g} seconds, not {value}")
+    return value

@@ -51,6 +51,16 @@ def test_send_refuses_a_timeout_out_of_range_before_sending_the_plan(timeout: st
     assert "'--timeout'" in document["reason"] and "at most 604800 seconds" in document["reason"], document
 
 
+@pytest.mark.parametrize("timeout", BAD_TIMEOUTS)
+def test_ask_refuses_a_timeout_out_of_range_before_asking(timeout: str) -> None:
+    # As send's, checked before anything is asked: send's sent its plan, then gave up at once.
+    run = tether("ask", "go to the kitchen", "--json", "--timeout", timeout)
+    assert run.returncode == 2, run
+    assert "Traceback" not in run.stderr, run.stderr
+    document = json.loads(run.stdout)
+    assert document["status"] == "error" and "at most 604800 seconds" in document["reason"], document
+
+
 @pytest.mark.parametrize("timeout", ["-1", "nan"])
 def test_up_refuses_a_timeout_out_of_range_before_starting_a_service(tmp_path: Path, timeout: str) -> None:
     run = tether("up", "--only", "parser", "--timeout", timeout, "--log-dir", str(tmp_path / "logs"))
