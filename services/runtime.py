@@ -908,8 +908,9 @@ class StopEvent(threading.Event):
 _stopping: StopEvent | None = None
 
 
-def stop_event() -> threading.Event:
-    """An event set by SIGINT or SIGTERM, for a service's main loop to wait on."""
+def stop_event(*, hangup: bool = False) -> threading.Event:
+    """An event set by SIGINT or SIGTERM, for a service's main loop to wait on; with `hangup`, by
+    SIGHUP too (a command whose terminal closes ends as on Ctrl-C)."""
     global _stopping
     stop = _stopping = StopEvent()
 
@@ -917,8 +918,8 @@ def stop_event() -> threading.Event:
         log.info("received %s, shutting down", signal.Signals(signum).name)
         stop.set()
 
-    signal.signal(signal.SIGINT, handle)
-    signal.signal(signal.SIGTERM, handle)
+    for signum in (signal.SIGINT, signal.SIGTERM, *((signal.SIGHUP,) if hangup else ())):
+        signal.signal(signum, handle)
     faulthandler.register(DUMP_STACKS, all_threads=True)
     return stop
 

@@ -17,7 +17,6 @@ import collections
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 import time
@@ -626,10 +625,9 @@ def view(
             arm_frames = ArmFrames(arm_urdf, mount)
         except Exception as exc:  # a URDF pinocchio cannot read: the base alone is shown
             log.warning("arm links not shown: %s", exc)
-    stop = runtime.stop_event()
     # Its terminal closed ends it as Ctrl-C does: by default SIGHUP killed it, and a robot the Teleop
     # panel drove went on with the last twist, no stop sent.
-    signal.signal(signal.SIGHUP, lambda _signum, _frame: stop.set())
+    stop = runtime.stop_event(hangup=True)
     context = foxglove.Context()
     live = LiveView(settings.robot, scene, context, arm_frames)
     teleop_off = None

@@ -144,14 +144,20 @@ class NodeRobot:
             return None
         return next((o for o in scene.objects if o.id == object_id), None)
 
-    def safety_stop(self) -> str | None:
+    def _beat(self) -> SafetyStatus | str:
+        """Safety's latest heartbeat, if fresh; else why there is none."""
         heartbeat = self._heartbeat
         if heartbeat is None:
             return "no safety heartbeat received"
         age = time.monotonic() - heartbeat[0]
         if age > HEARTBEAT_STALE:
             return f"no safety heartbeat for {age:.1f} s"
-        estop = heartbeat[1].estop
+        return heartbeat[1]
+
+    def safety_stop(self) -> str | None:
+        if isinstance(beat := self._beat(), str):
+            return beat
+        estop = beat.estop
         if estop.latched:
             return f"e-stop latched by {estop.source or 'unknown'}: {estop.reason or 'no reason given'}"
         return None
@@ -251,9 +257,9 @@ class NodeRobot:
             log.exception("the e-stop could not be sent")
             return f"latching the e-stop failed: {exc}"
         deadline = time.monotonic() + LATCH_CONFIRM
-        while (held := self.safety_stop()) is None or not held.startswith("e-stop latched"):
+        while isinstance(beat := self._beat(), str) or not beat.estop.latched:
             if time.monotonic() >= deadline:
-                shown = held or "not latched"
+                shown = beat if isinstance(beat, str) else "not latched"
                 return f"the executor sent safety an e-stop, which no heartbeat showed latched ({shown})"
             time.sleep(0.02)  # polling the latest heartbeat with a deadline
         return "the executor latched the e-stop"

@@ -17,7 +17,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, get_args
+from typing import Any, Protocol, TypeVar, get_args
 
 import numpy as np
 
@@ -62,6 +62,8 @@ TRAJECTORY_ERRORS = {
     -5: "GOAL_TOLERANCE_VIOLATED",
 }
 NAV2_ERRORS = {9000: "UNKNOWN", 9001: "FAILED_TO_LOAD_BEHAVIOR_TREE", 9002: "TF_ERROR", 9003: "TIMEOUT"}
+
+R = TypeVar("R")  # a report kept from the robot: odometry, joint states
 
 # A trajectory's goal_time_tolerance: the arm has this long after the last point to settle within
 # the goal tolerance (the sim's TRAJECTORY_SETTLE_TIME).
@@ -906,27 +908,24 @@ class RobotState:
     def odometry(self, max_age: float) -> Odometry | str:
         """The latest odometry if it is at most `max_age` old; else why there is none."""
         with self._changed:
-            odom, age = self._odom, self.clock() - self._odom_at
-        if odom is not None and age <= max_age:
-            return odom
-        why = "no odometry from the robot yet" if odom is None else f"no odometry from the robot for {age:.1f} s"
-        if problem := self.recent_problem(about=("odometry", self.odom_topic.strip("/"))):
-            why += f"; {robot_text(problem)}"  # it may quote the robot (a frame id) at any length
-        return why
+            odom, at = self._odom, self._odom_at
+        return self._fresh(odom, at, max_age, "odometry", ("odometry", self.odom_topic.strip("/")))
 
     def joint_states(self, max_age: float) -> JointState | str:
         """The latest joint states if they are at most `max_age` old; else why there are none."""
         with self._changed:
-            joints, age = self._joints, self.clock() - self._joints_at
-        if joints is not None and age <= max_age:
-            return joints
-        why = (
-            "no joint states from the robot yet"
-            if joints is None
-            else f"no joint states from the robot for {age:.1f} s"
-        )
-        if problem := self.recent_problem(about=("joint states",)):
-            why += f"; {robot_text(problem)}"
+            joints, at = self._joints, self._joints_at
+        return self._fresh(joints, at, max_age, "joint states", ("joint states",))
+
+    def _fresh(self, latest: R | None, at: float, max_age: float, what: str, about: tuple[str, ...]) -> R | str:
+        """`latest`, received at `at`, if it is at most `max_age` old; else why there is none, with the
+        robot's latest problem `about` it."""
+        age = self.clock() - at
+        if latest is not None and age <= max_age:
+            return latest
+        why = f"no {what} from the robot yet" if latest is None else f"no {what} from the robot for {age:.1f} s"
+        if problem := self.recent_problem(about=about):
+            why += f"; {robot_text(problem)}"  # it may quote the robot (a frame id) at any length
         return why
 
     @property

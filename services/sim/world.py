@@ -848,9 +848,17 @@ class SimWorld:
                 return name
         return None
 
-    def touch(self, shape_a: int, centre_a: Position, shape_b: int, centre_b: Position) -> bool:
-        """Whether collision shapes `shape_a` and `shape_b`, upright at those centres, would touch or
-        cut into each other."""
+    def touch(
+        self,
+        shape_a: int,
+        centre_a: Position,
+        shape_b: int,
+        centre_b: Position,
+        yaw_a: float = 0.0,
+        yaw_b: float = 0.0,
+    ) -> bool:
+        """Whether collision shapes `shape_a` and `shape_b`, upright at those centres and turned those
+        yaws, would touch or cut into each other."""
         points = self.bullet.getClosestPoints(
             bodyA=-1,
             bodyB=-1,
@@ -859,29 +867,20 @@ class SimWorld:
             collisionShapeB=shape_b,
             collisionShapePositionA=list(centre_a),
             collisionShapePositionB=list(centre_b),
+            collisionShapeOrientationA=self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw_a]),
+            collisionShapeOrientationB=self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw_b]),
         )
         return bool(points)
 
     def person_in(self, shape: int, centre: Position, yaw: float, moving: str = "") -> str | None:
         """The person (`moving` aside) whose body collision shape `shape` would touch or cut into were
         it put at `centre`, turned `yaw`, named as a refusal says it ("the operator"), or None."""
-        orientation = self.bullet.getQuaternionFromEuler([0.0, 0.0, yaw])
         for human in self.spec.humans:
             if human.id == moving:
                 continue
             stands = self.human_poses[human.id]
-            points = self.bullet.getClosestPoints(
-                bodyA=-1,
-                bodyB=-1,
-                distance=0.0,
-                collisionShapeA=self.human_shape,
-                collisionShapeB=shape,
-                collisionShapePositionA=[stands.x, stands.y, HUMAN_HEIGHT / 2],
-                collisionShapePositionB=list(centre),
-                collisionShapeOrientationA=self.bullet.getQuaternionFromEuler([0.0, 0.0, stands.yaw]),
-                collisionShapeOrientationB=orientation,
-            )
-            if points:
+            body = (stands.x, stands.y, HUMAN_HEIGHT / 2)
+            if self.touch(self.human_shape, body, shape, centre, stands.yaw, yaw):
                 return f"the {human.name}"
         return None
 
